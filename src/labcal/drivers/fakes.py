@@ -1,0 +1,520 @@
+"""Fake serial tracker devices for tests and the simulated rig, plus a scripted transport.
+
+``FakeNDIDevice`` and ``FakeASCIIDevice`` run on the master side of a pseudo-terminal in a background thread;
+pyserial (or the real ``ndicapy`` client) opens ``.port``, the slave path, exactly as it would open a real
+device. Both read target positions from ``points_provider() -> (3, 3)`` metres in the tracker frame, so a
+simulator can feed them the true target positions plus noise.
+
+Limits of a pty: baud-rate changes and serial breaks do not reach the master side. The fake NDI device keeps
+an *emulated* baud rate from the COMM commands it accepted, and ``reset()`` emulates what a break (or power
+cycle) does; the host-side break path is tested with ``ScriptedTransport``.
+
+Fault injection (one-shot, in order, applied to the next measurement request)::
+
+    with FakeNDIDevice(provider, seed=1) as dev:
+        dev.inject("bad_crc")        # also: "no_reply", "garbled", "drop_target", "extra_stray",
+        ...                          # "out_of_volume", "reset", "error:0C" (any hex code)
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import os
+import select
+import threading
+import time
+import tty
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from labcal.drivers.serial.crc import crc16_arc, xor8
+
+PointsProvider = Callable[[], np.ndarray]
+
+# A scalene triangle (sides 100, 70, ~122 mm) about 1.5 m in front of a tracker: a sensible default scene.
+DEFAULT_TRACKER_POINTS = np.array([[0.10, -0.05, -1.50], [0.20, -0.05, -1.50], [0.10, 0.02, -1.50]])
+
+
+def _fixed(points: np.ndarray) -> PointsProvider:
+    frozen = np.array(points, dtype=float)
+    return lambda: frozen.copy()
+
+
+class _PtyDevice:
+    """A line-oriented fake device on a pty master, served by a daemon thread.
+
+    The fake keeps its own handle on the slave open, so clients may open and close the port repeatedly without
+    the master seeing a hang-up; an EIO on the master is still tolerated (the loop waits and carries on).
+    """
+
+    terminator = b"\r"
+    FAULTS: tuple[str, ...] = ()
+
+    def __init__(self, points_provider: PointsProvider | None, seed: int):
+        self.points_provider = points_provider or _fixed(DEFAULT_TRACKER_POINTS)
+        self.rng = np.random.default_rng(seed)
+        self.received: list[str] = []  # every command line, as received (CRC included)
+        self.faults: collections.deque[str] = collections.deque()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)  # no echo, no CR->LF translation before a client configures the port
+        os.set_blocking(self._master, False)
+        self.port = os.ttyname(self._slave)
+        self._thread = threading.Thread(target=self._run, name=f"{type(self).__name__}:{self.port}", daemon=True)
+        self._started = False
+        self._closed = False
+
+    # -- lifecycle -----------------------------------------------------------------------------------------
+
+    def start(self) -> _PtyDevice:
+        if not self._started:
+            self._started = True
+            self._thread.start()
+        return self
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        if self._started:
+            self._thread.join(timeout=2.0)
+        for fd in (self._master, self._slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    def __enter__(self) -> Any:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- faults --------------------------------------------------------------------------------------------
+
+    def inject(self, fault: str, count: int = 1) -> None:
+        """Queue ``fault`` for the next ``count`` measurement requests (see the class's FAULTS)."""
+        kind = fault.split(":", 1)[0]
+        if kind not in self.FAULTS:
+            raise ValueError(f"unknown fault {fault!r}; known: {list(self.FAULTS)}")
+        with self._lock:
+            self.faults.extend([fault] * count)
+
+    def _next_fault(self) -> str | None:
+        with self._lock:
+            return self.faults.popleft() if self.faults else None
+
+    # -- I/O -----------------------------------------------------------------------------------------------
+
+    def send(self, data: bytes, timeout: float = 1.0) -> bool:
+        """Write ``data`` to the client; return False (data dropped) if the client does not drain it in time."""
+        view = memoryview(data)
+        deadline = time.monotonic() + timeout
+        while view:
+            try:
+                n = os.write(self._master, view)
+                view = view[n:]
+                continue
+            except BlockingIOError:
+                pass
+            except OSError:
+                return False  # EIO: no client; a real device talking to an unplugged cable loses the bytes
+            left = deadline - time.monotonic()
+            if left <= 0 or self._stop.is_set():
+                return False
+            select.select([], [self._master], [], min(left, 0.05))
+        return True
+
+    def _run(self) -> None:
+        buf = b""
+        while not self._stop.is_set():
+            try:
+                ready, _, _ = select.select([self._master], [], [], 0.01)
+            except (OSError, ValueError):
+                return  # the fds were closed under us
+            if ready:
+                try:
+                    chunk = os.read(self._master, 4096)
+                except BlockingIOError:
+                    chunk = b""
+                except OSError:
+                    # EIO: the last client closed the slave. Wait for the next one.
+                    time.sleep(0.01)
+                    continue
+                buf += chunk
+                while self.terminator in buf:
+                    line, buf = buf.split(self.terminator, 1)
+                    text = line.decode("ascii", errors="replace")
+                    self.received.append(text)
+                    reply = self.handle(text)
+                    if reply:
+                        self.send(reply)
+            self.tick()
+
+    def handle(self, line: str) -> bytes | None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def tick(self) -> None:
+        """Called about every 10 ms from the device thread (streaming devices send here)."""
+
+
+# ----------------------------------------------------------------------------------------------------------
+# NDI Combined API
+
+
+_NDI_BAUDS = {0: 9600, 1: 14400, 2: 19200, 3: 38400, 4: 57600, 5: 115200, 6: 921600, 7: 1228739, 8: 230400}
+
+
+def _ndi_frame(body: str) -> bytes:
+    data = body.encode("ascii")
+    return data + f"{crc16_arc(data):04X}\r".encode("ascii")
+
+
+class FakeNDIDevice(_PtyDevice):
+    """A Polaris-like NDI Combined API device reporting the targets as passive stray markers.
+
+    points_provider: () -> (3, 3) m, true target positions in the tracker frame (rows t1, t2, t3).
+    shuffle: report strays in a random order (as a real tracker does). extra_stray: always add one spurious
+    reflection. noise: Gaussian noise per coordinate, m (on top of whatever the provider adds). seed: RNG seed.
+
+    State: ``state`` is "reset" (after power-up/reset), "setup" (after INIT) or "tracking"; ``baudrate`` is the
+    emulated rate set by COMM. Replies follow the API: body + CRC16 + CR; ERRORxx for bad commands.
+    """
+
+    FAULTS = ("no_reply", "bad_crc", "garbled", "drop_target", "extra_stray", "out_of_volume", "reset", "error")
+
+    def __init__(
+        self,
+        points_provider: PointsProvider | None = None,
+        *,
+        seed: int = 0,
+        shuffle: bool = True,
+        extra_stray: bool = False,
+        noise: float = 0.0,
+    ):
+        super().__init__(points_provider, seed)
+        self.shuffle = shuffle
+        self.extra_stray = extra_stray
+        self.noise = float(noise)
+        self.state = "reset"
+        self.baudrate = 9600
+        self.system_status = 0
+
+    # -- reset emulation -----------------------------------------------------------------------------------
+
+    def reset(self, announce: bool = True) -> None:
+        """Do what a serial break or power cycle does: lose all state, go back to 9600, say RESETBE6F."""
+        self.state = "reset"
+        self.baudrate = 9600
+        if announce:
+            self.send(_ndi_frame("RESET"))
+
+    # -- commands ------------------------------------------------------------------------------------------
+
+    def handle(self, line: str) -> bytes | None:
+        if ":" in line:
+            name, _, rest = line.partition(":")
+            if len(rest) < 4:
+                return _ndi_frame("ERROR03")
+            params, crc_text = rest[:-4], rest[-4:]
+            try:
+                ok = int(crc_text, 16) == crc16_arc(line[:-4].encode("ascii", errors="replace"))
+            except ValueError:
+                ok = False
+            if not ok:
+                return _ndi_frame("ERROR04")
+        else:
+            name, _, params = line.partition(" ")
+        name = name.strip().upper()
+        handler = getattr(self, f"_cmd_{name.lower()}", None) if name.isalnum() else None
+        if handler is None:
+            return _ndi_frame("ERROR01")
+        return handler(params.strip())
+
+    def _cmd_init(self, params: str) -> bytes:
+        if self.state == "tracking":
+            return _ndi_frame("ERROR0C")
+        self.state = "setup"
+        return _ndi_frame("OKAY")
+
+    def _cmd_comm(self, params: str) -> bytes:
+        if len(params) != 5 or not params.isdigit() or int(params[0]) not in _NDI_BAUDS:
+            return _ndi_frame("ERROR06")
+        if params[1:4] != "000":
+            return _ndi_frame("ERROR06")  # only 8N1 is emulated
+        # OKAY goes out at the old rate; the device then switches (no-op on a pty, recorded for tests).
+        self.baudrate = _NDI_BAUDS[int(params[0])]
+        return _ndi_frame("OKAY")
+
+    def _cmd_tstart(self, params: str) -> bytes:
+        if self.state == "reset":
+            return _ndi_frame("ERROR10")
+        if self.state == "tracking":
+            return _ndi_frame("ERROR0C")
+        self.state = "tracking"
+        return _ndi_frame("OKAY")
+
+    def _cmd_tstop(self, params: str) -> bytes:
+        if self.state != "tracking":
+            return _ndi_frame("ERROR0C")
+        self.state = "setup"
+        return _ndi_frame("OKAY")
+
+    def _cmd_beep(self, params: str) -> bytes:
+        return _ndi_frame("1")
+
+    def _cmd_tx(self, params: str) -> bytes | None:
+        if self.state == "reset":
+            return _ndi_frame("ERROR10")
+        if self.state != "tracking":
+            return _ndi_frame("ERROR0C")
+        try:
+            option = int(params or "0001", 16)
+        except ValueError:
+            return _ndi_frame("ERROR07")
+        fault = self._next_fault()
+        if fault == "no_reply":
+            return None
+        if fault == "reset":
+            self.reset(announce=False)
+            return _ndi_frame("RESET")
+        if fault is not None and fault.startswith("error"):
+            code = fault.partition(":")[2] or "0C"
+            return _ndi_frame(f"ERROR{int(code, 16):02X}")
+        body = "00"  # no tool handles
+        if option & 0x1000:
+            body += self._strays(fault)
+        body += f"{self.system_status:04X}"
+        reply = _ndi_frame(body)
+        if fault == "bad_crc":
+            bad = (crc16_arc(body.encode("ascii")) + 1) & 0xFFFF
+            reply = body.encode("ascii") + f"{bad:04X}\r".encode("ascii")
+        elif fault == "garbled":
+            reply = reply[: len(reply) // 2] + b"\x00#~" + reply[len(reply) // 2 + 3 :]
+        return reply
+
+    def _strays(self, fault: str | None) -> str:
+        points = np.array(self.points_provider(), dtype=float).reshape(3, 3)
+        if self.noise:
+            points = points + self.rng.normal(0.0, self.noise, size=points.shape)
+        oov = [False, False, False]
+        if fault == "drop_target":
+            keep = np.delete(np.arange(3), self.rng.integers(3))
+            points, oov = points[keep], [False, False]
+        if fault == "out_of_volume":
+            oov[int(self.rng.integers(len(oov)))] = True
+        if self.extra_stray or fault == "extra_stray":
+            spurious = points.mean(axis=0) + self.rng.uniform(0.15, 0.3, size=3) * self.rng.choice([-1, 1], 3)
+            points = np.vstack([points, spurious])
+            oov.append(False)
+        order = self.rng.permutation(len(points)) if self.shuffle else np.arange(len(points))
+        points = points[order]
+        oov = [oov[i] for i in order]
+        units = np.rint(points * 1e5).astype(np.int64)  # 0.01 mm
+        for i, row in enumerate(units):
+            if np.any(np.abs(row) > 999_999):
+                oov[i] = True
+        units = np.clip(units, -999_999, 999_999)
+        n = len(points)
+        flags = sum(1 << i for i, flag in enumerate(oov) if flag)
+        text = f"{n:02X}" + (f"{flags:0{math.ceil(n / 4)}X}" if n else "")
+        text += "".join(f"{int(v):+07d}" for v in units.ravel())
+        return text
+
+
+# ----------------------------------------------------------------------------------------------------------
+# ASCII example protocol (drivers/ascii-example.toml)
+
+
+class FakeASCIIDevice(_PtyDevice):
+    """The example ASCII tracker of ``drivers/ascii-example.toml`` (CR LF lines, mm, NMEA-style checksum).
+
+    Commands: ``*IDN?`` -> ``LABCAL,FAKE-3T,0,1.0``; ``UNITS MM`` -> ``OK``; ``MEAS?`` ->
+    ``$PTS,x1,y1,z1,...,z3*HH``; ``STREAM ON``/``STREAM OFF`` -> ``OK`` (while on, a measurement line every
+    1/stream_hz s); anything else -> ``ERR,01``. A target the device cannot see has empty fields.
+    """
+
+    terminator = b"\r\n"
+    FAULTS = ("no_reply", "bad_checksum", "garbled", "drop_target", "error")
+
+    def __init__(
+        self,
+        points_provider: PointsProvider | None = None,
+        *,
+        seed: int = 0,
+        noise: float = 0.0,
+        stream_hz: float = 100.0,
+    ):
+        super().__init__(points_provider, seed)
+        self.noise = float(noise)
+        self.stream_hz = float(stream_hz)
+        self.streaming = False
+        self._next_stream = 0.0
+
+    def _line(self, text: str) -> bytes:
+        return text.encode("ascii") + b"\r\n"
+
+    def measurement_line(self, fault: str | None = None) -> bytes | None:
+        points = np.array(self.points_provider(), dtype=float).reshape(3, 3)
+        if self.noise:
+            points = points + self.rng.normal(0.0, self.noise, size=points.shape)
+        if fault == "no_reply":
+            return None
+        if fault is not None and fault.startswith("error"):
+            return self._line("ERR," + (fault.partition(":")[2] or "05"))
+        fields = [f"{v * 1e3:.4f}" for v in points.ravel()]
+        if fault == "drop_target":
+            k = int(self.rng.integers(3))
+            fields[3 * k : 3 * k + 3] = ["", "", ""]
+        body = "PTS," + ",".join(fields)
+        checksum = xor8(body.encode("ascii")) ^ (0x5A if fault == "bad_checksum" else 0)
+        line = f"${body}*{checksum:02X}"
+        if fault == "garbled":
+            line = line[:10] + "?!" + line[14:]
+        return self._line(line)
+
+    def handle(self, line: str) -> bytes | None:
+        command = line.strip().upper()
+        if command == "*IDN?":
+            return self._line("LABCAL,FAKE-3T,0,1.0")
+        if command == "UNITS MM":
+            return self._line("OK")
+        if command == "MEAS?":
+            return self.measurement_line(self._next_fault())
+        if command in ("STREAM ON", "STREAM OFF"):
+            self.streaming = command == "STREAM ON"
+            self._next_stream = time.monotonic()
+            return self._line("OK")
+        return self._line("ERR,01")
+
+    def tick(self) -> None:
+        if self.streaming and time.monotonic() >= self._next_stream:
+            self._next_stream += 1.0 / self.stream_hz
+            line = self.measurement_line(self._next_fault())
+            if line:
+                # A real streaming device loses lines nobody reads; so does this one (short send timeout).
+                self.send(line, timeout=0.001)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Scripted transport for byte-exact protocol tests
+
+
+BREAK = b"<serial break>"
+
+
+class ScriptedTransport:
+    """A ``serial.Serial`` stand-in that plays a script of (expected bytes written, reply bytes).
+
+    When the bytes written so far equal the next expected chunk, its reply becomes readable; writing anything
+    else fails the test at once (AssertionError naming the step). ``BREAK`` as the expected chunk means a serial
+    break. ``read`` returns b'' when nothing is buffered (a timeout) and advances the fake clock by
+    ``read_timeout`` s, so timeouts cost no real time; pass ``clock=t.clock, sleep=t.sleep`` to the driver.
+    ``events`` logs writes, breaks, baud changes, sleeps and flushes in order. Call ``assert_done()`` at the end.
+    """
+
+    def __init__(
+        self,
+        script: Sequence[tuple[bytes, bytes]],
+        *,
+        baudrate: int = 9600,
+        read_timeout: float = 0.05,
+        pending_input: bytes = b"",
+    ):
+        self.script = list(script)
+        self.step = 0
+        self._written = b""
+        self._input = bytearray(pending_input)
+        self._baudrate = baudrate
+        self.read_timeout = read_timeout
+        self.now = 0.0
+        self.events: list[tuple[str, Any]] = []
+        self.closed = False
+
+    # -- the serial.Serial surface -------------------------------------------------------------------------
+
+    @property
+    def baudrate(self) -> int:
+        return self._baudrate
+
+    @baudrate.setter
+    def baudrate(self, value: int) -> None:
+        self._baudrate = value
+        self.events.append(("baud", value))
+
+    def _expected(self, what: str) -> bytes:
+        if self.closed:
+            raise OSError(f"{what} on a closed port")
+        if self.step >= len(self.script):
+            raise AssertionError(f"script exhausted after {self.step} steps, but the driver did a {what}")
+        return self.script[self.step][0]
+
+    def _advance(self) -> None:
+        self._input += self.script[self.step][1]
+        self.step += 1
+        self._written = b""
+
+    def write(self, data: bytes) -> int:
+        expected = self._expected(f"write of {bytes(data)!r}")
+        self.events.append(("write", bytes(data)))
+        self._written += bytes(data)
+        if expected == BREAK or not expected.startswith(self._written):
+            raise AssertionError(f"script step {self.step}: expected {expected!r}, driver wrote {self._written!r}")
+        if self._written == expected:
+            self._advance()
+        return len(data)
+
+    def send_break(self, duration: float = 0.25) -> None:
+        expected = self._expected("serial break")
+        self.events.append(("break", duration))
+        if expected != BREAK or self._written:
+            raise AssertionError(f"script step {self.step}: expected {expected!r}, driver sent a serial break")
+        self._advance()
+
+    def read(self, size: int = 1) -> bytes:
+        if self.closed:
+            raise OSError("read on a closed port")
+        if not self._input:
+            self.now += self.read_timeout
+            return b""
+        data = bytes(self._input[:size])
+        del self._input[:size]
+        return data
+
+    def reset_input_buffer(self) -> None:
+        self.events.append(("flush", bytes(self._input)))
+        self._input.clear()
+
+    def close(self) -> None:
+        self.closed = True
+        self.events.append(("close", None))
+
+    # -- test helpers --------------------------------------------------------------------------------------
+
+    def clock(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.events.append(("sleep", seconds))
+        self.now += seconds
+
+    def feed(self, data: bytes) -> None:
+        """Make ``data`` readable now (unsolicited device output)."""
+        self._input += data
+
+    def assert_done(self) -> None:
+        """Every scripted exchange happened and every reply byte was read (or deliberately flushed)."""
+        problems = []
+        if self.step != len(self.script):
+            problems.append(f"{len(self.script) - self.step} step(s) unused, next {self.script[self.step]!r}")
+        if self._written:
+            problems.append(f"partial write {self._written!r}")
+        if self._input:
+            problems.append(f"unread reply bytes {bytes(self._input)!r}")
+        if problems:
+            raise AssertionError("scripted transport: " + "; ".join(problems))

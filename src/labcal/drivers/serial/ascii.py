@@ -1,0 +1,149 @@
+"""A configurable ASCII line protocol: one request (or one streamed line) gives the three targets.
+
+The reply regex names the nine coordinates ``t1_x ... t3_z`` in the *device's* axes and unit; the profile's
+``axes`` and ``length_unit`` map them to the tracker frame in metres. An empty coordinate, or one matching the
+profile's ``missing`` regex, means that target was not seen (MeasurementRejected). Optional checksums apply to
+measurement lines: ``nmea`` (``$body*HH``, XOR of the body bytes) or ``crc16-arc`` (body + 4 hex digits).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
+from labcal.drivers.serial.crc import crc16_arc, xor8
+from labcal.drivers.serial.link import SerialLink
+from labcal.drivers.serial.matching import side_lengths
+from labcal.drivers.serial.profiles import AXES, AsciiProfile
+
+
+class DeviceError(ProtocolError):
+    """The device answered with its error reply (``error_reply`` regex); ``code`` is its code group or ''."""
+
+    def __init__(self, message: str, code: str = ""):
+        super().__init__(message)
+        self.code = code
+
+
+def strip_checksum(line: str, kind: str) -> str:
+    """Verify and remove a line checksum; raise ProtocolError when it is missing or wrong."""
+    if kind == "none":
+        return line
+    if kind == "nmea":
+        if not line.startswith("$") or len(line) < 4 or line[-3] != "*":
+            raise ProtocolError(f"line is not framed as $body*HH: {line!r}")
+        body, text = line[1:-3], line[-2:]
+        value = xor8(body.encode("ascii"))
+    elif kind == "crc16-arc":
+        body, text = line[:-4], line[-4:]
+        value = crc16_arc(body.encode("ascii"))
+    else:  # pragma: no cover - the profile loader rejects other kinds
+        raise ValueError(f"unknown checksum {kind!r}")
+    try:
+        got = int(text, 16)
+    except ValueError as exc:
+        raise ProtocolError(f"checksum field {text!r} is not hex in {line!r}") from exc
+    if got != value:
+        raise ProtocolError(f"bad {kind} checksum in {line!r}: got {got:X}, body gives {value:X}")
+    return body
+
+
+def _axis_map(axes: tuple[str, str, str]) -> tuple[list[int], np.ndarray]:
+    index = [AXES.index(a.lstrip("+-")) for a in axes]
+    sign = np.array([-1.0 if a.startswith("-") else 1.0 for a in axes])
+    return index, sign
+
+
+class AsciiProtocol:
+    """The ASCII session on a SerialLink: start (init commands), read_frame, stop (close commands)."""
+
+    def __init__(self, profile: AsciiProfile, targets: np.ndarray, link: SerialLink):
+        self.profile = profile
+        self.link = link
+        self.nominal_sides = side_lengths(targets)
+        self._index, self._sign = _axis_map(profile.axes)
+
+    def _read_text(self) -> str:
+        line = self.link.read_line()
+        try:
+            return line.decode("ascii")
+        except UnicodeDecodeError as exc:
+            raise ProtocolError(f"non-ASCII reply {line!r}") from exc
+
+    def start(self) -> None:
+        for step in self.profile.init:
+            self.link.flush_input()
+            self.link.send_line(step.command)
+            if step.expect is None:
+                continue
+            text = self._read_text()
+            if not step.expect.fullmatch(text):
+                raise ProtocolError(
+                    f"init command {step.command!r}: reply {text!r} does not match {step.expect.pattern!r}"
+                )
+
+    def _fetch_line(self) -> str:
+        self.link.flush_input()
+        if self.profile.mode == "poll":
+            assert self.profile.measure_command is not None
+            self.link.send_line(self.profile.measure_command)
+        else:
+            # After the flush the next bytes may be the tail of a line already under way: skip to a boundary.
+            self.link.read_line()
+        return self._read_text()
+
+    def _parse(self, text: str) -> np.ndarray:
+        p = self.profile
+        if p.error_reply is not None:
+            err = p.error_reply.fullmatch(text)
+            if err is not None:
+                code = err.groupdict().get("code") or ""
+                raise DeviceError(f"device error reply {text!r}", code=code)
+        body = strip_checksum(text, p.checksum)
+        m = p.reply.fullmatch(body)
+        if m is None:
+            raise ProtocolError(f"garbled reply {text!r} does not match {p.reply.pattern!r}")
+        device = np.empty((3, 3))
+        missing = []
+        for t in range(3):
+            for a, axis in enumerate(AXES):
+                value = (m.group(f"t{t + 1}_{axis}") or "").strip()
+                if not value or (p.missing is not None and p.missing.fullmatch(value)):
+                    missing.append(f"t{t + 1}")
+                    continue
+                try:
+                    device[t, a] = float(value)
+                except ValueError as exc:
+                    raise ProtocolError(f"t{t + 1}_{axis} = {value!r} is not a number in {text!r}") from exc
+        if missing:
+            raise MeasurementRejected(f"target(s) {', '.join(dict.fromkeys(missing))} not seen by the tracker")
+        if not np.all(np.isfinite(device)):
+            raise MeasurementRejected(f"non-finite coordinate in {text!r}")
+        return device[:, self._index] * self._sign * p.length_scale
+
+    def read_frame(self) -> tuple[np.ndarray, tuple[str, ...]]:
+        """One frame: (3, 3) target positions in the tracker frame, m; retries garbled lines and timeouts."""
+        last: Exception | None = None
+        for _ in range(self.profile.retries + 1):
+            try:
+                points = self._parse(self._fetch_line())
+                break
+            except DeviceError:
+                raise
+            except (DriverTimeout, ProtocolError) as exc:
+                last = exc
+        else:
+            assert last is not None
+            raise last
+        tol = self.profile.triangle_tolerance
+        if tol is not None:
+            error = np.abs(side_lengths(points) - self.nominal_sides)
+            if np.max(error) > tol:
+                raise MeasurementRejected(
+                    f"measured triangle disagrees with the targets by {np.max(error) * 1e3:.3f} mm > {tol * 1e3:.3f} mm"
+                )
+        return points, ()
+
+    def stop(self) -> None:
+        for command in self.profile.close_commands:
+            self.link.send_line(command)

@@ -1,0 +1,156 @@
+"""Transport and framer: bytes in and out of a serial port, one terminated line at a time.
+
+The transport is anything shaped like ``serial.Serial`` (``write``, ``read``, ``reset_input_buffer``,
+``send_break``, ``close`` and a settable ``baudrate``): a real port from ``serial.serial_for_url`` (device path,
+pty path, ``socket://``, ``loop://``) or a scripted fake in tests. ``SerialLink`` turns every library error into
+a labcal driver error and reads lines against an overall deadline, because pyserial's ``readline`` returns a
+partial line (or ``b''``) on timeout without saying so.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from labcal.drivers.base import ConnectionFailed, DriverTimeout, ProtocolError
+
+
+class Transport(Protocol):
+    """The part of the ``serial.Serial`` API the serial tracker uses."""
+
+    baudrate: int
+
+    def write(self, data: bytes) -> int | None: ...
+
+    def read(self, size: int = 1) -> bytes: ...
+
+    def reset_input_buffer(self) -> None: ...
+
+    def send_break(self, duration: float = 0.25) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def open_serial(url: str, *, baudrate: int, bytesize: int, parity: str, stopbits: float, timeout: float) -> Any:
+    """Open ``url`` with pyserial; raise ConnectionFailed (naming the url) instead of pyserial's errors.
+
+    ``timeout`` (s) is the overall reply timeout; pyserial gets a shorter per-read timeout so the framer's
+    deadline, not the number of bytes that trickle in, bounds each wait.
+    """
+    import serial  # lazily: the math layers and `labcal --help` never need pyserial
+
+    try:
+        return serial.serial_for_url(
+            url,
+            baudrate=baudrate,
+            bytesize=bytesize,
+            parity=parity,
+            stopbits=stopbits,
+            timeout=min(timeout, 0.05),
+            write_timeout=max(timeout, 1.0),
+            xonxoff=False,
+            rtscts=False,
+            dsrdtr=False,
+        )
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise ConnectionFailed(f"cannot open serial port {url!r}: {exc}") from exc
+
+
+def _library_errors() -> tuple[type[BaseException], ...]:
+    try:
+        import serial
+    except ImportError:  # pragma: no cover - pyserial is a dependency
+        return (OSError,)
+    return (serial.SerialException, OSError)
+
+
+class SerialLink:
+    """A transport plus line framing, with labcal exceptions only.
+
+    clock: monotonic time source in s (injected so scripted tests can simulate timeouts instantly).
+    sleep: delay function in s (injected for the same reason).
+    """
+
+    def __init__(
+        self,
+        transport: Transport,
+        *,
+        write_terminator: bytes,
+        read_terminator: bytes,
+        timeout: float,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+        max_line: int = 8192,
+    ):
+        if not read_terminator:
+            raise ValueError("read_terminator must not be empty")
+        self.transport = transport
+        self.write_terminator = write_terminator
+        self.read_terminator = read_terminator
+        self.timeout = float(timeout)
+        self.clock = clock
+        self.sleep = sleep
+        self.max_line = max_line
+        self._errors = _library_errors()
+        self.closed = False
+
+    # -- raw operations, errors translated -------------------------------------------------------------------
+
+    def _call(self, what: str, fn: Callable[..., Any], *args: Any) -> Any:
+        if self.closed:
+            raise ConnectionFailed(f"serial link is closed (during {what})")
+        try:
+            return fn(*args)
+        except self._errors as exc:
+            raise ConnectionFailed(f"serial {what} failed: {exc}") from exc
+
+    def flush_input(self) -> None:
+        """Discard stale input (left over from an earlier failed exchange or a streaming device)."""
+        self._call("input flush", self.transport.reset_input_buffer)
+
+    def write(self, data: bytes) -> None:
+        written = self._call("write", self.transport.write, data)
+        if written is not None and written != len(data):
+            raise DriverTimeout(f"wrote only {written} of {len(data)} bytes")
+
+    def send_line(self, text: str | bytes) -> None:
+        data = text.encode("ascii") if isinstance(text, str) else text
+        self.write(data + self.write_terminator)
+
+    def send_break(self, duration: float = 0.25) -> None:
+        self._call("break", self.transport.send_break, duration)
+
+    def set_baudrate(self, baudrate: int) -> None:
+        self._call("baud rate change", setattr, self.transport, "baudrate", int(baudrate))
+
+    def read_line(self, timeout: float | None = None) -> bytes:
+        """Read up to and including the read terminator; return the line without it.
+
+        Raises DriverTimeout (with whatever partial bytes arrived) when the terminator does not arrive within
+        ``timeout`` s (default: the link timeout), ProtocolError when the line exceeds ``max_line`` bytes.
+        """
+        wait = self.timeout if timeout is None else timeout
+        deadline = self.clock() + wait
+        buf = bytearray()
+        term = self.read_terminator
+        while True:
+            chunk = self._call("read", self.transport.read, 1)
+            if chunk:
+                buf += chunk
+                if buf.endswith(term):
+                    return bytes(buf[: -len(term)])
+                if len(buf) > self.max_line:
+                    raise ProtocolError(f"reply longer than {self.max_line} bytes without terminator {term!r}")
+            elif self.clock() >= deadline:
+                detail = f"; partial reply {bytes(buf)!r}" if buf else ""
+                raise DriverTimeout(f"no complete reply within {wait:.3g} s{detail}")
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self.transport.close()
+        except self._errors:
+            pass  # closing a port that already vanished is not an error worth reporting

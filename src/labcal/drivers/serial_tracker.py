@@ -1,0 +1,43 @@
+"""Serial three-target tracker driver: pyserial transport -> framer -> protocol profile -> ``Tracker`` port.
+
+Profiles (TOML, see the repository's ``drivers/`` folder): a configurable ASCII line protocol and the NDI
+Combined API (Polaris passive stray markers). Everything is in SI units (m, s) once it leaves this driver.
+
+    with open_tracker("drivers/ndi-polaris.toml", targets, url="/dev/ttyUSB0") as tracker:
+        m = tracker.measure(samples=5)
+"""
+
+from labcal.drivers.serial.crc import crc16_arc
+from labcal.drivers.serial.link import SerialLink, Transport, open_serial
+from labcal.drivers.serial.matching import check_scalene, match_targets
+from labcal.drivers.serial.ndi import NDIError, encode_command
+from labcal.drivers.serial.profiles import (
+    AsciiProfile,
+    NDIProfile,
+    PortSettings,
+    Profile,
+    ProfileError,
+    load_profile,
+    parse_profile,
+)
+from labcal.drivers.serial.tracker import SerialTracker, open_tracker
+
+__all__ = [
+    "AsciiProfile",
+    "NDIError",
+    "NDIProfile",
+    "PortSettings",
+    "Profile",
+    "ProfileError",
+    "SerialLink",
+    "SerialTracker",
+    "Transport",
+    "check_scalene",
+    "crc16_arc",
+    "encode_command",
+    "load_profile",
+    "match_targets",
+    "open_serial",
+    "open_tracker",
+    "parse_profile",
+]
