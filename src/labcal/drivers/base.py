@@ -1,0 +1,199 @@
+"""Driver ports: what a session needs from a robot and a tracker, and labcal's own driver errors.
+
+Sessions talk to these Protocols only; the CLI picks the concrete driver (sim, serial tracker, UR). Every
+concrete driver is a context manager whose ``close()`` is safe to call twice.
+
+Units: metres, radians, seconds everywhere here. Devices that speak millimetres or degrees convert at the
+driver's edge.
+
+Example::
+
+    with SimRig(...).robot() as robot, SimRig(...).tracker() as tracker:
+        limits.check_motion(q, speed=0.5, acceleration=1.0)
+        robot.move_joints(q, speed=0.5, acceleration=1.0)
+        m = tracker.measure(samples=5)   # m.points: (3, 3) metres, rows t1, t2, t3
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+# --------------------------------------------------------------------------------------------------------------
+# Errors. Library exceptions (RuntimeError from ur-rtde, SerialException from pyserial) never escape a driver.
+
+
+class DriverError(Exception):
+    """Base class of every error a driver raises."""
+
+
+class ConnectionFailed(DriverError):
+    """The device could not be reached or the connection was lost."""
+
+
+class DriverTimeout(DriverError):
+    """The device did not answer in time."""
+
+
+class ProtocolError(DriverError):
+    """The device answered something the protocol does not allow (garbled reply, bad CRC, ERRORxx)."""
+
+
+class StaleData(DriverError):
+    """The device keeps answering, but its timestamp stopped advancing."""
+
+
+class MotionRejected(DriverError):
+    """A motion was refused before it started (joint limit, speed or acceleration cap, robot not ready)."""
+
+
+class MotionFailed(DriverError):
+    """The robot accepted a motion but did not complete it (controller returned failure)."""
+
+
+class ProtectiveStop(DriverError):
+    """The robot entered a protective stop; the session pauses and can be resumed after it is cleared."""
+
+
+class EmergencyStop(ProtectiveStop):
+    """The robot is emergency-stopped."""
+
+
+class MeasurementRejected(DriverError):
+    """A tracker frame was received but is unusable (missing target, inconsistent triangle, out of volume)."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Value types.
+
+
+@dataclass(frozen=True)
+class RobotState:
+    """A snapshot of the robot controller.
+
+    q: (n,) actual joint positions, rad (m for prismatic joints); timestamp: controller time, s.
+    """
+
+    q: np.ndarray
+    timestamp: float
+    protective_stop: bool = False
+    emergency_stop: bool = False
+    ready: bool = True
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One (possibly averaged) tracker reading of the three targets.
+
+    points: (3, 3) target positions in the tracker frame, metres, rows in target order t1, t2, t3.
+    spread: (3,) per-target RMS distance of the averaged samples from their mean, metres (0 for one sample).
+    timestamp: time of the last sample, s (device clock if it has one, else host monotonic clock).
+    quality: free-form flags from the device, e.g. ("out_of_volume:t2",); empty when all is well.
+    """
+
+    points: np.ndarray
+    timestamp: float
+    spread: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    samples: int = 1
+    quality: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class SafetyLimits:
+    """Joint limits and motion caps, checked before any motion is sent to a robot.
+
+    joint_limits: (n, 2) [lo, hi] per joint (rad or m); max_speed in rad/s; max_acceleration in rad/s².
+    """
+
+    joint_limits: np.ndarray
+    max_speed: float = 1.0
+    max_acceleration: float = 1.4
+
+    def check_motion(self, q: np.ndarray, speed: float, acceleration: float) -> np.ndarray:
+        """Return q as a float array if the motion is allowed, else raise MotionRejected naming the cause."""
+        q = np.asarray(q, dtype=float)
+        limits = np.asarray(self.joint_limits, dtype=float)
+        if q.shape != (limits.shape[0],):
+            raise MotionRejected(f"target has {q.shape} joint values, the robot has {limits.shape[0]} joints")
+        if not np.all(np.isfinite(q)):
+            raise MotionRejected(f"target contains non-finite joint values: {q.tolist()}")
+        for j, (value, (lo, hi)) in enumerate(zip(q, limits, strict=True)):
+            if not lo <= value <= hi:
+                raise MotionRejected(f"joint {j + 1} target {value:.6f} is outside its limits [{lo:.6f}, {hi:.6f}]")
+        if not (np.isfinite(speed) and 0 < speed <= self.max_speed):
+            raise MotionRejected(f"speed {speed} rad/s is outside (0, {self.max_speed}] rad/s")
+        if not (np.isfinite(acceleration) and 0 < acceleration <= self.max_acceleration):
+            raise MotionRejected(f"acceleration {acceleration} rad/s² is outside (0, {self.max_acceleration}] rad/s²")
+        return q
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Ports.
+
+
+@runtime_checkable
+class Robot(Protocol):
+    """A joint-space positioned robot. ``move_joints`` blocks until the motion ends."""
+
+    n_joints: int
+    limits: SafetyLimits
+
+    def move_joints(self, q: np.ndarray, speed: float, acceleration: float) -> None:
+        """Move to q (n,), checking ``limits`` first. Raises MotionRejected, MotionFailed, ProtectiveStop."""
+        ...
+
+    def joint_positions(self) -> np.ndarray:
+        """Actual joint positions (n,)."""
+        ...
+
+    def state(self) -> RobotState:
+        """Controller snapshot including safety state."""
+        ...
+
+    def stop(self) -> None:
+        """Stop any motion. Always safe to call, also after close or after an error."""
+        ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> Robot: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+
+@runtime_checkable
+class Tracker(Protocol):
+    """A 3D tracker that measures the three targets on the end effector."""
+
+    def measure(self, samples: int = 1) -> Measurement:
+        """Average ``samples`` frames. Raises MeasurementRejected, DriverTimeout, ProtocolError."""
+        ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> Tracker: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+
+def average_frames(frames: list[np.ndarray], timestamp: float, quality: tuple[str, ...] = ()) -> Measurement:
+    """Average k frames of (3, 3) points into one Measurement with per-target RMS spread.
+
+    >>> m = average_frames([np.zeros((3, 3)), np.ones((3, 3)) * 2e-6], timestamp=1.0)
+    >>> m.points[0, 0], round(float(m.spread[0]) * 1e6, 3)
+    (1e-06, 1.732)
+    """
+    stack = np.asarray(frames, dtype=float)
+    if stack.ndim != 3 or stack.shape[1:] != (3, 3) or stack.shape[0] == 0:
+        raise MeasurementRejected(f"expected k frames of 3 targets x 3 coordinates, got shape {stack.shape}")
+    if not np.all(np.isfinite(stack)):
+        raise MeasurementRejected("a frame contains a missing (non-finite) target coordinate")
+    mean = stack.mean(axis=0)
+    spread = np.sqrt(np.mean(np.sum((stack - mean) ** 2, axis=2), axis=0))
+    return Measurement(points=mean, timestamp=timestamp, spread=spread, samples=stack.shape[0], quality=quality)

@@ -1,0 +1,286 @@
+"""The local product-of-exponentials model of a serial robot (paper eq. 1-7, 10-14).
+
+Each link j carries a frame K_j on joint j's axis. At joint value q_j the relative pose of K_j is
+``A_j(0) · exp(ξ̂_j q_j)``, with the unit twist ξ_j expressed in K_j (z by default, eq. 5). The tool pose is::
+
+    T_base_tool(q) = A_1(0) e^{ξ̂_1 q_1} · A_2(0) e^{ξ̂_2 q_2} ··· A_n(0) e^{ξ̂_n q_n} · A_{n+1}(0)
+
+Pose errors are spatial twists δy in the base frame K0, defined by ``T_actual = exp(δŷ) · T_nominal``.
+
+Worked example (a planar 2R arm, 1 m links)::
+
+    >>> from labcal.kinematics.se3 import pose
+    >>> m = LocalPOEModel.from_frames([pose([0, 0, 0]), pose([1, 0, 0]), pose([1, 0, 0])], ("revolute",) * 2)
+    >>> np.round(m.fk(np.array([np.pi / 2, 0.0]))[:3, 3], 12) + 0.0
+    array([0., 2., 0.])
+    >>> m.joint_twists(np.zeros(2)).shape   # (k, 6, n), k = 1 for a single configuration
+    (1, 6, 2)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from labcal.kinematics import se3
+
+REVOLUTE, PRISMATIC = "revolute", "prismatic"
+_Z_REVOLUTE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+_Z_PRISMATIC = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+
+
+def default_twist(joint_type: str) -> np.ndarray:
+    """The unit joint twist of eq. (5) in the local frame: rotation about z or translation along z."""
+    if joint_type == REVOLUTE:
+        return _Z_REVOLUTE.copy()
+    if joint_type == PRISMATIC:
+        return _Z_PRISMATIC.copy()
+    raise ValueError(f"joint type must be 'revolute' or 'prismatic', got {joint_type!r}")
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class LocalPOEModel:
+    """An immutable local-POE robot model.
+
+    frames: (n+1, 4, 4) initial relative frames A_1(0) … A_{n+1}(0); the last is the tool frame.
+    joint_types: n entries, "revolute" or "prismatic".
+    twists: (n, 6) unit joint twists (v, ω) in the local frames K_j.
+    limits: (n, 2) joint limits [lo, hi] in rad (m for prismatic joints).
+    """
+
+    frames: np.ndarray
+    joint_types: tuple[str, ...]
+    twists: np.ndarray
+    limits: np.ndarray
+    name: str = ""
+    joint_names: tuple[str, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        n = len(self.joint_types)
+        frames, twists, limits = _readonly(self.frames), _readonly(self.twists), _readonly(self.limits)
+        if frames.shape != (n + 1, 4, 4):
+            raise ValueError(f"frames must have shape ({n + 1}, 4, 4) for {n} joints, got {frames.shape}")
+        if twists.shape != (n, 6):
+            raise ValueError(f"twists must have shape ({n}, 6), got {twists.shape}")
+        if limits.shape != (n, 2) or np.any(limits[:, 0] > limits[:, 1]):
+            raise ValueError(f"limits must be ({n}, 2) with lo <= hi, got {limits.tolist()}")
+        for j, (t, xi) in enumerate(zip(self.joint_types, twists, strict=True)):
+            default_twist(t)  # validates the type
+            part = xi[3:] if t == REVOLUTE else xi[:3]
+            if not np.isclose(np.linalg.norm(part), 1.0, atol=1e-9):
+                raise ValueError(f"joint {j + 1}: the twist's {'axis' if t == REVOLUTE else 'direction'} is not unit")
+            if t == PRISMATIC and np.linalg.norm(xi[3:]) > 1e-12:
+                raise ValueError(f"joint {j + 1}: a prismatic twist has no angular part")
+        if not np.all(np.isfinite(frames)) or not np.allclose(frames[:, 3], [0, 0, 0, 1]):
+            raise ValueError("frames must be finite homogeneous transforms")
+        names = tuple(self.joint_names) or tuple(f"joint{j + 1}" for j in range(n))
+        if len(names) != n:
+            raise ValueError(f"joint_names has {len(names)} entries for {n} joints")
+        object.__setattr__(self, "frames", frames)
+        object.__setattr__(self, "twists", twists)
+        object.__setattr__(self, "limits", limits)
+        object.__setattr__(self, "joint_types", tuple(self.joint_types))
+        object.__setattr__(self, "joint_names", names)
+        # Joints about the local z axis get a closed-form cos/sin exponential (the common case: 10x faster).
+        object.__setattr__(
+            self,
+            "_z_joint",
+            tuple(np.array_equal(xi, default_twist(t)) for t, xi in zip(self.joint_types, twists, strict=True)),
+        )
+
+    @classmethod
+    def from_frames(
+        cls,
+        frames,
+        joint_types,
+        twists=None,
+        limits=None,
+        name: str = "",
+        joint_names=(),
+    ) -> LocalPOEModel:
+        """Build a model; default twists from eq. (5), default limits ±π (revolute) / ±1 m (prismatic)."""
+        joint_types = tuple(joint_types)
+        if twists is None:
+            twists = np.array([default_twist(t) for t in joint_types]).reshape(len(joint_types), 6)
+        if limits is None:
+            limits = np.array([[-np.pi, np.pi] if t == REVOLUTE else [-1.0, 1.0] for t in joint_types])
+        return cls(
+            np.asarray(frames, float),
+            joint_types,
+            np.asarray(twists, float),
+            np.asarray(limits, float),
+            name,
+            tuple(joint_names),
+        )
+
+    # ----------------------------------------------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        """Number of actuated joints."""
+        return len(self.joint_types)
+
+    def _as_batch(self, q) -> tuple[np.ndarray, bool]:
+        q = np.asarray(q, dtype=float)
+        single = q.ndim == 1
+        q2 = q[None, :] if single else q
+        if q2.ndim != 2 or q2.shape[1] != self.n:
+            raise ValueError(f"q must have shape ({self.n},) or (k, {self.n}), got {q.shape}")
+        return q2, single
+
+    def _joint_exp(self, j: int, qj: np.ndarray) -> np.ndarray:
+        """(k,) joint values → (k, 4, 4) exp(ξ̂_j q_j)."""
+        if self._z_joint[j]:
+            out = np.zeros((qj.shape[0], 4, 4))
+            if self.joint_types[j] == REVOLUTE:
+                c, s = np.cos(qj), np.sin(qj)
+                out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
+                out[:, 2, 2] = out[:, 3, 3] = 1.0
+            else:
+                out[:, 0, 0] = out[:, 1, 1] = out[:, 2, 2] = out[:, 3, 3] = 1.0
+                out[:, 2, 3] = qj
+            return out
+        return se3.exp_se3(self.twists[j] * qj[:, None])
+
+    def _chain(self, q2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Walk the chain once. Returns (initial_frames (k, n+1, 4, 4), tool pose (k, 4, 4)).
+
+        initial_frames[:, j] is the pose in K0 of frame K_{j+1} before its own joint moves it, i.e.
+        ``prod_{i<=j}(A_i e^{ξ_i q_i}) · A_{j+1}(0)`` — the frame whose adjoint is Ad_{j0} in eq. (10).
+        """
+        k = q2.shape[0]
+        initial = np.empty((k, self.n + 1, 4, 4))
+        T = np.broadcast_to(self.frames[0], (k, 4, 4))
+        for j in range(self.n):
+            initial[:, j] = T
+            T = T @ self._joint_exp(j, q2[:, j])
+            T = T @ self.frames[j + 1]
+        initial[:, self.n] = T
+        return initial, T
+
+    # ----------------------------------------------------------------------------------------------------------
+    def fk(self, q) -> np.ndarray:
+        """Tool pose T_base_tool: q (n,) → (4, 4); q (k, n) → (k, 4, 4)."""
+        q2, single = self._as_batch(q)
+        _, T = self._chain(q2)
+        return T[0] if single else T
+
+    def link_frames(self, q) -> np.ndarray:
+        """(k, n+1, 4, 4) poses in K0 of K_1 … K_{n+1} before their joints move them (see _chain)."""
+        q2, _ = self._as_batch(q)
+        return self._chain(q2)[0]
+
+    def fk_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
+        """(k, 4, 4) tool poses and (k, 6, n) actuated joint twists in K0, from one walk of the chain."""
+        q2, _ = self._as_batch(q)
+        initial, T = self._chain(q2)
+        R, p = initial[:, : self.n, :3, :3], initial[:, : self.n, :3, 3]
+        v_loc, w_loc = self.twists[:, :3], self.twists[:, 3:]
+        w = np.einsum("kjab,jb->kja", R, w_loc)
+        v = np.einsum("kjab,jb->kja", R, v_loc) + np.cross(p, w)
+        twists = np.concatenate([v, w], axis=-1).transpose(0, 2, 1)
+        return T, twists
+
+    def joint_twists(self, q) -> np.ndarray:
+        """Actuated joint twists in K0, (k, 6, n): the spatial Jacobian, J_ρ of eq. (14) when n = 6.
+
+        Column j is ``Ad(K_j) ξ_j``: the pose error twist caused by a small motion error of joint j.
+        """
+        return self.fk_and_twists(q)[1]
+
+    def equivalent_jacobian(self, q, length_scale: float | None = None) -> np.ndarray:
+        """(k, 6, 6) Jacobian of the equivalent robot (eq. 12-14): actuated twists, then 6 − n virtual twists.
+
+        For n < 6 the virtual joints span the motions the ideal robot cannot make. They are built from the
+        orthogonal complement of the actuated twists in a length-scaled metric (linear parts divided by
+        ``length_scale``, default: the robot's reach at q = 0, at least 0.1 m): the six unit coordinate twists are
+        projected onto that complement, the 6 − n with the largest projections (ties broken by index) are
+        orthonormalised in index order. For the usual lower-mobility robots (e.g. a SCARA, whose complement is
+        spanned by rotations about x and y) this picks a constant basis, so the virtual joint errors are smooth
+        functions of q.
+        """
+        _, J = self.fk_and_twists(q)
+        k, n = J.shape[0], self.n
+        if n >= 6:
+            return J
+        L = length_scale if length_scale is not None else self.reach()
+        D = np.array([1 / L] * 3 + [1.0] * 3)
+        out = np.empty((k, 6, 6))
+        out[:, :, :n] = J
+        for i in range(k):
+            Q, _ = np.linalg.qr(D[:, None] * J[i])
+            P = np.eye(6) - Q @ Q.T
+            norms = np.linalg.norm(P, axis=0)
+            chosen = np.sort(np.argsort(-norms, kind="stable")[: 6 - n])
+            basis = []
+            for c in chosen:
+                u = P[:, c].copy()
+                for b in basis:
+                    u -= (b @ u) * b
+                basis.append(u / np.linalg.norm(u))
+            out[i, :, n:] = np.array(basis).T / D[:, None]
+        return out
+
+    def frame_jacobian(self, q) -> np.ndarray:
+        """(k, 6, 6(n+1)): d δy / d δζ for right-perturbed frames ``A_j(0) · exp(δζ̂_j)``, j = 1 … n+1 (eq. 11).
+
+        Block j is Ad_{j0}, the adjoint of frame K_j at the configuration before its joint moves it.
+        """
+        q2, _ = self._as_batch(q)
+        initial, _ = self._chain(q2)
+        Ad = se3.adjoint(initial)  # (k, n+1, 6, 6)
+        return Ad.transpose(0, 2, 1, 3).reshape(q2.shape[0], 6, 6 * (self.n + 1))
+
+    def target_points(self, q, targets) -> np.ndarray:
+        """Positions in K0 of target points given in the tool frame: targets (m, 3) → (k, m, 3)."""
+        q2, _ = self._as_batch(q)
+        T = self._chain(q2)[1]
+        targets = np.asarray(targets, dtype=float)
+        return np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
+
+    def reach(self) -> float:
+        """Distance from the base origin to the tool at q = 0 plus the link offsets: a length scale (m)."""
+        offsets = np.linalg.norm(self.frames[:, :3, 3], axis=1).sum()
+        return float(max(offsets, 0.1))
+
+    # ----------------------------------------------------------------------------------------------------------
+    def perturbed(self, delta_zeta) -> LocalPOEModel:
+        """A new model with frames ``A_j(0) · exp(δζ̂_j)``; delta_zeta (n+1, 6) or flat (6(n+1),)."""
+        dz = np.asarray(delta_zeta, dtype=float).reshape(self.n + 1, 6)
+        return self.replace(frames=self.frames @ se3.exp_se3(dz))
+
+    def replace(self, **changes) -> LocalPOEModel:
+        """A copy with some fields replaced (frames, twists, limits, name …)."""
+        fields = dict(
+            frames=self.frames,
+            joint_types=self.joint_types,
+            twists=self.twists,
+            limits=self.limits,
+            name=self.name,
+            joint_names=self.joint_names,
+        )
+        fields.update(changes)
+        return LocalPOEModel(**fields)
+
+    def with_tool(self, T_flange_tool) -> LocalPOEModel:
+        """A copy whose tool frame is moved by T_flange_tool (4, 4), expressed in the current tool frame."""
+        frames = self.frames.copy()
+        frames[-1] = frames[-1] @ np.asarray(T_flange_tool, float)
+        return self.replace(frames=frames)
+
+    def with_base(self, T_world_base) -> LocalPOEModel:
+        """A copy expressed in another world frame: K0 becomes the frame in which T_world_base is given."""
+        frames = self.frames.copy()
+        frames[0] = np.asarray(T_world_base, float) @ frames[0]
+        return self.replace(frames=frames)
+
+    def within_limits(self, q, margin: float = 0.0) -> np.ndarray:
+        """(k,) bool: every joint inside [lo + margin, hi − margin]."""
+        q2, _ = self._as_batch(q)
+        return np.all((q2 >= self.limits[:, 0] + margin) & (q2 <= self.limits[:, 1] - margin), axis=1)

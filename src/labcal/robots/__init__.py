@@ -1,0 +1,211 @@
+"""Robot model files (TOML) and the built-in robots.
+
+A robot file (DESIGN.md section 4)::
+
+    name = "ur10"
+    kinematics = "dh"            # "dh" | "mdh" | "poe"
+    [[joints]]                   # one table per joint, base to tool
+    type = "revolute"            # or "prismatic"
+    a = 0.0                      # dh/mdh: a, alpha, d, theta in m / rad
+    alpha = 1.5707963267948966
+    d = 0.1273
+    theta = 0.0
+    # poe instead: xyz = [..], rpy = [..] (pose of K_j in K_{j-1} at q = 0), axis = [0, 0, 1]
+    limits = [-6.283, 6.283]     # rad (m for prismatic)
+    mass = 7.1                   # optional, kg: the link moved by this joint
+    com = [0.0, 0.0, 0.06]       # optional, m, base frame with all joints at 0 (default: link midpoint)
+    [tool]                       # optional: flange → tool
+    xyz = [0, 0, 0]
+    rpy = [0, 0, 0]
+    mass = 0.0                   # optional payload, kg
+
+Built-ins: ``ur5e``, ``ur10``, ``ur10e``, ``fanuc-m1000ia``, ``scara4``. A path ending in ``.urdf`` loads a URDF.
+
+Example::
+
+    >>> spec = load("ur10")
+    >>> spec.model.n, spec.name, len(spec.hash)
+    (6, 'ur10', 64)
+"""
+
+from __future__ import annotations
+
+import hashlib
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from labcal.kinematics import se3
+from labcal.kinematics.conversions import from_dh, from_mdh, from_urdf
+from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
+
+BUILTINS = ("ur5e", "ur10", "ur10e", "fanuc-m1000ia", "scara4")
+
+
+class RobotFileError(ValueError):
+    """A robot model file is missing, unreadable or has a bad field (the message names it)."""
+
+
+@dataclass(frozen=True, eq=False)
+class RobotSpec:
+    """A loaded robot: its nominal model, mass model and identity.
+
+    masses: (n+1,) kg for links 1..n and the tool payload; coms: (n+1, 3) m in the base frame at q = 0.
+    hash: sha256 of the model's numbers (:func:`model_hash`), so reformatting a file keeps its identity.
+    """
+
+    name: str
+    model: LocalPOEModel
+    masses: np.ndarray
+    coms: np.ndarray
+    source: str
+    hash: str
+
+
+def model_hash(model: LocalPOEModel) -> str:
+    """sha256 over joint types, frames, twists and limits (float64 bytes): the identity of a robot model."""
+    h = hashlib.sha256()
+    h.update(",".join(model.joint_types).encode())
+    for array in (model.frames, model.twists, model.limits):
+        h.update(np.ascontiguousarray(array, dtype="<f8").tobytes())
+    return h.hexdigest()
+
+
+def builtin_path(name: str) -> Path:
+    return Path(str(resources.files("labcal.robots").joinpath(f"{name}.toml")))
+
+
+def load(name_or_path: str | Path) -> RobotSpec:
+    """Load a built-in robot by name, or a TOML / URDF robot file by path."""
+    text = str(name_or_path)
+    if text in BUILTINS:
+        path = builtin_path(text)
+    else:
+        path = Path(text)
+        if not path.is_file():
+            raise RobotFileError(f"robot {text!r} is neither a built-in ({', '.join(BUILTINS)}) nor an existing file")
+    if path.suffix.lower() == ".urdf":
+        model = from_urdf(path.read_text())
+        return _spec(model.name or path.stem, model, {}, [], {}, str(path))
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise RobotFileError(f"{path}: not valid TOML: {err}") from err
+    return parse(data, source=str(path))
+
+
+def parse(data: dict, source: str = "<dict>") -> RobotSpec:
+    """Build a RobotSpec from the parsed TOML of a robot file; errors name the file and field."""
+
+    def fail(msg: str) -> RobotFileError:
+        return RobotFileError(f"{source}: {msg}")
+
+    name = data.get("name")
+    if not isinstance(name, str) or not name:
+        raise fail("'name' must be a non-empty string")
+    kind = data.get("kinematics")
+    if kind not in ("dh", "mdh", "poe"):
+        raise fail(f'\'kinematics\' must be "dh", "mdh" or "poe", got {kind!r}')
+    joints = data.get("joints")
+    if not isinstance(joints, list) or not joints:
+        raise fail("needs at least one [[joints]] table")
+    tool = data.get("tool", {})
+    if not isinstance(tool, dict):
+        raise fail("[tool] must be a table")
+
+    rows = []
+    for j, row in enumerate(joints, start=1):
+        where = f"joints[{j}]"
+        jtype = row.get("type", REVOLUTE)
+        if jtype not in (REVOLUTE, PRISMATIC):
+            raise fail(f'{where}.type must be "revolute" or "prismatic", got {jtype!r}')
+        keys = ("a", "alpha", "d", "theta") if kind in ("dh", "mdh") else ()
+        clean = {"type": jtype}
+        for key in keys:
+            clean[key] = _number(row, key, where, fail)
+        if kind == "poe":
+            clean["xyz"] = _vector(row, "xyz", where, fail, default=None)
+            clean["rpy"] = _vector(row, "rpy", where, fail, default=[0.0, 0.0, 0.0])
+            clean["axis"] = _vector(row, "axis", where, fail, default=[0.0, 0.0, 1.0])
+            if np.linalg.norm(clean["axis"]) < 1e-12:
+                raise fail(f"{where}.axis must not be zero")
+        if "limits" in row:
+            lim = row["limits"]
+            if not (isinstance(lim, list) and len(lim) == 2 and all(isinstance(x, int | float) for x in lim)):
+                raise fail(f"{where}.limits must be [lo, hi] numbers, got {lim!r}")
+            if lim[0] > lim[1]:
+                raise fail(f"{where}.limits: lo {lim[0]} is greater than hi {lim[1]}")
+            clean["limits"] = [float(lim[0]), float(lim[1])]
+        rows.append(clean)
+
+    T_tool = se3.pose(
+        _vector(tool, "xyz", "tool", fail, [0.0, 0.0, 0.0]), _vector(tool, "rpy", "tool", fail, [0.0] * 3)
+    )
+    names = tuple(str(row.get("name", f"joint{j + 1}")) for j, row in enumerate(joints))
+    if kind == "dh":
+        model = from_dh(rows, T_tool, name=name, joint_names=names)
+    elif kind == "mdh":
+        model = from_mdh(rows, T_tool, name=name, joint_names=names)
+    else:
+        frames = [se3.pose(r["xyz"], r["rpy"]) for r in rows] + [T_tool]
+        twists = [
+            np.concatenate([np.zeros(3), r["axis"] / np.linalg.norm(r["axis"])])
+            if r["type"] == REVOLUTE
+            else np.concatenate([r["axis"] / np.linalg.norm(r["axis"]), np.zeros(3)])
+            for r in rows
+        ]
+        limits = [r.get("limits") for r in rows]
+        limits = [
+            lim if lim is not None else ([-np.pi, np.pi] if r["type"] == REVOLUTE else [-1.0, 1.0])
+            for lim, r in zip(limits, rows, strict=True)
+        ]
+        model = LocalPOEModel(
+            np.array(frames), tuple(r["type"] for r in rows), np.array(twists), np.array(limits), name, names
+        )
+    return _spec(name, model, tool, joints, {}, source, fail)
+
+
+def _spec(name, model, tool, joints, _unused, source, fail=None) -> RobotSpec:
+    fail = fail or (lambda msg: RobotFileError(f"{source}: {msg}"))
+    n = model.n
+    frames0 = model.link_frames(np.zeros(n))[0]  # (n+1, 4, 4) at q = 0
+    origins = frames0[:, :3, 3]
+    masses = np.zeros(n + 1)
+    coms = np.empty((n + 1, 3))
+    for j in range(n + 1):
+        row = joints[j] if j < n and j < len(joints) else (tool if j == n else {})
+        if "mass" in row:
+            m = row["mass"]
+            if not isinstance(m, int | float) or m < 0:
+                raise fail(f"{'tool' if j == n else f'joints[{j + 1}]'}.mass must be a number >= 0, got {m!r}")
+            masses[j] = float(m)
+        default = origins[j] if j == n else 0.5 * (origins[j] + origins[j + 1])
+        coms[j] = _vector(row, "com", "tool" if j == n else f"joints[{j + 1}]", fail, default)
+    return RobotSpec(name=name, model=model, masses=masses, coms=coms, source=source, hash=model_hash(model))
+
+
+def _number(row: dict, key: str, where: str, fail) -> float:
+    if key not in row:
+        raise fail(f"{where}.{key} is missing")
+    value = row[key]
+    if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+        raise fail(f"{where}.{key} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _vector(row: dict, key: str, where: str, fail, default) -> np.ndarray:
+    if key not in row:
+        if default is None:
+            raise fail(f"{where}.{key} is missing")
+        return np.asarray(default, dtype=float)
+    value = row[key]
+    if (
+        not isinstance(value, list)
+        or len(value) != 3
+        or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in value)
+    ):
+        raise fail(f"{where}.{key} must be a list of 3 numbers, got {value!r}")
+    return np.asarray(value, dtype=float)
