@@ -1,0 +1,634 @@
+"""A fake Universal Robots controller that speaks RTDE (port 30004) on a loopback address, in its own process.
+
+Why a separate process: the real ``rtde_receive.RTDEReceiveInterface`` constructor holds the GIL while it
+connects, so a fake served by a thread of the same interpreter would never get to answer. Why its own loopback
+address (127.0.x.y): the RTDE port is fixed at 30004 and several fakes (and several test runs) may be alive at
+once.
+
+The wire protocol follows UR's public RTDE guide (protocol version 2): every package is a header (uint16
+big-endian size including the 3-byte header, uint8 type) and a payload; ``V`` protocol version, ``v``
+controller version (4 x uint32), ``O``/``I`` output/input recipe setup (recipe id + comma-separated types,
+``NOT_FOUND`` for names it does not know), ``S`` start, ``P`` pause and ``U`` data packages (recipe id + values
+big-endian in recipe order).
+
+The fake is backed by a simulated joint state: q (6,) in rad, safety flags and robot mode, set from the test
+process through a pipe. With ``control=True`` it also emulates what ``rtde_control.RTDEControlInterface``
+(ur-rtde 1.6.5) needs: the dashboard server (29999), the script port (30003) and ur-rtde's register protocol
+(see :class:`ControlEmulator`), so a real ``moveJ`` moves the simulated joints.
+
+Example::
+
+    with FakeRTDEServer(q0=[0, -1.57, 1.57, 0, 0, 0]) as fake:
+        recv = rtde_receive.RTDEReceiveInterface(fake.host, -1.0, ["timestamp", "actual_q"])
+        fake.set_safety(protective=True)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import select
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+RTDE_PORT = 30004
+DASHBOARD_PORT = 29999
+SCRIPT_PORT = 30003
+HEADER = struct.Struct(">HB")
+
+# RTDE type name -> struct format (big-endian added when packing).
+TYPE_FORMATS = {
+    "BOOL": "?",
+    "UINT8": "B",
+    "UINT32": "I",
+    "UINT64": "Q",
+    "INT32": "i",
+    "DOUBLE": "d",
+    "VECTOR3D": "3d",
+    "VECTOR6D": "6d",
+    "VECTOR6INT32": "6i",
+    "VECTOR6UINT32": "6I",
+}
+
+_VECTOR6D = (
+    "target_q target_qd target_qdd target_current target_moment actual_q actual_qd actual_current "
+    "joint_control_output actual_TCP_pose actual_TCP_speed actual_TCP_force target_TCP_pose target_TCP_speed "
+    "joint_temperatures actual_joint_voltage ft_raw_wrench payload_inertia tcp_offset"
+).split()
+_DOUBLE = (
+    "timestamp actual_execution_time speed_scaling target_speed_fraction actual_momentum actual_main_voltage "
+    "actual_robot_voltage actual_robot_current standard_analog_input0 standard_analog_input1 "
+    "standard_analog_output0 standard_analog_output1 payload tool_analog_input0 tool_analog_input1 "
+    "tool_output_current tool_temperature"
+).split()
+_FIXED_TYPES: dict[str, str] = {
+    **dict.fromkeys(_VECTOR6D, "VECTOR6D"),
+    **dict.fromkeys(_DOUBLE, "DOUBLE"),
+    "actual_digital_input_bits": "UINT64",
+    "actual_digital_output_bits": "UINT64",
+    "robot_mode": "INT32",
+    "safety_mode": "INT32",
+    "safety_status": "INT32",
+    "joint_mode": "VECTOR6INT32",
+    "actual_tool_accelerometer": "VECTOR3D",
+    "payload_cog": "VECTOR3D",
+    "runtime_state": "UINT32",
+    "robot_status_bits": "UINT32",
+    "safety_status_bits": "UINT32",
+    "output_bit_registers0_to_31": "UINT32",
+    "output_bit_registers32_to_63": "UINT32",
+    "input_bit_registers0_to_31": "UINT32",
+    "input_bit_registers32_to_63": "UINT32",
+    "standard_digital_output_mask": "UINT8",
+    "standard_digital_output": "UINT8",
+    "speed_slider_mask": "UINT32",
+    "speed_slider_fraction": "DOUBLE",
+}
+_REGISTER = re.compile(r"^(input|output)_(int|double|bit)_register_(\d+)$")
+_REGISTER_TYPES = {"int": "INT32", "double": "DOUBLE", "bit": "BOOL"}
+
+# UR controller enumerations (RTDE guide): robot mode, safety mode, safety status bits, runtime state.
+ROBOT_MODE_RUNNING = 7
+SAFETY_MODE_NORMAL = 1
+SAFETY_MODE_PROTECTIVE_STOP = 3
+SAFETY_MODE_ROBOT_EMERGENCY_STOP = 7
+SAFETY_BIT_NORMAL = 1 << 0
+SAFETY_BIT_PROTECTIVE_STOPPED = 1 << 2
+SAFETY_BIT_EMERGENCY_STOPPED = (1 << 5) | (1 << 6) | (1 << 7)  # system, robot and combined e-stop bits
+RUNTIME_STOPPED = 1
+RUNTIME_PLAYING = 2
+
+
+def rtde_type(name: str) -> str | None:
+    """RTDE type of a variable name, or None if the fake does not know it (answered as NOT_FOUND)."""
+    if name in _FIXED_TYPES:
+        return _FIXED_TYPES[name]
+    match = _REGISTER.match(name)
+    if match and int(match.group(3)) < 48:
+        return _REGISTER_TYPES[match.group(2)]
+    return None
+
+
+def pack_package(kind: str, payload: bytes = b"") -> bytes:
+    """One RTDE package: header (size incl. header, type byte) + payload."""
+    return HEADER.pack(HEADER.size + len(payload), ord(kind)) + payload
+
+
+def pack_values(types: Sequence[str], values: Sequence[Any]) -> bytes:
+    """Pack values big-endian in recipe order; vector values are sequences."""
+    out = bytearray()
+    for kind, value in zip(types, values, strict=True):
+        fmt = TYPE_FORMATS[kind]
+        if fmt[0].isdigit():
+            out += struct.pack(">" + fmt, *value)
+        else:
+            out += struct.pack(">" + fmt, value)
+    return bytes(out)
+
+
+def unpack_values(types: Sequence[str], data: bytes) -> list[Any]:
+    """Inverse of :func:`pack_values`; raises struct.error if data has the wrong length."""
+    fmt = ">" + "".join(TYPE_FORMATS[k] for k in types)
+    flat = list(struct.unpack(fmt, data))
+    values: list[Any] = []
+    for kind in types:
+        width = int(TYPE_FORMATS[kind][0]) if TYPE_FORMATS[kind][0].isdigit() else 1
+        chunk, flat = flat[:width], flat[width:]
+        values.append(chunk if width > 1 else chunk[0])
+    return values
+
+
+def recv_exact(sock: socket.socket, n: int) -> bytes:
+    """Read exactly n bytes or raise ConnectionError when the peer closes."""
+    data = bytearray()
+    while len(data) < n:
+        chunk = sock.recv(n - len(data))
+        if not chunk:
+            raise ConnectionError("peer closed the connection")
+        data += chunk
+    return bytes(data)
+
+
+def read_package(sock: socket.socket) -> tuple[str, bytes]:
+    """Read one RTDE package, returning (type letter, payload)."""
+    size, kind = HEADER.unpack(recv_exact(sock, HEADER.size))
+    if size < HEADER.size:
+        raise ConnectionError(f"RTDE package size {size} is smaller than its header")
+    return chr(kind), recv_exact(sock, size - HEADER.size)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The simulated controller (lives in the child process).
+
+
+class SimController:
+    """Joint state, safety state and RTDE registers of the fake controller. All access under ``lock``."""
+
+    def __init__(self, q0: Sequence[float], controller_version: Sequence[int]):
+        self.lock = threading.Lock()
+        self.q = [float(v) for v in q0]
+        self.target_q = list(self.q)
+        self.qd = [0.0] * 6
+        self.protective = False
+        self.emergency = False
+        self.robot_mode = ROBOT_MODE_RUNNING
+        self.program_running = False
+        self.controller_version = tuple(int(v) for v in controller_version)
+        self.t0 = time.monotonic()
+        self.frozen_at: float | None = None
+        self.registers: dict[str, Any] = {}
+        self.log: list[tuple[str, Any]] = []  # control-side events (script uploads, commands) for tests
+
+    def timestamp(self) -> float:
+        """Controller time, s since the fake started (stops advancing while frozen)."""
+        if self.frozen_at is not None:
+            return self.frozen_at
+        return time.monotonic() - self.t0
+
+    def safety_mode(self) -> int:
+        if self.emergency:
+            return SAFETY_MODE_ROBOT_EMERGENCY_STOP
+        return SAFETY_MODE_PROTECTIVE_STOP if self.protective else SAFETY_MODE_NORMAL
+
+    def safety_bits(self) -> int:
+        bits = 0
+        if self.protective:
+            bits |= SAFETY_BIT_PROTECTIVE_STOPPED
+        if self.emergency:
+            bits |= SAFETY_BIT_EMERGENCY_STOPPED
+        return bits or SAFETY_BIT_NORMAL
+
+    def value(self, name: str, kind: str) -> Any:
+        """Current value of an output variable (caller holds the lock)."""
+        simple = {
+            "timestamp": self.timestamp,
+            "actual_q": lambda: self.q,
+            "target_q": lambda: self.target_q,
+            "actual_qd": lambda: self.qd,
+            "target_qd": lambda: self.qd,
+            "robot_mode": lambda: self.robot_mode,
+            "safety_mode": self.safety_mode,
+            "safety_status": self.safety_mode,
+            "safety_status_bits": self.safety_bits,
+            "runtime_state": lambda: RUNTIME_PLAYING if self.program_running else RUNTIME_STOPPED,
+            # bit 0 power on, bit 1 program running
+            "robot_status_bits": lambda: 1 | (2 if self.program_running else 0),
+            "speed_scaling": lambda: 1.0,
+            "target_speed_fraction": lambda: 1.0,
+            "joint_mode": lambda: [253] * 6,  # 253 = JOINT_RUNNING_MODE
+        }
+        if name in simple:
+            return simple[name]()
+        if name in self.registers:
+            return self.registers[name]
+        fmt = TYPE_FORMATS[kind]
+        zero: Any = False if kind == "BOOL" else 0.0 if "d" in fmt else 0
+        return [zero] * int(fmt[0]) if fmt[0].isdigit() else zero
+
+
+class _RTDESession:
+    """One client connection on port 30004."""
+
+    def __init__(self, sock: socket.socket, sim: SimController, on_input: Any, unknown: Sequence[str] = ()):
+        self.sock = sock
+        self.unknown = set(unknown)  # names answered NOT_FOUND, like an older PolyScope
+        self.sim = sim
+        self.on_input = on_input  # called with the names of input registers a data package just wrote
+        self.send_lock = threading.Lock()
+        self.outputs: dict[int, tuple[float, list[str], list[str]]] = {}
+        self.inputs: dict[int, tuple[list[str], list[str]]] = {}
+        self.streaming = threading.Event()
+        self.closed = threading.Event()
+
+    def send(self, kind: str, payload: bytes = b"") -> None:
+        with self.send_lock:
+            self.sock.sendall(pack_package(kind, payload))
+
+    def run(self) -> None:
+        threading.Thread(target=self._stream, daemon=True).start()
+        try:
+            while True:
+                kind, payload = read_package(self.sock)
+                self._handle(kind, payload)
+        except (OSError, ConnectionError, struct.error):
+            pass
+        finally:
+            self.closed.set()
+            self.streaming.clear()
+            with contextlib.suppress(OSError):
+                self.sock.close()
+
+    def _handle(self, kind: str, payload: bytes) -> None:
+        if kind == "V":
+            (version,) = struct.unpack(">H", payload)
+            self.send("V", struct.pack(">?", version in (1, 2)))
+        elif kind == "v":
+            self.send("v", struct.pack(">4I", *self.sim.controller_version))
+        elif kind == "O":
+            (frequency,) = struct.unpack(">d", payload[:8])
+            names = [n for n in payload[8:].decode("ascii").split(",") if n]
+            types = [("NOT_FOUND" if n in self.unknown else rtde_type(n)) or "NOT_FOUND" for n in names]
+            recipe = 0 if "NOT_FOUND" in types else len(self.outputs) + 1
+            if recipe:
+                self.outputs[recipe] = (frequency, names, types)
+            self.send("O", struct.pack(">B", recipe) + ",".join(types).encode("ascii"))
+        elif kind == "I":
+            names = [n for n in payload.decode("ascii").split(",") if n]
+            types = [
+                (rtde_type(n) or "NOT_FOUND") if n.startswith(("input_", "speed_slider", "standard_")) else "NOT_FOUND"
+                for n in names
+            ]
+            recipe = 0 if "NOT_FOUND" in types else len(self.inputs) + 1
+            if recipe:
+                self.inputs[recipe] = (names, types)
+            self.send("I", struct.pack(">B", recipe) + ",".join(types).encode("ascii"))
+        elif kind == "S":
+            self.send("S", struct.pack(">?", bool(self.outputs) or bool(self.inputs)))
+            if self.outputs:
+                self.streaming.set()
+        elif kind == "P":
+            with self.send_lock:  # no data package may follow the pause answer
+                self.streaming.clear()
+                self.sock.sendall(pack_package("P", struct.pack(">?", True)))
+        elif kind == "U":
+            recipe = payload[0]
+            if recipe in self.inputs:
+                names, types = self.inputs[recipe]
+                values = unpack_values(types, payload[1:])
+                with self.sim.lock:
+                    self.sim.registers.update(zip(names, values, strict=True))
+                self.on_input(names)
+        else:
+            text = f"fake controller: unsupported package type {kind!r}".encode("ascii")
+            # 'M' text message: uint8 length, text, uint8 source length, source, uint8 warning level (3 = error)
+            self.send("M", struct.pack(">B", len(text)) + text + b"\x04fake\x03")
+
+    def _stream(self) -> None:
+        while not self.closed.is_set():
+            if not self.streaming.wait(0.05):
+                continue
+            period = 1.0 / max(min(f for f, _, _ in self.outputs.values()), 1.0)
+            period = max(period, 0.002)  # 500 Hz is the e-Series maximum
+            with self.sim.lock:
+                packages = [
+                    pack_package(
+                        "U",
+                        struct.pack(">B", recipe)
+                        + pack_values(types, [self.sim.value(n, k) for n, k in zip(names, types, strict=True)]),
+                    )
+                    for recipe, (_, names, types) in self.outputs.items()
+                ]
+            try:
+                with self.send_lock:
+                    if self.streaming.is_set():
+                        for package in packages:
+                            self.sock.sendall(package)
+            except OSError:
+                return
+            time.sleep(period)
+
+
+class ControlEmulator:
+    """Dashboard (29999), script port (30003) and ur-rtde's register protocol over RTDE registers."""
+
+    def __init__(self, sim: SimController):
+        self.sim = sim
+
+    def on_input(self, names: list[str]) -> None:
+        pass
+
+    def serve_dashboard(self, sock: socket.socket) -> None:
+        sock.close()
+
+    def serve_script(self, sock: socket.socket) -> None:
+        sock.close()
+
+
+def _listen(host: str, port: int) -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    # SO_REUSEADDR lets a new fake reuse an address whose old connections sit in TIME_WAIT; Linux still refuses
+    # the bind while another socket is listening there, which is what tells the fakes apart.
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+        sock.listen(8)
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
+def _accept_loop(listener: socket.socket, handler: Any) -> None:
+    while True:
+        try:
+            conn, _ = listener.accept()
+        except OSError:
+            return
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        threading.Thread(target=handler, args=(conn,), daemon=True).start()
+
+
+def candidate_hosts(start: int, count: int = 400) -> list[str]:
+    """Loopback addresses 127.0.x.y (x, y in 1..254, skipping 127.0.0.1) beginning at index ``start``."""
+    hosts = []
+    for i in range(count):
+        k = (start + i) % (254 * 254)
+        x, y = divmod(k, 254)
+        host = f"127.0.{x}.{y + 1}"
+        if host != "127.0.0.1":
+            hosts.append(host)
+    return hosts
+
+
+def _child_main(options: dict[str, Any], commands: Any, replies: Any) -> None:
+    """Body of the fake's process: bind, report the host, then serve until told to stop or stdin closes.
+
+    commands/replies: text streams of JSON lines (the process's stdin and stdout).
+    """
+
+    def reply(status: str, value: Any) -> None:
+        replies.write(json.dumps([status, value]) + "\n")
+        replies.flush()
+
+    sim = SimController(options["q0"], options["controller_version"])
+    ports = [RTDE_PORT] + ([DASHBOARD_PORT, SCRIPT_PORT] if options["control"] else [])
+    listeners: dict[int, socket.socket] = {}
+    host = None
+    for candidate in options["hosts"]:
+        try:
+            for port in ports:
+                listeners[port] = _listen(candidate, port)
+            host = candidate
+            break
+        except OSError:
+            for sock in listeners.values():
+                sock.close()
+            listeners.clear()
+    if host is None:
+        reply("error", f"no free loopback address among {len(options['hosts'])} candidates")
+        return
+
+    control = ControlEmulator(sim) if options["control"] else None
+    sessions: list[_RTDESession] = []
+
+    def serve_rtde(sock: socket.socket) -> None:
+        on_input = control.on_input if control else (lambda names: None)
+        session = _RTDESession(sock, sim, on_input, options["unknown_variables"])
+        sessions.append(session)
+        session.run()
+
+    threading.Thread(target=_accept_loop, args=(listeners[RTDE_PORT], serve_rtde), daemon=True).start()
+    if control is not None:
+        for port, handler in ((DASHBOARD_PORT, control.serve_dashboard), (SCRIPT_PORT, control.serve_script)):
+            threading.Thread(target=_accept_loop, args=(listeners[port], handler), daemon=True).start()
+    reply("ready", host)
+
+    for line in commands:  # EOF when the parent goes away: never outlive it
+        command, args = json.loads(line)
+        if command == "stop":
+            reply("ok", None)
+            break
+        try:
+            result = _apply(sim, sessions, command, args)
+        except Exception as exc:  # report, never die silently: the test would only see a timeout
+            reply("error", f"{type(exc).__name__}: {exc}")
+        else:
+            reply("ok", result)
+    for sock in listeners.values():
+        with contextlib.suppress(OSError):
+            sock.close()
+    for session in sessions:
+        with contextlib.suppress(OSError):
+            session.sock.shutdown(socket.SHUT_RDWR)
+
+
+def _apply(sim: SimController, sessions: list[_RTDESession], command: str, args: Any) -> Any:
+    with sim.lock:
+        if command == "set_q":
+            if len(args) != 6:
+                raise ValueError(f"q needs 6 values, got {len(args)}")
+            sim.q = [float(v) for v in args]
+            sim.target_q = list(sim.q)
+        elif command == "set_safety":
+            sim.protective, sim.emergency = bool(args[0]), bool(args[1])
+        elif command == "set_robot_mode":
+            sim.robot_mode = int(args)
+        elif command == "freeze":
+            if args and sim.frozen_at is None:
+                sim.frozen_at = sim.timestamp()
+            elif not args and sim.frozen_at is not None:
+                # resume from the frozen value so controller time never runs backwards
+                sim.t0 = time.monotonic() - sim.frozen_at
+                sim.frozen_at = None
+        elif command == "drop_clients":
+            for session in sessions:
+                with contextlib.suppress(OSError):
+                    session.sock.shutdown(socket.SHUT_RDWR)
+        elif command == "snapshot":
+            return {
+                "q": list(sim.q),
+                "timestamp": sim.timestamp(),
+                "registers": dict(sim.registers),
+                "log": list(sim.log),
+                "clients": sum(not s.closed.is_set() for s in sessions),
+            }
+        else:
+            raise ValueError(f"unknown command {command!r}")
+    return None
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The handle used by tests (parent process).
+
+
+class FakeRTDEServer:
+    """Start a fake UR controller in a child process (``python -m labcal.drivers.rtde_fake``); a context manager.
+
+    q0: (6,) initial joint positions, rad. control: also serve dashboard/script ports and emulate ur-rtde's
+    control registers. controller_version: answered to ``v`` (major, minor, bugfix, build).
+    unknown_variables: output names to answer NOT_FOUND (an older controller). first_host: index into
+    :func:`candidate_hosts` to start the address search at (default: derived from the pid).
+    A plain subprocess (not multiprocessing) so scripts using the fake need no ``if __name__ == "__main__"``.
+    """
+
+    def __init__(
+        self,
+        q0: Sequence[float] = (0.0, -1.5708, 1.5708, 0.0, 1.5708, 0.0),
+        *,
+        control: bool = False,
+        controller_version: Sequence[int] = (5, 11, 0, 0),
+        start_timeout: float = 20.0,
+        reply_timeout: float = 5.0,
+        first_host: int | None = None,
+        unknown_variables: Sequence[str] = (),
+    ):
+        if len(q0) != 6:
+            raise ValueError(f"q0 needs 6 joint values, got {len(q0)}")
+        self._options = {
+            "q0": [float(v) for v in q0],
+            "control": control,
+            "controller_version": [int(v) for v in controller_version],
+            "unknown_variables": list(unknown_variables),
+            # Spread start addresses by pid so parallel test runs rarely try the same address first.
+            "hosts": candidate_hosts(first_host if first_host is not None else (os.getpid() * 37) % 60000),
+        }
+        self._start_timeout = start_timeout
+        self._reply_timeout = reply_timeout
+        self._process: subprocess.Popen[bytes] | None = None
+        self._buffer = b""
+        self._lock = threading.Lock()
+        self.host = ""
+
+    def __enter__(self) -> FakeRTDEServer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def start(self) -> None:
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "labcal.drivers.rtde_fake", json.dumps(self._options)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+        )
+        try:
+            status, value = self._read_reply(self._start_timeout, "start")
+        except BaseException:
+            self.kill()
+            raise
+        if status != "ready":
+            self.kill()
+            raise RuntimeError(f"fake RTDE server failed to start: {value}")
+        self.host = value
+
+    def _read_reply(self, timeout: float, what: str) -> tuple[str, Any]:
+        assert self._process is not None and self._process.stdout is not None
+        fd = self._process.stdout.fileno()
+        deadline = time.monotonic() + timeout
+        while b"\n" not in self._buffer:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
+                raise TimeoutError(f"fake RTDE server did not answer {what!r} within {timeout} s")
+            chunk = os.read(fd, 65536)
+            if not chunk:
+                raise RuntimeError(f"fake RTDE server exited (code {self._process.poll()}) before answering {what!r}")
+            self._buffer += chunk
+        line, self._buffer = self._buffer.split(b"\n", 1)
+        status, value = json.loads(line)
+        return status, value
+
+    def _call(self, command: str, args: Any = None) -> Any:
+        with self._lock:
+            if self._process is None or self._process.poll() is not None:
+                raise RuntimeError("fake RTDE server is not running")
+            assert self._process.stdin is not None
+            self._process.stdin.write((json.dumps([command, args]) + "\n").encode())
+            self._process.stdin.flush()
+            status, value = self._read_reply(self._reply_timeout, command)
+        if status != "ok":
+            raise RuntimeError(f"fake RTDE server: {value}")
+        return value
+
+    def set_q(self, q: Sequence[float]) -> None:
+        """Set the simulated actual (and target) joint positions, (6,) rad."""
+        self._call("set_q", [float(v) for v in q])
+
+    def set_safety(self, protective: bool = False, emergency: bool = False) -> None:
+        """Set protective-stop / emergency-stop flags (safety mode and safety status bits follow)."""
+        self._call("set_safety", [bool(protective), bool(emergency)])
+
+    def set_robot_mode(self, mode: int) -> None:
+        """Set the robot mode reported in ``robot_mode`` (7 = RUNNING)."""
+        self._call("set_robot_mode", int(mode))
+
+    def freeze_timestamp(self, frozen: bool = True) -> None:
+        """Keep streaming packages, but with a timestamp (and data time) that no longer advances."""
+        self._call("freeze", bool(frozen))
+
+    def drop_clients(self) -> None:
+        """Shut down every client connection (the server keeps listening)."""
+        self._call("drop_clients")
+
+    def snapshot(self) -> dict[str, Any]:
+        """q, timestamp, RTDE registers, control log and number of connected RTDE clients."""
+        return self._call("snapshot")
+
+    def kill(self) -> None:
+        """Kill the process abruptly (the kernel closes its sockets): a controller that died. Safe to repeat."""
+        process, self._process = self._process, None
+        if process is None:
+            return
+        if process.poll() is None:
+            process.kill()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(5.0)
+        for stream in (process.stdin, process.stdout):
+            with contextlib.suppress(OSError):
+                if stream is not None:
+                    stream.close()
+
+    def stop(self) -> None:
+        """Stop the process politely, killing it if it does not exit in time. Safe to call twice."""
+        if self._process is not None and self._process.poll() is None:
+            with contextlib.suppress(Exception):
+                self._call("stop")
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self._process.wait(3.0)
+        self.kill()
+
+    @property
+    def alive(self) -> bool:
+        return self._process is not None and self._process.poll() is None
+
+
+if __name__ == "__main__":
+    _child_main(json.loads(sys.argv[1]), sys.stdin, sys.stdout)

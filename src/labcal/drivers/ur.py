@@ -1,0 +1,604 @@
+"""Universal Robots driver: the ``Robot`` port over ur-rtde 1.6.5 (``rtde_receive`` / ``rtde_control``).
+
+Three ur-rtde behaviours shape this module:
+
+- A controller that accepts the TCP connection but never answers makes the interface constructors hang forever
+  *while holding the GIL*. So :meth:`URRobot.connect` first probes each port with a socket timeout and checks
+  the peer really answers (an RTDE protocol-version request on 30004, the greeting line of the dashboard on
+  29999, streamed bytes on 30003) before a real interface is built.
+- ``moveJ`` returns False on failure instead of raising: the result is checked and the safety state read to
+  tell a protective/emergency stop from another failure.
+- Getters keep returning the last values after the connection died. Health is judged by the controller
+  ``timestamp`` advancing (:class:`~labcal.drivers.base.StaleData`), and ``isConnected()`` going False.
+
+ur-rtde's RuntimeError/ValueError never escape: they become labcal's :mod:`labcal.drivers.base` errors.
+
+Example::
+
+    profile = load_ur_profile("drivers/ur10-lab.toml")
+    with URRobot.connect(profile) as robot:
+        robot.move_joints(q, speed=0.3, acceleration=0.5)   # q: (6,) rad
+        print(robot.state())
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import socket
+import struct
+import time
+import tomllib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from labcal.drivers.base import (
+    ConnectionFailed,
+    DriverTimeout,
+    EmergencyStop,
+    MotionFailed,
+    MotionRejected,
+    ProtectiveStop,
+    ProtocolError,
+    RobotState,
+    SafetyLimits,
+    StaleData,
+)
+
+log = logging.getLogger(__name__)
+
+RTDE_PORT = 30004
+DASHBOARD_PORT = 29999
+SCRIPT_PORT = 30003
+ROBOT_MODE_RUNNING = 7
+N_JOINTS = 6
+# ur-rtde 1.6.5 raises ValueError outside these ranges; profile caps must stay inside them.
+UR_RTDE_MAX_SPEED = 3.14  # rad/s
+UR_RTDE_MAX_ACCELERATION = 40.0  # rad/s²
+# What labcal asks the controller to stream (everything the getters below need, nothing more).
+RECEIVE_VARIABLES = ["timestamp", "actual_q", "robot_mode", "safety_mode", "safety_status_bits", "runtime_state"]
+
+
+class ProbeTimeout(ConnectionFailed, DriverTimeout):
+    """A port accepted the TCP connection but the peer did not answer in time (it would hang ur-rtde)."""
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Profile.
+
+
+@dataclass(frozen=True)
+class URProfile:
+    """A UR robot as the lab set it up.
+
+    limits: joint limits (6, 2) rad and speed/acceleration caps (rad/s, rad/s²).
+    settle_time: wait after a move before the final position is read, s.
+    position_tolerance: max |q_actual - q_target| after a move, rad.
+    stale_timeout: how long a controller timestamp may stay unchanged before data counts as stale, s.
+    frequency: RTDE output rate, Hz (-1: controller default, 125 Hz on CB3, 500 Hz on e-Series).
+    """
+
+    name: str
+    model: str
+    host: str
+    limits: SafetyLimits
+    rtde_port: int = RTDE_PORT
+    dashboard_port: int = DASHBOARD_PORT
+    script_port: int = SCRIPT_PORT
+    settle_time: float = 0.2
+    position_tolerance: float = 1e-3
+    stop_acceleration: float = 2.0
+    connect_timeout: float = 2.0
+    stale_timeout: float = 0.5
+    frequency: float = -1.0
+
+    def with_host(self, host: str) -> URProfile:
+        """The same profile pointed at another controller (e.g. a fake on a loopback address)."""
+        return URProfile(**{**self.__dict__, "host": host})
+
+
+_PROFILE_KEYS = {
+    "": {"name", "driver", "model", "host", "ports", "motion", "joint_limits_deg", "timing"},
+    "ports": {"rtde", "dashboard", "script"},
+    "motion": {
+        "max_speed_rad_s",
+        "max_acceleration_rad_s2",
+        "stop_acceleration_rad_s2",
+        "settle_time_s",
+        "position_tolerance_rad",
+    },
+    "joint_limits_deg": {"lower", "upper"},
+    "timing": {"connect_timeout_s", "stale_timeout_s", "frequency_hz"},
+}
+_STANDARD_PORTS = {"rtde": RTDE_PORT, "dashboard": DASHBOARD_PORT, "script": SCRIPT_PORT}
+
+
+def load_ur_profile(path: str | Path) -> URProfile:
+    """Read a robot profile TOML (see drivers/ur10-lab.toml). Raises ValueError naming the bad key/value."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{path}: not valid TOML: {exc}") from exc
+    return parse_ur_profile(data, source=str(path))
+
+
+def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfile:
+    """Build a URProfile from parsed TOML data (mm/deg named in keys, converted to SI here)."""
+
+    def fail(message: str) -> ValueError:
+        return ValueError(f"{source}: {message}")
+
+    for section, allowed in _PROFILE_KEYS.items():
+        table = data if section == "" else data.get(section, {})
+        if not isinstance(table, dict):
+            raise fail(f"[{section}] must be a table")
+        unknown = set(table) - allowed
+        if unknown:
+            where = f"[{section}]" if section else "top level"
+            raise fail(f"unknown key(s) {sorted(unknown)} at {where}; allowed: {sorted(allowed)}")
+    if data.get("driver", "ur") != "ur":
+        raise fail(f"driver = {data['driver']!r}, this loader reads only driver = 'ur'")
+    for key in ("name", "host"):
+        if not isinstance(data.get(key), str) or not data[key]:
+            raise fail(f"'{key}' must be a non-empty string")
+
+    def number(section: str, key: str, default: float, lo: float, hi: float) -> float:
+        value = data.get(section, {}).get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            raise fail(f"[{section}] {key} = {value!r} is not a finite number")
+        if not lo <= value <= hi:
+            raise fail(f"[{section}] {key} = {value} is outside [{lo}, {hi}]")
+        return float(value)
+
+    ports = data.get("ports", {})
+    for key, standard in _STANDARD_PORTS.items():
+        if ports.get(key, standard) != standard:
+            raise fail(
+                f"[ports] {key} = {ports[key]!r}: ur-rtde 1.6.5 always connects to port {standard}, "
+                "so another port cannot be honoured"
+            )
+
+    limits_table = data.get("joint_limits_deg", {})
+    bounds = []
+    for key in ("lower", "upper"):
+        values = limits_table.get(key)
+        if not isinstance(values, list) or len(values) != N_JOINTS:
+            raise fail(f"[joint_limits_deg] {key} must list {N_JOINTS} numbers (degrees), got {values!r}")
+        for j, value in enumerate(values):
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise fail(f"[joint_limits_deg] {key}[{j}] = {value!r} is not a finite number")
+        bounds.append(np.radians(np.asarray(values, dtype=float)))
+    joint_limits = np.stack(bounds, axis=1)
+    for j, (lo, hi) in enumerate(joint_limits):
+        if not lo < hi:
+            raise fail(f"[joint_limits_deg] joint {j + 1}: lower {math.degrees(lo)} is not below upper")
+        if lo < -2 * math.pi - 1e-9 or hi > 2 * math.pi + 1e-9:
+            raise fail(f"[joint_limits_deg] joint {j + 1}: UR joints cannot go beyond ±360 deg")
+
+    limits = SafetyLimits(
+        joint_limits=joint_limits,
+        max_speed=number("motion", "max_speed_rad_s", 0.5, 1e-6, UR_RTDE_MAX_SPEED),
+        max_acceleration=number("motion", "max_acceleration_rad_s2", 1.0, 1e-6, UR_RTDE_MAX_ACCELERATION),
+    )
+    return URProfile(
+        name=data["name"],
+        model=str(data.get("model", "")),
+        host=data["host"],
+        limits=limits,
+        settle_time=number("motion", "settle_time_s", 0.2, 0.0, 10.0),
+        position_tolerance=number("motion", "position_tolerance_rad", 1e-3, 1e-6, 0.1),
+        stop_acceleration=number("motion", "stop_acceleration_rad_s2", 2.0, 0.1, UR_RTDE_MAX_ACCELERATION),
+        connect_timeout=number("timing", "connect_timeout_s", 2.0, 0.01, 60.0),
+        stale_timeout=number("timing", "stale_timeout_s", 0.5, 0.01, 10.0),
+        frequency=_frequency(data.get("timing", {}).get("frequency_hz", -1), fail),
+    )
+
+
+def _frequency(value: Any, fail: Callable[[str], ValueError]) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise fail(f"[timing] frequency_hz = {value!r} is not a number")
+    if value != -1 and not 1 <= value <= 500:
+        raise fail(f"[timing] frequency_hz = {value} must be -1 (controller default) or in [1, 500]")
+    return float(value)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Probes: never hand a silent peer to ur-rtde.
+
+
+def _open(host: str, port: int, timeout: float) -> socket.socket:
+    try:
+        return socket.create_connection((host, port), timeout=timeout)
+    except TimeoutError as exc:
+        raise ConnectionFailed(f"{host}:{port} did not accept a connection within {timeout} s") from exc
+    except OSError as exc:
+        raise ConnectionFailed(f"cannot connect to {host}:{port}: {exc.strerror or exc}") from exc
+
+
+def _recv_exact(sock: socket.socket, n: int, deadline: float, what: str) -> bytes:
+    data = bytearray()
+    while len(data) < n:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise ProbeTimeout(f"{what}: connection accepted, but no (complete) answer in time")
+        sock.settimeout(remaining)
+        try:
+            chunk = sock.recv(n - len(data))
+        except TimeoutError as exc:
+            raise ProbeTimeout(f"{what}: connection accepted, but no (complete) answer in time") from exc
+        except OSError as exc:
+            raise ConnectionFailed(f"{what}: connection lost while waiting for the answer: {exc}") from exc
+        if not chunk:
+            raise ConnectionFailed(f"{what}: the peer closed the connection without answering")
+        data += chunk
+    return bytes(data)
+
+
+def _rtde_request(sock: socket.socket, kind: str, payload: bytes, deadline: float, what: str) -> bytes:
+    sock.sendall(struct.pack(">HB", 3 + len(payload), ord(kind)) + payload)
+    while True:
+        size, reply = struct.unpack(">HB", _recv_exact(sock, 3, deadline, what))
+        if size < 3:
+            raise ProtocolError(f"{what}: RTDE header announces {size} bytes, less than the header itself")
+        body = _recv_exact(sock, size - 3, deadline, what)
+        if chr(reply) == kind:
+            return body
+        if chr(reply) != "M":  # text messages may come in between; anything else is not RTDE
+            raise ProtocolError(f"{what}: expected an RTDE {kind!r} reply, got package type {reply}")
+
+
+def probe_rtde(host: str, port: int = RTDE_PORT, timeout: float = 2.0) -> tuple[int, int, int, int]:
+    """Check that an RTDE server answers; return its controller version (major, minor, bugfix, build).
+
+    Sends a protocol-version request (version 2) and a controller-version request, each answer awaited with
+    ``timeout`` s in total. Raises ConnectionFailed (nothing there), ProbeTimeout (accepts, never answers) or
+    ProtocolError (answers something that is not RTDE, or refuses protocol 2).
+    """
+    what = f"RTDE probe of {host}:{port}"
+    deadline = time.monotonic() + timeout
+    with contextlib.closing(_open(host, port, timeout)) as sock:
+        accepted = _rtde_request(sock, "V", struct.pack(">H", 2), deadline, what)
+        if accepted[:1] != b"\x01":
+            raise ProtocolError(f"{what}: controller refused RTDE protocol version 2 (answer {accepted!r})")
+        body = _rtde_request(sock, "v", b"", deadline, what)
+        if len(body) != 16:
+            raise ProtocolError(f"{what}: controller version answer has {len(body)} bytes, expected 16")
+        major, minor, bugfix, build = struct.unpack(">4I", body)
+        return major, minor, bugfix, build
+
+
+def probe_dashboard(host: str, port: int = DASHBOARD_PORT, timeout: float = 2.0) -> str:
+    """Check that the dashboard server greets us with a line within ``timeout`` s; return that line."""
+    what = f"dashboard probe of {host}:{port}"
+    deadline = time.monotonic() + timeout
+    with contextlib.closing(_open(host, port, timeout)) as sock:
+        line = b""
+        while not line.endswith(b"\n"):
+            line += _recv_exact(sock, 1, deadline, what)
+            if len(line) > 4096:
+                raise ProtocolError(f"{what}: greeting longer than 4096 bytes without a newline")
+        return line.decode("utf-8", "replace").strip()
+
+
+def probe_script_port(host: str, port: int = SCRIPT_PORT, timeout: float = 2.0) -> None:
+    """Check that the script/real-time port streams bytes after connecting (it does so at 125-500 Hz)."""
+    deadline = time.monotonic() + timeout
+    with contextlib.closing(_open(host, port, timeout)) as sock:
+        _recv_exact(sock, 1, deadline, f"script port probe of {host}:{port}")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The robot.
+
+
+def _real_receive(host: str, frequency: float) -> Any:
+    import rtde_receive  # lazy: keep `labcal --help` fast
+
+    return rtde_receive.RTDEReceiveInterface(host, frequency, RECEIVE_VARIABLES)
+
+
+def _real_control(host: str, frequency: float) -> Any:
+    import rtde_control  # lazy: keep `labcal --help` fast
+
+    return rtde_control.RTDEControlInterface(host, frequency)
+
+
+class URRobot:
+    """The ``Robot`` port for a UR arm. A context manager; ``close()`` is safe to call twice.
+
+    receive: an ``rtde_receive.RTDEReceiveInterface`` (or a stand-in with the same methods).
+    control: an ``rtde_control.RTDEControlInterface``, or None for a read-only robot (move_joints refuses).
+    Use :meth:`connect` to probe and build the real interfaces; pass stand-ins directly in tests.
+    """
+
+    n_joints = N_JOINTS
+
+    def __init__(
+        self,
+        profile: URProfile,
+        receive: Any,
+        control: Any | None = None,
+        *,
+        sleep: Callable[[float], None] = time.sleep,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        self.profile = profile
+        self.limits = profile.limits
+        self._receive = receive
+        self._control = control
+        self._sleep = sleep
+        self._clock = clock
+        self._last_timestamp: float | None = None
+        self._closed = False
+
+    @classmethod
+    def connect(
+        cls,
+        profile: URProfile,
+        *,
+        read_only: bool = False,
+        probe: bool = True,
+        receive_factory: Callable[[str, float], Any] = _real_receive,
+        control_factory: Callable[[str, float], Any] = _real_control,
+    ) -> URRobot:
+        """Probe the controller's ports, then build the interfaces (control only unless ``read_only``).
+
+        Raises ConnectionFailed (ProbeTimeout for a silent peer) or ProtocolError; never hangs on a peer that
+        fails the probe. A peer that answers the probe and then stops answering can still hang ur-rtde: that
+        race cannot be closed from Python.
+        """
+        host, timeout = profile.host, profile.connect_timeout
+        if probe:
+            version = probe_rtde(host, profile.rtde_port, timeout)
+            log.info("UR controller at %s answers RTDE, version %s", host, ".".join(map(str, version)))
+            if not read_only:
+                probe_dashboard(host, profile.dashboard_port, timeout)
+                probe_script_port(host, profile.script_port, timeout)
+        receive = _construct(receive_factory, host, profile.frequency, "RTDE receive interface")
+        control = None
+        if not read_only:
+            try:
+                control = _construct(control_factory, host, profile.frequency, "RTDE control interface")
+            except BaseException:
+                with contextlib.suppress(Exception):
+                    receive.disconnect()
+                raise
+        return cls(profile, receive, control)
+
+    # -- context manager -------------------------------------------------------------------------------------
+
+    def __enter__(self) -> URRobot:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if exc and exc[0] is not None:
+            self.stop()  # leaving because of an error: make sure nothing keeps moving
+        self.close()
+
+    def close(self) -> None:
+        """Disconnect both interfaces. Safe to call twice; never raises."""
+        if self._closed:
+            return
+        self._closed = True
+        for iface in (self._control, self._receive):
+            if iface is not None:
+                with contextlib.suppress(Exception):
+                    iface.disconnect()
+
+    # -- reading ---------------------------------------------------------------------------------------------
+
+    def _rx(self) -> Any:
+        if self._closed:
+            raise ConnectionFailed("the UR robot connection is closed")
+        return self._receive
+
+    def _call_rx(self, name: str, *args: Any) -> Any:
+        rx = self._rx()
+        try:
+            return getattr(rx, name)(*args)
+        except (RuntimeError, ValueError) as exc:
+            if not self._connected(rx):
+                raise ConnectionFailed(f"lost the RTDE connection to {self.profile.host}: {exc}") from exc
+            raise ProtocolError(f"RTDE receive {name}() failed: {exc}") from exc
+
+    @staticmethod
+    def _connected(rx: Any) -> bool:
+        try:
+            return bool(rx.isConnected())
+        except Exception:
+            return False
+
+    def _fresh_timestamp(self) -> float:
+        """Wait (at most stale_timeout) for a controller timestamp newer than the last one seen."""
+        rx = self._rx()
+        deadline = self._clock() + self.profile.stale_timeout
+        first = self._call_rx("getTimestamp")
+        previous = self._last_timestamp if self._last_timestamp is not None else first
+        current = first
+        while not current > previous:
+            if not self._connected(rx):
+                raise ConnectionFailed(f"the RTDE connection to {self.profile.host} is down")
+            if self._clock() >= deadline:
+                raise StaleData(
+                    f"controller timestamp stuck at {current:.6f} s for {self.profile.stale_timeout} s "
+                    f"({self.profile.host})"
+                )
+            self._sleep(0.001)
+            current = self._call_rx("getTimestamp")
+        if not self._connected(rx):
+            raise ConnectionFailed(f"the RTDE connection to {self.profile.host} is down")
+        self._last_timestamp = current
+        return current
+
+    def state(self) -> RobotState:
+        """A fresh controller snapshot: q (6,) rad, controller timestamp s, safety flags, ready."""
+        timestamp = self._fresh_timestamp()
+        q = np.asarray(self._call_rx("getActualQ"), dtype=float)
+        if q.shape != (N_JOINTS,):
+            raise ProtocolError(f"controller reported {q.shape} joint values, expected ({N_JOINTS},)")
+        protective = bool(self._call_rx("isProtectiveStopped"))
+        emergency = bool(self._call_rx("isEmergencyStopped"))
+        mode = int(self._call_rx("getRobotMode"))
+        return RobotState(
+            q=q,
+            timestamp=timestamp,
+            protective_stop=protective,
+            emergency_stop=emergency,
+            ready=mode == ROBOT_MODE_RUNNING and not protective and not emergency,
+        )
+
+    def robot_mode(self) -> int:
+        """Controller robot mode (7 = RUNNING)."""
+        return int(self._call_rx("getRobotMode"))
+
+    def joint_positions(self) -> np.ndarray:
+        """Actual joint positions (6,), rad, from a fresh controller sample."""
+        return self.state().q
+
+    # -- moving ----------------------------------------------------------------------------------------------
+
+    def _raise_if_stopped(self, state: RobotState, when: str) -> None:
+        where = np.array2string(state.q, precision=4)
+        if state.emergency_stop:
+            raise EmergencyStop(f"robot is emergency-stopped {when} (q = {where} rad)")
+        if state.protective_stop:
+            raise ProtectiveStop(f"robot is protective-stopped {when} (q = {where} rad)")
+
+    def move_joints(self, q: np.ndarray, speed: float, acceleration: float) -> None:
+        """Move to q (6,) rad with joint speed (rad/s) and acceleration (rad/s²); block until it ends.
+
+        Checks limits and robot state first (MotionRejected, ProtectiveStop, EmergencyStop), then checks the
+        controller's answer and the final position (MotionFailed, ProtectiveStop).
+        """
+        if self._control is None:
+            raise MotionRejected("this UR robot was opened read-only (no control interface)")
+        target = self.limits.check_motion(q, speed, acceleration)
+        before = self.state()
+        self._raise_if_stopped(before, "before the move")
+        mode = self.robot_mode()
+        if mode != ROBOT_MODE_RUNNING:
+            raise MotionRejected(f"robot mode is {mode}, not RUNNING ({ROBOT_MODE_RUNNING}); refusing to move")
+        try:
+            ok = self._control.moveJ(target.tolist(), float(speed), float(acceleration), False)
+        except ValueError as exc:
+            raise MotionRejected(f"ur-rtde refused the move: {exc}") from exc
+        except RuntimeError as exc:
+            self._raise_stop_or(MotionFailed(f"moveJ raised: {exc}"), exc)
+        if not ok:
+            self._raise_stop_or(MotionFailed(f"controller reported moveJ to {target.tolist()} failed"), None)
+        if self.profile.settle_time > 0:
+            self._sleep(self.profile.settle_time)
+        after = self.state()
+        self._raise_if_stopped(after, "after the move")
+        error = float(np.max(np.abs(after.q - target)))
+        if error > self.profile.position_tolerance:
+            raise MotionFailed(
+                f"robot ended {error:.6f} rad from the target (tolerance {self.profile.position_tolerance} rad): "
+                f"q = {after.q.tolist()}"
+            )
+
+    def _raise_stop_or(self, error: MotionFailed, cause: BaseException | None) -> None:
+        """After a failed move: raise the stop that caused it if the safety state shows one, else ``error``."""
+        try:
+            state = self.state()
+        except StaleData as exc:
+            raise MotionFailed(f"{error}; and the controller data went stale: {exc}") from cause
+        except ConnectionFailed as exc:
+            raise ConnectionFailed(f"{error}; and the connection is lost: {exc}") from cause
+        self._raise_if_stopped(state, "after a failed move")
+        raise error from cause
+
+    def stop(self) -> None:
+        """Decelerate any joint motion (stopJ). Always safe: never raises, also after close or an error."""
+        if self._control is None or self._closed:
+            return
+        try:
+            self._control.stopJ(self.profile.stop_acceleration, False)
+        except Exception as exc:  # stop() is called on error paths; it must not mask the original error
+            log.warning("stopJ on %s failed: %s", self.profile.host, exc)
+
+
+def _construct(factory: Callable[[str, float], Any], host: str, frequency: float, what: str) -> Any:
+    try:
+        return factory(host, frequency)
+    except ValueError as exc:
+        raise ProtocolError(f"{what} for {host}: {exc}") from exc
+    except RuntimeError as exc:
+        # ur-rtde reports every setup failure as RuntimeError; only its wording tells a controller that lacks
+        # a variable (wrong PolyScope version: a protocol problem) from one that cannot be reached.
+        if "not found" in str(exc).lower():
+            raise ProtocolError(f"{what} for {host}: {exc}") from exc
+        raise ConnectionFailed(f"{what} for {host} could not be set up: {exc}") from exc
+
+
+def interface_signatures() -> dict[str, list[tuple[str, list[str]]]]:
+    """Names and parameter lists of the ur-rtde methods labcal calls, parsed from their ``__doc__``.
+
+    Returns {"Class.method": [(name, [param, ...]), ...]} (one entry per pybind11 overload; ``self`` dropped).
+    pybind11 methods have no ``inspect.signature``; the first docstring line(s) carry it instead.
+    """
+    import rtde_control
+    import rtde_receive
+
+    out: dict[str, list[tuple[str, list[str]]]] = {}
+    for cls, names in (
+        (rtde_receive.RTDEReceiveInterface, RECEIVE_METHODS),
+        (rtde_control.RTDEControlInterface, CONTROL_METHODS),
+    ):
+        for name in names:
+            out[f"{cls.__name__}.{name}"] = parse_pybind_signatures(getattr(cls, name).__doc__ or "", name)
+    return out
+
+
+RECEIVE_METHODS: Sequence[str] = (
+    "getTimestamp",
+    "getActualQ",
+    "isProtectiveStopped",
+    "isEmergencyStopped",
+    "getRobotMode",
+    "isConnected",
+    "disconnect",
+)
+CONTROL_METHODS: Sequence[str] = ("moveJ", "stopJ", "isConnected", "disconnect")
+
+
+def parse_pybind_signatures(doc: str, name: str) -> list[tuple[str, list[str]]]:
+    """Parameter names of each signature line ``name(self: T, a: float = 1.0, ...) -> R`` in a pybind11 doc.
+
+    Overloaded functions list numbered lines ``1. name(...)``; a plain one has its signature on line one.
+    """
+    signatures = []
+    for raw in doc.splitlines():
+        line = raw.strip()
+        if line[:1].isdigit() and ". " in line:
+            line = line.split(". ", 1)[1]
+        if not line.startswith(name + "(") or line.startswith(name + "(*args"):
+            continue
+        inner = line[len(name) + 1 : line.rindex(")")] if ")" in line else ""
+        params = [p.split(":")[0].split("=")[0].strip() for p in _split_params(inner)]
+        signatures.append((name, [p for p in params if p and p != "self"]))
+    return signatures
+
+
+def _split_params(text: str) -> list[str]:
+    """Split a parameter list on top-level commas (defaults and annotations may contain brackets)."""
+    parts, depth, current = [], 0, []
+    for ch in text:
+        if ch in "[(<{":
+            depth += 1
+        elif ch in "])>}":
+            depth -= 1
+        if ch == "," and depth == 0:
+            parts.append("".join(current))
+            current = []
+        else:
+            current.append(ch)
+    if current:
+        parts.append("".join(current))
+    return parts
