@@ -1,0 +1,144 @@
+"""Calibration input: configurations and the three measured target points, validated once.
+
+Every method takes an :class:`Observations`. Measured points are in the base frame (``frame="base"``) or in the
+tracker frame (``frame="tracker"``, the tracker-to-base pose is then estimated by the fit).
+
+Example::
+
+    >>> obs = Observations(q=np.zeros((2, 1)), points=np.zeros((2, 3, 3)) + [[0, 0, 0], [1, 0, 0], [0, 1, 0]],
+    ...                    targets=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]))
+    >>> obs.k, obs.n, obs.split.tolist()
+    (2, 1, ['', ''])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from labcal.kinematics import se3
+
+SPLITS = ("train", "val", "test", "")
+MIN_TRIANGLE_AREA = 1e-6  # m²: 1 mm × 2 mm; below this the three targets cannot fix an orientation
+
+
+class ObservationError(ValueError):
+    """The calibration input is unusable; the message names the row, joint or field."""
+
+
+@dataclass(frozen=True, eq=False)
+class Observations:
+    """q: (k, n) commanded joints (rad, m); points: (k, 3, 3) measured targets (m), rows t1..t3;
+    targets: (3, 3) target positions in the tool frame (m); split: (k,) "train" | "val" | "test" | ""."""
+
+    q: np.ndarray
+    points: np.ndarray
+    targets: np.ndarray
+    frame: str = "base"
+    split: np.ndarray = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        q = np.asarray(self.q, dtype=float)
+        points = np.asarray(self.points, dtype=float)
+        targets = np.asarray(self.targets, dtype=float)
+        if q.ndim != 2:
+            raise ObservationError(f"q must have shape (k, n), got {q.shape}")
+        k = q.shape[0]
+        if points.shape != (k, 3, 3):
+            raise ObservationError(f"points must have shape ({k}, 3, 3) for {k} configurations, got {points.shape}")
+        if targets.shape != (3, 3):
+            raise ObservationError(f"targets must have shape (3, 3), got {targets.shape}")
+        check_targets(targets)
+        for name, arr in (("q", q), ("points", points)):
+            bad = ~np.isfinite(arr.reshape(k, -1)).all(axis=1)
+            if np.any(bad):
+                raise ObservationError(f"{name} of configuration (row) {int(np.argmax(bad))} is not finite")
+        if self.frame not in ("base", "tracker"):
+            raise ObservationError(f"frame must be 'base' or 'tracker', got {self.frame!r}")
+        split = np.full(k, "", dtype=object) if self.split is None else np.asarray(self.split, dtype=object)
+        if split.shape != (k,):
+            raise ObservationError(f"split must have shape ({k},), got {split.shape}")
+        unknown = [s for s in set(split.tolist()) if s not in SPLITS]
+        if unknown:
+            row = int(np.argmax([s in unknown for s in split]))
+            raise ObservationError(f"split of row {row} is {split[row]!r}; allowed: train, val, test or empty")
+        for name, arr in (("q", q), ("points", points), ("targets", targets)):
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+        object.__setattr__(self, "split", split)
+
+    @property
+    def k(self) -> int:
+        return self.q.shape[0]
+
+    @property
+    def n(self) -> int:
+        return self.q.shape[1]
+
+    def check_robot(self, n_joints: int) -> None:
+        """Raise if the observations do not belong to a robot with n_joints joints."""
+        if self.n != n_joints:
+            raise ObservationError(f"observations have {self.n} joint values per row, the robot has {n_joints}")
+
+    def subset(self, mask_or_index) -> Observations:
+        """A new Observations of the selected rows (boolean mask or integer index)."""
+        idx = np.asarray(mask_or_index)
+        return Observations(self.q[idx], self.points[idx], self.targets, self.frame, self.split[idx])
+
+    def where(self, split: str) -> Observations:
+        """The rows of one split."""
+        return self.subset(self.split == split)
+
+    def with_splits(self, val_fraction: float = 0.5, seed: int = 0) -> Observations:
+        """Assign unassigned rows ("") to train/val at random (seeded); rows already assigned stay."""
+        if not 0.0 <= val_fraction < 1.0:
+            raise ObservationError(f"val_fraction must be in [0, 1), got {val_fraction}")
+        split = self.split.copy()
+        free = np.flatnonzero(split == "")
+        order = np.random.default_rng(seed).permutation(free)
+        n_val = round(val_fraction * len(free))
+        split[order[:n_val]] = "val"
+        split[order[n_val:]] = "train"
+        return Observations(self.q, self.points, self.targets, self.frame, split)
+
+    def measured_poses(self) -> np.ndarray:
+        """(k, 4, 4) tool poses fitted to the three measured points (least squares rigid fit, Kabsch).
+
+        In the observation frame. Noise-free points give the exact pose; noisy ones the best rigid fit.
+        """
+        return rigid_fit(self.targets, self.points)
+
+
+def check_targets(targets: np.ndarray) -> None:
+    """Raise ObservationError if the three target points are (nearly) collinear."""
+    targets = np.asarray(targets, dtype=float)
+    if not np.all(np.isfinite(targets)):
+        raise ObservationError("targets contain non-finite values")
+    area = 0.5 * np.linalg.norm(np.cross(targets[1] - targets[0], targets[2] - targets[0]))
+    if area < MIN_TRIANGLE_AREA:
+        raise ObservationError(
+            f"the three targets are (nearly) collinear: triangle area {area:.3g} m² < {MIN_TRIANGLE_AREA} m²"
+        )
+
+
+def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Best rigid transforms T with ``dst[k] ≈ T[k] · src`` (Kabsch): src (m, 3), dst (k, m, 3) → (k, 4, 4)."""
+    src = np.asarray(src, dtype=float)
+    dst = np.atleast_3d(np.asarray(dst, dtype=float))
+    cs, cd = src.mean(axis=0), dst.mean(axis=1)
+    H = np.einsum("ma,kmb->kab", src - cs, dst - cd[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
+    D = np.zeros((len(d), 3, 3))
+    D[:, 0, 0], D[:, 1, 1], D[:, 2, 2] = 1.0, 1.0, d
+    R = np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
+    t = cd - np.einsum("kab,b->ka", R, cs)
+    return se3.pose(t) @ _rot4(R)
+
+
+def _rot4(R: np.ndarray) -> np.ndarray:
+    out = np.zeros((*R.shape[:-2], 4, 4))
+    out[..., :3, :3] = R
+    out[..., 3, 3] = 1.0
+    return out
