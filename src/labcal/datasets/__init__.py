@@ -1,1 +1,147 @@
+"""labcal's data store: session journals, immutable versioned data sets, fits, and import of external data.
 
+Layout of a store (default ``$LABCAL_STORE``, else ``./sessions`` relative to the current directory)::
+
+    <store>/<session-id>/journal.jsonl            append-only run documents (recorded sessions only)
+    <store>/<session-id>/v001/measurements.parquet immutable measurements table (read-only)
+    <store>/<session-id>/v001/manifest.json        metadata + units + sha256 of every file (read-only)
+    <store>/<session-id>/v001/fits/<fit-id>/       fits that read v001 (added later; outside the hashes)
+
+Units are SI: q in rad, points and targets in m, time in s. ``points[:, i]`` is target t(i+1).
+
+Recording a session (what the session runner does)::
+
+    from labcal.datasets import SessionStore
+
+    store = SessionStore()                                   # or SessionStore("path/to/store")
+    with store.create_session(robot_name="ur10", robot_hash=model_sha256, n_joints=6,
+                              targets=targets,               # (3, 3) m, tool frame
+                              frame="tracker",               # frame of the measured points
+                              tracker={"driver": "ndi", "serial": "P9-01234"},
+                              robot_driver={"driver": "ur", "host": "192.168.0.10"},
+                              plan=[{"q": q.tolist()} for q in plan_q]) as journal:
+        for i, q in enumerate(plan_q):
+            if i in journal.valid_pose_indices():            # already measured in an earlier run
+                continue
+            ...move, measure...
+            journal.append_measurement(pose_index=i, q_commanded=q, q_actual=q_read,
+                                       points=m.points, spread=m.spread, samples=5)
+        journal.stop("success")
+    print(store.seal(journal.session_id).ref)              # e.g. 20261122-031500-ur10-3f9a@v001
+
+Resuming after Ctrl-C, a protective stop or a crash::
+
+    with store.open_journal(session_id) as journal:        # repairs a torn last line
+        journal.resume("operator restarted")
+        todo = [i for i in range(len(plan)) if i not in journal.valid_pose_indices()]
+        ...
+        journal.pause("protective stop")                   # or journal.stop("paused", "Ctrl-C")
+
+Reading, verifying, fitting::
+
+    ds = load_version(store, "20261122-031500-ur10-3f9a@v1")   # verified; DatasetCorrupted if not intact
+    ds.q, ds.points, ds.targets, ds.frame, ds.split          # (k, n), (k, 3, 3), (3, 3), str, (k,)
+    store.verify("20261122-031500-ur10-3f9a").ok            # latest version
+    fit = store.save_fit([ds.ref], {"model.npz": blob}, {"method": "local-poe", "seed": 0, "metrics": {...}})
+    store.list_fits(ds.ref); store.load_fit(ds.ref, fit.fit_id).read("model.npz")
+
+Importing external data (each returns the new ``SESSION@vNNN``)::
+
+    targets = load_targets("targets.toml")                   # unit = "mm", points = [[...], [...], [...]]
+    import_targets_csv(store, "data.csv", "ur10", h, 6, targets, length_unit="mm", angle_unit="deg",
+                       frame="tracker")
+    import_probe_csv(store, "probe.csv", "ur10", h, 6, rotation="euler", euler_sequence="XYZ",
+                     length_unit="mm", rotation_unit="deg", frame="tracker")
+    import_mapped(store, "measurements_random_poses.csv", "ipa-ur10", "ur10", h, 6)
+
+Versions are never rewritten: sealing again, appending to a journal, or importing into an existing session
+(``session_id=...``) makes ``vNNN+1`` with ``parent = vNNN`` holding the old rows plus the new ones.
+"""
+
+from .errors import (
+    DatasetCorrupted,
+    DatasetError,
+    ImportFormatError,
+    InvalidId,
+    JournalCorrupted,
+    JournalError,
+    MappingError,
+    TargetsError,
+    UnknownSession,
+    UnknownVersion,
+)
+from .ids import Ref, new_fit_id, new_session_id, parse_ref, validate_id, version_name
+from .importers import (
+    DEFAULT_PROBE_OFFSETS,
+    ImportSpec,
+    import_mapped,
+    import_probe_csv,
+    import_targets_csv,
+    list_mappings,
+    load_mapping,
+    probe_points,
+)
+from .journal import EXIT_STATUSES, Journal, JournalContents, read_journal
+from .schema import SCHEMA_VERSION, SPLITS, core_columns, joint_columns
+from .store import (
+    Dataset,
+    FitRecord,
+    SealResult,
+    SessionInfo,
+    SessionStore,
+    VerifyReport,
+    VersionInfo,
+    default_root,
+    load_version,
+    verify,
+)
+from .targets import MIN_TARGET_AREA, MIN_TARGET_HEIGHT, load_targets, validate_targets
+
+__all__ = [
+    "DEFAULT_PROBE_OFFSETS",
+    "EXIT_STATUSES",
+    "MIN_TARGET_AREA",
+    "MIN_TARGET_HEIGHT",
+    "SCHEMA_VERSION",
+    "SPLITS",
+    "Dataset",
+    "DatasetCorrupted",
+    "DatasetError",
+    "FitRecord",
+    "ImportFormatError",
+    "ImportSpec",
+    "InvalidId",
+    "Journal",
+    "JournalContents",
+    "JournalCorrupted",
+    "JournalError",
+    "MappingError",
+    "Ref",
+    "SealResult",
+    "SessionInfo",
+    "SessionStore",
+    "TargetsError",
+    "UnknownSession",
+    "UnknownVersion",
+    "VerifyReport",
+    "VersionInfo",
+    "core_columns",
+    "default_root",
+    "import_mapped",
+    "import_probe_csv",
+    "import_targets_csv",
+    "joint_columns",
+    "list_mappings",
+    "load_mapping",
+    "load_targets",
+    "load_version",
+    "new_fit_id",
+    "new_session_id",
+    "parse_ref",
+    "probe_points",
+    "read_journal",
+    "validate_id",
+    "validate_targets",
+    "verify",
+    "version_name",
+]

@@ -1,0 +1,165 @@
+"""Small file-system and hashing helpers shared by the store, the journal and the importers.
+
+Durability rule used everywhere: a file is complete once it has been written, flushed and fsynced, and its
+*name* is durable once the directory holding it has been fsynced. New things appear by ``os.rename`` of a
+finished temporary directory, so a reader never sees a half-written version, session or fit.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import secrets
+import shutil
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+READ_ONLY = 0o444
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path: Path, limit: int | None = None) -> str:
+    """sha256 of a file (or of its first ``limit`` bytes), read in chunks."""
+    h = hashlib.sha256()
+    remaining = limit
+    with open(path, "rb") as f:
+        while True:
+            n = 1 << 20 if remaining is None else min(1 << 20, remaining)
+            if n == 0:
+                break
+            chunk = f.read(n)
+            if not chunk:
+                break
+            h.update(chunk)
+            if remaining is not None:
+                remaining -= len(chunk)
+    return h.hexdigest()
+
+
+def canonical_json(obj: Any, *, indent: int | None = None) -> str:
+    """Deterministic JSON (sorted keys, no NaN) so that equal content gives equal bytes and hashes."""
+    if indent is None:
+        return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
+    return json.dumps(obj, sort_keys=True, indent=indent, allow_nan=False, ensure_ascii=False) + "\n"
+
+
+def utc_now() -> _dt.datetime:
+    return _dt.datetime.now(_dt.UTC)
+
+
+def iso(t: _dt.datetime) -> str:
+    return t.isoformat(timespec="microseconds").replace("+00:00", "Z")
+
+
+def random_hex(n: int) -> str:
+    return secrets.token_hex((n + 1) // 2)[:n]
+
+
+def fsync_dir(path: Path) -> None:
+    """Make the directory entries of ``path`` durable (no-op where directories cannot be opened)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:  # pragma: no cover - Windows
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_file_durable(path: Path, data: bytes, *, read_only: bool = True) -> None:
+    """Write a new file (must not exist), fsync it, and optionally make it read-only."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        view = memoryview(data)
+        while view:
+            n = os.write(fd, view)
+            view = view[n:]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    if read_only:
+        os.chmod(path, READ_ONLY)
+
+
+def make_temp_dir(parent: Path, prefix: str) -> Path:
+    """A fresh hidden directory in ``parent`` (same file system, so a later rename is atomic)."""
+    for _ in range(100):
+        p = parent / f".tmp-{prefix}-{random_hex(8)}"
+        try:
+            p.mkdir()
+            return p
+        except FileExistsError:  # pragma: no cover - astronomically unlikely
+            continue
+    raise OSError(f"could not create a temporary directory in {parent}")  # pragma: no cover
+
+
+def remove_tree(path: Path) -> None:
+    """Remove a (temporary) tree, including files we made read-only."""
+    if not path.exists():
+        return
+
+    def onerror(func, p, _exc):
+        os.chmod(p, 0o700 if os.path.isdir(p) else 0o600)
+        func(p)
+
+    if sys.version_info >= (3, 12):
+        shutil.rmtree(path, onexc=onerror)
+    else:  # pragma: no cover
+        shutil.rmtree(path, onerror=onerror)
+
+
+def publish_dir(tmp: Path, final: Path) -> None:
+    """Atomically rename a finished temporary directory to its final name; fail if the name is taken."""
+    fsync_dir(tmp)
+    if final.exists():
+        raise FileExistsError(f"{final} already exists")
+    # os.rename would replace an *empty* existing directory on POSIX; the check above and the non-empty
+    # temp dir make a concurrent writer fail with ENOTEMPTY/EEXIST instead of silently winning.
+    os.rename(tmp, final)
+    fsync_dir(final.parent)
+
+
+def software_versions() -> dict[str, str]:
+    """Versions of the software that produced a document (labcal, Python and the data libraries)."""
+    import numpy
+    import pandas
+    import pyarrow
+
+    import labcal
+
+    out = {
+        "labcal": getattr(labcal, "__version__", "unknown"),
+        "python": sys.version.split()[0],
+        "numpy": numpy.__version__,
+        "pandas": pandas.__version__,
+        "pyarrow": pyarrow.__version__,
+    }
+    scipy = sys.modules.get("scipy")
+    if scipy is not None:
+        out["scipy"] = scipy.__version__
+    return out
+
+
+def jsonable(obj: Any) -> Any:
+    """Convert numpy arrays/scalars and tuples inside ``obj`` to plain JSON types (floats kept exact)."""
+    import numpy as np
+
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Mapping):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj

@@ -1,0 +1,669 @@
+"""Import external measurement files into the session store (DESIGN.md section 4, "Import").
+
+Three forms, all ending in one atomic step: a new session with ``v001`` (or, with ``session_id`` of an
+existing session, a new version of it whose parent is the latest):
+
+- :func:`import_targets_csv`: columns ``q1..qn`` and ``t1_x, t1_y, t1_z, t2_x … t3_z`` (three measured
+  target points), optional ``split`` column (train / val / test / empty).
+- :func:`import_probe_csv`: columns ``q1..qn`` and ``x, y, z, rx, ry, rz``: the pose of a 6-DOF probe (the
+  tool) in the base or tracker frame. The rotation is a rotation vector (UR style) or Euler angles with a scipy
+  sequence (``"XYZ"`` = intrinsic, ``"xyz"`` = extrinsic). Each row becomes three *virtual* targets
+  ``p_i = R · v_i + t`` for offsets ``v_i`` in the probe frame (default (0,0,0), (0.1,0,0), (0,0.1,0) m); the
+  offsets are stored as the session's targets so a fit uses the same ones.
+- :func:`import_mapped`: any CSV described by a column-mapping TOML file (separator, decimal mark, joint
+  columns, target or probe columns, units, Euler convention, frame, passthrough columns). Shipped mappings
+  live in ``labcal/datasets/mappings/`` (see :func:`list_mappings`), e.g. ``ipa-ur10`` for the public UR10
+  laser-tracker data set.
+
+Errors name the file, the 1-based data row (header not counted) with its line in the file, and the column.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from ._util import sha256_bytes, sha256_file
+from .errors import DatasetError, ImportFormatError, MappingError, TargetsError
+from .ids import validate_id
+from .schema import FRAMES, SPLITS, TARGET_COLUMNS, joint_columns
+from .store import SessionStore, _plan_summary
+from .targets import LENGTH_UNITS, validate_targets
+
+ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
+#: Default virtual target offsets of the probe form, in the probe frame (m).
+DEFAULT_PROBE_OFFSETS = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
+MAPPINGS_DIR = Path(__file__).parent / "mappings"
+#: Units an extra (passthrough) column may be converted from, to SI.
+_TO_SI = {"mm": ("m", 1e-3), "deg": ("rad", math.pi / 180.0)}
+
+
+@dataclass(frozen=True)
+class ExtraColumn:
+    """A passthrough column: ``column`` in the file → ``x_<name>`` in the table. mm/deg are converted to
+    m/rad; any other unit is stored as given and named in the manifest."""
+
+    column: str
+    name: str
+    unit: str = ""
+    kind: str = "float"  # "float" | "str"
+
+
+@dataclass(frozen=True)
+class ImportSpec:
+    """Everything an import needs to turn a CSV into measurements (built from arguments or a mapping)."""
+
+    form: str  # "targets" | "probe"
+    joints: tuple[str, ...]
+    frame: str
+    joint_unit: str = "rad"
+    separator: str = ","
+    decimal: str = "."
+    target_columns: tuple[tuple[str, str, str], ...] = ()
+    length_unit: str = "m"
+    position: tuple[str, str, str] = ("x", "y", "z")
+    rotation: tuple[str, str, str] = ("rx", "ry", "rz")
+    rotation_unit: str = "rad"
+    convention: str = "rotvec"  # "rotvec" | "euler"
+    euler_sequence: str | None = None
+    split_column: str | None = "split"
+    split_required: bool = False
+    timestamp_column: str | None = None
+    extras: tuple[ExtraColumn, ...] = ()
+    tracker: dict = field(default_factory=dict)
+    description: str = ""
+
+    def check(self) -> None:
+        if self.form not in ("targets", "probe"):
+            raise MappingError(f'form must be "targets" or "probe", got {self.form!r}')
+        if self.frame not in FRAMES:
+            raise MappingError(f"frame must be one of {FRAMES}, got {self.frame!r}")
+        if self.joint_unit not in ANGLE_UNITS:
+            raise MappingError(f'joint angle unit must be "rad" or "deg", got {self.joint_unit!r}')
+        if self.length_unit not in LENGTH_UNITS:
+            raise MappingError(f'length unit must be "m" or "mm", got {self.length_unit!r}')
+        if self.rotation_unit not in ANGLE_UNITS:
+            raise MappingError(f'rotation angle unit must be "rad" or "deg", got {self.rotation_unit!r}')
+        if len(self.separator) != 1 or len(self.decimal) != 1 or self.separator == self.decimal:
+            raise MappingError(
+                f"separator {self.separator!r} and decimal mark {self.decimal!r} must be single, different characters"
+            )
+        if self.form == "probe":
+            if self.convention not in ("rotvec", "euler"):
+                raise MappingError(f'rotation convention must be "rotvec" or "euler", got {self.convention!r}')
+            if self.convention == "euler":
+                _check_sequence(self.euler_sequence)
+        if self.form == "targets" and len(self.target_columns) != 3:
+            raise MappingError("the targets form needs three target column triples")
+        names = [e.name for e in self.extras]
+        if len(set(names)) != len(names):
+            raise MappingError(f"duplicate extra column names {names}")
+        for e in self.extras:
+            validate_id(e.name, "extra column name")
+            if not all(c.isalnum() or c == "_" for c in e.name):
+                raise MappingError(f"extra column name {e.name!r} may hold letters, digits and '_' only")
+            if e.kind not in ("float", "str"):
+                raise MappingError(f'extra column {e.name!r}: type must be "float" or "str", got {e.kind!r}')
+
+
+def _check_sequence(seq: object) -> str:
+    ok = (
+        isinstance(seq, str)
+        and len(seq) == 3
+        and (set(seq) <= set("xyz") or set(seq) <= set("XYZ"))
+        and seq[0].lower() != seq[1].lower()
+        and seq[1].lower() != seq[2].lower()
+    )
+    if not ok:
+        raise MappingError(
+            f"Euler sequence must be 3 axes, all upper case (intrinsic, e.g. 'XYZ') or all lower case "
+            f"(extrinsic, e.g. 'xyz'), no axis twice in a row; got {seq!r}"
+        )
+    return seq  # type: ignore[return-value]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# CSV reading with row/column-precise errors
+
+
+class _Csv:
+    """A CSV read as text. ``rows`` are data rows (blank lines dropped); ``lines[i]`` is row i's file line."""
+
+    def __init__(self, path: Path, separator: str) -> None:
+        self.path = path
+        try:
+            with open(path, encoding="utf-8-sig", newline="") as f:
+                header = next(csv.reader(f, delimiter=separator), None)
+        except FileNotFoundError:
+            raise ImportFormatError("file not found", path=str(path)) from None
+        except UnicodeDecodeError as e:
+            raise ImportFormatError(f"not UTF-8 text: {e}", path=str(path)) from None
+        if not header or not any(h.strip() for h in header):
+            raise ImportFormatError("empty file (no header line)", path=str(path))
+        names = [h.strip() for h in header]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ImportFormatError(f"duplicate column name(s) {dupes} in the header", path=str(path), line=1)
+        try:
+            df = pd.read_csv(
+                path,
+                sep=separator,
+                dtype=str,
+                keep_default_na=False,
+                na_filter=False,
+                skip_blank_lines=False,
+                encoding="utf-8-sig",
+                engine="c",
+            )
+        except pd.errors.ParserError as e:
+            raise ImportFormatError(f"malformed CSV: {e}", path=str(path)) from None
+        except pd.errors.EmptyDataError:
+            raise ImportFormatError("empty file", path=str(path)) from None
+        df.columns = names
+        blank = (df.apply(lambda s: s.str.strip()) == "").all(axis=1).to_numpy()
+        self.lines = np.flatnonzero(~blank) + 2  # header is line 1
+        self.frame = df.loc[~blank].reset_index(drop=True)
+        self.columns = names
+        if len(self.frame) == 0:
+            raise ImportFormatError("no data rows after the header", path=str(path))
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def require(self, columns: Sequence[str], what: str) -> None:
+        missing = [c for c in columns if c not in self.columns]
+        if missing:
+            raise ImportFormatError(
+                f"missing {what} column(s) {missing}; the file has columns {self.columns}", path=str(self.path)
+            )
+
+    def error(self, message: str, index: int, column: str) -> ImportFormatError:
+        return ImportFormatError(
+            message, path=str(self.path), row=index + 1, line=int(self.lines[index]), column=column
+        )
+
+    def numbers(self, column: str, decimal: str, *, allow_missing: bool = False) -> np.ndarray:
+        """Column ``column`` as float64; raises naming the first bad row (missing, non-numeric, NaN, inf)."""
+        text = self.frame[column].str.strip()
+        if decimal != ".":
+            if (bad := text.str.contains(".", regex=False)).any():
+                i = int(np.flatnonzero(bad.to_numpy())[0])
+                raise self.error(f"value {text[i]!r} has '.' but the decimal mark is {decimal!r}", i, column)
+            text = text.str.replace(decimal, ".", regex=False)
+        values = pd.to_numeric(text, errors="coerce").to_numpy(dtype=np.float64, copy=True)
+        for i in np.flatnonzero(~np.isfinite(values)):
+            raw = text[int(i)]
+            if raw == "":
+                if allow_missing:
+                    continue
+                raise self.error("missing value", int(i), column)
+            low = raw.lower().lstrip("+-")
+            if low in ("nan", "inf", "infinity") and not allow_missing:
+                raise self.error(f"non-finite value {raw!r} (NaN/inf are not measurements)", int(i), column)
+            if low not in ("nan", "inf", "infinity"):
+                raise self.error(f"non-numeric value {self.frame[column][int(i)]!r}", int(i), column)
+        if allow_missing:
+            values[~np.isfinite(values)] = np.nan
+        return values
+
+
+def _rotations(angles: np.ndarray, spec: ImportSpec) -> np.ndarray:
+    """(k, 3) angles in ``spec.rotation_unit`` → (k, 3, 3) rotation matrices."""
+    from scipy.spatial.transform import Rotation
+
+    a = angles * ANGLE_UNITS[spec.rotation_unit]
+    if spec.convention == "rotvec":
+        return Rotation.from_rotvec(a).as_matrix()
+    return Rotation.from_euler(_check_sequence(spec.euler_sequence), a).as_matrix()
+
+
+def probe_points(position: np.ndarray, rotation: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Virtual targets of a 6-DOF probe: ``p_i = R · v_i + t``.
+
+    position: (k, 3) m; rotation: (k, 3, 3); offsets: (3, 3) m, row i = v_i in the probe frame.
+    Returns (k, 3, 3) m, ``[:, i]`` = target t(i+1).
+    """
+    return np.einsum("kab,ib->kia", rotation, offsets) + position[:, None, :]
+
+
+def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, offsets: np.ndarray | None) -> pd.DataFrame:
+    """Parse every needed column of ``csvf`` into a measurements table (SI units)."""
+    if len(spec.joints) != n_joints:
+        raise ImportFormatError(
+            f"{len(spec.joints)} joint column(s) {list(spec.joints)} but the robot has n={n_joints} joints",
+            path=str(csvf.path),
+        )
+    csvf.require(spec.joints, "joint")
+    d = spec.decimal
+    rows: dict[str, Any] = {"pose": np.arange(len(csvf), dtype=np.int64)}
+    for j, col in enumerate(spec.joints):
+        rows[f"q{j + 1}"] = csvf.numbers(col, d) * ANGLE_UNITS[spec.joint_unit]
+    scale = LENGTH_UNITS[spec.length_unit]
+    if spec.form == "targets":
+        cols = [c for triple in spec.target_columns for c in triple]
+        csvf.require(cols, "target")
+        for name, col in zip(TARGET_COLUMNS, cols, strict=True):
+            rows[name] = csvf.numbers(col, d) * scale
+    else:
+        csvf.require([*spec.position, *spec.rotation], "probe pose")
+        t = np.stack([csvf.numbers(c, d) for c in spec.position], axis=1) * scale
+        ang = np.stack([csvf.numbers(c, d) for c in spec.rotation], axis=1)
+        pts = probe_points(t, _rotations(ang, spec), offsets)  # type: ignore[arg-type]
+        for i, name in enumerate(TARGET_COLUMNS):
+            rows[name] = pts[:, i // 3, i % 3]
+    if spec.split_column and spec.split_column in csvf.columns:
+        values = csvf.frame[spec.split_column].str.strip().tolist()
+        for i, v in enumerate(values):
+            if v not in SPLITS:
+                raise csvf.error(f"unknown split value {v!r}; allowed: train, val, test or empty", i, spec.split_column)
+        rows["split"] = values
+    elif spec.split_required:
+        csvf.require([spec.split_column or "split"], "split")
+    else:
+        rows["split"] = [""] * len(csvf)
+    if spec.timestamp_column:
+        csvf.require([spec.timestamp_column], "timestamp")
+        rows["timestamp"] = csvf.numbers(spec.timestamp_column, d)
+    csvf.require([e.column for e in spec.extras], "passthrough")
+    for e in spec.extras:
+        if e.kind == "str":
+            rows[f"x_{e.name}"] = csvf.frame[e.column].str.strip().tolist()
+        else:
+            factor = _TO_SI.get(e.unit, (e.unit, 1.0))[1]
+            rows[f"x_{e.name}"] = csvf.numbers(e.column, d, allow_missing=True) * factor
+    table = pd.DataFrame(rows)
+    table["split"] = table["split"].astype("str")
+    return table
+
+
+def _run_import(
+    store: SessionStore | str | Path | None,
+    path: str | Path,
+    spec: ImportSpec,
+    *,
+    robot_name: str,
+    robot_hash: str,
+    n_joints: int,
+    targets: np.ndarray,
+    offsets: np.ndarray | None,
+    session_id: str | None,
+    metadata: Mapping[str, Any] | None,
+    options: dict,
+) -> str:
+    spec.check()
+    store = store if isinstance(store, SessionStore) else SessionStore(store)
+    if isinstance(n_joints, bool) or not isinstance(n_joints, int) or n_joints < 1:
+        raise DatasetError(f"n_joints must be a positive integer, got {n_joints!r}")
+    path = Path(path)
+    csvf = _Csv(path, spec.separator)
+    rows = _build_rows(csvf, spec, n_joints, offsets)
+    file_sha = sha256_file(path)
+    meta = {
+        "robot": {"name": str(robot_name), "hash": str(robot_hash), "n_joints": n_joints},
+        "targets": targets.tolist(),
+        "targets_unit": "m",
+        "frame": spec.frame,
+        "tracker": dict(spec.tracker),
+        "robot_driver": {},
+        "plan": _plan_summary([]),
+        "extra_units": {e.name: _TO_SI.get(e.unit, (e.unit, 1.0))[0] for e in spec.extras},
+        "metadata": dict(metadata or {}),
+    }
+    provenance = {
+        "import": {
+            "file": path.name,
+            "sha256": file_sha,
+            "bytes": path.stat().st_size,
+            "rows": len(rows),
+            "form": spec.form,
+            "options": options,
+        }
+    }
+    source = f"import:{file_sha}"
+    if session_id is not None and (store.root / validate_id(session_id)).is_dir():
+        latest = store.load(session_id)
+        rows["pose"] += int(latest.pose.max()) + 1 if len(latest) else 0
+        meta["session_id"] = session_id
+        return store.append_rows(session_id, rows, meta, source=source, provenance=provenance)
+    return store.create_imported_session(rows, meta, source=source, provenance=provenance, session_id=session_id)
+
+
+def _targets_arg(targets: Any) -> np.ndarray:
+    try:
+        return validate_targets(targets)
+    except TargetsError:
+        raise
+    except Exception as e:  # pragma: no cover - defensive
+        raise TargetsError(f"targets: {e}") from None
+
+
+def import_targets_csv(
+    store: SessionStore | str | Path | None,
+    path: str | Path,
+    robot_name: str,
+    robot_hash: str,
+    n_joints: int,
+    targets: Any,
+    *,
+    length_unit: str = "m",
+    angle_unit: str = "rad",
+    frame: str = "base",
+    separator: str = ",",
+    decimal: str = ".",
+    session_id: str | None = None,
+    metadata: Mapping[str, Any] | None = None,
+) -> str:
+    """Import a three-target CSV (``q1..qn``, ``t1_x … t3_z``, optional ``split``); return ``SESSION@vNNN``.
+
+    ``targets``: (3, 3) m, the targets in the tool frame (e.g. from :func:`load_targets`). ``length_unit``
+    ("m" | "mm") applies to the target columns, ``angle_unit`` ("rad" | "deg") to the joints, ``frame``
+    ("base" | "tracker") names the frame of the measured points. Joint columns beyond ``q{n_joints}`` are an
+    error. With ``session_id`` of an existing session, the rows are appended as a new version.
+    """
+    t = _targets_arg(targets)
+    probe = _Csv(Path(path), separator) if Path(path).exists() else None
+    if probe is not None:
+        extra_q = sorted(
+            (c for c in probe.columns if c[:1] == "q" and c[1:].isdigit() and int(c[1:]) > n_joints),
+            key=lambda c: int(c[1:]),
+        )
+        if extra_q:
+            raise ImportFormatError(
+                f"joint column(s) {extra_q} present but the robot has n={n_joints} joints (q1..q{n_joints})",
+                path=str(path),
+            )
+    spec = ImportSpec(
+        form="targets",
+        joints=tuple(joint_columns(n_joints)),
+        frame=frame,
+        joint_unit=angle_unit,
+        separator=separator,
+        decimal=decimal,
+        target_columns=tuple(tuple(TARGET_COLUMNS[3 * i : 3 * i + 3]) for i in range(3)),  # type: ignore[misc]
+        length_unit=length_unit,
+    )
+    options = {
+        "length_unit": length_unit,
+        "angle_unit": angle_unit,
+        "frame": frame,
+        "separator": separator,
+        "decimal": decimal,
+    }
+    return _run_import(
+        store,
+        path,
+        spec,
+        robot_name=robot_name,
+        robot_hash=robot_hash,
+        n_joints=n_joints,
+        targets=t,
+        offsets=None,
+        session_id=session_id,
+        metadata=metadata,
+        options=options,
+    )
+
+
+def import_probe_csv(
+    store: SessionStore | str | Path | None,
+    path: str | Path,
+    robot_name: str,
+    robot_hash: str,
+    n_joints: int,
+    *,
+    length_unit: str = "m",
+    angle_unit: str = "rad",
+    rotation_unit: str | None = None,
+    frame: str = "base",
+    rotation: str = "rotvec",
+    euler_sequence: str | None = None,
+    offsets: Any = None,
+    columns: Sequence[str] = ("x", "y", "z", "rx", "ry", "rz"),
+    separator: str = ",",
+    decimal: str = ".",
+    session_id: str | None = None,
+    metadata: Mapping[str, Any] | None = None,
+) -> str:
+    """Import a 6-DOF probe CSV (``q1..qn``, ``x, y, z, rx, ry, rz``); return ``SESSION@vNNN``.
+
+    ``rotation``: "rotvec" (rotation vector, UR style) or "euler" with ``euler_sequence`` (scipy: "XYZ"
+    intrinsic, "xyz" extrinsic). ``length_unit`` applies to x, y, z; ``angle_unit`` to the joints;
+    ``rotation_unit`` (default: ``angle_unit``) to rx, ry, rz. ``offsets``: (3, 3) m virtual target
+    offsets in the probe frame (default :data:`DEFAULT_PROBE_OFFSETS`); they become the session's targets.
+    """
+    v = _targets_arg(DEFAULT_PROBE_OFFSETS if offsets is None else offsets)
+    if len(columns) != 6:
+        raise DatasetError(f"columns must name x, y, z, rx, ry, rz (6 names), got {list(columns)}")
+    spec = ImportSpec(
+        form="probe",
+        joints=tuple(joint_columns(n_joints)),
+        frame=frame,
+        joint_unit=angle_unit,
+        separator=separator,
+        decimal=decimal,
+        length_unit=length_unit,
+        position=tuple(columns[:3]),  # type: ignore[arg-type]
+        rotation=tuple(columns[3:]),  # type: ignore[arg-type]
+        rotation_unit=rotation_unit or angle_unit,
+        convention=rotation,
+        euler_sequence=euler_sequence,
+    )
+    options = {
+        "length_unit": length_unit,
+        "angle_unit": angle_unit,
+        "rotation_unit": spec.rotation_unit,
+        "frame": frame,
+        "rotation": rotation,
+        "euler_sequence": euler_sequence,
+        "offsets_m": v.tolist(),
+        "columns": list(columns),
+        "separator": separator,
+        "decimal": decimal,
+    }
+    return _run_import(
+        store,
+        path,
+        spec,
+        robot_name=robot_name,
+        robot_hash=robot_hash,
+        n_joints=n_joints,
+        targets=v,
+        offsets=v,
+        session_id=session_id,
+        metadata=metadata,
+        options=options,
+    )
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Mapping files
+
+_TOP_KEYS = {
+    "description",
+    "form",
+    "separator",
+    "decimal",
+    "frame",
+    "joints",
+    "joint_unit",
+    "split_column",
+    "timestamp_column",
+    "targets",
+    "probe",
+    "tracker",
+    "extra",
+    "source",
+}
+_TARGET_KEYS = {"columns", "unit"}
+_PROBE_KEYS = {
+    "position",
+    "position_unit",
+    "rotation",
+    "rotation_unit",
+    "convention",
+    "euler_sequence",
+    "offsets",
+    "offsets_unit",
+}
+_EXTRA_KEYS = {"column", "name", "unit", "type"}
+
+
+def list_mappings() -> list[str]:
+    """Names of the mappings shipped with labcal (usable as ``import_mapped(..., "<name>", ...)``)."""
+    return sorted(p.stem for p in MAPPINGS_DIR.glob("*.toml"))
+
+
+def _resolve_mapping(mapping: str | Path) -> Path:
+    p = Path(mapping)
+    if p.is_file():
+        return p
+    name = p.name[:-5] if p.name.endswith(".toml") else p.name
+    shipped = MAPPINGS_DIR / f"{name}.toml"
+    if str(p) == p.name and shipped.is_file():
+        return shipped
+    raise MappingError(
+        f"mapping {str(mapping)!r} is neither a file nor a shipped mapping ({', '.join(list_mappings())})"
+    )
+
+
+def _strings(value: Any, n: int, key: str, src: str) -> tuple[str, ...]:
+    if not isinstance(value, list) or len(value) != n or not all(isinstance(v, str) and v for v in value):
+        raise MappingError(f"{src}: {key} must be a list of {n} column names, got {value!r}")
+    return tuple(value)
+
+
+def load_mapping(mapping: str | Path) -> tuple[ImportSpec, np.ndarray | None, dict]:
+    """Read a mapping TOML (path or shipped name) → (spec, probe offsets in m or None, raw document).
+
+    See ``mappings/ipa-ur10.toml`` for a commented example of every key.
+    """
+    path = _resolve_mapping(mapping)
+    src = f"mapping {path}"
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as e:
+        raise MappingError(f"{src}: not valid TOML: {e}") from None
+    unknown = sorted(set(doc) - _TOP_KEYS)
+    if unknown:
+        raise MappingError(f"{src}: unknown key(s) {unknown}; allowed: {sorted(_TOP_KEYS)}")
+    form = doc.get("form")
+    if form not in ("targets", "probe"):
+        raise MappingError(f'{src}: form must be "targets" or "probe", got {form!r}')
+    if "joints" not in doc or not isinstance(doc["joints"], list):
+        raise MappingError(f"{src}: joints must list the joint column names in order q1..qn")
+    joints = _strings(doc["joints"], len(doc["joints"]), "joints", src)
+    kw: dict[str, Any] = {
+        "form": form,
+        "joints": joints,
+        "frame": doc.get("frame", "base"),
+        "joint_unit": doc.get("joint_unit", "rad"),
+        "separator": doc.get("separator", ","),
+        "decimal": doc.get("decimal", "."),
+        "split_column": doc.get("split_column", "split"),
+        "timestamp_column": doc.get("timestamp_column"),
+        "tracker": dict(doc.get("tracker", {})),
+        "description": str(doc.get("description", "")),
+    }
+    if "split_column" in doc:
+        kw["split_required"] = True
+    offsets = None
+    if form == "targets":
+        t = doc.get("targets")
+        if not isinstance(t, dict):
+            raise MappingError(f'{src}: form = "targets" needs a [targets] table')
+        if bad := sorted(set(t) - _TARGET_KEYS):
+            raise MappingError(f"{src}: unknown key(s) in [targets]: {bad}")
+        cols = t.get("columns")
+        if not isinstance(cols, list) or len(cols) != 3:
+            raise MappingError(f"{src}: [targets] columns must be three [x, y, z] column-name lists")
+        kw["target_columns"] = tuple(_strings(c, 3, "[targets] columns", src) for c in cols)
+        kw["length_unit"] = t.get("unit", "m")
+    else:
+        p = doc.get("probe")
+        if not isinstance(p, dict):
+            raise MappingError(f'{src}: form = "probe" needs a [probe] table')
+        if bad := sorted(set(p) - _PROBE_KEYS):
+            raise MappingError(f"{src}: unknown key(s) in [probe]: {bad}")
+        kw["position"] = _strings(p.get("position"), 3, "[probe] position", src)
+        kw["rotation"] = _strings(p.get("rotation"), 3, "[probe] rotation", src)
+        kw["length_unit"] = p.get("position_unit", "m")
+        kw["rotation_unit"] = p.get("rotation_unit", "rad")
+        kw["convention"] = p.get("convention", "rotvec")
+        kw["euler_sequence"] = p.get("euler_sequence")
+        if "offsets" in p:
+            unit = p.get("offsets_unit", "m")
+            if unit not in LENGTH_UNITS:
+                raise MappingError(f'{src}: [probe] offsets_unit must be "m" or "mm", got {unit!r}')
+            try:
+                raw = validate_targets(p["offsets"], min_area=0, min_height=0, source=f"{src} [probe] offsets")
+            except TargetsError as e:
+                raise MappingError(str(e)) from None
+            offsets = validate_targets(raw * LENGTH_UNITS[unit], source=f"{src} [probe] offsets")
+    extras = []
+    for i, e in enumerate(doc.get("extra", [])):
+        if not isinstance(e, dict) or "column" not in e:
+            raise MappingError(f"{src}: [[extra]] entry {i + 1} needs a column")
+        if bad := sorted(set(e) - _EXTRA_KEYS):
+            raise MappingError(f"{src}: unknown key(s) in [[extra]] entry {i + 1}: {bad}")
+        extras.append(ExtraColumn(e["column"], e.get("name", e["column"]), e.get("unit", ""), e.get("type", "float")))
+    kw["extras"] = tuple(extras)
+    try:
+        spec = ImportSpec(**kw)
+        spec.check()
+    except MappingError as e:
+        raise MappingError(f"{src}: {e}") from None
+    return spec, offsets, doc
+
+
+def import_mapped(
+    store: SessionStore | str | Path | None,
+    path: str | Path,
+    mapping: str | Path,
+    robot_name: str,
+    robot_hash: str,
+    n_joints: int,
+    *,
+    targets: Any = None,
+    session_id: str | None = None,
+    metadata: Mapping[str, Any] | None = None,
+) -> str:
+    """Import ``path`` as described by a mapping TOML (a path, or a shipped name such as ``"ipa-ur10"``).
+
+    ``targets`` (3, 3) m: required for a "targets" mapping; for a "probe" mapping it overrides the mapping's
+    virtual offsets. Returns ``SESSION@vNNN``.
+    """
+    spec, offsets, doc = load_mapping(mapping)
+    mpath = _resolve_mapping(mapping)
+    if spec.form == "targets":
+        if targets is None:
+            raise TargetsError(f"mapping {mpath.name} imports measured targets: pass targets (3x3, tool frame)")
+        t = _targets_arg(targets)
+        offsets = None
+    else:
+        t = _targets_arg(
+            targets if targets is not None else (offsets if offsets is not None else DEFAULT_PROBE_OFFSETS)
+        )
+        offsets = t
+    text = mpath.read_bytes()
+    options = {"mapping": mpath.stem, "mapping_sha256": sha256_bytes(text), "mapping_content": doc}
+    return _run_import(
+        store,
+        path,
+        spec,
+        robot_name=robot_name,
+        robot_hash=robot_hash,
+        n_joints=n_joints,
+        targets=t,
+        offsets=offsets,
+        session_id=session_id,
+        metadata=metadata,
+        options=options,
+    )

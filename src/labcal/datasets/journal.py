@@ -1,0 +1,534 @@
+"""The append-only session journal (``journal.jsonl``): one JSON document per line, fsynced as it arrives.
+
+Documents (each has ``type``, ``uid`` and ``time`` in UNIX seconds):
+
+- ``start`` (first line): ``session_id``, ``schema_version``, ``robot`` {name, hash, n_joints}, ``targets``
+  (3×3, m, tool frame), ``frame`` ("base" | "tracker": the frame of the measured points), ``tracker`` and
+  ``robot_driver`` identity dicts, ``plan`` (list of JSON-able commands), ``extra_units`` (unit of each
+  ``extra`` measurement field), ``software`` versions, ``metadata`` (user's).
+- ``measurement``: ``seq`` (1, 2, … in order of arrival), ``pose_index`` (position in the plan),
+  ``q_commanded``/``q_actual`` (n, rad), ``points`` (3×3, m, row i = target t(i+1)), ``spread`` (3, m),
+  ``samples``, ``status`` ("valid" | "rejected"), ``reason``, ``split`` ("train" | "val" | "test" | "" or
+  null), ``extra`` {name: value}, ``units``.
+- ``pause`` / ``resume`` (``reason``: protective stop, Ctrl-C, restart after a crash …).
+- ``stop``: ``exit_status`` ("success" | "aborted" | "paused" | "failed") and ``reason``.
+- ``repair``: written by labcal itself when it reopens a journal whose last write was torn (``torn_lines``).
+
+Crash safety: every document is written with one ``write`` and fsynced before ``append_*`` returns; the
+file and, on creation, its directory are fsynced. A kill -9 can leave at most an unfinished last line; the
+reader ignores it (with a warning in :attr:`JournalContents.warnings`) and :meth:`Journal.open` starts the
+next document on a fresh line (it writes a newline and a ``repair`` document; earlier bytes are never
+rewritten). Only one process may hold a journal open for appending (an exclusive ``flock``).
+
+Lifecycle: measurements are accepted while the run is *running*; ``pause`` → paused, ``stop`` → stopped,
+``resume`` (also after a crash) → running again. A session may therefore hold several runs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import time as _time
+import uuid
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._util import canonical_json, fsync_dir, jsonable, software_versions
+from .errors import JournalCorrupted, JournalError
+from .ids import validate_id
+from .schema import FRAMES, SCHEMA_VERSION, SPLITS
+from .targets import validate_targets
+
+try:  # POSIX only; without it we simply do not lock.
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None  # type: ignore[assignment]
+
+JOURNAL_NAME = "journal.jsonl"
+DOC_TYPES = ("start", "measurement", "pause", "resume", "stop", "repair")
+EXIT_STATUSES = ("success", "aborted", "paused", "failed")
+STATUSES = ("valid", "rejected")
+MEASUREMENT_UNITS = {"q_commanded": "rad", "q_actual": "rad", "points": "m", "spread": "m", "time": "s"}
+_EXTRA_KEY = re.compile(r"^[A-Za-z0-9_]{1,64}$")
+
+
+@dataclass(frozen=True)
+class JournalContents:
+    """What :func:`read_journal` found. ``documents`` are the parsed, well-formed documents in file order."""
+
+    path: Path
+    documents: list[dict]
+    warnings: list[str] = field(default_factory=list)
+    #: 1-based line numbers of unfinished lines at the end of the file (a torn last write).
+    torn_lines: list[int] = field(default_factory=list)
+    #: 1-based line numbers of unreadable lines that are *not* an explained torn write.
+    corrupt_lines: list[int] = field(default_factory=list)
+    #: True when the file does not end with a newline (the next append must start a fresh line).
+    needs_newline: bool = False
+    size: int = 0
+
+    @property
+    def start(self) -> dict | None:
+        return self.documents[0] if self.documents and self.documents[0]["type"] == "start" else None
+
+    @property
+    def measurements(self) -> list[dict]:
+        return [d for d in self.documents if d["type"] == "measurement"]
+
+    @property
+    def state(self) -> str:
+        """ "running", "paused" or "stopped", from the last lifecycle document."""
+        for d in reversed(self.documents):
+            if d["type"] == "stop":
+                return "stopped"
+            if d["type"] == "pause":
+                return "paused"
+            if d["type"] in ("resume", "start"):
+                return "running"
+        return "running"
+
+    @property
+    def stop(self) -> dict | None:
+        """The last ``stop`` document if the journal is stopped, else None."""
+        if self.state != "stopped":
+            return None
+        return next(d for d in reversed(self.documents) if d["type"] == "stop")
+
+    @property
+    def status(self) -> str:
+        """The session's status for listings: the stop document's exit_status, "paused", or "open"."""
+        state = self.state
+        if state == "stopped":
+            return self.stop["exit_status"]  # type: ignore[index]
+        return "paused" if state == "paused" else "open"
+
+    @property
+    def next_seq(self) -> int:
+        ms = self.measurements
+        return ms[-1]["seq"] + 1 if ms else 1
+
+    def valid_pose_indices(self) -> set[int]:
+        """Plan positions that already have a valid measurement (skip them when resuming)."""
+        return {d["pose_index"] for d in self.measurements if d["status"] == "valid"}
+
+
+def _check_doc(doc: Any) -> str | None:
+    """Return why ``doc`` is not a well-formed journal document, or None."""
+    if not isinstance(doc, dict):
+        return "not a JSON object"
+    t = doc.get("type")
+    if t not in DOC_TYPES:
+        return f"unknown document type {t!r}"
+    if t == "measurement":
+        if not isinstance(doc.get("seq"), int) or not isinstance(doc.get("pose_index"), int):
+            return "measurement without integer seq/pose_index"
+        if doc.get("status") not in STATUSES:
+            return f"measurement with unknown status {doc.get('status')!r}"
+    return None
+
+
+def read_journal(path: str | Path) -> JournalContents:
+    """Read a journal, tolerating a torn last write (never raises for one; see ``warnings``).
+
+    Unreadable lines in the middle are skipped with a warning and listed in ``corrupt_lines`` unless a
+    later ``repair`` document explains them as a torn write. Raises :class:`JournalError` only if the file
+    cannot be read at all.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise JournalError(f"cannot read journal {path}: {e}") from None
+    lines = data.split(b"\n")
+    # After split, a trailing newline yields an empty last element; anything else there is unterminated.
+    needs_newline = bool(data) and not data.endswith(b"\n")
+    parsed: list[tuple[int, dict]] = []
+    bad: list[tuple[int, str]] = []
+    for i, raw in enumerate(lines, start=1):
+        if not raw.strip():
+            continue
+        try:
+            doc = json.loads(raw.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            bad.append((i, f"unreadable ({type(e).__name__})"))
+            continue
+        why = _check_doc(doc)
+        if why:
+            bad.append((i, why))
+            continue
+        parsed.append((i, doc))
+    last_good = parsed[-1][0] if parsed else 0
+    repaired = {ln for _, d in parsed if d["type"] == "repair" for ln in d.get("torn_lines", [])}
+    warnings: list[str] = []
+    torn: list[int] = []
+    corrupt: list[int] = []
+    for ln, why in bad:
+        if ln > last_good:
+            torn.append(ln)
+            warnings.append(f"{path}: line {ln} ignored: torn last write ({why})")
+        elif ln in repaired:
+            warnings.append(f"{path}: line {ln} ignored: torn write, repaired later ({why})")
+        else:
+            corrupt.append(ln)
+            warnings.append(f"{path}: line {ln} ignored: CORRUPT ({why})")
+    docs: list[dict] = []
+    last_seq = 0
+    for ln, d in parsed:
+        if d["type"] == "start" and docs:
+            corrupt.append(ln)
+            warnings.append(f"{path}: line {ln} ignored: a second start document")
+            continue
+        if d["type"] == "measurement":
+            if d["seq"] <= last_seq:
+                corrupt.append(ln)
+                warnings.append(f"{path}: line {ln} ignored: seq {d['seq']} does not follow {last_seq}")
+                continue
+            last_seq = d["seq"]
+        docs.append(d)
+    if docs and docs[0]["type"] != "start":
+        warnings.append(f"{path}: the first document is not a start document")
+    return JournalContents(
+        path=path,
+        documents=docs,
+        warnings=warnings,
+        torn_lines=torn,
+        corrupt_lines=sorted(corrupt),
+        needs_newline=needs_newline,
+        size=len(data),
+    )
+
+
+def _vector(value: Any, n: int, name: str, *, allow_none: bool) -> list[float] | None:
+    if value is None:
+        if allow_none:
+            return None
+        raise JournalError(f"{name} is required")
+    a = np.asarray(value, dtype=np.float64)
+    if a.shape != (n,):
+        raise JournalError(f"{name} must have shape ({n},), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise JournalError(f"{name} has a non-finite value: {a.tolist()}")
+    return a.tolist()
+
+
+def _points(value: Any, *, allow_none: bool) -> list[list[float]] | None:
+    if value is None:
+        if allow_none:
+            return None
+        raise JournalError("points are required for a valid measurement")
+    a = np.asarray(value, dtype=np.float64)
+    if a.shape != (3, 3):
+        raise JournalError(f"points must have shape (3, 3) (targets × xyz, m), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        if allow_none:  # a rejected measurement may have lost a target: keep what JSON can hold
+            return None
+        raise JournalError(f"points have a non-finite value: {a.tolist()}")
+    return a.tolist()
+
+
+class Journal:
+    """An open, append-only journal of one session. Use :meth:`create` or :meth:`open`; close it (or use
+    ``with``) to release the file lock.
+
+    Example::
+
+        with Journal.create(path, session_id="s1", robot_name="ur10", robot_hash=h, n_joints=6,
+                            targets=targets, frame="tracker", plan=plan) as j:
+            done = j.valid_pose_indices()
+            j.append_measurement(pose_index=0, q_commanded=q, q_actual=q_meas, points=p, spread=s, samples=5)
+            j.stop("success")
+    """
+
+    def __init__(self, path: Path, fd: int, contents: JournalContents) -> None:
+        self.path = path
+        self._fd: int | None = fd
+        self._broken = False
+        start = contents.start
+        if start is None:
+            raise JournalError(f"{path}: journal has no start document")
+        self.start: dict = start
+        self.n_joints: int = int(start["robot"]["n_joints"])
+        self.plan_length: int = len(start.get("plan") or [])
+        self._state = contents.state
+        self._next_seq = contents.next_seq
+        self._valid = contents.valid_pose_indices()
+        self.warnings: list[str] = list(contents.warnings)
+
+    # ---------------------------------------------------------------------------------------------- opening
+    @classmethod
+    def create(
+        cls,
+        path: str | Path,
+        *,
+        session_id: str,
+        robot_name: str,
+        robot_hash: str,
+        n_joints: int,
+        targets: Any,
+        frame: str,
+        tracker: Mapping[str, Any] | None = None,
+        robot_driver: Mapping[str, Any] | None = None,
+        plan: Sequence[Any] | None = None,
+        extra_units: Mapping[str, str] | None = None,
+        metadata: Mapping[str, Any] | None = None,
+        time: float | None = None,
+    ) -> Journal:
+        """Create a new journal at ``path`` (must not exist) and write its start document.
+
+        ``targets``: (3, 3) in metres, tool frame. ``frame``: frame of the measured points.
+        """
+        path = Path(path)
+        validate_id(session_id)
+        if frame not in FRAMES:
+            raise JournalError(f"frame must be one of {FRAMES}, got {frame!r}")
+        if not isinstance(n_joints, int) or isinstance(n_joints, bool) or n_joints < 1:
+            raise JournalError(f"n_joints must be a positive integer, got {n_joints!r}")
+        for k in extra_units or {}:
+            if not _EXTRA_KEY.match(k):
+                raise JournalError(f"extra field name {k!r} must match [A-Za-z0-9_]+")
+        doc = {
+            "type": "start",
+            "uid": str(uuid.uuid4()),
+            "time": float(_time.time() if time is None else time),
+            "session_id": session_id,
+            "schema_version": SCHEMA_VERSION,
+            "robot": {"name": str(robot_name), "hash": str(robot_hash), "n_joints": n_joints},
+            "targets": validate_targets(targets).tolist(),
+            "targets_unit": "m",
+            "frame": frame,
+            "tracker": jsonable(dict(tracker or {})),
+            "robot_driver": jsonable(dict(robot_driver or {})),
+            "plan": jsonable(list(plan or [])),
+            "extra_units": dict(extra_units or {}),
+            "software": software_versions(),
+            "metadata": jsonable(dict(metadata or {})),
+        }
+        line = _encode(doc)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, 0o644)
+        except FileExistsError:
+            raise JournalError(f"journal {path} already exists; use Journal.open to append") from None
+        try:
+            _lock(fd, path)
+            _write_all(fd, line)
+            os.fsync(fd)
+            fsync_dir(path.parent)
+        except BaseException:
+            os.close(fd)
+            raise
+        return cls(path, fd, read_journal(path))
+
+    @classmethod
+    def open(cls, path: str | Path) -> Journal:
+        """Open an existing journal for appending (e.g. to resume). Repairs a torn last line first."""
+        path = Path(path)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_APPEND)
+        except FileNotFoundError:
+            raise JournalError(f"journal {path} not found") from None
+        try:
+            _lock(fd, path)
+            contents = read_journal(path)
+            if contents.start is None:
+                raise JournalCorrupted(f"{path}: no start document on the first line")
+            if contents.needs_newline or contents.torn_lines:
+                repair = {
+                    "type": "repair",
+                    "uid": str(uuid.uuid4()),
+                    "time": _time.time(),
+                    "torn_lines": contents.torn_lines,
+                    "reason": "the previous writer stopped in the middle of a line (crash or kill)",
+                }
+                _write_all(fd, (b"\n" if contents.needs_newline else b"") + _encode(repair))
+                os.fsync(fd)
+                contents = read_journal(path)
+        except BaseException:
+            os.close(fd)
+            raise
+        return cls(path, fd, contents)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing releases the flock
+            self._fd = None
+
+    def __enter__(self) -> Journal:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # pragma: no cover - safety net only
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    # ---------------------------------------------------------------------------------------------- queries
+    @property
+    def session_id(self) -> str:
+        return self.start["session_id"]
+
+    @property
+    def state(self) -> str:
+        """ "running", "paused" or "stopped"."""
+        return self._state
+
+    @property
+    def next_seq(self) -> int:
+        return self._next_seq
+
+    def valid_pose_indices(self) -> set[int]:
+        """Plan positions that already have a valid measurement (a resumed run skips them)."""
+        return set(self._valid)
+
+    def read(self) -> JournalContents:
+        return read_journal(self.path)
+
+    # ---------------------------------------------------------------------------------------------- appends
+    def append_measurement(
+        self,
+        *,
+        pose_index: int,
+        q_commanded: Any,
+        q_actual: Any,
+        points: Any,
+        spread: Any = None,
+        samples: int = 1,
+        status: str = "valid",
+        reason: str = "",
+        split: str | None = None,
+        extra: Mapping[str, Any] | None = None,
+        time: float | None = None,
+    ) -> dict:
+        """Append and fsync one measurement; return the document written (with its ``seq``).
+
+        ``q_commanded``, ``q_actual``: (n,) rad. ``points``: (3, 3) m, row i = target t(i+1), in the
+        session's frame. ``spread``: (3,) m, one per target. A rejected measurement needs a ``reason``
+        and may have ``points=None`` (or non-finite points, stored as null).
+        """
+        if self._state != "running":
+            raise JournalError(f"cannot record a measurement while the run is {self._state}; call resume() first")
+        if isinstance(pose_index, bool) or not isinstance(pose_index, int | np.integer) or pose_index < 0:
+            raise JournalError(f"pose_index must be an integer >= 0, got {pose_index!r}")
+        pose_index = int(pose_index)
+        if self.plan_length and pose_index >= self.plan_length:
+            raise JournalError(f"pose_index {pose_index} is outside the plan (length {self.plan_length})")
+        if status not in STATUSES:
+            raise JournalError(f"status must be one of {STATUSES}, got {status!r}")
+        valid = status == "valid"
+        if not valid and not reason:
+            raise JournalError("a rejected measurement needs a reason")
+        if split is not None and split not in SPLITS:
+            raise JournalError(f"split must be one of train, val, test, '' or None, got {split!r}")
+        if isinstance(samples, bool) or not isinstance(samples, int | np.integer) or samples < 0:
+            raise JournalError(f"samples must be an integer >= 0, got {samples!r}")
+        n = self.n_joints
+        extra_doc: dict[str, Any] = {}
+        for k, v in (extra or {}).items():
+            if not isinstance(k, str) or not _EXTRA_KEY.match(k):
+                raise JournalError(f"extra field name {k!r} must match [A-Za-z0-9_]+")
+            v = jsonable(v)
+            if isinstance(v, float) and not math.isfinite(v):
+                v = None
+            if v is not None and not isinstance(v, bool | int | float | str):
+                raise JournalError(f"extra field {k!r} must be a number, string, bool or None, got {type(v)}")
+            extra_doc[k] = v
+        doc = {
+            "type": "measurement",
+            "uid": str(uuid.uuid4()),
+            "time": float(_time.time() if time is None else time),
+            "seq": self._next_seq,
+            "pose_index": pose_index,
+            "q_commanded": _vector(q_commanded, n, "q_commanded", allow_none=True),
+            "q_actual": _vector(q_actual, n, "q_actual", allow_none=not valid),
+            "points": _points(points, allow_none=not valid),
+            "spread": _vector(spread, 3, "spread", allow_none=True) if spread is not None or valid else None,
+            "samples": int(samples),
+            "status": status,
+            "reason": str(reason),
+            "split": split,
+            "extra": extra_doc,
+            "units": dict(MEASUREMENT_UNITS),
+        }
+        self._append(doc)
+        self._next_seq += 1
+        if valid:
+            self._valid.add(pose_index)
+        return doc
+
+    def pause(self, reason: str) -> dict:
+        """Record a pause (protective stop, Ctrl-C …); measurements need :meth:`resume` afterwards."""
+        if self._state != "running":
+            raise JournalError(f"cannot pause: the run is {self._state}")
+        doc = self._append({"type": "pause", "uid": str(uuid.uuid4()), "time": _time.time(), "reason": str(reason)})
+        self._state = "paused"
+        return doc
+
+    def resume(self, reason: str = "") -> dict:
+        """Record that measuring continues (after a pause, a stop with exit_status "paused", or a crash)."""
+        doc = self._append({"type": "resume", "uid": str(uuid.uuid4()), "time": _time.time(), "reason": str(reason)})
+        self._state = "running"
+        return doc
+
+    def stop(self, exit_status: str, reason: str = "") -> dict:
+        """Record the end of a run: exit_status "success" | "aborted" | "paused" | "failed"."""
+        if exit_status not in EXIT_STATUSES:
+            raise JournalError(f"exit_status must be one of {EXIT_STATUSES}, got {exit_status!r}")
+        if self._state == "stopped":
+            raise JournalError("the run is already stopped")
+        doc = self._append(
+            {
+                "type": "stop",
+                "uid": str(uuid.uuid4()),
+                "time": _time.time(),
+                "exit_status": exit_status,
+                "reason": str(reason),
+                "num_measurements": self._next_seq - 1,
+            }
+        )
+        self._state = "stopped"
+        return doc
+
+    def _append(self, doc: dict) -> dict:
+        if self._fd is None:
+            raise JournalError(f"journal {self.path} is closed")
+        if self._broken:
+            raise JournalError(f"a previous write to {self.path} failed; reopen the journal with Journal.open")
+        line = _encode(doc)
+        try:
+            _write_all(self._fd, line)
+            os.fsync(self._fd)
+        except OSError as e:
+            self._broken = True
+            raise JournalError(f"writing to journal {self.path} failed: {e}") from e
+        return doc
+
+
+def _encode(doc: dict) -> bytes:
+    try:
+        return (canonical_json(doc) + "\n").encode("utf-8")
+    except (TypeError, ValueError) as e:
+        raise JournalError(f"document is not JSON-serialisable (no NaN/inf, plain types only): {e}") from None
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+def _lock(fd: int, path: Path) -> None:
+    if fcntl is None:  # pragma: no cover
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise JournalError(f"journal {path} is open for appending in another process") from None

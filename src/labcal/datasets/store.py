@@ -1,0 +1,855 @@
+"""The session store: sessions, immutable versions, verification and fits.
+
+Layout::
+
+    <store>/<session-id>/
+        journal.jsonl                 append-only documents of recorded runs (absent for imported sessions)
+        v001/                         an immutable version
+            measurements.parquet      the measurements table (read-only file)
+            manifest.json             metadata, units, sha256 of every data file, its own sha256 (read-only)
+            fits/<fit-id>/            fits that read this version (added later; NOT part of the version's hash)
+                fit.json              inputs (refs + hashes), caller's metadata, sha256 of each fit file
+                ...                   the caller's files (model weights, metrics, exports)
+        v002/ …                       parent = v001: all rows of v001 plus the new ones
+
+The default store is ``$LABCAL_STORE`` if set, else ``./sessions`` relative to the current directory.
+
+A version is written into a hidden temporary directory inside the session, every file fsynced and made
+read-only (0o444), then renamed to ``vNNN`` in one step, so it either exists complete or not at all. The same
+holds for a whole imported session and for a fit. Hidden ``.tmp-*`` directories left by a crash are ignored.
+The ``fits/`` folder of a version is the only thing that may change after the version was written: adding a
+fit never touches the version's data files or manifest, and ``verify`` ignores ``fits/``.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from ._util import (
+    canonical_json,
+    iso,
+    jsonable,
+    make_temp_dir,
+    publish_dir,
+    remove_tree,
+    sha256_bytes,
+    sha256_file,
+    software_versions,
+    utc_now,
+    write_file_durable,
+)
+from .errors import DatasetCorrupted, DatasetError, JournalCorrupted, UnknownSession, UnknownVersion
+from .ids import Ref, new_fit_id, new_session_id, parse_ref, validate_id, version_name
+from .journal import JOURNAL_NAME, Journal, JournalContents, read_journal
+from .schema import SCHEMA_VERSION, SPREAD_COLUMNS, TARGET_COLUMNS, column_units, joint_columns, normalize_table
+
+MEASUREMENTS = "measurements.parquet"
+MANIFEST = "manifest.json"
+FITS = "fits"
+FIT_JSON = "fit.json"
+_VERSION_DIR = re.compile(r"^v(\d{3,6})$")
+
+
+def default_root() -> Path:
+    """``$LABCAL_STORE`` if set and non-empty, else ``./sessions`` (relative to the current directory)."""
+    env = os.environ.get("LABCAL_STORE")
+    return Path(env) if env else Path.cwd() / "sessions"
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Self-hashed JSON: the file's bytes are the canonical dump, and it carries the sha256 of its other content.
+
+
+def _dump_sealed(obj: dict, key: str) -> bytes:
+    body = {k: v for k, v in obj.items() if k != key}
+    sealed = {**body, key: sha256_bytes(canonical_json(body).encode("utf-8"))}
+    return canonical_json(sealed, indent=2).encode("utf-8")
+
+
+def _load_sealed(data: bytes, key: str, name: str) -> tuple[dict | None, list[str]]:
+    try:
+        obj = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        return None, [f"{name}: not valid JSON any more ({type(e).__name__}: {e})"]
+    if not isinstance(obj, dict) or key not in obj:
+        return None, [f"{name}: has no {key!r} field"]
+    problems = []
+    body = {k: v for k, v in obj.items() if k != key}
+    actual = sha256_bytes(canonical_json(body).encode("utf-8"))
+    if actual != obj[key]:
+        problems.append(f"{name}: content sha256 mismatch: expected {obj[key]}, actual {actual}")
+    elif canonical_json(obj, indent=2).encode("utf-8") != data:
+        problems.append(f"{name}: bytes differ from the canonical form written (formatting was changed)")
+    return obj, problems
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Result types
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """One loaded version. ``table`` is the measurements table (see :mod:`labcal.datasets.schema`)."""
+
+    ref: str
+    table: pd.DataFrame
+    manifest: dict
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.manifest["session"]["robot"]["n_joints"])
+
+    @property
+    def robot(self) -> dict:
+        """{"name", "hash", "n_joints"} of the robot model the data were taken with."""
+        return dict(self.manifest["session"]["robot"])
+
+    @property
+    def frame(self) -> str:
+        """ "base" or "tracker": the frame of :attr:`points`."""
+        return self.manifest["session"]["frame"]
+
+    @property
+    def targets(self) -> np.ndarray:
+        """(3, 3) m: the target points in the tool frame, row i = target t(i+1)."""
+        return np.asarray(self.manifest["session"]["targets"], dtype=np.float64)
+
+    @property
+    def q(self) -> np.ndarray:
+        """(k, n) rad: joint positions."""
+        return self.table[joint_columns(self.n_joints)].to_numpy(dtype=np.float64)
+
+    @property
+    def points(self) -> np.ndarray:
+        """(k, 3, 3) m: measured targets; ``points[:, i]`` is target t(i+1)."""
+        return self.table[list(TARGET_COLUMNS)].to_numpy(dtype=np.float64).reshape(-1, 3, 3)
+
+    @property
+    def split(self) -> np.ndarray:
+        """(k,) str: "train", "val", "test" or "" (unassigned)."""
+        return self.table["split"].to_numpy(dtype=str)
+
+    @property
+    def pose(self) -> np.ndarray:
+        """(k,) int: plan index (or import row) of each measurement."""
+        return self.table["pose"].to_numpy(dtype=np.int64)
+
+    @property
+    def spread(self) -> np.ndarray | None:
+        """(k, 3) m tracker spread per target, or None if the version has none."""
+        if not all(c in self.table.columns for c in SPREAD_COLUMNS):
+            return None
+        return self.table[list(SPREAD_COLUMNS)].to_numpy(dtype=np.float64)
+
+    @property
+    def units(self) -> dict[str, str]:
+        return dict(self.manifest["units"])
+
+    def __len__(self) -> int:
+        return len(self.table)
+
+
+@dataclass(frozen=True)
+class VerifyReport:
+    """Result of :meth:`SessionStore.verify`. ``problems`` has one line per fault (empty = intact)."""
+
+    ref: str
+    problems: list[str]
+    checked: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def raise_if_bad(self) -> None:
+        if self.problems:
+            raise DatasetCorrupted(
+                f"{self.ref} is corrupted ({len(self.problems)} problem(s)):\n  " + "\n  ".join(self.problems),
+                self.problems,
+            )
+
+
+@dataclass(frozen=True)
+class SealResult:
+    """Result of :meth:`SessionStore.seal`: ``ref`` of the new version (or of the latest if none was made)."""
+
+    ref: str | None
+    created: bool
+    rows_added: int
+    message: str
+
+
+@dataclass(frozen=True)
+class VersionInfo:
+    name: str
+    rows: int
+    created: str
+    source: str
+    parent: str | None
+    fits: int
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    session_id: str
+    robot: dict
+    frame: str
+    status: str
+    versions: list[VersionInfo]
+    measurements: int | None  # journal measurement documents (valid + rejected), None without a journal
+    warnings: list[str]
+
+    @property
+    def rows(self) -> int:
+        """Rows in the latest version (0 if none)."""
+        return self.versions[-1].rows if self.versions else 0
+
+
+@dataclass(frozen=True)
+class FitRecord:
+    """A stored fit: ``ref`` is the version it is stored under; ``meta`` the content of fit.json."""
+
+    fit_id: str
+    ref: str
+    path: Path
+    meta: dict
+
+    @property
+    def inputs(self) -> list[dict]:
+        return list(self.meta["inputs"])
+
+    @property
+    def metadata(self) -> dict:
+        return dict(self.meta["metadata"])
+
+    @property
+    def files(self) -> list[str]:
+        return sorted(self.meta["files"])
+
+    def read(self, name: str) -> bytes:
+        """Bytes of one fit file, checked against its recorded sha256."""
+        if name not in self.meta["files"]:
+            raise UnknownVersion(f"fit {self.fit_id} has no file {name!r}; it has {self.files}")
+        data = (self.path / name).read_bytes()
+        expected = self.meta["files"][name]["sha256"]
+        if sha256_bytes(data) != expected:
+            raise DatasetCorrupted(
+                f"fit {self.fit_id}: {name}: sha256 mismatch: expected {expected}, actual {sha256_bytes(data)}"
+            )
+        return data
+
+    def read_json(self, name: str) -> Any:
+        return json.loads(self.read(name).decode("utf-8"))
+
+
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _parquet_bytes(table: pd.DataFrame) -> bytes:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    buf = pa.BufferOutputStream()
+    pq.write_table(pa.Table.from_pandas(table, preserve_index=False), buf, compression="zstd")
+    return buf.getvalue().to_pybytes()
+
+
+def _read_parquet(data: bytes) -> pd.DataFrame:
+    import pyarrow.parquet as pq
+
+    return pq.read_table(io.BytesIO(data)).to_pandas()
+
+
+def _plan_summary(plan: Sequence[Any]) -> dict:
+    return {"length": len(plan), "sha256": sha256_bytes(canonical_json(jsonable(list(plan))).encode("utf-8"))}
+
+
+def session_meta_from_start(start: dict) -> dict:
+    """The ``session`` block of a manifest, from a journal's start document."""
+    return {
+        "session_id": start["session_id"],
+        "robot": dict(start["robot"]),
+        "targets": start["targets"],
+        "targets_unit": "m",
+        "frame": start["frame"],
+        "tracker": start.get("tracker", {}),
+        "robot_driver": start.get("robot_driver", {}),
+        "plan": _plan_summary(start.get("plan") or []),
+        "extra_units": dict(start.get("extra_units") or {}),
+        "metadata": start.get("metadata", {}),
+    }
+
+
+class SessionStore:
+    """A folder of sessions. ``root`` defaults to :func:`default_root` (``$LABCAL_STORE`` or ``./sessions``)."""
+
+    def __init__(self, root: str | Path | None = None) -> None:
+        self.root = Path(root) if root is not None else default_root()
+
+    def __repr__(self) -> str:
+        return f"SessionStore({str(self.root)!r})"
+
+    # ---------------------------------------------------------------------------------------------- sessions
+    def session_dir(self, session_id: str) -> Path:
+        return self.root / validate_id(session_id)
+
+    def session_ids(self) -> list[str]:
+        """All session ids, sorted (ids start with their UTC creation time, so this is chronological)."""
+        if not self.root.is_dir():
+            return []
+        out = []
+        for p in self.root.iterdir():
+            if p.name.startswith(".") or not p.is_dir():
+                continue
+            if (p / JOURNAL_NAME).exists() or any(_VERSION_DIR.match(c.name) for c in p.iterdir()):
+                out.append(p.name)
+        return sorted(out)
+
+    def _require_session(self, session_id: str) -> Path:
+        d = self.session_dir(session_id)
+        if not d.is_dir():
+            known = self.session_ids()
+            hint = f"; known sessions: {', '.join(known[-20:])}" if known else "; the store is empty"
+            raise UnknownSession(f"no session {session_id!r} in store {self.root}{hint}")
+        return d
+
+    def versions(self, session_id: str) -> list[int]:
+        """Version numbers of a session, ascending."""
+        d = self._require_session(session_id)
+        return sorted(int(m.group(1)) for p in d.iterdir() if p.is_dir() and (m := _VERSION_DIR.match(p.name)))
+
+    def resolve(self, ref: str | Ref) -> Ref:
+        """Check a reference against the store and return it with a concrete version number.
+
+        Raises :class:`UnknownSession` / :class:`UnknownVersion` listing what is available.
+        """
+        r = parse_ref(ref)
+        versions = self.versions(r.session_id)
+        available = ", ".join(version_name(v) for v in versions) or "none"
+        if r.version is None:
+            if not versions:
+                raise UnknownVersion(
+                    f"session {r.session_id!r} has no versions yet (seal its journal first); available: none"
+                )
+            return Ref(r.session_id, versions[-1])
+        if r.version not in versions:
+            raise UnknownVersion(
+                f"session {r.session_id!r} has no version {version_name(r.version)}; available: {available}"
+            )
+        return r
+
+    def version_dir(self, ref: str | Ref) -> Path:
+        r = self.resolve(ref)
+        return self.session_dir(r.session_id) / version_name(r.version)  # type: ignore[arg-type]
+
+    def create_session(
+        self,
+        *,
+        robot_name: str,
+        robot_hash: str,
+        n_joints: int,
+        targets: Any,
+        frame: str,
+        tracker: Mapping[str, Any] | None = None,
+        robot_driver: Mapping[str, Any] | None = None,
+        plan: Sequence[Any] | None = None,
+        extra_units: Mapping[str, str] | None = None,
+        metadata: Mapping[str, Any] | None = None,
+        session_id: str | None = None,
+    ) -> Journal:
+        """Create a session folder and its journal (start document written and fsynced); return the open
+        :class:`Journal` (close it when done)."""
+        session_id = validate_id(session_id) if session_id else new_session_id(robot_name)
+        self.root.mkdir(parents=True, exist_ok=True)
+        d = self.root / session_id
+        try:
+            d.mkdir()
+        except FileExistsError:
+            raise DatasetError(f"session {session_id!r} already exists in {self.root}") from None
+        from ._util import fsync_dir
+
+        fsync_dir(self.root)
+        return Journal.create(
+            d / JOURNAL_NAME,
+            session_id=session_id,
+            robot_name=robot_name,
+            robot_hash=robot_hash,
+            n_joints=n_joints,
+            targets=targets,
+            frame=frame,
+            tracker=tracker,
+            robot_driver=robot_driver,
+            plan=plan,
+            extra_units=extra_units,
+            metadata=metadata,
+        )
+
+    def open_journal(self, session_id: str) -> Journal:
+        """Open a session's journal for appending (resume); repairs a torn last line."""
+        return Journal.open(self._require_session(session_id) / JOURNAL_NAME)
+
+    def read_journal(self, session_id: str) -> JournalContents:
+        return read_journal(self._require_session(session_id) / JOURNAL_NAME)
+
+    def session_meta(self, session_id: str) -> dict:
+        """The session's metadata block (robot, targets, frame, tracker …) from its journal or latest version."""
+        d = self._require_session(session_id)
+        if (d / JOURNAL_NAME).exists():
+            start = read_journal(d / JOURNAL_NAME).start
+            if start is not None:
+                return session_meta_from_start(start)
+        versions = self.versions(session_id)
+        if not versions:
+            raise DatasetError(f"session {session_id!r} has neither a readable journal nor a version")
+        return self.manifest(Ref(session_id, versions[-1]))["session"]
+
+    def show(self, session_id: str) -> SessionInfo:
+        """Summary of one session: robot, frame, status, versions (rows, source, parent, fits)."""
+        d = self._require_session(session_id)
+        warnings: list[str] = []
+        status, n_meas = "imported", None
+        if (d / JOURNAL_NAME).exists():
+            contents = read_journal(d / JOURNAL_NAME)
+            status, n_meas = contents.status, len(contents.measurements)
+            warnings += contents.warnings
+        infos = []
+        for v in self.versions(session_id):
+            vdir = d / version_name(v)
+            try:
+                m = json.loads((vdir / MANIFEST).read_text(encoding="utf-8"))
+                fits_dir = vdir / FITS
+                nfits = len([p for p in fits_dir.iterdir() if not p.name.startswith(".")]) if fits_dir.is_dir() else 0
+                infos.append(
+                    VersionInfo(version_name(v), int(m["row_count"]), m["created"], m["source"], m["parent"], nfits)
+                )
+            except (OSError, ValueError, KeyError) as e:
+                warnings.append(f"{version_name(v)}: unreadable manifest ({e}); run verify")
+                infos.append(VersionInfo(version_name(v), 0, "?", "?", None, 0))
+        try:
+            meta = self.session_meta(session_id)
+            robot, frame = meta["robot"], meta["frame"]
+        except (DatasetError, OSError, ValueError, KeyError) as e:
+            warnings.append(f"no readable session metadata: {e}")
+            robot, frame = {}, "?"
+        return SessionInfo(session_id, robot, frame, status, infos, n_meas, warnings)
+
+    def list(self) -> list[SessionInfo]:
+        """:meth:`show` for every session, oldest first."""
+        return [self.show(s) for s in self.session_ids()]
+
+    # ---------------------------------------------------------------------------------------------- versions
+    def manifest(self, ref: str | Ref) -> dict:
+        """The manifest of a version (not verified; use :meth:`verify` or :meth:`load` for that)."""
+        return json.loads((self.version_dir(ref) / MANIFEST).read_text(encoding="utf-8"))
+
+    def verify(self, ref: str | Ref) -> VerifyReport:
+        """Recompute every hash of a version; report missing, extra and changed files precisely."""
+        r = self.resolve(ref)
+        vdir = self.session_dir(r.session_id) / version_name(r.version)  # type: ignore[arg-type]
+        problems: list[str] = []
+        checked: list[str] = []
+        mpath = vdir / MANIFEST
+        if not mpath.is_file():
+            problems.append(f"{MANIFEST}: missing")
+            manifest = None
+        else:
+            manifest, mp = _load_sealed(mpath.read_bytes(), "manifest_sha256", MANIFEST)
+            problems += mp
+            checked.append(MANIFEST)
+        listed: dict[str, dict] = {}
+        if manifest is not None:
+            listed = dict(manifest.get("files") or {})
+            for name, info in sorted(listed.items()):
+                p = vdir / name
+                if not p.is_file():
+                    problems.append(f"{name}: missing (expected sha256 {info.get('sha256')})")
+                    continue
+                actual = sha256_file(p)
+                checked.append(name)
+                if actual != info.get("sha256"):
+                    problems.append(f"{name}: sha256 mismatch: expected {info.get('sha256')}, actual {actual}")
+        for p in sorted(vdir.iterdir()):
+            if p.name in listed or p.name == MANIFEST or (p.name == FITS and p.is_dir()):
+                continue
+            problems.append(f"{p.name}: extra {'directory' if p.is_dir() else 'file'} not listed in the manifest")
+        jinfo = (manifest or {}).get("provenance", {}).get("journal") if manifest else None
+        jpath = self.session_dir(r.session_id) / JOURNAL_NAME
+        if jinfo and jpath.exists():
+            n = int(jinfo["bytes"])
+            if jpath.stat().st_size < n:
+                problems.append(f"{JOURNAL_NAME}: shorter ({jpath.stat().st_size} bytes) than when sealed ({n})")
+            else:
+                actual = sha256_file(jpath, limit=n)
+                checked.append(f"{JOURNAL_NAME}[:{n}]")
+                if actual != jinfo["sha256"]:
+                    problems.append(
+                        f"{JOURNAL_NAME}: the first {n} bytes changed since sealing: expected sha256 "
+                        f"{jinfo['sha256']}, actual {actual}"
+                    )
+        return VerifyReport(str(r), problems, checked)
+
+    def verify_session(self, session_id: str) -> list[VerifyReport]:
+        return [self.verify(Ref(session_id, v)) for v in self.versions(session_id)]
+
+    def load(self, ref: str | Ref) -> Dataset:
+        """Load a version after verifying its hashes; raises :class:`DatasetCorrupted` on any mismatch."""
+        r = self.resolve(ref)
+        vdir = self.session_dir(r.session_id) / version_name(r.version)  # type: ignore[arg-type]
+        self.verify(r).raise_if_bad()
+        manifest = json.loads((vdir / MANIFEST).read_text(encoding="utf-8"))
+        data = (vdir / MEASUREMENTS).read_bytes()
+        # Hash the very bytes we parse, so a change after verify() cannot slip through.
+        expected = manifest["files"][MEASUREMENTS]["sha256"]
+        if sha256_bytes(data) != expected:
+            raise DatasetCorrupted(f"{r}: {MEASUREMENTS} changed while loading", [f"{MEASUREMENTS}: changed"])
+        table = _read_parquet(data)
+        if list(table.columns) != manifest["columns"] or len(table) != manifest["row_count"]:
+            raise DatasetCorrupted(f"{r}: table columns/rows disagree with the manifest")
+        return Dataset(str(r), table, manifest)
+
+    def _write_version(
+        self, session_dir: Path, number: int, table: pd.DataFrame, manifest: dict, *, parent_dir: Path | None = None
+    ) -> None:
+        """Write table + manifest into a temp dir in ``parent_dir`` (default ``session_dir``), then rename."""
+        where = parent_dir or session_dir
+        tmp = make_temp_dir(where, version_name(number))
+        try:
+            data = _parquet_bytes(table)
+            write_file_durable(tmp / MEASUREMENTS, data)
+            manifest = {**manifest, "files": {MEASUREMENTS: {"sha256": sha256_bytes(data), "bytes": len(data)}}}
+            write_file_durable(tmp / MANIFEST, _dump_sealed(manifest, "manifest_sha256"))
+            publish_dir(tmp, where / version_name(number))
+        except BaseException:
+            remove_tree(tmp)
+            raise
+
+    def _manifest(
+        self,
+        session_id: str,
+        number: int,
+        table: pd.DataFrame,
+        meta: dict,
+        *,
+        parent: int | None,
+        source: str,
+        provenance: dict,
+        journal_seq_through: int,
+    ) -> dict:
+        extra_units = {f"x_{k}": u for k, u in (meta.get("extra_units") or {}).items()}
+        return {
+            "kind": "labcal.dataset.version",
+            "schema_version": SCHEMA_VERSION,
+            "session_id": session_id,
+            "version": version_name(number),
+            "ref": f"{session_id}@{version_name(number)}",
+            "created": iso(utc_now()),
+            "parent": version_name(parent) if parent else None,
+            "source": source,
+            "session": meta,
+            "software": software_versions(),
+            "row_count": len(table),
+            "columns": list(table.columns),
+            "units": column_units(list(table.columns), extra_units),
+            "journal_seq_through": journal_seq_through,
+            "provenance": jsonable(provenance),
+        }
+
+    def _check_compatible(self, session_id: str, meta: dict, new: dict) -> None:
+        """Refuse to mix data of another robot, target set or frame into a session."""
+        a, b = meta, new
+        if a["robot"]["n_joints"] != b["robot"]["n_joints"] or a["robot"]["hash"] != b["robot"]["hash"]:
+            raise DatasetError(
+                f"session {session_id!r} was recorded with robot {a['robot']}; the new data are for {b['robot']}"
+            )
+        if a["frame"] != b["frame"]:
+            raise DatasetError(f"session {session_id!r} has points in the {a['frame']} frame, new data in {b['frame']}")
+        if not np.allclose(np.asarray(a["targets"]), np.asarray(b["targets"]), rtol=0, atol=1e-9):
+            raise DatasetError(f"session {session_id!r} has targets {a['targets']}, new data {b['targets']}")
+
+    def append_rows(self, session_id: str, rows: pd.DataFrame, meta: dict, *, source: str, provenance: dict) -> str:
+        """Make a new version of an existing session: all rows of the latest version plus ``rows``.
+
+        ``meta`` describes the new rows (same robot hash, n_joints, frame and targets as the session).
+        Returns the new ref ``SESSION@vNNN``.
+        """
+        d = self._require_session(session_id)
+        versions = self.versions(session_id)
+        session = self.session_meta(session_id)
+        self._check_compatible(session_id, session, meta)
+        n = int(session["robot"]["n_joints"])
+        if versions:
+            parent_ds = self.load(Ref(session_id, versions[-1]))
+            through = int(parent_ds.manifest.get("journal_seq_through", 0))
+            table = pd.concat([parent_ds.table, rows], ignore_index=True)
+        else:
+            through = 0
+            table = rows
+        table = normalize_table(table, n)
+        number = (versions[-1] if versions else 0) + 1
+        merged = {**session, "extra_units": {**meta.get("extra_units", {}), **session.get("extra_units", {})}}
+        manifest = self._manifest(
+            session_id,
+            number,
+            table,
+            merged,
+            parent=versions[-1] if versions else None,
+            source=source,
+            provenance=provenance,
+            journal_seq_through=through,
+        )
+        self._write_version(d, number, table, manifest)
+        return f"{session_id}@{version_name(number)}"
+
+    def create_imported_session(
+        self, rows: pd.DataFrame, meta: dict, *, source: str, provenance: dict, session_id: str | None = None
+    ) -> str:
+        """Create a session holding only ``v001`` (no journal), atomically: it appears complete or not at all."""
+        session_id = validate_id(session_id) if session_id else new_session_id(meta["robot"]["name"])
+        meta = {**meta, "session_id": session_id}
+        self.root.mkdir(parents=True, exist_ok=True)
+        final = self.root / session_id
+        if final.exists():
+            raise DatasetError(f"session {session_id!r} already exists in {self.root}")
+        table = normalize_table(rows, int(meta["robot"]["n_joints"]))
+        manifest = self._manifest(
+            session_id, 1, table, meta, parent=None, source=source, provenance=provenance, journal_seq_through=0
+        )
+        tmp = make_temp_dir(self.root, f"session-{session_id}")
+        try:
+            self._write_version(tmp, 1, table, manifest)
+            publish_dir(tmp, final)
+        except BaseException:
+            remove_tree(tmp)
+            raise
+        return f"{session_id}@v001"
+
+    def seal(self, session_id: str) -> SealResult:
+        """Make a new version from the journal's valid measurements not yet in a version.
+
+        If there is nothing new, no version is made (``created=False``, message says so). Unreadable journal
+        lines that are not a torn last write make sealing fail (:class:`JournalCorrupted`).
+        """
+        d = self._require_session(session_id)
+        contents = read_journal(d / JOURNAL_NAME)
+        if contents.corrupt_lines:
+            raise JournalCorrupted(
+                f"journal of {session_id!r} has corrupt line(s) {contents.corrupt_lines}; refusing to seal:\n  "
+                + "\n  ".join(contents.warnings)
+            )
+        start = contents.start
+        if start is None:
+            raise JournalCorrupted(f"journal of {session_id!r} has no start document")
+        versions = self.versions(session_id)
+        parent = versions[-1] if versions else None
+        parent_ds = self.load(Ref(session_id, parent)) if parent else None
+        through = int(parent_ds.manifest.get("journal_seq_through", 0)) if parent_ds is not None else 0
+        new = [m for m in contents.measurements if m["seq"] > through and m["status"] == "valid"]
+        latest = f"{session_id}@{version_name(parent)}" if parent else None
+        if not new:
+            where = f"since {latest}" if latest else "in the journal"
+            return SealResult(latest, False, 0, f"nothing new to seal {where} (no new valid measurements)")
+        meta = session_meta_from_start(start)
+        rows = journal_rows(new, int(start["robot"]["n_joints"]))
+        table = pd.concat([parent_ds.table, rows], ignore_index=True) if parent_ds is not None else rows
+        table = normalize_table(table, int(start["robot"]["n_joints"]))
+        seq_through = max(m["seq"] for m in contents.measurements)
+        provenance = {
+            "journal": {
+                "seq_through": seq_through,
+                "bytes": contents.size,
+                "sha256": sha256_file(d / JOURNAL_NAME, limit=contents.size),
+                "new_seqs": [m["seq"] for m in new],
+                "warnings": contents.warnings,
+            }
+        }
+        number = (parent or 0) + 1
+        manifest = self._manifest(
+            session_id,
+            number,
+            table,
+            meta,
+            parent=parent,
+            source="journal",
+            provenance=provenance,
+            journal_seq_through=seq_through,
+        )
+        self._write_version(d, number, table, manifest)
+        ref = f"{session_id}@{version_name(number)}"
+        return SealResult(ref, True, len(new), f"sealed {len(new)} new measurement(s) into {ref}")
+
+    # ---------------------------------------------------------------------------------------------- fits
+    def save_fit(
+        self,
+        refs: str | Ref | Sequence[str | Ref],
+        files: Mapping[str, bytes | str],
+        metadata: Mapping[str, Any],
+        *,
+        fit_id: str | None = None,
+    ) -> FitRecord:
+        """Store a fit under the (first) version it read, atomically.
+
+        ``refs``: the input version(s); a fit pooling several versions is stored under the first and records
+        all of them. ``files``: file name → bytes (or text, stored UTF-8), e.g. model weights. ``metadata``:
+        JSON-able (method, seed, metrics …). fit.json records each input's resolved ref, manifest sha256 and
+        data sha256, plus the sha256 of every fit file. Inputs are verified first.
+        """
+        ref_list = [refs] if isinstance(refs, str | Ref) else list(refs)
+        if not ref_list:
+            raise DatasetError("a fit needs at least one input version")
+        inputs = []
+        resolved = []
+        for ref in ref_list:
+            r = self.resolve(ref)
+            self.verify(r).raise_if_bad()
+            m = self.manifest(r)
+            inputs.append(
+                {
+                    "ref": str(r),
+                    "manifest_sha256": m["manifest_sha256"],
+                    "files": {k: v["sha256"] for k, v in m["files"].items()},
+                    "row_count": m["row_count"],
+                }
+            )
+            resolved.append(r)
+        fit_id = validate_id(fit_id, "fit id") if fit_id else new_fit_id()
+        for name in files:
+            validate_id(name, "fit file name")
+            if name == FIT_JSON:
+                raise DatasetError(f"{FIT_JSON} is reserved for labcal's own record of the fit")
+        fits_dir = self.session_dir(resolved[0].session_id) / version_name(resolved[0].version) / FITS  # type: ignore[arg-type]
+        if not fits_dir.exists():
+            fits_dir.mkdir()
+            from ._util import fsync_dir
+
+            fsync_dir(fits_dir.parent)
+        if (fits_dir / fit_id).exists():
+            raise DatasetError(f"fit {fit_id!r} already exists under {resolved[0]}")
+        tmp = make_temp_dir(fits_dir, fit_id)
+        try:
+            recorded = {}
+            for name, content in sorted(files.items()):
+                data = content.encode("utf-8") if isinstance(content, str) else bytes(content)
+                write_file_durable(tmp / name, data)
+                recorded[name] = {"sha256": sha256_bytes(data), "bytes": len(data)}
+            meta = {
+                "kind": "labcal.fit",
+                "schema_version": SCHEMA_VERSION,
+                "fit_id": fit_id,
+                "created": iso(utc_now()),
+                "stored_under": str(resolved[0]),
+                "inputs": inputs,
+                "metadata": jsonable(dict(metadata)),
+                "files": recorded,
+                "software": software_versions(),
+            }
+            write_file_durable(tmp / FIT_JSON, _dump_sealed(meta, "fit_sha256"))
+            publish_dir(tmp, fits_dir / fit_id)
+        except BaseException:
+            remove_tree(tmp)
+            raise
+        return FitRecord(
+            fit_id, str(resolved[0]), fits_dir / fit_id, json.loads((fits_dir / fit_id / FIT_JSON).read_text())
+        )
+
+    def list_fits(self, ref: str | Ref) -> list[FitRecord]:
+        """Fits stored under a version, oldest first (fit.json checked, fit files not read)."""
+        fits_dir = self.version_dir(ref) / FITS
+        if not fits_dir.is_dir():
+            return []
+        r = self.resolve(ref)
+        return [
+            self.load_fit(r, p.name, check_files=False)
+            for p in sorted(fits_dir.iterdir())
+            if not p.name.startswith(".")
+        ]
+
+    def load_fit(self, ref: str | Ref, fit_id: str, *, check_files: bool = True) -> FitRecord:
+        """Load a fit's record, verifying fit.json (and, by default, every fit file's sha256)."""
+        r = self.resolve(ref)
+        path = self.session_dir(r.session_id) / version_name(r.version) / FITS / validate_id(fit_id, "fit id")  # type: ignore[arg-type]
+        if not (path / FIT_JSON).is_file():
+            known = [f.fit_id for f in self.list_fits(r)] if (path.parent.is_dir() and path.parent != path) else []
+            raise UnknownVersion(f"{r} has no fit {fit_id!r}; available: {', '.join(known) or 'none'}")
+        meta, problems = _load_sealed((path / FIT_JSON).read_bytes(), "fit_sha256", f"fit {fit_id}/{FIT_JSON}")
+        if meta is not None and check_files:
+            for name, info in meta.get("files", {}).items():
+                p = path / name
+                if not p.is_file():
+                    problems.append(f"fit {fit_id}/{name}: missing")
+                elif (actual := sha256_file(p)) != info["sha256"]:
+                    problems.append(f"fit {fit_id}/{name}: sha256 mismatch: expected {info['sha256']}, actual {actual}")
+        if problems or meta is None:
+            raise DatasetCorrupted(f"fit {fit_id} under {r} is corrupted:\n  " + "\n  ".join(problems), problems)
+        return FitRecord(fit_id, str(r), path, meta)
+
+    def find_fit(self, fit_id: str) -> FitRecord:
+        """Find a fit by id anywhere in the store."""
+        validate_id(fit_id, "fit id")
+        for s in self.session_ids():
+            for v in self.versions(s):
+                if (self.session_dir(s) / version_name(v) / FITS / fit_id / FIT_JSON).is_file():
+                    return self.load_fit(Ref(s, v), fit_id)
+        raise UnknownVersion(f"no fit {fit_id!r} in store {self.root}")
+
+
+def journal_rows(measurements: Sequence[dict], n_joints: int) -> pd.DataFrame:
+    """Measurement documents → table rows (q from q_actual, falling back to q_commanded)."""
+    recs = []
+    for m in measurements:
+        q = m["q_actual"] if m.get("q_actual") is not None else m["q_commanded"]
+        rec: dict[str, Any] = {"pose": m["pose_index"]}
+        rec.update({f"q{j + 1}": float(q[j]) for j in range(n_joints)})
+        for i in range(3):
+            for a, axis in enumerate("xyz"):
+                rec[f"t{i + 1}_{axis}"] = float(m["points"][i][a])
+        rec["split"] = m.get("split") or ""
+        spread = m.get("spread")
+        for i, c in enumerate(SPREAD_COLUMNS):
+            rec[c] = float(spread[i]) if spread is not None else np.nan
+        rec["timestamp"] = float(m["time"])
+        for k, v in (m.get("extra") or {}).items():
+            rec[f"x_{k}"] = np.nan if v is None else v
+        recs.append(rec)
+    table = pd.DataFrame.from_records(recs)
+    table["pose"] = table["pose"].astype(np.int64)
+    return table
+
+
+def _as_store(store: SessionStore | str | Path | None) -> SessionStore:
+    return store if isinstance(store, SessionStore) else SessionStore(store)
+
+
+def load_version(store: SessionStore | str | Path | None, ref: str | Ref) -> Dataset:
+    """Load ``SESSION[@vN]`` from ``store`` (a SessionStore or its root folder), verifying its hashes."""
+    return _as_store(store).load(ref)
+
+
+def verify(store: SessionStore | str | Path | None, ref: str | Ref) -> VerifyReport:
+    """Recompute the hashes of ``SESSION[@vN]``; see :meth:`SessionStore.verify`."""
+    return _as_store(store).verify(ref)
+
+
+__all__ = [
+    "Dataset",
+    "FitRecord",
+    "SealResult",
+    "SessionInfo",
+    "SessionStore",
+    "VerifyReport",
+    "VersionInfo",
+    "default_root",
+    "journal_rows",
+    "load_version",
+    "session_meta_from_start",
+    "verify",
+]
