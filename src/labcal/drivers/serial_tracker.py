@@ -10,7 +10,7 @@ Combined API (Polaris passive stray markers). Everything is in SI units (m, s) o
 from labcal.drivers.serial.crc import crc16_arc
 from labcal.drivers.serial.link import SerialLink, Transport, open_serial
 from labcal.drivers.serial.matching import check_scalene, match_targets
-from labcal.drivers.serial.ndi import NDIError, encode_command
+from labcal.drivers.serial.ndi import ERROR_CODES, NDIError, decode_reply, encode_command, parse_tx_strays
 from labcal.drivers.serial.profiles import (
     AsciiProfile,
     NDIProfile,
@@ -23,6 +23,7 @@ from labcal.drivers.serial.profiles import (
 from labcal.drivers.serial.tracker import SerialTracker, open_tracker
 
 __all__ = [
+    "ERROR_CODES",
     "AsciiProfile",
     "NDIError",
     "NDIProfile",
@@ -34,10 +35,12 @@ __all__ = [
     "Transport",
     "check_scalene",
     "crc16_arc",
+    "decode_reply",
     "encode_command",
     "load_profile",
     "match_targets",
     "open_serial",
     "open_tracker",
     "parse_profile",
+    "parse_tx_strays",
 ]

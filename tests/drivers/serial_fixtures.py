@@ -1,0 +1,111 @@
+"""Shared helpers for the serial tracker tests (imported by tests/drivers/test_serial_*, test_ndi*, ...).
+
+Expected wire bytes are written out here once. The NDI command constants are checked against what the real
+``ndicapy`` client sends in test_ndi_ndicapy.py, and the CRC below is an independent bit-by-bit implementation,
+so the byte-exact tests do not just compare the driver with itself.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from labcal.drivers.fakes import ScriptedTransport
+from labcal.drivers.serial_tracker import NDIProfile, PortSettings, SerialTracker, parse_profile
+
+# Targets in the tool frame (m): a clearly scalene triangle, sides 100 mm, 70 mm, ~122.07 mm.
+TARGETS = np.array([[0.0, 0.0, 0.0], [0.100, 0.0, 0.0], [0.0, 0.070, 0.0]])
+
+# NDI commands exactly as the Combined API wants them (CRC16 in hex, CR).
+INIT = b"INIT:E3A5\r"
+COMM_115200 = b"COMM:500000048\r"
+TSTART = b"TSTART:5423\r"
+TX = b"TX:10003FDA\r"
+TSTOP = b"TSTOP:2C14\r"
+OKAY = b"OKAYA896\r"
+RESET = b"RESETBE6F\r"
+
+
+def crc16_arc_bitwise(data: bytes) -> int:
+    """CRC-16/ARC the slow way: reflected polynomial 0xA001, init 0, one bit at a time."""
+    crc = 0
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0xA001 if crc & 1 else 0)
+    return crc
+
+
+def ndi_reply(body: str) -> bytes:
+    """A device reply: body + CRC16 (4 uppercase hex) + CR."""
+    data = body.encode("ascii")
+    return data + f"{crc16_arc_bitwise(data):04X}\r".encode("ascii")
+
+
+def coord(value_m: float) -> str:
+    """One TX coordinate: sign + 6 digits, units of 0.01 mm."""
+    hundredths = round(value_m * 1e5)
+    return ("+" if hundredths >= 0 else "-") + f"{abs(hundredths):06d}"
+
+
+def tx_body(strays: np.ndarray, oov_flags: str | None = None, status: str = "0000") -> str:
+    """A TX:1000 body with no tool handles and the given strays (N, 3) m."""
+    strays = np.asarray(strays, dtype=float).reshape(-1, 3)
+    n = len(strays)
+    flags = oov_flags if oov_flags is not None else "0" * (-(-n // 4))
+    return "00" + f"{n:02X}" + flags + "".join(coord(v) for v in strays.ravel()) + status
+
+
+def tool_to_tracker(targets: np.ndarray = TARGETS) -> np.ndarray:
+    """The targets seen by a tracker 1.5 m away, rotated about z by 30 degrees (m)."""
+    c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return targets @ R.T + np.array([0.05, -0.02, -1.5])
+
+
+def ndi_profile(**overrides: Any) -> NDIProfile:
+    base = NDIProfile(name="test", port=PortSettings(url=None, timeout=0.2), switch_delay=0.1, init_timeout=1.0)
+    return dataclasses.replace(base, **overrides)
+
+
+OPEN_NDI = [(INIT, OKAY), (COMM_115200, OKAY), (TSTART, OKAY)]
+
+
+def scripted_ndi(script: list[tuple[bytes, bytes]], **profile: Any) -> tuple[SerialTracker, ScriptedTransport]:
+    """An NDI SerialTracker on a scripted transport (the script must include the opening exchanges)."""
+    t = ScriptedTransport(script)
+    tracker = SerialTracker(ndi_profile(**profile), TARGETS, transport=t, clock=t.clock, sleep=t.sleep)
+    return tracker, t
+
+
+ASCII_PROFILE: dict[str, Any] = {
+    "protocol": "ascii",
+    "name": "scripted ascii",
+    "port": {"timeout": 0.2},
+    "ascii": {
+        "write_terminator": "\n",
+        "read_terminator": "\n",
+        "mode": "poll",
+        "measure_command": "M",
+        "reply": (
+            r"P (?P<t1_x>\S*) (?P<t1_y>\S*) (?P<t1_z>\S*) (?P<t2_x>\S*) (?P<t2_y>\S*) (?P<t2_z>\S*)"
+            r" (?P<t3_x>\S*) (?P<t3_y>\S*) (?P<t3_z>\S*)"
+        ),
+        "error_reply": r"E(?P<code>\d+)",
+        "length_unit": "m",
+        "retries": 1,
+    },
+}
+
+
+def ascii_profile(**ascii_overrides: Any):
+    data = {**ASCII_PROFILE, "ascii": {**ASCII_PROFILE["ascii"], **ascii_overrides}}
+    return parse_profile(data, "test-ascii")
+
+
+def ascii_line(points_m: np.ndarray, scale: float = 1.0) -> bytes:
+    """'P x1 y1 z1 ... z3\\n' with coordinates divided by ``scale`` (device unit in m)."""
+    values = np.asarray(points_m, dtype=float).ravel() / scale
+    return ("P " + " ".join(f"{v:.6f}" for v in values) + "\n").encode("ascii")
