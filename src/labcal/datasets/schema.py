@@ -101,5 +101,18 @@ def normalize_table(table: pd.DataFrame, n_joints: int) -> pd.DataFrame:
     for c in optional:
         out[c] = np.asarray(table[c].to_numpy(), dtype=np.float64)
     for c in extras:
-        out[c] = table[c].to_numpy()
+        out[c] = _extra_column(table[c])
     return out
+
+
+def _extra_column(s: pd.Series) -> pd.Series:
+    """Passthrough values as float64 if all are numbers (missing → NaN), else as text (missing → "").
+
+    One fixed rule keeps a column's dtype stable when later versions add rows that lack the value.
+    """
+    values = s.tolist()
+    present = [v for v in values if v is not None and not (isinstance(v, float) and np.isnan(v))]
+    if all(isinstance(v, int | float | np.integer | np.floating) for v in present):
+        return pd.Series(np.array([np.nan if v is None else v for v in values], dtype=np.float64))
+    missing = [v is None or (isinstance(v, float) and np.isnan(v)) for v in values]
+    return pd.Series(["" if m else str(v) for v, m in zip(values, missing, strict=True)], dtype="str")

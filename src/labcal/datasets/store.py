@@ -464,6 +464,8 @@ class SessionStore:
             manifest = None
         else:
             manifest, mp = _load_sealed(mpath.read_bytes(), "manifest_sha256", MANIFEST)
+            if manifest is None:
+                mp = [f"{m} (the data files cannot be checked without it)" for m in mp]
             problems += mp
             checked.append(MANIFEST)
         listed: dict[str, dict] = {}
@@ -478,7 +480,7 @@ class SessionStore:
                 checked.append(name)
                 if actual != info.get("sha256"):
                     problems.append(f"{name}: sha256 mismatch: expected {info.get('sha256')}, actual {actual}")
-        for p in sorted(vdir.iterdir()):
+        for p in sorted(vdir.iterdir()) if manifest is not None else []:
             if p.name in listed or p.name == MANIFEST or (p.name == FITS and p.is_dir()):
                 continue
             problems.append(f"{p.name}: extra {'directory' if p.is_dir() else 'file'} not listed in the manifest")
