@@ -24,6 +24,7 @@ COMM_115200 = b"COMM:500000048\r"
 TSTART = b"TSTART:5423\r"
 TX = b"TX:10003FDA\r"
 TSTOP = b"TSTOP:2C14\r"
+COMM_9600 = b"COMM:000000084\r"
 OKAY = b"OKAYA896\r"
 RESET = b"RESETBE6F\r"
 
@@ -71,6 +72,7 @@ def ndi_profile(**overrides: Any) -> NDIProfile:
 
 
 OPEN_NDI = [(INIT, OKAY), (COMM_115200, OKAY), (TSTART, OKAY)]
+CLOSE_NDI = [(TSTOP, OKAY), (COMM_9600, OKAY)]
 
 
 def scripted_ndi(script: list[tuple[bytes, bytes]], **profile: Any) -> tuple[SerialTracker, ScriptedTransport]:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from serial_fixtures import (
+    CLOSE_NDI,
+    COMM_9600,
     COMM_115200,
     INIT,
     OKAY,
@@ -39,7 +41,7 @@ def frame(strays=SEEN, **kw) -> bytes:
 
 
 def test_open_measure_close_is_byte_exact_and_switches_baud_after_comm_okay():
-    tracker, t = scripted_ndi([*OPEN_NDI, (TX, frame()), (TSTOP, OKAY)])
+    tracker, t = scripted_ndi([*OPEN_NDI, (TX, frame()), *CLOSE_NDI])
     assert isinstance(tracker, Tracker)
     m = tracker.measure()
     tracker.close()
@@ -52,7 +54,9 @@ def test_open_measure_close_is_byte_exact_and_switches_baud_after_comm_okay():
     comm = t.events.index(("write", COMM_115200))
     assert t.events[comm + 1 :][:3] == [("sleep", 0.1), ("baud", 115200), ("flush", b"")]
     assert t.events.index(("write", TSTART)) > comm + 2
-    assert kinds[-1] == "close"
+    # On close: TSTOP, then COMM back to 9600 and the host follows, so the next session's INIT is understood.
+    assert t.events[-4:] == [("write", COMM_9600), ("sleep", 0.1), ("baud", 9600), ("close", None)]
+    assert kinds.count("close") == 1
 
 
 def test_no_comm_when_the_profile_keeps_9600():
@@ -217,7 +221,7 @@ def test_reset_announced_by_the_device_reinitialises_without_a_break():
 
 def test_init_without_answer_on_open_resets_the_device_first():
     # A device left at 115200 by an earlier session does not understand INIT at 9600.
-    script = [(INIT, b""), (BREAK, RESET), *OPEN_NDI, (TSTOP, OKAY)]
+    script = [(INIT, b""), (BREAK, RESET), *OPEN_NDI, *CLOSE_NDI]
     tracker, t = scripted_ndi(script)
     tracker.close()
     t.assert_done()

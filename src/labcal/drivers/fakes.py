@@ -5,9 +5,11 @@ pyserial (or the real ``ndicapy`` client) opens ``.port``, the slave path, exact
 device. Both read target positions from ``points_provider() -> (3, 3)`` metres in the tracker frame, so a
 simulator can feed them the true target positions plus noise.
 
-Limits of a pty: baud-rate changes and serial breaks do not reach the master side. The fake NDI device keeps
-an *emulated* baud rate from the COMM commands it accepted, and ``reset()`` emulates what a break (or power
-cycle) does; the host-side break path is tested with ``ScriptedTransport``.
+Limits of a pty: bytes flow whatever the baud rate, and a serial break does not reach the master side. The fake
+NDI device therefore keeps an *emulated* rate (9600 after reset, then what COMM set) and compares it with the
+rate the client configured on the pty (termios settings are shared by both ends' view of the slave): at a
+mismatch it ignores the command, as a real device seeing framing errors would. ``reset()`` emulates what a
+break (or power cycle) does; the host-side break path itself is tested with ``ScriptedTransport``.
 
 Fault injection (one-shot, in order, applied to the next measurement request)::
 
@@ -22,6 +24,7 @@ import collections
 import math
 import os
 import select
+import termios
 import threading
 import time
 import tty
@@ -33,6 +36,12 @@ import numpy as np
 from labcal.drivers.serial.crc import crc16_arc, xor8
 
 PointsProvider = Callable[[], np.ndarray]
+
+_TERMIOS_SPEEDS = {
+    getattr(termios, f"B{rate}"): rate
+    for rate in (9600, 19200, 38400, 57600, 115200, 230400, 921600)
+    if hasattr(termios, f"B{rate}")
+}
 
 # A scalene triangle (sides 100, 70, ~122 mm) about 1.5 m in front of a tracker: a sensible default scene.
 DEFAULT_TRACKER_POINTS = np.array([[0.10, -0.05, -1.50], [0.20, -0.05, -1.50], [0.10, 0.02, -1.50]])
@@ -156,6 +165,14 @@ class _PtyDevice:
                         self.send(reply)
             self.tick()
 
+    def host_baudrate(self) -> int | None:
+        """The baud rate the client set on the pty (None if unknown)."""
+        try:
+            speed = termios.tcgetattr(self._slave)[5]  # ospeed
+        except (termios.error, OSError):
+            return None
+        return _TERMIOS_SPEEDS.get(speed)
+
     def handle(self, line: str) -> bytes | None:  # pragma: no cover - abstract
         raise NotImplementedError
 
@@ -181,6 +198,7 @@ class FakeNDIDevice(_PtyDevice):
     points_provider: () -> (3, 3) m, true target positions in the tracker frame (rows t1, t2, t3).
     shuffle: report strays in a random order (as a real tracker does). extra_stray: always add one spurious
     reflection. noise: Gaussian noise per coordinate, m (on top of whatever the provider adds). seed: RNG seed.
+    strict_baud: ignore commands while the client's pty rate differs from the emulated device rate.
 
     State: ``state`` is "reset" (after power-up/reset), "setup" (after INIT) or "tracking"; ``baudrate`` is the
     emulated rate set by COMM. Replies follow the API: body + CRC16 + CR; ERRORxx for bad commands.
@@ -196,8 +214,11 @@ class FakeNDIDevice(_PtyDevice):
         shuffle: bool = True,
         extra_stray: bool = False,
         noise: float = 0.0,
+        strict_baud: bool = True,
     ):
         super().__init__(points_provider, seed)
+        self.strict_baud = strict_baud
+        self.ignored: list[str] = []  # commands dropped because of a baud-rate mismatch
         self.shuffle = shuffle
         self.extra_stray = extra_stray
         self.noise = float(noise)
@@ -217,6 +238,11 @@ class FakeNDIDevice(_PtyDevice):
     # -- commands ------------------------------------------------------------------------------------------
 
     def handle(self, line: str) -> bytes | None:
+        if self.strict_baud:
+            host = self.host_baudrate()
+            if host is not None and host != self.baudrate:
+                self.ignored.append(line)
+                return None
         if ":" in line:
             name, _, rest = line.partition(":")
             if len(rest) < 4:

@@ -58,11 +58,21 @@ def open_serial(url: str, *, baudrate: int, bytesize: int, parity: str, stopbits
 
 
 def _library_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions a serial port can raise: pyserial's own, OS errors, and termios.error (not an OSError!)."""
+    errors: list[type[BaseException]] = [OSError]
     try:
         import serial
+
+        errors.append(serial.SerialException)
     except ImportError:  # pragma: no cover - pyserial is a dependency
-        return (OSError,)
-    return (serial.SerialException, OSError)
+        pass
+    try:
+        import termios
+
+        errors.append(termios.error)
+    except ImportError:  # pragma: no cover - Windows has no termios
+        pass
+    return tuple(errors)
 
 
 class SerialLink:

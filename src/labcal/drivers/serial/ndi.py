@@ -2,8 +2,9 @@
 
 Commands are ASCII ``CMD:params`` followed by the CRC-16/ARC of everything before it (4 uppercase hex) and CR;
 replies are a body, the CRC of the body and CR. The session is ``INIT:`` (at 9600 8N1) -> ``COMM:`` (faster
-rate, the host follows after a short delay) -> ``TSTART:`` -> ``TX:1000`` per frame -> ``TSTOP:``. After a
-serial break the device resets to 9600 8N1 and answers ``RESETBE6F``.
+rate, the host follows after a short delay) -> ``TSTART:`` -> ``TX:1000`` per frame -> ``TSTOP:`` ->
+``COMM:00000`` (back to 9600, where the next session starts). After a serial break the device resets to
+9600 8N1 and answers ``RESETBE6F``.
 
 A ``TX:1000`` body (reply option 0x1000, passive stray markers) is::
 
@@ -49,8 +50,8 @@ ERROR_CODES = {
     0x10: "System not initialized",
     0x11: "Unable to stop tracking",
     0x12: "Unable to start tracking",
-    0x13: "Unable to initialize tool",
-    0x14: "Invalid Position Sensor characterization parameters",
+    0x13: "Unable to initialize Tool-in-Port",
+    0x14: "Invalid Position Sensor or Field Generator characterization parameters",
     0x15: "Unable to initialize the Measurement System",
     0x16: "Unable to start diagnostic mode",
     0x17: "Unable to stop diagnostic mode",
@@ -274,7 +275,14 @@ class NDIProtocol:
         return match.points, quality
 
     def stop(self) -> None:
-        """Stop tracking (best effort: the port may already be gone)."""
+        """Stop tracking and put the device back to 9600 baud, where the next session's INIT expects it.
+
+        Without the COMM back to 9600 the next session would need a serial break and a full reset (seconds).
+        """
         if self.tracking:
             self.tracking = False
             self._expect_okay("TSTOP:", retries=0)
+        if self.link.transport.baudrate != 9600:
+            self._expect_okay("COMM:00000", retries=0)
+            self.sleep(self.profile.switch_delay)
+            self.link.set_baudrate(9600)

@@ -1,0 +1,200 @@
+"""End to end over a real pseudo-terminal: pyserial + labcal's driver against the fake devices' threads."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from serial_fixtures import TARGETS, tool_to_tracker
+
+from labcal.drivers.base import ConnectionFailed, MeasurementRejected
+from labcal.drivers.fakes import FakeASCIIDevice, FakeNDIDevice
+from labcal.drivers.serial.ascii import DeviceError
+from labcal.drivers.serial_tracker import NDIError, SerialTracker, load_profile, open_tracker
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]
+
+REPO = Path(__file__).resolve().parents[2]
+SEEN = tool_to_tracker()  # true target positions in the tracker frame, m
+
+
+def ndi_tracker(dev: FakeNDIDevice, **overrides) -> SerialTracker:
+    profile = load_profile(REPO / "drivers" / "ndi-polaris.toml").with_url(dev.port)
+    profile = dataclasses.replace(profile, switch_delay=0.0, init_timeout=0.5, **overrides)
+    profile = dataclasses.replace(profile, port=dataclasses.replace(profile.port, timeout=0.2))
+    return SerialTracker(profile, TARGETS)
+
+
+def wait_for(predicate, timeout: float = 2.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.005)
+    return predicate()
+
+
+# -- NDI ------------------------------------------------------------------------------------------------------
+
+
+def test_ndi_session_over_pty_labels_shuffled_strays_and_leaves_the_device_stopped():
+    with FakeNDIDevice(lambda: SEEN, seed=3, extra_stray=True) as dev:
+        with ndi_tracker(dev) as tracker:
+            m = tracker.measure(samples=4)
+            assert dev.state == "tracking" and dev.baudrate == 115200
+        np.testing.assert_allclose(m.points, SEEN, atol=5e-6)  # wire resolution 0.01 mm
+        assert m.samples == 4
+        assert wait_for(lambda: dev.state == "setup" and dev.baudrate == 9600)  # TSTOP, COMM:00000 on close
+        names = [c.split(":")[0] for c in dev.received]
+        assert names == ["INIT", "COMM", "TSTART", "TX", "TX", "TX", "TX", "TSTOP", "COMM"]
+
+
+def test_ndi_averaging_over_pty_reports_the_spread_of_the_samples():
+    offsets = itertools.cycle([np.array([0.0002, 0.0, 0.0]), np.array([-0.0002, 0.0, 0.0])])
+    with FakeNDIDevice(lambda: SEEN + next(offsets), seed=0) as dev, ndi_tracker(dev) as tracker:
+        m = tracker.measure(samples=2)
+    np.testing.assert_allclose(m.points, SEEN, atol=5e-6)
+    np.testing.assert_allclose(m.spread, np.full(3, 0.0002), atol=1e-8)
+
+
+@pytest.mark.parametrize("fault", ["bad_crc", "garbled", "no_reply"])
+def test_ndi_transient_faults_are_retried(fault):
+    with FakeNDIDevice(lambda: SEEN, seed=1) as dev, ndi_tracker(dev) as tracker:
+        dev.inject(fault)
+        np.testing.assert_allclose(tracker.measure().points, SEEN, atol=5e-6)
+        assert [c.split(":")[0] for c in dev.received].count("TX") == 2  # the faulty frame and its retry
+
+
+def test_ndi_device_reset_mid_session_is_recovered_by_reinitialising():
+    with FakeNDIDevice(lambda: SEEN, seed=1) as dev, ndi_tracker(dev) as tracker:
+        dev.inject("reset")
+        np.testing.assert_allclose(tracker.measure().points, SEEN, atol=5e-6)
+        names = [c.split(":")[0] for c in dev.received]
+        assert names == ["INIT", "COMM", "TSTART", "TX", "INIT", "COMM", "TSTART", "TX"]
+
+
+@pytest.mark.parametrize(
+    ("fault", "error", "match"),
+    [
+        ("drop_target", MeasurementRejected, "only 2 marker"),
+        ("out_of_volume", MeasurementRejected, "out of the characterised volume"),
+        ("error:0C", NDIError, "ERROR0C"),
+    ],
+)
+def test_ndi_unusable_frames_raise_and_the_next_frame_is_fine(fault, error, match):
+    with FakeNDIDevice(lambda: SEEN, seed=2) as dev, ndi_tracker(dev) as tracker:
+        dev.inject(fault)
+        with pytest.raises(error, match=match):
+            tracker.measure()
+        np.testing.assert_allclose(tracker.measure().points, SEEN, atol=5e-6)
+
+
+def test_fake_rejects_a_command_with_a_bad_crc_with_error04():
+    import serial
+
+    with FakeNDIDevice(lambda: SEEN) as dev:
+        port = serial.serial_for_url(dev.port, timeout=1.0)
+        try:
+            port.write(b"INIT:0000\r")
+            assert port.read_until(b"\r") == b"ERROR04" + b"%04X" % _crc(b"ERROR04") + b"\r"
+            port.write(b"BOGUS:1234\r")
+            assert port.read_until(b"\r").startswith(b"ERROR0")
+        finally:
+            port.close()
+
+
+def test_fake_ignores_commands_sent_at_the_wrong_baud_rate():
+    import serial
+
+    with FakeNDIDevice(lambda: SEEN) as dev:
+        for baud, expect in ((115200, b""), (9600, b"OKAY")):
+            port = serial.serial_for_url(dev.port, baudrate=baud, timeout=0.2)
+            try:
+                port.write(b"INIT:E3A5\r")
+                assert port.read_until(b"\r")[:4] == expect
+            finally:
+                port.close()
+        assert dev.ignored == ["INIT:E3A5"]
+
+
+def _crc(data: bytes) -> int:
+    from serial_fixtures import crc16_arc_bitwise
+
+    return crc16_arc_bitwise(data)
+
+
+def test_port_can_be_reopened_after_a_client_closes_it():
+    with FakeNDIDevice(lambda: SEEN) as dev:
+        for _ in range(2):
+            with ndi_tracker(dev) as tracker:
+                np.testing.assert_allclose(tracker.measure().points, SEEN, atol=5e-6)
+
+
+def test_device_going_away_gives_a_driver_error_not_a_pyserial_one():
+    dev = FakeNDIDevice(lambda: SEEN).start()
+    tracker = ndi_tracker(dev, retries=0, reset_on_failure=False)
+    try:
+        dev.close()
+        with pytest.raises(ConnectionFailed, match="serial input flush failed"):
+            tracker.measure()
+    finally:
+        tracker.close()  # must not raise although the device is gone
+        dev.close()
+
+
+# -- ASCII ----------------------------------------------------------------------------------------------------
+
+
+def test_ascii_example_profile_end_to_end_with_faults():
+    with FakeASCIIDevice(lambda: SEEN, seed=4) as dev:
+        with open_tracker(REPO / "drivers" / "ascii-example.toml", TARGETS, url=dev.port) as tracker:
+            np.testing.assert_allclose(tracker.measure(samples=2).points, SEEN, atol=1e-7)
+            for fault in ("bad_checksum", "garbled"):
+                dev.inject(fault)
+                np.testing.assert_allclose(tracker.measure().points, SEEN, atol=1e-7)
+            dev.inject("drop_target")
+            with pytest.raises(MeasurementRejected, match="not seen"):
+                tracker.measure()
+            dev.inject("error:07")
+            with pytest.raises(DeviceError, match="ERR,07"):
+                tracker.measure()
+        assert dev.received[:2] == ["*IDN?", "UNITS MM"]
+        assert dev.received.count("MEAS?") == 2 + 2 * 2 + 1 + 1
+
+
+def test_ascii_no_reply_is_retried_over_pty():
+    with FakeASCIIDevice(lambda: SEEN) as dev:
+        profile = load_profile(REPO / "drivers" / "ascii-example.toml").with_url(dev.port)
+        profile = dataclasses.replace(profile, port=dataclasses.replace(profile.port, timeout=0.1))
+        with SerialTracker(profile, TARGETS) as tracker:
+            dev.inject("no_reply")
+            np.testing.assert_allclose(tracker.measure().points, SEEN, atol=1e-7)
+        assert dev.received.count("MEAS?") == 2
+
+
+def test_ascii_streaming_device_over_pty():
+    from labcal.drivers.serial.profiles import InitStep
+
+    with FakeASCIIDevice(lambda: SEEN, stream_hz=200.0) as dev:
+        profile = load_profile(REPO / "drivers" / "ascii-example.toml").with_url(dev.port)
+        profile = dataclasses.replace(
+            profile,
+            mode="stream",
+            measure_command=None,
+            init=(*profile.init, InitStep("STREAM ON", None)),
+            close_commands=("STREAM OFF",),
+        )
+        with SerialTracker(profile, TARGETS) as tracker:
+            m = tracker.measure(samples=3)
+        np.testing.assert_allclose(m.points, SEEN, atol=1e-7)
+        assert "MEAS?" not in dev.received
+        assert wait_for(lambda: not dev.streaming)  # STREAM OFF sent on close
+
+
+def test_fake_fault_names_are_checked():
+    with FakeNDIDevice() as dev, pytest.raises(ValueError, match="unknown fault 'explode'"):
+        dev.inject("explode")

@@ -1,0 +1,98 @@
+"""Cross-check with the real NDI client library: ``ndicapy`` (PyPI ndicapi 3.7.6) against FakeNDIDevice.
+
+If NDI's own client parses the fake's replies into the same markers, the fake speaks the protocol, and labcal's
+driver reading the same markers from the same fake is independent evidence that the driver does too. The
+command bytes ndicapy sends also pin down the constants used by the byte-exact scripted tests.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+from serial_fixtures import COMM_9600, COMM_115200, INIT, TARGETS, TSTART, TSTOP, TX, tool_to_tracker
+
+from labcal.drivers.fakes import FakeNDIDevice
+from labcal.drivers.serial_tracker import ERROR_CODES, SerialTracker, encode_command, load_profile
+
+ndicapy = pytest.importorskip("ndicapy")
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]
+
+REPO = Path(__file__).resolve().parents[2]
+SEEN = tool_to_tracker()
+
+
+def ndicapy_strays(port: str) -> tuple[np.ndarray, int]:
+    """Run an NDI session with ndicapy; return the strays of one TX:1000 frame (N, 3) m and the status."""
+    device = ndicapy.ndiOpen(port)
+    assert device, f"ndicapy could not open {port}"
+    try:
+        for command in ("INIT:", "COMM:50000", "TSTART:"):
+            reply = ndicapy.ndiCommand(device, command)
+            assert ndicapy.ndiGetError(device) == ndicapy.NDI_OKAY, ndicapy.ndiErrorString(ndicapy.ndiGetError(device))
+            assert reply == "OKAY", (command, reply)
+        ndicapy.ndiCommand(device, "TX:1000")
+        assert ndicapy.ndiGetError(device) == ndicapy.NDI_OKAY
+        n = ndicapy.ndiGetTXNumberOfPassiveStrays(device)
+        strays = np.array([ndicapy.ndiGetTXPassiveStray(device, i) for i in range(n)], dtype=float) * 1e-3  # mm->m
+        status = ndicapy.ndiGetTXSystemStatus(device)
+        assert ndicapy.ndiCommand(device, "TSTOP:") == "OKAY"
+        # Leave the device at 9600 as found, so the next client's INIT is understood.
+        assert ndicapy.ndiCommand(device, "COMM:00000") == "OKAY"
+        return strays.reshape(n, 3), status
+    finally:
+        ndicapy.ndiClose(device)
+
+
+def test_ndicapy_reads_the_fake_and_agrees_with_labcal():
+    with FakeNDIDevice(lambda: SEEN, seed=11, extra_stray=True) as dev:
+        reference, status = ndicapy_strays(dev.port)
+        assert status == 0
+        # ndicapy framed its commands exactly like the constants the scripted tests expect labcal to send.
+        sent = (INIT, COMM_115200, TSTART, TX, TSTOP, COMM_9600)
+        assert dev.received == [c[:-1].decode() for c in sent]
+        for command in ("INIT:", "COMM:50000", "TSTART:", "TX:1000", "TSTOP:", "COMM:00000"):
+            assert encode_command(command)[:-1].decode() in dev.received
+
+        profile = load_profile(REPO / "drivers" / "ndi-polaris.toml").with_url(dev.port)
+        with SerialTracker(dataclasses.replace(profile, switch_delay=0.0), TARGETS) as tracker:
+            ours = tracker.measure().points
+
+    assert reference.shape == (4, 3)  # three targets + the spurious reflection, in the fake's shuffled order
+    # Every point labcal reports is one ndicapy saw, and labcal labelled them in target order.
+    nearest = np.array([np.min(np.linalg.norm(reference - p, axis=1)) for p in ours])
+    assert np.all(nearest < 1e-9)
+    np.testing.assert_allclose(ours, SEEN, atol=5e-6)
+    # ndicapy's spurious stray is the one labcal left out.
+    leftover = [r for r in reference if np.min(np.linalg.norm(ours - r, axis=1)) > 1e-9]
+    assert len(leftover) == 1
+
+
+def test_ndicapy_sees_the_faults_the_driver_must_handle():
+    with FakeNDIDevice(lambda: SEEN, seed=5) as dev:
+        device = ndicapy.ndiOpen(dev.port)
+        try:
+            for command in ("INIT:", "TSTART:"):
+                ndicapy.ndiCommand(device, command)
+            # ndicapy's Python wrapper raises OSError for a failed command.
+            dev.inject("bad_crc")
+            with pytest.raises(OSError, match="Bad CRC on reply"):
+                ndicapy.ndiCommand(device, "TX:1000")
+            assert ndicapy.ndiGetError(device) == ndicapy.NDI_BAD_CRC
+            dev.inject("error:0C")
+            with pytest.raises(OSError, match="Command is invalid while in the current mode"):
+                ndicapy.ndiCommand(device, "TX:1000")
+            assert ndicapy.ndiGetError(device) == 0x0C
+            ndicapy.ndiCommand(device, "TX:1000")
+            assert ndicapy.ndiGetError(device) == ndicapy.NDI_OKAY
+            assert ndicapy.ndiGetTXNumberOfPassiveStrays(device) == 3
+        finally:
+            ndicapy.ndiClose(device)
+
+
+def test_error_code_meanings_agree_with_ndicapy():
+    for code, meaning in ERROR_CODES.items():
+        assert ndicapy.ndiErrorString(code).startswith(meaning), hex(code)
