@@ -198,3 +198,13 @@ def test_ascii_streaming_device_over_pty():
 def test_fake_fault_names_are_checked():
     with FakeNDIDevice() as dev, pytest.raises(ValueError, match="unknown fault 'explode'"):
         dev.inject("explode")
+
+
+def test_open_tracker_accepts_a_targets_file(tmp_path):
+    path = tmp_path / "targets.toml"
+    mm = TARGETS * 1e3
+    path.write_text(f'unit = "mm"\npoints = {mm.tolist()}\n')
+    with FakeASCIIDevice(lambda: SEEN) as dev:
+        with open_tracker(REPO / "drivers" / "ascii-example.toml", path, url=dev.port) as tracker:
+            np.testing.assert_allclose(tracker.targets, TARGETS, atol=1e-12)
+            np.testing.assert_allclose(tracker.measure().points, SEEN, atol=1e-7)

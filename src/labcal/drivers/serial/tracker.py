@@ -129,6 +129,13 @@ class SerialTracker:
 
 
 def open_tracker(profile_path: str | Path, targets: Any, url: str | None = None, **kwargs: Any) -> SerialTracker:
-    """Load the profile at ``profile_path`` and open the tracker; ``url`` overrides the profile's port."""
+    """Load the profile at ``profile_path`` and open the tracker; ``url`` overrides the profile's port.
+
+    targets: (3, 3) array in metres, or the path of a targets TOML file (``unit``, ``points``).
+    """
     profile = load_profile(profile_path)
+    if isinstance(targets, str | Path):
+        from labcal.datasets.targets import load_targets
+
+        targets = load_targets(targets)
     return SerialTracker(profile, targets, url=url, **kwargs)
