@@ -1,0 +1,387 @@
+"""Model-based calibration: identification of the local-POE frame errors (paper eq. 8-11, 18).
+
+Every initial relative frame is right-perturbed, ``A_j(0) · exp(δζ̂_j)`` for j = 1 … n+1 (6n + 6 parameters).
+The pose error this causes is the spatial twist ``δy = Σ_j Ad_{j0} δζ_j`` in K0 (eq. 11,
+:meth:`LocalPOEModel.frame_jacobian`), and a target point p_i on the tool moves by ``dp_i = δv + δω × p_i``
+(eq. 18 written per point: P δy with the rows ``[I, −p̂_i]``). The measured points give 9 coordinates per
+configuration; the parameters are found by iterated Gauss-Newton: linearise at the current model, solve the
+linear least-squares step with a truncated SVD, compose the step into the frames, repeat until the step is
+below ``tol``.
+
+**Identifiability.** The 6n + 6 frame errors are not independent. For a revolute joint about the local z axis,
+a rotation about z and a translation along z of A_j(0) commute with ``exp(ξ̂_j q_j)`` and can be pushed into
+the next frame: 2 redundant directions per revolute joint. A prismatic joint along z commutes with all three
+translations and the rotation about z: 4 redundant directions. So the identifiable count is::
+
+    6(n + 1) − 2 n_R − 4 n_P = 4 n_R + 2 n_P + 6
+
+the figure of the kinematic-calibration literature (30 for a 6R arm, 20 for an RRPR SCARA), which the tests
+measure as the numerical rank on well-spread data. A tracker-to-base transform adds 6 parameters but no rank:
+left-perturbing T_tracker_base is indistinguishable from right-perturbing A_1(0). We therefore fix that gauge by
+folding the base frame error into ``T_tracker_base`` (δζ_1 is not a parameter when the base is estimated):
+``T_tracker_base`` is then the pose of the *nominal* base frame of the identified robot in the tracker frame.
+
+**Rank-revealing step.** The parameters are rescaled to common units before the SVD: an angular
+parameter of 1 rad counts as ``length_scale`` metres (default: the robot's reach), i.e. the angular Jacobian
+columns are divided by ``length_scale``, so the singular values of linear and angular directions are comparable
+and the truncation does not depend on the choice of units. Singular values below
+``rank_rtol · s_max`` (default 1e-9) are treated as zero; the structurally redundant directions above have
+singular values at round-off level (~1e-15 s_max), while the smallest identifiable ones on ordinary data sets
+are ~1e-3 s_max, so the threshold separates them by many orders of magnitude. Optional Levenberg-Marquardt
+damping (``damping``, relative to s_max²) is raised automatically when a step does not lower the cost.
+
+Rows used: ``train`` and unassigned rows; ``include_val=True`` adds the validation rows. The default keeps the
+validation split out so every method is compared on data it did not fit (other methods early-stop on it).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from labcal.calibration.observations import Observations, rigid_fit
+from labcal.compensator import CalibratedRobot
+from labcal.kinematics import se3
+from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
+
+AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
+DEFAULT_RANK_RTOL = 1e-9
+
+
+class IdentificationError(ValueError):
+    """The data cannot identify the requested parameters (too few configurations, wrong robot …)."""
+
+
+def expected_rank(model: LocalPOEModel) -> int:
+    """Identifiable local-POE frame errors: 4 per revolute + 2 per prismatic joint + 6 (module docstring)."""
+    n_r = sum(t == REVOLUTE for t in model.joint_types)
+    n_p = sum(t == PRISMATIC for t in model.joint_types)
+    return 4 * n_r + 2 * n_p + 6
+
+
+def fitting_rows(obs: Observations, include_val: bool = False) -> np.ndarray:
+    """Boolean mask of the rows a model-based fit uses: train + unassigned (+ val when include_val)."""
+    allowed = ("train", "", "val") if include_val else ("train", "")
+    return np.isin(obs.split, allowed)
+
+
+def _frame_name(j: int, n: int) -> str:
+    if j == -1:
+        return "T_tracker_base"
+    if j == n:
+        return "tool frame A_{n+1}"
+    return f"frame A_{j + 1} (before joint {j + 1})"
+
+
+def _param_labels(frames: list[int], estimate_base: bool, n: int) -> list[str]:
+    labels = [f"{_frame_name(j, n)} {a}" for j in frames for a in AXES]
+    if estimate_base:
+        labels += [f"T_tracker_base {a}" for a in AXES]
+    return labels
+
+
+def _residual_and_jacobian(
+    model: LocalPOEModel,
+    T_tb: np.ndarray,
+    q: np.ndarray,
+    targets: np.ndarray,
+    measured: np.ndarray,
+    frames: list[int],
+    estimate_base: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residual (9k,) measured − predicted and its Jacobian (9k, p) w.r.t. the parameters (SI units)."""
+    k = q.shape[0]
+    initial, T = model._chain(q)
+    p_base = np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]  # (k, 3, 3)
+    R_tb = T_tb[:3, :3]
+    p_meas_frame = np.einsum("ab,kmb->kma", R_tb, p_base) + T_tb[:3, 3]
+    residual = (measured - p_meas_frame).reshape(-1)
+    blocks = []
+    if frames:
+        # dp_i = [I, −p̂_i] δy in the base frame, rotated into the measurement frame.
+        G = np.zeros((k, 3, 3, 6))
+        G[..., :3] = np.eye(3)
+        G[..., 3:] = -se3.skew(p_base)
+        G = np.einsum("ab,kmbc->kmac", R_tb, G)
+        Ad = se3.adjoint(initial[:, frames])  # (k, f, 6, 6)
+        Jf = np.einsum("kmac,kfcd->kmafd", G, Ad).reshape(k, 3, 3, 6 * len(frames))
+        blocks.append(Jf.reshape(9 * k, -1))
+    if estimate_base:
+        # Left perturbation exp(δβ̂)·T_tb moves a point m by δβ_v + δβ_ω × m.
+        Gb = np.zeros((k, 3, 3, 6))
+        Gb[..., :3] = np.eye(3)
+        Gb[..., 3:] = -se3.skew(p_meas_frame)
+        blocks.append(Gb.reshape(9 * k, 6))
+    return residual, np.concatenate(blocks, axis=1)
+
+
+def _apply(model, T_tb, step, frames, estimate_base):
+    dz = np.zeros((model.n + 1, 6))
+    if frames:
+        dz[frames] = step[: 6 * len(frames)].reshape(len(frames), 6)
+    new_model = model.perturbed(dz)
+    new_T = se3.exp_se3(step[-6:]) @ T_tb if estimate_base else T_tb
+    return new_model, new_T
+
+
+def _gauss_newton(
+    model: LocalPOEModel,
+    T_tb: np.ndarray,
+    q: np.ndarray,
+    targets: np.ndarray,
+    measured: np.ndarray,
+    frames: list[int],
+    estimate_base: bool,
+    *,
+    length_scale: float,
+    max_iter: int,
+    tol: float,
+    rank_rtol: float,
+    damping: float,
+) -> dict:
+    """Iterated, rank-revealing Gauss-Newton / LM. Returns the final model, T_tb and diagnostics."""
+    n_params = 6 * len(frames) + (6 if estimate_base else 0)
+    # Parameter scaling: angular parameters in units of length_scale metres (unit-consistent truncation).
+    scale = np.tile([1.0] * 3 + [1.0 / length_scale] * 3, n_params // 6)
+    r, J = _residual_and_jacobian(model, T_tb, q, targets, measured, frames, estimate_base)
+    cost = float(r @ r)
+    history = [cost]
+    lam = damping
+    converged = False
+    iterations = 0
+    for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is reported
+        Js = J * scale
+        U, s, Vt = np.linalg.svd(Js, full_matrices=False)
+        keep = s > rank_rtol * s[0]
+        s_k = s[keep]
+        filt = s_k / (s_k * s_k + lam * s[0] * s[0])
+        step = scale * (Vt[keep].T @ (filt * (U[:, keep].T @ r)))
+        cand_model, cand_T = _apply(model, T_tb, step, frames, estimate_base)
+        r_c, J_c = _residual_and_jacobian(cand_model, cand_T, q, targets, measured, frames, estimate_base)
+        cost_c = float(r_c @ r_c)
+        step_size = float(np.linalg.norm(step / scale))
+        if cost_c <= cost * (1 + 1e-12) or step_size < tol:
+            model, T_tb, r, J, cost = cand_model, cand_T, r_c, J_c, cost_c
+            history.append(cost)
+            lam = lam / 10 if lam > 1e-12 else 0.0
+            if step_size < tol:
+                converged = True
+                break
+        else:
+            lam = max(lam * 10, 1e-9)
+            if lam > 1e6:
+                break
+    # Final linearisation: rank, null space and parameter covariance at the solution.
+    Js = J * scale
+    U, s, Vt = np.linalg.svd(Js, full_matrices=False)
+    keep = s > rank_rtol * s[0]
+    rank = int(keep.sum())
+    dof = max(r.size - rank, 1)
+    sigma2 = cost / dof
+    Vk = Vt[keep].T / s[keep]
+    cov_scaled = sigma2 * (Vk @ Vk.T)
+    std = np.sqrt(np.clip(np.diag(cov_scaled), 0, None)) * scale
+    null_full = _null_space(Js, s, Vt, keep) * scale[:, None]
+    return dict(
+        model=model,
+        T_tb=T_tb,
+        rank=rank,
+        singular_values=s,
+        std=std,
+        sigma=math.sqrt(sigma2),
+        null_space=null_full,
+        iterations=iterations,
+        converged=converged,
+        cost_history=history,
+        residual=r,
+    )
+
+
+def _null_space(Js, s, Vt, keep):
+    """Right null-space basis of the scaled Jacobian (p, p − rank), including columns beyond the row count."""
+    p = Js.shape[1]
+    if Vt.shape[0] < p:  # fewer rows than parameters: complete the basis
+        _, _, Vt_full = np.linalg.svd(Js, full_matrices=True)
+        return Vt_full[keep.sum() :].T
+    return Vt[~keep].T
+
+
+def _describe_null(null: np.ndarray, labels: list[str], top: int = 2) -> list[str]:
+    """One line per unidentifiable direction: its largest components (after a canonicalising rotation)."""
+    if null.shape[1] == 0:
+        return []
+    # Rotate the basis so each vector is as concentrated as possible (pivoted QR on the transpose).
+    import scipy.linalg
+
+    _, _, piv = scipy.linalg.qr(null.T, pivoting=True)
+    pivots = piv[: null.shape[1]]
+    B = null.T  # (d, p)
+    sub = B[:, pivots]
+    basis = np.linalg.solve(sub, B)  # each row has 1 at its pivot and 0 at the others
+    lines = []
+    for row in basis:
+        row = row / np.max(np.abs(row))
+        order = np.argsort(-np.abs(row), kind="stable")[:top]
+        parts = [f"{row[i]:+.2f}·{labels[i]}" for i in order if abs(row[i]) > 1e-6]
+        lines.append(" ".join(parts))
+    return lines
+
+
+def _check(obs: Observations, nominal: LocalPOEModel, rows: np.ndarray, needed: int, what: str) -> None:
+    obs.check_robot(nominal.n)
+    k = int(rows.sum())
+    if 9 * k < needed:
+        raise IdentificationError(
+            f"{what} needs at least {needed} measured coordinates but the fitting rows hold {9 * k} "
+            f"({k} configuration(s) × 3 points × 3): measure at least {math.ceil(needed / 9)} configurations "
+            f"(well spread; several times more to average the noise)"
+        )
+
+
+def _initial_base(obs: Observations, model: LocalPOEModel, rows: np.ndarray) -> np.ndarray:
+    """Closed-form T_tracker_base: Kabsch over all points, model-predicted (base) vs measured (tracker)."""
+    pred = model.target_points(obs.q[rows], obs.targets).reshape(1, -1, 3)
+    meas = obs.points[rows].reshape(1, -1, 3)
+    return rigid_fit(pred[0], meas)[0]
+
+
+def _robot(nominal, model, T_tb, obs, method) -> CalibratedRobot:
+    return CalibratedRobot(nominal=nominal, model=model, T_tracker_base=T_tb, method=method)
+
+
+def register(
+    obs: Observations,
+    nominal: LocalPOEModel,
+    *,
+    estimate_tool: bool = False,
+    include_val: bool = False,
+    max_iter: int = 50,
+    tol: float = 1e-12,
+) -> tuple[CalibratedRobot, dict]:
+    """The "registered nominal": nominal geometry, with only T_tracker_base (tracker-frame data) and optionally
+    the tool frame A_{n+1} estimated. The reference ("before") every method is compared against.
+
+    Base-frame data without tool estimation return the nominal robot unchanged.
+    """
+    rows = fitting_rows(obs, include_val)
+    estimate_base = obs.frame == "tracker"
+    frames = [nominal.n] if estimate_tool else []
+    needed = 6 * (len(frames) + estimate_base)
+    _check(obs, nominal, rows, max(needed, 1), "registration")
+    if not frames and not estimate_base:
+        robot = _robot(nominal, nominal, np.eye(4), obs, "nominal")
+        return robot, {"estimated": [], "iterations": 0, "T_tracker_base": np.eye(4)}
+    T0 = _initial_base(obs, nominal, rows) if estimate_base else np.eye(4)
+    out = _gauss_newton(
+        nominal,
+        T0,
+        obs.q[rows],
+        obs.targets,
+        obs.points[rows],
+        frames,
+        estimate_base,
+        length_scale=nominal.reach(),
+        max_iter=max_iter,
+        tol=tol,
+        rank_rtol=DEFAULT_RANK_RTOL,
+        damping=0.0,
+    )
+    robot = _robot(nominal, out["model"], out["T_tb"], obs, "nominal")
+    info = {
+        "estimated": (["tool"] if estimate_tool else []) + (["T_tracker_base"] if estimate_base else []),
+        "iterations": out["iterations"],
+        "converged": out["converged"],
+        "T_tracker_base": out["T_tb"],
+        "residual_rms": float(np.sqrt(np.mean(out["residual"] ** 2))),
+    }
+    return robot, info
+
+
+def fit_local_poe(
+    obs: Observations,
+    nominal: LocalPOEModel,
+    *,
+    estimate_base: bool | None = None,
+    include_val: bool = False,
+    max_iter: int = 50,
+    tol: float = 1e-12,
+    rank_rtol: float = DEFAULT_RANK_RTOL,
+    damping: float = 0.0,
+    length_scale: float | None = None,
+) -> tuple[CalibratedRobot, dict]:
+    """Identify the local-POE frame errors δζ_j, j = 1 … n+1 (eq. 11) from three-point measurements.
+
+    obs: observations of a robot with ``nominal.n`` joints (base or tracker frame). estimate_base: also estimate
+    T_tracker_base (default: when ``obs.frame == "tracker"``; δζ_1 is then folded into it, see the module
+    docstring). tol: stop when the step's norm (m, angular parts times ``length_scale``) is below it.
+    rank_rtol: relative singular-value threshold of the truncated SVD. damping: initial LM damping relative
+    to s_max² (0: pure Gauss-Newton with automatic damping on a failed step).
+
+    Returns the calibrated robot (identified frames, no network) and an info dict:
+    ``rank``, ``expected_rank``, ``n_params``, ``unidentifiable`` (count) and ``null_directions`` (text),
+    ``delta_zeta`` (n+1, 6) total identified frame errors w.r.t. the nominal frames (zero rows for frames that
+    were not estimated), ``std`` (n+1, 6) their standard deviations (from the residual variance and the truncated
+    pseudo-inverse; NaN where not estimated), ``T_tracker_base`` (+ ``T_tracker_base_std`` (6,)), ``sigma`` (m,
+    residual standard deviation per coordinate), ``iterations``, ``converged``, ``cost_history`` (sum of squared
+    residuals, m²), ``rows`` (count), ``residual_rms`` (m).
+    """
+    estimate_base = obs.frame == "tracker" if estimate_base is None else bool(estimate_base)
+    rows = fitting_rows(obs, include_val)
+    n = nominal.n
+    frames = list(range(1 if estimate_base else 0, n + 1))
+    needed = expected_rank(nominal)
+    _check(obs, nominal, rows, needed, f"local-POE identification of {nominal.name or 'the robot'}")
+    L = float(length_scale or nominal.reach())
+    if estimate_base:
+        T0 = _initial_base(obs, nominal, rows)
+    else:
+        T0 = np.eye(4)
+    out = _gauss_newton(
+        nominal,
+        T0,
+        obs.q[rows],
+        obs.targets,
+        obs.points[rows],
+        frames,
+        estimate_base,
+        length_scale=L,
+        max_iter=max_iter,
+        tol=tol,
+        rank_rtol=rank_rtol,
+        damping=damping,
+    )
+    model = out["model"]
+    labels = _param_labels(frames, estimate_base, n)
+    delta = se3.log_se3(se3.inv(nominal.frames) @ model.frames)
+    std = np.full((n + 1, 6), np.nan)
+    std[frames] = out["std"][: 6 * len(frames)].reshape(len(frames), 6)
+    null_lines = _describe_null(out["null_space"], labels)
+    n_params = len(labels)
+    info = {
+        "rank": out["rank"],
+        "expected_rank": needed,
+        "n_params": n_params,
+        "unidentifiable": n_params - out["rank"],
+        "null_directions": null_lines,
+        "rank_deficient": out["rank"] < needed,
+        "singular_values": out["singular_values"],
+        "delta_zeta": delta,
+        "std": std,
+        "T_tracker_base": out["T_tb"],
+        "T_tracker_base_std": out["std"][-6:] if estimate_base else np.zeros(6),
+        "sigma": out["sigma"],
+        "iterations": out["iterations"],
+        "converged": out["converged"],
+        "cost_history": out["cost_history"],
+        "rows": int(rows.sum()),
+        "residual_rms": float(np.sqrt(np.mean(out["residual"] ** 2))),
+        "length_scale": L,
+    }
+    if out["rank"] < needed:
+        info["warning"] = (
+            f"numerical rank {out['rank']} < {needed} identifiable parameters: the configurations do not excite "
+            "every identifiable direction; measure more, better spread configurations"
+        )
+    robot = _robot(nominal, model, out["T_tb"], obs, "local-poe")
+    return robot, info
