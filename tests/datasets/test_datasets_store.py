@@ -251,7 +251,7 @@ def test_list_and_show(tmp_path):
         j2.pause("protective stop")
     (tmp_path / "README.md").write_text("not a session")
     (tmp_path / ".tmp-session-x-1234").mkdir()
-    infos = {i.session_id: i for i in store.list()}
+    infos = {i.session_id: i for i in store.list_sessions()}
     assert set(infos) == {"s1", "s2"}
     assert infos["s1"].status == "aborted" and infos["s1"].rows == 2 and infos["s1"].measurements == 2
     assert [v.name for v in infos["s1"].versions] == ["v001"] and infos["s1"].robot["name"] == "ur10"
@@ -279,3 +279,21 @@ def test_a_failed_version_write_leaves_nothing(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk full"):
         store.seal(j.session_id)
     assert sorted(p.name for p in store.session_dir(j.session_id).iterdir()) == ["journal.jsonl"]
+
+
+def test_a_refused_session_leaves_no_folder(tmp_path):
+    store = SessionStore(tmp_path)
+    with pytest.raises(Exception, match="collinear"):
+        store.create_session(
+            robot_name="r", robot_hash=ROBOT_HASH, n_joints=6, targets=np.zeros((3, 3)), frame="base", session_id="bad"
+        )
+    assert store.session_ids() == [] and not (tmp_path / "bad").exists()
+
+
+def test_verify_catches_a_version_copied_under_another_name(sealed):
+    import shutil
+
+    store, ref, vdir = sealed
+    shutil.copytree(vdir, vdir.parent / "v002")
+    problems = store.verify(ref.split("@")[0] + "@v2").problems
+    assert any("belongs to" in p for p in problems)

@@ -76,6 +76,8 @@ class ImportSpec:
     euler_sequence: str | None = None
     split_column: str | None = "split"
     split_required: bool = False
+    #: Refuse columns q{n+1}, q{n+2} … (the plain CSV form names its joints q1..qn).
+    reject_extra_joints: bool = False
     timestamp_column: str | None = None
     extras: tuple[ExtraColumn, ...] = ()
     tracker: dict = field(default_factory=dict)
@@ -241,6 +243,16 @@ def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, offsets: np.ndarray
             f"{len(spec.joints)} joint column(s) {list(spec.joints)} but the robot has n={n_joints} joints",
             path=str(csvf.path),
         )
+    if spec.reject_extra_joints:
+        extra_q = sorted(
+            (c for c in csvf.columns if c[:1] == "q" and c[1:].isdigit() and int(c[1:]) > n_joints),
+            key=lambda c: int(c[1:]),
+        )
+        if extra_q:
+            raise ImportFormatError(
+                f"joint column(s) {extra_q} present but the robot has n={n_joints} joints (q1..q{n_joints})",
+                path=str(csvf.path),
+            )
     csvf.require(spec.joints, "joint")
     d = spec.decimal
     rows: dict[str, Any] = {"pose": np.arange(len(csvf), dtype=np.int64)}
@@ -329,20 +341,12 @@ def _run_import(
     }
     source = f"import:{file_sha}"
     if session_id is not None and (store.root / validate_id(session_id)).is_dir():
-        latest = store.load(session_id)
-        rows["pose"] += int(latest.pose.max()) + 1 if len(latest) else 0
+        if store.versions(session_id):  # continue the pose numbering of the rows already there
+            latest = store.load(session_id)
+            rows["pose"] += int(latest.pose.max()) + 1 if len(latest) else 0
         meta["session_id"] = session_id
         return store.append_rows(session_id, rows, meta, source=source, provenance=provenance)
     return store.create_imported_session(rows, meta, source=source, provenance=provenance, session_id=session_id)
-
-
-def _targets_arg(targets: Any) -> np.ndarray:
-    try:
-        return validate_targets(targets)
-    except TargetsError:
-        raise
-    except Exception as e:  # pragma: no cover - defensive
-        raise TargetsError(f"targets: {e}") from None
 
 
 def import_targets_csv(
@@ -368,18 +372,7 @@ def import_targets_csv(
     ("base" | "tracker") names the frame of the measured points. Joint columns beyond ``q{n_joints}`` are an
     error. With ``session_id`` of an existing session, the rows are appended as a new version.
     """
-    t = _targets_arg(targets)
-    probe = _Csv(Path(path), separator) if Path(path).exists() else None
-    if probe is not None:
-        extra_q = sorted(
-            (c for c in probe.columns if c[:1] == "q" and c[1:].isdigit() and int(c[1:]) > n_joints),
-            key=lambda c: int(c[1:]),
-        )
-        if extra_q:
-            raise ImportFormatError(
-                f"joint column(s) {extra_q} present but the robot has n={n_joints} joints (q1..q{n_joints})",
-                path=str(path),
-            )
+    t = validate_targets(targets)
     spec = ImportSpec(
         form="targets",
         joints=tuple(joint_columns(n_joints)),
@@ -389,6 +382,7 @@ def import_targets_csv(
         decimal=decimal,
         target_columns=tuple(tuple(TARGET_COLUMNS[3 * i : 3 * i + 3]) for i in range(3)),  # type: ignore[misc]
         length_unit=length_unit,
+        reject_extra_joints=True,
     )
     options = {
         "length_unit": length_unit,
@@ -439,7 +433,7 @@ def import_probe_csv(
     ``rotation_unit`` (default: ``angle_unit``) to rx, ry, rz. ``offsets``: (3, 3) m virtual target
     offsets in the probe frame (default :data:`DEFAULT_PROBE_OFFSETS`); they become the session's targets.
     """
-    v = _targets_arg(DEFAULT_PROBE_OFFSETS if offsets is None else offsets)
+    v = validate_targets(DEFAULT_PROBE_OFFSETS if offsets is None else offsets)
     if len(columns) != 6:
         raise DatasetError(f"columns must name x, y, z, rx, ry, rz (6 names), got {list(columns)}")
     spec = ImportSpec(
@@ -645,10 +639,10 @@ def import_mapped(
     if spec.form == "targets":
         if targets is None:
             raise TargetsError(f"mapping {mpath.name} imports measured targets: pass targets (3x3, tool frame)")
-        t = _targets_arg(targets)
+        t = validate_targets(targets)
         offsets = None
     else:
-        t = _targets_arg(
+        t = validate_targets(
             targets if targets is not None else (offsets if offsets is not None else DEFAULT_PROBE_OFFSETS)
         )
         offsets = t

@@ -37,6 +37,7 @@ import pandas as pd
 
 from ._util import (
     canonical_json,
+    fsync_dir,
     iso,
     jsonable,
     make_temp_dir,
@@ -376,23 +377,30 @@ class SessionStore:
             d.mkdir()
         except FileExistsError:
             raise DatasetError(f"session {session_id!r} already exists in {self.root}") from None
-        from ._util import fsync_dir
-
         fsync_dir(self.root)
-        return Journal.create(
-            d / JOURNAL_NAME,
-            session_id=session_id,
-            robot_name=robot_name,
-            robot_hash=robot_hash,
-            n_joints=n_joints,
-            targets=targets,
-            frame=frame,
-            tracker=tracker,
-            robot_driver=robot_driver,
-            plan=plan,
-            extra_units=extra_units,
-            metadata=metadata,
-        )
+        try:
+            return Journal.create(
+                d / JOURNAL_NAME,
+                session_id=session_id,
+                robot_name=robot_name,
+                robot_hash=robot_hash,
+                n_joints=n_joints,
+                targets=targets,
+                frame=frame,
+                tracker=tracker,
+                robot_driver=robot_driver,
+                plan=plan,
+                extra_units=extra_units,
+                metadata=metadata,
+            )
+        except BaseException:
+            # Nothing was written (or the start document failed): leave no empty session behind.
+            for p in (d / JOURNAL_NAME, d):
+                try:
+                    p.unlink() if p.is_file() else p.rmdir()
+                except OSError:
+                    pass
+            raise
 
     def open_journal(self, session_id: str) -> Journal:
         """Open a session's journal for appending (resume); repairs a torn last line."""
@@ -443,7 +451,7 @@ class SessionStore:
             robot, frame = {}, "?"
         return SessionInfo(session_id, robot, frame, status, infos, n_meas, warnings)
 
-    def list(self) -> list[SessionInfo]:
+    def list_sessions(self) -> list[SessionInfo]:
         """:meth:`show` for every session, oldest first."""
         return [self.show(s) for s in self.session_ids()]
 
@@ -470,6 +478,8 @@ class SessionStore:
             checked.append(MANIFEST)
         listed: dict[str, dict] = {}
         if manifest is not None:
+            if manifest.get("ref") != str(r):
+                problems.append(f"{MANIFEST}: belongs to {manifest.get('ref')!r}, found as {str(r)!r}")
             listed = dict(manifest.get("files") or {})
             for name, info in sorted(listed.items()):
                 p = vdir / name
@@ -731,8 +741,6 @@ class SessionStore:
         fits_dir = self.session_dir(resolved[0].session_id) / version_name(resolved[0].version) / FITS  # type: ignore[arg-type]
         if not fits_dir.exists():
             fits_dir.mkdir()
-            from ._util import fsync_dir
-
             fsync_dir(fits_dir.parent)
         if (fits_dir / fit_id).exists():
             raise DatasetError(f"fit {fit_id!r} already exists under {resolved[0]}")
@@ -780,7 +788,11 @@ class SessionStore:
         r = self.resolve(ref)
         path = self.session_dir(r.session_id) / version_name(r.version) / FITS / validate_id(fit_id, "fit id")  # type: ignore[arg-type]
         if not (path / FIT_JSON).is_file():
-            known = [f.fit_id for f in self.list_fits(r)] if (path.parent.is_dir() and path.parent != path) else []
+            known = (
+                sorted(p.name for p in path.parent.iterdir() if not p.name.startswith("."))
+                if path.parent.is_dir()
+                else []
+            )
             raise UnknownVersion(f"{r} has no fit {fit_id!r}; available: {', '.join(known) or 'none'}")
         meta, problems = _load_sealed((path / FIT_JSON).read_bytes(), "fit_sha256", f"fit {fit_id}/{FIT_JSON}")
         if meta is not None and check_files:
