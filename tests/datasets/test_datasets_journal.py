@@ -242,3 +242,12 @@ def test_journal_round_trip_property(tmp_path_factory, rows):
     assert read == written  # JSON float round trip is exact (repr), incl. -0.0 and subnormals
     for d, (q, _pts, _s, _sp, _e) in zip(read, rows, strict=True):
         assert np.array_equal(np.array(d["q_actual"]).view(np.uint64), np.array(q, dtype=np.float64).view(np.uint64))
+    # ... and so is sealing into parquet and loading again (valid rows only, in order).
+    res = store.seal(j.session_id)
+    valid = [r for r in rows if r[2] == "valid"]
+    assert res.created == bool(valid)
+    if valid:
+        ds = store.load(res.ref)
+        assert ds.q.view(np.uint64).tolist() == np.array([r[0] for r in valid]).view(np.uint64).tolist()
+        assert ds.points.view(np.uint64).tolist() == np.array([r[1] for r in valid]).view(np.uint64).tolist()
+        assert ds.split.tolist() == [r[3] or "" for r in valid]

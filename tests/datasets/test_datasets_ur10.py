@@ -94,23 +94,40 @@ def test_other_conventions_contradict_the_flange_rotations(convention):
     assert np.sqrt(np.mean(err**2)) > 1.0 and err.max() > 10.0
 
 
-def _registration_rms_mm(convention: str, x_start: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+def _registration_rms_mm(convention: str, extra_starts: int = 0, x_start=None) -> tuple[float, np.ndarray]:
     """Fit probe = B · flange · X (12 parameters) to three virtual probe points per pose; RMS residual in mm.
 
     The pairwise-angle test cannot tell XYZ from conventions that differ by a fixed conjugation (e.g. "zyx",
-    "YZX"); the virtual points, which mix rotation and position, can.
+    "YZX"); the virtual points, which mix rotation and position, can. Start: the hand-eye rotation from the
+    relative rotation axes (axis(R_p0^T R_pi) = R_X^T axis(R_f0^T R_fi)), translations by linear least squares.
     """
     r_flange, t_flange, angles, t_probe = _handeye()
+    r_probe = _probe_rotations(convention, angles)
     v = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]])
-    pts = np.stack([_probe_rotations(convention, angles).apply(vi) + t_probe for vi in v], axis=1)
+    pts = np.stack([r_probe.apply(vi) + t_probe for vi in v], axis=1)
 
     def residual(x):
         rb, rx = Rotation.from_rotvec(x[:3]), Rotation.from_rotvec(x[6:9])
         model = np.stack([rb.apply(r_flange.apply(rx.apply(vi) + x[9:12]) + t_flange) + x[3:6] for vi in v], 1)
         return (model - pts).ravel()
 
+    axes_p = (r_probe[0].inv() * r_probe[1:]).as_rotvec()
+    axes_f = (r_flange[0].inv() * r_flange[1:]).as_rotvec()
+    rx_t, _ = Rotation.align_vectors(axes_p, axes_f)
+    rx = rx_t.inv()
+    rb = r_probe[0] * rx.inv() * r_flange[0].inv()
+    # t_probe_i = R_B (R_f_i x_X + t_f_i) + t_B: linear in (x_X, t_B)
+    a = np.concatenate(
+        [
+            np.einsum("ab,kbc->kac", rb.as_matrix(), r_flange.as_matrix()),
+            np.broadcast_to(np.eye(3), (len(t_probe), 3, 3)),
+        ],
+        axis=2,
+    ).reshape(-1, 6)
+    sol = np.linalg.lstsq(a, (t_probe - rb.apply(t_flange)).ravel(), rcond=None)[0]
+    starts = [np.concatenate([rb.as_rotvec(), sol[3:], rx.as_rotvec(), sol[:3]])]
     rng = np.random.default_rng(0)
-    starts = [
+    starts += [
         np.concatenate(
             [
                 Rotation.random(random_state=rng).as_rotvec(),
@@ -119,7 +136,7 @@ def _registration_rms_mm(convention: str, x_start: np.ndarray | None = None) -> 
                 np.zeros(3),
             ]
         )
-        for _ in range(6)
+        for _ in range(extra_starts)
     ]
     if x_start is not None:
         starts.append(x_start)
@@ -132,4 +149,5 @@ def test_only_intrinsic_xyz_registers_the_probe_to_the_flange():
     rms, x = _registration_rms_mm(spec.euler_sequence)
     assert rms < 1.0  # the robot's own absolute error is about 1 mm
     for other in ("zyx", "YZX", "ZXY", "xyz"):
-        assert _registration_rms_mm(other, x_start=x)[0] > 5.0, other
+        # several starts, including the XYZ optimum, so a pass is not an optimiser failure
+        assert _registration_rms_mm(other, extra_starts=2, x_start=x)[0] > 5.0, other

@@ -42,6 +42,7 @@ Reading, verifying, fitting::
     ds = load_version(store, "20261122-031500-ur10-3f9a@v1")   # verified; DatasetCorrupted if not intact
     ds.q, ds.points, ds.targets, ds.frame, ds.split          # (k, n), (k, 3, 3), (3, 3), str, (k,)
     store.verify("20261122-031500-ur10-3f9a").ok            # latest version
+    store.list_sessions(); store.show(session_id)           # id, robot, status, versions with row counts
     fit = store.save_fit([ds.ref], {"model.npz": blob}, {"method": "local-poe", "seed": 0, "metrics": {...}})
     store.list_fits(ds.ref); store.load_fit(ds.ref, fit.fit_id).read("model.npz")
 
