@@ -1,0 +1,303 @@
+"""The simulated rig: a fake robot and a fake tracker sharing one simulated actual robot.
+
+The robot reports the commanded joint values (its encoders are perfect; the errors are in the kinematics). The
+tracker reports the *true* target positions of the actual robot at the current commanded configuration, in the
+tracker frame of the actual robot, plus Gaussian noise (``ActualRobot.errors.tracker_noise``), averaged over the
+requested samples with :func:`labcal.drivers.base.average_frames`. Repeatability noise, if the error model has
+any, is drawn once per motion (the robot lands slightly differently each time it moves, not each time it is
+looked at), so the true points are computed once per move and only the tracker noise is drawn per frame.
+
+Seeded: the same actual robot, targets, seed, faults and sequence of calls give the same measurements. Faults
+draw from their own random stream, so switching a fault on does not change the noise of the other frames.
+
+Example::
+
+    >>> from labcal.robots import load
+    >>> from labcal.simulation import ErrorSpec, simulate
+    >>> rig = SimRig(simulate(load("ur10"), ErrorSpec.none()), np.eye(3) * 0.1, seed=0)
+    >>> with rig.robot() as robot, rig.tracker() as tracker:
+    ...     robot.move_joints(np.full(6, 0.3), speed=0.5, acceleration=1.0)
+    ...     m = tracker.measure(samples=3)
+    >>> m.points.shape, m.samples
+    ((3, 3), 3)
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from labcal.drivers.base import (
+    DriverError,
+    DriverTimeout,
+    Measurement,
+    MeasurementRejected,
+    ProtectiveStop,
+    ProtocolError,
+    RobotState,
+    SafetyLimits,
+    average_frames,
+)
+from labcal.simulation import ActualRobot
+
+DROPOUT_MODES = ("nan", "reject")
+
+
+def _numbers(value: Iterable[int] | None, name: str) -> frozenset[int]:
+    items = frozenset(int(v) for v in (value or ()))
+    if any(v < 1 for v in items):
+        raise ValueError(f"SimFaults.{name} counts calls from 1, got {sorted(items)}")
+    return items
+
+
+def _probability(value: float, name: str) -> float:
+    if not 0.0 <= float(value) <= 1.0:
+        raise ValueError(f"SimFaults.{name} must be a probability in [0, 1], got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class SimFaults:
+    """Faults to inject. ``*_at`` are 1-based call numbers (of ``tracker.measure`` or ``robot.move_joints``);
+    ``*_probability`` apply to every call independently (seeded).
+
+    dropout: one target is lost — with ``dropout_mode="nan"`` the measurement comes back with that target's
+    coordinates NaN and a ``missing:tK`` quality flag, with ``"reject"`` the tracker raises MeasurementRejected.
+    ``dropout_target``: which target (0, 1, 2) is lost; None picks one at random.
+    timeout: ``measure`` raises DriverTimeout. garbled: ``measure`` raises ProtocolError.
+    protective_stop_at: the k-th accepted move stops halfway with ProtectiveStop and the robot stays in a
+    protective stop until :meth:`SimRobot.clear_protective_stop`.
+    """
+
+    dropout_at: frozenset[int] = frozenset()
+    dropout_probability: float = 0.0
+    dropout_mode: str = "nan"
+    dropout_target: int | None = None
+    timeout_at: frozenset[int] = frozenset()
+    timeout_probability: float = 0.0
+    garbled_at: frozenset[int] = frozenset()
+    garbled_probability: float = 0.0
+    protective_stop_at: frozenset[int] = frozenset()
+
+    def __post_init__(self) -> None:
+        for name in ("dropout_at", "timeout_at", "garbled_at", "protective_stop_at"):
+            object.__setattr__(self, name, _numbers(getattr(self, name), name))
+        for name in ("dropout_probability", "timeout_probability", "garbled_probability"):
+            object.__setattr__(self, name, _probability(getattr(self, name), name))
+        if self.dropout_mode not in DROPOUT_MODES:
+            raise ValueError(f"SimFaults.dropout_mode must be one of {DROPOUT_MODES}, got {self.dropout_mode!r}")
+        if self.dropout_target is not None and self.dropout_target not in (0, 1, 2):
+            raise ValueError(f"SimFaults.dropout_target must be 0, 1, 2 or None, got {self.dropout_target!r}")
+
+
+class SimRig:
+    """One simulated actual robot shared by a :class:`SimRobot` and a :class:`SimTracker`.
+
+    actual: the true robot; targets: (3, 3) m, target points in the tool frame (rows t1, t2, t3); seed: seeds
+    the tracker noise, repeatability and random faults; motion_time: seconds per move (float), or
+    ``"realistic"`` for a trapezoidal-profile time of the slowest joint from its distance, the move's speed and
+    acceleration; q0: (n,) initial joint values (default: zeros clipped into the limits); max_speed (rad/s) and
+    max_acceleration (rad/s²): the robot's motion caps.
+    """
+
+    def __init__(
+        self,
+        actual: ActualRobot,
+        targets,
+        *,
+        seed: int,
+        motion_time: float | str = 0.0,
+        faults: SimFaults | None = None,
+        q0=None,
+        max_speed: float = 1.0,
+        max_acceleration: float = 1.4,
+    ) -> None:
+        targets = np.asarray(targets, dtype=float)
+        if targets.shape != (3, 3) or not np.all(np.isfinite(targets)):
+            raise ValueError(f"targets must be a finite (3, 3) array (m, tool frame), got shape {targets.shape}")
+        if not (motion_time == "realistic" or (isinstance(motion_time, int | float) and motion_time >= 0)):
+            raise ValueError(f"motion_time must be seconds >= 0 or 'realistic', got {motion_time!r}")
+        self.actual = actual
+        self.targets = targets
+        self.seed = int(seed)
+        self.motion_time = motion_time
+        self.faults = faults or SimFaults()
+        model = actual.nominal
+        self.safety = SafetyLimits(np.array(model.limits), max_speed=max_speed, max_acceleration=max_acceleration)
+        q = np.zeros(model.n) if q0 is None else np.asarray(q0, dtype=float)
+        if q.shape != (model.n,):
+            raise ValueError(f"q0 must have shape ({model.n},), got {q.shape}")
+        self._q = np.clip(q, model.limits[:, 0], model.limits[:, 1])
+        self._noise_rng = np.random.default_rng([self.seed, 0])
+        self._fault_rng = np.random.default_rng([self.seed, 1])
+        self._motion_rng = np.random.default_rng([self.seed, 2])
+        self._lock = threading.RLock()
+        self._true_points = self._draw_true_points()
+        self.protective_stop = False
+        self.moves = 0  # accepted move_joints calls
+        self.measurements = 0  # measure calls
+        self.stop_calls = 0
+        self._t0 = time.monotonic()
+
+    def robot(self) -> SimRobot:
+        return SimRobot(self)
+
+    def tracker(self) -> SimTracker:
+        return SimTracker(self)
+
+    @property
+    def q(self) -> np.ndarray:
+        """(n,) current joint values."""
+        with self._lock:
+            return self._q.copy()
+
+    def true_points(self) -> np.ndarray:
+        """(3, 3) m: the targets' true positions in the base frame at the current pose."""
+        with self._lock:
+            return self._true_points.copy()
+
+    def _draw_true_points(self) -> np.ndarray:
+        return self.actual.true_points(self._q, self.targets, self._motion_rng)[0]
+
+    def _clock(self) -> float:
+        return time.monotonic() - self._t0
+
+    def _move_duration(self, q: np.ndarray, speed: float, acceleration: float) -> float:
+        if self.motion_time != "realistic":
+            return float(self.motion_time)
+        d = float(np.max(np.abs(q - self._q))) if q.size else 0.0
+        # Trapezoidal profile; a short move never reaches full speed (triangular profile).
+        if d > speed**2 / acceleration:
+            return d / speed + speed / acceleration
+        return 2.0 * np.sqrt(d / acceleration)
+
+
+class SimRobot:
+    """The Robot port on a :class:`SimRig`. Context manager; ``close`` and ``stop`` are idempotent."""
+
+    def __init__(self, rig: SimRig) -> None:
+        self.rig = rig
+        self.n_joints = rig.actual.n
+        self.limits = rig.safety
+        self._closed = False
+
+    def identity(self) -> dict:
+        """Who this robot is, for a session's start document."""
+        return {"driver": "sim", "model": self.rig.actual.nominal.name, "seed": self.rig.seed}
+
+    def move_joints(self, q, speed: float, acceleration: float) -> None:
+        """Move to q (n,) rad. Raises MotionRejected (limits/caps), ProtectiveStop, DriverError (closed)."""
+        if self._closed:
+            raise DriverError("the simulated robot is closed")
+        q = self.limits.check_motion(q, speed, acceleration)
+        rig = self.rig
+        with rig._lock:
+            if rig.protective_stop:
+                raise ProtectiveStop("the robot is in a protective stop; clear it before moving")
+            rig.moves += 1
+            k = rig.moves
+            duration = rig._move_duration(q, speed, acceleration)
+        if duration > 0:
+            time.sleep(duration)
+        with rig._lock:
+            if k in rig.faults.protective_stop_at:
+                # Stopped halfway: the robot is somewhere between start and goal.
+                rig._q = 0.5 * (rig._q + q)
+                rig._true_points = rig._draw_true_points()
+                rig.protective_stop = True
+                raise ProtectiveStop(f"protective stop during move {k} (simulated)")
+            rig._q = q.copy()
+            rig._true_points = rig._draw_true_points()
+
+    def joint_positions(self) -> np.ndarray:
+        if self._closed:
+            raise DriverError("the simulated robot is closed")
+        return self.rig.q
+
+    def state(self) -> RobotState:
+        if self._closed:
+            raise DriverError("the simulated robot is closed")
+        return RobotState(q=self.rig.q, timestamp=self.rig._clock(), protective_stop=self.rig.protective_stop)
+
+    def clear_protective_stop(self) -> None:
+        """What the operator does on the teach pendant after checking the cell."""
+        with self.rig._lock:
+            self.rig.protective_stop = False
+
+    def stop(self) -> None:
+        self.rig.stop_calls += 1
+
+    def close(self) -> None:
+        self._closed = True
+
+    def __enter__(self) -> SimRobot:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SimTracker:
+    """The Tracker port on a :class:`SimRig`: true target points in the tracker frame plus noise."""
+
+    def __init__(self, rig: SimRig) -> None:
+        self.rig = rig
+        self._closed = False
+
+    def identity(self) -> dict:
+        return {"driver": "sim", "noise_m": self.rig.actual.errors.tracker_noise, "seed": self.rig.seed}
+
+    def measure(self, samples: int = 1) -> Measurement:
+        """Average ``samples`` frames: points (3, 3) m in the tracker frame, per-target spread (3,) m.
+
+        Raises MeasurementRejected, DriverTimeout or ProtocolError when a fault is injected.
+        """
+        if self._closed:
+            raise DriverError("the simulated tracker is closed")
+        if isinstance(samples, bool) or not isinstance(samples, int | np.integer) or samples < 1:
+            raise ValueError(f"samples must be an integer >= 1, got {samples!r}")
+        rig = self.rig
+        faults = rig.faults
+        with rig._lock:
+            rig.measurements += 1
+            k = rig.measurements
+            # Always draw, so the fault stream does not depend on which faults fired before.
+            u_timeout, u_garbled, u_dropout = rig._fault_rng.random(3)
+            lost = int(rig._fault_rng.integers(3)) if faults.dropout_target is None else faults.dropout_target
+            if k in faults.timeout_at or u_timeout < faults.timeout_probability:
+                raise DriverTimeout(f"simulated tracker did not answer measurement {k} in time")
+            if k in faults.garbled_at or u_garbled < faults.garbled_probability:
+                raise ProtocolError(f"simulated tracker sent a garbled reply to measurement {k}")
+            T = rig.actual.T_tracker_base
+            true = rig._true_points @ T[:3, :3].T + T[:3, 3]
+            noise = rig.actual.errors.tracker_noise
+            frames = [
+                true + (rig._noise_rng.normal(0.0, noise, size=(3, 3)) if noise > 0 else 0.0) for _ in range(samples)
+            ]
+            now = rig._clock()
+        if k in faults.dropout_at or u_dropout < faults.dropout_probability:
+            if faults.dropout_mode == "reject":
+                raise MeasurementRejected(f"target t{lost + 1} not visible in measurement {k} (simulated dropout)")
+            m = average_frames(frames, now)
+            points = m.points.copy()
+            points[lost] = np.nan
+            spread = m.spread.copy()
+            spread[lost] = np.nan
+            return Measurement(points, now, spread, samples=m.samples, quality=(f"missing:t{lost + 1}",))
+        return average_frames(frames, now)
+
+    def close(self) -> None:
+        self._closed = True
+
+    def __enter__(self) -> SimTracker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+__all__ = ["DROPOUT_MODES", "SimFaults", "SimRig", "SimRobot", "SimTracker"]

@@ -1,0 +1,430 @@
+"""Configuration planning: which joint configurations to measure. Pure numpy, no driver calls.
+
+Two planners:
+
+- :func:`random_configurations` draws joint configurations uniformly within the joint limits (optionally a
+  fraction of each range about its middle) and keeps those that pass every requested check:
+
+  * **conditioning** — the equivalent-robot Jacobian J_ρ(q) (``model.equivalent_jacobian``, paper eq. 12-15)
+    must be well conditioned, because the learned methods invert it per configuration (eq. 21) and a
+    near-singular J_ρ turns millimetres of pose error into radians of "joint error". The metric is the 2-norm
+    condition number σ_max/σ_min of ``D · J_ρ`` with ``D = diag(1/L, 1/L, 1/L, 1, 1, 1)``: the linear rows (m)
+    are divided by the robot's reach L (``model.reach()``, m) so that both halves of the twist are
+    dimensionless. Default threshold :data:`DEFAULT_MAX_CONDITION` = 100: with it about a quarter of uniformly
+    drawn 6R configurations (e.g. wrist near q5 = 0) are rejected, and the median configuration (≈ 30) passes;
+  * **task-space region** — the tool origin (base frame, m) inside an axis-aligned box;
+  * **tracker line of sight** — every target inside the tracker's viewing cone (:class:`LineOfSight`), and,
+    optionally, no target closer than ``min_target_distance`` (m) to another target's line of sight (the ray
+    from the tracker through it), so the tracker sees three separate markers.
+
+- :func:`optimal_configurations` picks, from a large pool of such candidates, the subset that maximises the
+  observability of the frame errors δζ (paper eq. 8-11) from three-target measurements: greedy D-optimality
+  (maximise log det of the information matrix on the identifiable subspace) with rank-9 Woodbury updates,
+  followed by exchange passes. For a fixed number of configurations this also maximises the O1 index
+  (Borm & Menq): ``O1 = (σ_1 ⋯ σ_L)^(1/L) / √m``.
+
+The identification Jacobian of one configuration is the 9 × 6(n+1) matrix ``G = P · frame_jacobian(q)`` with
+``P`` stacking ``[I, −skew(p_i)]`` for the three targets p_i (base frame): δp_i = δv + δω × p_i. Its angular
+parameter columns are divided by L, so every parameter is a length (m) and the indices do not depend on
+whether lengths are in metres or millimetres. Only about 4n + 6 of the 6(n+1) parameters are identifiable
+(4 per revolute, 2 per prismatic joint, plus 6); the indices are computed on that subspace
+(:func:`identifiable_basis`).
+
+Example::
+
+    >>> from labcal.robots import load
+    >>> model = load("ur10").model
+    >>> q = random_configurations(model, 5, seed=1)
+    >>> q.shape, bool(model.within_limits(q).all())
+    ((5, 6), True)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from labcal.kinematics.poe import LocalPOEModel
+from labcal.kinematics.se3 import skew
+
+#: Default bound on the length-scaled condition number of J_ρ (see the module docstring).
+DEFAULT_MAX_CONDITION = 100.0
+
+
+class PlanningError(ValueError):
+    """The planner cannot satisfy the request (too few configurations pass the checks, bad argument)."""
+
+
+@dataclass(frozen=True)
+class LineOfSight:
+    """A tracker's viewing cone in the robot base frame.
+
+    position: (3,) tracker origin, m; axis: (3,) viewing direction (normalised here); half_angle: rad, in
+    (0, π/2]; max_range: optional largest tracker-to-target distance, m.
+    """
+
+    position: tuple[float, float, float]
+    axis: tuple[float, float, float]
+    half_angle: float
+    max_range: float | None = None
+
+    def __post_init__(self) -> None:
+        pos = np.asarray(self.position, dtype=float)
+        axis = np.asarray(self.axis, dtype=float)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+            raise PlanningError(f"LineOfSight.position must be 3 finite numbers (m), got {self.position!r}")
+        if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) < 1e-12:
+            raise PlanningError(f"LineOfSight.axis must be a non-zero 3-vector, got {self.axis!r}")
+        if not (0 < self.half_angle <= np.pi / 2):
+            raise PlanningError(f"LineOfSight.half_angle must be in (0, π/2] rad, got {self.half_angle!r}")
+        if self.max_range is not None and not self.max_range > 0:
+            raise PlanningError(f"LineOfSight.max_range must be > 0 m, got {self.max_range!r}")
+        object.__setattr__(self, "position", tuple(float(x) for x in pos))
+        object.__setattr__(self, "axis", tuple(float(x) for x in axis / np.linalg.norm(axis)))
+
+    def visible(self, points: np.ndarray) -> np.ndarray:
+        """points (..., 3) m in the base frame → (...) bool: inside the cone (and the range)."""
+        d = np.asarray(points, dtype=float) - np.asarray(self.position)
+        dist = np.linalg.norm(d, axis=-1)
+        cos = (d @ np.asarray(self.axis)) / np.maximum(dist, 1e-15)
+        ok = cos >= np.cos(self.half_angle)
+        if self.max_range is not None:
+            ok &= dist <= self.max_range
+        return ok
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Sampling
+
+
+def joint_ranges(model: LocalPOEModel, limits=None, range_fraction: float = 1.0) -> np.ndarray:
+    """(n, 2) sampling ranges: ``limits`` (default model.limits) shrunk to ``range_fraction`` about their middle."""
+    lim = model.limits if limits is None else np.asarray(limits, dtype=float)
+    if lim.shape != (model.n, 2) or not np.all(np.isfinite(lim)):
+        raise PlanningError(f"limits must be a finite ({model.n}, 2) array [lo, hi] per joint, got shape {lim.shape}")
+    for j, (lo, hi) in enumerate(lim):
+        if lo > hi:
+            raise PlanningError(f"limits row {j} (joint {j + 1}): lo {lo} > hi {hi}")
+        mlo, mhi = model.limits[j]
+        if lo < mlo - 1e-12 or hi > mhi + 1e-12:
+            raise PlanningError(
+                f"limits row {j} (joint {j + 1}): [{lo}, {hi}] leaves the model's joint limits [{mlo}, {mhi}]"
+            )
+    if not (0 < range_fraction <= 1):
+        raise PlanningError(f"range_fraction must be in (0, 1], got {range_fraction!r}")
+    mid, half = lim.mean(axis=1), 0.5 * (lim[:, 1] - lim[:, 0]) * range_fraction
+    return np.stack([mid - half, mid + half], axis=1)
+
+
+def length_scaled_condition(model: LocalPOEModel, q, length_scale: float | None = None) -> np.ndarray:
+    """(k,) condition numbers of ``diag(1/L,1/L,1/L,1,1,1) · J_ρ(q)`` (L = ``length_scale``, default reach).
+
+    Infinite for a singular J_ρ.
+    """
+    L = model.reach() if length_scale is None else float(length_scale)
+    J = model.equivalent_jacobian(q, length_scale=L)
+    D = np.array([1.0 / L] * 3 + [1.0] * 3)
+    s = np.linalg.svd(D[None, :, None] * J, compute_uv=False)
+    with np.errstate(divide="ignore"):
+        return np.where(s[:, -1] > 0, s[:, 0] / np.where(s[:, -1] > 0, s[:, -1], 1.0), np.inf)
+
+
+def _check_region(region) -> np.ndarray | None:
+    if region is None:
+        return None
+    box = np.asarray(region, dtype=float)
+    if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] > box[1]):
+        raise PlanningError(
+            f"region must be [[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] in m with lo <= hi, got {region!r}"
+        )
+    return box
+
+
+def _line_of_sight_clearance(points: np.ndarray, tracker: LineOfSight) -> np.ndarray:
+    """(k, m, 3) points → (k,) smallest distance of any point from another point's tracker ray, m."""
+    d = points - np.asarray(tracker.position)
+    u = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-15)
+    m = points.shape[1]
+    best = np.full(points.shape[0], np.inf)
+    for i in range(m):
+        for j in range(m):
+            if i == j:
+                continue
+            along = np.einsum("ka,ka->k", d[:, j], u[:, i])
+            perp = d[:, j] - along[:, None] * u[:, i]
+            best = np.minimum(best, np.linalg.norm(perp, axis=-1))
+    return best
+
+
+def random_configurations(
+    model: LocalPOEModel,
+    count: int,
+    *,
+    seed: int,
+    limits=None,
+    range_fraction: float = 1.0,
+    region=None,
+    max_condition: float | None = DEFAULT_MAX_CONDITION,
+    targets=None,
+    min_target_distance: float | None = None,
+    tracker: LineOfSight | None = None,
+    max_tries: int | None = None,
+) -> np.ndarray:
+    """Draw ``count`` configurations (count, n) uniformly within the joint ranges that pass every check.
+
+    limits: (n, 2) rad (m) sampling limits inside the model's, default ``model.limits``; range_fraction: keep
+    this fraction of each range about its middle. region: ``[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]]`` m, box
+    for the tool origin in the base frame. max_condition: bound on :func:`length_scaled_condition` (None: no
+    check). targets: (m, 3) m in the tool frame, used by the tracker checks (default: the tool origin).
+    tracker: the viewing cone every target must be in. min_target_distance: m, smallest allowed distance of a
+    target from another target's line of sight (needs ``tracker``). max_tries: most configurations drawn
+    (default max(10 000, 200·count)); :class:`PlanningError`, with the rejection counts, if too few pass.
+    Same arguments and seed ⇒ the same configurations.
+    """
+    if isinstance(count, bool) or not isinstance(count, int | np.integer) or count < 1:
+        raise PlanningError(f"count must be a positive integer, got {count!r}")
+    ranges = joint_ranges(model, limits, range_fraction)
+    box = _check_region(region)
+    if max_condition is not None and not max_condition >= 1:
+        raise PlanningError(f"max_condition must be >= 1 (or None), got {max_condition!r}")
+    if min_target_distance is not None:
+        if tracker is None:
+            raise PlanningError("min_target_distance needs a tracker (LineOfSight): it is measured across its rays")
+        if not min_target_distance >= 0:
+            raise PlanningError(f"min_target_distance must be >= 0 m, got {min_target_distance!r}")
+    pts = np.zeros((1, 3)) if targets is None else np.asarray(targets, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+        raise PlanningError(f"targets must be a finite (m, 3) array in m (tool frame), got shape {pts.shape}")
+    max_tries = max(10_000, 200 * int(count)) if max_tries is None else int(max_tries)
+    if max_tries < count:
+        raise PlanningError(f"max_tries ({max_tries}) is smaller than count ({count})")
+
+    rng = np.random.default_rng(seed)
+    chosen: list[np.ndarray] = []
+    have, drawn = 0, 0
+    rejected = {"condition": 0, "region": 0, "line of sight": 0, "target separation": 0}
+    batch = max(256, 4 * int(count))
+    while have < count and drawn < max_tries:
+        size = min(batch, max_tries - drawn)
+        q = rng.uniform(ranges[:, 0], ranges[:, 1], size=(size, model.n))
+        drawn += size
+        ok = np.ones(size, dtype=bool)
+        if box is not None:
+            p = model.fk(q)[:, :3, 3]
+            inside = np.all((p >= box[0]) & (p <= box[1]), axis=1)
+            rejected["region"] += int(np.sum(ok & ~inside))
+            ok &= inside
+        if tracker is not None and ok.any():
+            idx = np.flatnonzero(ok)
+            points = model.target_points(q[idx], pts)
+            seen = tracker.visible(points).all(axis=1)
+            rejected["line of sight"] += int(np.sum(~seen))
+            ok[idx[~seen]] = False
+            if min_target_distance is not None and pts.shape[0] > 1:
+                clear = _line_of_sight_clearance(points, tracker) >= min_target_distance
+                bad = seen & ~clear
+                rejected["target separation"] += int(np.sum(bad))
+                ok[idx[bad]] = False
+        if max_condition is not None and ok.any():
+            idx = np.flatnonzero(ok)
+            good = length_scaled_condition(model, q[idx]) <= max_condition
+            rejected["condition"] += int(np.sum(~good))
+            ok[idx[~good]] = False
+        chosen.append(q[ok])
+        have += int(ok.sum())
+    if have < count:
+        why = ", ".join(f"{k}: {v}" for k, v in rejected.items() if v) or "none"
+        raise PlanningError(
+            f"only {have} of {count} configurations passed after {drawn} draws (max_tries); rejected by {why}. "
+            "Loosen max_condition, the region or the tracker cone, or raise max_tries."
+        )
+    return np.concatenate(chosen)[:count]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Observability
+
+
+def identification_jacobian(model: LocalPOEModel, q, targets, length_scale: float | None = None) -> np.ndarray:
+    """(k, 3m, 6(n+1)) d(target positions)/d(δζ) for targets (m, 3) m in the tool frame.
+
+    Rows: t1 x,y,z, t2 x,y,z … (m). Columns: δζ_1 … δζ_{n+1} as (v, ω); the ω columns are divided by L
+    (``length_scale``, default reach) so all parameters are lengths.
+    """
+    q2 = np.atleast_2d(np.asarray(q, dtype=float))
+    t = np.asarray(targets, dtype=float)
+    if t.ndim != 2 or t.shape[1] != 3:
+        raise PlanningError(f"targets must be (m, 3) m in the tool frame, got shape {t.shape}")
+    L = model.reach() if length_scale is None else float(length_scale)
+    p = model.target_points(q2, t)  # (k, m, 3)
+    k, m = p.shape[:2]
+    P = np.zeros((k, m, 3, 6))
+    P[..., :3] = np.eye(3)
+    P[..., 3:] = -skew(p.reshape(-1, 3)).reshape(k, m, 3, 3)
+    A = model.frame_jacobian(q2)  # (k, 6, 6(n+1))
+    G = np.einsum("kmab,kbc->kmac", P, A).reshape(k, 3 * m, -1)
+    scale = np.tile([1.0, 1.0, 1.0, 1.0 / L, 1.0 / L, 1.0 / L], model.n + 1)
+    return G * scale
+
+
+def identifiable_basis(
+    model: LocalPOEModel, targets, *, seed: int = 0, count: int = 200, rtol: float = 1e-9
+) -> np.ndarray:
+    """(6(n+1), r) orthonormal basis of the δζ directions that three-target measurements can identify.
+
+    The unidentifiable directions are structural (the same for almost every set of configurations), so they are
+    found once from ``count`` uniform random configurations: right singular vectors with σ > rtol·σ_max.
+    """
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(model.limits[:, 0], model.limits[:, 1], size=(count, model.n))
+    G = identification_jacobian(model, q, targets).reshape(-1, 6 * (model.n + 1))
+    _, s, Vt = np.linalg.svd(G, full_matrices=False)
+    return Vt[s > rtol * s[0]].T
+
+
+@dataclass(frozen=True)
+class Observability:
+    """Observability of the identifiable frame errors from a set of configurations.
+
+    o1: (σ_1⋯σ_r)^(1/r)/√rows, m (Borm & Menq O1; 0 if rank-deficient); log_det: log det(GᵀG) on the
+    identifiable subspace (−inf if singular); min_singular: σ_r, m; rank: numerical rank of the reduced G;
+    parameters: r; rows: 3·targets·configurations.
+    """
+
+    o1: float
+    log_det: float
+    min_singular: float
+    rank: int
+    parameters: int
+    rows: int
+
+
+def observability(model: LocalPOEModel, q, targets, *, basis: np.ndarray | None = None) -> Observability:
+    """O1 and log-det indices of the configurations q (k, n) for targets (m, 3), on ``basis`` (default
+    :func:`identifiable_basis` with its default seed, so indices of different sets are comparable)."""
+    basis = identifiable_basis(model, targets) if basis is None else np.asarray(basis, dtype=float)
+    G = identification_jacobian(model, q, targets)
+    R = (G @ basis).reshape(-1, basis.shape[1])
+    s = np.linalg.svd(R, compute_uv=False)
+    r = basis.shape[1]
+    if s.size < r:
+        s = np.concatenate([s, np.zeros(r - s.size)])
+    rank = int(np.sum(s > 1e-12 * max(s[0], 1e-300)))
+    with np.errstate(divide="ignore"):
+        logs = np.log(s)
+    full = rank == r
+    return Observability(
+        o1=float(np.exp(logs.mean()) / np.sqrt(R.shape[0])) if full else 0.0,
+        log_det=float(2 * logs.sum()) if full else float("-inf"),
+        min_singular=float(s[-1]),
+        rank=rank,
+        parameters=r,
+        rows=int(R.shape[0]),
+    )
+
+
+def greedy_d_optimal(jacobians: np.ndarray, count: int, *, exchange_passes: int = 2) -> np.ndarray:
+    """Indices (count,) of the rows-blocks of ``jacobians`` (k, m, r) whose stacked information ΣGᵀG has the
+    largest log det: greedy additions with Woodbury updates, then exchange passes (swap a chosen block for the
+    best unchosen one while that increases log det). Deterministic; ties go to the lower index.
+    """
+    G = np.asarray(jacobians, dtype=float)
+    k, m, r = G.shape
+    if not 1 <= count <= k:
+        raise PlanningError(f"cannot choose {count} of {k} candidates")
+    # A tiny ridge makes the first, still rank-deficient, steps well defined; it is far below any real info.
+    ridge = 1e-9 * float(np.einsum("kmr,kmr->", G, G)) / (k * r)
+    Finv = np.eye(r) / ridge
+    chosen: list[int] = []
+    free = np.ones(k, dtype=bool)
+    eye = np.eye(m)
+    for _ in range(count):
+        gain = _logdet_gains(G, Finv, eye)
+        gain[~free] = -np.inf
+        best = int(np.argmax(gain))
+        Finv = _woodbury(Finv, G[best], +1.0)
+        chosen.append(best)
+        free[best] = False
+    for _ in range(exchange_passes):
+        improved = False
+        for pos in range(count):
+            out = chosen[pos]
+            Fminus = _woodbury(Finv, G[out], -1.0)
+            gain = _logdet_gains(G, Fminus, eye)
+            gain[~free] = -np.inf
+            stay = _logdet_gains(G[out : out + 1], Fminus, eye)[0]
+            best = int(np.argmax(gain))
+            if gain[best] > stay + 1e-9:
+                chosen[pos] = best
+                free[out], free[best] = True, False
+                Finv = _woodbury(Fminus, G[best], +1.0)
+                improved = True
+        if not improved:
+            break
+    return np.array(chosen)
+
+
+def _logdet_gains(G: np.ndarray, Finv: np.ndarray, eye: np.ndarray) -> np.ndarray:
+    """log det(F + GᵢᵀGᵢ) − log det F = log det(I + Gᵢ F⁻¹ Gᵢᵀ) for every block i."""
+    S = eye + (G @ Finv) @ G.transpose(0, 2, 1)
+    sign, logdet = np.linalg.slogdet(S)
+    return np.where(sign > 0, logdet, -np.inf)
+
+
+def _woodbury(Finv: np.ndarray, g: np.ndarray, sign: float) -> np.ndarray:
+    """(F ± gᵀg)⁻¹ from F⁻¹ (r, r) and a block g (m, r)."""
+    FG = Finv @ g.T
+    S = np.eye(g.shape[0]) * sign + g @ FG
+    out = Finv - FG @ np.linalg.solve(S, FG.T)
+    return 0.5 * (out + out.T)
+
+
+def optimal_configurations(
+    model: LocalPOEModel,
+    count: int,
+    *,
+    seed: int,
+    targets,
+    candidates: int = 2000,
+    pool: np.ndarray | None = None,
+    exchange_passes: int = 2,
+    **sampling,
+) -> np.ndarray:
+    """(count, n) configurations chosen from a candidate pool to maximise observability (D-optimal / O1).
+
+    The pool is ``pool`` (k, n) if given, else ``candidates`` configurations from :func:`random_configurations`
+    (``seed`` and the ``sampling`` keyword arguments: limits, range_fraction, region, max_condition, tracker,
+    min_target_distance, max_tries — so every chosen configuration passed the same checks). targets: (m, 3) m
+    in the tool frame. Returned in the order chosen.
+    """
+    t = np.asarray(targets, dtype=float)
+    if pool is None:
+        pool = random_configurations(model, candidates, seed=seed, targets=t, **sampling)
+    elif sampling:
+        raise PlanningError(f"sampling options {sorted(sampling)} have no effect with an explicit pool")
+    pool = np.asarray(pool, dtype=float)
+    if pool.ndim != 2 or pool.shape[1] != model.n:
+        raise PlanningError(f"pool must be (k, {model.n}) joint configurations, got shape {pool.shape}")
+    if count > len(pool):
+        raise PlanningError(f"cannot choose {count} configurations from a pool of {len(pool)}")
+    basis = identifiable_basis(model, t, seed=seed)
+    G = identification_jacobian(model, pool, t) @ basis
+    idx = greedy_d_optimal(G, count, exchange_passes=exchange_passes)
+    return pool[idx]
+
+
+__all__ = [
+    "DEFAULT_MAX_CONDITION",
+    "LineOfSight",
+    "Observability",
+    "PlanningError",
+    "greedy_d_optimal",
+    "identifiable_basis",
+    "identification_jacobian",
+    "joint_ranges",
+    "length_scaled_condition",
+    "observability",
+    "optimal_configurations",
+    "random_configurations",
+]

@@ -1,0 +1,470 @@
+"""The session runner: execute a :class:`~labcal.sessions.plans.Plan` on a Robot and a Tracker, journaling
+every measurement durably before the robot moves again.
+
+Per pose: move → settle → read the joints → measure (N samples averaged, spread kept) → validate → append the
+measurement document to the session journal (written and fsynced by :class:`labcal.datasets.Journal`) →
+next pose. Validation (:class:`Validation`): no missing (non-finite) target; the measured target triangle's
+side lengths agree with those of the nominal targets within ``absolute_tolerance + spread_factor · spread``
+(spread: the largest per-target spread of the averaged frames); the robot reports the commanded joints within
+``joint_tolerance``. A failed attempt is retried (:class:`RetryPolicy`: re-measure, optionally re-move) up to
+``max_attempts`` times; then the pose is recorded as *rejected* with every attempt's reason and the run moves
+on. Only final outcomes are journaled, so each plan pose has at most one measurement document per session.
+
+Exits (``RunSummary.exit_status``, also the journal's stop document):
+
+- ``"success"``: every pose has a valid or rejected measurement;
+- ``"paused"``: the robot entered a protective stop (pause document, then stop document "paused"). Clear the
+  stop on the robot and call :func:`resume`;
+- ``"aborted"``: Ctrl-C (KeyboardInterrupt): the robot is stopped, the stop document written, and the
+  function returns normally (nothing recorded is lost); :func:`resume` continues;
+- ``"failed"``: a driver error the runner cannot retry (connection lost, stale data …); also resumable.
+
+:func:`resume` continues at the first plan pose without a measurement document. Because a document is fsynced
+before the next move, a crash (even kill -9) loses at most the pose being measured, which is then measured
+again; nothing recorded is lost and nothing recorded is measured twice. After every run except a paused one
+the journal is sealed into a new immutable version (when it has new valid measurements).
+
+The runner never draws anything: pass ``progress`` (a callable taking :class:`Progress`) to show it (the CLI
+renders it with rich).
+
+Example::
+
+    rig = SimRig(actual, targets, seed=0)
+    plan = make_plan(random_configurations(spec.model, 20, seed=1), samples=5, settle=0.0)
+    with rig.robot() as robot, rig.tracker() as tracker:
+        summary = run(SessionStore(root), spec, targets, plan, robot, tracker)
+    summary.exit_status, summary.ref          # ("success", "20261122-031500-ur10-3f9a@v001")
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from labcal.datasets import Journal, JournalError, SessionStore
+from labcal.drivers.base import (
+    DriverError,
+    DriverTimeout,
+    Measurement,
+    MeasurementRejected,
+    MotionFailed,
+    MotionRejected,
+    ProtectiveStop,
+    ProtocolError,
+    Robot,
+    Tracker,
+)
+from labcal.robots import RobotSpec
+from labcal.sessions.plans import Plan, PoseStep
+
+EXTRA_UNITS = {"attempts": "1", "triangle_error": "m", "quality": ""}
+
+
+class SessionError(RuntimeError):
+    """The runner cannot start or resume (robot still stopped, wrong robot model, nothing to resume …)."""
+
+
+@dataclass(frozen=True)
+class Validation:
+    """Acceptance of one measurement.
+
+    absolute_tolerance: m, allowed |measured − nominal| side length of the target triangle, plus
+    spread_factor × the largest per-target spread (m) of the averaged frames; joint_tolerance: rad (m), largest
+    allowed |q_actual − q_commanded| after a move.
+    """
+
+    absolute_tolerance: float = 0.5e-3
+    spread_factor: float = 5.0
+    joint_tolerance: float = 1e-3
+
+    def __post_init__(self) -> None:
+        for name in ("absolute_tolerance", "spread_factor", "joint_tolerance"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
+                raise ValueError(f"Validation.{name} must be a finite number >= 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    """max_attempts: measurement attempts per pose (>= 1); remove: move to the pose again before each retry."""
+
+    max_attempts: int = 3
+    remove: bool = False
+
+    def __post_init__(self) -> None:
+        if isinstance(self.max_attempts, bool) or not isinstance(self.max_attempts, int) or self.max_attempts < 1:
+            raise ValueError(f"RetryPolicy.max_attempts must be an integer >= 1, got {self.max_attempts!r}")
+
+
+@dataclass(frozen=True)
+class Progress:
+    """A progress event. pose: plan index (or None for run-level events); done/total: poses with a recorded
+    outcome / in the plan; status: "moving" | "retry" | "valid" | "rejected" | "success" | "paused" |
+    "aborted" | "failed"; residual: the last triangle error, m (None if unknown); message: human text."""
+
+    pose: int | None
+    done: int
+    total: int
+    status: str
+    residual: float | None = None
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """Outcome of :func:`run` / :func:`resume`. valid/rejected count the whole session (all runs); measured:
+    documents written by this run; remaining: plan poses still without a measurement; ref: the version sealed
+    at the end (or the latest one, or None)."""
+
+    session_id: str
+    exit_status: str
+    reason: str
+    valid: int
+    rejected: int
+    remaining: int
+    measured: int
+    ref: str | None
+    messages: list[str] = field(default_factory=list)
+
+
+ProgressCallback = Callable[[Progress], None]
+
+
+def describe(device: object) -> dict:
+    """Identity of a driver for the start document: its ``identity()`` dict if it has one, else its class."""
+    ident = getattr(device, "identity", None)
+    info = {"class": f"{type(device).__module__}.{type(device).__qualname__}"}
+    if callable(ident):
+        info.update(dict(ident()))
+    elif isinstance(ident, Mapping):
+        info.update(dict(ident))
+    return info
+
+
+# --------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Outcome:
+    status: str
+    q_actual: np.ndarray | None
+    measurement: Measurement | None
+    reason: str
+    attempts: int
+    residual: float | None
+
+
+def triangle_sides(points: np.ndarray) -> np.ndarray:
+    """(3, 3) points → (3,) side lengths |t1t2|, |t2t3|, |t3t1| in the points' unit."""
+    p = np.asarray(points, dtype=float)
+    return np.linalg.norm(p - np.roll(p, -1, axis=0), axis=1)
+
+
+def check_measurement(m: Measurement, nominal_sides: np.ndarray, validation: Validation) -> tuple[str, float | None]:
+    """("" if acceptable else the reason, triangle error m or None). See :class:`Validation`."""
+    points = np.asarray(m.points, dtype=float)
+    if points.shape != (3, 3):
+        return f"tracker returned points of shape {points.shape}, expected (3, 3)", None
+    missing = [f"t{i + 1}" for i in range(3) if not np.all(np.isfinite(points[i]))]
+    if missing:
+        return f"missing target(s) {', '.join(missing)}", None
+    error = float(np.max(np.abs(triangle_sides(points) - nominal_sides)))
+    spread = np.asarray(m.spread, dtype=float)
+    worst = float(np.max(spread)) if spread.size and np.all(np.isfinite(spread)) else 0.0
+    tol = validation.absolute_tolerance + validation.spread_factor * worst
+    if error > tol:
+        return (
+            f"target triangle differs from the nominal targets by {error * 1e3:.3f} mm (tolerance {tol * 1e3:.3f} mm)"
+        ), error
+    return "", error
+
+
+class _Run:
+    """State of one run over a journal (shared by :func:`run` and :func:`resume`)."""
+
+    def __init__(
+        self,
+        journal: Journal,
+        plan: Plan,
+        robot: Robot,
+        tracker: Tracker,
+        targets: np.ndarray,
+        validation: Validation,
+        retry: RetryPolicy,
+        progress: ProgressCallback | None,
+        sleep: Callable[[float], None],
+    ) -> None:
+        self.journal, self.plan, self.robot, self.tracker = journal, plan, robot, tracker
+        self.validation, self.retry = validation, retry
+        self.nominal_sides = triangle_sides(targets)
+        self._progress = progress
+        self.sleep = sleep
+        self.measured = 0
+        contents = journal.read()
+        self.done = {d["pose_index"] for d in contents.measurements}
+
+    def emit(self, pose: int | None, status: str, residual: float | None = None, message: str = "") -> None:
+        if self._progress is not None:
+            self._progress(Progress(pose, len(self.done), self.plan.n_poses, status, residual, message))
+
+    def execute(self) -> tuple[str, str]:
+        """Run the remaining poses; return (exit_status, reason). Writes the stop document (not for a crash)."""
+        robot, journal = self.robot, self.journal
+        pose: int | None = None
+        try:
+            for step in self.plan.poses():
+                if step.index in self.done:
+                    continue
+                pose = step.index
+                outcome = self.measure_pose(step)
+                m = outcome.measurement
+                journal.append_measurement(
+                    pose_index=step.index,
+                    q_commanded=step.q,
+                    q_actual=outcome.q_actual,
+                    points=None if m is None else m.points,
+                    spread=None if m is None or not np.all(np.isfinite(m.spread)) else m.spread,
+                    samples=0 if m is None else int(m.samples),
+                    status=outcome.status,
+                    reason=outcome.reason,
+                    extra={
+                        "attempts": outcome.attempts,
+                        "triangle_error": outcome.residual,
+                        "quality": ",".join(m.quality) if m is not None else "",
+                    },
+                )
+                self.measured += 1
+                self.done.add(step.index)
+                self.emit(step.index, outcome.status, outcome.residual, outcome.reason)
+        except ProtectiveStop as e:
+            _safe_stop(robot)
+            reason = f"protective stop at pose {pose}: {e}"
+            journal.pause(reason)
+            journal.stop("paused", reason)
+            return "paused", reason
+        except KeyboardInterrupt:
+            _safe_stop(robot)
+            reason = f"interrupted by the operator (Ctrl-C) at pose {pose}"
+            journal.stop("aborted", reason)
+            return "aborted", reason
+        except JournalError:
+            # The journal cannot record any more: stop the robot and let the caller see why.
+            _safe_stop(robot)
+            raise
+        except DriverError as e:
+            _safe_stop(robot)
+            reason = f"{type(e).__name__} at pose {pose}: {e}"
+            journal.stop("failed", reason)
+            return "failed", reason
+        journal.stop("success", f"{self.plan.n_poses} poses done")
+        return "success", ""
+
+    def measure_pose(self, step: PoseStep) -> _Outcome:
+        """Move, settle, measure and validate one pose with bounded retries. ProtectiveStop propagates."""
+        robot, tracker, v = self.robot, self.tracker, self.validation
+        reasons: list[str] = []
+        moved = False
+        q_actual: np.ndarray | None = None
+        last: Measurement | None = None
+        residual: float | None = None
+        for attempt in range(1, self.retry.max_attempts + 1):
+            if attempt > 1:
+                self.emit(step.index, "retry", residual, reasons[-1])
+            if not moved or self.retry.remove:
+                self.emit(step.index, "moving")
+                try:
+                    robot.move_joints(step.q, step.move.speed, step.move.acceleration)
+                except MotionRejected as e:
+                    # The plan itself is at fault (limits, caps): retrying cannot help.
+                    reasons.append(f"motion rejected: {e}")
+                    return _Outcome("rejected", None, None, _join(reasons), attempt, None)
+                except MotionFailed as e:
+                    reasons.append(f"motion failed: {e}")
+                    continue
+                moved = True
+                if step.settle > 0:
+                    self.sleep(step.settle)
+            q_actual = np.asarray(robot.joint_positions(), dtype=float)
+            deviation = float(np.max(np.abs(q_actual - step.q)))
+            if deviation > v.joint_tolerance:
+                reasons.append(f"robot is {deviation:.6f} rad from the commanded joints")
+                moved = False
+                continue
+            try:
+                m = tracker.measure(step.samples)
+            except MeasurementRejected as e:
+                reasons.append(f"tracker rejected the frame: {e.reason}")
+                continue
+            except (DriverTimeout, ProtocolError) as e:
+                reasons.append(f"{type(e).__name__}: {e}")
+                continue
+            # A protective stop during the measurement makes the frame suspect; pause instead.
+            if robot.state().protective_stop:
+                raise ProtectiveStop("robot entered a protective stop while measuring")
+            last = m
+            why, residual = check_measurement(m, self.nominal_sides, v)
+            if not why:
+                return _Outcome("valid", q_actual, m, "", attempt, residual)
+            reasons.append(why)
+        return _Outcome("rejected", q_actual, last, _join(reasons), self.retry.max_attempts, residual)
+
+
+def _join(reasons: list[str]) -> str:
+    return "; ".join(f"attempt {i + 1}: {r}" for i, r in enumerate(reasons))
+
+
+def _safe_stop(robot: Robot) -> None:
+    try:
+        robot.stop()
+    except Exception:  # stop() must never mask the reason we are stopping
+        pass
+
+
+def _finish(
+    store: SessionStore, journal: Journal, exit_status: str, reason: str, measured: int, plan: Plan, seal: bool
+) -> RunSummary:
+    contents = journal.read()
+    docs = contents.measurements
+    valid = sum(d["status"] == "valid" for d in docs)
+    rejected = len(docs) - valid
+    remaining = plan.n_poses - len({d["pose_index"] for d in docs})
+    journal.close()
+    ref, messages = None, []
+    session_id = journal.session_id
+    if seal and exit_status != "paused":
+        result = store.seal(session_id)
+        ref = result.ref
+        messages.append(result.message)
+    else:
+        versions = store.versions(session_id)
+        ref = f"{session_id}@v{versions[-1]:03d}" if versions else None
+    return RunSummary(session_id, exit_status, reason, valid, rejected, remaining, measured, ref, messages)
+
+
+def run(
+    store: SessionStore,
+    spec: RobotSpec,
+    targets,
+    plan: Plan,
+    robot: Robot,
+    tracker: Tracker,
+    *,
+    frame: str = "tracker",
+    validation: Validation | None = None,
+    retry: RetryPolicy | None = None,
+    progress: ProgressCallback | None = None,
+    session_id: str | None = None,
+    tracker_info: Mapping[str, Any] | None = None,
+    robot_info: Mapping[str, Any] | None = None,
+    metadata: Mapping[str, Any] | None = None,
+    sleep: Callable[[float], None] = time.sleep,
+    seal: bool = True,
+) -> RunSummary:
+    """Create a session for ``spec`` (robot model) and ``targets`` ((3, 3) m, tool frame) and execute ``plan``.
+
+    frame: the frame of the tracker's points ("tracker", or "base" if the tracker reports in the robot base
+    frame). The start document records the robot model name and hash, targets, tracker and robot identity
+    (``tracker_info``/``robot_info``, default :func:`describe`), the plan (one entry per pose), the runner
+    settings (so :func:`resume` validates the same way) and software versions.
+    """
+    validation = validation or Validation()
+    retry = retry or RetryPolicy()
+    targets = np.asarray(targets, dtype=float)
+    if robot.n_joints != spec.model.n or plan.n_joints != spec.model.n:
+        raise SessionError(
+            f"robot model {spec.name!r} has {spec.model.n} joints, the robot driver {robot.n_joints}, "
+            f"the plan {plan.n_joints}"
+        )
+    runner_settings = {"validation": asdict(validation), "retry": asdict(retry)}
+    journal = store.create_session(
+        robot_name=spec.name,
+        robot_hash=spec.hash,
+        n_joints=spec.model.n,
+        targets=targets,
+        frame=frame,
+        tracker=dict(tracker_info) if tracker_info is not None else describe(tracker),
+        robot_driver=dict(robot_info) if robot_info is not None else describe(robot),
+        plan=plan.pose_documents(),
+        extra_units=EXTRA_UNITS,
+        metadata={"runner": runner_settings, "robot_source": spec.source, **dict(metadata or {})},
+        session_id=session_id,
+    )
+    state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep)
+    try:
+        status, reason = state.execute()
+    except BaseException:
+        journal.close()
+        raise
+    state.emit(None, status, message=reason)
+    return _finish(store, journal, status, reason, state.measured, plan, seal)
+
+
+def resume(
+    store: SessionStore,
+    session_id: str,
+    robot: Robot,
+    tracker: Tracker,
+    *,
+    spec: RobotSpec | None = None,
+    progress: ProgressCallback | None = None,
+    reason: str = "resumed by the operator",
+    sleep: Callable[[float], None] = time.sleep,
+    seal: bool = True,
+) -> RunSummary:
+    """Continue a session at the first plan pose without a measurement document (valid or finally rejected).
+
+    Works after a pause (protective stop, cleared on the robot first), an abort, a failure or a crash (the
+    journal is reopened, a torn last line repaired). ``spec``: if given, its hash must match the session's
+    robot model. Uses the plan, targets and runner settings stored in the start document.
+    """
+    journal = store.open_journal(session_id)
+    try:
+        start = journal.start
+        if spec is not None and spec.hash != start["robot"]["hash"]:
+            raise SessionError(
+                f"session {session_id} was recorded with robot model {start['robot']['name']!r} "
+                f"(hash {start['robot']['hash'][:12]}…), not {spec.name!r} (hash {spec.hash[:12]}…)"
+            )
+        if robot.n_joints != journal.n_joints:
+            raise SessionError(f"session {session_id} has {journal.n_joints} joints, the robot {robot.n_joints}")
+        plan = Plan.from_pose_documents(start.get("plan") or [])
+        settings = (start.get("metadata") or {}).get("runner") or {}
+        validation = Validation(**settings.get("validation", {}))
+        retry = RetryPolicy(**settings.get("retry", {}))
+        targets = np.asarray(start["targets"], dtype=float)
+        state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep)
+        if len(state.done) < plan.n_poses:
+            if robot.state().protective_stop:
+                raise SessionError("the robot is still in a protective stop: clear it on the robot, then resume")
+            crashed = journal.state == "running"
+            journal.resume(reason + (" (the previous run ended without a stop document)" if crashed else ""))
+            status, why = state.execute()
+        else:
+            status, why = "success", "nothing left to measure"
+            if journal.state != "stopped":
+                journal.stop("success", why)
+    except BaseException:
+        journal.close()
+        raise
+    state.emit(None, status, message=why)
+    return _finish(store, journal, status, why, state.measured, plan, seal)
+
+
+__all__ = [
+    "EXTRA_UNITS",
+    "Progress",
+    "ProgressCallback",
+    "RetryPolicy",
+    "RunSummary",
+    "SessionError",
+    "Validation",
+    "check_measurement",
+    "describe",
+    "resume",
+    "run",
+    "triangle_sides",
+]
