@@ -83,6 +83,24 @@ def test_movej_false_with_protective_stop_raises_protective_stop_with_position()
     assert "q = [" in str(info.value)
 
 
+def test_resume_after_a_cleared_protective_stop_restarts_the_script():
+    robot, rx, ctl = make_robot()
+    ctl.outcome = "protective"
+    with pytest.raises(ProtectiveStop):
+        robot.move_joints(TARGET, speed=0.3, acceleration=0.5)
+    with pytest.raises(ProtectiveStop, match="teach pendant"):
+        robot.resume()  # still stopped: labcal does not unlock it
+    assert ctl.reuploads == 0
+    rx.protective = False  # the operator cleared it
+    robot.resume()
+    assert ctl.reuploads == 1
+    ctl.outcome = "ok"
+    robot.move_joints(TARGET, speed=0.3, acceleration=0.5)
+    np.testing.assert_allclose(robot.joint_positions(), TARGET)
+    robot.resume()  # script already running: nothing to do
+    assert ctl.reuploads == 1
+
+
 def test_movej_false_without_stop_raises_motion_failed():
     robot, _, ctl = make_robot()
     ctl.outcome = "false"

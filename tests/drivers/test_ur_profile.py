@@ -74,3 +74,35 @@ def test_default_values_are_finite():
         {"name": "x", "host": "h", "joint_limits_deg": {"lower": [-1.0] * 6, "upper": [1.0] * 6}}
     )
     assert math.isfinite(profile.settle_time) and profile.frequency == -1.0
+
+
+def write_model(tmp_path, limits_rad):
+    joints = "".join(
+        f"[[joints]]\ntype = 'revolute'\na = 0.1\nalpha = 0.0\nd = 0.1\ntheta = 0.0\nlimits = [{lo}, {hi}]\n"
+        for lo, hi in limits_rad
+    )
+    path = tmp_path / "arm.toml"
+    path.write_text(f"name = 'arm'\nkinematics = 'dh'\n{joints}")
+    return str(path)
+
+
+def test_model_limits_bound_the_profile(tmp_path):
+    model = write_model(tmp_path, [(-1.0, 1.0)] * 6)
+    # without [joint_limits_deg] the model's limits apply as they are
+    profile = parse_ur_profile({"name": "x", "host": "h", "model": model})
+    np.testing.assert_allclose(profile.limits.joint_limits, [[-1.0, 1.0]] * 6)
+    # a profile may narrow them ...
+    narrow = {"lower": [-10.0] * 6, "upper": [10.0] * 6}
+    profile = parse_ur_profile({"name": "x", "host": "h", "model": model, "joint_limits_deg": narrow})
+    np.testing.assert_allclose(profile.limits.joint_limits, np.radians([[-10.0, 10.0]] * 6))
+    # ... but not widen them
+    wide = {"lower": [-10.0, -90.0, -10.0, -10.0, -10.0, -10.0], "upper": [10.0] * 6}
+    with pytest.raises(ValueError, match=r"joint 2.*beyond model"):
+        parse_ur_profile({"name": "x", "host": "h", "model": model, "joint_limits_deg": wide})
+
+
+def test_unknown_or_wrong_sized_model_is_rejected(tmp_path):
+    with pytest.raises(ValueError, match="'model' = 'no-such-robot'"):
+        parse_ur_profile({"name": "x", "host": "h", "model": "no-such-robot"})
+    with pytest.raises(ValueError, match="has 5 joints"):
+        parse_ur_profile({"name": "x", "host": "h", "model": write_model(tmp_path, [(-1.0, 1.0)] * 5)})

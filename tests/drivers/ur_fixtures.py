@@ -96,6 +96,8 @@ class StubControl:
         self.moves: list[tuple[list[float], float, float, bool]] = []
         self.stops: list[tuple[float, bool]] = []
         self.stop_error: Exception | None = None
+        self.program_running = True  # ur-rtde's control script; a safety stop halts it
+        self.reuploads = 0
         self.connected = True
         self.disconnects = 0
 
@@ -117,12 +119,21 @@ class StubControl:
         if self.outcome == "protective":
             self.receive.q = ((start + goal) / 2).tolist()
             self.receive.protective = True
+            self.program_running = False
         return False
 
     def stopJ(self, a: float = 2.0, asynchronous: bool = False) -> None:
         self.stops.append((a, asynchronous))
         if self.stop_error is not None:
             raise self.stop_error
+
+    def isProgramRunning(self) -> bool:
+        return self.program_running
+
+    def reuploadScript(self) -> bool:
+        self.reuploads += 1
+        self.program_running = True
+        return True
 
     def isConnected(self) -> bool:
         return self.connected

@@ -337,19 +337,184 @@ class _RTDESession:
 
 
 class ControlEmulator:
-    """Dashboard (29999), script port (30003) and ur-rtde's register protocol over RTDE registers."""
+    """What ur-rtde 1.6.5's RTDEControlInterface needs from a controller, on top of RTDE.
+
+    - Dashboard server (29999): a greeting line, then one answer line per command line.
+    - Script port (30003): streams a few bytes on connect (like the real-time interface); an uploaded script
+      containing ur-rtde's control loop marker "starts the program".
+    - The program: ur-rtde's register protocol. input_int_register_0 holds a command id (1 MOVEJ, 34 STOPJ,
+      255 stop script; 0 idle); input_int_register_1 = 1 for asynchronous moves; input_double_register_0..5
+      the target q (rad), 6 the speed (rad/s), 7 the acceleration (rad/s²). output_int_register_0 answers 1
+      (ready, when the command is 0) or 2 (done with the command).
+
+    Moves are linear in joint space at the commanded speed of the leading axis (acceleration ignored), in real
+    time. A protective/emergency stop set while moving halts the joints where they are and stops the program,
+    as a real controller does. ``fault`` = ("protective", fraction) triggers that stop part-way into the next move.
+    """
+
+    MOVEJ, STOPJ, STOP_SCRIPT = 1, 34, 255
+    TICK = 0.002  # s, the e-Series control period
 
     def __init__(self, sim: SimController):
         self.sim = sim
+        self.fault: tuple[str, float] | None = None
+        self._program: threading.Thread | None = None
+        self._abort = threading.Event()
 
     def on_input(self, names: list[str]) -> None:
-        pass
+        pass  # the program thread polls the registers every tick
+
+    def _reg(self, name: str, default: Any = 0) -> Any:
+        return self.sim.registers.get(name, default)
+
+    def _start_program(self) -> None:
+        with self.sim.lock:
+            if self.sim.program_running:
+                return
+            self.sim.program_running = True
+            self.sim.registers["output_int_register_0"] = 1
+            self.sim.log.append(("program", "started"))
+        self._program = threading.Thread(target=self._run_program, daemon=True)
+        self._program.start()
+
+    def _run_program(self) -> None:
+        executing = False
+        while True:
+            with self.sim.lock:
+                if not self.sim.program_running:
+                    return
+                cmd = int(self._reg("input_int_register_0"))
+                if cmd == 0:
+                    executing = False
+                    self.sim.registers["output_int_register_0"] = 1
+            if cmd != 0 and not executing:
+                executing = True
+                keep_running = self._process(cmd)
+                with self.sim.lock:
+                    if not keep_running:
+                        self.sim.program_running = False
+                        self.sim.log.append(("program", "stopped"))
+                        return
+                    if self.sim.program_running:
+                        self.sim.registers["output_int_register_0"] = 2
+            time.sleep(self.TICK)
+
+    def _process(self, cmd: int) -> bool:
+        with self.sim.lock:
+            self.sim.log.append(("command", cmd))
+            if cmd == self.MOVEJ:
+                goal = [float(self._reg(f"input_double_register_{i}", 0.0)) for i in range(6)]
+                speed = float(self._reg("input_double_register_6", 0.0))
+                asynchronous = int(self._reg("input_int_register_1")) == 1
+                self.sim.log.append(("movej", {"q": goal, "speed": speed, "async": asynchronous}))
+        if cmd == self.MOVEJ:
+            self._abort.clear()
+            if asynchronous:
+                threading.Thread(target=self._move, args=(goal, speed), daemon=True).start()
+            else:
+                self._move(goal, speed)
+            return True
+        if cmd == self.STOPJ:
+            self._abort.set()
+            return True
+        if cmd == self.STOP_SCRIPT:
+            return False
+        with self.sim.lock:
+            self.sim.log.append(("unsupported", cmd))
+        return True
+
+    def _move(self, goal: list[float], speed: float) -> None:
+        with self.sim.lock:
+            start = list(self.sim.q)
+            self.sim.target_q = list(goal)
+            fault, self.fault = self.fault, None
+        distance = max(abs(g - s) for g, s in zip(goal, start, strict=True))
+        duration = min(distance / speed, 30.0) if speed > 0 else 0.0
+        t0 = time.monotonic()
+        while True:
+            fraction = 1.0 if duration <= 0 else min((time.monotonic() - t0) / duration, 1.0)
+            with self.sim.lock:
+                if fault is not None and fraction >= fault[1]:
+                    if fault[0] == "emergency":
+                        self.sim.emergency = True
+                    else:
+                        self.sim.protective = True
+                if self.sim.protective or self.sim.emergency:
+                    self.sim.program_running = False  # a safety stop halts the program where it is
+                    self.sim.log.append(("program", "halted by safety stop"))
+                    return
+                if self._abort.is_set():
+                    return
+                self.sim.q = [s + (g - s) * fraction for s, g in zip(start, goal, strict=True)]
+                self.sim.qd = [
+                    (g - s) / duration if 0 < fraction < 1 else 0.0 for s, g in zip(start, goal, strict=True)
+                ]
+            if fraction >= 1.0:
+                return
+            time.sleep(self.TICK)
 
     def serve_dashboard(self, sock: socket.socket) -> None:
-        sock.close()
+        with contextlib.closing(sock), sock.makefile("rwb") as stream:
+            stream.write(b"Connected: Universal Robots Dashboard Server\n")
+            stream.flush()
+            for raw in stream:
+                line = raw.decode("ascii", "replace").strip()
+                with self.sim.lock:
+                    self.sim.log.append(("dashboard", line))
+                    answer = self.dashboard_answer(line)
+                stream.write(answer.encode("ascii") + b"\n")
+                stream.flush()
+
+    def dashboard_answer(self, line: str) -> str:
+        """The dashboard server's reply to one command line (caller holds the sim lock)."""
+        sim = self.sim
+        major, minor, bugfix, build = sim.controller_version
+        if line == "PolyscopeVersion":
+            return f"URSoftware {major}.{minor}.{bugfix}.{build} (fake)"
+        if line == "get serial number":
+            return "20185500001"
+        if line == "get robot model":
+            return "UR10"
+        if line == "is in remote control":
+            return "true"
+        if line == "robotmode":
+            return "Robotmode: RUNNING" if sim.robot_mode == ROBOT_MODE_RUNNING else f"Robotmode: {sim.robot_mode}"
+        if line in ("safetystatus", "safetymode"):
+            state = "ROBOT_EMERGENCY_STOP" if sim.emergency else "PROTECTIVE_STOP" if sim.protective else "NORMAL"
+            return f"Safetystatus: {state}"
+        if line == "running":
+            return f"Program running: {str(sim.program_running).lower()}"
+        if line == "programState":
+            return "PLAYING" if sim.program_running else "STOPPED"
+        if line == "unlock protective stop":
+            sim.protective = False
+            return "Protective stop releasing"
+        if line == "close safety popup":
+            return "closing safety popup"
+        if line == "stop":
+            sim.program_running = False
+            return "Stopped"
+        if line == "play":
+            return "Failed to execute: play"  # no .urp programs here: ur-rtde uploads its script instead
+        return f"could not understand: '{line}'"
 
     def serve_script(self, sock: socket.socket) -> None:
-        sock.close()
+        with contextlib.closing(sock):
+            sock.sendall(struct.pack(">IB", 5, 16))  # a minimal packet: the real port streams state at once
+            data = b""
+            while True:
+                try:
+                    chunk = sock.recv(65536)
+                except OSError:
+                    break
+                if not chunk:
+                    break
+                data += chunk
+                if b"# NODE_CONTROL_LOOP_ENDS" in data and data.rstrip().endswith(b"end"):
+                    with self.sim.lock:
+                        self.sim.log.append(("script", len(data)))
+                    self._start_program()
+                    data = b""
 
 
 def _listen(host: str, port: int) -> socket.socket:
@@ -437,7 +602,7 @@ def _child_main(options: dict[str, Any], commands: Any, replies: Any) -> None:
             reply("ok", None)
             break
         try:
-            result = _apply(sim, sessions, command, args)
+            result = _apply(sim, sessions, control, command, args)
         except Exception as exc:  # report, never die silently: the test would only see a timeout
             reply("error", f"{type(exc).__name__}: {exc}")
         else:
@@ -450,7 +615,9 @@ def _child_main(options: dict[str, Any], commands: Any, replies: Any) -> None:
             session.sock.shutdown(socket.SHUT_RDWR)
 
 
-def _apply(sim: SimController, sessions: list[_RTDESession], command: str, args: Any) -> Any:
+def _apply(
+    sim: SimController, sessions: list[_RTDESession], control: ControlEmulator | None, command: str, args: Any
+) -> Any:
     with sim.lock:
         if command == "set_q":
             if len(args) != 6:
@@ -468,6 +635,10 @@ def _apply(sim: SimController, sessions: list[_RTDESession], command: str, args:
                 # resume from the frozen value so controller time never runs backwards
                 sim.t0 = time.monotonic() - sim.frozen_at
                 sim.frozen_at = None
+        elif command == "fault":
+            if control is None:
+                raise ValueError("faults need a fake started with control=True")
+            control.fault = (str(args[0]), float(args[1]))
         elif command == "drop_clients":
             for session in sessions:
                 with contextlib.suppress(OSError):
@@ -593,6 +764,12 @@ class FakeRTDEServer:
     def freeze_timestamp(self, frozen: bool = True) -> None:
         """Keep streaming packages, but with a timestamp (and data time) that no longer advances."""
         self._call("freeze", bool(frozen))
+
+    def inject_stop_during_next_move(self, kind: str = "protective", fraction: float = 0.5) -> None:
+        """control=True only: the next MOVEJ hits a protective (or "emergency") stop ``fraction`` of the way."""
+        if kind not in ("protective", "emergency") or not 0 <= fraction <= 1:
+            raise ValueError(f"kind must be 'protective' or 'emergency' and fraction in [0, 1], got {kind}, {fraction}")
+        self._call("fault", [kind, float(fraction)])
 
     def drop_clients(self) -> None:
         """Shut down every client connection (the server keeps listening)."""

@@ -60,6 +60,11 @@ N_JOINTS = 6
 # ur-rtde 1.6.5 raises ValueError outside these ranges; profile caps must stay inside them.
 UR_RTDE_MAX_SPEED = 3.14  # rad/s
 UR_RTDE_MAX_ACCELERATION = 40.0  # rad/s²
+# ur-rtde's control and receive interfaces read separate RTDE streams, so the sample in hand may predate an
+# event the control side already saw (end of a move, a safety stop). Fresh samples are watched this long, s.
+STREAM_SKEW_WINDOW = 0.1
+# How long resume() waits for a re-uploaded control script to run (ur-rtde's constructor also waits 5 s), s.
+SCRIPT_START_TIMEOUT = 5.0
 # What labcal asks the controller to stream (everything the getters below need, nothing more).
 RECEIVE_VARIABLES = ["timestamp", "actual_q", "robot_mode", "safety_mode", "safety_status_bits", "runtime_state"]
 
@@ -84,7 +89,7 @@ class URProfile:
     """
 
     name: str
-    model: str
+    model: str  # robot model name/file whose joint limits bound the profile's ("" if none)
     host: str
     limits: SafetyLimits
     rtde_port: int = RTDE_PORT
@@ -164,9 +169,12 @@ def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfi
                 "so another port cannot be honoured"
             )
 
+    model_limits = _model_limits(data.get("model"), fail)
     limits_table = data.get("joint_limits_deg", {})
+    if not limits_table and model_limits is None:
+        raise fail("give [joint_limits_deg] or a 'model' whose robot file carries joint limits")
     bounds = []
-    for key in ("lower", "upper"):
+    for key in ("lower", "upper") if limits_table else ():
         values = limits_table.get(key)
         if not isinstance(values, list) or len(values) != N_JOINTS:
             raise fail(f"[joint_limits_deg] {key} must list {N_JOINTS} numbers (degrees), got {values!r}")
@@ -174,7 +182,16 @@ def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfi
             if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
                 raise fail(f"[joint_limits_deg] {key}[{j}] = {value!r} is not a finite number")
         bounds.append(np.radians(np.asarray(values, dtype=float)))
-    joint_limits = np.stack(bounds, axis=1)
+    joint_limits = np.stack(bounds, axis=1) if bounds else np.array(model_limits)
+    if model_limits is not None:
+        # The model's limits are the hard bound: a profile may only narrow them.
+        outside = (joint_limits[:, 0] < model_limits[:, 0] - 1e-9) | (joint_limits[:, 1] > model_limits[:, 1] + 1e-9)
+        for j in np.flatnonzero(outside):
+            raise fail(
+                f"[joint_limits_deg] joint {j + 1}: [{math.degrees(joint_limits[j, 0]):.3f}, "
+                f"{math.degrees(joint_limits[j, 1]):.3f}] deg goes beyond model {data['model']!r} limits "
+                f"[{math.degrees(model_limits[j, 0]):.3f}, {math.degrees(model_limits[j, 1]):.3f}] deg"
+            )
     for j, (lo, hi) in enumerate(joint_limits):
         if not lo < hi:
             raise fail(f"[joint_limits_deg] joint {j + 1}: lower {math.degrees(lo)} is not below upper")
@@ -198,6 +215,24 @@ def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfi
         stale_timeout=number("timing", "stale_timeout_s", 0.5, 0.01, 10.0),
         frequency=_frequency(data.get("timing", {}).get("frequency_hz", -1), fail),
     )
+
+
+def _model_limits(model: Any, fail: Callable[[str], ValueError]) -> np.ndarray | None:
+    """Joint limits (6, 2) rad of the named robot model (built-in name or robot file path), or None."""
+    if model is None or model == "":
+        return None
+    if not isinstance(model, str):
+        raise fail(f"'model' = {model!r} must be a robot name or robot file path")
+    from labcal.robots import RobotFileError, load  # lazy: the profile loader is usable without it
+
+    try:
+        spec = load(model)
+    except RobotFileError as exc:
+        raise fail(f"'model' = {model!r}: {exc}") from exc
+    limits = np.asarray(spec.model.limits, dtype=float)
+    if limits.shape != (N_JOINTS, 2):
+        raise fail(f"'model' = {model!r} has {limits.shape[0]} joints; a UR arm has {N_JOINTS}")
+    return limits
 
 
 def _frequency(value: Any, fail: Callable[[str], ValueError]) -> float:
@@ -494,25 +529,72 @@ class URRobot:
             self._raise_stop_or(MotionFailed(f"controller reported moveJ to {target.tolist()} failed"), None)
         if self.profile.settle_time > 0:
             self._sleep(self.profile.settle_time)
-        after = self.state()
-        self._raise_if_stopped(after, "after the move")
-        error = float(np.max(np.abs(after.q - target)))
-        if error > self.profile.position_tolerance:
-            raise MotionFailed(
-                f"robot ended {error:.6f} rad from the target (tolerance {self.profile.position_tolerance} rad): "
-                f"q = {after.q.tolist()}"
-            )
+        deadline = self._clock() + STREAM_SKEW_WINDOW  # the first sample may predate the end of the move
+        while True:
+            after = self.state()
+            self._raise_if_stopped(after, "after the move")
+            error = float(np.max(np.abs(after.q - target)))
+            if error <= self.profile.position_tolerance:
+                return
+            if self._clock() >= deadline:
+                raise MotionFailed(
+                    f"robot ended {error:.6f} rad from the target (tolerance {self.profile.position_tolerance} "
+                    f"rad): q = {after.q.tolist()}"
+                )
 
     def _raise_stop_or(self, error: MotionFailed, cause: BaseException | None) -> None:
-        """After a failed move: raise the stop that caused it if the safety state shows one, else ``error``."""
+        """After a failed move: raise the stop that caused it if the safety state shows one, else ``error``.
+
+        The sample in hand may predate the stop that ended the move (see STREAM_SKEW_WINDOW).
+        """
+        deadline = self._clock() + STREAM_SKEW_WINDOW
+        while True:
+            try:
+                state = self.state()
+            except StaleData as exc:
+                raise MotionFailed(f"{error}; and the controller data went stale: {exc}") from cause
+            except ConnectionFailed as exc:
+                raise ConnectionFailed(f"{error}; and the connection is lost: {exc}") from cause
+            self._raise_if_stopped(state, "after a failed move")
+            if self._clock() >= deadline:
+                raise error from cause
+
+    def resume(self) -> None:
+        """Continue after a protective stop an operator has cleared (labcal never unlocks a stop itself).
+
+        A safety stop halts ur-rtde's control script on the controller; this re-uploads it. Raises
+        ProtectiveStop/EmergencyStop if the stop is still active, MotionRejected if read-only or not RUNNING,
+        ConnectionFailed if the script cannot be restarted.
+        """
+        if self._control is None:
+            raise MotionRejected("this UR robot was opened read-only (no control interface)")
+        state = self.state()
+        self._raise_if_stopped(state, "— clear it on the teach pendant first")
+        mode = self.robot_mode()
+        if mode != ROBOT_MODE_RUNNING:
+            raise MotionRejected(f"robot mode is {mode}, not RUNNING ({ROBOT_MODE_RUNNING}); cannot resume")
+        if self._program_running():
+            return
         try:
-            state = self.state()
-        except StaleData as exc:
-            raise MotionFailed(f"{error}; and the controller data went stale: {exc}") from cause
-        except ConnectionFailed as exc:
-            raise ConnectionFailed(f"{error}; and the connection is lost: {exc}") from cause
-        self._raise_if_stopped(state, "after a failed move")
-        raise error from cause
+            restarted = self._control.reuploadScript()
+        except RuntimeError as exc:
+            raise ConnectionFailed(f"could not restart the control script on {self.profile.host}: {exc}") from exc
+        if not restarted:
+            raise ConnectionFailed(f"the control script on {self.profile.host} could not be uploaded")
+        # reuploadScript() returns once the script is sent, before the controller runs it
+        deadline = self._clock() + SCRIPT_START_TIMEOUT
+        while not self._program_running():
+            if self._clock() >= deadline:
+                raise ConnectionFailed(
+                    f"the control script on {self.profile.host} did not start within {SCRIPT_START_TIMEOUT} s"
+                )
+            self._sleep(0.01)
+
+    def _program_running(self) -> bool:
+        try:
+            return bool(self._control.isProgramRunning())
+        except RuntimeError as exc:
+            raise ConnectionFailed(f"lost the control connection to {self.profile.host}: {exc}") from exc
 
     def stop(self) -> None:
         """Decelerate any joint motion (stopJ). Always safe: never raises, also after close or an error."""
@@ -565,7 +647,14 @@ RECEIVE_METHODS: Sequence[str] = (
     "isConnected",
     "disconnect",
 )
-CONTROL_METHODS: Sequence[str] = ("moveJ", "stopJ", "isConnected", "disconnect")
+CONTROL_METHODS: Sequence[str] = (
+    "moveJ",
+    "stopJ",
+    "isProgramRunning",
+    "reuploadScript",
+    "isConnected",
+    "disconnect",
+)
 
 
 def parse_pybind_signatures(doc: str, name: str) -> list[tuple[str, list[str]]]:
