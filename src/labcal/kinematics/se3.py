@@ -59,7 +59,9 @@ def _coefficients(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     small = theta < _SMALL
     safe = np.where(small, 1.0, theta)
     a = np.where(small, 1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42)), np.sin(safe) / safe)
-    b = np.where(small, 0.5 - t2 / 24 * (1 - t2 / 30 * (1 - t2 / 56)), (1 - np.cos(safe)) / safe**2)
+    # 1 − cosθ = 2 sin²(θ/2) avoids the cancellation that costs 1 − cosθ about 1e-12 relative just above _SMALL.
+    half = np.sin(0.5 * safe) / (0.5 * safe)
+    b = np.where(small, 0.5 - t2 / 24 * (1 - t2 / 30 * (1 - t2 / 56)), 0.5 * half * half)
     c = np.where(small, 1 / 6 - t2 / 120 * (1 - t2 / 42 * (1 - t2 / 72)), (safe - np.sin(safe)) / safe**3)
     return a, b, c
 
@@ -122,12 +124,13 @@ def log_se3(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=float)
     w = log_so3(T[..., :3, :3])
     theta = np.linalg.norm(w, axis=-1)
-    a, b, _ = _coefficients(theta)
     t2 = theta * theta
     small = theta < _SMALL
-    safe_t2 = np.where(small, 1.0, t2)
-    # V⁻¹ = I − K/2 + D K², D = (1 − A/(2B))/θ²  (series 1/12 + θ²/720 + θ⁴/30240 near zero)
-    d = np.where(small, 1 / 12 + t2 / 720 + t2 * t2 / 30240, (1 - a / (2 * b)) / safe_t2)
+    safe = np.where(small, 1.0, theta)
+    # V⁻¹ = I − K/2 + D K², D = (1 − A/(2B))/θ² = (1 − (θ/2) cot(θ/2))/θ²  (series 1/12 + θ²/720 + θ⁴/30240 near
+    # zero). The half-angle form has no 1 − cosθ in it, which would lose ~1e-12 of the translation above _SMALL.
+    half = 0.5 * safe
+    d = np.where(small, 1 / 12 + t2 / 720 + t2 * t2 / 30240, (1 - half * np.cos(half) / np.sin(half)) / safe**2)
     K = skew(w)
     V_inv = np.eye(3) - 0.5 * K + d[..., None, None] * (K @ K)
     v = np.einsum("...ij,...j->...i", V_inv, T[..., :3, 3])
@@ -173,16 +176,20 @@ def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) → (..., 3) URDF roll-pitch-yaw; at pitch = ±π/2 the roll is set to 0 (gimbal lock)."""
+    """(..., 3, 3) → (..., 3) URDF roll-pitch-yaw; at pitch = ±π/2 the roll is set to 0 (gimbal lock).
+
+    Exact to rounding everywhere, including next to the lock: the pitch comes from atan2 (arcsin of R₂₀ loses half
+    the digits near ±1), and the yaw is solved given the roll, so the pair stays consistent when both are ill-defined.
+    """
     R = np.asarray(R, dtype=float)
-    pitch = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
-    locked = np.abs(R[..., 2, 0]) > 1 - 1e-12
+    cos_pitch = np.hypot(R[..., 2, 1], R[..., 2, 2])
+    pitch = np.arctan2(-R[..., 2, 0], cos_pitch)
+    # Below 1e-14 the roll is rounding noise; 0 then changes R by at most ~1e-14.
+    locked = cos_pitch < 1e-14
     roll = np.where(locked, 0.0, np.arctan2(R[..., 2, 1], R[..., 2, 2]))
-    yaw = np.where(
-        locked,
-        np.arctan2(-R[..., 0, 1], R[..., 1, 1]),
-        np.arctan2(R[..., 1, 0], R[..., 0, 0]),
-    )
+    cr, sr = np.cos(roll), np.sin(roll)
+    # Second column of R Rx(roll)ᵀ = Rz(yaw) Ry(pitch) e_y = (−sin yaw, cos yaw, 0).
+    yaw = np.arctan2(sr * R[..., 0, 2] - cr * R[..., 0, 1], cr * R[..., 1, 1] - sr * R[..., 1, 2])
     return np.stack([roll, pitch, yaw], axis=-1)
 
 
