@@ -49,6 +49,9 @@ def test_type_table_follows_the_rtde_guide():
     assert rtde_type("output_double_register_47") == "DOUBLE"
     assert rtde_type("output_int_register_48") is None
     assert rtde_type("no_such_thing") is None
+    assert rtde_type("external_force_torque", "input") == "VECTOR6D"
+    assert rtde_type("output_int_register_0", "input") is None, "clients cannot write output registers"
+    assert rtde_type("actual_q", "input") is None
     values = [1.5, [1, 2, 3, 4, 5, 6], -7, True]
     types = ["DOUBLE", "VECTOR6D", "INT32", "BOOL"]
     assert unpack_values(types, pack_values(types, values)) == values

@@ -50,8 +50,10 @@ def test_real_movej_moves_the_simulated_robot(fake, robot):
     robot.move_joints(TARGET, speed=0.5, acceleration=1.0)
     np.testing.assert_allclose(fake.snapshot()["q"], TARGET, atol=1e-9)
     np.testing.assert_allclose(robot.joint_positions(), TARGET, atol=1e-9)
-    moves = [value for kind, value in fake.snapshot()["log"] if kind == "movej"]
+    log = fake.snapshot()["log"]
+    moves = [value for kind, value in log if kind == "movej"]
     assert moves == [{"q": pytest.approx(TARGET.tolist()), "speed": 0.5, "async": False}]
+    assert [entry for entry in log if entry[0] in ("not_found", "unsupported")] == [], "fake missed a request"
 
 
 def test_stop_sends_stopj(fake, robot):

@@ -73,6 +73,19 @@ def test_reads_safety_state_through_the_real_interface(fake, robot):
     assert not robot.state().ready
 
 
+def test_fake_knows_every_variable_of_ur_rtdes_default_recipe(fake):
+    import rtde_receive
+
+    # With no variable list, ur-rtde asks for its full default recipe (~59 names); NOT_FOUND would raise.
+    interface = rtde_receive.RTDEReceiveInterface(fake.host)
+    try:
+        assert eventually(lambda: interface.getTimestamp() > 0)
+        assert interface.getActualQ() == pytest.approx(Q0)
+    finally:
+        interface.disconnect()
+    assert [entry for entry in fake.snapshot()["log"] if entry[0] == "not_found"] == []
+
+
 def test_consecutive_states_have_advancing_timestamps(robot):
     stamps = [robot.state().timestamp for _ in range(5)]
     assert all(b > a for a, b in itertools.pairwise(stamps))

@@ -85,12 +85,24 @@ _FIXED_TYPES: dict[str, str] = {
     "safety_status_bits": "UINT32",
     "output_bit_registers0_to_31": "UINT32",
     "output_bit_registers32_to_63": "UINT32",
+}
+# Inputs (what a client may write), besides input_{int,double,bit}_register_N.
+_INPUT_TYPES: dict[str, str] = {
     "input_bit_registers0_to_31": "UINT32",
     "input_bit_registers32_to_63": "UINT32",
     "standard_digital_output_mask": "UINT8",
     "standard_digital_output": "UINT8",
+    "configurable_digital_output_mask": "UINT8",
+    "configurable_digital_output": "UINT8",
+    "tool_digital_output_mask": "UINT8",
+    "tool_digital_output": "UINT8",
+    "standard_analog_output_mask": "UINT8",
+    "standard_analog_output_type": "UINT8",
+    "standard_analog_output_0": "DOUBLE",
+    "standard_analog_output_1": "DOUBLE",
     "speed_slider_mask": "UINT32",
     "speed_slider_fraction": "DOUBLE",
+    "external_force_torque": "VECTOR6D",
 }
 _REGISTER = re.compile(r"^(input|output)_(int|double|bit)_register_(\d+)$")
 _REGISTER_TYPES = {"int": "INT32", "double": "DOUBLE", "bit": "BOOL"}
@@ -107,12 +119,14 @@ RUNTIME_STOPPED = 1
 RUNTIME_PLAYING = 2
 
 
-def rtde_type(name: str) -> str | None:
-    """RTDE type of a variable name, or None if the fake does not know it (answered as NOT_FOUND)."""
-    if name in _FIXED_TYPES:
-        return _FIXED_TYPES[name]
+def rtde_type(name: str, direction: str = "output") -> str | None:
+    """RTDE type of an output (or, with direction="input", input) name; None if unknown (NOT_FOUND)."""
+    table = _FIXED_TYPES if direction == "output" else _INPUT_TYPES
+    if name in table:
+        return table[name]
     match = _REGISTER.match(name)
-    if match and int(match.group(3)) < 48:
+    # both directions may read the input registers; only outputs may name output registers
+    if match and int(match.group(3)) < 48 and (direction == "output" or match.group(1) == "input"):
         return _REGISTER_TYPES[match.group(2)]
     return None
 
@@ -277,16 +291,15 @@ class _RTDESession:
             names = [n for n in payload[8:].decode("ascii").split(",") if n]
             types = [("NOT_FOUND" if n in self.unknown else rtde_type(n)) or "NOT_FOUND" for n in names]
             recipe = 0 if "NOT_FOUND" in types else len(self.outputs) + 1
+            self._log_not_found("O", names, types)
             if recipe:
                 self.outputs[recipe] = (frequency, names, types)
             self.send("O", struct.pack(">B", recipe) + ",".join(types).encode("ascii"))
         elif kind == "I":
             names = [n for n in payload.decode("ascii").split(",") if n]
-            types = [
-                (rtde_type(n) or "NOT_FOUND") if n.startswith(("input_", "speed_slider", "standard_")) else "NOT_FOUND"
-                for n in names
-            ]
+            types = [rtde_type(n, "input") or "NOT_FOUND" for n in names]
             recipe = 0 if "NOT_FOUND" in types else len(self.inputs) + 1
+            self._log_not_found("I", names, types)
             if recipe:
                 self.inputs[recipe] = (names, types)
             self.send("I", struct.pack(">B", recipe) + ",".join(types).encode("ascii"))
@@ -310,6 +323,12 @@ class _RTDESession:
             text = f"fake controller: unsupported package type {kind!r}".encode("ascii")
             # 'M' text message: uint8 length, text, uint8 source length, source, uint8 warning level (3 = error)
             self.send("M", struct.pack(">B", len(text)) + text + b"\x04fake\x03")
+
+    def _log_not_found(self, kind: str, names: list[str], types: list[str]) -> None:
+        missing = [n for n, t in zip(names, types, strict=True) if t == "NOT_FOUND"]
+        if missing:
+            with self.sim.lock:
+                self.sim.log.append(("not_found", {"recipe": kind, "names": missing}))
 
     def _stream(self) -> None:
         while not self.closed.is_set():
