@@ -13,7 +13,11 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         default=None,
         help="device profile TOML for --tracker-port (default: NDI Polaris)",
     )
-    group.addoption("--robot-host", default=None, help="IP address of a real UR controller (robot will MOVE)")
+    group.addoption(
+        "--robot-host",
+        default=None,
+        help="IP address of a real UR controller (read-only unless LABCAL_ALLOW_MOTION=1 is also set)",
+    )
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
