@@ -119,6 +119,8 @@ def parse(data: dict, source: str = "<dict>") -> RobotSpec:
     rows = []
     for j, row in enumerate(joints, start=1):
         where = f"joints[{j}]"
+        if not isinstance(row, dict):
+            raise fail(f"{where} must be a table, got {row!r}")
         jtype = row.get("type", REVOLUTE)
         if jtype not in (REVOLUTE, PRISMATIC):
             raise fail(f'{where}.type must be "revolute" or "prismatic", got {jtype!r}')
@@ -134,7 +136,7 @@ def parse(data: dict, source: str = "<dict>") -> RobotSpec:
                 raise fail(f"{where}.axis must not be zero")
         if "limits" in row:
             lim = row["limits"]
-            if not (isinstance(lim, list) and len(lim) == 2 and all(isinstance(x, int | float) for x in lim)):
+            if not (isinstance(lim, list) and len(lim) == 2 and all(_is_number(x) for x in lim)):
                 raise fail(f"{where}.limits must be [lo, hi] numbers, got {lim!r}")
             if lim[0] > lim[1]:
                 raise fail(f"{where}.limits: lo {lim[0]} is greater than hi {lim[1]}")
@@ -179,7 +181,7 @@ def _spec(name, model, tool, joints, _unused, source, fail=None) -> RobotSpec:
         row = joints[j] if j < n and j < len(joints) else (tool if j == n else {})
         if "mass" in row:
             m = row["mass"]
-            if not isinstance(m, int | float) or m < 0:
+            if not _is_number(m) or m < 0:
                 raise fail(f"{'tool' if j == n else f'joints[{j + 1}]'}.mass must be a number >= 0, got {m!r}")
             masses[j] = float(m)
         default = origins[j] if j == n else 0.5 * (origins[j] + origins[j + 1])
@@ -187,11 +189,16 @@ def _spec(name, model, tool, joints, _unused, source, fail=None) -> RobotSpec:
     return RobotSpec(name=name, model=model, masses=masses, coms=coms, source=source, hash=model_hash(model))
 
 
+def _is_number(x) -> bool:
+    """A finite int or float; TOML booleans are not numbers here, although Python's bool is an int."""
+    return isinstance(x, int | float) and not isinstance(x, bool) and bool(np.isfinite(x))
+
+
 def _number(row: dict, key: str, where: str, fail) -> float:
     if key not in row:
         raise fail(f"{where}.{key} is missing")
     value = row[key]
-    if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+    if not _is_number(value):
         raise fail(f"{where}.{key} must be a finite number, got {value!r}")
     return float(value)
 
@@ -202,10 +209,6 @@ def _vector(row: dict, key: str, where: str, fail, default) -> np.ndarray:
             raise fail(f"{where}.{key} is missing")
         return np.asarray(default, dtype=float)
     value = row[key]
-    if (
-        not isinstance(value, list)
-        or len(value) != 3
-        or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in value)
-    ):
+    if not isinstance(value, list) or len(value) != 3 or not all(_is_number(x) for x in value):
         raise fail(f"{where}.{key} must be a list of 3 numbers, got {value!r}")
     return np.asarray(value, dtype=float)
