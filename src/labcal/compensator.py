@@ -15,8 +15,12 @@ and :meth:`CalibratedRobot.correct` finds q_cmd with ``T_real(q_cmd) = T_nominal
 eq. (23-24), ``q_cmd = q − δρ_a(q)``; the default ``"newton"`` iterates on the full calibrated forward model and
 is exact for model-based stages too.
 
-This module imports numpy and labcal.kinematics only, so a controller-side process can load an export without
-torch, scipy, pandas or any driver.
+:class:`Compensator` is the deployable form: :meth:`Compensator.load` reads a JSON or NPZ export written by
+:meth:`CalibratedRobot.save` (schema version, robot model and its hash, identified frames, network, joint ranges,
+provenance and golden vectors), re-computes the golden vectors and refuses a file that disagrees.
+
+This module imports numpy, labcal.kinematics and labcal.robots (for the model hash) only, so a controller-side
+process can load an export without torch, scipy, pandas or any driver.
 
 Example::
 
@@ -30,15 +34,28 @@ Example::
 
 from __future__ import annotations
 
+import functools
+import json
+import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from labcal import features as feature_lib
 from labcal.kinematics import se3
-from labcal.kinematics.poe import LocalPOEModel
+from labcal.kinematics.poe import REVOLUTE, LocalPOEModel
+from labcal.robots import model_hash
 
 FEATURES = ("q", "sincos", "sincos2", "gravity")
-_MAX_STEP = 0.02  # rad per Newton step: corrections are milliradians, so larger steps mean a singularity
+_MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so larger steps mean a singularity
+_GN_MAX_STEP = 0.3  # rad: a full Gauss-Newton step this large means a (near-)singular configuration
+
+SCHEMA = "labcal-compensator"
+SCHEMA_VERSION = 1
+GOLDEN_COUNT = 8
+GOLDEN_TOL_Q = 1e-10  # rad (m): a loaded file must reproduce its golden q_cmd to this
+GOLDEN_TOL_POSE = 1e-10  # m / rad-scaled entries of the predicted pose
 
 
 def input_features(q: np.ndarray, names: tuple[str, ...], model: LocalPOEModel) -> np.ndarray:
@@ -48,7 +65,8 @@ def input_features(q: np.ndarray, names: tuple[str, ...], model: LocalPOEModel) 
     - ``sincos``: sin q_j, cos q_j (revolute joints; prismatic joints contribute q_j);
     - ``sincos2``: sin 2q_j, cos 2q_j (twice-per-revolution effects such as gear errors);
     - ``gravity``: the direction of gravity (base −z) in each link frame, 3n numbers: every gravity torque on a
-      joint is a linear function of these for a rigid arm, whatever its mass model.
+      joint is a linear function of these for a rigid arm, whatever its mass model;
+    - any feature of :mod:`labcal.features` (e.g. ``harmonics:H``: sin/cos of h q_j, h = 1 … H).
     """
     q = np.atleast_2d(np.asarray(q, dtype=float))
     revolute = np.array([t == "revolute" for t in model.joint_types])
@@ -64,8 +82,10 @@ def input_features(q: np.ndarray, names: tuple[str, ...], model: LocalPOEModel) 
             frames = model.link_frames(q)[:, 1:]  # frames rigid with links 1..n
             down = -frames[:, :, 2, :3]  # row 2 of R = R^T e_z: base z axis in link coordinates
             parts.append(down.reshape(q.shape[0], -1))
+        elif feature_lib.is_feature(name):
+            parts.append(feature_lib.compute(q, name, model.joint_types, model.limits))
         else:
-            raise ValueError(f"unknown network input feature {name!r}; known: {', '.join(FEATURES)}")
+            raise ValueError(f"unknown network input feature {name!r}; known: {', '.join(FEATURES)}, harmonics:H")
     return np.concatenate(parts, axis=1)
 
 
@@ -99,6 +119,214 @@ class Network:
     def hidden(self) -> tuple[int, ...]:
         return tuple(W.shape[0] for W in self.weights[:-1])
 
+    @functools.cached_property
+    def _folded(self) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+        """Transposed weights with the input/output standardisation folded into the first/last layer."""
+        Ws = [np.array(W, dtype=float) for W in self.weights]
+        bs = [np.array(b, dtype=float) for b in self.biases]
+        W0 = Ws[0] / self.in_scale
+        bs[0] = bs[0] - W0 @ self.in_mean
+        Ws[0] = W0
+        Ws[-1] = Ws[-1] * self.out_scale[:, None]
+        bs[-1] = bs[-1] * self.out_scale + self.out_mean
+        return tuple(np.ascontiguousarray(W.T) for W in Ws), tuple(bs)
+
+    def forward_features(self, x: np.ndarray) -> np.ndarray:
+        """(k, f) raw (un-normalised) features → (k, 6) outputs; the fast path of __call__."""
+        Wt, bs = self._folded
+        h = x
+        last = len(Wt) - 1
+        for i in range(len(Wt)):
+            h = h @ Wt[i]
+            h += bs[i]
+            if i < last:
+                np.tanh(h, out=h)
+        return h
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Fast kernels. The runtime evaluates the chain a few times per correction, so the per-call numpy overhead matters
+# more than the flops: every joint exponential is built in one vectorised step, the chain costs n small matmuls, and
+# small-angle exp/log use series with a handful of array operations.
+
+_I3 = np.eye(3)
+_SKEW = np.zeros((3, 9))  # w @ _SKEW = skew(w).ravel()
+_SKEW[2, 1], _SKEW[1, 2], _SKEW[2, 3], _SKEW[0, 5], _SKEW[1, 6], _SKEW[0, 7] = -1, 1, 1, -1, -1, 1
+_EPS = np.zeros((9, 3))  # outer(a, b).ravel() @ _EPS = a × b
+for _i, _j, _k, _s in ((0, 1, 2, 1), (1, 2, 0, 1), (2, 0, 1, 1), (0, 2, 1, -1), (2, 1, 0, -1), (1, 0, 2, -1)):
+    _EPS[3 * _j + _k, _i] = _s
+_ANTI9 = np.zeros((9, 4))  # R.ravel() @ _ANTI9 = (2 · unskew(R), trace(R))
+_ANTI9[7, 0], _ANTI9[5, 0], _ANTI9[2, 1], _ANTI9[6, 1], _ANTI9[3, 2], _ANTI9[1, 2] = 1, -1, 1, -1, 1, -1
+_ANTI9[0, 3] = _ANTI9[4, 3] = _ANTI9[8, 3] = 1.0
+_SMALL = 1e-2  # rad: below this the series are exact to rounding (as in kinematics.se3)
+
+
+def _exp_small(xi: np.ndarray) -> np.ndarray:
+    """(k, 6) twists → (k, 4, 4); series for rotations below _SMALL, else kinematics.se3."""
+    w = xi[:, 3:]
+    t2 = np.einsum("ka,ka->k", w, w)
+    if t2.size and t2.max() >= _SMALL * _SMALL:
+        return se3.exp_se3(xi)
+    k = xi.shape[0]
+    a = (1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42)))[:, None, None]
+    b = (0.5 - t2 / 24 * (1 - t2 / 30 * (1 - t2 / 56)))[:, None, None]
+    c = (1 / 6 - t2 / 120 * (1 - t2 / 42 * (1 - t2 / 72)))[:, None, None]
+    K = (w @ _SKEW).reshape(k, 3, 3)
+    K2 = K @ K
+    out = np.zeros((k, 4, 4))
+    out[:, :3, :3] = _I3 + a * K + b * K2
+    out[:, :3, 3] = ((_I3 + b * K + c * K2) @ xi[:, :3, None])[:, :, 0]
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def _log_small(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Rotation (k, 3, 3) and translation (k, 3) → (k, 6) twist of the pose; series below _SMALL."""
+    k = R.shape[0]
+    at = R.reshape(k, 9) @ _ANTI9  # (2 · unskew(R), trace(R))
+    anti = 0.5 * at[:, :3]
+    s2 = (anti * anti).sum(axis=1)
+    if s2.max() >= (0.5 * _SMALL) ** 2:
+        T = np.zeros((k, 4, 4))
+        T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, p, 1.0
+        return se3.log_se3(T)
+    theta = np.arctan2(np.sqrt(s2), 0.5 * (at[:, 3] - 1.0))
+    t2 = theta * theta
+    out = np.empty((k, 6))
+    w = out[:, 3:]
+    np.divide(anti, (1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42)))[:, None], out=w)
+    d = (1 / 12 + t2 / 720 + t2 * t2 / 30240)[:, None, None]
+    K = (w @ _SKEW).reshape(k, 3, 3)
+    out[:, :3] = ((_I3 - 0.5 * K + d * (K @ K)) @ p[:, :, None])[:, :, 0]
+    return out
+
+
+def _log_one(dR: np.ndarray, dp: np.ndarray) -> np.ndarray:
+    """_log_small for one pose (3, 3), (3,) → (6,), in Python floats: a dozen numpy calls cost more than the math."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = dR.tolist()
+    px, py, pz = dp.tolist()
+    ax, ay, az = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
+    s2 = ax * ax + ay * ay + az * az
+    if s2 >= (0.5 * _SMALL) ** 2:
+        return _log_small(dR[None], dp[None])[0]
+    theta = math.atan2(math.sqrt(s2), 0.5 * (r00 + r11 + r22 - 1.0))
+    t2 = theta * theta
+    a = 1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42))
+    wx, wy, wz = ax / a, ay / a, az / a
+    d = 1 / 12 + t2 / 720 + t2 * t2 / 30240
+    # V⁻¹ p = p − ½ w × p + d w × (w × p)
+    cx, cy, cz = wy * pz - wz * py, wz * px - wx * pz, wx * py - wy * px
+    ccx, ccy, ccz = wy * cz - wz * cy, wz * cx - wx * cz, wx * cy - wy * cx
+    return np.array([px - 0.5 * cx + d * ccx, py - 0.5 * cy + d * ccy, pz - 0.5 * cz + d * ccz, wx, wy, wz])
+
+
+def _z_to(axis: np.ndarray) -> np.ndarray:
+    """A rotation (3, 3) taking e_z to the unit vector ``axis`` (identity when it already is e_z)."""
+    z = np.array([0.0, 0.0, 1.0])
+    if np.allclose(axis, z, rtol=0, atol=0):
+        return np.eye(3)
+    c = float(axis @ z)
+    if c < -1 + 1e-12:
+        return np.diag([1.0, -1.0, -1.0])
+    v = np.cross(z, axis)
+    K = se3.skew(v)
+    return np.eye(3) + K + K @ K / (1 + c)
+
+
+class _Kernel:
+    """One LocalPOEModel prepared for fast batched FK, link frames and joint twists.
+
+    Every joint is rewritten as a screw about the local z axis: with a constant frame C_j whose z axis is the
+    joint's axis (revolute: through the axis line; pitch h_j = ω·v), ``exp(ξ̂_j q) = C_j Rz(q) Tz(h_j q) C_j⁻¹``
+    (prismatic: ``C_j Tz(q) C_j⁻¹``), and the frames become ``A'_j = C_{j-1}⁻¹ A_j C_j``. Then one step of the chain
+    is ``G_j(q) = Rz(q) Tz(h_j q) A'_{j+1}``: two rows mixed by (cos q, sin q), built for all joints at once, and
+    the chain is n small matmuls. For the usual z-axis twists C_j = I and nothing changes numerically.
+    """
+
+    def __init__(self, model: LocalPOEModel) -> None:
+        n = model.n
+        self.n = n
+        rev = np.array([t == REVOLUTE for t in model.joint_types])
+        self.revolute = rev
+        self.all_revolute = bool(rev.all())
+        C = np.tile(np.eye(4), (n + 1, 1, 1))
+        lin = np.zeros(n)
+        for j in range(n):
+            v, w = model.twists[j, :3], model.twists[j, 3:]
+            if rev[j]:
+                C[j, :3, :3] = _z_to(w)
+                C[j, :3, 3] = np.cross(w, v)
+                lin[j] = float(w @ v)
+            else:
+                C[j, :3, :3] = _z_to(v)
+                lin[j] = 1.0
+        self.identity_C = bool(np.all(C == np.eye(4)))
+        A = np.array(model.frames)
+        if not self.identity_C:
+            C_prev = np.concatenate([np.eye(4)[None], C[:n]])
+            A = se3.inv(C_prev) @ A @ C
+        self.A0 = A[0]
+        self.A_rest = A[1:]  # (n, 4, 4): A'_{j+1}
+        self.row0, self.row1 = A[1:, 0, :].copy(), A[1:, 1, :].copy()
+        self.lin = lin
+        self.has_lin = bool(np.any(lin))
+        self.pitch = np.where(rev, lin, 0.0)
+        self.has_pitch = bool(np.any(self.pitch))
+        self.RC_T = np.ascontiguousarray(C[1 : n + 1, :3, :3].transpose(0, 2, 1))  # for the gravity features
+
+    def chain(self, q: np.ndarray, s: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """(k, n) joints with their sines/cosines → (k, n+1, 4, 4) frames T'_j = K_j C_j before each joint moves.
+
+        The last entry is the tool pose T_base_tool.
+        """
+        k, n = q.shape
+        if not self.all_revolute:
+            s, c = np.where(self.revolute, s, 0.0), np.where(self.revolute, c, 1.0)
+        G = np.empty((k, n, 4, 4))
+        G[:, :, 2:] = self.A_rest[:, 2:]
+        sc, cc = s[:, :, None], c[:, :, None]
+        G[:, :, 0] = cc * self.row0 - sc * self.row1
+        G[:, :, 1] = sc * self.row0 + cc * self.row1
+        if self.has_lin:
+            G[:, :, 2, 3] += self.lin * q
+        out = np.empty((k, n + 1, 4, 4))
+        out[:, 0] = self.A0
+        P = self.A0 @ G[:, 0]
+        out[:, 1] = P
+        for j in range(1, n):
+            P = P @ G[:, j]
+            out[:, j + 1] = P
+        return out
+
+    def twists(self, frames: np.ndarray) -> np.ndarray:
+        """(k, n+1, 4, 4) chain frames → (k, 6, n) actuated joint twists in K0 (v, ω): Ad(T'_j)(h_j e_z, e_z)."""
+        k, n = frames.shape[0], self.n
+        z = frames[:, :n, :3, 2]
+        p = frames[:, :n, :3, 3]
+        J = np.empty((k, 6, n))
+        v = (p[..., :, None] * z[..., None, :]).reshape(k, n, 9) @ _EPS
+        if not self.all_revolute:
+            v = np.where(self.revolute[:, None], v, z)
+            w = np.where(self.revolute[:, None], z, 0.0)
+        else:
+            w = z
+        if self.has_pitch:
+            v = v + self.pitch[:, None] * z
+        J[:, :3] = v.transpose(0, 2, 1)
+        J[:, 3:] = w.transpose(0, 2, 1)
+        return J
+
+    def gravity(self, frames: np.ndarray) -> np.ndarray:
+        """(k, 3n) base −z axis in the frames of links 1..n (the ``gravity`` network feature)."""
+        rows = frames[:, 1:, 2, :3]
+        if not self.identity_C:
+            rows = (rows[:, :, None, :] @ self.RC_T)[:, :, 0]
+        return -rows.reshape(frames.shape[0], -1)
+
+
+def _sincos(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return np.sin(q), np.cos(q)
+
 
 @dataclass(frozen=True, eq=False)
 class CalibratedRobot:
@@ -131,10 +359,10 @@ class CalibratedRobot:
     def _batch(self, q) -> tuple[np.ndarray, bool]:
         q = np.asarray(q, dtype=float)
         single = q.ndim == 1
-        q2 = np.atleast_2d(q)
+        q2 = q[None, :] if single else q
         if q2.ndim != 2 or q2.shape[1] != self.n:
             raise ValueError(f"q must have shape ({self.n},) or (k, {self.n}), got {q.shape}")
-        if not np.all(np.isfinite(q2)):
+        if not np.isfinite(q2).all():
             raise ValueError("q contains non-finite values")
         return q2, single
 
@@ -143,21 +371,84 @@ class CalibratedRobot:
         if extrapolate:
             return
         q2, _ = self._batch(q)
-        lo, hi = self.joint_ranges[:, 0], self.joint_ranges[:, 1]
-        bad = (q2 < lo - 1e-12) | (q2 > hi + 1e-12)
-        if np.any(bad):
-            i, j = np.argwhere(bad)[0]
-            raise ValueError(
-                f"configuration {i}: joint {j + 1} = {q2[i, j]:.6f} is outside the calibrated range "
-                f"[{lo[j]:.6f}, {hi[j]:.6f}]; pass extrapolate=True to correct it anyway"
-            )
+        lo, hi = self._ranges
+        if (q2 >= lo).all() and (q2 <= hi).all():
+            return
+        bad = (q2 < lo) | (q2 > hi)
+        i, j = np.argwhere(bad)[0]
+        raise ValueError(
+            f"configuration {i}: joint {j + 1} = {q2[i, j]:.6f} is outside the calibrated range "
+            f"[{self.joint_ranges[j, 0]:.6f}, {self.joint_ranges[j, 1]:.6f}]; pass extrapolate=True to correct it "
+            "anyway"
+        )
 
+    # -- cached fast-path state (the dataclass is frozen; cached_property writes __dict__ directly) ---------------
+    @functools.cached_property
+    def _ranges(self) -> tuple[np.ndarray, np.ndarray]:
+        r = np.asarray(self.joint_ranges, dtype=float)
+        return r[:, 0] - 1e-12, r[:, 1] + 1e-12
+
+    @functools.cached_property
+    def _kin_model(self) -> _Kernel:
+        return _Kernel(self.model)
+
+    @functools.cached_property
+    def _kin_nominal(self) -> _Kernel:
+        return _Kernel(self.nominal)
+
+    @functools.cached_property
+    def _feature_plan(self) -> tuple:
+        if self.network is None:
+            return ()
+        for name in self.network.features:
+            if name not in FEATURES and not feature_lib.is_feature(name):
+                raise ValueError(f"unknown network input feature {name!r}; known: {', '.join(FEATURES)}, harmonics:H")
+        return tuple(self.network.features)
+
+    def _features(self, q, s, c, initial) -> np.ndarray:
+        """The network inputs of input_features, from quantities the chain walk already computed."""
+        rev = self._kin_model.revolute
+        allrev = self._kin_model.all_revolute
+        parts = []
+        for name in self._feature_plan:
+            if name == "q":
+                parts.append(q)
+            elif name == "sincos":
+                parts += [s, c] if allrev else [np.where(rev, s, q), np.where(rev, c, 0.0)]
+            elif name == "sincos2":
+                s2, c2 = 2.0 * s * c, c * c - s * s
+                parts += [s2, c2] if allrev else [np.where(rev, s2, 0.0), np.where(rev, c2, 0.0)]
+            elif name == "gravity":
+                parts.append(self._kin_model.gravity(initial))
+            else:
+                parts.append(feature_lib.compute(q, name, self.model.joint_types, self.model.limits))
+        return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+
+    def _evaluate(self, q2: np.ndarray, need_twists: bool = True):
+        """One walk of the identified chain: (initial frames, actuated twists J (k, 6, n) or None, dy (k, 6) or None).
+
+        dy = J_ρ δρ is the pose error twist the network predicts on top of the model (eq. 14).
+        """
+        s, c = _sincos(q2)
+        kin = self._kin_model
+        initial = kin.chain(q2, s, c)
+        J = kin.twists(initial) if (need_twists or self.network is not None) else None
+        dy = None
+        if self.network is not None:
+            rho = self.network.forward_features(self._features(q2, s, c, initial))
+            J_rho = J if self.n >= 6 else self.model.equivalent_jacobian(q2, length_scale=self.length_scale)
+            dy = (J_rho @ rho[:, :, None])[:, :, 0]
+        return initial, J, dy
+
+    # -- public model ------------------------------------------------------------------------------------------
     def joint_motion_errors(self, q) -> np.ndarray:
         """(k, 6) predicted joint motion errors δρ(q) of the equivalent robot (zeros without a network)."""
         q2, _ = self._batch(q)
         if self.network is None:
             return np.zeros((q2.shape[0], 6))
-        return self.network(q2, self.model)
+        s, c = _sincos(q2)
+        initial = self._kin_model.chain(q2, s, c)
+        return self.network.forward_features(self._features(q2, s, c, initial))
 
     def equivalent_jacobian(self, q) -> np.ndarray:
         """(k, 6, 6) J_ρ of the identified model (actuated + virtual joints, eq. 12-14)."""
@@ -170,15 +461,11 @@ class CalibratedRobot:
         return T[0] if single else T
 
     def _predict(self, q2: np.ndarray) -> np.ndarray:
-        if self.network is None:
-            return self.model.fk(q2)
-        if self.n >= 6:
-            T, J = self.model.fk_and_twists(q2)
-        else:
-            T = self.model.fk(q2)
-            J = self.equivalent_jacobian(q2)
-        dy = np.einsum("kab,kb->ka", J, self.network(q2, self.model))
-        return se3.exp_se3(dy) @ T
+        initial, _, dy = self._evaluate(q2, need_twists=False)
+        T = initial[:, -1]
+        if dy is None:
+            return T.copy()
+        return _exp_small(dy) @ T
 
     def predict_points(self, q, targets) -> np.ndarray:
         """(k, m, 3) predicted target positions in the base frame (targets (m, 3) in the tool frame)."""
@@ -193,14 +480,17 @@ class CalibratedRobot:
         *,
         method: str = "newton",
         iterations: int = 10,
-        tol: float = 1e-10,
+        tol: float = 1e-11,
         extrapolate: bool = False,
     ) -> np.ndarray:
         """Joint commands that make the real robot reach the nominal pose of q. (n,) or (k, n), like q.
 
         method: ``"newton"`` (default) solves ``T_real(q_cmd) = T_nominal(q)`` by Gauss-Newton on the calibrated
-        forward model (least squares in a length-scaled metric for n < 6: only actuated joints are corrected);
-        ``"paper"`` is eq. (24), q − δρ_a(q); ``"fixed-point"`` iterates q_cmd = q − δρ_a(q_cmd).
+        forward model (least squares in a length-scaled metric for n < 6: only actuated joints are corrected),
+        stopping when the estimated distance to the solution is below ``tol`` (rad); configurations where a full
+        step does not reduce the pose error (near a singularity) are re-solved by a damped (Levenberg-Marquardt)
+        iteration that never makes the error worse than at q. ``"paper"`` is eq. (24), q − δρ_a(q);
+        ``"fixed-point"`` iterates q_cmd = q − δρ_a(q_cmd).
         """
         q2, single = self._batch(q)
         self.check_range(q2, extrapolate)
@@ -216,35 +506,131 @@ class CalibratedRobot:
                 if done:
                     break
         elif method == "newton":
-            out = self._newton(q2, iterations, tol)
+            out = self._gauss_newton(q2, iterations, tol)
         else:
             raise ValueError(f"method must be 'newton', 'paper' or 'fixed-point', got {method!r}")
         return out[0] if single else out
 
-    def _pose_and_jacobian(self, q2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted poses (k, 4, 4) and the actuated joint twists (k, 6, n) of the identified model."""
-        T, J = self.model.fk_and_twists(q2)
-        if self.network is not None:
-            J_rho = J if self.n >= 6 else self.equivalent_jacobian(q2)
-            T = se3.exp_se3(np.einsum("kab,kb->ka", J_rho, self.network(q2, self.model))) @ T
-        return T, J
+    def _residual(self, qc: np.ndarray, T_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pose residual r (k, 6) and the model's joint twists J (k, 6, n) at q_cmd.
 
-    def _newton(self, q2: np.ndarray, iterations: int, tol: float) -> np.ndarray:
+        r = log(T_target T_model⁻¹) − J_ρ δρ: zero exactly when exp(J_ρ δρ) T_model = T_target, and it needs no
+        exponential of the network's correction. Its Jacobian is −J up to O(|r| + |dδρ/dq|) ≈ 1e-3, so Gauss-Newton
+        gains about three digits per step.
+        """
+        initial, J, dy = self._evaluate(qc)
+        T = initial[:, -1]
+        if dy is not None and self.n < 6:
+            # A least-squares problem: keep the exact residual log(T_target T_real⁻¹) (its minimiser is what the
+            # length-scaled metric defines; the difference form above has the same zero but not the same minimum).
+            T = _exp_small(dy) @ T
+            dy = None
+        Rm, pm = T[:, :3, :3], T[:, :3, 3]
+        Rt, pt = T_target[:, :3, :3], T_target[:, :3, 3]
+        dR = Rt @ Rm.transpose(0, 2, 1)
+        dp = pt - (dR @ pm[:, :, None])[:, :, 0]
+        r = _log_small(dR, dp)
+        if dy is not None:
+            r -= dy
+        return r, J
+
+    def _gauss_newton(self, q2: np.ndarray, iterations: int, tol: float) -> np.ndarray:
+        """Gauss-Newton from q on the rows still moving; rows where a full step fails go to Levenberg-Marquardt.
+
+        A row stops when its estimated distance to the solution, |step| ρ / (1 − ρ) with ρ the ratio of its last
+        two steps (linear convergence, ρ ≈ 1e-3 here), is below tol. A row fails when its steps stop contracting
+        (a step more than half the previous one), are not finite or exceed _GN_MAX_STEP: that is a (near-)singular
+        configuration, solved by the damped iteration instead.
+        """
+        k, n = q2.shape
+        if k == 1 and n >= 6:
+            return self._gauss_newton_single(q2, iterations, tol)
+        s, c = _sincos(q2)
+        T_target = self._kin_nominal.chain(q2, s, c)[:, -1]
+        scale = None if n >= 6 else np.array([1.0 / self.length_scale] * 3 + [1.0] * 3)
+        out = q2.copy()
+        active = np.arange(k)
+        prev_step = np.full(k, np.inf)
+        failed = np.zeros(k, dtype=bool)
+        for _ in range(max(iterations, 1)):
+            qa, Ta = out[active], T_target[active]
+            r, J = self._residual(qa, Ta)
+            if scale is not None:
+                r, J = r * scale, J * scale[:, None]
+            try:
+                if n >= 6:
+                    step = np.linalg.solve(J, r[:, :, None])[:, :, 0]
+                else:
+                    Jt = J.transpose(0, 2, 1)
+                    step = np.linalg.solve(Jt @ J, Jt @ r[:, :, None])[:, :, 0]
+            except np.linalg.LinAlgError:
+                step = np.full((len(active), n), np.nan)
+            size = np.abs(step).max(axis=1)
+            prev = prev_step[active]
+            bad = ~(size <= np.minimum(_GN_MAX_STEP, 0.5 * prev))
+            ratio = np.where(np.isfinite(prev), np.minimum(size / np.maximum(prev, 1e-300), 0.5), 0.5)
+            done = (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol)
+            step[bad] = 0.0
+            out[active] += step
+            failed[active[bad]] = True
+            prev_step[active] = size
+            active = active[~(bad | done)]
+            if active.size == 0:
+                break
+        # Rows still contracting after the iteration budget keep their Gauss-Newton result.
+        if failed.any():
+            idx = np.flatnonzero(failed)
+            out[idx] = self._levenberg_marquardt(q2[idx], T_target[idx], max(iterations, 10) * 3, tol)
+        return out
+
+    def _residual_single(self, qc: np.ndarray, T_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """_residual for one configuration: qc (1, n), T_target (4, 4) → r (6,), J (6, n)."""
+        initial, J, dy = self._evaluate(qc)
+        T = initial[0, -1]
+        dR = T_target[:3, :3] @ T[:3, :3].T
+        r = _log_one(dR, T_target[:3, 3] - dR @ T[:3, 3])
+        if dy is not None:
+            r -= dy[0]
+        return r, J[0]
+
+    def _gauss_newton_single(self, q2: np.ndarray, iterations: int, tol: float) -> np.ndarray:
+        """_gauss_newton for one configuration of a 6-joint robot, with scalar bookkeeping (same iterates)."""
+        s, c = _sincos(q2)
+        T_target = self._kin_nominal.chain(q2, s, c)[:, -1]
+        out = q2.copy()
+        row = out[0]
+        prev_step = float("inf")
+        solve = np.linalg.solve
+        for _ in range(max(iterations, 1)):
+            r0, J = self._residual_single(out, T_target[0])
+            try:
+                step = solve(J, r0)
+            except np.linalg.LinAlgError:
+                break
+            size = float(np.abs(step).max())
+            if not size <= min(_GN_MAX_STEP, 0.5 * prev_step):
+                break
+            row += step
+            ratio = min(size / prev_step, 0.5) if prev_step < float("inf") else 0.5
+            if size * ratio / (1 - ratio) < tol or size < 1e-3 * tol:
+                return out
+            prev_step = size
+        else:
+            return out  # iteration budget spent while still contracting: keep it
+        return self._levenberg_marquardt(q2, T_target, max(iterations, 10) * 3, tol)
+
+    def _levenberg_marquardt(self, q2: np.ndarray, target: np.ndarray, iterations: int, tol: float) -> np.ndarray:
         """Levenberg-Marquardt on ``T_real(q_cmd) = T_nominal(q)`` in a length-scaled metric.
 
         A step is kept only where it lowers the pose error, so near a singularity the correction degrades to
         "no worse than the start" instead of running away.
         """
-        target = self.nominal.fk(q2)
         out = q2.copy()
-        if self.network is not None:
-            out = out - self.joint_motion_errors(out)[:, : self.n]  # eq. (24) as the first guess
         scale = np.array([1.0 / self.length_scale] * 3 + [1.0] * 3)
 
         def residual(qc):
-            T, J = self._pose_and_jacobian(qc)
-            # dδρ/dq is second order and left out of the Jacobian.
-            return se3.log_se3(target @ se3.inv(T)) * scale, J * scale[:, None]
+            r, J = self._residual(qc, target)
+            return r * scale, J * scale[:, None]
 
         err, J = residual(out)
         cost = np.sum(err * err, axis=1)
@@ -265,3 +651,294 @@ class CalibratedRobot:
             if np.max(np.abs(step[ok]), initial=0.0) < tol and np.all(ok | (lam > 1e6)):
                 break
         return out
+
+    # -- export ------------------------------------------------------------------------------------------------
+    def save(self, path, provenance: dict | None = None) -> Path:
+        """Write this robot as a compensator export (``.json`` or ``.npz`` by extension); returns the path."""
+        return save(self, path, provenance)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Export files
+
+
+class CompensatorFileError(ValueError):
+    """A compensator export is unreadable, has the wrong schema, or fails its own golden vectors."""
+
+
+def _model_dict(model: LocalPOEModel) -> dict:
+    return {
+        "name": model.name,
+        "joint_names": list(model.joint_names),
+        "joint_types": list(model.joint_types),
+        "frames": model.frames.tolist(),
+        "twists": model.twists.tolist(),
+        "limits": model.limits.tolist(),
+    }
+
+
+def _model_from(d: dict, what: str) -> LocalPOEModel:
+    try:
+        return LocalPOEModel(
+            np.asarray(d["frames"], dtype=float),
+            tuple(d["joint_types"]),
+            np.asarray(d["twists"], dtype=float),
+            np.asarray(d["limits"], dtype=float),
+            str(d.get("name", "")),
+            tuple(d.get("joint_names", ())),
+        )
+    except (KeyError, TypeError, ValueError) as err:
+        raise CompensatorFileError(f"{what}: not a valid robot model: {err}") from err
+
+
+def golden_configurations(robot: CalibratedRobot, count: int = GOLDEN_COUNT, seed: int = 0) -> np.ndarray:
+    """(count, n) well-conditioned configurations inside the robot's joint ranges, deterministic for a seed."""
+    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
+    rng = np.random.default_rng(seed)
+    cand = lo + (hi - lo) * rng.uniform(0.1, 0.9, size=(32 * count, robot.n))
+    J = robot.model.equivalent_jacobian(cand, length_scale=robot.length_scale)
+    D = np.array([1.0 / robot.length_scale] * 3 + [1.0] * 3)
+    cond = np.linalg.cond(D[None, :, None] * J)
+    keep = cand[np.argsort(cond, kind="stable")[:count]]
+    return keep
+
+
+def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
+    """Everything an export holds, as JSON-ready Python data (lists and numbers)."""
+    q = golden_configurations(robot)
+    net = robot.network
+    return {
+        "format": SCHEMA,
+        "schema_version": SCHEMA_VERSION,
+        "robot": {**_model_dict(robot.nominal), "hash": model_hash(robot.nominal)},
+        "model": {**_model_dict(robot.model), "hash": model_hash(robot.model)},
+        "network": None
+        if net is None
+        else {
+            "features": list(net.features),
+            "weights": [np.asarray(W, float).tolist() for W in net.weights],
+            "biases": [np.asarray(b, float).tolist() for b in net.biases],
+            "in_mean": np.asarray(net.in_mean, float).tolist(),
+            "in_scale": np.asarray(net.in_scale, float).tolist(),
+            "out_mean": np.asarray(net.out_mean, float).tolist(),
+            "out_scale": np.asarray(net.out_scale, float).tolist(),
+        },
+        "length_scale": float(robot.length_scale),
+        "joint_ranges": np.asarray(robot.joint_ranges, float).tolist(),
+        "T_tracker_base": np.asarray(robot.T_tracker_base, float).tolist(),
+        "method": robot.method,
+        "provenance": dict(provenance or {}),
+        "golden": {
+            "correct_method": "newton",
+            "q": q.tolist(),
+            "q_cmd": robot.correct(q, extrapolate=True).tolist(),
+            "pose": robot.predict_pose(q).tolist(),
+        },
+    }
+
+
+def from_payload(data: dict, source: str = "<payload>") -> tuple[CalibratedRobot, dict]:
+    """Rebuild (robot, payload) from export data; checks schema, model hash and golden vectors."""
+    if not isinstance(data, dict) or data.get("format") != SCHEMA:
+        raise CompensatorFileError(f"{source}: not a labcal compensator export (format field is not {SCHEMA!r})")
+    version = data.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise CompensatorFileError(
+            f"{source}: schema_version {version!r} is not supported (this labcal reads {SCHEMA_VERSION})"
+        )
+    try:
+        nominal = _model_from(data["robot"], f"{source}: robot")
+        model = _model_from(data["model"], f"{source}: model")
+        if model_hash(nominal) != data["robot"].get("hash"):
+            raise CompensatorFileError(f"{source}: robot model does not match its hash (file edited or damaged)")
+        net = None
+        nd = data.get("network")
+        if nd is not None:
+            net = Network(
+                features=tuple(nd["features"]),
+                weights=tuple(np.asarray(W, dtype=float) for W in nd["weights"]),
+                biases=tuple(np.asarray(b, dtype=float) for b in nd["biases"]),
+                in_mean=np.asarray(nd["in_mean"], dtype=float),
+                in_scale=np.asarray(nd["in_scale"], dtype=float),
+                out_mean=np.asarray(nd["out_mean"], dtype=float),
+                out_scale=np.asarray(nd["out_scale"], dtype=float),
+            )
+        robot = CalibratedRobot(
+            nominal=nominal,
+            model=model,
+            network=net,
+            T_tracker_base=np.asarray(data["T_tracker_base"], dtype=float).reshape(4, 4),
+            joint_ranges=np.asarray(data["joint_ranges"], dtype=float).reshape(nominal.n, 2),
+            length_scale=float(data["length_scale"]),
+            method=str(data.get("method", "")),
+        )
+        golden = data["golden"]
+        if np.size(golden["q"]) == 0:
+            raise CompensatorFileError(f"{source}: no golden vectors to verify the file against")
+        q = np.asarray(golden["q"], dtype=float).reshape(-1, nominal.n)
+        q_cmd = np.asarray(golden["q_cmd"], dtype=float).reshape(q.shape)
+        pose = np.asarray(golden["pose"], dtype=float).reshape(q.shape[0], 4, 4)
+    except CompensatorFileError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError) as err:
+        raise CompensatorFileError(f"{source}: missing or malformed field: {err!r}") from err
+    if q.shape[0] == 0:
+        raise CompensatorFileError(f"{source}: no golden vectors to verify the file against")
+    try:
+        got_q = robot.correct(q, method=golden.get("correct_method", "newton"), extrapolate=True)
+        got_pose = robot.predict_pose(q)
+    except (ValueError, np.linalg.LinAlgError) as err:
+        raise CompensatorFileError(f"{source}: cannot evaluate the golden vectors: {err}") from err
+    dq = float(np.max(np.abs(got_q - q_cmd)))
+    dT = float(np.max(np.abs(got_pose - pose)))
+    if not (dq <= GOLDEN_TOL_Q and dT <= GOLDEN_TOL_POSE):
+        raise CompensatorFileError(
+            f"{source}: golden vectors disagree with the stored model (max |Δq_cmd| = {dq:.3g} rad, "
+            f"max |Δpose| = {dT:.3g}); the file was edited or damaged — refusing to load it"
+        )
+    return robot, data
+
+
+def save(robot: CalibratedRobot, path, provenance: dict | None = None) -> Path:
+    """Write a compensator export: ``.json`` (text) or ``.npz`` (arrays; metadata as a JSON string, no pickle)."""
+    path = Path(path)
+    payload = to_payload(robot, provenance)
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        path.write_text(json.dumps(payload, indent=1) + "\n")
+    elif suffix == ".npz":
+        arrays: dict[str, np.ndarray] = {}
+        meta = _split_arrays(payload, "", arrays)
+        arrays["__meta__"] = np.array(json.dumps(meta))
+        with open(path, "wb") as fh:
+            np.savez(fh, **arrays)
+    else:
+        raise ValueError(f"compensator export path must end in .json or .npz, got {path.name!r}")
+    return path
+
+
+_ARRAY_KEYS = {"frames", "twists", "limits", "in_mean", "in_scale", "out_mean", "out_scale", "joint_ranges"}
+_ARRAY_KEYS |= {"T_tracker_base", "q", "q_cmd", "pose"}
+
+
+def _split_arrays(obj, prefix: str, arrays: dict):
+    """Move numeric arrays out of the payload into ``arrays`` (referenced as {"$array": key})."""
+    if isinstance(obj, dict):
+        out = {}
+        for key, value in obj.items():
+            name = f"{prefix}{key}"
+            if key in _ARRAY_KEYS and value is not None:
+                arrays[name] = np.asarray(value, dtype=float)
+                out[key] = {"$array": name}
+            elif key in ("weights", "biases") and isinstance(value, list):
+                refs = []
+                for i, item in enumerate(value):
+                    arrays[f"{name}.{i}"] = np.asarray(item, dtype=float)
+                    refs.append({"$array": f"{name}.{i}"})
+                out[key] = refs
+            elif key == "provenance":
+                out[key] = value  # JSON-able metadata, kept as is
+            else:
+                out[key] = _split_arrays(value, f"{name}.", arrays)
+        return out
+    return obj
+
+
+def _join_arrays(obj, arrays):
+    if isinstance(obj, dict):
+        if set(obj) == {"$array"}:
+            name = obj["$array"]
+            if name not in arrays:
+                raise CompensatorFileError(f"array {name!r} referenced by the metadata is missing")
+            return arrays[name]
+        return {k: _join_arrays(v, arrays) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_join_arrays(v, arrays) for v in obj]
+    return obj
+
+
+def read_payload(path) -> dict:
+    """The raw payload of a JSON or NPZ export (arrays as numpy arrays for NPZ), unverified."""
+    path = Path(path)
+    if not path.is_file():
+        raise CompensatorFileError(f"{path}: no such compensator file")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".json":
+            return json.loads(path.read_text())
+        if suffix == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {name: z[name] for name in z.files}
+            if "__meta__" not in arrays:
+                raise CompensatorFileError(f"{path}: NPZ file has no __meta__ entry (not a labcal export)")
+            meta = json.loads(str(arrays.pop("__meta__")))
+            return _join_arrays(meta, arrays)
+    except CompensatorFileError:
+        raise
+    except (OSError, ValueError, UnicodeDecodeError) as err:
+        raise CompensatorFileError(f"{path}: cannot read the export: {err}") from err
+    raise CompensatorFileError(f"{path}: a compensator export ends in .json or .npz")
+
+
+class Compensator:
+    """The deployable runtime of a calibration: correct joint commands, predict poses. Numpy only.
+
+    Example::
+
+        comp = Compensator.load("ur10-hybrid.json")   # verifies schema, model hash and golden vectors
+        q_cmd = comp.correct(q)                        # (n,) or (k, n) rad; refuses q outside the trained ranges
+        T = comp.predict_pose(q_cmd)                   # (4, 4) base frame: where the real robot goes
+        comp.T_tracker_base                            # (4, 4) base pose in the tracker frame
+    """
+
+    def __init__(self, robot: CalibratedRobot, provenance: dict | None = None, source: str = "") -> None:
+        self.robot = robot
+        self.provenance = dict(provenance or {})
+        self.source = source
+
+    @classmethod
+    def load(cls, path) -> Compensator:
+        """Read and verify a ``.json`` / ``.npz`` export; CompensatorFileError if it is damaged or edited."""
+        data = read_payload(path)
+        robot, data = from_payload(data, str(path))
+        return cls(robot, data.get("provenance") or {}, str(path))
+
+    def save(self, path) -> Path:
+        return save(self.robot, path, self.provenance)
+
+    @property
+    def n(self) -> int:
+        return self.robot.n
+
+    @property
+    def method(self) -> str:
+        return self.robot.method
+
+    @property
+    def joint_ranges(self) -> np.ndarray:
+        """(n, 2) the joint ranges the calibration covered (rad, m)."""
+        return self.robot.joint_ranges
+
+    @property
+    def T_tracker_base(self) -> np.ndarray:
+        """(4, 4) the pose of the robot base in the tracker frame (identity for base-frame data)."""
+        return self.robot.T_tracker_base
+
+    @property
+    def robot_hash(self) -> str:
+        """sha256 of the nominal robot model (labcal.robots.model_hash)."""
+        return model_hash(self.robot.nominal)
+
+    def correct(self, q, *, extrapolate: bool = False, method: str = "newton") -> np.ndarray:
+        """Commanded joints (n,) or (k, n) that make the real robot reach the nominal pose of q."""
+        return self.robot.correct(q, extrapolate=extrapolate, method=method)
+
+    def predict_pose(self, q, *, extrapolate: bool = False) -> np.ndarray:
+        """Pose (4, 4) or (k, 4, 4) in the base frame that the real robot reaches when commanded q."""
+        self.robot.check_range(q, extrapolate)
+        return self.robot.predict_pose(q)
+
+
+def load(path) -> Compensator:
+    """Shorthand for :meth:`Compensator.load`."""
+    return Compensator.load(path)

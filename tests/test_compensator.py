@@ -1,0 +1,267 @@
+"""The compensator runtime: fast kernels agree with the kinematics reference, correct() solves the calibrated
+forward model, exports round-trip and refuse damaged files, and the import stays numpy-only."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from labcal.compensator import (
+    CalibratedRobot,
+    Compensator,
+    CompensatorFileError,
+    Network,
+    input_features,
+)
+from labcal.kinematics import se3
+from labcal.robots import load
+
+
+def make_network(model, features, hidden=8, seed=0, out=0.5e-3) -> Network:
+    rng = np.random.default_rng(seed)
+    f = input_features(np.zeros((1, model.n)), features, model).shape[1]
+    return Network(
+        features=tuple(features),
+        weights=(rng.normal(size=(hidden, f)) / np.sqrt(f), rng.normal(size=(6, hidden)) / np.sqrt(hidden)),
+        biases=(rng.normal(size=hidden) * 0.1, rng.normal(size=6) * 0.1),
+        in_mean=rng.normal(size=f) * 0.1,
+        in_scale=rng.uniform(0.5, 2.0, size=f),
+        out_mean=rng.normal(size=6) * 1e-4,
+        out_scale=np.full(6, out),
+    )
+
+
+def hybrid(robot="ur10", features=("q", "sincos", "sincos2", "gravity"), seed=0, odd_twists=False):
+    nominal = load(robot).model
+    rng = np.random.default_rng(seed)
+    model = nominal.perturbed(rng.normal(size=(nominal.n + 1, 6)) * 0.5e-3)
+    if odd_twists:  # axes off z, a shifted axis line and a screw pitch: exercises the general joint path
+        tw = model.twists.copy()
+        for j, t in enumerate(model.joint_types):
+            if t == "revolute":
+                w = tw[j, 3:] + rng.normal(size=3) * 1e-2
+                tw[j, 3:] = w / np.linalg.norm(w)
+                tw[j, :3] = rng.normal(size=3) * 1e-2
+            else:
+                d = tw[j, :3] + rng.normal(size=3) * 1e-2
+                tw[j, :3] = d / np.linalg.norm(d)
+        model = model.replace(twists=tw)
+    return CalibratedRobot(nominal, model, make_network(model, features, seed=seed), method="hybrid")
+
+
+def sample(robot: CalibratedRobot, k: int, seed: int, max_cond: float = 100.0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
+    lo, hi = np.maximum(lo, -np.pi), np.minimum(hi, np.pi)
+    q = lo + (hi - lo) * rng.uniform(size=(20 * k, robot.n))
+    J = robot.model.equivalent_jacobian(q, length_scale=robot.length_scale)
+    D = np.array([1 / robot.length_scale] * 3 + [1.0] * 3)
+    return q[np.linalg.cond(D[None, :, None] * J) < max_cond][:k]
+
+
+def reference_predict(robot: CalibratedRobot, q):
+    """T_real = exp((J_ρ δρ)^) T_model from the plain kinematics functions (no fast kernels)."""
+    T = robot.model.fk(q)
+    J = robot.model.equivalent_jacobian(q, length_scale=robot.length_scale)
+    rho = robot.network(q, robot.model)
+    return se3.exp_se3(np.einsum("kab,kb->ka", J, rho)) @ T
+
+
+@pytest.mark.parametrize("name,odd", [("ur10", False), ("ur10", True), ("scara4", False), ("scara4", True)])
+def test_fast_kernels_match_the_kinematics_reference(name, odd):
+    robot = hybrid(name, odd_twists=odd)
+    q = sample(robot, 50, seed=1, max_cond=1e9)
+    np.testing.assert_allclose(robot.predict_pose(q), reference_predict(robot, q), atol=1e-13)
+    np.testing.assert_allclose(robot.joint_motion_errors(q), robot.network(q, robot.model), atol=1e-15)
+    initial, J, _ = robot._evaluate(q)
+    np.testing.assert_allclose(J, robot.model.joint_twists(q), atol=1e-13)
+    np.testing.assert_allclose(initial[:, -1], robot.model.fk(q), atol=1e-13)
+
+
+@pytest.mark.parametrize("name", ["ur10", "fanuc-m1000ia"])
+def test_correct_reaches_the_nominal_pose_and_matches_the_converged_solution(name):
+    robot = hybrid(name)
+    q = sample(robot, 200, seed=2)
+    q_cmd = robot.correct(q)
+    residual = se3.log_se3(robot.nominal.fk(q) @ se3.inv(robot.predict_pose(q_cmd)))
+    assert np.max(np.abs(residual)) < 1e-10
+    converged = robot.correct(q, iterations=60, tol=1e-16)
+    assert np.max(np.abs(q_cmd - converged)) <= 1e-9
+    # single-configuration path: same answer
+    for i in range(0, 200, 20):
+        np.testing.assert_allclose(robot.correct(q[i]), converged[i], atol=1e-9)
+    # the correction is real: milliradians, not zero
+    assert 1e-4 < np.max(np.abs(q_cmd - q)) < 0.1
+
+
+def test_correct_lower_mobility_robot_is_least_squares_on_actuated_joints():
+    robot = hybrid("scara4")
+    q = sample(robot, 40, seed=3, max_cond=1e4)
+    q_cmd = robot.correct(q)
+    # At the least-squares solution the scaled residual is orthogonal to the actuated joint twists.
+    scale = np.array([1 / robot.length_scale] * 3 + [1.0] * 3)
+    r = se3.log_se3(robot.nominal.fk(q) @ se3.inv(robot.predict_pose(q_cmd))) * scale
+    J = robot.model.joint_twists(q_cmd) * scale[:, None]
+    assert np.max(np.abs(np.einsum("kai,ka->ki", J, r))) < 1e-9
+    assert np.max(np.abs(q_cmd - q)) > 1e-5
+
+
+def test_singular_configuration_is_no_worse_than_uncorrected():
+    robot = hybrid("ur10")
+    q = np.array([[0.3, -1.2, 1.1, -1.3, 0.0, 0.4], [0.1, -1.0, 0.0, -1.0, 1.0, 0.2]])  # wrist / elbow singular
+    q_cmd = robot.correct(q)
+    assert np.all(np.isfinite(q_cmd))
+    scale = np.array([1 / robot.length_scale] * 3 + [1.0] * 3)
+
+    def err(x):
+        return np.linalg.norm(se3.log_se3(robot.nominal.fk(q) @ se3.inv(robot.predict_pose(x))) * scale, axis=1)
+
+    assert np.all(err(q_cmd) <= err(q) + 1e-15)
+
+
+def test_paper_method_is_eq_24_and_batch_shapes():
+    robot = hybrid("ur10")
+    q = sample(robot, 5, seed=4)
+    np.testing.assert_allclose(robot.correct(q, method="paper"), q - robot.network(q, robot.model)[:, :6])
+    assert robot.correct(q[0]).shape == (6,)
+    assert robot.correct(q).shape == (5, 6)
+    assert robot.predict_pose(q[0]).shape == (4, 4)
+    with pytest.raises(ValueError, match="method"):
+        robot.correct(q, method="magic")
+    with pytest.raises(ValueError, match="shape"):
+        robot.correct(np.zeros(5))
+
+
+def test_joint_range_refusal_names_configuration_and_joint():
+    nominal = load("ur10").model
+    ranges = np.tile([-1.0, 1.0], (6, 1))
+    robot = CalibratedRobot(nominal, nominal, joint_ranges=ranges)
+    q = np.zeros((3, 6))
+    q[2, 4] = 1.5
+    with pytest.raises(ValueError, match=r"configuration 2: joint 5 = 1\.500000 is outside"):
+        robot.correct(q)
+    np.testing.assert_allclose(robot.correct(q, extrapolate=True), q, atol=1e-15)  # uncalibrated: identity
+
+
+def test_harmonics_features_are_evaluated_by_the_runtime():
+    nominal = load("ur10").model
+    robot = CalibratedRobot(nominal, nominal, make_network(nominal, ("harmonics:3",)), method="series")
+    q = sample(robot, 20, seed=5)
+    np.testing.assert_allclose(robot.joint_motion_errors(q), robot.network(q, nominal), atol=1e-15)
+    assert input_features(q, ("harmonics:3",), nominal).shape == (20, 36)
+
+
+# -- export files ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("suffix", [".json", ".npz"])
+def test_save_load_round_trip(tmp_path, suffix):
+    robot = hybrid("ur10")
+    robot = CalibratedRobot(
+        robot.nominal,
+        robot.model,
+        robot.network,
+        T_tracker_base=se3.pose([1.0, 2.0, 0.5], [0.1, 0.2, 0.3]),
+        joint_ranges=np.tile([-3.0, 3.0], (6, 1)),
+        method="hybrid",
+    )
+    path = robot.save(tmp_path / f"c{suffix}", provenance={"session": "S@v001", "fit_id": "f1"})
+    comp = Compensator.load(path)
+    q = sample(robot, 30, seed=6)
+    np.testing.assert_array_equal(comp.correct(q), robot.correct(q))
+    np.testing.assert_array_equal(comp.predict_pose(q), robot.predict_pose(q))
+    np.testing.assert_array_equal(comp.T_tracker_base, robot.T_tracker_base)
+    np.testing.assert_array_equal(comp.joint_ranges, robot.joint_ranges)
+    assert comp.provenance == {"session": "S@v001", "fit_id": "f1"}
+    assert comp.method == "hybrid" and comp.robot_hash == load("ur10").hash
+    with pytest.raises(ValueError, match="outside the calibrated range"):
+        comp.correct(np.full(6, 3.1))
+    assert comp.correct(np.full(6, 3.1), extrapolate=True).shape == (6,)
+
+
+def test_local_poe_only_export_round_trip(tmp_path):
+    nominal = load("fanuc-m1000ia").model
+    model = nominal.perturbed(np.random.default_rng(0).normal(size=(7, 6)) * 1e-3)
+    robot = CalibratedRobot(nominal, model, method="local-poe")
+    comp = Compensator.load(robot.save(tmp_path / "x.json"))
+    assert comp.robot.network is None
+    q = sample(robot, 10, seed=7)
+    np.testing.assert_array_equal(comp.correct(q), robot.correct(q))
+
+
+def _tamper_json(path, edit):
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+
+
+def test_tampered_weight_is_refused(tmp_path):
+    path = hybrid("ur10").save(tmp_path / "c.json")
+
+    def edit(d):
+        d["network"]["weights"][0][3][2] *= 1.0 + 1e-6
+
+    _tamper_json(path, edit)
+    with pytest.raises(CompensatorFileError, match="golden vectors disagree"):
+        Compensator.load(path)
+
+
+def test_tampered_npz_array_is_refused(tmp_path):
+    path = hybrid("ur10").save(tmp_path / "c.npz")
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["model.frames"] = arrays["model.frames"].copy()
+    arrays["model.frames"][2, 0, 3] += 1e-7
+    np.savez(path, **arrays)
+    with pytest.raises(CompensatorFileError, match="golden vectors disagree"):
+        Compensator.load(path)
+
+
+def test_edited_robot_model_fails_its_hash(tmp_path):
+    path = hybrid("ur10").save(tmp_path / "c.json")
+    _tamper_json(path, lambda d: d["robot"]["frames"][1][0].__setitem__(3, 0.5))
+    with pytest.raises(CompensatorFileError, match="hash"):
+        Compensator.load(path)
+
+
+@pytest.mark.parametrize(
+    "edit,match",
+    [
+        (lambda d: d.__setitem__("schema_version", 99), "schema_version 99"),
+        (lambda d: d.__setitem__("format", "other"), "not a labcal compensator"),
+        (lambda d: d.pop("golden"), "golden"),
+        (lambda d: d["golden"].__setitem__("q", []), "no golden vectors"),
+    ],
+)
+def test_bad_files_are_refused_with_a_clear_error(tmp_path, edit, match):
+    path = hybrid("ur10").save(tmp_path / "c.json")
+    _tamper_json(path, edit)
+    with pytest.raises(CompensatorFileError, match=match):
+        Compensator.load(path)
+
+
+def test_missing_and_unknown_files(tmp_path):
+    with pytest.raises(CompensatorFileError, match="no such"):
+        Compensator.load(tmp_path / "nope.json")
+    (tmp_path / "x.txt").write_text("{}")
+    with pytest.raises(CompensatorFileError, match=r"\.json or \.npz"):
+        Compensator.load(tmp_path / "x.txt")
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(CompensatorFileError, match="cannot read"):
+        Compensator.load(tmp_path / "bad.json")
+    with pytest.raises(ValueError, match=r"\.json or \.npz"):
+        hybrid("ur10").save(tmp_path / "c.bin")
+
+
+def test_importing_the_runtime_loads_no_torch_scipy_typer_or_drivers():
+    code = (
+        "import sys, labcal.compensator\n"
+        "bad = [m for m in ('torch', 'scipy', 'typer', 'rich', 'pandas', 'serial', 'labcal.drivers', "
+        "'labcal.calibration', 'labcal.datasets') if m in sys.modules]\n"
+        "assert not bad, bad\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
