@@ -18,6 +18,7 @@ from labcal.sessions.planning import (
     length_scaled_condition,
     observability,
     optimal_configurations,
+    prediction_variance,
     random_configurations,
 )
 
@@ -176,7 +177,7 @@ def test_too_few_configurations_are_rank_deficient(fanuc):
 def test_optimised_subset_beats_random_subsets_of_the_same_size(fanuc):
     pool = random_configurations(fanuc, 300, seed=7, targets=TARGETS)
     basis = identifiable_basis(fanuc, TARGETS)
-    best = optimal_configurations(fanuc, 12, seed=7, targets=TARGETS, pool=pool)
+    best = optimal_configurations(fanuc, 12, seed=7, targets=TARGETS, pool=pool, criterion="d")
     opt = observability(fanuc, best, TARGETS, basis=basis)
     rng = np.random.default_rng(0)
     for _ in range(20):
@@ -186,6 +187,34 @@ def test_optimised_subset_beats_random_subsets_of_the_same_size(fanuc):
         assert opt.o1 > rand.o1
     # The chosen configurations come from the pool.
     assert all(any(np.array_equal(c, p) for p in pool) for c in best)
+
+
+def test_i_optimal_subset_predicts_better_than_random_and_d_optimal_ones(fanuc):
+    pool = random_configurations(fanuc, 300, seed=8, targets=TARGETS)
+    basis = identifiable_basis(fanuc, TARGETS)
+    workspace = random_configurations(fanuc, 400, seed=99)  # fresh configurations of the same workspace
+
+    def variance(q):
+        return prediction_variance(fanuc, q, TARGETS, workspace, basis=basis)
+
+    i_opt = variance(optimal_configurations(fanuc, 12, seed=8, targets=TARGETS, pool=pool, criterion="i"))
+    d_opt = variance(optimal_configurations(fanuc, 12, seed=8, targets=TARGETS, pool=pool, criterion="d"))
+    assert i_opt < d_opt
+    rng = np.random.default_rng(1)
+    assert all(i_opt < variance(pool[rng.choice(len(pool), 12, replace=False)]) for _ in range(20))
+
+
+def test_prediction_variance_halves_when_the_same_configurations_are_measured_twice(fanuc):
+    q = random_configurations(fanuc, 10, seed=4)
+    workspace = random_configurations(fanuc, 50, seed=5)
+    once = prediction_variance(fanuc, q, TARGETS, workspace)
+    assert prediction_variance(fanuc, np.vstack([q, q]), TARGETS, workspace) == pytest.approx(once / 2, rel=1e-6)
+    assert prediction_variance(fanuc, q[:3], TARGETS, workspace) == np.inf
+
+
+def test_unknown_criterion_is_refused(fanuc):
+    with pytest.raises(PlanningError, match="criterion"):
+        optimal_configurations(fanuc, 5, seed=0, targets=TARGETS, candidates=20, criterion="a")
 
 
 def test_exchange_passes_never_lose_to_plain_greedy(fanuc):

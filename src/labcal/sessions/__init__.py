@@ -4,10 +4,12 @@ Sessions talk to the driver *ports* (:mod:`labcal.drivers.base`) only; the CLI p
 """
 
 from labcal.sessions.planning import (
+    CRITERIA,
     DEFAULT_MAX_CONDITION,
     LineOfSight,
     Observability,
     PlanningError,
+    exchange_i_optimal,
     greedy_d_optimal,
     identifiable_basis,
     identification_jacobian,
@@ -15,6 +17,7 @@ from labcal.sessions.planning import (
     length_scaled_condition,
     observability,
     optimal_configurations,
+    prediction_variance,
     random_configurations,
 )
 from labcal.sessions.plans import Measure, Move, Plan, PlanError, PoseStep, Settle, make_plan
@@ -30,6 +33,7 @@ from labcal.sessions.runner import (
 )
 
 __all__ = [
+    "CRITERIA",
     "DEFAULT_MAX_CONDITION",
     "LineOfSight",
     "Measure",
@@ -46,6 +50,7 @@ __all__ = [
     "Settle",
     "Validation",
     "check_measurement",
+    "exchange_i_optimal",
     "greedy_d_optimal",
     "identifiable_basis",
     "identification_jacobian",
@@ -54,6 +59,7 @@ __all__ = [
     "make_plan",
     "observability",
     "optimal_configurations",
+    "prediction_variance",
     "random_configurations",
     "resume",
     "run",
