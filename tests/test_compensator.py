@@ -35,7 +35,7 @@ def make_network(model, features, hidden=8, seed=0, out=0.5e-3) -> Network:
     )
 
 
-def hybrid(robot="ur10", features=("q", "sincos", "sincos2", "gravity"), seed=0, odd_twists=False):
+def hybrid(robot="ur10", features=("q", "sincos", "sincos2", "gravity"), seed=0, odd_twists=False, pitch=False):
     nominal = load(robot).model
     rng = np.random.default_rng(seed)
     model = nominal.perturbed(rng.normal(size=(nominal.n + 1, 6)) * 0.5e-3)
@@ -43,11 +43,12 @@ def hybrid(robot="ur10", features=("q", "sincos", "sincos2", "gravity"), seed=0,
         tw = model.twists.copy()
         for j, t in enumerate(model.joint_types):
             if t == "revolute":
-                w = tw[j, 3:] + rng.normal(size=3) * 1e-2
-                tw[j, 3:] = w / np.linalg.norm(w)
-                tw[j, :3] = rng.normal(size=3) * 1e-2
+                w = tw[j, 3:] + rng.normal(size=3) * 2e-3
+                w /= np.linalg.norm(w)
+                v = rng.normal(size=3) * 2e-3
+                tw[j] = np.concatenate([v if pitch else v - (v @ w) * w, w])
             else:
-                d = tw[j, :3] + rng.normal(size=3) * 1e-2
+                d = tw[j, :3] + rng.normal(size=3) * 2e-3
                 tw[j, :3] = d / np.linalg.norm(d)
         model = model.replace(twists=tw)
     return CalibratedRobot(nominal, model, make_network(model, features, seed=seed), method="hybrid")
@@ -73,7 +74,7 @@ def reference_predict(robot: CalibratedRobot, q):
 
 @pytest.mark.parametrize("name,odd", [("ur10", False), ("ur10", True), ("scara4", False), ("scara4", True)])
 def test_fast_kernels_match_the_kinematics_reference(name, odd):
-    robot = hybrid(name, odd_twists=odd)
+    robot = hybrid(name, odd_twists=odd, pitch=odd)
     q = sample(robot, 50, seed=1, max_cond=1e9)
     np.testing.assert_allclose(robot.predict_pose(q), reference_predict(robot, q), atol=1e-13)
     np.testing.assert_allclose(robot.joint_motion_errors(q), robot.network(q, robot.model), atol=1e-15)

@@ -1,1 +1,42 @@
+"""Exports of a calibrated robot: the compensator (JSON/NPZ), a URScript function and a calibrated URDF.
 
+Numpy only (import-linter: "The compensator runtime is numpy-only"). Example::
+
+    from labcal.export import export
+    export(fit.robot, "json", "ur10.json", provenance={"session": "S@v001", "fit_id": "…"})
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from labcal.compensator import CalibratedRobot
+from labcal.compensator import save as save_compensator
+
+FORMATS = ("json", "npz", "urscript", "urdf")
+SUFFIXES = {"json": ".json", "npz": ".npz", "urscript": ".script", "urdf": ".urdf"}
+
+
+def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = None, **options) -> Path:
+    """Write robot in format fmt (json | npz | urscript | urdf) to path; returns the path written.
+
+    json/npz: the compensator file (path must end in .json / .npz); urscript: ``labcal_correct(q)`` (options:
+    method, iterations, function_name); urdf: the identified frames.
+    """
+    path = Path(path)
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    if fmt in ("json", "npz"):
+        if path.suffix.lower() != SUFFIXES[fmt]:
+            raise ValueError(f"a {fmt} export must be written to a path ending in {SUFFIXES[fmt]}, got {path.name!r}")
+        return save_compensator(robot, path, provenance)
+    if fmt == "urscript":
+        from labcal.export.urscript import write_urscript
+
+        return write_urscript(robot, path, provenance, **options)
+    from labcal.export.urdf import write_urdf
+
+    return write_urdf(robot, path, provenance)
+
+
+__all__ = ["FORMATS", "SUFFIXES", "export"]
