@@ -123,3 +123,20 @@ def test_virtual_joints_complete_an_orthonormal_basis_in_the_scaled_metric(n):
     )
     np.testing.assert_allclose(np.einsum("kai,kaj->kij", scaled[:, :, :n], virtual), 0.0, atol=1e-12)
     assert np.all(np.linalg.matrix_rank(scaled) == 6)
+
+
+def test_virtual_joints_stay_independent_when_the_largest_projections_are_dependent():
+    # Actuated span at q = 0 (length scale 1 m): a slide along (x + y)/√2, a rotation about y through (1, 0, 0)
+    # (scaled twist (e_vz + e_ωy)/√2) and a rotation about z through the origin. The complement's largest coordinate
+    # projections are e_ωx (1) and then a four-way tie at 1/√2 whose first two, e_vx and e_vy, project onto
+    # ±(e_vx − e_vy)/√2: the same line. Taking both would leave a rounding-noise "virtual joint".
+    u = np.array([1.0, 1.0, 0.0]) / np.sqrt(2)
+    model = LocalPOEModel.from_frames(
+        np.array([np.eye(4)] * 4),
+        ("prismatic", "revolute", "revolute"),
+        np.array([[*u, 0, 0, 0], [0, 0, 1, 0, 1, 0], [0, 0, 0, 0, 0, 1]]),
+    )
+    J_rho = model.equivalent_jacobian(np.zeros(3), length_scale=1.0)[0]
+    np.testing.assert_allclose(J_rho[:, 3:].T @ J_rho[:, 3:], np.eye(3), atol=1e-15)
+    np.testing.assert_allclose(J_rho[:, :3].T @ J_rho[:, 3:], 0.0, atol=1e-15)
+    assert np.linalg.cond(J_rho) < 10

@@ -39,6 +39,18 @@ def default_twist(joint_type: str) -> np.ndarray:
     raise ValueError(f"joint type must be 'revolute' or 'prismatic', got {joint_type!r}")
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over axis 1 of (m, 3, ...) arrays (batch last); np.cross wants the vector axis last."""
+    return np.stack(
+        [
+            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+        ],
+        axis=1,
+    )
+
+
 def _readonly(a: np.ndarray) -> np.ndarray:
     a = np.array(a, dtype=float)
     a.setflags(write=False)
@@ -148,27 +160,85 @@ class LocalPOEModel:
             return out
         return se3.exp_se3(self.twists[j] * qj[:, None])
 
+    def _walk(self, q2: np.ndarray) -> np.ndarray:
+        """Walk the chain once: (n+1, 3, 4, k) top three rows of the frames K_1 … K_{n+1} in K0, each before its own
+        joint moves it (see :meth:`_chain`). The batch axis is last so that every step is a handful of whole-array
+        multiply-adds over k numbers; the bottom row of a homogeneous transform is never stored or multiplied.
+        """
+        k, n = q2.shape[0], self.n
+        W = np.empty((n + 1, 3, 4, k))
+        W[0] = self.frames[0, :3, :, None]
+        tmp = np.empty((3, k))
+        for j in range(n):
+            M, qj = W[j], q2[:, j]
+            if self._z_joint[j] and self.joint_types[j] == REVOLUTE:
+                # M · Rz(q): only columns 0 and 1 change.
+                c, s = np.cos(qj), np.sin(qj)
+                cols = (M[:, 0] * c + M[:, 1] * s, M[:, 1] * c - M[:, 0] * s, M[:, 2], M[:, 3])
+            elif self._z_joint[j]:
+                cols = (M[:, 0], M[:, 1], M[:, 2], M[:, 3] + M[:, 2] * qj)  # M · Tz(q)
+            else:
+                E = se3.exp_se3(self.twists[j] * qj[:, None])  # (k, 4, 4), bottom row (0, 0, 0, 1)
+                cols = tuple(
+                    M[:, 0] * E[:, 0, b] + M[:, 1] * E[:, 1, b] + M[:, 2] * E[:, 2, b] + (M[:, 3] if b == 3 else 0.0)
+                    for b in range(4)
+                )
+            # (M · exp) · A_{j+1}(0), column by column; A's bottom row is (0, 0, 0, 1).
+            F, out = self.frames[j + 1], W[j + 1]
+            for b in range(4):
+                acc = out[:, b]
+                np.multiply(cols[0], F[0, b], out=acc)
+                for i in (1, 2):
+                    np.multiply(cols[i], F[i, b], out=tmp)
+                    acc += tmp
+                if b == 3:
+                    acc += cols[3]
+        return W
+
+    @staticmethod
+    def _to_matrices(top: np.ndarray) -> np.ndarray:
+        """(..., 3, 4, k) top rows, batch last → (k, ..., 4, 4) homogeneous transforms, batch first."""
+        lead = top.shape[:-3]
+        axes = (top.ndim - 1, *range(len(lead)), top.ndim - 3, top.ndim - 2)
+        out = np.empty((top.shape[-1], *lead, 4, 4))
+        out[..., :3, :] = top.transpose(axes)
+        out[..., 3, :3] = 0.0
+        out[..., 3, 3] = 1.0
+        return out
+
     def _chain(self, q2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Walk the chain once. Returns (initial_frames (k, n+1, 4, 4), tool pose (k, 4, 4)).
 
         initial_frames[:, j] is the pose in K0 of frame K_{j+1} before its own joint moves it, i.e.
         ``prod_{i<=j}(A_i e^{ξ_i q_i}) · A_{j+1}(0)`` — the frame whose adjoint is Ad_{j0} in eq. (10).
         """
-        k = q2.shape[0]
-        initial = np.empty((k, self.n + 1, 4, 4))
-        T = np.broadcast_to(self.frames[0], (k, 4, 4))
-        for j in range(self.n):
-            initial[:, j] = T
-            T = T @ self._joint_exp(j, q2[:, j])
-            T = T @ self.frames[j + 1]
-        initial[:, self.n] = T
-        return initial, T
+        initial = self._to_matrices(self._walk(q2))
+        return initial, initial[:, self.n]
+
+    def _twists_from_walk(self, W: np.ndarray) -> np.ndarray:
+        """(k, 6, n) joint twists Ad(K_j) ξ_j in K0 from a walk: ω = R ω_loc, v = R v_loc + p × ω."""
+        n = self.n
+        R, p = W[:n, :, :3], W[:n, :, 3]  # (n, 3, 3, k), (n, 3, k)
+        v_loc, w_loc = self.twists[:, :3, None, None], self.twists[:, 3:, None, None]
+        if all(self._z_joint):
+            # ξ = (0, e_z) or (e_z, 0): ω or v is the third column of R, exactly.
+            revolute = np.array([t == REVOLUTE for t in self.joint_types])[:, None, None]
+            w = np.where(revolute, R[:, :, 2], 0.0)
+            v = np.where(revolute, 0.0, R[:, :, 2])
+        else:
+            w = R[:, :, 0] * w_loc[:, 0] + R[:, :, 1] * w_loc[:, 1] + R[:, :, 2] * w_loc[:, 2]
+            v = R[:, :, 0] * v_loc[:, 0] + R[:, :, 1] * v_loc[:, 1] + R[:, :, 2] * v_loc[:, 2]
+        v = v + _cross(p, w)
+        out = np.empty((W.shape[-1], 6, n))
+        out[:, :3] = v.transpose(2, 1, 0)
+        out[:, 3:] = w.transpose(2, 1, 0)
+        return out
 
     # ----------------------------------------------------------------------------------------------------------
     def fk(self, q) -> np.ndarray:
         """Tool pose T_base_tool: q (n,) → (4, 4); q (k, n) → (k, 4, 4)."""
         q2, single = self._as_batch(q)
-        _, T = self._chain(q2)
+        T = self._to_matrices(self._walk(q2)[self.n])
         return T[0] if single else T
 
     def link_frames(self, q) -> np.ndarray:
@@ -179,20 +249,16 @@ class LocalPOEModel:
     def fk_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(k, 4, 4) tool poses and (k, 6, n) actuated joint twists in K0, from one walk of the chain."""
         q2, _ = self._as_batch(q)
-        initial, T = self._chain(q2)
-        R, p = initial[:, : self.n, :3, :3], initial[:, : self.n, :3, 3]
-        v_loc, w_loc = self.twists[:, :3], self.twists[:, 3:]
-        w = np.einsum("kjab,jb->kja", R, w_loc)
-        v = np.einsum("kjab,jb->kja", R, v_loc) + np.cross(p, w)
-        twists = np.concatenate([v, w], axis=-1).transpose(0, 2, 1)
-        return T, twists
+        W = self._walk(q2)
+        return self._to_matrices(W[self.n]), self._twists_from_walk(W)
 
     def joint_twists(self, q) -> np.ndarray:
         """Actuated joint twists in K0, (k, 6, n): the spatial Jacobian, J_ρ of eq. (14) when n = 6.
 
         Column j is ``Ad(K_j) ξ_j``: the pose error twist caused by a small motion error of joint j.
         """
-        return self.fk_and_twists(q)[1]
+        q2, _ = self._as_batch(q)
+        return self._twists_from_walk(self._walk(q2))
 
     def equivalent_jacobian(self, q, length_scale: float | None = None) -> np.ndarray:
         """(k, 6, 6) Jacobian of the equivalent robot (eq. 12-14): actuated twists, then 6 − n virtual twists.
@@ -200,7 +266,8 @@ class LocalPOEModel:
         For n < 6 the virtual joints span the motions the ideal robot cannot make. They are built from the
         orthogonal complement of the actuated twists in a length-scaled metric (linear parts divided by
         ``length_scale``, default: the robot's reach at q = 0, at least 0.1 m): the six unit coordinate twists are
-        projected onto that complement, the 6 − n with the largest projections (ties broken by index) are
+        projected onto that complement, 6 − n of them are chosen one by one, each time the one with the largest part
+        outside the actuated twists and those already chosen (ties broken by index), and the chosen projections are
         orthonormalised in index order. For the usual lower-mobility robots (e.g. a SCARA, whose complement is
         spanned by rotations about x and y) this picks a constant basis, so the virtual joint errors are smooth
         functions of q.
@@ -213,18 +280,30 @@ class LocalPOEModel:
         D = np.array([1 / L] * 3 + [1.0] * 3)
         out = np.empty((k, 6, 6))
         out[:, :, :n] = J
-        for i in range(k):
-            Q, _ = np.linalg.qr(D[:, None] * J[i])
-            P = np.eye(6) - Q @ Q.T
-            norms = np.linalg.norm(P, axis=0)
-            chosen = np.sort(np.argsort(-norms, kind="stable")[: 6 - n])
-            basis = []
-            for c in chosen:
-                u = P[:, c].copy()
-                for b in basis:
-                    u -= (b @ u) * b
-                basis.append(u / np.linalg.norm(u))
-            out[i, :, n:] = np.array(basis).T / D[:, None]
+        Q, _ = np.linalg.qr(D[:, None] * J)  # (k, 6, n), one LAPACK call per configuration
+        P = np.eye(6) - Q @ Q.transpose(0, 2, 1)  # projector onto the complement
+        # Greedy pivoting: take the coordinate twist with the largest part left outside the actuated span and the
+        # twists already taken. Picking the 6 − n largest projections at once can pick dependent ones (say ±(e_x −
+        # e_y) when the span holds a translation along x + y), whose Gram-Schmidt leaves rounding noise as a "joint".
+        # A pivot's residual is at least 1/√6 of unit length (the residual projector has trace ≥ 1), so never noise.
+        rows = np.arange(k)
+        residual = P.copy()
+        chosen = np.empty((k, 6 - n), dtype=int)
+        for m in range(6 - n):
+            norms = np.linalg.norm(residual, axis=1)  # (k, 6); argmax breaks exact ties by index
+            c = np.argmax(norms, axis=1)
+            u = residual[rows, :, c] / norms[rows, c][:, None]
+            residual -= u[:, :, None] * u[:, None, :]
+            chosen[:, m] = c
+        chosen = np.sort(chosen, axis=1)
+        cols = np.take_along_axis(P, chosen[:, None, :], axis=2)  # (k, 6, 6 − n)
+        basis = np.empty_like(cols)
+        for m in range(6 - n):  # modified Gram-Schmidt in index order
+            u = cols[:, :, m].copy()
+            for b in range(m):
+                u -= np.einsum("ka,ka->k", basis[:, :, b], u)[:, None] * basis[:, :, b]
+            basis[:, :, m] = u / np.linalg.norm(u, axis=1, keepdims=True)
+        out[:, :, n:] = basis / D[:, None]
         return out
 
     def frame_jacobian(self, q) -> np.ndarray:
@@ -233,16 +312,23 @@ class LocalPOEModel:
         Block j is Ad_{j0}, the adjoint of frame K_j at the configuration before its joint moves it.
         """
         q2, _ = self._as_batch(q)
-        initial, _ = self._chain(q2)
-        Ad = se3.adjoint(initial)  # (k, n+1, 6, 6)
-        return Ad.transpose(0, 2, 1, 3).reshape(q2.shape[0], 6, 6 * (self.n + 1))
+        W = self._walk(q2)
+        R, p = W[:, :, :3], W[:, :, 3]  # (n+1, 3, 3, k), (n+1, 3, k)
+        pR = _cross(p[:, :, None], R)  # column c of p̂R is p × R e_c
+        # Laid out as (k, row, frame, column) so that the reshape puts block j at columns 6j … 6j+5.
+        out = np.zeros((q2.shape[0], 6, self.n + 1, 6))
+        Rt = R.transpose(3, 1, 0, 2)
+        out[:, :3, :, :3] = Rt
+        out[:, 3:, :, 3:] = Rt
+        out[:, :3, :, 3:] = pR.transpose(3, 1, 0, 2)
+        return out.reshape(q2.shape[0], 6, 6 * (self.n + 1))
 
     def target_points(self, q, targets) -> np.ndarray:
         """Positions in K0 of target points given in the tool frame: targets (m, 3) → (k, m, 3)."""
         q2, _ = self._as_batch(q)
-        T = self._chain(q2)[1]
+        T = self._walk(q2)[self.n]  # (3, 4, k)
         targets = np.asarray(targets, dtype=float)
-        return np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
+        return np.einsum("abk,mb->kma", T[:, :3], targets) + T[:, 3].T[:, None, :]
 
     def reach(self) -> float:
         """Distance from the base origin to the tool at q = 0 plus the link offsets: a length scale (m)."""
