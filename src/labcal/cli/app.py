@@ -1,0 +1,44 @@
+"""The `labcal` command line (typer). Thin: every command parses its arguments and calls library functions.
+
+Quick start::
+
+    labcal demo                                  # no hardware: simulate, fit every method, export, report
+    labcal session new --robot ur10 --robot-driver sim --tracker-driver sim --targets t.toml --poses 60
+    labcal fit SESSION --method auto
+    labcal export SESSION --format json --out ur10.json
+"""
+
+from __future__ import annotations
+
+import typer
+
+from labcal.cli import bench, session
+from labcal.cli.demo import demo
+from labcal.cli.export import export
+from labcal.cli.fit import fit
+from labcal.cli.report import report
+
+app = typer.Typer(
+    name="labcal",
+    help="Calibrate serial robots from three-target tracker measurements.\n\n"
+    "Examples:\n\n  labcal demo\n\n  labcal session list\n\n  labcal fit SESSION --method hybrid\n\n"
+    "  labcal export SESSION --format urscript --out labcal_correct.script",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+app.add_typer(session.app, name="session")
+app.add_typer(bench.app, name="bench")
+app.command("fit")(fit)
+app.command("export")(export)
+app.command("report")(report)
+app.command("demo")(demo)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":
+    main()

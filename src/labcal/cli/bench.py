@@ -1,0 +1,45 @@
+"""`labcal bench …`: run the benchmarks (they print their tables)."""
+
+from __future__ import annotations
+
+import importlib
+
+import typer
+
+from labcal.cli.common import err
+
+app = typer.Typer(
+    help="Run the benchmarks. Examples:\n\n  labcal bench paper -- --quick\n\n  labcal bench speed",
+    no_args_is_help=True,
+)
+PASS = {"allow_extra_args": True, "ignore_unknown_options": True}
+
+
+def _run(module: str, args: list[str]) -> None:
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        if e.name != module:
+            raise
+        err.print(f"error: {module} is not available in this version of labcal yet", markup=False)
+        raise typer.Exit(2) from None
+    code = mod.main(list(args))
+    raise typer.Exit(int(code or 0))
+
+
+@app.command("paper", context_settings=PASS)
+def paper(ctx: typer.Context) -> None:
+    """The paper's Section V protocol on the simulator (extra arguments go to the benchmark, e.g. --quick)."""
+    _run("labcal.bench.paper", ctx.args)
+
+
+@app.command("real-ur10", context_settings=PASS)
+def real_ur10(ctx: typer.Context) -> None:
+    """Calibrate on the real UR10 data set and report held-out errors per method."""
+    _run("labcal.bench.real_ur10", ctx.args)
+
+
+@app.command("speed", context_settings=PASS)
+def speed(ctx: typer.Context) -> None:
+    """Compensator latency/throughput (extra arguments: --batch N, --repeats N, --robot NAME)."""
+    _run("labcal.bench.speed_cli", ctx.args)

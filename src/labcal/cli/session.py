@@ -1,0 +1,162 @@
+"""`labcal session …`: record, list, show, resume, verify and import sessions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from rich.table import Table
+
+from labcal.cli.common import StoreOption, out, store_of, user_errors
+
+app = typer.Typer(
+    help="Record, inspect and import measurement sessions.\n\n"
+    "Examples:\n\n"
+    "  labcal session new --robot ur10 --robot-driver sim --tracker-driver sim --targets targets.toml --poses 60\n\n"
+    "  labcal session list\n\n"
+    "  labcal session import data.csv --robot ur10 --targets targets.toml --length-unit mm --angle-unit deg",
+    no_args_is_help=True,
+)
+
+
+def _progress(p) -> None:
+    if p.pose is not None and p.status not in ("valid", "measured"):
+        out.print(f"  pose {p.pose}: {p.status} {p.message}", markup=False)
+
+
+@app.command("new")
+@user_errors
+def new(
+    robot: str = typer.Option(..., "--robot", help="Robot model: built-in name or TOML/URDF path."),
+    targets: Path = typer.Option(..., "--targets", help="Targets TOML (unit, three points in the tool frame)."),
+    poses: int = typer.Option(..., "--poses", help="Number of configurations to measure."),
+    robot_driver: str = typer.Option("sim", "--robot-driver", help="sim | ur"),
+    tracker_driver: str = typer.Option("sim", "--tracker-driver", help="sim | serial"),
+    profile: str | None = typer.Option(None, "--profile", help="Robot driver profile, e.g. drivers/ur10-lab.toml."),
+    tracker_profile: str | None = typer.Option(None, "--tracker-profile", help="Tracker profile TOML (serial)."),
+    planner: str = typer.Option("random", "--planner", help="random | optimal"),
+    samples: int = typer.Option(2000, "--samples", help="Candidate pool size of the optimal planner."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the planner and the simulator."),
+    sim_errors: str = typer.Option("default", "--sim-errors", help="Sim robot errors: paper | default | none."),
+    store: Path | None = StoreOption,
+) -> None:
+    """Plan and record a new session; prints the new SESSION@vNNN last.
+
+    Example: labcal session new --robot ur10 --robot-driver sim --tracker-driver sim --targets t.toml --poses 60
+    """
+    from labcal.cli.ops import new_session
+
+    summary = new_session(
+        store_of(store), robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver,
+        tracker_driver=tracker_driver, profile=profile, tracker_profile=tracker_profile, planner=planner,
+        samples=samples, seed=seed, sim_errors=sim_errors, progress=_progress,
+    )  # fmt: skip
+    out.print(
+        f"{summary.exit_status}: {summary.valid} valid, {summary.rejected} rejected, {summary.remaining} remaining",
+        markup=False,
+    )
+    if summary.ref is None:
+        raise typer.Exit(1)
+    print(summary.ref)
+
+
+@app.command("list")
+@user_errors
+def list_(store: Path | None = StoreOption) -> None:
+    """List the sessions of the store.
+
+    Example: labcal session list --store sessions/
+    """
+    st = store_of(store)
+    t = Table(title=f"sessions in {st.root}", title_justify="left")
+    for col in ("session", "robot", "frame", "status", "versions", "rows"):
+        t.add_column(col)
+    for info in st.list_sessions():
+        t.add_row(
+            info.session_id, str(info.robot.get("name")), info.frame, info.status,
+            ", ".join(v.name for v in info.versions) or "—", str(info.rows),
+        )  # fmt: skip
+    out.print(t)
+
+
+@app.command("show")
+@user_errors
+def show(session: str = typer.Argument(..., help="Session id."), store: Path | None = StoreOption) -> None:
+    """Show a session: robot, frame, status, versions and their fits.
+
+    Example: labcal session show 20261122-031500-ur10-3f9a
+    """
+    st = store_of(store)
+    info = st.show(session)
+    out.print(f"session {info.session_id}: robot {info.robot.get('name')} ({info.robot.get('hash', '')[:12]}…), "
+              f"frame {info.frame}, status {info.status}", markup=False)  # fmt: skip
+    t = Table()
+    for col in ("version", "rows", "created", "source", "parent", "fits"):
+        t.add_column(col)
+    for v in info.versions:
+        t.add_row(v.name, str(v.rows), v.created, v.source, v.parent or "—", str(v.fits))
+    out.print(t)
+    for w in info.warnings:
+        out.print(f"warning: {w}", markup=False)
+
+
+@app.command("resume")
+@user_errors
+def resume(
+    session: str = typer.Argument(..., help="Session id."),
+    robot: str | None = typer.Option(None, "--robot", help="Robot model file if not a built-in."),
+    store: Path | None = StoreOption,
+) -> None:
+    """Continue an interrupted session at its first unmeasured pose (sim sessions); prints the new version last.
+
+    Example: labcal session resume 20261122-031500-ur10-3f9a
+    """
+    from labcal.cli.ops import resume_session
+
+    summary = resume_session(store_of(store), session, robot=robot, progress=_progress)
+    out.print(f"{summary.exit_status}: {summary.reason}", markup=False)
+    if summary.ref is None:
+        raise typer.Exit(1)
+    print(summary.ref)
+
+
+@app.command("verify")
+@user_errors
+def verify(session: str = typer.Argument(..., help="SESSION or SESSION@vN."), store: Path | None = StoreOption) -> None:
+    """Check every file hash of a version (the latest by default); exit 1 if anything is wrong.
+
+    Example: labcal session verify 20261122-031500-ur10-3f9a@v1
+    """
+    report = store_of(store).verify(session)
+    if report.ok:
+        out.print(f"{report.ref}: ok ({len(report.checked)} files checked)", markup=False)
+        return
+    for p in report.problems:
+        out.print(f"{report.ref}: {p}", markup=False)
+    raise typer.Exit(1)
+
+
+@app.command("import")
+@user_errors
+def import_(
+    file: Path = typer.Argument(..., help="CSV file to import."),
+    robot: str = typer.Option(..., "--robot", help="Robot model: built-in name or path."),
+    targets: Path | None = typer.Option(None, "--targets", help="Targets TOML (required for --form targets)."),
+    mapping: str | None = typer.Option(None, "--mapping", help="Column mapping TOML or shipped name (ipa-ur10)."),
+    length_unit: str = typer.Option("m", "--length-unit", help="m | mm"),
+    angle_unit: str = typer.Option("rad", "--angle-unit", help="rad | deg"),
+    frame: str = typer.Option("base", "--frame", help="base | tracker: frame of the measured points."),
+    form: str = typer.Option("targets", "--form", help="targets (t1_x … t3_z) | probe (x y z rx ry rz)."),
+    store: Path | None = StoreOption,
+) -> None:
+    """Import measurements from a CSV into a new session; prints SESSION@vNNN last.
+
+    Example: labcal session import data.csv --robot ur10 --targets t.toml --length-unit mm --angle-unit deg
+    """
+    from labcal.cli.ops import import_session
+
+    ref = import_session(
+        store_of(store), file, robot=robot, targets_file=targets, mapping=mapping, length_unit=length_unit,
+        angle_unit=angle_unit, frame=frame, form=form,
+    )  # fmt: skip
+    print(ref)
