@@ -270,3 +270,26 @@ def test_replace_keeps_other_fields_and_validates():
     np.testing.assert_array_equal(renamed.frames, model.frames)
     with pytest.raises(ValueError):
         model.replace(limits=np.zeros((5, 2)))
+
+
+def test_small_and_large_batches_take_different_paths_and_agree():
+    # Below poe._SMALL_BATCH configurations the chain is walked with 4×4 matmuls, from it on batch-last; every
+    # public result must agree to rounding (the finite-difference tests run on small batches).
+    from labcal.kinematics import poe
+
+    k = 2 * poe._SMALL_BATCH
+    targets = np.array([[0.1, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.3]])
+    for model in [load(r).model for r in BUILTINS] + [general_model(), general_model(seed=3, n=4)]:
+        q = random_q(model, k, seed=12)
+        small = q[:5]
+        pairs = [
+            (model.fk(q)[:5], model.fk(small)),
+            (model.link_frames(q)[:5], model.link_frames(small)),
+            (model.fk_and_twists(q)[1][:5], model.fk_and_twists(small)[1]),
+            (model.joint_twists(q)[:5], model.joint_twists(small)),
+            (model.frame_jacobian(q)[:5], model.frame_jacobian(small)),
+            (model.equivalent_jacobian(q)[:5], model.equivalent_jacobian(small)),
+            (model.target_points(q, targets)[:5], model.target_points(small, targets)),
+        ]
+        for i, (large, few) in enumerate(pairs):
+            np.testing.assert_allclose(large, few, rtol=0, atol=1e-14, err_msg=f"{model.name} output {i}")

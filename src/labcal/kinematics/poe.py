@@ -26,6 +26,9 @@ import numpy as np
 from labcal.kinematics import se3
 
 REVOLUTE, PRISMATIC = "revolute", "prismatic"
+# Below this many configurations the chain is walked with 4×4 matmuls (few numpy calls: single-configuration
+# latency); from it on, batch-last multiply-adds (no per-matrix overhead: throughput). Both agree to rounding.
+_SMALL_BATCH = 128
 _Z_REVOLUTE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 _Z_PRISMATIC = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
 
@@ -166,6 +169,8 @@ class LocalPOEModel:
         multiply-adds over k numbers; the bottom row of a homogeneous transform is never stored or multiplied.
         """
         k, n = q2.shape[0], self.n
+        if k < _SMALL_BATCH:
+            return self._walk_small(q2)[:, :, :3, :].transpose(1, 2, 3, 0)
         W = np.empty((n + 1, 3, 4, k))
         W[0] = self.frames[0, :3, :, None]
         tmp = np.empty((3, k))
@@ -195,6 +200,29 @@ class LocalPOEModel:
                     acc += cols[3]
         return W
 
+    def _walk_small(self, q2: np.ndarray) -> np.ndarray:
+        """The chain for a few configurations, as :meth:`_chain`'s (k, n+1, 4, 4) frames: fewer, larger numpy calls
+        (one 4×4 matmul per joint) than :meth:`_walk`, which pays per call and wins only on large batches."""
+        k, n = q2.shape[0], self.n
+        frames = np.empty((k, n + 1, 4, 4))
+        T = frames[:, 0] = self.frames[0]
+        for j in range(n):
+            F, qj = self.frames[j + 1], q2[:, j]
+            if self._z_joint[j] and self.joint_types[j] == REVOLUTE:
+                # Rz(q) · A_{j+1}(0): only rows 0 and 1 change.
+                c, s = np.cos(qj)[:, None], np.sin(qj)[:, None]
+                G = np.empty((k, 4, 4))
+                G[:, 0] = c * F[0] - s * F[1]
+                G[:, 1] = s * F[0] + c * F[1]
+                G[:, 2:] = F[2:]
+            elif self._z_joint[j]:
+                G = np.broadcast_to(F, (k, 4, 4)).copy()
+                G[:, 2] += qj[:, None] * F[3]  # Tz(q) · A_{j+1}(0)
+            else:
+                G = se3.exp_se3(self.twists[j] * qj[:, None]) @ F
+            T = frames[:, j + 1] = T @ G
+        return frames
+
     @staticmethod
     def _to_matrices(top: np.ndarray) -> np.ndarray:
         """(..., 3, 4, k) top rows, batch last → (k, ..., 4, 4) homogeneous transforms, batch first."""
@@ -212,7 +240,7 @@ class LocalPOEModel:
         initial_frames[:, j] is the pose in K0 of frame K_{j+1} before its own joint moves it, i.e.
         ``prod_{i<=j}(A_i e^{ξ_i q_i}) · A_{j+1}(0)`` — the frame whose adjoint is Ad_{j0} in eq. (10).
         """
-        initial = self._to_matrices(self._walk(q2))
+        initial = self._walk_small(q2) if q2.shape[0] < _SMALL_BATCH else self._to_matrices(self._walk(q2))
         return initial, initial[:, self.n]
 
     def _twists_from_walk(self, W: np.ndarray) -> np.ndarray:
@@ -238,7 +266,10 @@ class LocalPOEModel:
     def fk(self, q) -> np.ndarray:
         """Tool pose T_base_tool: q (n,) → (4, 4); q (k, n) → (k, 4, 4)."""
         q2, single = self._as_batch(q)
-        T = self._to_matrices(self._walk(q2)[self.n])
+        if q2.shape[0] < _SMALL_BATCH:
+            T = self._walk_small(q2)[:, self.n]
+        else:
+            T = self._to_matrices(self._walk(q2)[self.n])
         return T[0] if single else T
 
     def link_frames(self, q) -> np.ndarray:
@@ -312,6 +343,10 @@ class LocalPOEModel:
         Block j is Ad_{j0}, the adjoint of frame K_j at the configuration before its joint moves it.
         """
         q2, _ = self._as_batch(q)
+        k = q2.shape[0]
+        if k < _SMALL_BATCH:
+            Ad = se3.adjoint(self._walk_small(q2))  # (k, n+1, 6, 6)
+            return Ad.transpose(0, 2, 1, 3).reshape(k, 6, 6 * (self.n + 1))
         W = self._walk(q2)
         R, p = W[:, :, :3], W[:, :, 3]  # (n+1, 3, 3, k), (n+1, 3, k)
         pR = _cross(p[:, :, None], R)  # column c of p̂R is p × R e_c
