@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import sys
 from pathlib import Path
 
 import typer
@@ -12,7 +13,8 @@ from rich.table import Table
 STORE_HELP = "Session store folder (default: $LABCAL_STORE, else ./sessions)."
 StoreOption = typer.Option(None, "--store", help=STORE_HELP, show_default=False)
 
-out = Console(soft_wrap=True, highlight=False)
+# Piped output (files, CI logs, tests) gets room for the full metrics table instead of 80 columns.
+out = Console(soft_wrap=True, highlight=False, width=None if sys.stdout.isatty() else 160)
 err = Console(stderr=True, soft_wrap=True, highlight=False)
 
 

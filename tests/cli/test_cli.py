@@ -1,0 +1,231 @@
+"""Every command through typer's CliRunner on the sim rig: happy paths, created ids printed last, and bad input
+giving a one-line error on stderr with a non-zero exit code and no traceback."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from labcal.cli.app import app
+from labcal.compensator import Compensator
+from labcal.datasets import SessionStore
+from labcal.kinematics import from_urdf
+
+TARGETS = 'unit = "mm"\npoints = [[120.0, 0.0, 60.0], [-60.0, 100.0, 60.0], [-60.0, -100.0, 90.0]]\n'
+runner = CliRunner()
+
+
+def invoke(*args, store: Path | None = None):
+    argv = [str(a) for a in args] + (["--store", str(store)] if store is not None else [])
+    return runner.invoke(app, argv)
+
+
+def last_line(result) -> str:
+    return result.stdout.strip().splitlines()[-1]
+
+
+def assert_user_error(result, *fragments: str) -> None:
+    assert result.exit_code != 0, result.stdout
+    assert "Traceback" not in result.stdout + result.stderr
+    assert result.stderr.startswith("error: "), result.stderr
+    for f in fragments:
+        assert f in result.stderr, result.stderr
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """A store with one 40-pose sim session and one local-poe fit."""
+    root = tmp_path_factory.mktemp("cli")
+    (root / "targets.toml").write_text(TARGETS)
+    store = root / "store"
+    r = invoke(
+        "session", "new", "--robot", "ur10", "--robot-driver", "sim", "--tracker-driver", "sim",
+        "--targets", root / "targets.toml", "--poses", 40, "--seed", 3, store=store,
+    )  # fmt: skip
+    assert r.exit_code == 0, r.stdout + r.stderr
+    ref = last_line(r)
+    f = invoke("fit", ref, "--method", "local-poe", store=store)
+    assert f.exit_code == 0, f.stdout + f.stderr
+    return {"root": root, "store": store, "ref": ref, "session": ref.split("@")[0], "fit": last_line(f)}
+
+
+@pytest.mark.parametrize(
+    "cmd",
+    [[], ["session"], ["session", "new"], ["session", "import"], ["fit"], ["export"], ["report"], ["demo"], ["bench"]],
+)
+def test_help_everywhere_with_examples(cmd):
+    r = invoke(*cmd, "--help")
+    assert r.exit_code == 0
+    assert "Example" in r.stdout
+
+
+def test_session_new_prints_its_version_and_the_store_lists_it(world):
+    assert world["ref"].endswith("@v001")
+    r = invoke("session", "list", store=world["store"])
+    assert r.exit_code == 0 and world["session"] in r.stdout
+    r = invoke("session", "show", world["session"], store=world["store"])
+    assert r.exit_code == 0 and "v001" in r.stdout and "ur10" in r.stdout
+    r = invoke("session", "verify", world["ref"], store=world["store"])
+    assert r.exit_code == 0 and "ok" in r.stdout
+
+
+def test_fit_prints_metrics_table_and_stores_the_fit(world):
+    r = invoke("fit", world["ref"], "--method", "nominal", "--seed", 1, store=world["store"])
+    assert r.exit_code == 0, r.stderr
+    assert "pos mean mm" in r.stdout and "before" in r.stdout and "after" in r.stdout
+    fit_id = last_line(r)
+    ids = [f.fit_id for f in SessionStore(world["store"]).list_fits(world["ref"])]
+    assert fit_id in ids and world["fit"] in ids
+
+
+def test_fit_pools_two_sessions_of_the_same_robot(world):
+    r = invoke(
+        "session", "new", "--robot", "ur10", "--targets", world["root"] / "targets.toml", "--poses", 12, "--seed", 3,
+        store=world["store"],
+    )  # fmt: skip
+    second = last_line(r)
+    f = invoke("fit", world["ref"], second, "--method", "local-poe", store=world["store"])
+    assert f.exit_code == 0, f.stderr
+    rec = SessionStore(world["store"]).load_fit(world["ref"], last_line(f))
+    assert [i["ref"] for i in rec.inputs] == [world["ref"], second]
+    assert rec.metadata["metrics"]["all"]["before"]["count"] == 52
+
+
+@pytest.mark.parametrize(
+    "fmt,name", [("json", "c.json"), ("npz", "c.npz"), ("urscript", "c.script"), ("urdf", "c.urdf")]
+)
+def test_export_every_format_round_trips(world, tmp_path, fmt, name):
+    out = tmp_path / name
+    r = invoke("export", world["ref"], "--fit", world["fit"], "--format", fmt, "--out", out, store=world["store"])
+    assert r.exit_code == 0, r.stderr
+    assert last_line(r) == str(out)
+    stored = SessionStore(world["store"]).load_fit(world["ref"], world["fit"])
+    payload = json.loads(stored.read("robot.json"))
+    if fmt in ("json", "npz"):
+        comp = Compensator.load(out)
+        assert comp.provenance["fit_id"] == world["fit"] and comp.provenance["session"] == world["ref"]
+        q = np.asarray(payload["golden"]["q"])
+        np.testing.assert_allclose(comp.correct(q), payload["golden"]["q_cmd"], atol=1e-10)
+    elif fmt == "urdf":
+        model = from_urdf(out.read_text())
+        q = np.asarray(payload["golden"]["q"])
+        np.testing.assert_allclose(model.fk(q)[:, :3, 3], np.asarray(payload["golden"]["pose"])[:, :3, 3], atol=1e-12)
+    else:
+        assert "def labcal_correct(q):" in out.read_text()
+
+
+def test_report_writes_markdown_and_plots(world, tmp_path):
+    r = invoke("report", world["ref"], "--out", tmp_path / "rep", store=world["store"])
+    assert r.exit_code == 0, r.stderr
+    md = Path(last_line(r))
+    assert md.name == "report.md" and "## Fit" in md.read_text()
+    assert (tmp_path / "rep" / "histogram.png").stat().st_size > 1000
+    assert list((tmp_path / "rep").glob("errors-*.png"))
+
+
+def test_import_a_csv_into_a_new_session(world, tmp_path):
+    ds = SessionStore(world["store"]).load(world["ref"])
+    cols = {f"q{j + 1}": np.degrees(ds.q[:, j]) for j in range(6)}
+    for i in range(3):
+        for a, axis in enumerate("xyz"):
+            cols[f"t{i + 1}_{axis}"] = ds.points[:, i, a] * 1e3
+    lines = [",".join(cols)] + [",".join(repr(float(cols[c][k])) for c in cols) for k in range(len(ds))]
+    (tmp_path / "data.csv").write_text("\n".join(lines) + "\n")
+    r = invoke(
+        "session", "import", tmp_path / "data.csv", "--robot", "ur10", "--targets", world["root"] / "targets.toml",
+        "--length-unit", "mm", "--angle-unit", "deg", store=tmp_path / "store2",
+    )  # fmt: skip
+    assert r.exit_code == 0, r.stderr
+    imported = SessionStore(tmp_path / "store2").load(last_line(r))
+    np.testing.assert_allclose(imported.points, ds.points, atol=1e-12)
+
+
+def test_resume_of_a_finished_sim_session_has_nothing_left(world):
+    r = invoke("session", "resume", world["session"], store=world["store"])
+    assert r.exit_code == 0, r.stderr
+    assert "nothing left" in r.stdout
+
+
+# -- bad input -----------------------------------------------------------------------------------------------------
+
+
+def test_unknown_session(world):
+    assert_user_error(invoke("fit", "nope-session", "--method", "local-poe", store=world["store"]), "no session")
+    assert_user_error(invoke("export", world["session"] + "@v9", "--format", "json", "--out", "x.json",
+                             store=world["store"]), "no version v009")  # fmt: skip
+    assert_user_error(invoke("session", "show", "nope", store=world["store"]), "no session")
+
+
+def test_bad_flag_values(world, tmp_path):
+    s = world["store"]
+    assert_user_error(invoke("fit", world["ref"], "--method", "magic", store=s), "--method")
+    assert_user_error(invoke("fit", world["ref"], "--val-fraction", "1.5", store=s), "--val-fraction")
+    assert_user_error(
+        invoke("export", world["ref"], "--format", "xml", "--out", tmp_path / "a.xml", store=s), "--format"
+    )
+    assert_user_error(invoke("export", world["ref"], "--format", "npz", "--out", tmp_path / "a.json", store=s), ".npz")
+    assert_user_error(invoke("export", world["ref"], "--fit", "nofit", "--format", "json", "--out", tmp_path / "a.json",
+                             store=s), "no fit")  # fmt: skip
+    t = world["root"] / "targets.toml"
+    assert_user_error(invoke("session", "new", "--robot", "ur10", "--targets", t, "--poses", 0, store=s), "--poses")
+    assert_user_error(invoke("session", "new", "--robot", "ur10", "--targets", t, "--poses", 3, "--robot-driver", "abb",
+                             store=s), "--robot-driver")  # fmt: skip
+    assert_user_error(invoke("session", "new", "--robot", "ur10", "--targets", t, "--poses", 3, "--planner", "best",
+                             store=s), "--planner")  # fmt: skip
+    assert_user_error(invoke("session", "new", "--robot", "nobot", "--targets", t, "--poses", 3, store=s), "nobot")
+
+
+def test_missing_files(world, tmp_path):
+    assert_user_error(invoke("session", "import", tmp_path / "none.csv", "--robot", "ur10", "--targets",
+                             world["root"] / "targets.toml", store=tmp_path / "s"), "no such file")  # fmt: skip
+    assert_user_error(invoke("session", "new", "--robot", "ur10", "--targets", tmp_path / "none.toml", "--poses", 3,
+                             store=tmp_path / "s"))  # fmt: skip
+
+
+def test_wrong_robot_for_a_session(world):
+    r = invoke("fit", world["ref"], "--method", "local-poe", "--robot", "ur5e", store=world["store"])
+    assert_user_error(r, "not the model the session was recorded with")
+
+
+def test_corrupt_version_is_refused(world, tmp_path):
+    import shutil
+
+    store = tmp_path / "copy"
+    shutil.copytree(world["store"], store)
+    parquet = store / world["session"] / "v001" / "measurements.parquet"
+    parquet.chmod(0o644)
+    data = bytearray(parquet.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    parquet.write_bytes(bytes(data))
+    r = invoke("session", "verify", world["ref"], store=store)
+    assert r.exit_code == 1 and "measurements.parquet" in r.stdout
+    assert_user_error(invoke("fit", world["ref"], "--method", "local-poe", store=store))
+
+
+def test_bench_real_ur10_says_when_it_is_not_available():
+    r = invoke("bench", "real-ur10")
+    try:
+        import labcal.bench.real_ur10  # noqa: F401
+    except ModuleNotFoundError:
+        assert r.exit_code == 2 and "not available" in r.stderr
+    else:
+        pytest.skip("labcal.bench.real_ur10 exists now; its own tests cover it")
+
+
+@pytest.mark.slow
+def test_demo_end_to_end(tmp_path):
+    r = invoke("demo", "--out", tmp_path / "demo", "--poses", 60)
+    assert r.exit_code == 0, r.stdout + r.stderr
+    root = Path(last_line(r))
+    assert root == tmp_path / "demo"
+    for m in ("local-poe", "ann", "hybrid"):
+        assert m in r.stdout
+    comp = Compensator.load(root / "exports" / "ur10-hybrid.json")
+    assert comp.method == "hybrid"
+    assert (root / "exports" / "ur10-hybrid.script").read_text().count("def labcal_correct") == 1
+    from_urdf((root / "exports" / "ur10-local-poe.urdf").read_text())
+    assert (root / "report" / "report.md").is_file()
