@@ -1,0 +1,428 @@
+"""The paper's calibration method: a neural network learns the joint motion errors of an equivalent robot.
+
+Eq. (16-22): a feed-forward network N(q, w) — inputs the nominal joint values (or features of them), tanh hidden
+layer(s), 6 linear outputs — approximates the joint motion errors δρ(q) (n actuated + 6 − n virtual joints) of
+the equivalent robot built on a *base* robot. Training data are the eq. (21) observations
+``δρ_k = (P_k J_ρ,k)^+ δp_k`` of :mod:`labcal.calibration.equivalent`, after the condition filter.
+
+Training, in torch (imported lazily), float64 and single-threaded so that the same data and seed give
+bit-identical weights:
+
+- inputs and outputs are standardised on the (kept) training rows; the loss is eq. (21) in standardised output
+  units, ``E = Σ_k w_k ||(N(q_k) − δρ_k) / s||² / Σ_k w_k`` (w_k the condition weights, s the output scales), plus
+  ``weight_decay · ||W||²`` over the weight matrices (not the biases) if asked; ``loss="task"`` uses eq. (20)
+  instead, ``||δp_k − P_k J_ρ,k N(q_k)||²`` in metres (divided by the training RMS of δp);
+- trainers: ``"lm"`` Levenberg-Marquardt on the full weight vector (Jacobian of the residuals by
+  ``torch.func.jacfwd``, damped normal equations, Marquardt's μ × 10 / ÷ 10 rule), ``"adam"`` (full batch) and
+  ``"gd"``, plain gradient descent (eq. 22);
+- early stopping: after every iteration the validation loss is evaluated; the weights with the lowest validation
+  loss are kept, and training stops after ``patience`` iterations without improvement (the paper's Fig. 4);
+- ``restarts`` random initialisations (normal, scaled by 1/√fan-in, seeded by (seed, restart) through numpy),
+  the one with the lowest validation loss wins.
+
+Default size: one hidden layer of round(√(6 f)) tanh nodes for f network inputs — the paper's √(6n) rule of
+thumb (the geometric mean of inputs and outputs), identical to it for the paper's ``features=("q",)``.
+
+Example (slow-ish, so not a doctest)::
+
+    robot, info = fit_ann(obs.with_splits(0.5, seed=0), CalibratedRobot(nominal, nominal), seed=0)
+    robot.correct(q)                      # eq. (23-24) by default through a Newton solve
+    info["observations"]["dropped"], info["stopped_at"], info["val_loss"]
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from contextlib import contextmanager
+
+import numpy as np
+
+from labcal.calibration.equivalent import (
+    MAX_CONDITION,
+    SOFT_CONDITION,
+    JointErrorObservations,
+    joint_error_observations,
+)
+from labcal.calibration.observations import ObservationError, Observations
+from labcal.compensator import FEATURES, CalibratedRobot, Network, input_features
+
+TRAINERS = ("lm", "adam", "gd")
+LOSSES = ("joint", "task")
+# (max_iter, patience, learning rate) per trainer. LM converges in tens of iterations (the paper's Fig. 4: 11);
+# first-order methods need thousands of full-batch steps.
+_DEFAULTS = {"lm": (200, 6, None), "adam": (5000, 200, 1e-2), "gd": (20000, 500, 0.05)}
+_MU0, _MU_MAX = 1e-3, 1e10
+
+ProgressFn = Callable[[int, int, float, float], None]
+
+
+def default_hidden(n_inputs: int) -> int:
+    """The paper's rule of thumb: round(√(6 · inputs)) hidden nodes (at least 1)."""
+    return max(1, round(math.sqrt(6 * n_inputs)))
+
+
+def _layer_shapes(n_in: int, hidden: tuple[int, ...]) -> list[tuple[int, int]]:
+    sizes = [n_in, *hidden, 6]
+    return [(sizes[i + 1], sizes[i]) for i in range(len(sizes) - 1)]
+
+
+def _n_params(shapes) -> int:
+    return sum(o * i + o for o, i in shapes)
+
+
+def _init_params(shapes, seed: int, restart: int) -> np.ndarray:
+    rng = np.random.default_rng([seed, restart])
+    parts = []
+    for o, i in shapes:
+        parts.append(rng.normal(0.0, 1.0 / math.sqrt(i), size=o * i))
+        parts.append(rng.normal(0.0, 1.0 / math.sqrt(i), size=o))
+    return np.concatenate(parts)
+
+
+def _unflatten(theta, shapes):
+    """Flat parameter vector → [(W (out, in), b (out,)), …] (views; numpy or torch)."""
+    out, off = [], 0
+    for o, i in shapes:
+        W = theta[off : off + o * i].reshape(o, i)
+        off += o * i
+        out.append((W, theta[off : off + o]))
+        off += o
+    return out
+
+
+def _weight_mask(shapes) -> np.ndarray:
+    mask = []
+    for o, i in shapes:
+        mask += [np.ones(o * i), np.zeros(o)]
+    return np.concatenate(mask).astype(bool)
+
+
+def _forward(theta, x, shapes):
+    """Torch forward pass on standardised inputs x (k, f) → standardised outputs (k, 6). Same op order as Network."""
+    import torch
+
+    h = x
+    layers = _unflatten(theta, shapes)
+    for idx, (W, b) in enumerate(layers):
+        h = h @ W.T + b
+        if idx < len(layers) - 1:
+            h = torch.tanh(h)
+    return h
+
+
+@contextmanager
+def _deterministic_torch(seed: int):
+    """Single thread, deterministic kernels, seeded global RNG; restores the caller's settings and RNG state."""
+    import torch
+
+    threads = torch.get_num_threads()
+    det = torch.are_deterministic_algorithms_enabled()
+    rng_state = torch.get_rng_state()
+    torch.set_num_threads(1)
+    torch.use_deterministic_algorithms(True)
+    torch.manual_seed(seed)
+    try:
+        yield torch
+    finally:
+        torch.set_num_threads(threads)
+        torch.use_deterministic_algorithms(det)
+        torch.set_rng_state(rng_state)
+
+
+class _Problem:
+    """The least-squares problem of one split: residual vector r(θ) with loss ||r||² (weight decay separate)."""
+
+    def __init__(self, torch, x, y, w, A=None, b=None):
+        self.torch = torch
+        self.x = torch.as_tensor(x, dtype=torch.float64)
+        self.y = None if y is None else torch.as_tensor(y, dtype=torch.float64)
+        wn = np.asarray(w, float) / np.sum(w)
+        self.sqrt_w = torch.as_tensor(np.sqrt(wn), dtype=torch.float64)[:, None]
+        self.A = None if A is None else torch.as_tensor(A, dtype=torch.float64)
+        self.b = None if b is None else torch.as_tensor(b, dtype=torch.float64)
+
+    def residual(self, theta, shapes):
+        out = _forward(theta, self.x, shapes)
+        if self.A is None:
+            r = out - self.y
+        else:
+            r = self.b - self.torch.einsum("kab,kb->ka", self.A, out)
+        return (r * self.sqrt_w).reshape(-1)
+
+
+def _train_one(torch, theta0, shapes, train, val, trainer, weight_decay, max_iter, patience, lr, progress, restart):
+    """One initialisation. Returns (best θ (np), curve train, curve val, best iteration, iterations run)."""
+    wmask = torch.as_tensor(_weight_mask(shapes))
+    sqrt_wd = math.sqrt(weight_decay)
+
+    def full_residual(theta):
+        r = train.residual(theta, shapes)
+        if weight_decay > 0:
+            r = torch.cat([r, sqrt_wd * theta[wmask]])
+        return r
+
+    def losses(theta):
+        with torch.no_grad():
+            rt = full_residual(theta)
+            rv = val.residual(theta, shapes)
+            return float(rt @ rt), float(rv @ rv)
+
+    theta = torch.as_tensor(theta0, dtype=torch.float64).clone()
+    tr, va = losses(theta)
+    curve_t, curve_v = [tr], [va]
+    best_theta, best_val, best_it = theta.clone(), va, 0
+    if progress is not None:
+        progress(restart, 0, tr, va)
+
+    if trainer == "lm":
+        jac = torch.func.jacfwd(full_residual)  # few weights, many residuals: forward mode
+        mu = _MU0
+        eye = torch.eye(theta.numel(), dtype=torch.float64)
+    else:
+        param = torch.nn.Parameter(theta.clone())
+        opt = torch.optim.Adam([param], lr=lr) if trainer == "adam" else torch.optim.SGD([param], lr=lr)
+
+    it = 0
+    for it in range(1, max_iter + 1):
+        if trainer == "lm":
+            r = full_residual(theta).detach()
+            J = jac(theta).detach()
+            g, H = J.T @ r, J.T @ J
+            cost = float(r @ r)
+            stepped = False
+            while mu <= _MU_MAX:
+                step = torch.linalg.solve(H + mu * eye, -g)
+                cand = theta + step
+                with torch.no_grad():
+                    rc = full_residual(cand)
+                if float(rc @ rc) < cost:
+                    theta, mu, stepped = cand, max(mu * 0.1, 1e-15), True
+                    break
+                mu *= 10.0
+            if not stepped:  # no damping lowers the loss: a (local) minimum
+                break
+        else:
+            opt.zero_grad()
+            r = full_residual(param)
+            (r @ r).backward()
+            opt.step()
+            theta = param.detach().clone()
+        tr, va = losses(theta)
+        curve_t.append(tr)
+        curve_v.append(va)
+        if progress is not None:
+            progress(restart, it, tr, va)
+        if not (math.isfinite(tr) and math.isfinite(va)):
+            break
+        if va < best_val:
+            best_theta, best_val, best_it = theta.clone(), va, it
+        elif it - best_it >= patience:
+            break
+    return best_theta.numpy().copy(), curve_t, curve_v, best_it, it
+
+
+def _standardise(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    mean = a.mean(axis=0)
+    scale = a.std(axis=0)
+    # A constant input (a joint held still, a gravity component fixed by the first axis) carries no information.
+    scale = np.where(scale > 1e-12 * np.maximum(1.0, np.abs(mean)), scale, 1.0)
+    return mean, scale
+
+
+def _check_hidden(hidden, n_in: int) -> tuple[int, ...]:
+    if hidden is None:
+        return (default_hidden(n_in),)
+    layers = (hidden,) if isinstance(hidden, int | np.integer) else tuple(hidden)
+    if not layers or any(not isinstance(h, int | np.integer) or h < 1 for h in layers):
+        raise ValueError(f"hidden must be a positive int or a non-empty sequence of them, got {hidden!r}")
+    return tuple(int(h) for h in layers)
+
+
+def fit_ann(
+    obs: Observations,
+    base: CalibratedRobot,
+    *,
+    seed: int = 0,
+    hidden: int | tuple[int, ...] | None = None,
+    features: tuple[str, ...] = ("q",),
+    trainer: str = "lm",
+    restarts: int = 3,
+    max_condition: float | None = MAX_CONDITION,
+    soft_condition: float | None = SOFT_CONDITION,
+    weight_decay: float = 0.0,
+    loss: str = "joint",
+    max_iter: int | None = None,
+    patience: int | None = None,
+    lr: float | None = None,
+    progress: ProgressFn | None = None,
+) -> tuple[CalibratedRobot, dict]:
+    """Fit the joint motion errors of ``base``'s equivalent robot with a neural network (paper eq. 16-22).
+
+    obs: observations with "train" and "val" rows (others are ignored); base: a network-free robot — the nominal
+    one for the paper's method, an identified local-POE robot for the hybrid. hidden: nodes per hidden layer (an
+    int or a tuple for several layers; default round(√(6 f)) for f inputs). features: network inputs, see
+    :func:`labcal.compensator.input_features`. trainer: "lm" | "adam" | "gd". max_condition / soft_condition:
+    the condition filter of :func:`labcal.calibration.equivalent.joint_error_observations`. loss: "joint"
+    (eq. 21) or "task" (eq. 20). max_iter / patience / lr: trainer defaults if None. progress: called as
+    progress(restart, iteration, train_loss, val_loss).
+
+    Returns the calibrated robot (model = base.model, method "ann") and an info dict: observation filter summary
+    (dropped count and reasons, condition statistics), hidden, features, trainer, per-restart validation losses,
+    the chosen restart, its training curve and stopping point, train/val loss, and warnings.
+    """
+    obs.check_robot(base.n)
+    features = tuple(features)
+    unknown = [f for f in features if f not in FEATURES]
+    if not features or unknown:
+        raise ValueError(f"features must be a non-empty subset of {FEATURES}, got {features!r}")
+    if trainer not in TRAINERS:
+        raise ValueError(f"trainer must be one of {TRAINERS}, got {trainer!r}")
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+    if int(restarts) < 1:
+        raise ValueError(f"restarts must be >= 1, got {restarts}")
+    if not weight_decay >= 0.0:
+        raise ValueError(f"weight_decay must be >= 0, got {weight_decay}")
+    d_iter, d_pat, d_lr = _DEFAULTS[trainer]
+    max_iter = d_iter if max_iter is None else int(max_iter)
+    patience = d_pat if patience is None else int(patience)
+    lr = d_lr if lr is None else float(lr)
+    if max_iter < 1 or patience < 1:
+        raise ValueError(f"max_iter and patience must be >= 1, got {max_iter}, {patience}")
+
+    for s in ("train", "val"):
+        if not np.any(obs.split == s):
+            raise ObservationError(
+                f"the {s!r} split is empty ({obs.k} rows: {int(np.sum(obs.split == 'train'))} train, "
+                f"{int(np.sum(obs.split == 'val'))} val); fit_ann needs both (see Observations.with_splits)"
+            )
+    used = obs.subset(np.isin(obs.split, ["train", "val"]))
+    jeo = joint_error_observations(used, base, max_condition=max_condition, soft_condition=soft_condition)
+    rows = {s: np.flatnonzero((jeo.split == s) & jeo.kept) for s in ("train", "val")}
+    for s, idx in rows.items():
+        if idx.size == 0:
+            total = int(np.sum(jeo.split == s))
+            raise ObservationError(
+                f"the {s!r} split is empty after the condition filter ({total} rows before, "
+                f"{total - idx.size} dropped); fit_ann needs train and val rows (see Observations.with_splits)"
+            )
+
+    warnings: list[str] = []
+    if obs.frame == "tracker" and np.allclose(base.T_tracker_base, np.eye(4)):
+        warnings.append("tracker-frame data with an identity T_tracker_base: register the base first (hybrid)")
+
+    feats = input_features(jeo.q, features, base.model)
+    tr, va = rows["train"], rows["val"]
+    in_mean, in_scale = _standardise(feats[tr])
+    out_mean, out_scale = _standardise(jeo.delta_rho[tr])
+    x = (feats - in_mean) / in_scale
+    y = np.zeros_like(jeo.delta_rho)
+    ok = np.all(np.isfinite(jeo.delta_rho), axis=1)
+    y[ok] = (jeo.delta_rho[ok] - out_mean) / out_scale
+
+    shapes = _layer_shapes(x.shape[1], _check_hidden(hidden, x.shape[1]))
+    n_params = _n_params(shapes)
+    if n_params > 6 * tr.size:
+        warnings.append(f"the network has {n_params} weights for {6 * tr.size} training numbers: expect over-fitting")
+
+    def problem(torch, idx):
+        if loss == "joint":
+            return _Problem(torch, x[idx], y[idx], jeo.weight[idx])
+        # eq. (20) on standardised outputs: δp − PJ (s ⊙ N + m), scaled to unit RMS on the training rows.
+        unit = math.sqrt(np.mean(jeo.delta_p[tr] ** 2)) or 1.0
+        A = jeo.PJ[idx] * out_scale / unit
+        b = (jeo.delta_p[idx] - jeo.PJ[idx] @ out_mean) / unit
+        return _Problem(torch, x[idx], None, jeo.weight[idx], A, b)
+
+    runs = []
+    with _deterministic_torch(seed) as torch:
+        train_p, val_p = problem(torch, tr), problem(torch, va)
+        for r in range(int(restarts)):
+            theta0 = _init_params(shapes, seed, r)
+            runs.append(
+                _train_one(
+                    torch, theta0, shapes, train_p, val_p, trainer, weight_decay, max_iter, patience, lr, progress, r
+                )
+            )
+    val_losses = [float(run[2][run[3]]) for run in runs]
+    finite = [v if math.isfinite(v) else math.inf for v in val_losses]
+    best = int(np.argmin(finite))
+    theta, curve_t, curve_v, stopped_at, iterations = runs[best]
+    if not math.isfinite(finite[best]):
+        raise RuntimeError("every training restart diverged (non-finite loss); lower lr or use trainer='lm'")
+
+    layers = _unflatten(theta, shapes)
+    network = Network(
+        features=features,
+        weights=tuple(np.array(W) for W, _ in layers),
+        biases=tuple(np.array(b) for _, b in layers),
+        in_mean=in_mean,
+        in_scale=in_scale,
+        out_mean=out_mean,
+        out_scale=out_scale,
+    )
+    # The export must be the trained model, not an approximation of it.
+    check = torch_predict(network, jeo.q[tr], base.model)
+    export_diff = float(np.max(np.abs(check - network(jeo.q[tr], base.model))))
+    if not export_diff <= 1e-12 * max(1.0, float(np.max(np.abs(check)))):
+        raise RuntimeError(f"exported network differs from the torch model by {export_diff:.3g}")
+    q_train = jeo.q[tr]
+    robot = CalibratedRobot(
+        nominal=base.nominal,
+        model=base.model,
+        network=network,
+        T_tracker_base=base.T_tracker_base,
+        joint_ranges=np.stack([q_train.min(axis=0), q_train.max(axis=0)], axis=1),
+        length_scale=base.length_scale,
+        method="ann",
+    )
+    info = {
+        "method": "ann",
+        "observations": jeo.summary(),
+        "max_condition": max_condition,
+        "soft_condition": soft_condition,
+        "train_rows": int(tr.size),
+        "val_rows": int(va.size),
+        "features": list(features),
+        "inputs": int(x.shape[1]),
+        "hidden": list(network.hidden),
+        "weights": n_params,
+        "trainer": trainer,
+        "loss": loss,
+        "weight_decay": weight_decay,
+        "max_iter": max_iter,
+        "patience": patience,
+        "lr": lr,
+        "seed": seed,
+        "restarts": int(restarts),
+        "restart_val_losses": val_losses,
+        "chosen_restart": best,
+        "curve": {"train": curve_t, "val": curve_v},
+        "stopped_at": int(stopped_at),
+        "iterations": int(iterations),
+        "train_loss": float(curve_t[stopped_at]),
+        "val_loss": float(curve_v[stopped_at]),
+        "export_max_abs_diff": export_diff,
+        "warnings": warnings,
+    }
+    return robot, info
+
+
+def torch_predict(network: Network, q: np.ndarray, model) -> np.ndarray:
+    """(k, n) joints → (k, 6) δρ computed by the torch forward pass of the training code from a Network's
+    weights (float64). Used to verify that an export reproduces the trained model."""
+    feats = input_features(q, network.features, model)
+    x = (feats - network.in_mean) / network.in_scale
+    shapes = [W.shape for W in network.weights]
+    theta = np.concatenate(
+        [np.concatenate([W.ravel(), b]) for W, b in zip(network.weights, network.biases, strict=True)]
+    )
+    with _deterministic_torch(0) as torch:
+        out = _forward(torch.as_tensor(theta), torch.as_tensor(x), shapes).numpy()
+    return out * network.out_scale + network.out_mean
+
+
+def observations_for(obs: Observations, base: CalibratedRobot, **kwargs) -> JointErrorObservations:
+    """The eq. (21) observations fit_ann trains on (a convenience re-export for reports and the hybrid)."""
+    return joint_error_observations(obs, base, **kwargs)

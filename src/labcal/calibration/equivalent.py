@@ -1,0 +1,171 @@
+"""Observations of the joint motion errors of an equivalent robot (paper eq. 12-14, 18, 21).
+
+The equivalent robot explains every pose error of the real robot by joint motion errors δρ (6 per configuration:
+the n actuated joints, then 6 − n virtual joints) of a *base* robot — the nominal model for the paper's method,
+the identified local-POE model for the hybrid. At configuration k:
+
+- the base robot predicts target points p̂_i (base frame) and, through ``T_tracker_base``, in the observation frame;
+- δp_k = measured − predicted (9,), rotated back into the base frame (so it matches eq. 18 in K0);
+- ``P_k = [[I, r̂_1], [I, r̂_2], [I, r̂_3]]`` with r_i = −p̂_i, the vector from target i to the origin of K0:
+  a twist δy = (δv, δω) moves a point p by δv + δω × p = δv + r̂ δω (eq. 18);
+- J_ρ,k is the base robot's equivalent Jacobian (eq. 14, virtual joints for n < 6);
+- the observation is δρ_k = (P_k J_ρ,k)^+ δp_k (eq. 21), computed once.
+
+**Condition filter.** Near a singular configuration (a wrist at q5 ≈ 0, an elbow stretched out) J_ρ loses rank
+and eq. 21 turns millimetres of noise into radians of "joint error" (DESIGN.md section 1). Each observation's
+``condition`` is cond(P J_ρ S) in a length-scaled metric: S = diag(1 for revolute and virtual joints, L for
+prismatic joints), L the base robot's ``length_scale``; δp stays in metres. So every δρ coordinate is measured
+in the same unit (radians, or metres divided by the reach L — the virtual joints of
+:meth:`~labcal.kinematics.poe.LocalPOEModel.equivalent_jacobian` already are), and the number is the ratio of the
+largest to the smallest noise amplification over all joint-error directions. It includes a floor set by the
+target geometry (rotations are seen through the target spacing, a few decimetres against a reach of metres).
+
+Observations above ``max_condition`` are dropped (with the reason recorded); between ``soft_condition`` and
+``max_condition`` they can be down-weighted by (soft / cond)².
+
+Default :data:`MAX_CONDITION` = 1e4, measured on 20,000 uniform random configurations over the full joint
+ranges with a 10-20 cm target triangle (``benchmarks``-style script in the ann tests' module docstring): the
+median condition is ~100 on fanuc-m1000ia and ~120 on ur10; 1e4 drops about 1 % (fanuc-m1000ia) and 1 % (ur10)
+of random configurations — those within about 1e-2 rad of a wrist or elbow singularity, where one tracker-noise
+standard deviation (0.05 mm) already becomes a joint "error" of the order of a milliradian.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from labcal.calibration.observations import Observations
+from labcal.compensator import CalibratedRobot
+from labcal.kinematics import se3
+
+MAX_CONDITION = 1e3
+SOFT_CONDITION = 1e2
+
+
+@dataclass(frozen=True, eq=False)
+class JointErrorObservations:
+    """Eq. 21 for every configuration of an :class:`Observations`, plus the condition filter's verdict.
+
+    q: (k, n) joints; delta_p: (k, 9) measured − predicted target positions in the base frame (m);
+    PJ: (k, 9, 6) P_k J_ρ,k; delta_rho: (k, 6) observed joint motion errors (rad, m for prismatic joints;
+    NaN where PJ is numerically singular); condition: (k,) cond(P J_ρ S) (see module docstring);
+    weight: (k,) 0 for dropped rows, (soft/cond)² in the down-weighted band, else 1;
+    reason: (k,) "" for kept rows, else why the row was dropped; split: (k,) the observations' split labels.
+    """
+
+    q: np.ndarray
+    delta_p: np.ndarray
+    PJ: np.ndarray
+    delta_rho: np.ndarray
+    condition: np.ndarray
+    weight: np.ndarray
+    reason: np.ndarray
+    split: np.ndarray
+
+    @property
+    def kept(self) -> np.ndarray:
+        return self.weight > 0
+
+    def summary(self) -> dict:
+        """Counts of dropped rows by reason and condition statistics of all rows (JSON-friendly)."""
+        reasons: dict[str, int] = {}
+        for r in self.reason[~self.kept]:
+            reasons[str(r)] = reasons.get(str(r), 0) + 1
+        finite = self.condition[np.isfinite(self.condition)]
+        stats = (
+            {
+                "min": float(finite.min()),
+                "median": float(np.median(finite)),
+                "p95": float(np.percentile(finite, 95)),
+                "max": float(finite.max()),
+            }
+            if finite.size
+            else {}
+        )
+        return {
+            "count": len(self.q),
+            "dropped": int(np.sum(~self.kept)),
+            "dropped_reasons": reasons,
+            "downweighted": int(np.sum(self.kept & (self.weight < 1.0))),
+            "condition": stats,
+        }
+
+
+def point_matrix(points: np.ndarray) -> np.ndarray:
+    """P of eq. (18): predicted points (k, 3, 3) in the base frame → (k, 9, 6), δp = P δy with δy = (δv, δω)."""
+    points = np.asarray(points, dtype=float)
+    k = points.shape[0]
+    P = np.zeros((k, 9, 6))
+    for i in range(3):
+        P[:, 3 * i : 3 * i + 3, :3] = np.eye(3)
+        P[:, 3 * i : 3 * i + 3, 3:] = se3.skew(-points[:, i])  # r_i = −p̂_i: from target i to the K0 origin
+    return P
+
+
+def metric_scale(base: CalibratedRobot) -> np.ndarray:
+    """(6,) column scaling S of the length-scaled metric: L for prismatic actuated joints, 1 otherwise."""
+    s = np.ones(6)
+    for j, t in enumerate(base.model.joint_types):
+        if t == "prismatic":
+            s[j] = base.length_scale
+    return s
+
+
+def condition_numbers(PJ: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """(k, 9, 6) P J_ρ and (6,) column scaling → (k,) condition numbers (inf where rank deficient)."""
+    sv = np.linalg.svd(PJ * scale, compute_uv=False)
+    with np.errstate(divide="ignore"):
+        return np.where(sv[:, -1] > 0, sv[:, 0] / np.where(sv[:, -1] > 0, sv[:, -1], 1.0), np.inf)
+
+
+def joint_error_observations(
+    obs: Observations,
+    base: CalibratedRobot,
+    *,
+    max_condition: float | None = MAX_CONDITION,
+    soft_condition: float | None = None,
+) -> JointErrorObservations:
+    """Observe the joint motion errors δρ of ``base``'s equivalent robot at every configuration (eq. 18, 21).
+
+    base: the robot whose equivalent robot is observed; it must not carry a network already (its δρ would be
+    double-counted). ``max_condition=None`` keeps every finite observation; ``soft_condition`` (< max_condition)
+    turns on down-weighting.
+    """
+    obs.check_robot(base.n)
+    if base.network is not None:
+        raise ValueError("base already has a network; observe joint motion errors of a network-free base robot")
+    if max_condition is not None and not max_condition > 1.0:
+        raise ValueError(f"max_condition must be > 1, got {max_condition}")
+    if soft_condition is not None:
+        if not soft_condition >= 1.0:
+            raise ValueError(f"soft_condition must be >= 1, got {soft_condition}")
+        if max_condition is not None and soft_condition > max_condition:
+            raise ValueError(f"soft_condition {soft_condition} exceeds max_condition {max_condition}")
+    q = obs.q
+    k = obs.k
+    predicted = base.predict_points(q, obs.targets) if k else np.zeros((0, 3, 3))  # (k, 3, 3) base frame
+    R, t = base.T_tracker_base[:3, :3], base.T_tracker_base[:3, 3]
+    in_obs_frame = np.einsum("ab,kmb->kma", R, predicted) + t
+    # Residuals are formed where the data live, then expressed in K0 where eq. (18) holds.
+    delta_p = np.einsum("ba,kmb->kma", R, obs.points - in_obs_frame).reshape(k, 9)
+    J = base.equivalent_jacobian(q) if k else np.zeros((0, 6, 6))
+    PJ = np.einsum("kab,kbc->kac", point_matrix(predicted), J)
+    condition = condition_numbers(PJ, metric_scale(base)) if k else np.zeros(0)
+    reason = np.full(k, "", dtype=object)
+    weight = np.ones(k)
+    delta_rho = np.full((k, 6), np.nan)
+    singular = ~np.isfinite(condition) | (condition > 1e12)
+    reason[singular] = "singular P·J_rho (rank deficient)"
+    if max_condition is not None:
+        high = ~singular & (condition > max_condition)
+        reason[high] = f"condition > {max_condition:g}"
+    weight[reason != ""] = 0.0
+    if soft_condition is not None:
+        band = (weight > 0) & (condition > soft_condition)
+        weight[band] = (soft_condition / condition[band]) ** 2
+    ok = ~singular
+    if np.any(ok):
+        delta_rho[ok] = np.einsum("kab,kb->ka", np.linalg.pinv(PJ[ok]), delta_p[ok])
+    return JointErrorObservations(q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split)
