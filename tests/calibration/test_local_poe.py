@@ -83,7 +83,10 @@ def test_one_linear_step_is_not_enough_the_iteration_is():
     assert held_out_errors(one_step, actual)[0].max() > 1e-8
     assert held_out_errors(full, actual)[0].max() <= 1e-9
     assert info["iterations"] > 1
-    assert all(b <= a for a, b in zip(info["cost_history"], info["cost_history"][1:], strict=False))
+    # accepted steps never raise the cost beyond round-off (the last, sub-tol step may sit at the floor)
+    assert all(
+        b <= a * (1 + 1e-9) + 1e-30 for a, b in zip(info["cost_history"], info["cost_history"][1:], strict=False)
+    )
 
 
 def test_with_tracker_noise_the_held_out_error_is_at_the_noise_floor():
