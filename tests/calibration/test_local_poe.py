@@ -83,9 +83,10 @@ def test_one_linear_step_is_not_enough_the_iteration_is():
     assert held_out_errors(one_step, actual)[0].max() > 1e-8
     assert held_out_errors(full, actual)[0].max() <= 1e-9
     assert info["iterations"] > 1
-    # accepted steps never raise the cost beyond round-off (the last, sub-tol step may sit at the floor)
+    # accepted steps never raise the cost beyond round-off: the final sub-tol step is accepted at the floor,
+    # where 540 residuals of ~1e-14 m give ~1e-28 m²; allow 1e-24 m²
     assert all(
-        b <= a * (1 + 1e-9) + 1e-30 for a, b in zip(info["cost_history"], info["cost_history"][1:], strict=False)
+        b <= a * (1 + 1e-9) + 1e-24 for a, b in zip(info["cost_history"], info["cost_history"][1:], strict=False)
     )
 
 
