@@ -51,7 +51,7 @@ class Observations:
             raise ObservationError(f"targets must have shape (3, 3), got {targets.shape}")
         check_targets(targets)
         for name, arr in (("q", q), ("points", points)):
-            bad = ~np.isfinite(arr.reshape(k, -1)).all(axis=1)
+            bad = ~np.isfinite(arr.reshape(k, int(np.prod(arr.shape[1:])))).all(axis=1)
             if np.any(bad):
                 raise ObservationError(f"{name} of configuration (row) {int(np.argmax(bad))} is not finite")
         if self.frame not in ("base", "tracker"):
