@@ -161,3 +161,22 @@ def test_too_few_rows_wrong_robot_and_base_with_network_are_refused(ur10_fit):
     _, _, robot, _ = ur10_fit
     with pytest.raises(ValueError, match="network-free"):
         fit_joint_series(obs, robot)
+
+
+def test_compensator_runtime_evaluates_the_series_like_this_module_and_exports_round_trip(ur10_fit, tmp_path):
+    from labcal.compensator import Compensator
+
+    _, _, robot, _ = ur10_fit
+    q = np.random.default_rng(8).uniform(-2, 2, size=(5, 6))
+    np.testing.assert_allclose(robot.joint_motion_errors(q), joint_motion_errors(robot, q), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(robot.predict_pose(q), predict_pose(robot, q), rtol=0, atol=1e-12)
+    loaded = Compensator.load(robot.save(tmp_path / "series.json"))
+    assert loaded.robot.network.features == robot.network.features
+    np.testing.assert_allclose(loaded.predict_pose(q, extrapolate=True), robot.predict_pose(q), rtol=0, atol=1e-15)
+    # Correcting the commands cancels the injected joint errors: the real robot lands on the nominal pose.
+    q_in = np.random.default_rng(9).uniform(-1.5, 1.5, size=(5, 6))
+    q_cmd = loaded.correct(q_in, extrapolate=True)
+    reached = robot.model.fk(q_cmd + _injected(q_cmd))
+    target = robot.nominal.fk(q_in)
+    assert np.max(np.linalg.norm(reached[:, :3, 3] - target[:, :3, 3], axis=1)) < 2e-5
+    assert np.max(np.linalg.norm(robot.nominal.fk(q_in + _injected(q_in))[:, :3, 3] - target[:, :3, 3], axis=1)) > 1e-4
