@@ -80,7 +80,7 @@ def test_nominal_method_is_the_registered_nominal():
 def test_auto_picks_local_poe_when_the_network_does_not_help_and_ties_go_to_the_simpler(fake_ann):
     nominal, obs = observe()
     fake_ann(lambda obs, base: base)  # a network that learns nothing: hybrid == local POE, ann == nominal
-    result = fit(obs, nominal, "auto", seed=0)
+    result = fit(obs, nominal, "auto", seed=0, stage2=("ann",))
     c = result.info["candidates"]
     assert c["hybrid"] == c["local-poe"] < c["ann"]
     assert result.chosen == "local-poe" and result.robot.method == "local-poe"
@@ -93,7 +93,7 @@ def test_auto_picks_the_lowest_validation_error_and_prefers_hybrid_to_ann_on_a_t
     nominal, obs = observe(ErrorSpec.paper(tracker_noise=0.0))
     exact, _ = fit_local_poe(obs.with_splits(0.5, 0), nominal)
     fake_ann(lambda obs, base: exact)
-    result = fit(obs, nominal, "auto", seed=0, local_poe_options={"max_iter": 1})
+    result = fit(obs, nominal, "auto", seed=0, local_poe_options={"max_iter": 1}, stage2=("ann",))
     c = result.info["candidates"]
     assert c["ann"] == c["hybrid"] < c["local-poe"]
     assert result.chosen == "hybrid"

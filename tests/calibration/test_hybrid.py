@@ -47,15 +47,16 @@ def fake_ann(monkeypatch):
 def test_second_stage_is_dropped_when_it_raises_the_validation_error(fake_ann):
     nominal, obs = observe(ErrorSpec.paper())
     calls = fake_ann(lambda obs, base: register(obs, nominal)[0])  # stage 2 "forgets" the identification
-    robot, info = fit_hybrid(obs, nominal, seed=3, hidden=4)
+    robot, info = fit_hybrid(obs, nominal, seed=3, stage2=("ann",), hidden=4)
     stage1, _ = fit_local_poe(obs, nominal)
     assert info["kept"] == "local-poe"
     assert info["val_error_hybrid"] > info["val_error_local_poe"]
     assert np.array_equal(robot.model.frames, stage1.model.frames) and robot.network is None
     assert robot.method == "hybrid"
-    # stage 2 was given the identified robot as its base, the seed and the network options
+    # stage 2 was given the identified robot as its base, the seed, the network options and eq. (20)'s loss
     base, seed, options = calls[0]
-    assert np.array_equal(base.model.frames, stage1.model.frames) and seed == 3 and options == {"hidden": 4}
+    assert np.array_equal(base.model.frames, stage1.model.frames) and seed == 3
+    assert options == {"hidden": 4, "loss": "task"}
 
 
 def test_second_stage_is_kept_when_it_lowers_the_validation_error(fake_ann):
@@ -63,10 +64,26 @@ def test_second_stage_is_kept_when_it_lowers_the_validation_error(fake_ann):
     good, _ = fit_local_poe(obs, nominal)
     fake_ann(lambda obs, base: good)
     poor = register(obs, nominal)  # a deliberately poor first stage
-    robot, info = fit_hybrid(obs, nominal, stage1=poor)
+    robot, info = fit_hybrid(obs, nominal, stage1=poor, stage2=("ann",))
     assert info["kept"] == "local-poe+ann"
     assert info["val_error_hybrid"] == pytest.approx(validation_error(good, obs))
     assert np.array_equal(robot.model.frames, good.model.frames)
+
+
+def test_the_candidate_with_the_lower_validation_error_is_kept(fake_ann, monkeypatch):
+    nominal, obs = observe(ErrorSpec.paper())
+    good, _ = fit_local_poe(obs, nominal)
+    poor = register(obs, nominal)
+    fake_ann(lambda obs, base: poor[0])  # the network candidate is worse than the series candidate
+    import labcal.calibration.joint_series as joint_series
+
+    monkeypatch.setattr(joint_series, "fit_joint_series", lambda obs, base, **kw: (good, {"fake_series": True}))
+    robot, info = fit_hybrid(obs, nominal, stage1=poor)
+    assert info["kept"] == "local-poe+series"
+    assert info["val_errors"]["series"] < info["val_errors"]["ann"]
+    assert info["series"] == {"fake_series": True} and np.array_equal(robot.model.frames, good.model.frames)
+    with pytest.raises(ValueError, match="stage2"):
+        fit_hybrid(obs, nominal, stage1=poor, stage2=("kriging",))
 
 
 def test_hybrid_needs_validation_rows():

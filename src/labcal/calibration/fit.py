@@ -114,7 +114,8 @@ def fit(
 
     options: keyword options of the method's fitting function — ``fit_local_poe`` for "local-poe", ``fit_ann``
     for "ann", "hybrid" and "auto" (their network stage); ``local_poe_options`` go to the local-POE stage of
-    "hybrid" and "auto". progress: optional callable receiving one status line per step.
+    "hybrid" and "auto"; ``stage2`` and ``series_options`` go to the hybrid only (see ``fit_hybrid``).
+    progress: optional callable receiving one status line per step.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
@@ -127,6 +128,7 @@ def fit(
     if method in ("hybrid", "auto", "ann") and counts["val"] == 0:
         raise ValueError(f"method {method!r} needs validation rows: use val_fraction > 0 or label some rows 'val'")
     lp_opts = dict(local_poe_options or {})
+    hybrid_opts = {key: options.pop(key) for key in ("stage2", "series_options") if key in options}
     seconds: dict[str, float] = {}
 
     say("registering the nominal model")
@@ -152,7 +154,10 @@ def fit(
         chosen = "ann"
     elif method == "hybrid":
         robot, info = timed(
-            "hybrid", lambda: fit_hybrid(obs, nominal, seed=seed, local_poe_options=lp_opts, progress=say, **options)
+            "hybrid",
+            lambda: fit_hybrid(
+                obs, nominal, seed=seed, local_poe_options=lp_opts, progress=say, **hybrid_opts, **options
+            ),
         )
         chosen = "hybrid"
     else:
@@ -160,7 +165,7 @@ def fit(
         cands = {"local-poe": stage1}
         cands["ann"] = timed("ann", lambda: _ann(obs, before, seed, options))
         cands["hybrid"] = timed(
-            "hybrid", lambda: fit_hybrid(obs, nominal, seed=seed, stage1=stage1, progress=say, **options)
+            "hybrid", lambda: fit_hybrid(obs, nominal, seed=seed, stage1=stage1, progress=say, **hybrid_opts, **options)
         )
         seconds["hybrid"] += seconds["local-poe"]  # the hybrid's first stage was shared
         errors = {name: validation_error(r, obs) for name, (r, _) in cands.items()}
