@@ -19,9 +19,43 @@ app = typer.Typer(
 )
 
 
-def _progress(p) -> None:
-    if p.pose is not None and p.status not in ("valid", "measured"):
-        out.print(f"  pose {p.pose}: {p.status} {p.message}", markup=False)
+class _RunProgress:
+    """A rich progress bar on stderr (pose k/N, ETA, last status and triangle residual); stdout stays for ids.
+
+    Rejections and retries are also printed as lines, so they stay visible after the bar moves on.
+    """
+
+    def __init__(self) -> None:
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self._bar = Progress(
+            TextColumn("recording"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("poses  ETA"),
+            TimeRemainingColumn(),
+            TextColumn("{task.fields[status]}"),
+            console=Console(stderr=True),
+            transient=False,
+        )
+        self._task = None
+
+    def __enter__(self) -> _RunProgress:
+        self._bar.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._bar.stop()
+
+    def __call__(self, p) -> None:
+        if self._task is None:
+            self._task = self._bar.add_task("poses", total=p.total, completed=p.done, status="")
+        residual = "" if p.residual is None else f", triangle residual {p.residual * 1e3:.3f} mm"
+        where = "" if p.pose is None else f"pose {p.pose}: "
+        self._bar.update(self._task, completed=p.done, total=p.total, status=f"{where}{p.status}{residual}")
+        if p.status in ("retry", "rejected", "paused", "aborted", "failed"):
+            self._bar.console.print(f"  {where}{p.status} {p.message}", markup=False)
 
 
 @app.command("new")
@@ -46,11 +80,12 @@ def new(
     """
     from labcal.cli.ops import new_session
 
-    summary = new_session(
-        store_of(store), robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver,
-        tracker_driver=tracker_driver, profile=profile, tracker_profile=tracker_profile, planner=planner,
-        samples=samples, seed=seed, sim_errors=sim_errors, progress=_progress,
-    )  # fmt: skip
+    with _RunProgress() as progress:
+        summary = new_session(
+            store_of(store), robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver,
+            tracker_driver=tracker_driver, profile=profile, tracker_profile=tracker_profile, planner=planner,
+            samples=samples, seed=seed, sim_errors=sim_errors, progress=progress,
+        )  # fmt: skip
     out.print(
         f"{summary.exit_status}: {summary.valid} valid, {summary.rejected} rejected, {summary.remaining} remaining",
         markup=False,
@@ -113,7 +148,8 @@ def resume(
     """
     from labcal.cli.ops import resume_session
 
-    summary = resume_session(store_of(store), session, robot=robot, progress=_progress)
+    with _RunProgress() as progress:
+        summary = resume_session(store_of(store), session, robot=robot, progress=progress)
     out.print(f"{summary.exit_status}: {summary.reason}", markup=False)
     if summary.ref is None:
         raise typer.Exit(1)
