@@ -20,6 +20,8 @@ the unbiased check). Torch is imported only when the ANN candidate runs.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from labcal.calibration.local_poe import fit_local_poe
@@ -101,12 +103,4 @@ def fit_hybrid(
 
 
 def _relabel(robot: CalibratedRobot, method: str) -> CalibratedRobot:
-    return CalibratedRobot(
-        nominal=robot.nominal,
-        model=robot.model,
-        network=robot.network,
-        T_tracker_base=robot.T_tracker_base,
-        joint_ranges=robot.joint_ranges,
-        length_scale=robot.length_scale,
-        method=method,
-    )
+    return dataclasses.replace(robot, method=method)
