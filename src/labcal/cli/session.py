@@ -42,14 +42,15 @@ class _RunProgress:
         self._task = None
 
     def __enter__(self) -> _RunProgress:
-        self._bar.start()
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._bar.stop()
+        if self._task is not None:
+            self._bar.stop()
 
     def __call__(self, p) -> None:
-        if self._task is None:
+        if self._task is None:  # started on the first event: argument errors before it print nothing extra
+            self._bar.start()
             self._task = self._bar.add_task("poses", total=p.total, completed=p.done, status="")
         residual = "" if p.residual is None else f", triangle residual {p.residual * 1e3:.3f} mm"
         where = "" if p.pose is None else f"pose {p.pose}: "
