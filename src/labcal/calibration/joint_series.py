@@ -22,6 +22,11 @@ eigen-decomposition; every λ then costs a matrix-vector product. The final coef
 training rows. Validation rows are never fitted on: their error is reported, and the decision to keep the series
 at all (the hybrid's gate) belongs to the caller.
 
+**Gravity terms.** Optionally each joint's error also gets a linear term in the direction of gravity seen from
+every link frame (the compensator's ``gravity`` feature, 3n numbers): for a rigid arm every gravity torque is
+linear in them, so joint compliance under gravity, δρ_j = c_j τ_j(q), is exactly representable. They are
+penalised like order 1. By default cross-validation decides whether to include them, at the chosen H.
+
 **Virtual joints** (robots with n < 6) are not modelled: their errors stay zero. The separable series is a model
 of the actuated joints' transmissions; a lower-mobility robot's out-of-plane errors are geometric and belong to
 the local-POE stage.
@@ -46,7 +51,7 @@ import numpy as np
 from labcal import features as feature_lib
 from labcal.calibration.equivalent import joint_error_observations
 from labcal.calibration.observations import ObservationError, Observations, rigid_fit
-from labcal.compensator import CalibratedRobot, Network
+from labcal.compensator import CalibratedRobot, Network, input_features
 from labcal.kinematics import se3
 
 DEFAULT_HARMONICS = (8, 16, 24, 32, 48)
@@ -104,20 +109,15 @@ class _Design:
         b = np.einsum("rim,ri->im", B, self.g[rows]).reshape(-1)
         return G, b
 
-    def rho(self, rows: np.ndarray, coef: np.ndarray, m: int) -> np.ndarray:
-        """(r, n) joint motion errors of the rows for coefficients (n·m,)."""
-        return np.einsum("rim,im->ri", self.basis[rows, :, :m], coef.reshape(self.n, m))
+    def rho_sel(self, rows: np.ndarray, coef: np.ndarray, sel: np.ndarray) -> np.ndarray:
+        """(r, n) joint motion errors of the rows for coefficients of the selected joint-major unknowns."""
+        flat = self.basis[rows].reshape(len(rows), -1)[:, sel].reshape(len(rows), self.n, -1)
+        return np.einsum("rim,im->ri", flat, coef.reshape(self.n, -1))
 
     def residual_score(self, rows: np.ndarray, rho: np.ndarray) -> np.ndarray:
         """(r,) RMS target-position residual of each row after subtracting P J ρ (m)."""
         r = self.delta_p[rows] - np.einsum("rai,ri->ra", self.PJ[rows], rho)
         return np.sqrt(np.mean(r.reshape(-1, 3, 3) ** 2, axis=(1, 2)) * 3.0)
-
-
-def _penalty(m: int, n: int, power: float) -> np.ndarray:
-    """(n·m,) penalty weights: order^power for the harmonics, 1 for the constant."""
-    orders = np.concatenate([[1.0], np.repeat(np.arange(1, (m - 1) // 2 + 1, dtype=float), 2)])
-    return np.tile(orders**power, n)
 
 
 def _solve_path(G: np.ndarray, b: np.ndarray, pen: np.ndarray, scale: float, lambdas) -> list[np.ndarray]:
@@ -139,6 +139,7 @@ def fit_joint_series(
     lambdas=None,
     folds: int = 5,
     seed: int = 0,
+    gravity: bool | None = None,
 ) -> tuple[CalibratedRobot, dict]:
     """Fit per-joint Fourier series of the joint motion errors of ``base``'s equivalent robot (module docstring).
 
@@ -146,7 +147,8 @@ def fit_joint_series(
     measured, "test" rows ignored. base: a network-free robot (the identified local-POE robot for the hybrid, the
     registered nominal otherwise). harmonics: an int H, or candidate H values chosen by cross-validation.
     penalty_power: p of the order-weighted ridge penalty λ h^p. lambdas: candidate λ (unit-free, default 1e-7 …
-    10). folds: cross-validation folds. seed: fold assignment.
+    10). folds: cross-validation folds. seed: fold assignment. gravity: add the gravity terms (module docstring)
+    — True, False, or None (default) to let cross-validation decide at the chosen H.
 
     Returns (robot, info): robot.method "series", network features ``("harmonics:H",)``; info holds
     ``harmonics`` (H), ``lambda``, ``cv`` ({H: [cv score per λ]}, m), ``cv_error`` (m), ``train_error`` and
@@ -162,7 +164,7 @@ def fit_joint_series(
     fit_mask = np.isin(obs.split, ("train", ""))
     k_fit = int(fit_mask.sum())
     h_max = max(cands)
-    m_max = 1 + 2 * h_max
+    m_max = 1 + 3 * n + 2 * h_max
     if k_fit < 2 * folds:
         raise ObservationError(
             f"the joint series needs at least {2 * folds} training configurations for {folds}-fold "
@@ -170,8 +172,14 @@ def fit_joint_series(
         )
     train = obs.subset(fit_mask)
     jeo = joint_error_observations(train, base, max_condition=None)
+    n_grav = 3 * n
+    grav = input_features(train.q, ("gravity",), base.model)  # (k, 3n), the same for every joint
     basis = np.concatenate(
-        [np.ones((k_fit, n, 1)), feature_lib.harmonics(train.q, h_max, types, limits).reshape(k_fit, n, 2 * h_max)],
+        [
+            np.ones((k_fit, n, 1)),
+            np.broadcast_to(grav[:, None, :], (k_fit, n, n_grav)),
+            feature_lib.harmonics(train.q, h_max, types, limits).reshape(k_fit, n, 2 * h_max),
+        ],
         axis=2,
     )
     design = _Design(jeo.PJ, jeo.delta_p, basis)
@@ -182,37 +190,49 @@ def fit_joint_series(
     # Normal equations at the largest order once; every candidate H is a sub-block of them.
     G_max, b_max = design.normal(everything, m_max)
     fold_normals = [design.normal(rows, m_max) for rows in fold_rows]
-    cv: dict[int, list[float]] = {}
-    solutions: dict[int, tuple[np.ndarray, float]] = {}
-    for H in cands:
-        m = 1 + 2 * H
-        sel = (np.arange(n)[:, None] * m_max + np.arange(m)[None, :]).reshape(-1)
-        pen = _penalty(m, n, penalty_power)
+
+    def columns(H: int, with_gravity: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Selected unknowns (joint-major) and their penalty weights for a model (H, gravity)."""
+        per_joint = [0, *(range(1, 1 + n_grav) if with_gravity else ()), *range(1 + n_grav, 1 + n_grav + 2 * H)]
+        sel = (np.arange(n)[:, None] * m_max + np.array(per_joint)[None, :]).reshape(-1)
+        orders = np.concatenate([np.ones(1 + (n_grav if with_gravity else 0)), np.repeat(np.arange(1.0, H + 1), 2)])
+        return sel, np.tile(orders**penalty_power, n)
+
+    def cross_validate(sel: np.ndarray, pen: np.ndarray) -> list[float]:
         G_all, b_all = G_max[np.ix_(sel, sel)], b_max[sel]
         scale = float(np.mean(np.diag(G_all))) or 1.0
-        solutions[H] = (sel, scale)
         sums = np.zeros(len(lams))
         for rows, (G_f, b_f) in zip(fold_rows, fold_normals, strict=True):
             G_tr, b_tr = G_all - G_f[np.ix_(sel, sel)], b_all - b_f[sel]
             for i, w in enumerate(_solve_path(G_tr, b_tr, pen, scale, lams)):
-                sums[i] += float(np.sum(design.residual_score(rows, design.rho(rows, w, m))))
-        cv[H] = (sums / k_fit).tolist()
-    # The smallest CV error; ties go to fewer harmonics and then to the stronger penalty (the smoother series).
-    best = min((cv[H][i], H, -lams[i]) for H in cands for i in range(len(lams)))
-    cv_error, H, lam = best[0], best[1], -best[2]
-    m = 1 + 2 * H
-    sel, scale = solutions[H]
-    coef = _solve_path(G_max[np.ix_(sel, sel)], b_max[sel], _penalty(m, n, penalty_power), scale, [lam])[0]
-    coef = coef.reshape(n, m)
+                sums[i] += float(np.sum(design.residual_score(rows, design.rho_sel(rows, w, sel))))
+        return (sums / k_fit).tolist()
 
-    W = np.zeros((6, 2 * n * H))
+    first = (False,) if gravity is None else (bool(gravity),)
+    cv: dict[tuple[int, bool], list[float]] = {(H, g): cross_validate(*columns(H, g)) for H in cands for g in first}
+    # The smallest CV error; ties go to fewer harmonics and then to the stronger penalty (the smoother series).
+    best = min((v[i], H, -lams[i]) for (H, _), v in cv.items() for i in range(len(lams)))
+    H = best[1]
+    if gravity is None:  # then let cross-validation decide on the gravity terms at that order
+        cv[(H, True)] = cross_validate(*columns(H, True))
+    best = min((v[i], h, g, -lams[i]) for (h, g), v in cv.items() if h == H for i in range(len(lams)))
+    cv_error, H, use_gravity, lam = best[0], best[1], best[2], -best[3]
+    sel, pen = columns(H, use_gravity)
+    G_sel = G_max[np.ix_(sel, sel)]
+    coef = _solve_path(G_sel, b_max[sel], pen, float(np.mean(np.diag(G_sel))) or 1.0, [lam])[0]
+    m = 1 + (n_grav if use_gravity else 0) + 2 * H
+    coef = coef.reshape(n, m)
+    g_cols = n_grav if use_gravity else 0
+
+    W = np.zeros((6, g_cols + 2 * n * H))
     for j in range(n):
-        W[j, 2 * H * j : 2 * H * (j + 1)] = coef[j, 1:]
+        W[j, :g_cols] = coef[j, 1 : 1 + g_cols]
+        W[j, g_cols + 2 * H * j : g_cols + 2 * H * (j + 1)] = coef[j, 1 + g_cols :]
     bias = np.zeros(6)
     bias[:n] = coef[:, 0]
     f = W.shape[1]
     network = Network(
-        features=(f"{feature_lib.HARMONICS}:{H}",),
+        features=(("gravity",) if use_gravity else ()) + (f"{feature_lib.HARMONICS}:{H}",),
         weights=(W,),
         biases=(bias,),
         in_mean=np.zeros(f),
@@ -229,18 +249,19 @@ def fit_joint_series(
         length_scale=base.length_scale,
         method="series",
     )
-    amplitudes = np.hypot(coef[:, 1::2], coef[:, 2::2])
+    amplitudes = np.hypot(coef[:, 1 + g_cols :: 2], coef[:, 2 + g_cols :: 2])
     val = obs.subset(obs.split == "val") if np.any(obs.split == "val") else None
     info = {
         "method": "series",
         "harmonics": int(H),
+        "gravity": bool(use_gravity),
         "lambda": float(lam),
         "penalty_power": float(penalty_power),
         "candidates": list(cands),
         "lambdas": list(lams),
         "folds": int(folds),
         "seed": int(seed),
-        "cv": {int(h): v for h, v in cv.items()},
+        "cv": {f"H={h}{'+gravity' if g else ''}": v for (h, g), v in cv.items()},
         "cv_error": float(cv_error),
         "train_rows": k_fit,
         "val_rows": 0 if val is None else val.k,
@@ -258,13 +279,12 @@ def fit_joint_series(
 
 
 def joint_motion_errors(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
-    """(k, 6) δρ(q) of a robot whose network uses labcal.features features only (zeros without a network)."""
+    """(k, 6) δρ(q) of a series robot through numpy features and the network's own forward pass (zeros without)."""
     q2 = np.atleast_2d(np.asarray(q, dtype=float))
     net = robot.network
     if net is None:
         return np.zeros((q2.shape[0], 6))
-    types, limits = robot.model.joint_types, robot.model.limits
-    x = np.concatenate([feature_lib.compute(q2, name, types, limits) for name in net.features], axis=1)
+    x = input_features(q2, net.features, robot.model)
     return net.forward_features(x)
 
 
