@@ -236,7 +236,7 @@ def learning_curve_plot(runs: list[Run], methods: tuple[str, ...], path: Path) -
     import matplotlib.pyplot as plt
 
     sizes = sorted({r.size for r in runs})
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = plt.subplots(figsize=(8.5, 4.5))
     for m in methods:
         means = [np.array([np.mean(r.pos[m]) for r in runs if r.size == s]) * 1e3 for s in sizes]
         ax.errorbar(sizes, [v.mean() for v in means], yerr=[v.std() for v in means], marker="o", capsize=3, label=m)
@@ -247,7 +247,12 @@ def learning_curve_plot(runs: list[Run], methods: tuple[str, ...], path: Path) -
     ax.set_ylabel("held-out mean position error (mm)")
     ax.set_title("Real UR10 (ipa-robot-accuracy, 2,773 poses): learning curve")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
+    ax.legend(
+        loc="upper left",
+        bbox_to_anchor=(1.01, 1.0),
+        title="series = hybrid = auto\nwhen the gate keeps it",
+        title_fontsize="small",
+    )
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
