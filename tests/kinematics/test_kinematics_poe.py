@@ -290,6 +290,11 @@ def test_small_and_large_batches_take_different_paths_and_agree():
             (model.frame_jacobian(q)[:5], model.frame_jacobian(small)),
             (model.equivalent_jacobian(q)[:5], model.equivalent_jacobian(small)),
             (model.target_points(q, targets)[:5], model.target_points(small, targets)),
+            (model.frames_and_twists(q)[0][:5], model.frames_and_twists(small)[0]),
+            (model.frames_and_twists(q)[1][:5], model.frames_and_twists(small)[1]),
+            # one walk gives what link_frames and joint_twists give separately
+            (model.frames_and_twists(small)[0], model.link_frames(small)),
+            (model.frames_and_twists(small)[1], model.joint_twists(small)),
         ]
         for i, (large, few) in enumerate(pairs):
             np.testing.assert_allclose(large, few, rtol=0, atol=1e-14, err_msg=f"{model.name} output {i}")

@@ -104,6 +104,7 @@ class LocalPOEModel:
         object.__setattr__(self, "joint_types", tuple(self.joint_types))
         object.__setattr__(self, "joint_names", names)
         # Joints about the local z axis get a closed-form cos/sin exponential (the common case: 10x faster).
+        object.__setattr__(self, "_revolute_mask", np.array([t == REVOLUTE for t in self.joint_types]))
         object.__setattr__(
             self,
             "_z_joint",
@@ -202,10 +203,28 @@ class LocalPOEModel:
 
     def _walk_small(self, q2: np.ndarray) -> np.ndarray:
         """The chain for a few configurations, as :meth:`_chain`'s (k, n+1, 4, 4) frames: fewer, larger numpy calls
-        (one 4×4 matmul per joint) than :meth:`_walk`, which pays per call and wins only on large batches."""
+        (one 4×4 matmul per joint) than :meth:`_walk`, which pays per call and wins only on large batches.
+
+        For z-axis joints every step ``exp(ξ̂_j q_j) · A_{j+1}(0)`` is built for all joints at once: ``Rz(q) · A``
+        mixes rows 0 and 1 of A by (cos q, sin q), ``Tz(q) · A`` adds q to A's z translation.
+        """
         k, n = q2.shape[0], self.n
         frames = np.empty((k, n + 1, 4, 4))
         T = frames[:, 0] = self.frames[0]
+        if all(self._z_joint):
+            F = self.frames[1:]  # (n, 4, 4)
+            revolute = self._revolute_mask
+            s = np.where(revolute, np.sin(q2), 0.0)[:, :, None]
+            c = np.where(revolute, np.cos(q2), 1.0)[:, :, None]
+            G = np.empty((k, n, 4, 4))
+            G[:, :, 0] = c * F[:, 0] - s * F[:, 1]
+            G[:, :, 1] = s * F[:, 0] + c * F[:, 1]
+            G[:, :, 2:] = F[:, 2:]
+            if not revolute.all():
+                G[:, :, 2, 3] += np.where(revolute, 0.0, q2)
+            for j in range(n):
+                T = frames[:, j + 1] = T @ G[:, j]
+            return frames
         for j in range(n):
             F, qj = self.frames[j + 1], q2[:, j]
             if self._z_joint[j] and self.joint_types[j] == REVOLUTE:
@@ -243,6 +262,20 @@ class LocalPOEModel:
         initial = self._walk_small(q2) if q2.shape[0] < _SMALL_BATCH else self._to_matrices(self._walk(q2))
         return initial, initial[:, self.n]
 
+    def _z_twists(self, frames: np.ndarray) -> np.ndarray:
+        """(k, 6, n) joint twists of z-axis joints from batch-first frames: ω = z (revolute), v = p × z or z."""
+        n = self.n
+        z, p = frames[:, :n, :3, 2], frames[:, :n, :3, 3]  # (k, n, 3)
+        out = np.empty((frames.shape[0], 6, n))
+        rev = self._revolute_mask
+        pz = np.empty_like(z)
+        pz[..., 0] = p[..., 1] * z[..., 2] - p[..., 2] * z[..., 1]
+        pz[..., 1] = p[..., 2] * z[..., 0] - p[..., 0] * z[..., 2]
+        pz[..., 2] = p[..., 0] * z[..., 1] - p[..., 1] * z[..., 0]
+        out[:, :3] = np.where(rev[:, None], pz, z).transpose(0, 2, 1)
+        out[:, 3:] = np.where(rev[:, None], z, 0.0).transpose(0, 2, 1)
+        return out
+
     def _twists_from_walk(self, W: np.ndarray) -> np.ndarray:
         """(k, 6, n) joint twists Ad(K_j) ξ_j in K0 from a walk: ω = R ω_loc, v = R v_loc + p × ω."""
         n = self.n
@@ -276,6 +309,18 @@ class LocalPOEModel:
         """(k, n+1, 4, 4) poses in K0 of K_1 … K_{n+1} before their joints move them (see _chain)."""
         q2, _ = self._as_batch(q)
         return self._chain(q2)[0]
+
+    def frames_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`link_frames` (k, n+1, 4, 4; the tool pose is ``[:, n]``) and :meth:`joint_twists` (k, 6, n) from
+        one walk of the chain: what a runtime needs to predict poses, joint twists and gravity directions at once."""
+        q2, _ = self._as_batch(q)
+        if q2.shape[0] < _SMALL_BATCH:
+            frames = self._walk_small(q2)
+            if all(self._z_joint):
+                return frames, self._z_twists(frames)
+            return frames, self._twists_from_walk(frames[:, :, :3, :].transpose(1, 2, 3, 0))
+        W = self._walk(q2)
+        return self._to_matrices(W), self._twists_from_walk(W)
 
     def fk_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(k, 4, 4) tool poses and (k, 6, n) actuated joint twists in K0, from one walk of the chain."""
