@@ -79,9 +79,7 @@ def input_features(q: np.ndarray, names: tuple[str, ...], model: LocalPOEModel) 
         elif name == "sincos2":
             parts += [np.where(revolute, np.sin(2 * q), 0.0), np.where(revolute, np.cos(2 * q), 0.0)]
         elif name == "gravity":
-            frames = model.link_frames(q)[:, 1:]  # frames rigid with links 1..n
-            down = -frames[:, :, 2, :3]  # row 2 of R = R^T e_z: base z axis in link coordinates
-            parts.append(down.reshape(q.shape[0], -1))
+            parts.append(_gravity_features(model.link_frames(q)))
         elif feature_lib.is_feature(name):
             parts.append(feature_lib.compute(q, name, model.joint_types, model.limits))
         else:
@@ -152,9 +150,6 @@ class Network:
 _I3 = np.eye(3)
 _SKEW = np.zeros((3, 9))  # w @ _SKEW = skew(w).ravel()
 _SKEW[2, 1], _SKEW[1, 2], _SKEW[2, 3], _SKEW[0, 5], _SKEW[1, 6], _SKEW[0, 7] = -1, 1, 1, -1, -1, 1
-_EPS = np.zeros((9, 3))  # outer(a, b).ravel() @ _EPS = a × b
-for _i, _j, _k, _s in ((0, 1, 2, 1), (1, 2, 0, 1), (2, 0, 1, 1), (0, 2, 1, -1), (2, 1, 0, -1), (1, 0, 2, -1)):
-    _EPS[3 * _j + _k, _i] = _s
 _ANTI9 = np.zeros((9, 4))  # R.ravel() @ _ANTI9 = (2 · unskew(R), trace(R))
 _ANTI9[7, 0], _ANTI9[5, 0], _ANTI9[2, 1], _ANTI9[6, 1], _ANTI9[3, 2], _ANTI9[1, 2] = 1, -1, 1, -1, 1, -1
 _ANTI9[0, 3] = _ANTI9[4, 3] = _ANTI9[8, 3] = 1.0
@@ -220,108 +215,12 @@ def _log_one(dR: np.ndarray, dp: np.ndarray) -> np.ndarray:
     return np.array([px - 0.5 * cx + d * ccx, py - 0.5 * cy + d * ccy, pz - 0.5 * cz + d * ccz, wx, wy, wz])
 
 
-def _z_to(axis: np.ndarray) -> np.ndarray:
-    """A rotation (3, 3) taking e_z to the unit vector ``axis`` (identity when it already is e_z)."""
-    z = np.array([0.0, 0.0, 1.0])
-    if np.allclose(axis, z, rtol=0, atol=0):
-        return np.eye(3)
-    c = float(axis @ z)
-    if c < -1 + 1e-12:
-        return np.diag([1.0, -1.0, -1.0])
-    v = np.cross(z, axis)
-    K = se3.skew(v)
-    return np.eye(3) + K + K @ K / (1 + c)
+def _gravity_features(frames: np.ndarray) -> np.ndarray:
+    """(k, n+1, 4, 4) link frames (LocalPOEModel.link_frames) → (k, 3n) base −z axis in the frames of links 1..n.
 
-
-class _Kernel:
-    """One LocalPOEModel prepared for fast batched FK, link frames and joint twists.
-
-    Every joint is rewritten as a screw about the local z axis: with a constant frame C_j whose z axis is the
-    joint's axis (revolute: through the axis line; pitch h_j = ω·v), ``exp(ξ̂_j q) = C_j Rz(q) Tz(h_j q) C_j⁻¹``
-    (prismatic: ``C_j Tz(q) C_j⁻¹``), and the frames become ``A'_j = C_{j-1}⁻¹ A_j C_j``. Then one step of the chain
-    is ``G_j(q) = Rz(q) Tz(h_j q) A'_{j+1}``: two rows mixed by (cos q, sin q), built for all joints at once, and
-    the chain is n small matmuls. For the usual z-axis twists C_j = I and nothing changes numerically.
+    Row 2 of R is Rᵀ e_z: the base z axis in link coordinates.
     """
-
-    def __init__(self, model: LocalPOEModel) -> None:
-        n = model.n
-        self.n = n
-        rev = np.array([t == REVOLUTE for t in model.joint_types])
-        self.revolute = rev
-        self.all_revolute = bool(rev.all())
-        C = np.tile(np.eye(4), (n + 1, 1, 1))
-        lin = np.zeros(n)
-        for j in range(n):
-            v, w = model.twists[j, :3], model.twists[j, 3:]
-            if rev[j]:
-                C[j, :3, :3] = _z_to(w)
-                C[j, :3, 3] = np.cross(w, v)
-                lin[j] = float(w @ v)
-            else:
-                C[j, :3, :3] = _z_to(v)
-                lin[j] = 1.0
-        self.identity_C = bool(np.all(C == np.eye(4)))
-        A = np.array(model.frames)
-        if not self.identity_C:
-            C_prev = np.concatenate([np.eye(4)[None], C[:n]])
-            A = se3.inv(C_prev) @ A @ C
-        self.A0 = A[0]
-        self.A_rest = A[1:]  # (n, 4, 4): A'_{j+1}
-        self.row0, self.row1 = A[1:, 0, :].copy(), A[1:, 1, :].copy()
-        self.lin = lin
-        self.has_lin = bool(np.any(lin))
-        self.pitch = np.where(rev, lin, 0.0)
-        self.has_pitch = bool(np.any(self.pitch))
-        self.RC_T = np.ascontiguousarray(C[1 : n + 1, :3, :3].transpose(0, 2, 1))  # for the gravity features
-
-    def chain(self, q: np.ndarray, s: np.ndarray, c: np.ndarray) -> np.ndarray:
-        """(k, n) joints with their sines/cosines → (k, n+1, 4, 4) frames T'_j = K_j C_j before each joint moves.
-
-        The last entry is the tool pose T_base_tool.
-        """
-        k, n = q.shape
-        if not self.all_revolute:
-            s, c = np.where(self.revolute, s, 0.0), np.where(self.revolute, c, 1.0)
-        G = np.empty((k, n, 4, 4))
-        G[:, :, 2:] = self.A_rest[:, 2:]
-        sc, cc = s[:, :, None], c[:, :, None]
-        G[:, :, 0] = cc * self.row0 - sc * self.row1
-        G[:, :, 1] = sc * self.row0 + cc * self.row1
-        if self.has_lin:
-            G[:, :, 2, 3] += self.lin * q
-        out = np.empty((k, n + 1, 4, 4))
-        out[:, 0] = self.A0
-        P = self.A0 @ G[:, 0]
-        out[:, 1] = P
-        for j in range(1, n):
-            P = P @ G[:, j]
-            out[:, j + 1] = P
-        return out
-
-    def twists(self, frames: np.ndarray) -> np.ndarray:
-        """(k, n+1, 4, 4) chain frames → (k, 6, n) actuated joint twists in K0 (v, ω): Ad(T'_j)(h_j e_z, e_z)."""
-        k, n = frames.shape[0], self.n
-        z = frames[:, :n, :3, 2]
-        p = frames[:, :n, :3, 3]
-        J = np.empty((k, 6, n))
-        v = (p[..., :, None] * z[..., None, :]).reshape(k, n, 9) @ _EPS
-        if not self.all_revolute:
-            v = np.where(self.revolute[:, None], v, z)
-            w = np.where(self.revolute[:, None], z, 0.0)
-        else:
-            w = z
-        if self.has_pitch:
-            v = v + self.pitch[:, None] * z
-        J[:, :3] = v.transpose(0, 2, 1)
-        J[:, 3:] = w.transpose(0, 2, 1)
-        return J
-
-    def gravity(self, frames: np.ndarray) -> np.ndarray:
-        """(k, 3n) base −z axis in the frames of links 1..n (the ``gravity`` network feature)."""
-        rows = frames[:, 1:, 2, :3]
-        if not self.identity_C:
-            rows = (rows[:, :, None, :] @ self.RC_T)[:, :, 0]
-        return -rows.reshape(frames.shape[0], -1)
+    return -frames[:, 1:, 2, :3].reshape(frames.shape[0], -1)
 
 
 def _sincos(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -389,12 +288,8 @@ class CalibratedRobot:
         return r[:, 0] - 1e-12, r[:, 1] + 1e-12
 
     @functools.cached_property
-    def _kin_model(self) -> _Kernel:
-        return _Kernel(self.model)
-
-    @functools.cached_property
-    def _kin_nominal(self) -> _Kernel:
-        return _Kernel(self.nominal)
+    def _revolute(self) -> np.ndarray:
+        return np.array([t == REVOLUTE for t in self.model.joint_types])
 
     @functools.cached_property
     def _feature_plan(self) -> tuple:
@@ -407,8 +302,8 @@ class CalibratedRobot:
 
     def _features(self, q, s, c, initial) -> np.ndarray:
         """The network inputs of input_features, from quantities the chain walk already computed."""
-        rev = self._kin_model.revolute
-        allrev = self._kin_model.all_revolute
+        rev = self._revolute
+        allrev = bool(rev.all())
         parts = []
         for name in self._feature_plan:
             if name == "q":
@@ -419,7 +314,7 @@ class CalibratedRobot:
                 s2, c2 = 2.0 * s * c, c * c - s * s
                 parts += [s2, c2] if allrev else [np.where(rev, s2, 0.0), np.where(rev, c2, 0.0)]
             elif name == "gravity":
-                parts.append(self._kin_model.gravity(initial))
+                parts.append(_gravity_features(initial))
             else:
                 parts.append(feature_lib.compute(q, name, self.model.joint_types, self.model.limits))
         return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
@@ -430,9 +325,10 @@ class CalibratedRobot:
         dy = J_ρ δρ is the pose error twist the network predicts on top of the model (eq. 14).
         """
         s, c = _sincos(q2)
-        kin = self._kin_model
-        initial = kin.chain(q2, s, c)
-        J = kin.twists(initial) if (need_twists or self.network is not None) else None
+        if need_twists or self.network is not None:
+            initial, J = self.model.frames_and_twists(q2)
+        else:
+            initial, J = self.model.link_frames(q2), None
         dy = None
         if self.network is not None:
             rho = self.network.forward_features(self._features(q2, s, c, initial))
@@ -447,7 +343,7 @@ class CalibratedRobot:
         if self.network is None:
             return np.zeros((q2.shape[0], 6))
         s, c = _sincos(q2)
-        initial = self._kin_model.chain(q2, s, c)
+        initial = self.model.link_frames(q2)
         return self.network.forward_features(self._features(q2, s, c, initial))
 
     def equivalent_jacobian(self, q) -> np.ndarray:
@@ -545,8 +441,7 @@ class CalibratedRobot:
         k, n = q2.shape
         if k == 1 and n >= 6:
             return self._gauss_newton_single(q2, iterations, tol)
-        s, c = _sincos(q2)
-        T_target = self._kin_nominal.chain(q2, s, c)[:, -1]
+        T_target = self.nominal.fk(q2)
         scale = None if n >= 6 else np.array([1.0 / self.length_scale] * 3 + [1.0] * 3)
         out = q2.copy()
         active = np.arange(k)
@@ -595,8 +490,7 @@ class CalibratedRobot:
 
     def _gauss_newton_single(self, q2: np.ndarray, iterations: int, tol: float) -> np.ndarray:
         """_gauss_newton for one configuration of a 6-joint robot, with scalar bookkeeping (same iterates)."""
-        s, c = _sincos(q2)
-        T_target = self._kin_nominal.chain(q2, s, c)[:, -1]
+        T_target = self.nominal.fk(q2)
         out = q2.copy()
         row = out[0]
         prev_step = float("inf")

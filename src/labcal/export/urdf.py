@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from labcal.compensator import CalibratedRobot, _Kernel
+from labcal.compensator import CalibratedRobot
+from labcal.export.zform import ZAxisForm
 from labcal.kinematics.conversions import to_urdf
 from labcal.kinematics.poe import REVOLUTE, LocalPOEModel, default_twist
 from labcal.robots import model_hash
@@ -30,7 +31,7 @@ def urdf_model(model: LocalPOEModel) -> LocalPOEModel:
     offset (v = r × ω); the frames are moved onto the axis line, which changes no forward kinematics. A revolute
     twist with a pitch (ω·v ≠ 0, a screw joint) has no URDF form and is refused.
     """
-    kin = _Kernel(model)
+    kin = ZAxisForm(model)
     if kin.has_pitch and np.max(np.abs(kin.pitch)) > 1e-12:
         j = int(np.argmax(np.abs(kin.pitch)))
         raise ValueError(f"joint {j + 1} is a screw (pitch {kin.pitch[j]:.3g} m/rad): a URDF cannot represent it")

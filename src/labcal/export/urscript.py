@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from labcal import features as feature_lib
-from labcal.compensator import CalibratedRobot, _Kernel
+from labcal.compensator import CalibratedRobot
+from labcal.export.zform import ZAxisForm
 from labcal.robots import model_hash
 
 BUILTINS = ("sin", "cos", "sqrt", "atan2", "pow", "popup", "halt")
@@ -57,7 +58,7 @@ def _zeros(m: int) -> str:
     return "[" + ", ".join(["0.0"] * m) + "]"
 
 
-def _frames12(kin: _Kernel) -> np.ndarray:
+def _frames12(kin: ZAxisForm) -> np.ndarray:
     """A'_0 … A'_n as 3×4 row-major blocks (the implicit last row is 0 0 0 1)."""
     A = np.concatenate([kin.A0[None], kin.A_rest])
     return A[:, :3, :].reshape(-1)
@@ -277,7 +278,7 @@ def _solve_function(n: int) -> list[str]:
     ]
 
 
-def _network_functions(robot: CalibratedRobot, kin: _Kernel) -> tuple[list[str], list[str]]:
+def _network_functions(robot: CalibratedRobot, kin: ZAxisForm) -> tuple[list[str], list[str]]:
     """(constant lines, function lines) of the feature map and the network forward pass lc_rho(q, F)."""
     net = robot.network
     n = robot.n
@@ -400,7 +401,7 @@ def urscript_text(
             f"URScript export of a network for a {n}-joint robot is not supported (virtual joints); "
             "use the json/npz compensator"
         )
-    kin, nom = robot._kin_model, robot._kin_nominal
+    kin, nom = ZAxisForm(robot.model), ZAxisForm(robot.nominal)
     lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
 
     head = [
