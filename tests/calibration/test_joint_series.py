@@ -7,14 +7,49 @@ import pytest
 
 from labcal import features
 from labcal.calibration import ObservationError, Observations
-from labcal.calibration.joint_series import fit_joint_series, joint_motion_errors, position_errors, predict_pose
-from labcal.compensator import CalibratedRobot
+from labcal.calibration.joint_series import fit_joint_series
+from labcal.calibration.observations import rigid_fit
+from labcal.compensator import CalibratedRobot, input_features
+from labcal.kinematics import se3
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
 
 TARGETS = np.array([[0.0, 0.0, 0.05], [0.1, 0.0, 0.05], [0.0, 0.1, 0.05]])
 # Injected transmission errors: (joint, order, sin amplitude rad, cos amplitude rad).
 INJECTED = [(0, 1, 2e-4, 0.0), (1, 3, 0.0, 1.5e-4), (2, 7, 1e-4, 5e-5), (4, 5, -1e-4, 0.0), (5, 2, 8e-5, 8e-5)]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Reference evaluation, written out from eq. (14) here so the tests do not check the compensator against itself.
+
+
+def joint_motion_errors(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
+    """(k, 6) δρ(q) of a series robot through numpy features and the network's own forward pass (zeros without)."""
+    q2 = np.atleast_2d(np.asarray(q, dtype=float))
+    net = robot.network
+    if net is None:
+        return np.zeros((q2.shape[0], 6))
+    x = input_features(q2, net.features, robot.model)
+    return net.forward_features(x)
+
+
+def predict_pose(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
+    """(k, 4, 4) base-frame pose the real robot reaches: exp((J_ρ δρ)^) · T_model (first order, eq. 14)."""
+    q2 = np.atleast_2d(np.asarray(q, dtype=float))
+    T = robot.model.fk(q2)
+    if robot.network is None:
+        return T
+    J = robot.model.equivalent_jacobian(q2, length_scale=robot.length_scale)
+    dy = np.einsum("kab,kb->ka", J, joint_motion_errors(robot, q2))
+    return se3.exp_se3(dy) @ T
+
+
+def position_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
+    """(k,) tool-origin position error (m) of :func:`predict_pose` against the rigid fit of the measured points."""
+    if obs.k == 0:
+        return np.zeros(0)
+    T_pred = robot.T_tracker_base @ predict_pose(robot, obs.q)
+    return np.linalg.norm(rigid_fit(obs.targets, obs.points)[:, :3, 3] - T_pred[:, :3, 3], axis=1)
 
 
 def _injected(q: np.ndarray) -> np.ndarray:

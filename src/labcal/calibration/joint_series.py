@@ -50,9 +50,9 @@ import numpy as np
 
 from labcal import features as feature_lib
 from labcal.calibration.equivalent import joint_error_observations
-from labcal.calibration.observations import ObservationError, Observations, rigid_fit
+from labcal.calibration.metrics import prediction_errors
+from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot, Network, input_features
-from labcal.kinematics import se3
 
 DEFAULT_HARMONICS = (8, 16, 24, 32, 48)
 DEFAULT_LAMBDAS = tuple(10.0 ** np.arange(-7.0, 1.01, 0.5))
@@ -265,43 +265,10 @@ def fit_joint_series(
         "cv_error": float(cv_error),
         "train_rows": k_fit,
         "val_rows": 0 if val is None else val.k,
-        "train_error": float(np.mean(position_errors(robot, train))),
-        "val_error": float("nan") if val is None else float(np.mean(position_errors(robot, val))),
+        "train_error": float(np.mean(prediction_errors(robot, train)[0])),
+        "val_error": float("nan") if val is None else float(np.mean(prediction_errors(robot, val)[0])),
         "amplitudes": amplitudes,
         "constants": coef[:, 0].copy(),
         "virtual_joints": "not modelled (zero)" if n < 6 else "none",
     }
     return robot, info
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Evaluation through this module's own code path (independent of the compensator's feature dispatch).
-
-
-def joint_motion_errors(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
-    """(k, 6) δρ(q) of a series robot through numpy features and the network's own forward pass (zeros without)."""
-    q2 = np.atleast_2d(np.asarray(q, dtype=float))
-    net = robot.network
-    if net is None:
-        return np.zeros((q2.shape[0], 6))
-    x = input_features(q2, net.features, robot.model)
-    return net.forward_features(x)
-
-
-def predict_pose(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
-    """(k, 4, 4) base-frame pose the real robot reaches: exp((J_ρ δρ)^) · T_model (first order, eq. 14)."""
-    q2 = np.atleast_2d(np.asarray(q, dtype=float))
-    T = robot.model.fk(q2)
-    if robot.network is None:
-        return T
-    J = robot.model.equivalent_jacobian(q2, length_scale=robot.length_scale)
-    dy = np.einsum("kab,kb->ka", J, joint_motion_errors(robot, q2))
-    return se3.exp_se3(dy) @ T
-
-
-def position_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
-    """(k,) tool-origin position error (m) of :func:`predict_pose` against the rigid fit of the measured points."""
-    if obs.k == 0:
-        return np.zeros(0)
-    T_pred = robot.T_tracker_base @ predict_pose(robot, obs.q)
-    return np.linalg.norm(rigid_fit(obs.targets, obs.points)[:, :3, 3] - T_pred[:, :3, 3], axis=1)
