@@ -124,6 +124,112 @@ def test_singular_configuration_is_no_worse_than_uncorrected():
     assert np.all(err(q_cmd) <= err(q) + 1e-15)
 
 
+# -- the single-configuration path (a control loop's call: its own unbatched solver) ------------------------------
+
+SINGLE_CASES = [
+    ("ur10", ("sincos", "gravity"), False),  # the common plan: folded network, adjoint walk
+    ("ur5e", ("q", "sincos", "gravity"), False),
+    ("fanuc-m1000ia", ("gravity", "q"), False),
+    ("ur10", ("q", "sincos", "sincos2", "gravity"), False),  # features the batched code builds
+    ("ur10", ("harmonics:2",), False),
+    ("ur10", ("sincos", "gravity"), True),  # off-z joint axes: the general walk
+]
+
+
+def _single_robot(name, features, odd):
+    robot = hybrid(name, features=features, odd_twists=odd)
+    variants = {
+        "hybrid": robot,
+        "ann": CalibratedRobot(robot.nominal, robot.nominal, robot.network, method="ann"),
+        "local-poe": CalibratedRobot(robot.nominal, robot.model, method="local-poe"),
+    }
+    return variants
+
+
+@pytest.mark.parametrize("name,features,odd", SINGLE_CASES)
+def test_single_configuration_calls_match_the_batched_solver(name, features, odd, monkeypatch):
+    for kind, robot in _single_robot(name, features, odd).items():
+        q = sample(robot, 60, seed=11)
+        batched = robot.correct(q)
+        converged = robot.correct(q, iterations=60, tol=1e-16)
+        # The single calls must not fall back to the batched residual on well-conditioned configurations.
+        with monkeypatch.context() as patch:
+            patch.setattr(CalibratedRobot, "_residual", lambda *a: pytest.fail("single call used the batched solver"))
+            single = np.array([robot.correct(qi) for qi in q])
+        assert np.max(np.abs(single - converged)) <= 1e-9, kind
+        assert np.max(np.abs(single - batched)) <= 1e-9, kind
+        assert np.max(np.abs(single - q)) > 1e-5, kind  # a real correction
+        np.testing.assert_array_equal(robot.correct(q[3]), robot.correct(q[3].copy()))  # deterministic
+
+
+@pytest.mark.parametrize("name,features,odd", SINGLE_CASES)
+def test_single_configuration_joint_errors_equal_the_network(name, features, odd):
+    robot = hybrid(name, features=features, odd_twists=odd)
+    for q in sample(robot, 10, seed=12):
+        adjoints, _, c, s = robot.model.runtime_walk(q)
+        np.testing.assert_allclose(
+            robot._joint_errors_one(q, adjoints, c, s), robot.network(q[None], robot.model)[0], rtol=0, atol=1e-16
+        )
+    assert (robot._one_network is None) == (not set(features) <= {"q", "sincos", "gravity"})
+
+
+def test_solve_one_matches_numpy_and_turns_singular_systems_into_nan(monkeypatch):
+    import warnings
+
+    from labcal import compensator
+
+    rng = np.random.default_rng(3)
+    J, r = rng.normal(size=(6, 6)), rng.normal(size=6)
+    singular = np.ones((6, 6))
+    for solver in (compensator._lapack_solve1, None):  # the LAPACK gufunc, and numpy's public solve
+        monkeypatch.setattr(compensator, "_lapack_solve1", solver)
+        np.testing.assert_allclose(compensator._solve_one(J, r), np.linalg.solve(J, r), rtol=1e-14)
+        with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            warnings.simplefilter("error")
+            assert not np.isfinite(compensator._solve_one(singular, r)).all()
+    assert compensator._lapack_solve1 is None or callable(compensator._lapack_solve1)
+
+
+def test_single_singular_configuration_falls_back_and_is_no_worse_than_uncorrected():
+    import warnings
+
+    robot = hybrid("ur10", features=("sincos", "gravity"))
+    scale = np.array([1 / robot.length_scale] * 3 + [1.0] * 3)
+    for q in ([0.3, -1.2, 1.1, -1.3, 0.0, 0.4], [0.1, -1.0, 0.0, -1.0, 1.0, 0.2]):  # wrist / elbow singular
+        q = np.array(q)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no "invalid value" warning from a singular solve leaks out
+            q_cmd = robot.correct(q)
+
+        def err(x, q=q):
+            return np.linalg.norm(se3.log_se3(robot.nominal.fk(q) @ se3.inv(robot.predict_pose(x))) * scale)
+
+        assert np.all(np.isfinite(q_cmd)) and err(q_cmd) <= err(q) + 1e-15
+
+
+def test_single_configuration_input_checks():
+    nominal = load("ur10").model
+    robot = CalibratedRobot(
+        nominal, nominal, make_network(nominal, ("sincos", "gravity")), joint_ranges=np.tile([-2.0, 2.0], (6, 1))
+    )
+    q = np.array([0.1, -1.2, 1.0, -1.4, -1.5, 0.2])
+    expected = robot.correct(q)
+    np.testing.assert_array_equal(robot.correct(list(q)), expected)  # lists take the general path, same answer
+    np.testing.assert_allclose(robot.correct(q[None])[0], expected, rtol=0, atol=1e-15)
+    assert robot.correct(np.array([0, -1, 1, -1, -1, 0])).shape == (6,)  # integers are converted
+    bad = q.copy()
+    bad[3] = 2.5
+    with pytest.raises(ValueError, match=r"configuration 0: joint 4 = 2\.500000 is outside"):
+        robot.correct(bad)
+    assert np.all(np.isfinite(robot.correct(bad, extrapolate=True)))
+    for value in (np.nan, np.inf):
+        bad[3] = value
+        with pytest.raises(ValueError, match="non-finite"):
+            robot.correct(bad)
+        with pytest.raises(ValueError, match="non-finite"):
+            robot.correct(bad, extrapolate=True)
+
+
 def test_paper_method_is_eq_24_and_batch_shapes():
     robot = hybrid("ur10")
     q = sample(robot, 5, seed=4)

@@ -44,7 +44,7 @@ import numpy as np
 
 from labcal import features as feature_lib
 from labcal.kinematics import se3
-from labcal.kinematics.poe import REVOLUTE, LocalPOEModel
+from labcal.kinematics.poe import REVOLUTE, LocalPOEModel, StackedChains
 from labcal.robots import model_hash
 
 FEATURES = ("q", "sincos", "sincos2", "gravity")
@@ -154,6 +154,7 @@ _ANTI9 = np.zeros((9, 4))  # R.ravel() @ _ANTI9 = (2 · unskew(R), trace(R))
 _ANTI9[7, 0], _ANTI9[5, 0], _ANTI9[2, 1], _ANTI9[6, 1], _ANTI9[3, 2], _ANTI9[1, 2] = 1, -1, 1, -1, 1, -1
 _ANTI9[0, 3] = _ANTI9[4, 3] = _ANTI9[8, 3] = 1.0
 _SMALL = 1e-2  # rad: below this the series are exact to rounding (as in kinematics.se3)
+_ONE = np.ones(1)
 
 
 def _exp_small(xi: np.ndarray) -> np.ndarray:
@@ -196,14 +197,48 @@ def _log_small(R: np.ndarray, p: np.ndarray) -> np.ndarray:
     return out
 
 
-def _log_one(dR: np.ndarray, dp: np.ndarray) -> np.ndarray:
-    """_log_small for one pose (3, 3), (3,) → (6,), in Python floats: a dozen numpy calls cost more than the math."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = dR.tolist()
-    px, py, pz = dp.tolist()
+def _tool_pose_lists(Ad: np.ndarray) -> tuple[list, list]:
+    """(6, 6) adjoint [[R, p̂R], [0, R]] → (rows of R, p) as Python floats; p from p̂ = (p̂R) Rᵀ."""
+    (r00, r01, r02, a00, a01, a02), (r10, r11, r12, a10, a11, a12), (r20, r21, r22, a20, a21, a22) = Ad[:3].tolist()
+    p = [a20 * r10 + a21 * r11 + a22 * r12, a00 * r20 + a01 * r21 + a02 * r22, a10 * r00 + a11 * r01 + a12 * r02]
+    return [[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]], p
+
+
+def _pose_error_one(target: tuple[list, list], Ad: np.ndarray) -> np.ndarray:
+    """log(T_target · T⁻¹) for one pose T given by its adjoint (6, 6), as a (6,) twist, in Python floats: a dozen
+    numpy calls cost more than the math.
+
+    target: (rows of R, p) of T_target as from _tool_pose_lists. Series as in _log_small for rotations below _SMALL
+    (the case in every correction step), else the batched code.
+    """
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = target[0]
+    tx, ty, tz = target[1]
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = (pose := _tool_pose_lists(Ad))[0]
+    bx, by, bz = pose[1]
+    # dR = R_target R_Tᵀ and dp = p_target − dR p_T
+    r00, r01, r02 = (
+        a00 * b00 + a01 * b01 + a02 * b02,
+        a00 * b10 + a01 * b11 + a02 * b12,
+        a00 * b20 + a01 * b21 + a02 * b22,
+    )
+    r10, r11, r12 = (
+        a10 * b00 + a11 * b01 + a12 * b02,
+        a10 * b10 + a11 * b11 + a12 * b12,
+        a10 * b20 + a11 * b21 + a12 * b22,
+    )
+    r20, r21, r22 = (
+        a20 * b00 + a21 * b01 + a22 * b02,
+        a20 * b10 + a21 * b11 + a22 * b12,
+        a20 * b20 + a21 * b21 + a22 * b22,
+    )
+    px = tx - (r00 * bx + r01 * by + r02 * bz)
+    py = ty - (r10 * bx + r11 * by + r12 * bz)
+    pz = tz - (r20 * bx + r21 * by + r22 * bz)
     ax, ay, az = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
     s2 = ax * ax + ay * ay + az * az
-    if s2 >= (0.5 * _SMALL) ** 2:
-        return _log_small(dR[None], dp[None])[0]
+    if not s2 < (0.5 * _SMALL) ** 2:
+        dR = np.array([[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]])
+        return _log_small(dR[None], np.array([[px, py, pz]]))[0]
     theta = math.atan2(math.sqrt(s2), 0.5 * (r00 + r11 + r22 - 1.0))
     t2 = theta * theta
     a = 1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42))
@@ -215,8 +250,30 @@ def _log_one(dR: np.ndarray, dp: np.ndarray) -> np.ndarray:
     return np.array([px - 0.5 * cx + d * ccx, py - 0.5 * cy + d * ccy, pz - 0.5 * cz + d * ccz, wx, wy, wz])
 
 
+try:  # the LAPACK gufunc behind np.linalg.solve
+    from numpy.linalg._umath_linalg import solve1 as _lapack_solve1
+except ImportError:  # pragma: no cover - other numpy layouts
+    _lapack_solve1 = None
+
+
+def _solve_one(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """J (n, n), r (n,) → J⁻¹ r, non-finite (never an exception) when J is singular.
+
+    For one 6×6 system np.linalg.solve's Python wrapper (dtype checks, errstate, shape juggling) costs about three
+    times the LAPACK call it makes, and a correction solves three systems; the gufunc it wraps is called directly
+    when this numpy has it (a test checks both paths agree). Call it under ``np.errstate(invalid="ignore")``.
+    """
+    if _lapack_solve1 is not None:
+        return _lapack_solve1(J, r)
+    try:
+        return np.linalg.solve(J, r)
+    except np.linalg.LinAlgError:
+        return np.full(r.shape, np.nan)
+
+
 def _gravity_features(frames: np.ndarray) -> np.ndarray:
     """(k, n+1, 4, 4) link frames (LocalPOEModel.link_frames) → (k, 3n) base −z axis in the frames of links 1..n.
+    Their adjoints (k, n+1, 6, 6) give the same: only R is read, and it is the top-left block of both.
 
     Row 2 of R is Rᵀ e_z: the base z axis in link coordinates.
     """
@@ -270,6 +327,18 @@ class CalibratedRobot:
         if extrapolate:
             return
         q2, _ = self._batch(q)
+        self._check_range(q2)
+
+    def _inside_one(self, values: list) -> bool:
+        lo, hi = self._range_lists
+        return all(a <= v <= b for v, a, b in zip(values, lo, hi, strict=True))
+
+    @functools.cached_property
+    def _range_lists(self) -> tuple[list, list]:
+        lo, hi = self._ranges
+        return lo.tolist(), hi.tolist()
+
+    def _check_range(self, q2: np.ndarray) -> None:
         lo, hi = self._ranges
         if (q2 >= lo).all() and (q2 <= hi).all():
             return
@@ -388,9 +457,16 @@ class CalibratedRobot:
         iteration that never makes the error worse than at q. ``"paper"`` is eq. (24), q − δρ_a(q);
         ``"fixed-point"`` iterates q_cmd = q − δρ_a(q_cmd).
         """
-        q2, single = self._batch(q)
-        self.check_range(q2, extrapolate)
         n = self.n
+        if method == "newton" and n >= 6 and isinstance(q, np.ndarray) and q.shape == (n,):
+            # One configuration inside the ranges (a control loop's call): checked in Python floats, a few
+            # microseconds less than the array checks below, which still give the errors for anything else.
+            values = q.tolist()
+            if math.isfinite(sum(values)) and (extrapolate or self._inside_one(values)):
+                return self._gauss_newton_single(q.astype(float)[None], iterations, tol)[0]
+        q2, single = self._batch(q)
+        if not extrapolate:
+            self._check_range(q2)
         if method == "paper":
             out = q2 - self.joint_motion_errors(q2)[:, :n]
         elif method == "fixed-point":
@@ -478,40 +554,90 @@ class CalibratedRobot:
             out[idx] = self._levenberg_marquardt(q2[idx], T_target[idx], max(iterations, 10) * 3, tol)
         return out
 
-    def _residual_single(self, qc: np.ndarray, T_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """_residual for one configuration: qc (1, n), T_target (4, 4) → r (6,), J (6, n)."""
-        initial, J, dy = self._evaluate(qc)
-        T = initial[0, -1]
-        dR = T_target[:3, :3] @ T[:3, :3].T
-        r = _log_one(dR, T_target[:3, 3] - dR @ T[:3, 3])
-        if dy is not None:
-            r -= dy[0]
-        return r, J[0]
+    @functools.cached_property
+    def _nominal_and_model(self) -> StackedChains:
+        return StackedChains((self.nominal, self.model))
+
+    @functools.cached_property
+    def _one_network(self) -> tuple | None:
+        """The network as _gauss_newton_single evaluates it: (input plan, first matrix, later (matrix, bias) pairs).
+
+        The inputs are the plan's arrays concatenated, then a 1: the first bias is the first matrix's last row, and
+        the gravity inputs' sign (the features are −R_jᵀ e_z, the walk gives R_jᵀ e_z) is folded into their rows.
+        None without a network, or when the features need the batched code (prismatic joints, features other than
+        q, sincos and gravity).
+        """
+        net = self.network
+        if net is None or not (self._revolute.all() and set(self._feature_plan) <= {"q", "sincos", "gravity"}):
+            return None
+        Wt, bs = net._folded
+        n = self.n
+        width = {"q": n, "sincos": 2 * n, "gravity": 3 * n}
+        sign = np.concatenate([np.full(width[name], -1.0 if name == "gravity" else 1.0) for name in self._feature_plan])
+        W0 = np.vstack([Wt[0] * sign[:, None], bs[0][None, :]])
+        return tuple(self._feature_plan), W0, tuple(zip(Wt[1:], bs[1:], strict=True))
+
+    def _joint_errors_one(self, q1, adjoints, c, s) -> np.ndarray:
+        """δρ (6,) at one configuration from its runtime walk (adjoints of the link frames, cos q, sin q)."""
+        plan = self._one_network
+        if plan is None:
+            # _gravity_features reads rotation rows, which adjoints hold where frames do
+            x = self._features(q1[None], s[None], c[None], adjoints[None])[0]
+            return self.network.forward_features(x)
+        names, W0, layers = plan
+        inputs = []
+        for name in names:
+            if name == "sincos":
+                inputs += (s, c)
+            elif name == "gravity":
+                inputs.append(adjoints[1:, 2, :3])
+            else:
+                inputs.append(q1)
+        h = np.concatenate((*inputs, _ONE), axis=None) @ W0
+        for W, b in layers:
+            h = np.tanh(h) @ W + b
+        return h
 
     def _gauss_newton_single(self, q2: np.ndarray, iterations: int, tol: float) -> np.ndarray:
-        """_gauss_newton for one configuration of a 6-joint robot, with scalar bookkeeping (same iterates)."""
-        T_target = self.nominal.fk(q2)
+        """_gauss_newton for one configuration (1, n) of a 6-joint robot: the same iterates, with unbatched arrays.
+
+        At one configuration numpy's per-call cost, not the flops, is the price, so every iteration is one walk of the
+        chain in the adjoint representation (frames and joint twists at once; the nominal target shares the first
+        walk), the pose error in Python floats, one network evaluation and one 6×6 solve: J⁻¹ (r − J δρ) = J⁻¹ r − δρ.
+        """
+        adjoints, c, s = self._nominal_and_model.runtime_walk(q2[0])
+        target = _tool_pose_lists(adjoints[0, -1])
+        adjoints = adjoints[1]
+        J = (
+            adjoints[:6, :, 5].T
+            if self.model._all_revolute_z
+            else self.model.twists_from_frames(se3.pose_from_adjoint(adjoints))
+        )
+        walk, network = self.model.runtime_walk, self.network is not None
         out = q2.copy()
         row = out[0]
         prev_step = float("inf")
-        solve = np.linalg.solve
-        for _ in range(max(iterations, 1)):
-            r0, J = self._residual_single(out, T_target[0])
-            try:
-                step = solve(J, r0)
-            except np.linalg.LinAlgError:
-                break
-            size = float(np.abs(step).max())
-            if not size <= min(_GN_MAX_STEP, 0.5 * prev_step):
-                break
-            row += step
-            ratio = min(size / prev_step, 0.5) if prev_step < float("inf") else 0.5
-            if size * ratio / (1 - ratio) < tol or size < 1e-3 * tol:
-                return out
-            prev_step = size
-        else:
-            return out  # iteration budget spent while still contracting: keep it
-        return self._levenberg_marquardt(q2, T_target, max(iterations, 10) * 3, tol)
+        isfinite = math.isfinite
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a singular J gives a NaN step
+            for it in range(max(iterations, 1)):
+                if it:
+                    adjoints, J, c, s = walk(row)
+                step = _solve_one(J, _pose_error_one(target, adjoints[-1]))
+                if network:
+                    step -= self._joint_errors_one(row, adjoints, c, s)
+                values = step.tolist()
+                size = max(map(abs, values))
+                if not (size <= min(_GN_MAX_STEP, 0.5 * prev_step) and isfinite(sum(values))):
+                    break
+                row += step
+                ratio = min(size / prev_step, 0.5) if prev_step < float("inf") else 0.5
+                if size * ratio / (1 - ratio) < tol or size < 1e-3 * tol:
+                    return out
+                prev_step = size
+            else:
+                return out  # iteration budget spent while still contracting: keep it
+        T_target = se3.pose_from_adjoint(self._nominal_and_model.adjoints(q2[0])[0, -1])
+        return self._levenberg_marquardt(q2, T_target[None], max(iterations, 10) * 3, tol)
 
     def _levenberg_marquardt(self, q2: np.ndarray, target: np.ndarray, iterations: int, tol: float) -> np.ndarray:
         """Levenberg-Marquardt on ``T_real(q_cmd) = T_nominal(q)`` in a length-scaled metric.

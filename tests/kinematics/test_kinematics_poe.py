@@ -19,7 +19,7 @@ from kin_testutil import (
 
 from labcal.kinematics import se3
 from labcal.kinematics.conversions import dh_fk, from_dh, from_mdh
-from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
+from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel, StackedChains
 from labcal.robots import BUILTINS, load
 
 # UR5e DH (Universal Robots' table) and the same arm written by hand as a modified-DH (Craig) table: regrouping
@@ -298,3 +298,63 @@ def test_small_and_large_batches_take_different_paths_and_agree():
         ]
         for i, (large, few) in enumerate(pairs):
             np.testing.assert_allclose(large, few, rtol=0, atol=1e-14, err_msg=f"{model.name} output {i}")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the runtime's one-configuration walk (adjoint representation) and stacked chains
+
+
+def _models_for_runtime():
+    ur10 = load("ur10").model
+    perturbed = ur10.perturbed(np.random.default_rng(4).normal(size=(7, 6)) * 1e-3)
+    return [load(r).model for r in BUILTINS] + [perturbed, general_model(), general_model(seed=3, n=6)]
+
+
+@pytest.mark.parametrize("model", _models_for_runtime(), ids=lambda m: m.name or "general")
+def test_runtime_walk_equals_adjoints_of_link_frames_and_joint_twists(model):
+    for q in random_q(model, 20, seed=21):
+        adjoints, twists, c, s = model.runtime_walk(q)
+        frames = model.link_frames(q)[0]
+        np.testing.assert_allclose(adjoints, se3.adjoint(frames), rtol=0, atol=2e-15)
+        np.testing.assert_allclose(se3.pose_from_adjoint(adjoints[-1]), model.fk(q), rtol=0, atol=1e-14)
+        np.testing.assert_allclose(twists, model.joint_twists(q)[0], rtol=0, atol=2e-15)
+        np.testing.assert_array_equal(c, np.cos(q))
+        np.testing.assert_array_equal(s, np.sin(q))
+
+
+def test_runtime_walk_scan_matches_a_left_to_right_walk_for_longer_chains():
+    # ⌈log2(n+1)⌉ scan steps: 9 joints need four, the UR10 three; both must equal the left-to-right products.
+    rng = np.random.default_rng(8)
+    frames = se3.exp_se3(rng.normal(size=(10, 6)) * 0.5)
+    model = LocalPOEModel.from_frames(frames, (REVOLUTE,) * 9)
+    for q in random_q(model, 5, seed=2):
+        adjoints, twists, _, _ = model.runtime_walk(q)
+        np.testing.assert_allclose(adjoints, se3.adjoint(model.link_frames(q)[0]), rtol=0, atol=5e-15)
+        np.testing.assert_allclose(twists, model.joint_twists(q)[0], rtol=0, atol=5e-15)
+
+
+def test_twists_from_frames_single_and_batched():
+    for model in (load("ur10").model, load("scara4").model, general_model()):
+        q = random_q(model, 4, seed=5)
+        frames = model.link_frames(q)
+        np.testing.assert_array_equal(model.twists_from_frames(frames), model.joint_twists(q))
+        np.testing.assert_array_equal(model.twists_from_frames(frames[2]), model.joint_twists(q)[2])
+        with pytest.raises(ValueError, match="frames must have shape"):
+            model.twists_from_frames(frames[:, :-1])
+
+
+def test_stacked_chains_walk_each_model_and_fall_back_for_general_joints():
+    ur10 = load("ur10").model
+    calibrated = ur10.perturbed(np.random.default_rng(1).normal(size=(7, 6)) * 1e-3)
+    for models in [(ur10, calibrated), (ur10, calibrated, ur10), (general_model(n=6), ur10)]:
+        stacked = StackedChains(models)
+        assert stacked._stacked == all(m._all_revolute_z for m in models)
+        for q in random_q(ur10, 10, seed=9):
+            both = stacked.adjoints(q)
+            assert both.shape == (len(models), 7, 6, 6)
+            for model, adjoints in zip(models, both, strict=True):
+                np.testing.assert_allclose(adjoints, se3.adjoint(model.link_frames(q)[0]), rtol=0, atol=2e-15)
+    with pytest.raises(ValueError, match="same number of joints"):
+        StackedChains((ur10, load("scara4").model))
+    with pytest.raises(ValueError, match=r"q must have shape \(6,\)"):
+        StackedChains((ur10,)).adjoints(np.zeros(5))

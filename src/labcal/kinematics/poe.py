@@ -54,6 +54,33 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
+def _cos_sin_one(q1: np.ndarray) -> np.ndarray:
+    """(n,) joint values → (n, 1, 3) rows (cos q_j, sin q_j, 1): the weights of the step parts (see _chain_one)."""
+    cs1 = np.ones((q1.shape[0], 1, 3))
+    np.cos(q1, out=cs1[:, 0, 0])
+    np.sin(q1, out=cs1[:, 0, 1])
+    return cs1
+
+
+def _chain_one(first: np.ndarray, cs1: np.ndarray, parts: np.ndarray) -> np.ndarray:
+    """Link frames of z-revolute chains at one configuration: (n+1, 4, 4), or (n+1, m, 4, 4) for m stacked chains.
+
+    first: (4, 4) or (m, 4, 4) base frames A_1(0); cs1: (n, 1, 3) from _cos_sin_one; parts: (n, 3, 16m) step parts,
+    so that ``cs1 @ parts`` is every step ``Rz(q_j) · A_{j+1}(0)`` at once. The running products come from a
+    Hillis-Steele scan: ⌈log2(n+1)⌉ stacked matmuls instead of n single ones (3 instead of 6 for a 6-axis arm),
+    associated differently from a left-to-right walk, which changes them only by rounding.
+    """
+    n = cs1.shape[0]
+    X = np.empty((n + 1, *first.shape))
+    np.matmul(cs1, parts, out=X[1:].reshape(n, 1, -1))
+    X[0] = first
+    d = 1
+    while d <= n:
+        X[d:] = X[:-d] @ X[d:]
+        d *= 2
+    return X
+
+
 def _readonly(a: np.ndarray) -> np.ndarray:
     a = np.array(a, dtype=float)
     a.setflags(write=False)
@@ -110,6 +137,19 @@ class LocalPOEModel:
             "_z_joint",
             tuple(np.array_equal(xi, default_twist(t)) for t, xi in zip(self.joint_types, twists, strict=True)),
         )
+        all_revolute_z = all(self._z_joint) and bool(self._revolute_mask.all())
+        object.__setattr__(self, "_all_revolute_z", all_revolute_z)
+        if all_revolute_z:
+            # Every step of runtime_walk's adjoint chain is linear in (cos q, sin q, 1):
+            # Ad(Rz(q) A_{j+1}(0)) = (cos q · D_c + sin q · D_s + D_1) Ad(A_{j+1}(0)), stored flat as (n, 3, 36).
+            D = np.zeros((3, 6, 6))
+            for o in (0, 3):
+                D[0, o, o] = D[0, o + 1, o + 1] = 1.0
+                D[1, o, o + 1], D[1, o + 1, o] = -1.0, 1.0
+                D[2, o + 2, o + 2] = 1.0
+            ad_parts = D[None] @ se3.adjoint(frames[1:])[:, None]  # (n, 3, 6, 6)
+            object.__setattr__(self, "_adjoint_parts", _readonly(ad_parts.reshape(n, 3, 36)))
+            object.__setattr__(self, "_adjoint_base", _readonly(se3.adjoint(frames[0])))
 
     @classmethod
     def from_frames(
@@ -242,6 +282,23 @@ class LocalPOEModel:
             T = frames[:, j + 1] = T @ G
         return frames
 
+    def runtime_walk(self, q1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Everything a runtime's inner loop needs at one configuration, from one walk: the adjoints Ad(K_j) of the
+        link frames (n+1, 6, 6) (``se3.adjoint(link_frames(q))``; the tool pose is ``se3.pose_from_adjoint`` of the
+        last), the joint twists (6, n), cos q (n,) and sin q (n,).
+
+        The chain is walked in the adjoint representation because a joint twist is ``Ad(K_j) ξ_j``: for z-axis
+        revolute joints the twists are the last columns of the products, free, where the 4×4 walk needs a cross
+        product per joint; at one configuration numpy's per-call cost, not the flops, is the price. q1 must be a
+        float (n,) array: it is not validated (the runtime checked the command it iterates from).
+        """
+        if not self._all_revolute_z:
+            frames = self._walk_small(q1[None])[0]
+            return se3.adjoint(frames), self.twists_from_frames(frames), np.cos(q1), np.sin(q1)
+        cs1 = _cos_sin_one(q1)
+        adjoints = _chain_one(self._adjoint_base, cs1, self._adjoint_parts)
+        return adjoints, adjoints[: self.n, :, 5].T, cs1[:, 0, 0], cs1[:, 0, 1]
+
     @staticmethod
     def _to_matrices(top: np.ndarray) -> np.ndarray:
         """(..., 3, 4, k) top rows, batch last → (k, ..., 4, 4) homogeneous transforms, batch first."""
@@ -321,6 +378,23 @@ class LocalPOEModel:
             return frames, self._twists_from_walk(frames[:, :, :3, :].transpose(1, 2, 3, 0))
         W = self._walk(q2)
         return self._to_matrices(W), self._twists_from_walk(W)
+
+    def twists_from_frames(self, frames: np.ndarray) -> np.ndarray:
+        """Joint twists in K0 from link frames: (n+1, 4, 4) → (6, n), or (k, n+1, 4, 4) → (k, 6, n).
+
+        frames as :meth:`link_frames` returns them (or :func:`frames_together`): the twist of joint j depends only on
+        frame K_j, so a caller that already walked the chain gets its Jacobian without a second walk.
+        """
+        frames = np.asarray(frames, dtype=float)
+        if frames.shape[-3:] != (self.n + 1, 4, 4) or frames.ndim not in (3, 4):
+            raise ValueError(
+                f"frames must have shape ({self.n + 1}, 4, 4) or (k, {self.n + 1}, 4, 4), got {frames.shape}"
+            )
+        if frames.ndim == 3:
+            return self.twists_from_frames(frames[None])[0]
+        if all(self._z_joint):
+            return self._z_twists(frames)
+        return self._twists_from_walk(frames[:, :, :3, :].transpose(1, 2, 3, 0))
 
     def fk_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(k, 4, 4) tool poses and (k, 6, n) actuated joint twists in K0, from one walk of the chain."""
@@ -450,3 +524,44 @@ class LocalPOEModel:
         """(k,) bool: every joint inside [lo + margin, hi − margin]."""
         q2, _ = self._as_batch(q)
         return np.all((q2 >= self.limits[:, 0] + margin) & (q2 <= self.limits[:, 1] - margin), axis=1)
+
+
+class StackedChains:
+    """Several models of the same arm walked side by side at one configuration, e.g. a nominal model and its
+    calibrated copy, in the adjoint representation of :meth:`LocalPOEModel.runtime_walk`. Immutable.
+
+    When every model is a chain of n revolute z-axis joints (the usual case) the walks share one stacked 6×6 matmul
+    per scan step and cost about what one walk does; otherwise each model is walked on its own.
+
+    Example::
+
+        >>> from labcal.robots import load
+        >>> nominal = load("ur10").model
+        >>> both = StackedChains((nominal, nominal.perturbed(np.full(42, 1e-4))))
+        >>> both.adjoints(np.zeros(6)).shape          # (models, n + 1, 6, 6)
+        (2, 7, 6, 6)
+    """
+
+    def __init__(self, models) -> None:
+        self.models = tuple(models)
+        if not self.models or any(model.n != self.models[0].n for model in self.models):
+            raise ValueError("StackedChains needs one or more models with the same number of joints")
+        self.n = self.models[0].n
+        self._stacked = all(model._all_revolute_z for model in self.models)
+        if self._stacked:
+            self._parts = _readonly(np.concatenate([model._adjoint_parts for model in self.models], axis=2))
+            self._base = _readonly(np.stack([model._adjoint_base for model in self.models]))
+
+    def adjoints(self, q) -> np.ndarray:
+        """(m, n+1, 6, 6) adjoints of every model's link frames at q (n,): ``se3.adjoint(models[i].link_frames(q))``."""
+        q1 = np.asarray(q, dtype=float)
+        if q1.shape != (self.n,):
+            raise ValueError(f"q must have shape ({self.n},), got {q1.shape}")
+        return self.runtime_walk(q1)[0]
+
+    def runtime_walk(self, q1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(m, n+1, 6, 6) adjoints, cos q (n,) and sin q (n,); q1 a float (n,) array, not validated."""
+        if not self._stacked:
+            return np.stack([model.runtime_walk(q1)[0] for model in self.models]), np.cos(q1), np.sin(q1)
+        cs1 = _cos_sin_one(q1)
+        return _chain_one(self._base, cs1, self._parts).transpose(1, 0, 2, 3), cs1[:, 0, 0], cs1[:, 0, 1]
