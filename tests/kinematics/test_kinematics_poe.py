@@ -322,11 +322,13 @@ def test_runtime_walk_equals_adjoints_of_link_frames_and_joint_twists(model):
         np.testing.assert_array_equal(s, np.sin(q))
 
 
-def test_runtime_walk_scan_matches_a_left_to_right_walk_for_longer_chains():
-    # ⌈log2(n+1)⌉ scan steps: 9 joints need four, the UR10 three; both must equal the left-to-right products.
-    rng = np.random.default_rng(8)
-    frames = se3.exp_se3(rng.normal(size=(10, 6)) * 0.5)
-    model = LocalPOEModel.from_frames(frames, (REVOLUTE,) * 9)
+@pytest.mark.parametrize("n", range(1, 10))
+def test_runtime_walk_scan_matches_a_left_to_right_walk_for_any_chain_length(n):
+    # ⌈log2(n+1)⌉ scan steps: the last one is easy to drop where n is a power of two (1, 2, 4 and 8 joints).
+    rng = np.random.default_rng(8 + n)
+    frames = se3.exp_se3(rng.normal(size=(n + 1, 6)) * 0.5)
+    model = LocalPOEModel.from_frames(frames, (REVOLUTE,) * n)
+    assert model._all_revolute_z
     for q in random_q(model, 5, seed=2):
         adjoints, twists, _, _ = model.runtime_walk(q)
         np.testing.assert_allclose(adjoints, se3.adjoint(model.link_frames(q)[0]), rtol=0, atol=5e-15)
