@@ -18,6 +18,7 @@ from labcal.compensator import (
     input_features,
 )
 from labcal.kinematics import se3
+from labcal.kinematics.poe import REVOLUTE, LocalPOEModel
 from labcal.robots import load
 
 
@@ -109,6 +110,55 @@ def test_correct_lower_mobility_robot_is_least_squares_on_actuated_joints():
     J = robot.model.joint_twists(q_cmd) * scale[:, None]
     assert np.max(np.abs(np.einsum("kai,ka->ki", J, r))) < 1e-9
     assert np.max(np.abs(q_cmd - q)) > 1e-5
+
+
+def redundant_robot(seed=3) -> CalibratedRobot:
+    """A 7-joint arm (random z-revolute chain) and its calibrated copy: local POE only, no network."""
+    rng = np.random.default_rng(seed)
+    nominal = LocalPOEModel.from_frames(se3.exp_se3(rng.normal(size=(8, 6)) * 0.3), (REVOLUTE,) * 7)
+    return CalibratedRobot(nominal, nominal.perturbed(rng.normal(size=(8, 6)) * 0.5e-3), method="local-poe")
+
+
+def test_redundant_arm_correct_takes_minimum_norm_gauss_newton_steps(monkeypatch):
+    robot = redundant_robot()
+    monkeypatch.setattr(CalibratedRobot, "_levenberg_marquardt", lambda *a: pytest.fail("fell back to LM"))
+    q = sample(robot, 20, seed=2)
+    q_cmd = robot.correct(q)
+    assert np.max(np.abs(se3.log_se3(robot.nominal.fk(q) @ se3.inv(robot.predict_pose(q_cmd))))) < 1e-12
+    for i in range(0, 20, 5):
+        np.testing.assert_allclose(robot.correct(q[i]), q_cmd[i], rtol=0, atol=1e-12)
+    # Minimum norm: no motion along the self-motion (the null space of the joint twists at q), to first order.
+    dq = q_cmd - q
+    for J, d in zip(robot.model.joint_twists(q), dq, strict=True):
+        null = np.linalg.svd(J)[2][-1]
+        assert abs(null @ d) < 1e-2 * np.linalg.norm(d)
+    assert np.max(np.abs(dq)) > 1e-4
+
+
+def test_a_network_needs_a_robot_with_at_most_six_joints():
+    robot = redundant_robot()
+    network = make_network(load("ur10").model, ("q",))
+    with pytest.raises(ValueError, match=r"at most 6 joints.*has 7"):
+        CalibratedRobot(robot.nominal, robot.model, network)
+
+
+def test_redundant_arm_golden_vectors_accept_any_solution_and_refuse_a_wrong_one(tmp_path):
+    robot = redundant_robot()
+    path = robot.save(tmp_path / "r7.json")
+    q = np.asarray(json.loads(path.read_text())["golden"]["q"])
+    comp = Compensator.load(path)
+    np.testing.assert_array_equal(comp.correct(q), robot.correct(q))
+    # Another point of the same self-motion (another solver might land there) is as good as the stored one.
+    other = robot.correct(q) + 1e-2 * np.linalg.svd(robot.model.joint_twists(q))[2][:, -1]
+    for _ in range(8):
+        r = se3.log_se3(robot.nominal.fk(q) @ se3.inv(robot.model.fk(other)))
+        other += np.einsum("kia,ka->ki", np.linalg.pinv(robot.model.joint_twists(other)), r)
+    assert np.max(np.abs(other - robot.correct(q))) > 1e-3
+    _tamper_json(path, lambda d: d["golden"].update(q_cmd=other.tolist()))
+    Compensator.load(path)
+    _tamper_json(path, lambda d: d["golden"]["q_cmd"][0].__setitem__(3, d["golden"]["q_cmd"][0][3] + 1e-8))
+    with pytest.raises(CompensatorFileError, match="pose error at the stored q_cmd"):
+        Compensator.load(path)
 
 
 def test_singular_configuration_is_no_worse_than_uncorrected():

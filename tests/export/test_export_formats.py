@@ -20,7 +20,7 @@ from labcal.export.urdf import urdf_text
 from labcal.export.urscript import urscript_text
 from labcal.kinematics import from_urdf
 from labcal.robots import load
-from test_compensator import hybrid, make_network, sample
+from test_compensator import hybrid, make_network, redundant_robot, sample
 
 
 def run_script(text: str, q: np.ndarray, name: str = "labcal_correct") -> np.ndarray:
@@ -75,6 +75,8 @@ def test_urscript_refuses_what_it_cannot_express():
         urscript_text(CalibratedRobot(nominal, nominal, make_network(nominal, ("sincos",))))
     with pytest.raises(ValueError, match="needs a network"):
         urscript_text(CalibratedRobot(nominal, nominal), method="paper")
+    with pytest.raises(ValueError, match="7-joint robot is not supported"):
+        urscript_text(redundant_robot())
 
 
 def test_subset_checker_rejects_python_only_syntax():

@@ -11,6 +11,9 @@ Methods (:data:`METHODS`):
   1e-12 m) goes to the simpler model, in the order local-poe, hybrid, ann (hybrid without its network *is*
   local POE; the paper's ANN has the least structure).
 
+ann and hybrid learn the six joint motion errors of the equivalent robot, so they need a robot with at most 6 joints;
+for a redundant arm (n > 6) they are refused and auto fits local-poe alone.
+
 Unassigned rows are split into train / val with ``obs.with_splits(val_fraction, seed)``; rows already labelled
 keep their label, and "test" rows are never fitted on. Same data and seed ⇒ bit-identical parameters.
 
@@ -125,6 +128,11 @@ def fit(
     counts = {s: int(np.sum(obs.split == s)) for s in ("train", "val", "test")}
     if counts["train"] == 0:
         raise ValueError("no training rows: every row is labelled val or test")
+    if method in ("hybrid", "ann") and nominal.n > 6:
+        raise ValueError(
+            f"method {method!r} learns the six joint motion errors of the equivalent robot (eq. 12-14), which needs a "
+            f"robot with at most 6 joints; {nominal.name!r} has {nominal.n}: use local-poe"
+        )
     if method in ("hybrid", "auto", "ann") and counts["val"] == 0:
         raise ValueError(f"method {method!r} needs validation rows: use val_fraction > 0 or label some rows 'val'")
     lp_opts = dict(local_poe_options or {})
@@ -163,14 +171,18 @@ def fit(
     else:
         stage1 = timed("local-poe", lambda: fit_local_poe(obs, nominal, **lp_opts))
         cands = {"local-poe": stage1}
-        cands["ann"] = timed("ann", lambda: _ann(obs, before, seed, options))
-        cands["hybrid"] = timed(
-            "hybrid", lambda: fit_hybrid(obs, nominal, seed=seed, stage1=stage1, progress=say, **hybrid_opts, **options)
-        )
-        seconds["hybrid"] += seconds["local-poe"]  # the hybrid's first stage was shared
+        if nominal.n > 6:
+            say(f"auto: ann and hybrid need a robot with at most 6 joints ({nominal.name!r} has {nominal.n})")
+        else:
+            cands["ann"] = timed("ann", lambda: _ann(obs, before, seed, options))
+            cands["hybrid"] = timed(
+                "hybrid",
+                lambda: fit_hybrid(obs, nominal, seed=seed, stage1=stage1, progress=say, **hybrid_opts, **options),
+            )
+            seconds["hybrid"] += seconds["local-poe"]  # the hybrid's first stage was shared
         errors = {name: validation_error(r, obs) for name, (r, _) in cands.items()}
         best = min(errors.values())
-        chosen = next(name for name in _SIMPLICITY if errors[name] <= best + _TIE)
+        chosen = next(name for name in _SIMPLICITY if name in errors and errors[name] <= best + _TIE)
         robot = cands[chosen][0]
         info = {"candidates": errors, **{name: i for name, (_, i) in cands.items()}}
         say("auto: validation mean position error " + ", ".join(f"{m} {e * 1e3:.4f} mm" for m, e in errors.items()))

@@ -16,7 +16,8 @@ What it computes (``method="newton"``, the default, matches :meth:`CalibratedRob
 Not covered (say so where it matters): configurations outside the calibrated joint ranges stop the program
 (``popup`` + ``halt``) — there is no ``extrapolate``; there is no Levenberg-Marquardt fallback, so near a singular
 configuration the script returns whatever the fixed Gauss-Newton steps give (the Python runtime would damp them);
-robots with fewer than 6 joints are supported without a network only (virtual joints need a QR decomposition);
+robots with fewer than 6 joints are supported without a network only (virtual joints need a QR decomposition),
+robots with more than 6 not at all (a UR controller drives six);
 the rotation logarithm assumes a residual rotation below π/2 (corrections are milliradians).
 
 The emitted language is a small subset of URScript: ``def``/``end``, ``while``, ``if``/``elif``/``else``,
@@ -396,6 +397,11 @@ def urscript_text(
     net = robot.network
     if method == "paper" and net is None:
         raise ValueError("method 'paper' (eq. 24) needs a network; this calibration has none")
+    if n > 6:
+        raise ValueError(
+            f"URScript export of a {n}-joint robot is not supported (UR controllers drive 6 joints); "
+            "use the json/npz compensator"
+        )
     if net is not None and n < 6:
         raise ValueError(
             f"URScript export of a network for a {n}-joint robot is not supported (virtual joints); "
