@@ -98,6 +98,45 @@ def test_overlong_line_is_a_protocol_error():
         link.read_line()
 
 
+@pytest.mark.parametrize("max_read", [None, 1])
+def test_read_exact_returns_n_bytes_whatever_they_are_and_leaves_the_rest(max_read):
+    link, t = link_for(b"\xc4\r\n\x00\r\xa5\nrest\r\n")
+    t.max_read = max_read  # 1: the bytes trickle in one per read
+    assert link.read_exact(6) == b"\xc4\r\n\x00\r\xa5"  # terminators are data in a counted read
+    assert link.read_exact(0) == b""
+    assert link.read_line() == b"\nrest"
+    t.assert_done()
+
+
+def test_read_exact_times_out_reporting_how_much_arrived():
+    link, t = link_for(b"\xc4\xa5\x01")
+    with pytest.raises(DriverTimeout, match=r"within 0.2 s: 3 of 8 bytes; partial reply b'\\xc4\\xa5\\x01'"):
+        link.read_exact(8)
+    assert t.now == pytest.approx(0.2)  # the deadline, not one read timeout, bounded the wait
+
+
+def test_read_exact_times_out_on_silence():
+    link, _ = link_for(b"")
+    with pytest.raises(DriverTimeout, match=r"no complete reply within 0.05 s: 0 of 6 bytes$"):
+        link.read_exact(6, timeout=0.05)
+
+
+def test_read_exact_refuses_a_negative_count():
+    link, _ = link_for(b"")
+    with pytest.raises(ValueError, match="negative"):
+        link.read_exact(-1)
+
+
+def test_drain_reads_until_the_line_is_quiet_and_is_bounded():
+    link, t = link_for(b"rest of a bad reply")
+    assert link.drain() == b"rest of a bad reply"
+    assert link.drain() == b""
+    t.assert_done()
+    link, t = link_for(b"x" * 100)
+    link.max_line = 50
+    assert link.drain() == b"x" * 51  # a streaming device cannot keep it reading forever
+
+
 class ExplodingTransport(ScriptedTransport):
     def read(self, size: int = 1) -> bytes:
         raise serial.SerialException("device reports readiness to read but returned no data")
@@ -111,6 +150,8 @@ def test_library_errors_become_connection_failed():
     link = SerialLink(t, write_terminator=b"\r", read_terminator=b"\r", timeout=0.1, clock=t.clock)
     with pytest.raises(ConnectionFailed, match="serial read failed: device reports"):
         link.read_line()
+    with pytest.raises(ConnectionFailed, match="serial read failed: device reports"):
+        link.read_exact(8)
     with pytest.raises(ConnectionFailed, match=r"serial write failed.*Input/output error"):
         link.send_line("X")
     link.close()

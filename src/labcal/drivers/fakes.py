@@ -442,6 +442,7 @@ class ScriptedTransport:
     break. ``read`` returns b'' when nothing is buffered (a timeout) and advances the fake clock by
     ``read_timeout`` s, so timeouts cost no real time; pass ``clock=t.clock, sleep=t.sleep`` to the driver.
     ``events`` logs writes, breaks, baud changes, sleeps and flushes in order. Call ``assert_done()`` at the end.
+    ``max_read`` caps the bytes one ``read`` returns, as a slow line delivers a reply in pieces.
     """
 
     def __init__(
@@ -451,6 +452,7 @@ class ScriptedTransport:
         baudrate: int = 9600,
         read_timeout: float = 0.05,
         pending_input: bytes = b"",
+        max_read: int | None = None,
     ):
         self.script = list(script)
         self.step = 0
@@ -458,6 +460,7 @@ class ScriptedTransport:
         self._input = bytearray(pending_input)
         self._baudrate = baudrate
         self.read_timeout = read_timeout
+        self.max_read = max_read
         self.now = 0.0
         self.events: list[tuple[str, Any]] = []
         self.closed = False
@@ -508,6 +511,7 @@ class ScriptedTransport:
         if not self._input:
             self.now += self.read_timeout
             return b""
+        size = size if self.max_read is None else min(size, self.max_read)
         data = bytes(self._input[:size])
         del self._input[:size]
         return data

@@ -1,10 +1,11 @@
-"""Transport and framer: bytes in and out of a serial port, one terminated line at a time.
+"""Transport and framer: bytes in and out of a serial port, one terminated line (or counted block) at a time.
 
 The transport is anything shaped like ``serial.Serial`` (``write``, ``read``, ``reset_input_buffer``,
 ``send_break``, ``close`` and a settable ``baudrate``): a real port from ``serial.serial_for_url`` (device path,
 pty path, ``socket://``, ``loop://``) or a scripted fake in tests. ``SerialLink`` turns every library error into
-a labcal driver error and reads lines against an overall deadline, because pyserial's ``readline`` returns a
-partial line (or ``b''``) on timeout without saying so.
+a labcal driver error and reads lines, or blocks of a known length for binary replies, against an overall
+deadline, because pyserial's ``readline`` and ``read`` return partial data (or ``b''``) on timeout without
+saying so.
 """
 
 from __future__ import annotations
@@ -155,6 +156,41 @@ class SerialLink:
             elif self.clock() >= deadline:
                 detail = f"; partial reply {bytes(buf)!r}" if buf else ""
                 raise DriverTimeout(f"no complete reply within {wait:.3g} s{detail}")
+
+    def read_exact(self, n: int, timeout: float | None = None) -> bytes:
+        """Read exactly ``n`` bytes (binary replies carry their length instead of a terminator).
+
+        Raises DriverTimeout (with whatever partial bytes arrived) when fewer than ``n`` bytes arrive within
+        ``timeout`` s (default: the link timeout).
+        """
+        if n < 0:
+            raise ValueError(f"cannot read a negative number of bytes ({n})")
+        wait = self.timeout if timeout is None else timeout
+        deadline = self.clock() + wait
+        buf = bytearray()
+        while len(buf) < n:
+            chunk = self._call("read", self.transport.read, n - len(buf))
+            if chunk:
+                buf += chunk
+            elif self.clock() >= deadline:
+                detail = f"; partial reply {bytes(buf)!r}" if buf else ""
+                raise DriverTimeout(f"no complete reply within {wait:.3g} s: {len(buf)} of {n} bytes{detail}")
+        return bytes(buf)
+
+    def drain(self) -> bytes:
+        """Read until one read comes back empty (the line went quiet) and return what was discarded.
+
+        After a binary reply whose header cannot be trusted, the rest of it is still arriving and has no
+        terminator to read up to; the flush before the next request would miss bytes still on the wire.
+        Bounded by ``max_line`` so a streaming device cannot keep this going forever.
+        """
+        buf = bytearray()
+        while len(buf) <= self.max_line:
+            chunk = self._call("read", self.transport.read, self.max_line + 1 - len(buf))
+            if not chunk:
+                break
+            buf += chunk
+        return bytes(buf)
 
     def close(self) -> None:
         if self.closed:
