@@ -8,6 +8,7 @@ so the byte-exact tests do not just compare the driver with itself.
 from __future__ import annotations
 
 import dataclasses
+import struct
 from typing import Any
 
 import numpy as np
@@ -23,6 +24,7 @@ INIT = b"INIT:E3A5\r"
 COMM_115200 = b"COMM:500000048\r"
 TSTART = b"TSTART:5423\r"
 TX = b"TX:10003FDA\r"
+BX = b"BX:1000FEAD\r"
 TSTOP = b"TSTOP:2C14\r"
 COMM_9600 = b"COMM:000000084\r"
 OKAY = b"OKAYA896\r"
@@ -57,6 +59,36 @@ def tx_body(strays: np.ndarray, oov_flags: str | None = None, status: str = "000
     n = len(strays)
     flags = oov_flags if oov_flags is not None else "0" * (-(-n // 4))
     return "00" + f"{n:02X}" + flags + "".join(coord(v) for v in strays.ravel()) + status
+
+
+def bx_frame(body: bytes) -> bytes:
+    """Wrap a BX body in its binary framing: C4 A5, uint16 LE length, header CRC, body, body CRC (LE)."""
+    header = bytes([0xC4, 0xA5, len(body) & 0xFF, len(body) >> 8])
+    return (
+        header + crc16_arc_bitwise(header).to_bytes(2, "little") + body + crc16_arc_bitwise(body).to_bytes(2, "little")
+    )
+
+
+def bx_body(
+    strays: np.ndarray, oov: list[bool] | None = None, status: int = 0, handles: tuple[tuple[int, int], ...] = ()
+) -> bytes:
+    """A BX:1000 body: handles (id, status), strays (N, 3) m as float32 mm, out-of-volume bits, status."""
+    strays = np.asarray(strays, dtype=float).reshape(-1, 3)
+    n = len(strays)
+    flags = bytearray(-(-n // 8))
+    for j, out in enumerate(oov or []):
+        if out:
+            flags[j // 8] |= 1 << (j % 8)
+    body = bytes([len(handles)]) + b"".join(struct.pack("<BB", h, st) for h, st in handles)
+    body += bytes([n]) + bytes(flags)
+    for x, y, z in strays:
+        body += struct.pack("<fff", x * 1000.0, y * 1000.0, z * 1000.0)
+    return body + struct.pack("<H", status)
+
+
+def bx_reply(strays: np.ndarray, **kw: Any) -> bytes:
+    """A whole binary reply to BX:1000 (see ``bx_body`` for the keywords)."""
+    return bx_frame(bx_body(strays, **kw))
 
 
 def tool_to_tracker(targets: np.ndarray = TARGETS) -> np.ndarray:

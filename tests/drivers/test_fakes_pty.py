@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from serial_fixtures import TARGETS, tool_to_tracker
+from serial_fixtures import TARGETS, bx_reply, tool_to_tracker
 
 from labcal.drivers.base import ConnectionFailed, MeasurementRejected
 from labcal.drivers.fakes import FakeASCIIDevice, FakeNDIDevice
@@ -20,6 +20,8 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]
 
 REPO = Path(__file__).resolve().parents[2]
 SEEN = tool_to_tracker()  # true target positions in the tracker frame, m
+ATOL = {"tx": 5e-6, "bx": 1e-7}  # m: TX has 0.01 mm digits, BX float32 millimetres
+REPLIES = ["tx", "bx"]
 
 
 def ndi_tracker(dev: FakeNDIDevice, **overrides) -> SerialTracker:
@@ -41,16 +43,18 @@ def wait_for(predicate, timeout: float = 2.0) -> bool:
 # -- NDI ------------------------------------------------------------------------------------------------------
 
 
-def test_ndi_session_over_pty_labels_shuffled_strays_and_leaves_the_device_stopped():
+@pytest.mark.parametrize("reply", REPLIES)
+def test_ndi_session_over_pty_labels_shuffled_strays_and_leaves_the_device_stopped(reply):
     with FakeNDIDevice(lambda: SEEN, seed=3, extra_stray=True) as dev:
-        with ndi_tracker(dev) as tracker:
+        with ndi_tracker(dev, reply=reply) as tracker:
             m = tracker.measure(samples=4)
             assert dev.state == "tracking" and dev.baudrate == 115200
-        np.testing.assert_allclose(m.points, SEEN, atol=5e-6)  # wire resolution 0.01 mm
+        np.testing.assert_allclose(m.points, SEEN, atol=ATOL[reply])
         assert m.samples == 4
         assert wait_for(lambda: dev.state == "setup" and dev.baudrate == 9600)  # TSTOP, COMM:00000 on close
         names = [c.split(":")[0] for c in dev.received]
-        assert names == ["INIT", "COMM", "TSTART", "TX", "TX", "TX", "TX", "TSTOP", "COMM"]
+        frame = reply.upper()
+        assert names == ["INIT", "COMM", "TSTART", frame, frame, frame, frame, "TSTOP", "COMM"]
 
 
 def test_ndi_averaging_over_pty_reports_the_spread_of_the_samples():
@@ -61,20 +65,24 @@ def test_ndi_averaging_over_pty_reports_the_spread_of_the_samples():
     np.testing.assert_allclose(m.spread, np.full(3, 0.0002), atol=1e-8)
 
 
-@pytest.mark.parametrize("fault", ["bad_crc", "garbled", "no_reply"])
-def test_ndi_transient_faults_are_retried(fault):
-    with FakeNDIDevice(lambda: SEEN, seed=1) as dev, ndi_tracker(dev) as tracker:
+@pytest.mark.parametrize("reply", REPLIES)
+@pytest.mark.parametrize("fault", ["bad_crc", "garbled", "truncated", "no_reply"])
+def test_ndi_transient_faults_are_retried(fault, reply):
+    with FakeNDIDevice(lambda: SEEN, seed=1) as dev, ndi_tracker(dev, reply=reply) as tracker:
         dev.inject(fault)
-        np.testing.assert_allclose(tracker.measure().points, SEEN, atol=5e-6)
-        assert [c.split(":")[0] for c in dev.received].count("TX") == 2  # the faulty frame and its retry
+        np.testing.assert_allclose(tracker.measure().points, SEEN, atol=ATOL[reply])
+        # the faulty frame and its retry
+        assert [c.split(":")[0] for c in dev.received].count(reply.upper()) == 2
 
 
-def test_ndi_device_reset_mid_session_is_recovered_by_reinitialising():
-    with FakeNDIDevice(lambda: SEEN, seed=1) as dev, ndi_tracker(dev) as tracker:
+@pytest.mark.parametrize("reply", REPLIES)
+def test_ndi_device_reset_mid_session_is_recovered_by_reinitialising(reply):
+    with FakeNDIDevice(lambda: SEEN, seed=1) as dev, ndi_tracker(dev, reply=reply) as tracker:
         dev.inject("reset")
-        np.testing.assert_allclose(tracker.measure().points, SEEN, atol=5e-6)
+        np.testing.assert_allclose(tracker.measure().points, SEEN, atol=ATOL[reply])
         names = [c.split(":")[0] for c in dev.received]
-        assert names == ["INIT", "COMM", "TSTART", "TX", "INIT", "COMM", "TSTART", "TX"]
+        frame = reply.upper()
+        assert names == ["INIT", "COMM", "TSTART", frame, "INIT", "COMM", "TSTART", frame]
 
 
 @pytest.mark.parametrize(
@@ -85,12 +93,13 @@ def test_ndi_device_reset_mid_session_is_recovered_by_reinitialising():
         ("error:0C", NDIError, "ERROR0C"),
     ],
 )
-def test_ndi_unusable_frames_raise_and_the_next_frame_is_fine(fault, error, match):
-    with FakeNDIDevice(lambda: SEEN, seed=2) as dev, ndi_tracker(dev) as tracker:
+@pytest.mark.parametrize("reply", REPLIES)
+def test_ndi_unusable_frames_raise_and_the_next_frame_is_fine(fault, error, match, reply):
+    with FakeNDIDevice(lambda: SEEN, seed=2) as dev, ndi_tracker(dev, reply=reply) as tracker:
         dev.inject(fault)
         with pytest.raises(error, match=match):
             tracker.measure()
-        np.testing.assert_allclose(tracker.measure().points, SEEN, atol=5e-6)
+        np.testing.assert_allclose(tracker.measure().points, SEEN, atol=ATOL[reply])
 
 
 def test_fake_rejects_a_command_with_a_bad_crc_with_error04():
@@ -125,6 +134,27 @@ def _crc(data: bytes) -> int:
     from serial_fixtures import crc16_arc_bitwise
 
     return crc16_arc_bitwise(data)
+
+
+def test_fake_answers_bx_with_the_binary_reply_of_its_markers():
+    import serial
+
+    with FakeNDIDevice(lambda: SEEN, shuffle=False, strict_baud=False) as dev:
+        dev.system_status = 0x0102
+        port = serial.serial_for_url(dev.port, timeout=1.0)
+        try:
+            port.write(b"BX:1000FEAD\r")
+            assert port.read_until(b"\r") == b"ERROR10" + b"%04X" % _crc(b"ERROR10") + b"\r"  # not initialised
+            for command in (b"INIT:E3A5\r", b"TSTART:5423\r"):
+                port.write(command)
+                assert port.read_until(b"\r")[:4] == b"OKAY"
+            port.write(b"BX:1000FEAD\r")
+            expected = bx_reply(SEEN, status=0x0102)  # the independent encoder of the scripted tests
+            assert port.read(len(expected)) == expected
+            port.timeout = 0.1
+            assert port.read(1) == b""  # no CR or anything else after a binary reply
+        finally:
+            port.close()
 
 
 def test_port_can_be_reopened_after_a_client_closes_it():

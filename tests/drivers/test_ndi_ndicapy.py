@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from serial_fixtures import COMM_9600, COMM_115200, INIT, TARGETS, TSTART, TSTOP, TX, tool_to_tracker
+from serial_fixtures import BX, COMM_9600, COMM_115200, INIT, TARGETS, TSTART, TSTOP, TX, tool_to_tracker
 
 from labcal.drivers.fakes import FakeNDIDevice
 from labcal.drivers.serial_tracker import ERROR_CODES, SerialTracker, encode_command, load_profile
@@ -96,3 +96,79 @@ def test_ndicapy_sees_the_faults_the_driver_must_handle():
 def test_error_code_meanings_agree_with_ndicapy():
     for code, meaning in ERROR_CODES.items():
         assert ndicapy.ndiErrorString(code).startswith(meaning), hex(code)
+
+
+# -- binary BX replies ---------------------------------------------------------------------------------------
+
+
+def ndicapy_bx_and_tx(port: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """One session with ndicapy: strays of a BX:1000 and of a TX:1000 frame, (N, 3) m each, and the BX status."""
+    device = ndicapy.ndiOpen(port)
+    assert device, f"ndicapy could not open {port}"
+    try:
+        for command in ("INIT:", "COMM:50000", "TSTART:"):
+            assert ndicapy.ndiCommand(device, command) == "OKAY", command
+        # ndiBX takes the reply option as an int and formats it itself ("BX:%04X").
+        ndicapy.ndiBX(device, 0x1000)
+        assert ndicapy.ndiGetError(device) == ndicapy.NDI_OKAY, ndicapy.ndiErrorString(ndicapy.ndiGetError(device))
+        n = ndicapy.ndiGetBXNumberOfPassiveStrays(device)
+        bx = np.array([ndicapy.ndiGetBXPassiveStray(device, i) for i in range(n)], dtype=float) * 1e-3  # mm -> m
+        status = ndicapy.ndiGetBXSystemStatus(device)
+        ndicapy.ndiCommand(device, "TX:1000")
+        assert ndicapy.ndiGetError(device) == ndicapy.NDI_OKAY
+        k = ndicapy.ndiGetTXNumberOfPassiveStrays(device)
+        tx = np.array([ndicapy.ndiGetTXPassiveStray(device, i) for i in range(k)], dtype=float) * 1e-3
+        assert ndicapy.ndiCommand(device, "TSTOP:") == "OKAY"
+        assert ndicapy.ndiCommand(device, "COMM:00000") == "OKAY"
+        return bx.reshape(n, 3), tx.reshape(k, 3), status
+    finally:
+        ndicapy.ndiClose(device)
+
+
+def test_ndicapy_reads_bx_from_the_fake_and_agrees_with_labcal_in_bx_mode():
+    with FakeNDIDevice(lambda: SEEN, seed=11, extra_stray=True, shuffle=False) as dev:
+        dev.system_status = 0x0021
+        reference, tx, status = ndicapy_bx_and_tx(dev.port)
+        assert status == 0x0021
+        assert dev.received == [c[:-1].decode() for c in (INIT, COMM_115200, TSTART, BX, TX, TSTOP, COMM_9600)]
+        assert encode_command("BX:1000") == BX
+
+        profile = load_profile(REPO / "drivers" / "ndi-polaris.toml").with_url(dev.port)
+        profile = dataclasses.replace(profile, switch_delay=0.0, reply="bx")
+        with SerialTracker(profile, TARGETS) as tracker:
+            m = tracker.measure()
+        # labcal's BX session sent what ndicapy's did.
+        assert dev.received[7:] == [c[:-1].decode() for c in (INIT, COMM_115200, TSTART, BX, TSTOP, COMM_9600)]
+
+    assert reference.shape == (4, 3)  # three targets + the spurious reflection
+    # ndicapy read the same float32 millimetres labcal did: labcal's points are exactly three of ndicapy's.
+    np.testing.assert_array_equal(reference[:3], m.points)
+    np.testing.assert_allclose(m.points, SEEN, atol=1e-7)
+    assert m.quality == ("system_status:0x0021",)
+    # The fake's TX and BX frames of the same markers agree to TX's 0.01 mm digits (the spurious one differs).
+    np.testing.assert_allclose(tx[:3], reference[:3], atol=5e-6)
+
+
+def test_ndicapy_sees_the_bx_faults_the_driver_must_handle():
+    with FakeNDIDevice(lambda: SEEN, seed=5) as dev:
+        device = ndicapy.ndiOpen(dev.port)
+        try:
+            for command in ("INIT:", "TSTART:"):
+                ndicapy.ndiCommand(device, command)
+            # An ERRORxx reply to BX is an ASCII line; ndicapy's binary reader stops at its CR (no 5 s timeout)
+            # but then checks a binary CRC on it, so it reports a bad CRC rather than the error code (labcal
+            # decodes the line: test_ndi_bx.py). This shows the fake frames its error reply as ndicapy expects.
+            # It comes first on purpose: after an earlier BX reply, ndicapy 3.7.6's Python wrapper turns the
+            # binary leftovers in its reply buffer into a str, gets NULL and crashes the interpreter (SIGSEGV).
+            dev.inject("error:0C")
+            with pytest.raises(OSError) as info:
+                ndicapy.ndiBX(device, 0x1000)
+            assert ndicapy.ndiGetError(device) == ndicapy.NDI_BAD_CRC != ndicapy.NDI_TIMEOUT, str(info.value)
+            dev.inject("bad_crc")
+            with pytest.raises(OSError, match="Bad CRC on reply"):
+                ndicapy.ndiBX(device, 0x1000)
+            ndicapy.ndiBX(device, 0x1000)
+            assert ndicapy.ndiGetError(device) == ndicapy.NDI_OKAY
+            assert ndicapy.ndiGetBXNumberOfPassiveStrays(device) == 3
+        finally:
+            ndicapy.ndiClose(device)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from labcal.drivers.serial_tracker import AsciiProfile, NDIProfile, ProfileError, load_profile
+from labcal.drivers.serial_tracker import AsciiProfile, NDIProfile, PortSettings, ProfileError, load_profile
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -16,6 +16,7 @@ def test_shipped_ndi_profile():
     assert isinstance(p, NDIProfile)
     assert (p.port.baudrate, p.port.bytesize, p.port.parity, p.port.stopbits) == (9600, 8, "N", 1)
     assert p.baudrate == 115200
+    assert p.reply == "tx"
     assert p.match_tolerance == pytest.approx(0.5e-3)  # given in mm, held in m
     assert p.with_url("/dev/pts/9").port.url == "/dev/pts/9"
 
@@ -93,12 +94,25 @@ def test_bad_ascii_fields_are_named(tmp_path, change, message):
         ('protocol = "ndi"\n[ndi]\nreset_on_failure = "yes"', r"reset_on_failure: expected bool"),
         ('protocol = "ndi"\n[ndi]\nretries = true', r"retries: expected int, got True"),
         ('protocol = "ndi"\n[port]\nbaudrate = 115200', r"starts at 9600 8N1"),
+        ('protocol = "ndi"\n[ndi]\nreply = "binary"', r"\[ndi\]\.reply: 'binary' is not one of \['tx', 'bx'\]"),
+        ('protocol = "ndi"\n[ndi]\nreply = "BX"', r"\[ndi\]\.reply: 'BX' is not one of"),
         ("protocol = ", r"not valid TOML"),
     ],
 )
 def test_bad_ndi_fields_are_named(tmp_path, text, message):
     with pytest.raises(ProfileError, match=message):
         load_profile(write(tmp_path, text))
+
+
+def test_ndi_reply_bx_is_selected_in_the_profile(tmp_path):
+    p = load_profile(write(tmp_path, 'protocol = "ndi"\n[ndi]\nreply = "bx"\n'))
+    assert isinstance(p, NDIProfile) and p.reply == "bx"
+    assert load_profile(write(tmp_path, 'protocol = "ndi"\n')).reply == "tx"
+
+
+def test_ndi_profile_built_in_code_refuses_an_unknown_reply():
+    with pytest.raises(ValueError, match=r"NDIProfile.reply must be one of \['tx', 'bx'\], got 'TX'"):
+        NDIProfile(name="x", port=PortSettings(), reply="TX")
 
 
 def test_missing_file_is_a_profile_error(tmp_path):

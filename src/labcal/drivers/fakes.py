@@ -11,10 +11,10 @@ rate the client configured on the pty (termios settings are shared by both ends'
 mismatch it ignores the command, as a real device seeing framing errors would. ``reset()`` emulates what a
 break (or power cycle) does; the host-side break path itself is tested with ``ScriptedTransport``.
 
-Fault injection (one-shot, in order, applied to the next measurement request)::
+Fault injection (one-shot, in order, applied to the next measurement request, ``TX`` or ``BX``)::
 
     with FakeNDIDevice(provider, seed=1) as dev:
-        dev.inject("bad_crc")        # also: "no_reply", "garbled", "drop_target", "extra_stray",
+        dev.inject("bad_crc")        # also: "no_reply", "garbled", "truncated", "drop_target", "extra_stray",
         ...                          # "out_of_volume", "reset", "error:0C" (any hex code)
 """
 
@@ -24,6 +24,7 @@ import collections
 import math
 import os
 import select
+import struct
 import termios
 import threading
 import time
@@ -192,6 +193,30 @@ def _ndi_frame(body: str) -> bytes:
     return data + f"{crc16_arc(data):04X}\r".encode("ascii")
 
 
+def encode_bx_reply(
+    strays: Any,
+    out_of_volume: Sequence[bool] | None = None,
+    system_status: int = 0,
+    handles: Sequence[tuple[int, int]] = (),
+) -> bytes:
+    """A whole binary reply to ``BX:1000``, as a Polaris sends it (header, body, body CRC; no CR).
+
+    strays: (M, 3) m, sent as float32 millimetres. out_of_volume: M flags (default none). handles: (handle id,
+    status) pairs, which option 0x1000 reports without any per-handle data.
+    """
+    mm = np.asarray(strays, dtype=float).reshape(-1, 3) * 1e3
+    m = len(mm)
+    oov = [False] * m if out_of_volume is None else [bool(f) for f in out_of_volume]
+    if len(oov) != m:
+        raise ValueError(f"{len(oov)} out-of-volume flags for {m} strays")
+    bits = sum(1 << j for j, flag in enumerate(oov) if flag)
+    body = bytes([len(handles)]) + b"".join(bytes([h, st]) for h, st in handles)
+    body += bytes([m]) + bits.to_bytes(math.ceil(m / 8), "little")
+    body += mm.astype("<f4").tobytes() + struct.pack("<H", system_status)
+    header = b"\xc4\xa5" + struct.pack("<H", len(body))
+    return header + struct.pack("<H", crc16_arc(header)) + body + struct.pack("<H", crc16_arc(body))
+
+
 class FakeNDIDevice(_PtyDevice):
     """A Polaris-like NDI Combined API device reporting the targets as passive stray markers.
 
@@ -201,10 +226,24 @@ class FakeNDIDevice(_PtyDevice):
     strict_baud: ignore commands while the client's pty rate differs from the emulated device rate.
 
     State: ``state`` is "reset" (after power-up/reset), "setup" (after INIT) or "tracking"; ``baudrate`` is the
-    emulated rate set by COMM. Replies follow the API: body + CRC16 + CR; ERRORxx for bad commands.
+    emulated rate set by COMM. Replies follow the API: body + CRC16 + CR; ERRORxx for bad commands; ``BX``
+    answers in binary (``encode_bx_reply``) from the same simulated markers as ``TX``.
+
+    Faults on a BX reply: "bad_crc" spoils the body CRC, "garbled" the start sequence, "truncated" drops the
+    last bytes (a TX reply loses its CR and CRC); the others act as on TX.
     """
 
-    FAULTS = ("no_reply", "bad_crc", "garbled", "drop_target", "extra_stray", "out_of_volume", "reset", "error")
+    FAULTS = (
+        "no_reply",
+        "bad_crc",
+        "garbled",
+        "truncated",
+        "drop_target",
+        "extra_stray",
+        "out_of_volume",
+        "reset",
+        "error",
+    )
 
     def __init__(
         self,
@@ -294,24 +333,29 @@ class FakeNDIDevice(_PtyDevice):
     def _cmd_beep(self, params: str) -> bytes:
         return _ndi_frame("1")
 
-    def _cmd_tx(self, params: str) -> bytes | None:
+    def _frame_request(self, params: str) -> tuple[int | None, str | None, bytes | None]:
+        """Checks shared by TX and BX: (reply option, fault to apply, or an ASCII reply that ends the request)."""
         if self.state == "reset":
-            return _ndi_frame("ERROR10")
+            return None, None, _ndi_frame("ERROR10")
         if self.state != "tracking":
-            return _ndi_frame("ERROR0C")
+            return None, None, _ndi_frame("ERROR0C")
         try:
             option = int(params or "0001", 16)
         except ValueError:
-            return _ndi_frame("ERROR07")
+            return None, None, _ndi_frame("ERROR07")
         fault = self._next_fault()
-        if fault == "no_reply":
-            return None
         if fault == "reset":
             self.reset(announce=False)
-            return _ndi_frame("RESET")
+            return None, fault, _ndi_frame("RESET")
         if fault is not None and fault.startswith("error"):
             code = fault.partition(":")[2] or "0C"
-            return _ndi_frame(f"ERROR{int(code, 16):02X}")
+            return None, fault, _ndi_frame(f"ERROR{int(code, 16):02X}")
+        return option, fault, None
+
+    def _cmd_tx(self, params: str) -> bytes | None:
+        option, fault, early = self._frame_request(params)
+        if option is None or fault == "no_reply":
+            return early
         body = "00"  # no tool handles
         if option & 0x1000:
             body += self._strays(fault)
@@ -322,9 +366,28 @@ class FakeNDIDevice(_PtyDevice):
             reply = body.encode("ascii") + f"{bad:04X}\r".encode("ascii")
         elif fault == "garbled":
             reply = reply[: len(reply) // 2] + b"\x00#~" + reply[len(reply) // 2 + 3 :]
+        elif fault == "truncated":
+            reply = reply[:-5]
         return reply
 
-    def _strays(self, fault: str | None) -> str:
+    def _cmd_bx(self, params: str) -> bytes | None:
+        option, fault, early = self._frame_request(params)
+        if option is None or fault == "no_reply":
+            return early
+        if option != 0x1000:
+            return _ndi_frame("ERROR07")  # only passive strays are emulated in binary
+        points, oov = self._stray_scene(fault)
+        reply = encode_bx_reply(points, oov, self.system_status)
+        if fault == "bad_crc":
+            reply = reply[:-2] + bytes([reply[-2] ^ 0x01, reply[-1]])
+        elif fault == "garbled":
+            reply = b"\x00#~" + reply[3:]
+        elif fault == "truncated":
+            reply = reply[:-5]
+        return reply
+
+    def _stray_scene(self, fault: str | None) -> tuple[np.ndarray, list[bool]]:
+        """The markers the camera sees: (N, 3) m in report order and their out-of-volume flags."""
         points = np.array(self.points_provider(), dtype=float).reshape(3, 3)
         if self.noise:
             points = points + self.rng.normal(0.0, self.noise, size=points.shape)
@@ -339,8 +402,10 @@ class FakeNDIDevice(_PtyDevice):
             points = np.vstack([points, spurious])
             oov.append(False)
         order = self.rng.permutation(len(points)) if self.shuffle else np.arange(len(points))
-        points = points[order]
-        oov = [oov[i] for i in order]
+        return points[order], [oov[i] for i in order]
+
+    def _strays(self, fault: str | None) -> str:
+        points, oov = self._stray_scene(fault)
         units = np.rint(points * 1e5).astype(np.int64)  # 0.01 mm
         for i, row in enumerate(units):
             if np.any(np.abs(row) > 999_999):

@@ -1,7 +1,8 @@
 """Serial three-target tracker driver: pyserial transport -> framer -> protocol profile -> ``Tracker`` port.
 
 Profiles (TOML, see the repository's ``drivers/`` folder): a configurable ASCII line protocol and the NDI
-Combined API (Polaris passive stray markers). Everything is in SI units (m, s) once it leaves this driver.
+Combined API (Polaris passive stray markers, ASCII ``TX`` or binary ``BX`` replies). Everything is in SI units
+(m, s) once it leaves this driver.
 
     with open_tracker("drivers/ndi-polaris.toml", targets, url="/dev/ttyUSB0") as tracker:
         m = tracker.measure(samples=5)
@@ -10,7 +11,15 @@ Combined API (Polaris passive stray markers). Everything is in SI units (m, s) o
 from labcal.drivers.serial.crc import crc16_arc
 from labcal.drivers.serial.link import SerialLink, Transport, open_serial
 from labcal.drivers.serial.matching import check_scalene, match_targets
-from labcal.drivers.serial.ndi import ERROR_CODES, NDIError, decode_reply, encode_command, parse_tx_strays
+from labcal.drivers.serial.ndi import (
+    ERROR_CODES,
+    NDIError,
+    StrayFrame,
+    decode_reply,
+    encode_command,
+    parse_bx_strays,
+    parse_tx_strays,
+)
 from labcal.drivers.serial.profiles import (
     AsciiProfile,
     NDIProfile,
@@ -32,6 +41,7 @@ __all__ = [
     "ProfileError",
     "SerialLink",
     "SerialTracker",
+    "StrayFrame",
     "Transport",
     "check_scalene",
     "crc16_arc",
@@ -41,6 +51,7 @@ __all__ = [
     "match_targets",
     "open_serial",
     "open_tracker",
+    "parse_bx_strays",
     "parse_profile",
     "parse_tx_strays",
 ]

@@ -14,13 +14,32 @@ A ``TX:1000`` body (reply option 0x1000, passive stray markers) is::
                             significant bit of the whole field, is stray i)
     N x (±dddddd ±dddddd ±dddddd)   X, Y, Z in units of 0.01 mm
     SSSS                    system status, hex
+
+``BX:1000`` asks for the same data as a binary reply (profile option ``reply = "bx"``); it has no CR and every
+field is little-endian::
+
+    C4 A5                   start sequence 0xA5C4
+    uint16 N                body length (the whole reply is N + 8 bytes)
+    uint16                  CRC-16/ARC of the four bytes above
+    body (N bytes):
+        uint8 H                 number of port handles, then H x (uint8 handle, uint8 status); option 0x1000
+                                alone adds no per-handle data
+        uint8 M                 number of strays
+        ceil(M/8) bytes         out-of-volume bits (bit j of the byte stream, LSB first, is stray j)
+        M x float32 x, y, z     millimetres
+        uint16                  system status
+    uint16                  CRC-16/ARC of the body
+
+Errors (``ERRORxx``) and ``RESETBE6F`` stay ASCII lines in binary mode.
 """
 
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -59,6 +78,13 @@ ERROR_CODES = {
 
 RESET_REPLY = b"RESETBE6F"
 STRAY_CHARS = 21  # three coordinates of sign + 6 digits
+MEASURE_COMMANDS = {"tx": "TX:1000", "bx": "BX:1000"}  # by profile ``reply``
+
+BX_START = b"\xc4\xa5"  # 0xA5C4, little-endian like every binary field
+BX_HEADER_SIZE = 6  # start sequence, body length, header CRC
+BX_STRAY_SIZE = 12  # three float32
+
+T = TypeVar("T")
 
 
 class NDIError(ProtocolError):
@@ -110,7 +136,7 @@ def decode_reply(line: bytes, command: str = "") -> str:
 
 @dataclass(frozen=True)
 class StrayFrame:
-    """A parsed TX:1000 body. strays: (N, 3) m; out_of_volume: (N,) bool; system_status: int flags."""
+    """A parsed TX:1000 or BX:1000 body. strays: (N, 3) m; out_of_volume: (N,) bool; system_status: int flags."""
 
     strays: np.ndarray
     out_of_volume: np.ndarray
@@ -156,8 +182,91 @@ def parse_tx_strays(body: str) -> StrayFrame:
     return StrayFrame(strays=strays, out_of_volume=oov, system_status=status)
 
 
+def bx_body_length(header: bytes, command: str = "BX:1000") -> int:
+    """Check the 6-byte header of a binary reply (start sequence, header CRC); return the body length N.
+
+    The header is checked on its own so a reader knows how many more bytes to wait for, and never waits for a
+    length it cannot trust.
+    """
+    if len(header) < BX_HEADER_SIZE:
+        raise ProtocolError(f"BX reply to {command!r} truncated: {len(header)} bytes, shorter than its header")
+    if header[:2] != BX_START:
+        raise ProtocolError(
+            f"BX reply to {command!r}: bad start sequence {header[:2].hex(' ').upper()}, expected C4 A5"
+        )
+    length, crc = struct.unpack_from("<HH", header, 2)
+    expected = crc16_arc(header[:4])
+    if crc != expected:
+        raise ProtocolError(f"BX reply to {command!r}: bad header CRC: got {crc:04X}, header gives {expected:04X}")
+    return int(length)
+
+
+def split_bx_reply(reply: bytes, command: str = "BX:1000") -> bytes:
+    """Check the framing of one whole binary reply (header, length, body CRC) and return its body.
+
+    An ASCII ``ERRORxx`` reply (CR optional) raises NDIError, as through ``decode_reply``.
+    """
+    if reply.startswith(b"ERROR"):
+        decode_reply(reply.removesuffix(b"\r"), command)  # raises NDIError, or ProtocolError on a bad CRC
+    n = bx_body_length(reply[:BX_HEADER_SIZE], command)
+    if len(reply) != BX_HEADER_SIZE + n + 2:
+        raise ProtocolError(
+            f"BX reply to {command!r}: length mismatch: header announces {n} body bytes ({n + 8} in all), "
+            f"got {len(reply)}"
+        )
+    body = reply[BX_HEADER_SIZE : BX_HEADER_SIZE + n]
+    (crc,) = struct.unpack_from("<H", reply, BX_HEADER_SIZE + n)
+    if crc != crc16_arc(body):
+        raise ProtocolError(f"BX reply to {command!r}: bad body CRC: got {crc:04X}, body gives {crc16_arc(body):04X}")
+    return body
+
+
+def _take(body: bytes, pos: int, size: int, what: str) -> bytes:
+    if pos + size > len(body):
+        raise ProtocolError(
+            f"BX reply body truncated: {what} needs bytes {pos} to {pos + size - 1}, the body has {len(body)}"
+        )
+    return body[pos : pos + size]
+
+
+def parse_bx_body(body: bytes) -> StrayFrame:
+    """Parse a ``BX:1000`` reply body (framing already checked by ``split_bx_reply``) into metres.
+
+    Raises ProtocolError when the content does not fill the body exactly or a coordinate is NaN or infinite.
+    """
+    handles = _take(body, 0, 1, "handle count")[0]
+    # Only option 0x1000 is requested, so every handle (disabled, missing or seen) is just id + status.
+    _take(body, 1, 2 * handles, f"{handles} handle id/status pair(s)")
+    pos = 1 + 2 * handles
+    m = _take(body, pos, 1, "stray count")[0]
+    pos += 1
+    n_flags = math.ceil(m / 8)
+    flags = _take(body, pos, n_flags, "out-of-volume bits")
+    pos += n_flags
+    coords = _take(body, pos, m * BX_STRAY_SIZE, f"{m} stray position(s)")
+    pos += m * BX_STRAY_SIZE
+    (status,) = struct.unpack("<H", _take(body, pos, 2, "system status"))
+    pos += 2
+    if pos != len(body):
+        raise ProtocolError(
+            f"BX reply: length mismatch: body is {len(body)} bytes but its content ({m} strays) ends at byte {pos}"
+        )
+    mm = np.frombuffer(coords, dtype="<f4").astype(float).reshape(m, 3)
+    finite = np.isfinite(mm).all(axis=1)
+    if not finite.all():
+        i = int(np.argmin(finite))
+        raise ProtocolError(f"BX reply: stray {i} has a non-finite coordinate: {tuple(mm[i].tolist())} mm")
+    oov = np.array([bool(flags[j // 8] >> (j % 8) & 1) for j in range(m)], dtype=bool)
+    return StrayFrame(strays=mm * 1e-3, out_of_volume=oov, system_status=int(status))
+
+
+def parse_bx_strays(reply: bytes, command: str = "BX:1000") -> StrayFrame:
+    """Parse one whole binary ``BX:1000`` reply (header to body CRC). Raises ProtocolError naming the fault."""
+    return parse_bx_body(split_bx_reply(reply, command))
+
+
 class NDIProtocol:
-    """The NDI session on a SerialLink: start (INIT, COMM, TSTART), read_frame (TX:1000), stop (TSTOP)."""
+    """The NDI session on a SerialLink: start (INIT, COMM, TSTART), read_frame (TX:1000 or BX:1000), stop (TSTOP)."""
 
     def __init__(
         self,
@@ -177,16 +286,51 @@ class NDIProtocol:
 
     def command(self, command: str, *, timeout: float | None = None, retries: int | None = None) -> str:
         """Send ``command`` and return the reply body; retry on timeouts, bad CRC, garbage and ERROR04."""
+        return self._exchange(command, self._ascii_reply, timeout, retries)
+
+    def binary_command(self, command: str, *, timeout: float | None = None, retries: int | None = None) -> bytes:
+        """Send ``command`` (BX) and return the body of its binary reply; retries as ``command`` does."""
+        return self._exchange(command, self._binary_reply, timeout, retries)
+
+    def _ascii_reply(self, command: str, timeout: float | None) -> str:
+        return self._decode_line(self.link.read_line(timeout), command)
+
+    @staticmethod
+    def _decode_line(line: bytes, command: str) -> str:
+        if line == RESET_REPLY:
+            raise DeviceReset(f"device reset (RESETBE6F) while waiting for the reply to {command!r}")
+        return decode_reply(line, command)
+
+    def _binary_reply(self, command: str, timeout: float | None) -> bytes:
+        wait = self.link.timeout if timeout is None else timeout
+        deadline = self.link.clock() + wait
+        head = self.link.read_exact(BX_HEADER_SIZE, wait)
+        if head[:5] in (b"ERROR", b"RESET"):
+            # Errors and the reset announcement stay ASCII lines; both are longer than a binary header.
+            line = head + self.link.read_line(max(deadline - self.link.clock(), 0.0))
+            text = self._decode_line(line, command)  # raises for ERRORxx, RESETBE6F and a bad CRC
+            raise ProtocolError(f"expected a binary reply to {command!r}, got {text!r}")
+        try:
+            n = bx_body_length(head, command)
+        except ProtocolError:
+            self.link.drain()  # the rest of this reply has no length we can trust: let it go by
+            raise
+        try:
+            rest = self.link.read_exact(n + 2, max(deadline - self.link.clock(), 0.0))
+        except DriverTimeout as exc:
+            raise DriverTimeout(f"truncated BX reply to {command!r} (header announces {n} body bytes): {exc}") from exc
+        return split_bx_reply(head + rest, command)
+
+    def _exchange(
+        self, command: str, read: Callable[[str, float | None], T], timeout: float | None, retries: int | None
+    ) -> T:
         tries = (self.profile.retries if retries is None else retries) + 1
         last: Exception | None = None
         for _ in range(tries):
             self.link.flush_input()
             self.link.write(encode_command(command))
             try:
-                line = self.link.read_line(timeout)
-                if line == RESET_REPLY:
-                    raise DeviceReset(f"device reset (RESETBE6F) while waiting for the reply to {command!r}")
-                return decode_reply(line, command)
+                return read(command, timeout)
             except DeviceReset:
                 raise
             except NDIError as exc:
@@ -251,9 +395,10 @@ class NDIProtocol:
         self._expect_okay("INIT:", timeout=self.profile.init_timeout)
         self._switch_baud_and_track()
 
-    def _tx(self) -> str:
+    def _with_recovery(self, exchange: Callable[[], T]) -> T:
+        """Run a measurement exchange; after a device reset or spent retries, set the session up again once."""
         try:
-            return self.command("TX:1000")
+            return exchange()
         except DeviceReset:
             self.recover(hard=False)
         except NDIError:
@@ -262,11 +407,15 @@ class NDIProtocol:
             if not self.profile.reset_on_failure:
                 raise
             self.recover(hard=True)
-        return self.command("TX:1000")
+        return exchange()
 
     def read_frame(self) -> tuple[np.ndarray, tuple[str, ...]]:
         """One frame: (3, 3) target positions in the tracker frame, m, and quality flags."""
-        frame = parse_tx_strays(self._tx())
+        command = MEASURE_COMMANDS[self.profile.reply]
+        if self.profile.reply == "bx":
+            frame = parse_bx_body(self._with_recovery(lambda: self.binary_command(command)))
+        else:
+            frame = parse_tx_strays(self._with_recovery(lambda: self.command(command)))
         match = match_targets(frame.strays, self.targets, self.profile.match_tolerance)
         out = [f"t{k + 1}" for k, i in enumerate(match.indices) if frame.out_of_volume[i]]
         if out:

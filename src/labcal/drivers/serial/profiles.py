@@ -85,8 +85,9 @@ class AsciiProfile:
 
 @dataclass(frozen=True)
 class NDIProfile:
-    """NDI Combined API (Polaris family) tracking passive stray markers with ``TX:1000``.
+    """NDI Combined API (Polaris family) tracking passive stray markers with ``TX:1000`` or ``BX:1000``.
 
+    reply: "tx" (ASCII replies) or "bx" (binary replies: float32 coordinates instead of 0.01 mm digits).
     baudrate: rate switched to with COMM after INIT (the port opens at ``port.baudrate``, 9600 on power-up).
     switch_delay: s between the COMM reply and the host's own baud change. init_timeout: s, INIT is slow.
     match_tolerance: m, worst allowed difference between a measured and a nominal triangle side.
@@ -103,12 +104,20 @@ class NDIProfile:
     reset_on_failure: bool = True
     source: str = "<profile>"
     protocol: str = "ndi"
+    reply: str = "tx"  # last, so positional construction keeps its meaning
+
+    def __post_init__(self) -> None:
+        # Profiles built in code (not loaded from TOML) must not fall back to TX on a typo.
+        if self.reply not in NDI_REPLIES:
+            raise ValueError(f"NDIProfile.reply must be one of {list(NDI_REPLIES)}, got {self.reply!r}")
 
     def with_url(self, url: str) -> NDIProfile:
         return dataclasses.replace(self, port=dataclasses.replace(self.port, url=url))
 
 
 Profile = AsciiProfile | NDIProfile
+
+NDI_REPLIES = ("tx", "bx")
 
 # NDI COMM baud codes (Combined API); 921600/1228739/230400 exist on newer units only.
 NDI_BAUD_CODES = {9600: 0, 14400: 1, 19200: 2, 38400: 3, 57600: 4, 115200: 5, 921600: 6, 1228739: 7, 230400: 8}
@@ -267,6 +276,7 @@ def _ndi(data: Any, port: PortSettings, name: str, source: str) -> NDIProfile:
     profile = NDIProfile(
         name=name,
         port=port,
+        reply=t.get("reply", str, "tx", choices=NDI_REPLIES),
         baudrate=baudrate,
         handshake=t.get("handshake", bool, False),
         switch_delay=t.positive("switch_delay", 0.15, allow_zero=True),
