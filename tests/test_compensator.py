@@ -257,6 +257,25 @@ def test_single_singular_configuration_falls_back_and_is_no_worse_than_uncorrect
         assert np.all(np.isfinite(q_cmd)) and err(q_cmd) <= err(q) + 1e-15
 
 
+@pytest.mark.parametrize("name,features,odd", SINGLE_CASES)
+def test_single_near_singular_configurations_take_the_same_damped_iterates_as_the_batched_solver(
+    name, features, odd, monkeypatch
+):
+    rng = np.random.default_rng(5)
+    lm_single = CalibratedRobot._levenberg_marquardt_single
+    calls = []
+    monkeypatch.setattr(
+        CalibratedRobot, "_levenberg_marquardt_single", lambda self, *a: calls.append(1) or lm_single(self, *a)
+    )
+    for robot in _single_robot(name, features, odd).values():
+        q = sample(robot, 24, seed=4, max_cond=1e9)
+        q[:, 4] = rng.normal(size=len(q)) * 0.05  # near the wrist singularity (q5 = 0 on these arms)
+        batched = robot.correct(q, extrapolate=True)
+        for row, expected in zip(q, batched, strict=True):
+            np.testing.assert_allclose(robot.correct(row, extrapolate=True), expected, rtol=0, atol=1e-8)
+    assert len(calls) >= 5  # the damped fallback really ran on its single-configuration path
+
+
 def test_single_configuration_input_checks():
     nominal = load("ur10").model
     robot = CalibratedRobot(

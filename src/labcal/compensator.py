@@ -645,8 +645,45 @@ class CalibratedRobot:
                 prev_step = size
             else:
                 return out  # iteration budget spent while still contracting: keep it
-        T_target = se3.pose_from_adjoint(self._nominal_and_model.adjoints(q2[0])[0, -1])
-        return self._levenberg_marquardt(q2, T_target[None], max(iterations, 10) * 3, tol)
+        return self._levenberg_marquardt_single(q2, target, max(iterations, 10) * 3, tol)
+
+    def _levenberg_marquardt_single(self, q2: np.ndarray, target: tuple, iterations: int, tol: float) -> np.ndarray:
+        """_levenberg_marquardt for one configuration (1, n) of a 6-joint robot, target as from _tool_pose_lists.
+
+        The same iterates (to rounding) with the runtime walk in place of the batched residual: a near-singular
+        configuration takes up to 31 evaluations here, and at one configuration each costs the per-call overhead.
+        """
+        scale = np.array([1.0 / self.length_scale] * 3 + [1.0] * 3)
+        walk, network = self.model.runtime_walk, self.network is not None
+
+        def residual(row):
+            adjoints, J, c, s = walk(row)
+            r = _pose_error_one(target, adjoints[-1])
+            if network:
+                r -= J @ self._joint_errors_one(row, adjoints, c, s)
+            return r * scale, J * scale[:, None]
+
+        out = q2[0].copy()
+        err, J = residual(out)
+        cost = float(err @ err)
+        lam = 1e-6
+        eye = np.eye(self.n)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            for _ in range(iterations):
+                JtJ = J.T @ J
+                step = _solve_one(JtJ + (lam * (np.trace(JtJ) / self.n)) * eye, J.T @ err)
+                step = np.clip(step, -_MAX_STEP, _MAX_STEP)
+                cand = out + step
+                err_c, J_c = residual(cand)
+                cost_c = float(err_c @ err_c)
+                ok = cost_c <= cost
+                if ok:
+                    out, err, J, cost = cand, err_c, J_c, cost_c
+                lam = max(lam / 10, 1e-12) if ok else lam * 10
+                # as in the batched loop: a kept step below tol, or damping so strong that no step is kept
+                if (ok and float(np.max(np.abs(step))) < tol) or (not ok and lam > 1e6):
+                    break
+        return out[None]
 
     def _levenberg_marquardt(self, q2: np.ndarray, target: np.ndarray, iterations: int, tol: float) -> np.ndarray:
         """Levenberg-Marquardt on ``T_real(q_cmd) = T_nominal(q)`` in a length-scaled metric.
