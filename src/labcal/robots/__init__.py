@@ -30,6 +30,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import tomllib
 from dataclasses import dataclass
@@ -55,6 +56,8 @@ class RobotSpec:
 
     masses: (n+1,) kg for links 1..n and the tool payload; coms: (n+1, 3) m in the base frame at q = 0.
     hash: sha256 of the model's numbers (:func:`model_hash`), so reformatting a file keeps its identity.
+    text: the robot file's full text and format ("toml" | "urdf"), so a session can store the model itself and be
+    refitted on a machine that has neither the file nor the same built-ins (:func:`loads` reads it back).
     """
 
     name: str
@@ -63,6 +66,18 @@ class RobotSpec:
     coms: np.ndarray
     source: str
     hash: str
+    text: str = ""
+    format: str = "toml"
+
+    def record(self) -> dict:
+        """The robot as run documents and manifests store it: name, hash, joint count, file text and format."""
+        return {
+            "name": self.name,
+            "hash": self.hash,
+            "n_joints": self.model.n,
+            "text": self.text,
+            "format": self.format,
+        }
 
 
 def model_hash(model: LocalPOEModel) -> str:
@@ -87,14 +102,27 @@ def load(name_or_path: str | Path) -> RobotSpec:
         path = Path(text)
         if not path.is_file():
             raise RobotFileError(f"robot {text!r} is neither a built-in ({', '.join(BUILTINS)}) nor an existing file")
-    if path.suffix.lower() == ".urdf":
-        model = from_urdf(path.read_text())
-        return _spec(model.name or path.stem, model, {}, [], {}, str(path))
     try:
-        data = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-        raise RobotFileError(f"{path}: not valid TOML: {err}") from err
-    return parse(data, source=str(path))
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise RobotFileError(f"{path}: cannot read the robot file: {err}") from err
+    return loads(text, "urdf" if path.suffix.lower() == ".urdf" else "toml", source=str(path))
+
+
+def loads(text: str, format: str = "toml", source: str = "<text>") -> RobotSpec:
+    """A robot from the text of a robot file (``format`` "toml" or "urdf"), e.g. the copy a session stored."""
+    if format == "urdf":
+        model = from_urdf(text)
+        spec = _spec(model.name or Path(source).stem, model, {}, [], {}, source)
+    elif format == "toml":
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as err:
+            raise RobotFileError(f"{source}: not valid TOML: {err}") from err
+        spec = parse(data, source=source)
+    else:
+        raise RobotFileError(f"{source}: robot file format must be 'toml' or 'urdf', got {format!r}")
+    return dataclasses.replace(spec, text=text, format=format)
 
 
 def parse(data: dict, source: str = "<dict>") -> RobotSpec:

@@ -1,0 +1,115 @@
+"""`labcal session new / resume` as functions: plan, pick the drivers, record or continue a session."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from labcal.cli.ops.common import UserError, robot_for
+from labcal.datasets import SessionStore
+from labcal.robots import RobotSpec, load
+
+ROBOT_DRIVERS = ("sim", "ur")
+TRACKER_DRIVERS = ("sim", "serial")
+PLANNERS = ("random", "optimal")
+SIM_ERRORS = ("paper", "default", "none")
+
+
+def sim_actual(spec: RobotSpec, errors: str, seed: int):
+    """The simulated actual robot of a sim session (recreated identically on resume from errors + seed)."""
+    from labcal.simulation import ErrorSpec, simulate
+
+    if errors not in SIM_ERRORS:
+        raise UserError(f"--sim-errors must be one of {', '.join(SIM_ERRORS)}, got {errors!r}")
+    spec_errors = {"paper": ErrorSpec.paper, "default": ErrorSpec.default, "none": ErrorSpec.none}[errors]()
+    return simulate(spec, spec_errors, seed=seed)
+
+
+def plan_configurations(spec: RobotSpec, poses: int, planner: str, seed: int, targets, samples: int = 2000):
+    from labcal.sessions import optimal_configurations, random_configurations
+
+    if poses < 1:
+        raise UserError(f"--poses must be at least 1, got {poses}")
+    if planner == "random":
+        return random_configurations(spec.model, poses, seed=seed, targets=targets)
+    if planner == "optimal":
+        return optimal_configurations(spec.model, poses, seed=seed, targets=targets, candidates=samples)
+    raise UserError(f"--planner must be one of {', '.join(PLANNERS)}, got {planner!r}")
+
+
+def _drivers(robot_driver, tracker_driver, spec, targets, *, profile, tracker_profile, sim_errors, seed):
+    """(robot, tracker, frame, metadata, closers) for the chosen drivers."""
+    if robot_driver not in ROBOT_DRIVERS:
+        raise UserError(f"--robot-driver must be one of {', '.join(ROBOT_DRIVERS)}, got {robot_driver!r}")
+    if tracker_driver not in TRACKER_DRIVERS:
+        raise UserError(f"--tracker-driver must be one of {', '.join(TRACKER_DRIVERS)}, got {tracker_driver!r}")
+    if (robot_driver == "sim") != (tracker_driver == "sim"):
+        raise UserError("the sim robot and the sim tracker go together: use --robot-driver sim --tracker-driver sim")
+    if robot_driver == "sim":
+        from labcal.drivers.sim import SimRig
+
+        rig = SimRig(sim_actual(spec, sim_errors, seed), targets, seed=seed)
+        return rig.robot(), rig.tracker(), "base", {"sim": {"errors": sim_errors, "seed": seed}}
+    from labcal.drivers.serial_tracker import open_tracker
+    from labcal.drivers.ur import URRobot, load_ur_profile
+
+    if profile is None or tracker_profile is None:
+        raise UserError("real drivers need --profile drivers/<robot>.toml and --tracker-profile drivers/<tracker>.toml")
+    robot = URRobot.connect(load_ur_profile(profile))
+    tracker = open_tracker(tracker_profile, targets)
+    return robot, tracker, "tracker", {"profiles": {"robot": str(profile), "tracker": str(tracker_profile)}}
+
+
+def new_session(
+    store: SessionStore,
+    *,
+    robot: str,
+    targets_file: str | Path,
+    poses: int,
+    robot_driver: str = "sim",
+    tracker_driver: str = "sim",
+    profile: str | None = None,
+    tracker_profile: str | None = None,
+    planner: str = "random",
+    samples: int = 2000,
+    seed: int = 0,
+    sim_errors: str = "default",
+    progress=None,
+):
+    """Plan and record a session; returns the runner's RunSummary (its .ref is the new SESSION@vNNN)."""
+    from labcal.datasets import load_targets
+    from labcal.sessions import make_plan, run
+
+    spec = load(robot)
+    targets = load_targets(targets_file)
+    if sim_errors not in SIM_ERRORS:
+        raise UserError(f"--sim-errors must be one of {', '.join(SIM_ERRORS)}, got {sim_errors!r}")
+    q = plan_configurations(spec, poses, planner, seed, targets, samples)
+    sim = robot_driver == "sim"
+    plan = make_plan(q, samples=3 if sim else 5, settle=0.0 if sim else 0.5)
+    rob, trk, frame, meta = _drivers(
+        robot_driver, tracker_driver, spec, targets, profile=profile, tracker_profile=tracker_profile,
+        sim_errors=sim_errors, seed=seed,
+    )  # fmt: skip
+    with rob, trk:
+        return run(store, spec, targets, plan, rob, trk, frame=frame, progress=progress, metadata=meta)
+
+
+def resume_session(store: SessionStore, session_id: str, *, robot: str | None = None, progress=None):
+    """Resume a session; a sim session re-creates its simulated robot from the recorded errors and seed."""
+    from labcal.drivers.sim import SimRig
+    from labcal.sessions import resume
+
+    meta = store.session_meta(session_id)
+    spec = robot_for(meta["robot"], robot)
+    sim = (meta.get("metadata") or {}).get("sim")
+    if not sim:
+        raise UserError(
+            f"session {session_id} was not recorded on the sim rig; resume real-hardware sessions from Python with "
+            "the same drivers (labcal.sessions.resume)"
+        )
+    targets = np.asarray(meta["targets"], dtype=float)
+    rig = SimRig(sim_actual(spec, sim["errors"], int(sim["seed"])), targets, seed=int(sim["seed"]))
+    with rig.robot() as rob, rig.tracker() as trk:
+        return resume(store, session_id, rob, trk, spec=spec, progress=progress)
