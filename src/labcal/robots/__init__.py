@@ -42,6 +42,7 @@ import numpy as np
 from labcal.kinematics import se3
 from labcal.kinematics.conversions import from_dh, from_mdh, from_urdf
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
+from labcal.robots.joint_map import JointMap
 
 BUILTINS = ("ur5e", "ur10", "ur10e", "fanuc-m1000ia", "scara4")
 
@@ -68,6 +69,12 @@ class RobotSpec:
     hash: str
     text: str = ""
     format: str = "toml"
+    joint_map: JointMap | None = None  # controller → model joints; None: they are the same
+
+    @property
+    def joints(self) -> JointMap:
+        """The controller → model joint map (identity when the robot file declares none)."""
+        return self.joint_map if self.joint_map is not None else JointMap.identity(self.model.n)
 
     def record(self) -> dict:
         """The robot as run documents and manifests store it: name, hash, joint count, file text and format."""
