@@ -4,6 +4,10 @@ Position error: distance between predicted and measured tool origins (m). Orient
 ``R_measured R_predictedᵀ`` (rad), measured on the manifold. For three-point data the measured pose is the rigid
 fit of the targets to the measured points (:func:`labcal.calibration.observations.rigid_fit`).
 
+Point error: distance between each predicted target point and its measured position (m), per configuration and
+target (:func:`point_errors`). The pose error hides a targets file that does not match the data (the rigid fit
+absorbs it); the point error does not, so both are reported side by side.
+
 Example::
 
     >>> s = summarize(np.array([1e-3, 2e-3]), np.array([1e-4, 3e-4]))
@@ -48,16 +52,67 @@ def prediction_errors(robot: CalibratedRobot, obs: Observations) -> tuple[np.nda
     return se3.pose_distance(obs.measured_poses(), T_pred)
 
 
+def point_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
+    """(k, m) distance (m) between each predicted target point and the measured one, per configuration and target.
+
+    Unlike :func:`prediction_errors` this does not go through the pose fitted to the measured points, so a targets
+    file that does not match the data (swapped, mis-measured targets) shows up here as large residuals even when
+    the pose error is small. Tracker-frame data are compared in the tracker frame. A measured point that is NaN
+    (a target the tracker did not see) gives NaN for that target only; the summaries skip it.
+    """
+    points = np.asarray(obs.points, dtype=float)
+    if obs.k == 0:
+        return np.zeros((0, points.shape[1] if points.ndim == 3 else 3))
+    predicted = robot.predict_points(obs.q, obs.targets)  # (k, m, 3) base frame
+    T = np.asarray(robot.T_tracker_base, dtype=float)
+    predicted = np.einsum("ab,kmb->kma", T[:3, :3], predicted) + T[:3, 3]
+    return np.linalg.norm(points - predicted, axis=-1)
+
+
+def summarize_points(d: np.ndarray) -> dict:
+    """Mean / p95 / max (m) of (k, m) point distances: over every target point, and per target (``per_target``).
+
+    NaN entries (missing targets) are skipped; ``count`` is the number of finite distances.
+    """
+    d = np.asarray(d, dtype=float)
+    d = d.reshape(d.shape[0], -1) if d.ndim == 2 else d.reshape(0, 3)
+
+    def stats(e: np.ndarray) -> dict[str, float]:
+        e = e[np.isfinite(e)]
+        if e.size == 0:
+            return {"count": 0.0, "mean": float("nan"), "p95": float("nan"), "max": float("nan")}
+        return {
+            "count": float(e.size),
+            "mean": float(np.mean(e)),
+            "p95": float(np.percentile(e, 95)),
+            "max": float(np.max(e)),
+        }
+
+    out = stats(d.ravel())
+    out["per_target"] = [stats(d[:, i]) for i in range(d.shape[1])]
+    return out
+
+
 def split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observations) -> dict[str, dict]:
-    """{split: {"before": summary, "after": summary}} for each split present (and "all")."""
+    """{split: {"before": summary, "after": summary, "points": {"before": …, "after": …}}} per split present
+    (and "all").
+
+    "before"/"after": :func:`summarize` of the pose errors; "points": :func:`summarize_points` of the per-target
+    point errors (:func:`point_errors`). Absent splits are skipped before selecting rows.
+    """
     table: dict[str, dict] = {}
     for split in ("train", "val", "test", "all"):
-        part = obs if split == "all" else obs.where(split)
-        if part.k == 0:
+        mask = np.ones(obs.k, bool) if split == "all" else np.asarray(obs.split == split, dtype=bool)
+        if not mask.any():
             continue
+        part = obs if split == "all" else obs.subset(mask)
         table[split] = {
             "before": summarize(*prediction_errors(before, part)),
             "after": summarize(*prediction_errors(after, part)),
+            "points": {
+                "before": summarize_points(point_errors(before, part)),
+                "after": summarize_points(point_errors(after, part)),
+            },
         }
     return table
 
