@@ -1,4 +1,8 @@
-"""Simulated actual robots (true error models) shared by the calibration benchmarks and the sim drivers."""
+"""Simulated actual robots (true error models) shared by the calibration benchmarks and the sim drivers.
+
+Adversarial data sets built on them (few-pose sweeps, singular wrists, unit slips, …) are in
+:mod:`labcal.simulation.scenarios`.
+"""
 
 from labcal.simulation.actual import GRAVITY, ActualRobot, ErrorSpec, simulate
 
