@@ -19,7 +19,34 @@ A robot file (DESIGN.md section 4)::
     rpy = [0, 0, 0]
     mass = 0.0                   # optional payload, kg
 
-Built-ins: ``ur5e``, ``ur10``, ``ur10e``, ``fanuc-m1000ia``, ``scara4``. A path ending in ``.urdf`` loads a URDF.
+Units are SI everywhere: radians and metres. A file whose numbers look like degrees or millimetres is refused with
+an error naming the field (``joints[2].alpha = 90 looks like degrees; robot files are in radians``): an angle
+(alpha, theta, rpy, a revolute joint's offset) beyond 2π, a revolute limit beyond 4π (multi-turn joints stay
+below two turns each way), a length (a, d, xyz, a prismatic limit) beyond 10 m. A file that really means such
+values says so with a top-level ``units_checked = true``, which skips these checks and nothing else.
+
+Controller joints vs model joints (optional, :mod:`labcal.robots.joint_map`): when the controller reports joints
+that are not the model's joint angles, the file declares ``q_model = matrix · q_controller + offsets``::
+
+    [joint_map]                  # e.g. a controller J3 measured from the horizontal: model elbow = J2 + J3
+    matrix = [[1, 0, 0, 0, 0, 0],
+              [0, 1, 0, 0, 0, 0],
+              [0, 1, 1, 0, 0, 0],
+              [0, 0, 0, 1, 0, 0],
+              [0, 0, 0, 0, 1, 0],
+              [0, 0, 0, 0, 0, 1]]
+    offsets = [0, 0, 0, 0, 0, 0] # rad (m for prismatic joints), optional, default zeros
+
+or, for a map that only flips directions, ``signs = [1, -1, 1, 1, 1, 1]`` instead of ``matrix`` (the diagonal
+matrix; give one of the two). Both forms become the same :class:`JointMap` (matrix + offsets), the one form that
+is stored and hashed. The joint tables (geometry, ``limits``) are always in *model* joints. The example robot
+file ``coupled-elbow-6r`` (beside the built-ins, loadable by that name) is a 6R arm with a coupled elbow.
+
+Identity: :attr:`RobotSpec.hash` is :func:`model_hash` of the model *and* its joint map, because the map changes
+what recorded joint values mean; an identity map (or none) adds nothing, so files without a map keep their hashes.
+
+Built-ins: ``ur5e``, ``ur10``, ``ur10e``, ``fanuc-m1000ia``, ``scara4``. A path ending in ``.urdf`` loads a URDF
+(no joint map, no units check: a URDF is metres and radians by definition).
 
 Example::
 
@@ -45,6 +72,14 @@ from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 from labcal.robots.joint_map import JointMap
 
 BUILTINS = ("ur5e", "ur10", "ur10e", "fanuc-m1000ia", "scara4")
+# Example robot files shipped beside the built-ins and loadable by name, but not robots of their own: models to copy
+# (coupled-elbow-6r: the fanuc-m1000ia geometry with a controller whose J3 is measured from the horizontal).
+EXAMPLES = ("coupled-elbow-6r",)
+
+TWO_PI = 2.0 * np.pi
+MAX_ANGLE = TWO_PI + 1e-9  # rad: alpha, theta, rpy, revolute offsets; a larger value is almost surely degrees
+MAX_REVOLUTE_LIMIT = 2.0 * TWO_PI + 1e-9  # rad: two turns each way covers multi-turn wrists; 170 or 360 is degrees
+MAX_LENGTH = 10.0  # m: no arm has a 10 m link or tool offset, while millimetre values are hundreds
 
 
 class RobotFileError(ValueError):
@@ -87,12 +122,22 @@ class RobotSpec:
         }
 
 
-def model_hash(model: LocalPOEModel) -> str:
-    """sha256 over joint types, frames, twists and limits (float64 bytes): the identity of a robot model."""
+def model_hash(model: LocalPOEModel, joint_map: JointMap | None = None) -> str:
+    """sha256 over joint types, frames, twists and limits (float64 bytes), and the joint map unless it is the identity:
+    the identity of a robot model.
+
+    The map is part of the identity because it decides what a recorded joint value means: the same numbers from a
+    coupled-elbow controller and from an uncoupled one are different configurations. An identity map adds nothing,
+    so a file without a ``[joint_map]`` keeps the hash it always had.
+    """
     h = hashlib.sha256()
     h.update(",".join(model.joint_types).encode())
     for array in (model.frames, model.twists, model.limits):
         h.update(np.ascontiguousarray(array, dtype="<f8").tobytes())
+    if joint_map is not None and not joint_map.is_identity:
+        h.update(b"joint_map")
+        for array in (joint_map.matrix, joint_map.offsets):
+            h.update(np.ascontiguousarray(array, dtype="<f8").tobytes())
     return h.hexdigest()
 
 
@@ -103,7 +148,7 @@ def builtin_path(name: str) -> Path:
 def load(name_or_path: str | Path) -> RobotSpec:
     """Load a built-in robot by name, or a TOML / URDF robot file by path."""
     text = str(name_or_path)
-    if text in BUILTINS:
+    if text in BUILTINS or text in EXAMPLES:
         path = builtin_path(text)
     else:
         path = Path(text)
@@ -150,6 +195,11 @@ def parse(data: dict, source: str = "<dict>") -> RobotSpec:
     tool = data.get("tool", {})
     if not isinstance(tool, dict):
         raise fail("[tool] must be a table")
+    units_checked = data.get("units_checked", False)
+    if not isinstance(units_checked, bool):
+        raise fail(f"'units_checked' must be true or false, got {units_checked!r}")
+    if not units_checked:
+        _check_units(kind, joints, tool, fail)
 
     rows = []
     for j, row in enumerate(joints, start=1):
@@ -202,7 +252,113 @@ def parse(data: dict, source: str = "<dict>") -> RobotSpec:
         model = LocalPOEModel(
             np.array(frames), tuple(r["type"] for r in rows), np.array(twists), np.array(limits), name, names
         )
-    return _spec(name, model, tool, joints, {}, source, fail)
+    spec = _spec(name, model, tool, joints, {}, source, fail)
+    if "joint_map" not in data:
+        return spec
+    joint_map = _joint_map(data["joint_map"], model, units_checked, fail)
+    return dataclasses.replace(spec, joint_map=joint_map, hash=model_hash(model, joint_map))
+
+
+def _joint_map(table, model: LocalPOEModel, units_checked: bool, fail) -> JointMap:
+    """The [joint_map] table → JointMap; every error names the field and says what it should be."""
+    n = model.n
+    if not isinstance(table, dict):
+        raise fail("[joint_map] must be a table with 'matrix' (or 'signs') and optional 'offsets'")
+    unknown = sorted(set(table) - {"matrix", "signs", "offsets"})
+    if unknown:
+        raise fail(f"joint_map: unknown field(s) {', '.join(unknown)}; known: matrix, signs, offsets")
+    if ("matrix" in table) == ("signs" in table):
+        raise fail("joint_map needs exactly one of 'matrix' (n×n coupling) or 'signs' (n values of +1/-1)")
+    if "matrix" in table:
+        M = table["matrix"]
+        if not (
+            isinstance(M, list)
+            and len(M) == n
+            and all(isinstance(row, list) and len(row) == n and all(_is_number(x) for x in row) for row in M)
+        ):
+            raise fail(f"joint_map.matrix must be {n} rows of {n} numbers (one row per model joint), got {M!r}")
+        matrix = np.array(M, dtype=float)
+    else:
+        signs = table["signs"]
+        if not (isinstance(signs, list) and len(signs) == n and all(_is_number(x) and abs(x) == 1 for x in signs)):
+            raise fail(f"joint_map.signs must be {n} values of 1 or -1, got {signs!r}")
+        matrix = np.diag(np.array(signs, dtype=float))
+    offsets = table.get("offsets", [0.0] * n)
+    if not (isinstance(offsets, list) and len(offsets) == n and all(_is_number(x) for x in offsets)):
+        raise fail(f"joint_map.offsets must be {n} numbers (rad, m for prismatic joints), got {offsets!r}")
+    offsets = np.array(offsets, dtype=float)
+    if not units_checked:
+        for j, (value, jtype) in enumerate(zip(offsets, model.joint_types, strict=True)):
+            if jtype == REVOLUTE and abs(value) > MAX_ANGLE:
+                raise fail(_degrees_message(f"joint_map.offsets[{j + 1}]", value))
+            if jtype != REVOLUTE and abs(value) > MAX_LENGTH:
+                raise fail(_millimetres_message(f"joint_map.offsets[{j + 1}]", value))
+    if abs(np.linalg.det(matrix)) < 1e-9:
+        raise fail(
+            "joint_map.matrix is singular: every model joint must follow from the controller joints and back "
+            "(check for a row of zeros or two equal rows)"
+        )
+    return JointMap(matrix, offsets)
+
+
+def _degrees_message(field: str, value: float) -> str:
+    return (
+        f"{field} = {value:g} looks like degrees; robot files are in radians ({value:g}° = {np.radians(value):.6g} "
+        "rad). If the value is right, add units_checked = true at the top of the file"
+    )
+
+
+def _millimetres_message(field: str, value: float) -> str:
+    return (
+        f"{field} = {value:g} looks like millimetres; robot files are in metres ({value:g} mm = {value / 1000:.6g} "
+        "m). If the value is right, add units_checked = true at the top of the file"
+    )
+
+
+def _check_units(kind: str, joints: list, tool: dict, fail) -> None:
+    """Refuse numbers that look like degrees or millimetres (the type checks come later, in parse)."""
+
+    def number(x) -> bool:
+        return _is_number(x)
+
+    def vector(row: dict, key: str) -> list:
+        value = row.get(key)
+        return list(value) if isinstance(value, list) else []
+
+    for j, row in enumerate(joints, start=1):
+        if not isinstance(row, dict):
+            continue  # parse names that error
+        where = f"joints[{j}]"
+        revolute = row.get("type", REVOLUTE) == REVOLUTE
+        angles = ("alpha", "theta") if kind in ("dh", "mdh") else ()
+        lengths = ("a", "d") if kind in ("dh", "mdh") else ()
+        for key in angles:
+            if number(row.get(key)) and abs(row[key]) > MAX_ANGLE:
+                raise fail(_degrees_message(f"{where}.{key}", row[key]))
+        for key in lengths:
+            if number(row.get(key)) and abs(row[key]) > MAX_LENGTH:
+                raise fail(_millimetres_message(f"{where}.{key}", row[key]))
+        for i, x in enumerate(vector(row, "rpy")):
+            if number(x) and abs(x) > MAX_ANGLE:
+                raise fail(_degrees_message(f"{where}.rpy[{i + 1}]", x))
+        for key in ("xyz", "com"):
+            for i, x in enumerate(vector(row, key)):
+                if number(x) and abs(x) > MAX_LENGTH:
+                    raise fail(_millimetres_message(f"{where}.{key}[{i + 1}]", x))
+        for i, x in enumerate(vector(row, "limits")):
+            if not number(x):
+                continue
+            if revolute and abs(x) > MAX_REVOLUTE_LIMIT:
+                raise fail(_degrees_message(f"{where}.limits[{i + 1}]", x))
+            if not revolute and abs(x) > MAX_LENGTH:
+                raise fail(_millimetres_message(f"{where}.limits[{i + 1}]", x))
+    for i, x in enumerate(vector(tool, "rpy")):
+        if number(x) and abs(x) > MAX_ANGLE:
+            raise fail(_degrees_message(f"tool.rpy[{i + 1}]", x))
+    for key in ("xyz", "com"):
+        for i, x in enumerate(vector(tool, key)):
+            if number(x) and abs(x) > MAX_LENGTH:
+                raise fail(_millimetres_message(f"tool.{key}[{i + 1}]", x))
 
 
 def _spec(name, model, tool, joints, _unused, source, fail=None) -> RobotSpec:
