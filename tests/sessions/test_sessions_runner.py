@@ -17,7 +17,7 @@ import pytest
 from labcal.datasets import SessionStore, read_journal
 from labcal.drivers.base import ConnectionFailed, Measurement
 from labcal.drivers.sim import SimFaults, SimRig
-from labcal.robots import load
+from labcal.robots import load, loads
 from labcal.sessions import (
     Plan,
     Progress,
@@ -123,7 +123,9 @@ def test_start_document_records_provenance(spec, actual, store):
     with rig.robot() as robot, rig.tracker() as tracker:
         summary = run(store, spec, TARGETS, plan, robot, tracker, validation=Validation(absolute_tolerance=1e-3))
     start = journal_docs(store, summary.session_id)[0]
-    assert start["robot"] == {"name": "ur10", "hash": spec.hash, "n_joints": 6}
+    # The robot file itself is stored (self-contained sessions): the record reads back to the same model.
+    assert start["robot"] == spec.record() and start["robot"]["text"]
+    assert loads(start["robot"]["text"], start["robot"]["format"]).hash == spec.hash
     np.testing.assert_array_equal(start["targets"], TARGETS)
     assert Plan.from_pose_documents(start["plan"]) == plan
     assert start["tracker"]["driver"] == "sim" and start["robot_driver"]["driver"] == "sim"
@@ -313,7 +315,7 @@ KILLED_RUN = textwrap.dedent(
     import numpy as np
     from labcal.datasets import SessionStore
     from labcal.drivers.sim import SimRig
-    from labcal.robots import load
+    from labcal.robots import load, loads
     from labcal.sessions import make_plan, random_configurations, run
     from labcal.simulation import ErrorSpec, simulate
 

@@ -7,15 +7,40 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
-from labcal.cli.common import StoreOption, out, store_of, user_errors
+from labcal.cli.common import StoreOption, err, out, user_errors
 from labcal.cli.session_import import import_
+
+# Exit codes of a recording run: success 0; failed / paused (nothing or not everything recorded) 1; Ctrl-C 130,
+# as a shell reports a command ended by SIGINT. User errors stay 2 (user_errors).
+_EXIT = {"success": 0, "failed": 1, "paused": 1, "aborted": 130}
+
+
+def _store(store: Path | None, *, create: bool = False, write: bool = False):
+    """The store checked before any work: missing (read), unwritable (write/create) → one line, exit 2."""
+    from labcal.cli.ops.common import open_store
+
+    return open_store(store, create=create, write=write)
+
+
+def _end_run(summary, line: str) -> None:
+    """Print the outcome line, then the version ref (last line of stdout) if one exists; exit with the run's code."""
+    out.print(line, markup=False)
+    code = _EXIT.get(summary.exit_status, 1)
+    if code and summary.exit_status != "aborted":
+        err.print(f"error: the run ended {summary.exit_status}: {summary.reason}", markup=False)
+    if summary.ref is not None:
+        print(summary.ref)
+    if code or summary.ref is None:
+        raise typer.Exit(code or 1)
+
 
 app = typer.Typer(
     help="Record, inspect and import measurement sessions.\n\n"
     "Examples:\n\n"
     "  labcal session new --robot ur10 --robot-driver sim --tracker-driver sim --targets targets.toml --poses 60\n\n"
     "  labcal session list\n\n"
-    "  labcal session import data.csv --robot ur10 --targets targets.toml --length-unit mm --angle-unit deg",
+    "  labcal session import data.csv --robot ur10 --targets targets.toml --length-unit mm --angle-unit deg\n\n"
+    "  labcal session seal SESSION --valid-prefix",
     no_args_is_help=True,
 )
 
@@ -78,23 +103,26 @@ def new(
 ) -> None:
     """Plan and record a new session; prints the new SESSION@vNNN last.
 
+    Exit 0 on success, 1 when the run failed (e.g. no valid measurement) or paused, 130 after Ctrl-C, 2 for a bad
+    argument or an unusable store (checked before anything is planned or moved).
+
     Example: labcal session new --robot ur10 --robot-driver sim --tracker-driver sim --targets t.toml --poses 60
     """
     from labcal.cli.ops import new_session
+    from labcal.cli.ops.sessions import check_plan_size
 
+    check_plan_size(poses, planner, samples)
+    st = _store(store, create=True)
     with _RunProgress() as progress:
         summary = new_session(
-            store_of(store), robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver,
+            st, robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver,
             tracker_driver=tracker_driver, profile=profile, tracker_profile=tracker_profile, planner=planner,
             samples=samples, seed=seed, sim_errors=sim_errors, progress=progress,
         )  # fmt: skip
-    out.print(
+    _end_run(
+        summary,
         f"{summary.exit_status}: {summary.valid} valid, {summary.rejected} rejected, {summary.remaining} remaining",
-        markup=False,
     )
-    if summary.ref is None:
-        raise typer.Exit(1)
-    print(summary.ref)
 
 
 @app.command("list")
@@ -104,7 +132,7 @@ def list_(store: Path | None = StoreOption) -> None:
 
     Example: labcal session list --store sessions/
     """
-    st = store_of(store)
+    st = _store(store)
     t = Table(title=f"sessions in {st.root}", title_justify="left")
     for col in ("session", "robot", "frame", "status", "versions", "rows"):
         t.add_column(col)
@@ -123,7 +151,7 @@ def show(session: str = typer.Argument(..., help="Session id."), store: Path | N
 
     Example: labcal session show 20261122-031500-ur10-3f9a
     """
-    st = store_of(store)
+    st = _store(store)
     info = st.show(session)
     out.print(f"session {info.session_id}: robot {info.robot.get('name')} ({info.robot.get('hash', '')[:12]}…), "
               f"frame {info.frame}, status {info.status}", markup=False)  # fmt: skip
@@ -146,30 +174,73 @@ def resume(
 ) -> None:
     """Continue an interrupted session at its first unmeasured pose (sim sessions); prints the new version last.
 
+    The journal is checked before anything moves: a corrupt line stops here (seal the valid prefix with
+    `labcal session seal SESSION --valid-prefix`). The robot model is the one stored with the session.
+
     Example: labcal session resume 20261122-031500-ur10-3f9a
     """
     from labcal.cli.ops import resume_session
 
+    st = _store(store, write=True)
     with _RunProgress() as progress:
-        summary = resume_session(store_of(store), session, robot=robot, progress=progress)
-    out.print(f"{summary.exit_status}: {summary.reason}", markup=False)
-    if summary.ref is None:
+        summary = resume_session(st, session, robot=robot, progress=progress)
+    _end_run(summary, f"{summary.exit_status}: {summary.reason or 'done'}")
+
+
+@app.command("seal")
+@user_errors
+def seal(
+    session: str = typer.Argument(..., help="Session id."),
+    valid_prefix: bool = typer.Option(
+        False, "--valid-prefix", help="If the journal has a corrupt line, seal the measurements before it."
+    ),
+    store: Path | None = StoreOption,
+) -> None:
+    """Seal a session's journal into a new version (the valid measurements not yet in one); prints it last.
+
+    With --valid-prefix a journal with a corrupt line is sealed up to that line; every line left out is listed
+    (line number and why) in the version's provenance. The journal itself is never changed.
+
+    Example: labcal session seal 20261122-031500-ur10-3f9a --valid-prefix
+    """
+    from labcal.datasets import validate_id
+
+    validate_id(session)
+    st = _store(store, write=True)
+    result = st.seal(session, valid_prefix=valid_prefix)
+    out.print(result.message, markup=False)
+    if result.created:
+        m = st.manifest(result.ref)
+        skipped = ((m.get("provenance") or {}).get("journal") or {}).get("valid_prefix", {}).get("skipped", [])
+        for s in skipped:
+            where = f"line {s['line']}" + (f" (seq {s['seq']}, pose {s['pose_index']})" if "seq" in s else "")
+            out.print(f"  left out {where}: {s['reason']}", markup=False)
+    if result.ref is None:
         raise typer.Exit(1)
-    print(summary.ref)
+    print(result.ref)
 
 
 @app.command("verify")
 @user_errors
 def verify(session: str = typer.Argument(..., help="SESSION or SESSION@vN."), store: Path | None = StoreOption) -> None:
-    """Check every file hash of a version (the latest by default); exit 1 if anything is wrong.
+    """Check every file hash of a version (the latest by default) and of every fit stored under it; exit 1 with
+    one line per problem if anything is wrong.
 
     Example: labcal session verify 20261122-031500-ur10-3f9a@v1
     """
-    report = store_of(store).verify(session)
-    if report.ok:
-        out.print(f"{report.ref}: ok ({len(report.checked)} files checked)", markup=False)
+    st = _store(store)
+    report = st.verify(session)
+    fits = st.verify_fits(report.ref)
+    problems = [*report.problems, *fits.problems]
+    if not problems:
+        n_fits = len({c.split("/")[1] for c in fits.checked})
+        out.print(
+            f"{report.ref}: ok ({len(report.checked)} files checked, {n_fits} fit(s) with "
+            f"{len(fits.checked)} files checked)",
+            markup=False,
+        )
         return
-    for p in report.problems:
+    for p in problems:
         out.print(f"{report.ref}: {p}", markup=False)
     raise typer.Exit(1)
 

@@ -2,7 +2,9 @@
 
 Documents (each has ``type``, ``uid`` and ``time`` in UNIX seconds):
 
-- ``start`` (first line): ``session_id``, ``schema_version``, ``robot`` {name, hash, n_joints}, ``targets``
+- ``start`` (first line): ``session_id``, ``schema_version``, ``robot`` {name, hash, n_joints, and, since the
+  self-contained versions, ``text``/``format``: the robot file itself, so a session can be refitted or resumed
+  from the store alone}, ``targets``
   (3×3, m, tool frame), ``frame`` ("base" | "tracker": the frame of the measured points), ``tracker`` and
   ``robot_driver`` identity dicts, ``plan`` (list of JSON-able commands), ``extra_units`` (unit of each
   ``extra`` measurement field), ``software`` versions, ``metadata`` (user's).
@@ -72,6 +74,10 @@ class JournalContents:
     #: True when the file does not end with a newline (the next append must start a fresh line).
     needs_newline: bool = False
     size: int = 0
+    #: 1-based line number of each entry of ``documents``.
+    document_lines: list[int] = field(default_factory=list)
+    #: why each line in ``corrupt_lines`` was not accepted (line number → reason).
+    corrupt_reasons: dict[int, str] = field(default_factory=dict)
 
     @property
     def start(self) -> dict | None:
@@ -168,6 +174,7 @@ def read_journal(path: str | Path) -> JournalContents:
     warnings: list[str] = []
     torn: list[int] = []
     corrupt: list[int] = []
+    reasons: dict[int, str] = {}
     for ln, why in bad:
         if ln > last_good:
             torn.append(ln)
@@ -176,21 +183,26 @@ def read_journal(path: str | Path) -> JournalContents:
             warnings.append(f"{path}: line {ln} ignored: torn write, repaired later ({why})")
         else:
             corrupt.append(ln)
+            reasons[ln] = why
             warnings.append(f"{path}: line {ln} ignored: CORRUPT ({why})")
     docs: list[dict] = []
+    doc_lines: list[int] = []
     last_seq = 0
     for ln, d in parsed:
         if d["type"] == "start" and docs:
             corrupt.append(ln)
+            reasons[ln] = "a second start document"
             warnings.append(f"{path}: line {ln} ignored: a second start document")
             continue
         if d["type"] == "measurement":
             if d["seq"] <= last_seq:
                 corrupt.append(ln)
+                reasons[ln] = f"seq {d['seq']} does not follow {last_seq}"
                 warnings.append(f"{path}: line {ln} ignored: seq {d['seq']} does not follow {last_seq}")
                 continue
             last_seq = d["seq"]
         docs.append(d)
+        doc_lines.append(ln)
     if docs and docs[0]["type"] != "start":
         warnings.append(f"{path}: the first document is not a start document")
     return JournalContents(
@@ -201,6 +213,8 @@ def read_journal(path: str | Path) -> JournalContents:
         corrupt_lines=sorted(corrupt),
         needs_newline=needs_newline,
         size=len(data),
+        document_lines=doc_lines,
+        corrupt_reasons=reasons,
     )
 
 
@@ -278,10 +292,13 @@ class Journal:
         extra_units: Mapping[str, str] | None = None,
         metadata: Mapping[str, Any] | None = None,
         time: float | None = None,
+        robot: Mapping[str, Any] | None = None,
     ) -> Journal:
         """Create a new journal at ``path`` (must not exist) and write its start document.
 
-        ``targets``: (3, 3) in metres, tool frame. ``frame``: frame of the measured points.
+        ``targets``: (3, 3) in metres, tool frame. ``frame``: frame of the measured points. ``robot``: the robot
+        model's full record (``RobotSpec.record()``: name, hash, n_joints, text, format); its extra keys (the file
+        text) are stored with name/hash/n_joints, which must agree with ``robot_name``/``robot_hash``/``n_joints``.
         """
         path = Path(path)
         validate_id(session_id)
@@ -298,7 +315,7 @@ class Journal:
             "time": float(_time.time() if time is None else time),
             "session_id": session_id,
             "schema_version": SCHEMA_VERSION,
-            "robot": {"name": str(robot_name), "hash": str(robot_hash), "n_joints": n_joints},
+            "robot": robot_document(robot_name, robot_hash, n_joints, robot),
             "targets": validate_targets(targets).tolist(),
             "targets_unit": "m",
             "frame": frame,
@@ -509,6 +526,22 @@ class Journal:
             self._broken = True
             raise JournalError(f"writing to journal {self.path} failed: {e}") from e
         return doc
+
+
+def robot_document(name: str, robot_hash: str, n_joints: int, record: Mapping[str, Any] | None = None) -> dict:
+    """The ``robot`` block of a start document / manifest: name, hash, n_joints plus the record's other keys.
+
+    The record (``RobotSpec.record()``) carries the robot file's text so the data can be refitted without the
+    file; it must describe the same model (same name, hash and joint count), else the session would be mislabelled.
+    """
+    doc: dict[str, Any] = {"name": str(name), "hash": str(robot_hash), "n_joints": n_joints}
+    for key, value in dict(record or {}).items():
+        if key in doc:
+            if value is not None and value != doc[key]:
+                raise JournalError(f"robot record {key} = {value!r} disagrees with the session's {doc[key]!r}")
+            continue
+        doc[str(key)] = jsonable(value)
+    return doc
 
 
 def _encode(doc: dict) -> bytes:

@@ -275,6 +275,30 @@ def _plan_summary(plan: Sequence[Any]) -> dict:
     return {"length": len(plan), "sha256": sha256_bytes(canonical_json(jsonable(list(plan))).encode("utf-8"))}
 
 
+def with_robot_record(meta: dict) -> dict:
+    """``meta`` with the robot file's text in ``meta["robot"]`` when the caller handed the record elsewhere.
+
+    Importers may pass ``RobotSpec.record()`` (name, hash, n_joints, text, format) either as ``meta["robot"]`` or
+    inside the user metadata as ``meta["metadata"]["robot"]``; either way the manifest's ``session.robot`` ends up
+    holding the text, which is what makes a version refittable without the robot file. A record of another model
+    (different hash) is refused rather than silently attached.
+    """
+    robot = dict(meta["robot"])
+    user = dict(meta.get("metadata") or {})
+    record = user.get("robot")
+    if not isinstance(record, Mapping) or not record.get("text"):
+        return meta
+    if record.get("hash") not in (None, robot.get("hash")):
+        raise DatasetError(
+            f"the robot record passed in the metadata (hash {str(record.get('hash'))[:12]}…) is not the model the "
+            f"data are labelled with ({robot.get('name')!r}, hash {str(robot.get('hash'))[:12]}…)"
+        )
+    for key, value in record.items():
+        robot.setdefault(str(key), jsonable(value))
+    del user["robot"]  # stored once, in session.robot
+    return {**meta, "robot": robot, "metadata": user}
+
+
 def session_meta_from_start(start: dict) -> dict:
     """The ``session`` block of a manifest, from a journal's start document."""
     return {
@@ -316,9 +340,16 @@ class SessionStore:
                 out.append(p.name)
         return sorted(out)
 
+    def require_root(self) -> None:
+        """Raise :class:`UnknownSession` with one clear line when the store folder does not exist."""
+        if not self.root.is_dir():
+            what = "is not a folder" if self.root.exists() else "does not exist"
+            raise UnknownSession(f"no session store at {self.root} ({what}; set --store or LABCAL_STORE)")
+
     def _require_session(self, session_id: str) -> Path:
         d = self.session_dir(session_id)
         if not d.is_dir():
+            self.require_root()
             known = self.session_ids()
             hint = f"; known sessions: {', '.join(known[-20:])}" if known else "; the store is empty"
             raise UnknownSession(f"no session {session_id!r} in store {self.root}{hint}")
@@ -367,9 +398,14 @@ class SessionStore:
         extra_units: Mapping[str, str] | None = None,
         metadata: Mapping[str, Any] | None = None,
         session_id: str | None = None,
+        robot: Mapping[str, Any] | None = None,
     ) -> Journal:
         """Create a session folder and its journal (start document written and fsynced); return the open
-        :class:`Journal` (close it when done)."""
+        :class:`Journal` (close it when done).
+
+        ``robot``: the model's full record (``RobotSpec.record()``, with the file text); stored in the start
+        document and so in every version sealed from it, which makes the session refittable without the file.
+        """
         session_id = validate_id(session_id) if session_id else new_session_id(robot_name)
         self.root.mkdir(parents=True, exist_ok=True)
         d = self.root / session_id
@@ -392,6 +428,7 @@ class SessionStore:
                 plan=plan,
                 extra_units=extra_units,
                 metadata=metadata,
+                robot=robot,
             )
         except BaseException:
             # Nothing was written (or the start document failed): leave no empty session behind.
@@ -510,6 +547,60 @@ class SessionStore:
                     )
         return VerifyReport(str(r), problems, checked)
 
+    def verify_fits(self, ref: str | Ref) -> VerifyReport:
+        """Check every fit stored under a version (the version's own :meth:`verify` leaves ``fits/`` out).
+
+        Per fit: fit.json's own sha256 and canonical bytes, the sha256 of every file it lists, missing and unlisted
+        files, and that each input version's manifest is still the one the fit read. One line per problem.
+        """
+        r = self.resolve(ref)
+        fits_dir = self.session_dir(r.session_id) / version_name(r.version) / FITS  # type: ignore[arg-type]
+        problems: list[str] = []
+        checked: list[str] = []
+        if not fits_dir.is_dir():
+            return VerifyReport(str(r), problems, checked)
+        for p in sorted(fits_dir.iterdir()):
+            if p.name.startswith("."):  # the temporary folder of an interrupted save_fit, never published
+                continue
+            where = f"{FITS}/{p.name}"
+            if not p.is_dir():
+                problems.append(f"{where}: extra file in {FITS}/ (a fit is a folder)")
+                continue
+            if not (p / FIT_JSON).is_file():
+                problems.append(f"{where}/{FIT_JSON}: missing (the fit's files cannot be checked without it)")
+                continue
+            meta, mp = _load_sealed((p / FIT_JSON).read_bytes(), "fit_sha256", f"{where}/{FIT_JSON}")
+            problems += mp
+            checked.append(f"{where}/{FIT_JSON}")
+            if meta is None:
+                continue
+            files = dict(meta.get("files") or {})
+            for name, info in sorted(files.items()):
+                fp = p / name
+                if not fp.is_file():
+                    problems.append(f"{where}/{name}: missing (expected sha256 {info.get('sha256')})")
+                    continue
+                actual = sha256_file(fp)
+                checked.append(f"{where}/{name}")
+                if actual != info.get("sha256"):
+                    problems.append(f"{where}/{name}: sha256 mismatch: expected {info.get('sha256')}, actual {actual}")
+            for fp in sorted(p.iterdir()):
+                if fp.name != FIT_JSON and fp.name not in files:
+                    kind = "directory" if fp.is_dir() else "file"
+                    problems.append(f"{where}/{fp.name}: extra {kind} not listed in {FIT_JSON}")
+            for inp in meta.get("inputs") or []:
+                try:
+                    current = self.manifest(inp["ref"]).get("manifest_sha256")
+                except (DatasetError, OSError, ValueError, KeyError) as e:
+                    problems.append(f"{where}: input {inp.get('ref')!r} cannot be read ({type(e).__name__}: {e})")
+                    continue
+                if current != inp.get("manifest_sha256"):
+                    problems.append(
+                        f"{where}: input {inp['ref']} is not the data the fit read (manifest sha256 "
+                        f"{inp.get('manifest_sha256')} when fitted, {current} now)"
+                    )
+        return VerifyReport(str(r), problems, checked)
+
     def verify_session(self, session_id: str) -> list[VerifyReport]:
         return [self.verify(Ref(session_id, v)) for v in self.versions(session_id)]
 
@@ -597,6 +688,7 @@ class SessionStore:
         d = self._require_session(session_id)
         versions = self.versions(session_id)
         session = self.session_meta(session_id)
+        meta = with_robot_record(meta)
         self._check_compatible(session_id, session, meta)
         n = int(session["robot"]["n_joints"])
         if versions:
@@ -627,7 +719,7 @@ class SessionStore:
     ) -> str:
         """Create a session holding only ``v001`` (no journal), atomically: it appears complete or not at all."""
         session_id = validate_id(session_id) if session_id else new_session_id(meta["robot"]["name"])
-        meta = {**meta, "session_id": session_id}
+        meta = with_robot_record({**meta, "session_id": session_id})
         self.root.mkdir(parents=True, exist_ok=True)
         final = self.root / session_id
         if final.exists():
@@ -645,19 +737,42 @@ class SessionStore:
             raise
         return f"{session_id}@v001"
 
-    def seal(self, session_id: str) -> SealResult:
+    def seal(self, session_id: str, *, valid_prefix: bool = False) -> SealResult:
         """Make a new version from the journal's valid measurements not yet in a version.
 
         If there is nothing new, no version is made (``created=False``, message says so). Unreadable journal
-        lines that are not a torn last write make sealing fail (:class:`JournalCorrupted`).
+        lines that are not a torn last write make sealing fail (:class:`JournalCorrupted`), unless
+        ``valid_prefix``: then only the documents before the first corrupt line are sealed, and the version's
+        provenance lists every line left out (line number and why). The journal itself is never changed.
         """
         d = self._require_session(session_id)
         contents = read_journal(d / JOURNAL_NAME)
+        skipped: list[dict] = []
+        measurements = contents.measurements
         if contents.corrupt_lines:
-            raise JournalCorrupted(
-                f"journal of {session_id!r} has corrupt line(s) {contents.corrupt_lines}; refusing to seal:\n  "
-                + "\n  ".join(contents.warnings)
-            )
+            first = contents.corrupt_lines[0]
+            if not valid_prefix:
+                raise JournalCorrupted(
+                    f"journal of {session_id!r} has corrupt line(s) {contents.corrupt_lines}; refusing to seal "
+                    f"(`labcal session seal {session_id} --valid-prefix` seals the measurements before line "
+                    f"{first} and records what it left out):\n  " + "\n  ".join(contents.warnings)
+                )
+            # Everything from the first corrupt line on is left out, readable or not: after an unexplained
+            # corruption the order and completeness of the later documents cannot be trusted.
+            reasons = contents.corrupt_reasons
+            skipped = [{"line": ln, "reason": reasons.get(ln, "corrupt")} for ln in contents.corrupt_lines]
+            measurements = []
+            for ln, doc in zip(contents.document_lines, contents.documents, strict=True):
+                if doc["type"] != "measurement":
+                    continue
+                if ln < first:
+                    measurements.append(doc)
+                else:
+                    skipped.append(
+                        {"line": ln, "seq": doc["seq"], "pose_index": doc["pose_index"], "status": doc["status"],
+                         "reason": f"after the corrupt line {first}"}
+                    )  # fmt: skip
+            skipped.sort(key=lambda s: s["line"])
         start = contents.start
         if start is None:
             raise JournalCorrupted(f"journal of {session_id!r} has no start document")
@@ -665,7 +780,7 @@ class SessionStore:
         parent = versions[-1] if versions else None
         parent_ds = self.load(Ref(session_id, parent)) if parent else None
         through = int(parent_ds.manifest.get("journal_seq_through", 0)) if parent_ds is not None else 0
-        new = [m for m in contents.measurements if m["seq"] > through and m["status"] == "valid"]
+        new = [m for m in measurements if m["seq"] > through and m["status"] == "valid"]
         latest = f"{session_id}@{version_name(parent)}" if parent else None
         if not new:
             where = f"since {latest}" if latest else "in the journal"
@@ -674,7 +789,7 @@ class SessionStore:
         rows = journal_rows(new, int(start["robot"]["n_joints"]))
         table = pd.concat([parent_ds.table, rows], ignore_index=True) if parent_ds is not None else rows
         table = normalize_table(table, int(start["robot"]["n_joints"]))
-        seq_through = max(m["seq"] for m in contents.measurements)
+        seq_through = max(m["seq"] for m in measurements)
         provenance = {
             "journal": {
                 "seq_through": seq_through,
@@ -684,6 +799,11 @@ class SessionStore:
                 "warnings": contents.warnings,
             }
         }
+        if contents.corrupt_lines:
+            provenance["journal"]["valid_prefix"] = {
+                "through_line": contents.corrupt_lines[0] - 1,
+                "skipped": skipped,
+            }
         number = (parent or 0) + 1
         manifest = self._manifest(
             session_id,
@@ -697,7 +817,8 @@ class SessionStore:
         )
         self._write_version(d, number, table, manifest)
         ref = f"{session_id}@{version_name(number)}"
-        return SealResult(ref, True, len(new), f"sealed {len(new)} new measurement(s) into {ref}")
+        left_out = f"; left out {len(skipped)} journal line(s) from line {skipped[0]['line']} on" if skipped else ""
+        return SealResult(ref, True, len(new), f"sealed {len(new)} new measurement(s) into {ref}{left_out}")
 
     # ---------------------------------------------------------------------------------------------- fits
     def save_fit(

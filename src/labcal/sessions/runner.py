@@ -12,7 +12,10 @@ on. Only final outcomes are journaled, so each plan pose has at most one measure
 
 Exits (``RunSummary.exit_status``, also the journal's stop document):
 
-- ``"success"``: every pose has a valid or rejected measurement;
+- ``"success"``: every pose has a valid or rejected measurement, and at least one is valid;
+- ``"failed"`` also when the run ends without any valid measurement (every pose rejected), or when the tracker
+  did not answer at all on ``RetryPolicy.max_silent_poses`` consecutive poses (a dead tracker: the run stops
+  instead of moving the robot through the rest of the plan for nothing);
 - ``"paused"``: the robot entered a protective stop (pause document, then stop document "paused"). Clear the
   stop on the robot and call :func:`resume`;
 - ``"aborted"``: Ctrl-C (KeyboardInterrupt): the robot is stopped, the stop document written, and the
@@ -23,6 +26,12 @@ Exits (``RunSummary.exit_status``, also the journal's stop document):
 before the next move, a crash (even kill -9) loses at most the pose being measured, which is then measured
 again; nothing recorded is lost and nothing recorded is measured twice. After every run except a paused one
 the journal is sealed into a new immutable version (when it has new valid measurements).
+
+Joints: a plan is in *model* joints (what the planner and the kinematic model use). The runner commands the robot,
+compares and records in *controller* joints, through the robot file's joint map
+(``spec.joints.to_controller``; the identity for every built-in). The driver checks each command against its
+joint limits and speed caps before it moves. :func:`resume` checks the whole journal before anything moves: a
+corrupt line stops it with the line named (seal the valid prefix with ``SessionStore.seal(…, valid_prefix=True)``).
 
 The runner never draws anything: pass ``progress`` (a callable taking :class:`Progress`) to show it (the CLI
 renders it with rich).
@@ -58,7 +67,8 @@ from labcal.drivers.base import (
     Robot,
     Tracker,
 )
-from labcal.robots import RobotSpec
+from labcal.robots import RobotSpec, loads
+from labcal.robots.joint_map import JointMap
 from labcal.sessions.plans import Plan, PoseStep
 
 EXTRA_UNITS = {"attempts": "1", "triangle_error": "m", "quality": ""}
@@ -90,14 +100,21 @@ class Validation:
 
 @dataclass(frozen=True)
 class RetryPolicy:
-    """max_attempts: measurement attempts per pose (>= 1); remove: move to the pose again before each retry."""
+    """max_attempts: measurement attempts per pose (>= 1); remove: move to the pose again before each retry;
+    max_silent_poses: stop the run as "failed" after this many consecutive poses on which the tracker timed out on
+    every attempt (0 = never): a tracker that does not answer would otherwise walk the robot through the whole plan
+    and record nothing."""
 
     max_attempts: int = 3
     remove: bool = False
+    max_silent_poses: int = 3
 
     def __post_init__(self) -> None:
         if isinstance(self.max_attempts, bool) or not isinstance(self.max_attempts, int) or self.max_attempts < 1:
             raise ValueError(f"RetryPolicy.max_attempts must be an integer >= 1, got {self.max_attempts!r}")
+        silent = self.max_silent_poses
+        if isinstance(silent, bool) or not isinstance(silent, int) or silent < 0:
+            raise ValueError(f"RetryPolicy.max_silent_poses must be an integer >= 0, got {silent!r}")
 
 
 @dataclass(frozen=True)
@@ -156,6 +173,7 @@ class _Outcome:
     reason: str
     attempts: int
     residual: float | None
+    silent: bool = False  # the tracker timed out on every attempt
 
 
 def triangle_sides(points: np.ndarray) -> np.ndarray:
@@ -197,9 +215,11 @@ class _Run:
         retry: RetryPolicy,
         progress: ProgressCallback | None,
         sleep: Callable[[float], None],
+        joints: JointMap | None = None,
     ) -> None:
         self.journal, self.plan, self.robot, self.tracker = journal, plan, robot, tracker
         self.validation, self.retry = validation, retry
+        self.joints = joints if joints is not None else JointMap.identity(plan.n_joints)
         self.nominal_sides = triangle_sides(targets)
         self._progress = progress
         self.sleep = sleep
@@ -215,16 +235,19 @@ class _Run:
         """Run the remaining poses; return (exit_status, reason). Writes the stop document (not for a crash)."""
         robot, journal = self.robot, self.journal
         pose: int | None = None
+        silent = 0  # consecutive poses without a single tracker answer
+        valid_now = 0
         try:
             for step in self.plan.poses():
                 if step.index in self.done:
                     continue
                 pose = step.index
-                outcome = self.measure_pose(step)
+                q_command = self.joints.to_controller(step.q)
+                outcome = self.measure_pose(step, q_command)
                 m = outcome.measurement
                 journal.append_measurement(
                     pose_index=step.index,
-                    q_commanded=step.q,
+                    q_commanded=q_command,
                     q_actual=outcome.q_actual,
                     points=None if m is None else m.points,
                     spread=None if m is None or not np.all(np.isfinite(m.spread)) else m.spread,
@@ -239,7 +262,17 @@ class _Run:
                 )
                 self.measured += 1
                 self.done.add(step.index)
+                valid_now += outcome.status == "valid"
                 self.emit(step.index, outcome.status, outcome.residual, outcome.reason)
+                silent = silent + 1 if outcome.silent else 0
+                if self.retry.max_silent_poses and silent >= self.retry.max_silent_poses:
+                    _safe_stop(robot)
+                    reason = (
+                        f"the tracker did not answer on {silent} consecutive poses (every attempt timed out, last "
+                        f"at pose {pose}): check its cable, power and profile, then resume"
+                    )
+                    journal.stop("failed", reason)
+                    return "failed", reason
         except ProtectiveStop as e:
             _safe_stop(robot)
             reason = f"protective stop at pose {pose}: {e}"
@@ -260,12 +293,26 @@ class _Run:
             reason = f"{type(e).__name__} at pose {pose}: {e}"
             journal.stop("failed", reason)
             return "failed", reason
+        if self.measured and not valid_now:
+            # A run that measured poses and kept none is not a success, whatever the cause (dead tracker, wrong
+            # targets file, robot never reaching the poses): say why instead of sealing nothing quietly.
+            contents = journal.read()
+            last = next((d["reason"] for d in reversed(contents.measurements) if d["status"] != "valid"), "")
+            reason = f"no valid measurement: all {self.measured} pose(s) measured in this run were rejected"
+            reason += f" (last reason: {last})" if last else ""
+            journal.stop("failed", reason)
+            return "failed", reason
         journal.stop("success", f"{self.plan.n_poses} poses done")
         return "success", ""
 
-    def measure_pose(self, step: PoseStep) -> _Outcome:
-        """Move, settle, measure and validate one pose with bounded retries. ProtectiveStop propagates."""
+    def measure_pose(self, step: PoseStep, q_command: np.ndarray | None = None) -> _Outcome:
+        """Move, settle, measure and validate one pose with bounded retries. ProtectiveStop propagates.
+
+        q_command: the pose in controller joints (default: the plan's joints, i.e. an identity joint map).
+        """
         robot, tracker, v = self.robot, self.tracker, self.validation
+        q_cmd = np.asarray(step.q if q_command is None else q_command, dtype=float)
+        timeouts = 0
         reasons: list[str] = []
         moved = False
         q_actual: np.ndarray | None = None
@@ -277,7 +324,7 @@ class _Run:
             if not moved or self.retry.remove:
                 self.emit(step.index, "moving")
                 try:
-                    robot.move_joints(step.q, step.move.speed, step.move.acceleration)
+                    robot.move_joints(q_cmd, step.move.speed, step.move.acceleration)
                 except MotionRejected as e:
                     # The plan itself is at fault (limits, caps): retrying cannot help.
                     reasons.append(f"motion rejected: {e}")
@@ -289,7 +336,7 @@ class _Run:
                 if step.settle > 0:
                     self.sleep(step.settle)
             q_actual = np.asarray(robot.joint_positions(), dtype=float)
-            deviation = float(np.max(np.abs(q_actual - step.q)))
+            deviation = float(np.max(np.abs(q_actual - q_cmd)))
             if deviation > v.joint_tolerance:
                 reasons.append(f"robot is {deviation:.6f} rad from the commanded joints")
                 moved = False
@@ -300,6 +347,7 @@ class _Run:
                 reasons.append(f"tracker rejected the frame: {e.reason}")
                 continue
             except (DriverTimeout, ProtocolError) as e:
+                timeouts += isinstance(e, DriverTimeout)
                 reasons.append(f"{type(e).__name__}: {e}")
                 continue
             # A protective stop during the measurement makes the frame suspect; pause instead.
@@ -310,11 +358,23 @@ class _Run:
             if not why:
                 return _Outcome("valid", q_actual, m, "", attempt, residual)
             reasons.append(why)
-        return _Outcome("rejected", q_actual, last, _join(reasons), self.retry.max_attempts, residual)
+        silent = timeouts == self.retry.max_attempts
+        return _Outcome("rejected", q_actual, last, _join(reasons), self.retry.max_attempts, residual, silent)
 
 
 def _join(reasons: list[str]) -> str:
     return "; ".join(f"attempt {i + 1}: {r}" for i, r in enumerate(reasons))
+
+
+def _spec_of_start(start: dict) -> RobotSpec | None:
+    """The robot model stored in a start document (None when the session predates stored robot files)."""
+    record = start.get("robot") or {}
+    if not record.get("text"):
+        return None
+    try:
+        return loads(record["text"], record.get("format") or "toml", source=f"<robot file of {start['session_id']}>")
+    except ValueError as e:
+        raise SessionError(f"the robot file stored with session {start['session_id']} cannot be read: {e}") from None
 
 
 def _safe_stop(robot: Robot) -> None:
@@ -367,7 +427,9 @@ def run(
     """Create a session for ``spec`` (robot model) and ``targets`` ((3, 3) m, tool frame) and execute ``plan``.
 
     frame: the frame of the tracker's points ("tracker", or "base" if the tracker reports in the robot base
-    frame). The start document records the robot model name and hash, targets, tracker and robot identity
+    frame). ``plan``: in model joints; the robot is commanded in controller joints (``spec.joints``). The start
+    document records the robot model (name, hash and the robot file's text: ``spec.record()``), targets, tracker and
+    robot identity
     (``tracker_info``/``robot_info``, default :func:`describe`), the plan (one entry per pose), the runner
     settings (so :func:`resume` validates the same way) and software versions.
     """
@@ -392,8 +454,9 @@ def run(
         extra_units=EXTRA_UNITS,
         metadata={"runner": runner_settings, "robot_source": spec.source, **dict(metadata or {})},
         session_id=session_id,
+        robot=spec.record(),
     )
-    state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep)
+    state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep, spec.joints)
     try:
         status, reason = state.execute()
     except BaseException:
@@ -419,11 +482,29 @@ def resume(
 
     Works after a pause (protective stop, cleared on the robot first), an abort, a failure or a crash (the
     journal is reopened, a torn last line repaired). ``spec``: if given, its hash must match the session's
-    robot model. Uses the plan, targets and runner settings stored in the start document.
+    robot model; else the robot file stored in the start document is used (its joint map converts the plan to
+    controller joints; a session recorded before robot files were stored uses the identity). Uses the plan,
+    targets and runner settings stored in the start document.
+
+    Raises :class:`SessionError` before anything moves when the journal has a corrupt line (naming it): the run
+    could not be sealed afterwards, so measuring would only move the robot for nothing.
     """
     journal = store.open_journal(session_id)
     try:
         start = journal.start
+        contents = journal.read()
+        if contents.corrupt_lines:
+            lines = ", ".join(
+                f"line {ln} ({contents.corrupt_reasons.get(ln, 'corrupt')})" for ln in contents.corrupt_lines
+            )
+            raise SessionError(
+                f"the journal of session {session_id} is corrupt at {lines}; nothing was moved. Seal the "
+                f"measurements before line {contents.corrupt_lines[0]} with `labcal session seal {session_id} "
+                "--valid-prefix` (the skipped lines are recorded in the version), then record the remaining poses "
+                "in a new session"
+            )
+        if spec is None:
+            spec = _spec_of_start(start)
         if spec is not None and spec.hash != start["robot"]["hash"]:
             raise SessionError(
                 f"session {session_id} was recorded with robot model {start['robot']['name']!r} "
@@ -436,7 +517,8 @@ def resume(
         validation = Validation(**settings.get("validation", {}))
         retry = RetryPolicy(**settings.get("retry", {}))
         targets = np.asarray(start["targets"], dtype=float)
-        state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep)
+        joints = spec.joints if spec is not None else None
+        state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep, joints)
         if len(state.done) < plan.n_poses:
             if robot.state().protective_stop:
                 raise SessionError("the robot is still in a protective stop: clear it on the robot, then resume")

@@ -2,49 +2,126 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import uuid
 from pathlib import Path
 
 import numpy as np
 
 from labcal.calibration.observations import Observations
 from labcal.datasets import Dataset, SessionStore, parse_ref
-from labcal.robots import BUILTINS, RobotSpec, load
+from labcal.robots import BUILTINS, RobotSpec, load, loads
 
 
 class UserError(ValueError):
     """A problem with the command's input that the user can fix (the message says what)."""
 
 
-def open_store(path: str | Path | None) -> SessionStore:
-    """The store at path, else $LABCAL_STORE, else ./sessions."""
+STORE_HINT = "set --store or LABCAL_STORE"
+
+
+def open_store(path: str | Path | None, *, create: bool | None = None, write: bool = False) -> SessionStore:
+    """The store at path, else $LABCAL_STORE, else ./sessions, checked before any work is done.
+
+    - ``create=False`` (read commands): the folder must exist, else UserError "no session store at PATH (set
+      --store or LABCAL_STORE)";
+    - ``create=None`` (callers that do not say; kept for old callers): no existence check here; a command that
+      names a session still gets that one-line error from the store itself (``SessionStore.require_root``);
+    - ``write=True`` (commands that add a fit, a version …): it must exist and accept a new file;
+    - ``create=True`` (commands that create sessions): it may be missing and is then created; it must accept a new
+      file. A read-only or unwritable store fails here with one line, not with a traceback after the work.
+    """
     if path is None:
         path = os.environ.get("LABCAL_STORE") or "sessions"
-    return SessionStore(Path(path))
+    root = Path(path)
+    if root.exists() and not root.is_dir():
+        raise UserError(f"the session store {root} is not a folder ({STORE_HINT})")
+    if not root.exists():
+        if create is None:
+            return SessionStore(root)
+        if not create:
+            raise UserError(f"no session store at {root} ({STORE_HINT})")
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise UserError(f"cannot create the session store {root}: {e.strerror or e} ({STORE_HINT})") from None
+    if create or write:
+        _check_writable(root)
+    return SessionStore(root)
+
+
+def _check_writable(root: Path) -> None:
+    """Create and remove a hidden probe file: the only test that also catches read-only mounts and root squash."""
+    probe = root / f".labcal-write-probe-{uuid.uuid4().hex[:12]}"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        os.close(fd)
+        probe.unlink()
+    except OSError as e:
+        raise UserError(f"the session store {root} is not writable: {e.strerror or e} ({STORE_HINT})") from None
 
 
 def robot_for(dataset_robot: dict, robot: str | None = None) -> RobotSpec:
-    """The robot model a data set was taken with: ``robot`` (name or file) if given, else the built-in of that name.
+    """The robot model a data set was taken with.
 
-    Raises UserError when the model's hash differs from the one recorded with the data (a different robot, or an
-    edited model file).
+    1. ``robot`` (built-in name or file) if given: an override, which must have the recorded hash;
+    2. else the robot file text stored with the data (self-contained versions), read back with
+       :func:`labcal.robots.loads` and checked against the recorded hash;
+    3. else (sessions written before the text was stored) the built-in of the recorded name.
+
+    Raises UserError naming the model and both hashes when they differ (a different robot, an edited file, or a
+    built-in that changed since the data were recorded), or when no model can be found.
     """
     name, recorded = dataset_robot.get("name"), dataset_robot.get("hash")
-    if robot is None:
-        if name not in BUILTINS:
-            raise UserError(f"the data were taken with robot model {name!r}: pass its file with --robot PATH")
-        robot = name
-    spec = load(robot)
+    short = f"{recorded[:12]}…" if recorded else "none recorded"
+    if robot is not None:
+        spec = load(robot)
+        if recorded and spec.hash != recorded:
+            raise UserError(
+                f"robot model {robot!r} (hash {spec.hash[:12]}…) is not the model the session was recorded with "
+                f"({name!r}, hash {short})"
+            )
+        return spec
+    text = dataset_robot.get("text")
+    if text:
+        fmt = dataset_robot.get("format") or "toml"
+        try:
+            spec = loads(text, fmt, source=f"<robot file stored with the session: {name}>")
+        except ValueError as e:
+            raise UserError(f"the robot file stored with the session ({name!r}) cannot be read: {e}") from None
+        if recorded and spec.hash != recorded:
+            raise UserError(
+                f"the robot file stored with the session ({name!r}) has hash {spec.hash[:12]}… but the session "
+                f"records {short}: this labcal reads the file differently from the one that recorded it; pass the "
+                "original model with --robot PATH"
+            )
+        return spec
+    if name not in BUILTINS:
+        raise UserError(
+            f"the data were taken with robot model {name!r}, which is not a built-in and was not stored with the "
+            "session (recorded before labcal stored robot files): pass its file with --robot PATH"
+        )
+    spec = load(name)
     if recorded and spec.hash != recorded:
         raise UserError(
-            f"robot model {robot!r} (hash {spec.hash[:12]}…) is not the model the session was recorded with "
-            f"({name!r}, hash {recorded[:12]}…)"
+            f"the built-in robot model {name!r} (hash {spec.hash[:12]}…) changed since the session was recorded "
+            f"(hash {short}), and the session predates stored robot files: pass the original file with --robot PATH"
         )
     return spec
 
 
-def load_observations(store: SessionStore, refs: list[str]) -> tuple[Observations, list[Dataset]]:
-    """Load (and verify) one or more versions of the same robot and pool them into one Observations."""
+def load_observations(
+    store: SessionStore, refs: list[str], robot: str | None = None, *, with_spec: bool = False
+) -> tuple[Observations, list[Dataset]] | tuple[Observations, list[Dataset], RobotSpec]:
+    """Load (and verify) one or more versions of the same robot and pool them into one Observations.
+
+    The robot model is resolved with :func:`robot_for` (stored file text, else built-in; ``robot`` overrides) and
+    the stored controller joints are converted to model joints with its joint map: this is the ONE place where
+    that conversion happens (PLAN.md interface 2). When several sessions are pooled, ``Observations.group`` (if
+    that field exists) holds each row's session ref, so cross-validation keeps a session in one fold.
+    ``with_spec=True`` also returns the RobotSpec (callers that fit need it; the 2-tuple stays for old callers).
+    """
     if not refs:
         raise UserError("name at least one SESSION[@vN]")
     datasets = [store.load(ref) for ref in refs]
@@ -59,13 +136,34 @@ def load_observations(store: SessionStore, refs: list[str]) -> tuple[Observation
             raise UserError(f"{ds.ref} and {first.ref} have different targets: they cannot be pooled")
         if ds.frame != first.frame:
             raise UserError(f"{ds.ref} is in the {ds.frame} frame, {first.ref} in the {first.frame} frame")
+    try:
+        spec = robot_for(first.robot, robot)
+    except UserError:
+        if with_spec or robot is not None or first.robot.get("text"):
+            raise
+        # Old 2-tuple callers resolve the model themselves afterwards (with their --robot override, and its
+        # error if there is none). Such a session predates stored robot files and joint maps: identity.
+        spec = None
+    q_controller = np.concatenate([d.q for d in datasets])
+    if spec is not None and q_controller.shape[1] != spec.model.n:
+        raise UserError(
+            f"{first.ref} has {q_controller.shape[1]} joint columns, "
+            f"robot model {spec.name!r} has {spec.model.n} joints"
+        )
+    fields = {f.name for f in dataclasses.fields(Observations)}
+    extra = {}
+    if len(datasets) > 1 and "group" in fields:
+        extra["group"] = np.concatenate([np.full(len(d), d.ref, dtype=object) for d in datasets])
     obs = Observations(
-        q=np.concatenate([d.q for d in datasets]),
+        q=spec.joints.to_model(q_controller) if spec is not None else q_controller,
         points=np.concatenate([d.points for d in datasets]),
         targets=first.targets,
         frame=first.frame,
         split=np.concatenate([d.split for d in datasets]).astype(object),
+        **extra,
     )
+    if with_spec:
+        return obs, datasets, spec
     return obs, datasets
 
 

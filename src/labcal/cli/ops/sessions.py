@@ -15,6 +15,15 @@ TRACKER_DRIVERS = ("sim", "serial")
 PLANNERS = ("random", "optimal")
 SIM_ERRORS = ("paper", "default", "none")
 
+# Planning holds every pose in memory several times over (candidates, checks, plan, the start document's JSON):
+# measured 0.7 GB peak, 10 s and a 25 MB start document for 100,000 poses on the ur10 (about 7 KB per pose, so
+# --poses 100000000 would need some 700 GB; it grew to 24 GB before the OS killed it). At a few seconds per pose
+# on a real robot 100,000 poses are already days of measuring, so a larger request is a typo.
+MAX_POSES = 100_000
+# The optimal planner's candidate pool costs one identification Jacobian (9 × ~30 numbers) per candidate and
+# an exchange search over it: 100,000 candidates are already ~0.2 GB and minutes.
+MAX_SAMPLES = 100_000
+
 
 def sim_actual(spec: RobotSpec, errors: str, seed: int):
     """The simulated actual robot of a sim session (recreated identically on resume from errors + seed)."""
@@ -29,13 +38,32 @@ def sim_actual(spec: RobotSpec, errors: str, seed: int):
 def plan_configurations(spec: RobotSpec, poses: int, planner: str, seed: int, targets, samples: int = 2000):
     from labcal.sessions import optimal_configurations, random_configurations
 
-    if poses < 1:
-        raise UserError(f"--poses must be at least 1, got {poses}")
+    check_plan_size(poses, planner, samples)
     if planner == "random":
         return random_configurations(spec.model, poses, seed=seed, targets=targets)
     if planner == "optimal":
         return optimal_configurations(spec.model, poses, seed=seed, targets=targets, candidates=samples)
     raise UserError(f"--planner must be one of {', '.join(PLANNERS)}, got {planner!r}")
+
+
+def check_plan_size(poses: int, planner: str = "random", samples: int = 2000) -> None:
+    """Refuse a plan size that cannot be planned (or measured) before any memory is allocated for it."""
+    if poses < 1:
+        raise UserError(f"--poses must be at least 1, got {poses}")
+    if poses > MAX_POSES:
+        raise UserError(
+            f"--poses {poses:,} is more than labcal plans in one session ({MAX_POSES:,}): planning keeps about 7 KB "
+            f"per pose in memory (0.7 GB at {MAX_POSES:,}) and a real robot needs days for that many; split the "
+            "measurement into several sessions (they can be pooled when fitting)"
+        )
+    if planner == "optimal":
+        if samples > MAX_SAMPLES:
+            raise UserError(
+                f"--samples {samples:,} is more candidates than the optimal planner handles ({MAX_SAMPLES:,}: each "
+                "costs an identification Jacobian and an exchange search over the pool)"
+            )
+        if samples < poses:
+            raise UserError(f"--samples ({samples}) must be at least --poses ({poses}) for the optimal planner")
 
 
 def _drivers(robot_driver, tracker_driver, spec, targets, *, profile, tracker_profile, sim_errors, seed):
@@ -81,6 +109,7 @@ def new_session(
     from labcal.datasets import load_targets
     from labcal.sessions import make_plan, run
 
+    check_plan_size(poses, planner, samples)  # before anything is loaded, planned or allocated
     spec = load(robot)
     targets = load_targets(targets_file)
     if sim_errors not in SIM_ERRORS:
