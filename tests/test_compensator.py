@@ -3,6 +3,7 @@ forward model, exports round-trip and refuse damaged files, and the import stays
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -15,6 +16,7 @@ from labcal.compensator import (
     Compensator,
     CompensatorFileError,
     Network,
+    field_checksums,
     input_features,
 )
 from labcal.kinematics import se3
@@ -154,9 +156,10 @@ def test_redundant_arm_golden_vectors_accept_any_solution_and_refuse_a_wrong_one
         r = se3.log_se3(robot.nominal.fk(q) @ se3.inv(robot.model.fk(other)))
         other += np.einsum("kia,ka->ki", np.linalg.pinv(robot.model.joint_twists(other)), r)
     assert np.max(np.abs(other - robot.correct(q))) > 1e-3
-    _tamper_json(path, lambda d: d["golden"].update(q_cmd=other.tolist()))
+    _tamper_json(path, lambda d: d["golden"].update(q_cmd=other.tolist()), reseal=True)
     Compensator.load(path)
-    _tamper_json(path, lambda d: d["golden"]["q_cmd"][0].__setitem__(3, d["golden"]["q_cmd"][0][3] + 1e-8))
+    edit = lambda d: d["golden"]["q_cmd"][0].__setitem__(3, d["golden"]["q_cmd"][0][3] + 1e-8)  # noqa: E731
+    _tamper_json(path, edit, reseal=True)
     with pytest.raises(CompensatorFileError, match="pose error at the stored q_cmd"):
         Compensator.load(path)
 
@@ -299,8 +302,14 @@ def test_single_configuration_input_checks():
             robot.correct(bad, extrapolate=True)
 
 
+def ann(robot="ur10", features=("q", "sincos", "sincos2", "gravity"), seed=0):
+    """The paper's ANN method: nominal frames plus a network."""
+    nominal = load(robot).model
+    return CalibratedRobot(nominal, nominal, make_network(nominal, features, seed=seed), method="ann")
+
+
 def test_paper_method_is_eq_24_and_batch_shapes():
-    robot = hybrid("ur10")
+    robot = ann("ur10")
     q = sample(robot, 5, seed=4)
     np.testing.assert_allclose(robot.correct(q, method="paper"), q - robot.network(q, robot.model)[:, :6])
     assert robot.correct(q[0]).shape == (6,)
@@ -369,9 +378,13 @@ def test_local_poe_only_export_round_trip(tmp_path):
     np.testing.assert_array_equal(comp.correct(q), robot.correct(q))
 
 
-def _tamper_json(path, edit):
+def _tamper_json(path, edit, reseal=False):
+    """Edit a JSON export; reseal=True also rewrites its checksums, as a file edited consistently (or written by a
+    labcal whose numbers differ) would be, so the checks behind the checksums are reached."""
     data = json.loads(path.read_text())
     edit(data)
+    if reseal:
+        data["checksums"] = field_checksums(data)
     path.write_text(json.dumps(data))
 
 
@@ -381,7 +394,12 @@ def test_tampered_weight_is_refused(tmp_path):
     def edit(d):
         d["network"]["weights"][0][3][2] *= 1.0 + 1e-6
 
+    original = path.read_text()
     _tamper_json(path, edit)
+    with pytest.raises(CompensatorFileError, match="network does not match its checksum"):
+        Compensator.load(path)
+    path.write_text(original)
+    _tamper_json(path, edit, reseal=True)  # the golden vectors catch what the checksums were rewritten to hide
     with pytest.raises(CompensatorFileError, match="golden vectors disagree"):
         Compensator.load(path)
 
@@ -393,13 +411,13 @@ def test_tampered_npz_array_is_refused(tmp_path):
     arrays["model.frames"] = arrays["model.frames"].copy()
     arrays["model.frames"][2, 0, 3] += 1e-7
     np.savez(path, **arrays)
-    with pytest.raises(CompensatorFileError, match="golden vectors disagree"):
+    with pytest.raises(CompensatorFileError, match="model does not match its checksum"):
         Compensator.load(path)
 
 
 def test_edited_robot_model_fails_its_hash(tmp_path):
     path = hybrid("ur10").save(tmp_path / "c.json")
-    _tamper_json(path, lambda d: d["robot"]["frames"][1][0].__setitem__(3, 0.5))
+    _tamper_json(path, lambda d: d["robot"]["frames"][1][0].__setitem__(3, 0.5), reseal=True)
     with pytest.raises(CompensatorFileError, match="hash"):
         Compensator.load(path)
 
@@ -411,11 +429,13 @@ def test_edited_robot_model_fails_its_hash(tmp_path):
         (lambda d: d.__setitem__("format", "other"), "not a labcal compensator"),
         (lambda d: d.pop("golden"), "golden"),
         (lambda d: d["golden"].__setitem__("q", []), "no golden vectors"),
+        (lambda d: d.pop("checksums"), "no checksums field"),
+        (lambda d: d.__setitem__("joint_map", {"matrix": [[1.0]], "offsets": [0.0]}), "joint_map is not a valid"),
     ],
 )
 def test_bad_files_are_refused_with_a_clear_error(tmp_path, edit, match):
     path = hybrid("ur10").save(tmp_path / "c.json")
-    _tamper_json(path, edit)
+    _tamper_json(path, edit, reseal=match != "no checksums field")
     with pytest.raises(CompensatorFileError, match=match):
         Compensator.load(path)
 
@@ -441,3 +461,173 @@ def test_importing_the_runtime_loads_no_torch_scipy_typer_or_drivers():
         "assert not bad, bad\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+
+
+# -- integrity of every behaviour-changing field (issue 12.5) ----------------------------------------------------
+
+
+def _widen(d):
+    d["joint_ranges"] = [[-10.0, 10.0]] * 6  # would silently switch off the out-of-range guard
+
+
+@pytest.mark.parametrize(
+    "field,edit",
+    [
+        ("joint_ranges", _widen),
+        ("T_tracker_base", lambda d: d["T_tracker_base"][0].__setitem__(3, d["T_tracker_base"][0][3] + 1e-3)),
+        ("length_scale", lambda d: d.__setitem__("length_scale", d["length_scale"] * 2)),
+        ("joint_map", lambda d: d.__setitem__("joint_map", {"matrix": np.eye(6).tolist(), "offsets": [0.1] * 6})),
+        ("method", lambda d: d.__setitem__("method", "nominal")),
+        ("provenance", lambda d: d["provenance"].__setitem__("forced", False)),
+        ("network", lambda d: d["network"]["out_scale"].__setitem__(0, 1.0)),
+        ("model", lambda d: d["model"]["limits"][0].__setitem__(0, -3.0)),
+        ("robot", lambda d: d["robot"].__setitem__("name", "other")),
+        ("golden", lambda d: d["golden"].__setitem__("correct_method", "paper")),
+    ],
+)
+def test_editing_any_behaviour_changing_field_is_refused_naming_it(tmp_path, field, edit):
+    path = hybrid("ur10").save(tmp_path / "c.json", provenance={"session": "S@v001", "forced": True})
+    Compensator.load(path)
+    _tamper_json(path, edit)
+    with pytest.raises(CompensatorFileError, match=rf"{field} does not match its checksum"):
+        Compensator.load(path)
+
+
+def test_widened_ranges_in_an_npz_file_are_refused(tmp_path):
+    path = hybrid("ur10").save(tmp_path / "c.npz")
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["joint_ranges"] = np.tile([-10.0, 10.0], (6, 1))
+    np.savez(path, **arrays)
+    with pytest.raises(CompensatorFileError, match="joint_ranges does not match its checksum"):
+        Compensator.load(path)
+
+
+def test_checksums_agree_between_json_and_npz(tmp_path):
+    robot = hybrid("ur10")
+    a = json.loads(robot.save(tmp_path / "c.json", provenance={"n": 3}).read_text())["checksums"]
+    with np.load(robot.save(tmp_path / "c.npz", provenance={"n": 3})) as z:
+        b = json.loads(str(z["__meta__"]))["checksums"]
+    assert a == b and set(a) >= {"joint_ranges", "T_tracker_base", "length_scale", "joint_map"}
+
+
+def test_a_version_1_file_is_refused_with_the_fix(tmp_path):
+    path = hybrid("ur10").save(tmp_path / "c.json")
+    _tamper_json(path, lambda d: d.__setitem__("schema_version", 1))
+    with pytest.raises(CompensatorFileError, match=r"schema_version 1 is not supported.*export the fit again"):
+        Compensator.load(path)
+
+
+# -- empty, malformed and non-finite input -----------------------------------------------------------------------
+
+
+def test_empty_input_gives_an_empty_answer(tmp_path):
+    robot = hybrid("ur10")
+    comp = Compensator.load(robot.save(tmp_path / "c.json"))
+    mapped = Compensator.load(
+        dataclasses.replace(robot, joint_map=load("coupled-elbow-6r").joint_map).save(tmp_path / "m.json")
+    )
+    for target in (robot, comp, mapped):
+        out = target.correct(np.zeros((0, 6)))
+        assert out.shape == (0, 6)
+        assert target.correct(np.zeros((0, 6)), extrapolate=True).shape == (0, 6)
+        assert target.predict_pose(np.zeros((0, 6))).shape == (0, 4, 4)
+    assert robot.joint_motion_errors(np.zeros((0, 6))).shape == (0, 6)
+    assert robot.predict_points(np.zeros((0, 6)), np.eye(3)).shape == (0, 3, 3)
+    assert ann().correct(np.zeros((0, 6)), method="paper").shape == (0, 6)
+
+
+@pytest.mark.parametrize(
+    "q,match",
+    [
+        (np.zeros(5), r"shape \(6,\) or \(k, 6\) for this 6-joint robot, got \(5,\)"),
+        (np.zeros((3, 7)), r"got \(3, 7\)"),
+        (np.zeros((2, 3, 6)), r"got \(2, 3, 6\)"),
+        (np.zeros((0,)), r"got \(0,\)"),
+        (["a"] * 6, "must be numbers"),
+        (np.array([[0.0] * 6, [0.0, 0.0, np.nan, 0.0, 0.0, 0.0]]), "configuration 1, joint 3 is nan"),
+        (np.array([0.0, np.inf, 0.0, 0.0, 0.0, 0.0]), "configuration 0, joint 2 is inf"),
+    ],
+)
+def test_bad_input_is_a_clear_error(tmp_path, q, match):
+    robot = hybrid("ur10")
+    comp = Compensator.load(robot.save(tmp_path / "c.json"))
+    for call in (robot.correct, robot.predict_pose, comp.correct, comp.predict_pose):
+        with pytest.raises(ValueError, match=match):
+            call(q)
+
+
+# -- method="paper" only where it is the whole correction -----------------------------------------------------
+
+
+def test_paper_and_fixed_point_are_refused_where_they_would_be_a_no_op_or_partial(tmp_path):
+    nominal = load("ur10").model
+    model = nominal.perturbed(np.random.default_rng(0).normal(size=(7, 6)) * 1e-3)
+    local = CalibratedRobot(nominal, model, method="local-poe")
+    comp = Compensator.load(local.save(tmp_path / "c.json"))
+    q = sample(local, 3, seed=1)
+    for method in ("paper", "fixed-point"):
+        for target in (local, comp):
+            with pytest.raises(ValueError, match=rf"method='{method}'.*no network.*uncorrected.*'newton'"):
+                target.correct(q, method=method)
+        with pytest.raises(ValueError, match="ignore the identified frames of this hybrid"):
+            hybrid("ur10").correct(q, method=method)
+    assert np.max(np.abs(comp.correct(q) - q)) > 1e-4  # newton does correct it
+    robot = ann()
+    assert np.max(np.abs(robot.correct(q, method="paper") - q)) > 1e-5  # the paper's own method is allowed
+
+
+# -- joint maps: the compensator speaks controller joints -------------------------------------------------------
+
+
+def test_a_mapped_compensator_converts_controller_joints_both_ways(tmp_path):
+    spec = load("coupled-elbow-6r")
+    base = hybrid("fanuc-m1000ia")
+    robot = dataclasses.replace(base, joint_map=spec.joint_map)
+    comp = Compensator.load(robot.save(tmp_path / "c.npz"))
+    assert comp.robot_hash == spec.hash != load("fanuc-m1000ia").hash
+    np.testing.assert_array_equal(comp.joint_map.matrix, spec.joints.matrix)
+    q_model = sample(base, 12, seed=3)
+    q_ctrl = spec.joints.to_controller(q_model)
+    got = comp.correct(q_ctrl)
+    np.testing.assert_allclose(got, spec.joints.to_controller(base.correct(q_model)), atol=1e-13)
+    np.testing.assert_allclose(comp.correct(q_ctrl[0]), got[0], atol=1e-13)  # single configurations too
+    np.testing.assert_allclose(comp.predict_pose(q_ctrl), base.predict_pose(q_model), atol=1e-13)
+    # the real robot, commanded the corrected controller joints, lands on the nominal pose of the requested ones
+    np.testing.assert_allclose(comp.predict_pose(got), spec.model.fk(q_model), atol=1e-9)
+    # the same numbers taken as model joints would be a different configuration
+    assert np.max(np.abs(comp.predict_pose(q_model, extrapolate=True) - base.predict_pose(q_model))) > 1e-2
+
+
+def test_a_mapped_compensator_checks_the_model_joint_ranges(tmp_path):
+    spec = load("coupled-elbow-6r")
+    base = hybrid("fanuc-m1000ia")
+    comp = Compensator(dataclasses.replace(base, joint_map=spec.joint_map))
+    q = np.zeros(6)
+    q[1], q[2] = 1.0, 1.5  # model elbow J2 + J3 = 2.5 rad, beyond its range; each number alone is inside
+    with pytest.raises(ValueError, match=r"joint 3 = 2\.500000 is outside.*model joints.*joint map"):
+        comp.correct(q)
+    with pytest.raises(ValueError, match="outside"):
+        comp.predict_pose(q)
+    assert comp.correct(q, extrapolate=True).shape == (6,)
+
+
+def test_an_identity_map_is_stored_as_no_map(tmp_path):
+    base = hybrid("ur10")
+    robot = dataclasses.replace(base, joint_map=load("ur10").joints)
+    assert robot.joint_map is None
+    data = json.loads(robot.save(tmp_path / "c.json").read_text())
+    assert data["joint_map"] is None and data["robot"]["hash"] == load("ur10").hash
+
+
+def test_exports_that_cannot_hold_a_joint_map_refuse_it(tmp_path):
+    from labcal.export import export
+
+    spec = load("coupled-elbow-6r")
+    robot = dataclasses.replace(hybrid("fanuc-m1000ia"), joint_map=spec.joint_map)
+    with pytest.raises(ValueError, match="URScript export of a robot with a joint map"):
+        export(robot, "urscript", tmp_path / "a.script")
+    with pytest.raises(ValueError, match="URDF export of a robot with a joint map"):
+        export(robot, "urdf", tmp_path / "a.urdf")
+    assert not (tmp_path / "a.script").exists() and not (tmp_path / "a.urdf").exists()
+    assert Compensator.load(export(robot, "json", tmp_path / "a.json")).robot_hash == spec.hash

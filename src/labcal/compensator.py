@@ -17,7 +17,13 @@ is exact for model-based stages too.
 
 :class:`Compensator` is the deployable form: :meth:`Compensator.load` reads a JSON or NPZ export written by
 :meth:`CalibratedRobot.save` (schema version, robot model and its hash, identified frames, network, joint ranges,
-provenance and golden vectors), re-computes the golden vectors and refuses a file that disagrees.
+tracker pose, length scale, joint map, provenance, golden vectors, and a checksum of each of those fields), refuses
+a file whose fields do not match their checksums (an edit naming the field: a widened joint range would otherwise
+silently switch off the out-of-range guard), re-computes the golden vectors and refuses a file that disagrees.
+
+Joints: :class:`CalibratedRobot` works in the robot model's joints. When the robot file declares a joint map
+(controller joints ≠ model joints, :mod:`labcal.robots.joint_map`), the map travels in the export and
+:class:`Compensator` takes and returns *controller* joints, converting at its edge.
 
 This module imports numpy, labcal.kinematics and labcal.robots (for the model hash) only, so a controller-side
 process can load an export without torch, scipy, pandas or any driver.
@@ -35,6 +41,7 @@ Example::
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import math
 from dataclasses import dataclass, field
@@ -46,13 +53,14 @@ from labcal import features as feature_lib
 from labcal.kinematics import se3
 from labcal.kinematics.poe import REVOLUTE, LocalPOEModel, StackedChains
 from labcal.robots import model_hash
+from labcal.robots.joint_map import JointMap
 
 FEATURES = ("q", "sincos", "sincos2", "gravity")
 _MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so larger steps mean a singularity
 _GN_MAX_STEP = 0.3  # rad: a full Gauss-Newton step this large means a (near-)singular configuration
 
 SCHEMA = "labcal-compensator"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: joint map, and per-field checksums over everything that changes behaviour
 GOLDEN_COUNT = 8
 GOLDEN_TOL_Q = 1e-10  # rad (m): a loaded file must reproduce its golden q_cmd to this
 GOLDEN_TOL_POSE = 1e-10  # m / rad-scaled entries of the predicted pose
@@ -290,6 +298,8 @@ class CalibratedRobot:
 
     joint_ranges: (n, 2) the joint ranges the calibration data covered; ``correct`` refuses q outside them unless
     ``extrapolate=True``. length_scale: metres per radian used to build virtual joints (n < 6), fixed at fit time.
+    joint_map: the robot file's controller → model joint map (None: identity). Every method here works in *model*
+    joints; the map only travels with the robot into its export, where :class:`Compensator` converts through it.
     """
 
     nominal: LocalPOEModel
@@ -299,10 +309,16 @@ class CalibratedRobot:
     joint_ranges: np.ndarray | None = None
     length_scale: float | None = None
     method: str = "nominal"
+    joint_map: JointMap | None = None
 
     def __post_init__(self) -> None:
         if self.model.n != self.nominal.n:
             raise ValueError(f"model has {self.model.n} joints, nominal has {self.nominal.n}")
+        if self.joint_map is not None:
+            if self.joint_map.n != self.nominal.n:
+                raise ValueError(f"joint map is for {self.joint_map.n} joints, the robot has {self.nominal.n}")
+            if self.joint_map.is_identity:
+                object.__setattr__(self, "joint_map", None)  # one stored form: no map
         if self.joint_ranges is None:
             object.__setattr__(self, "joint_ranges", self.nominal.limits.copy())
         if self.length_scale is None:
@@ -318,13 +334,19 @@ class CalibratedRobot:
         return self.nominal.n
 
     def _batch(self, q) -> tuple[np.ndarray, bool]:
-        q = np.asarray(q, dtype=float)
+        try:
+            q = np.asarray(q, dtype=float)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"q must be numbers of shape ({self.n},) or (k, {self.n}): {err}") from err
         single = q.ndim == 1
         q2 = q[None, :] if single else q
         if q2.ndim != 2 or q2.shape[1] != self.n:
-            raise ValueError(f"q must have shape ({self.n},) or (k, {self.n}), got {q.shape}")
+            raise ValueError(
+                f"q must have shape ({self.n},) or (k, {self.n}) for this {self.n}-joint robot, got {q.shape}"
+            )
         if not np.isfinite(q2).all():
-            raise ValueError("q contains non-finite values")
+            i, j = np.argwhere(~np.isfinite(q2))[0]
+            raise ValueError(f"q contains non-finite values: configuration {i}, joint {j + 1} is {q2[i, j]}")
         return q2, single
 
     def check_range(self, q, extrapolate: bool = False) -> None:
@@ -414,7 +436,7 @@ class CalibratedRobot:
     def joint_motion_errors(self, q) -> np.ndarray:
         """(k, 6) predicted joint motion errors δρ(q) of the equivalent robot (zeros without a network)."""
         q2, _ = self._batch(q)
-        if self.network is None:
+        if self.network is None or q2.shape[0] == 0:
             return np.zeros((q2.shape[0], 6))
         s, c = _sincos(q2)
         initial = self.model.link_frames(q2)
@@ -431,6 +453,8 @@ class CalibratedRobot:
         return T[0] if single else T
 
     def _predict(self, q2: np.ndarray) -> np.ndarray:
+        if q2.shape[0] == 0:
+            return np.zeros((0, 4, 4))
         initial, _, dy = self._evaluate(q2, need_twists=False)
         T = initial[:, -1]
         if dy is None:
@@ -461,7 +485,9 @@ class CalibratedRobot:
         distance to the solution is below ``tol`` (rad); configurations where a full step does not reduce the pose
         error (near a singularity) are re-solved by a damped (Levenberg-Marquardt) iteration that never makes the
         error worse than at q. ``"paper"`` is eq. (24), q − δρ_a(q);
-        ``"fixed-point"`` iterates q_cmd = q − δρ_a(q_cmd).
+        ``"fixed-point"`` iterates q_cmd = q − δρ_a(q_cmd). Both apply the network alone, so they are refused (a
+        ValueError saying why) unless the identified frames are the nominal ones and there is a network: the paper's
+        ANN method. An empty (0, n) q gives an empty (0, n) answer.
         """
         n = self.n
         if method == "newton" and n == 6 and isinstance(q, np.ndarray) and q.shape == (n,):
@@ -471,8 +497,14 @@ class CalibratedRobot:
             if math.isfinite(sum(values)) and (extrapolate or self._inside_one(values)):
                 return self._gauss_newton_single(q.astype(float)[None], iterations, tol)[0]
         q2, single = self._batch(q)
+        if method not in ("newton", "paper", "fixed-point"):
+            raise ValueError(f"method must be 'newton', 'paper' or 'fixed-point', got {method!r}")
+        if method != "newton" and (why := self.network_only_error(method)):
+            raise ValueError(why)
         if not extrapolate:
             self._check_range(q2)
+        if q2.shape[0] == 0:
+            return q2.copy()  # nothing to correct: an empty (0, n) answer, like the input
         if method == "paper":
             out = q2 - self.joint_motion_errors(q2)[:, :n]
         elif method == "fixed-point":
@@ -488,6 +520,32 @@ class CalibratedRobot:
         else:
             raise ValueError(f"method must be 'newton', 'paper' or 'fixed-point', got {method!r}")
         return out[0] if single else out
+
+    def network_only_error(self, method: str = "paper") -> str | None:
+        """Why ``method`` ("paper" / "fixed-point": q − δρ_a, the network alone) cannot correct this robot, or None.
+
+        It would silently return q unchanged without a network, and silently drop the identified frames' correction
+        of a local-POE or hybrid calibration: both are refused rather than applied halfway.
+        """
+        if self.network is None:
+            return (
+                f"method={method!r} applies only the learned joint motion errors (eq. 24), and this {self.method} "
+                "calibration has no network: it would return q uncorrected. Use method='newton'"
+            )
+        if not self._nominal_frames:
+            return (
+                f"method={method!r} applies only the learned joint motion errors (eq. 24) and would ignore the "
+                f"identified frames of this {self.method} calibration. Use method='newton'"
+            )
+        return None
+
+    @functools.cached_property
+    def _nominal_frames(self) -> bool:
+        """True when the identified model is the nominal one (the paper's ANN method)."""
+        return bool(
+            np.array_equal(self.model.frames, self.nominal.frames)
+            and np.array_equal(self.model.twists, self.nominal.twists)
+        )
 
     def _residual(self, qc: np.ndarray, T_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pose residual r (k, 6) and the model's joint twists J (k, 6, n) at q_cmd.
@@ -769,14 +827,74 @@ def golden_configurations(robot: CalibratedRobot, count: int = GOLDEN_COUNT, see
     return keep
 
 
+# Every field that changes what a loaded compensator does (or what it says about itself) has a checksum in the file.
+# The golden vectors only exercise the model and network at a few configurations: they cannot see a widened
+# joint range (which silently switches off the out-of-range guard), a moved tracker frame, a changed length scale
+# (a different metric for n < 6), a different joint map, or edited provenance (e.g. a forced export made to look
+# unforced). A checksum is integrity against edits and damage, not a signature: whoever can rewrite the file can
+# rewrite its checksums too.
+CHECKED_FIELDS = (
+    "robot",
+    "model",
+    "network",
+    "joint_map",
+    "length_scale",
+    "joint_ranges",
+    "T_tracker_base",
+    "method",
+    "provenance",
+    "golden",
+)
+
+
+def _canonical(value):
+    """JSON-ready data with every number as a float, so the JSON and NPZ forms of a payload read the same."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, dict):
+        return {str(k): _canonical(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_canonical(v) for v in value]
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, int | float | np.number):
+        return float(value)
+    return value
+
+
+def field_checksums(payload: dict) -> dict[str, str]:
+    """sha256 of each checked field's canonical JSON (floats written exactly): {field: hex}."""
+    out = {}
+    for name in CHECKED_FIELDS:
+        text = json.dumps(_canonical(payload.get(name)), sort_keys=True, separators=(",", ":"))
+        out[name] = hashlib.sha256(text.encode()).hexdigest()
+    return out
+
+
+def _check_checksums(data: dict, source: str) -> None:
+    stored = data.get("checksums")
+    if not isinstance(stored, dict):
+        raise CompensatorFileError(
+            f"{source}: no checksums field: the file was damaged or edited — refusing to load it"
+        )
+    got = field_checksums(data)
+    for name in CHECKED_FIELDS:
+        if stored.get(name) != got[name]:
+            raise CompensatorFileError(
+                f"{source}: {name} does not match its checksum: the file was edited or damaged — refusing to load it "
+                "(export the fit again rather than editing a compensator file)"
+            )
+
+
 def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
-    """Everything an export holds, as JSON-ready Python data (lists and numbers)."""
+    """Everything an export holds, as JSON-ready Python data (lists and numbers), with its field checksums."""
     q = golden_configurations(robot)
     net = robot.network
-    return {
+    jm = robot.joint_map
+    payload = {
         "format": SCHEMA,
         "schema_version": SCHEMA_VERSION,
-        "robot": {**_model_dict(robot.nominal), "hash": model_hash(robot.nominal)},
+        "robot": {**_model_dict(robot.nominal), "hash": model_hash(robot.nominal, jm)},
         "model": {**_model_dict(robot.model), "hash": model_hash(robot.model)},
         "network": None
         if net is None
@@ -793,6 +911,9 @@ def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
         "joint_ranges": np.asarray(robot.joint_ranges, float).tolist(),
         "T_tracker_base": np.asarray(robot.T_tracker_base, float).tolist(),
         "method": robot.method,
+        # controller → model joints (q_model = matrix q_controller + offsets); None: the controller's joints are the
+        # model's. Golden vectors, joint ranges and the models are in model joints.
+        "joint_map": None if jm is None else jm.as_dict(),
         "provenance": dict(provenance or {}),
         "golden": {
             "correct_method": "newton",
@@ -801,6 +922,8 @@ def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
             "pose": robot.predict_pose(q).tolist(),
         },
     }
+    payload["checksums"] = field_checksums(payload)
+    return payload
 
 
 def from_payload(data: dict, source: str = "<payload>") -> tuple[CalibratedRobot, dict]:
@@ -809,13 +932,24 @@ def from_payload(data: dict, source: str = "<payload>") -> tuple[CalibratedRobot
         raise CompensatorFileError(f"{source}: not a labcal compensator export (format field is not {SCHEMA!r})")
     version = data.get("schema_version")
     if version != SCHEMA_VERSION:
+        hint = "; export the fit again with this labcal" if version == 1 else ""
         raise CompensatorFileError(
-            f"{source}: schema_version {version!r} is not supported (this labcal reads {SCHEMA_VERSION})"
+            f"{source}: schema_version {version!r} is not supported (this labcal reads {SCHEMA_VERSION}){hint}"
         )
+    _check_checksums(data, source)
     try:
         nominal = _model_from(data["robot"], f"{source}: robot")
         model = _model_from(data["model"], f"{source}: model")
-        if model_hash(nominal) != data["robot"].get("hash"):
+        jd = data["joint_map"]
+        try:
+            joint_map = None if jd is None else JointMap(np.asarray(jd["matrix"]), np.asarray(jd["offsets"]))
+        except (KeyError, TypeError, ValueError) as err:
+            raise CompensatorFileError(f"{source}: joint_map is not a valid joint map: {err}") from err
+        if joint_map is not None and joint_map.n != nominal.n:
+            raise CompensatorFileError(
+                f"{source}: joint_map is not a valid joint map: it maps {joint_map.n} joints, the robot has {nominal.n}"
+            )
+        if model_hash(nominal, joint_map) != data["robot"].get("hash"):
             raise CompensatorFileError(f"{source}: robot model does not match its hash (file edited or damaged)")
         net = None
         nd = data.get("network")
@@ -837,6 +971,7 @@ def from_payload(data: dict, source: str = "<payload>") -> tuple[CalibratedRobot
             joint_ranges=np.asarray(data["joint_ranges"], dtype=float).reshape(nominal.n, 2),
             length_scale=float(data["length_scale"]),
             method=str(data.get("method", "")),
+            joint_map=joint_map,
         )
         golden = data["golden"]
         if np.size(golden["q"]) == 0:
@@ -890,7 +1025,7 @@ def save(robot: CalibratedRobot, path, provenance: dict | None = None) -> Path:
 
 
 _ARRAY_KEYS = {"frames", "twists", "limits", "in_mean", "in_scale", "out_mean", "out_scale", "joint_ranges"}
-_ARRAY_KEYS |= {"T_tracker_base", "q", "q_cmd", "pose"}
+_ARRAY_KEYS |= {"T_tracker_base", "q", "q_cmd", "pose", "matrix", "offsets"}
 
 
 def _split_arrays(obj, prefix: str, arrays: dict):
@@ -908,8 +1043,8 @@ def _split_arrays(obj, prefix: str, arrays: dict):
                     arrays[f"{name}.{i}"] = np.asarray(item, dtype=float)
                     refs.append({"$array": f"{name}.{i}"})
                 out[key] = refs
-            elif key == "provenance":
-                out[key] = value  # JSON-able metadata, kept as is
+            elif key in ("provenance", "checksums"):
+                out[key] = value  # JSON-able metadata (checksums are strings named like the array fields), kept as is
             else:
                 out[key] = _split_arrays(value, f"{name}.", arrays)
         return out
@@ -955,9 +1090,15 @@ def read_payload(path) -> dict:
 class Compensator:
     """The deployable runtime of a calibration: correct joint commands, predict poses. Numpy only.
 
+    It speaks the controller's joints: when the robot file declared a joint map (controller joints are not the
+    model's, e.g. a coupled elbow), ``correct`` and ``predict_pose`` take controller joints, convert them to model
+    joints (q_model = M q_controller + b), work on the calibrated model, and ``correct`` converts its answer back.
+    Range checks apply to the model joints (the calibrated ranges are the data's model-joint ranges). Without a map
+    (or an identity one) nothing is converted. :attr:`robot` (a :class:`CalibratedRobot`) works in model joints.
+
     Example::
 
-        comp = Compensator.load("ur10-hybrid.json")   # verifies schema, model hash and golden vectors
+        comp = Compensator.load("ur10-hybrid.json")   # verifies schema, checksums, model hash and golden vectors
         q_cmd = comp.correct(q)                        # (n,) or (k, n) rad; refuses q outside the trained ranges
         T = comp.predict_pose(q_cmd)                   # (4, 4) base frame: where the real robot goes
         comp.T_tracker_base                            # (4, 4) base pose in the tracker frame
@@ -967,6 +1108,7 @@ class Compensator:
         self.robot = robot
         self.provenance = dict(provenance or {})
         self.source = source
+        self._map = robot.joint_map  # None for the identity: the hot path then converts nothing
 
     @classmethod
     def load(cls, path) -> Compensator:
@@ -988,7 +1130,7 @@ class Compensator:
 
     @property
     def joint_ranges(self) -> np.ndarray:
-        """(n, 2) the joint ranges the calibration covered (rad, m)."""
+        """(n, 2) the joint ranges the calibration covered (rad, m), in model joints (see :attr:`joint_map`)."""
         return self.robot.joint_ranges
 
     @property
@@ -997,18 +1139,51 @@ class Compensator:
         return self.robot.T_tracker_base
 
     @property
+    def joint_map(self) -> JointMap:
+        """The controller → model joint map (identity when the robot file declared none)."""
+        return self._map if self._map is not None else JointMap.identity(self.n)
+
+    @property
     def robot_hash(self) -> str:
-        """sha256 of the nominal robot model (labcal.robots.model_hash)."""
-        return model_hash(self.robot.nominal)
+        """sha256 of the nominal robot model and its joint map (labcal.robots.model_hash, = RobotSpec.hash)."""
+        return model_hash(self.robot.nominal, self._map)
+
+    def to_model(self, q) -> np.ndarray:
+        """Controller joints (n,) or (k, n) → model joints, checked for shape and finite values first."""
+        q2, single = self.robot._batch(q)
+        out = q2 if self._map is None else self._map.to_model(q2)
+        return out[0] if single else out
+
+    def check_range(self, q, extrapolate: bool = False) -> None:
+        """Raise ValueError naming the first configuration and joint outside the calibrated ranges (q: controller
+        joints; the ranges are the model joints', so a mapped joint is named as the model joint it becomes)."""
+        if extrapolate:
+            return
+        if self._map is None:
+            self.robot.check_range(q)
+            return
+        q_model = np.atleast_2d(self.to_model(q))
+        try:
+            self.robot._check_range(q_model)
+        except ValueError as err:
+            raise ValueError(
+                f"{err} (model joints: the robot file's joint map turns the controller joints into these)"
+            ) from None
 
     def correct(self, q, *, extrapolate: bool = False, method: str = "newton") -> np.ndarray:
-        """Commanded joints (n,) or (k, n) that make the real robot reach the nominal pose of q."""
-        return self.robot.correct(q, extrapolate=extrapolate, method=method)
+        """Commanded controller joints (n,) or (k, n) that make the real robot reach the nominal pose of the
+        controller joints q (an empty (0, n) q gives an empty answer)."""
+        if self._map is None:
+            return self.robot.correct(q, extrapolate=extrapolate, method=method)
+        self.check_range(q, extrapolate)
+        q_cmd = self.robot.correct(self.to_model(q), extrapolate=True, method=method)
+        return self._map.to_controller(q_cmd)
 
     def predict_pose(self, q, *, extrapolate: bool = False) -> np.ndarray:
-        """Pose (4, 4) or (k, 4, 4) in the base frame that the real robot reaches when commanded q."""
-        self.robot.check_range(q, extrapolate)
-        return self.robot.predict_pose(q)
+        """Pose (4, 4) or (k, 4, 4) in the base frame that the real robot reaches when commanded the controller
+        joints q (an empty (0, n) q gives (0, 4, 4))."""
+        self.check_range(q, extrapolate)
+        return self.robot.predict_pose(self.to_model(q))
 
 
 def load(path) -> Compensator:

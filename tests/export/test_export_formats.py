@@ -44,7 +44,8 @@ def test_urscript_newton_matches_correct(features, odd):
 
 
 def test_urscript_paper_method_matches_eq_24():
-    robot = hybrid("ur10", seed=4)
+    nominal = load("ur10").model
+    robot = CalibratedRobot(nominal, nominal, make_network(nominal, ("q", "sincos", "gravity"), seed=4), method="ann")
     q = sample(robot, 10, seed=9)
     got = run_script(urscript_text(robot, method="paper"), q)
     np.testing.assert_allclose(got, robot.correct(q, method="paper"), atol=1e-12, rtol=0)

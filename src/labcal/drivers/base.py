@@ -21,6 +21,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from labcal.robots.joint_map import JointMap
+
 # --------------------------------------------------------------------------------------------------------------
 # Errors. Library exceptions (RuntimeError from ur-rtde, SerialException from pyserial) never escape a driver.
 
@@ -109,11 +111,15 @@ class SafetyLimits:
     """Joint limits and motion caps, checked before any motion is sent to a robot.
 
     joint_limits: (n, 2) [lo, hi] per joint (rad or m); max_speed in rad/s; max_acceleration in rad/s².
+    joint_map: when set, the robot is commanded in controller joints while ``joint_limits`` are the robot file's
+    (model joints): a target is converted (q_model = M q + b) and the model joints are checked, so a coupled joint's
+    limit is the model's, not a box in controller joints.
     """
 
     joint_limits: np.ndarray
     max_speed: float = 1.0
     max_acceleration: float = 1.4
+    joint_map: JointMap | None = None
 
     def check_motion(self, q: np.ndarray, speed: float, acceleration: float) -> np.ndarray:
         """Return q as a float array if the motion is allowed, else raise MotionRejected naming the cause."""
@@ -123,9 +129,15 @@ class SafetyLimits:
             raise MotionRejected(f"target has {q.shape} joint values, the robot has {limits.shape[0]} joints")
         if not np.all(np.isfinite(q)):
             raise MotionRejected(f"target contains non-finite joint values: {q.tolist()}")
-        for j, (value, (lo, hi)) in enumerate(zip(q, limits, strict=True)):
+        mapped = self.joint_map is not None and not self.joint_map.is_identity
+        checked = self.joint_map.to_model(q) if mapped else q
+        what = "model joint" if mapped else "joint"
+        for j, (value, (lo, hi)) in enumerate(zip(checked, limits, strict=True)):
             if not lo <= value <= hi:
-                raise MotionRejected(f"joint {j + 1} target {value:.6f} is outside its limits [{lo:.6f}, {hi:.6f}]")
+                raise MotionRejected(
+                    f"{what} {j + 1} target {value:.6f} is outside its limits [{lo:.6f}, {hi:.6f}]"
+                    + (f" (controller joints {np.round(q, 6).tolist()} through the joint map)" if mapped else "")
+                )
         if not (np.isfinite(speed) and 0 < speed <= self.max_speed):
             raise MotionRejected(f"speed {speed} rad/s is outside (0, {self.max_speed}] rad/s")
         if not (np.isfinite(acceleration) and 0 < acceleration <= self.max_acceleration):

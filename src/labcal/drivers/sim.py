@@ -7,6 +7,11 @@ requested samples with :func:`labcal.drivers.base.average_frames`. Repeatability
 any, is drawn once per motion (the robot lands slightly differently each time it moves, not each time it is
 looked at), so the true points are computed once per move and only the tracker noise is drawn per frame.
 
+Controller joints: with a ``joint_map`` (the robot file's :class:`~labcal.robots.joint_map.JointMap`), the
+simulated robot is a controller whose joints are not the model's: ``move_joints`` takes controller joints,
+``joint_positions`` / ``state`` report them, and the actual robot moves to ``q_model = M q + b``. Joint limits stay
+the model's (checked after conversion); speed and acceleration caps apply to the controller joints.
+
 Seeded: the same actual robot, targets, seed, faults and sequence of calls give the same measurements. Faults
 draw from their own random stream, so switching a fault on does not change the noise of the other frames.
 
@@ -42,6 +47,7 @@ from labcal.drivers.base import (
     SafetyLimits,
     average_frames,
 )
+from labcal.robots.joint_map import JointMap
 from labcal.simulation import ActualRobot
 
 DROPOUT_MODES = ("nan", "reject")
@@ -100,8 +106,9 @@ class SimRig:
     actual: the true robot; targets: (3, 3) m, target points in the tool frame (rows t1, t2, t3); seed: seeds
     the tracker noise, repeatability and random faults; motion_time: seconds per move (float), or
     ``"realistic"`` for a trapezoidal-profile time of the slowest joint from its distance, the move's speed and
-    acceleration; q0: (n,) initial joint values (default: zeros clipped into the limits); max_speed (rad/s) and
-    max_acceleration (rad/s²): the robot's motion caps.
+    acceleration; q0: (n,) initial joint values, controller joints (default: the model's zeros clipped into the
+    limits); max_speed (rad/s) and max_acceleration (rad/s²): the robot's motion caps; joint_map: controller → model
+    joints (None: the same), e.g. ``spec.joint_map`` of the robot file.
     """
 
     def __init__(
@@ -115,6 +122,7 @@ class SimRig:
         q0=None,
         max_speed: float = 1.0,
         max_acceleration: float = 1.4,
+        joint_map: JointMap | None = None,
     ) -> None:
         targets = np.asarray(targets, dtype=float)
         if targets.shape != (3, 3) or not np.all(np.isfinite(targets)):
@@ -127,11 +135,17 @@ class SimRig:
         self.motion_time = motion_time
         self.faults = faults or SimFaults()
         model = actual.nominal
-        self.safety = SafetyLimits(np.array(model.limits), max_speed=max_speed, max_acceleration=max_acceleration)
-        q = np.zeros(model.n) if q0 is None else np.asarray(q0, dtype=float)
+        if joint_map is not None and joint_map.n != model.n:
+            raise ValueError(f"joint_map is for {joint_map.n} joints, the robot has {model.n}")
+        # the identity map is no map: nothing is converted and the joints reported are exactly the ones commanded
+        self.joint_map = None if joint_map is None or joint_map.is_identity else joint_map
+        self.safety = SafetyLimits(
+            np.array(model.limits), max_speed=max_speed, max_acceleration=max_acceleration, joint_map=self.joint_map
+        )
+        q = np.zeros(model.n) if q0 is None else self._to_model(np.asarray(q0, dtype=float))
         if q.shape != (model.n,):
             raise ValueError(f"q0 must have shape ({model.n},), got {q.shape}")
-        self._q = np.clip(q, model.limits[:, 0], model.limits[:, 1])
+        self._q = np.clip(q, model.limits[:, 0], model.limits[:, 1])  # model joints: what the actual robot is at
         self._noise_rng = np.random.default_rng([self.seed, 0])
         self._fault_rng = np.random.default_rng([self.seed, 1])
         self._motion_rng = np.random.default_rng([self.seed, 2])
@@ -151,9 +165,18 @@ class SimRig:
 
     @property
     def q(self) -> np.ndarray:
-        """(n,) current joint values."""
+        """(n,) current joint values as the controller reports them (controller joints)."""
+        with self._lock:
+            return self._q.copy() if self.joint_map is None else self.joint_map.to_controller(self._q)
+
+    @property
+    def q_model(self) -> np.ndarray:
+        """(n,) current model joint values (what the actual robot's kinematics see)."""
         with self._lock:
             return self._q.copy()
+
+    def _to_model(self, q: np.ndarray) -> np.ndarray:
+        return q if self.joint_map is None else self.joint_map.to_model(q)
 
     def true_points(self) -> np.ndarray:
         """(3, 3) m: the targets' true positions in the base frame at the current pose."""
@@ -167,9 +190,10 @@ class SimRig:
         return time.monotonic() - self._t0
 
     def _move_duration(self, q: np.ndarray, speed: float, acceleration: float) -> float:
+        """Seconds to move to the controller joints q (the motors' distance: controller joints)."""
         if self.motion_time != "realistic":
             return float(self.motion_time)
-        d = float(np.max(np.abs(q - self._q))) if q.size else 0.0
+        d = float(np.max(np.abs(q - self.q))) if q.size else 0.0
         # Trapezoidal profile; a short move never reaches full speed (triangular profile).
         if d > speed**2 / acceleration:
             return d / speed + speed / acceleration
@@ -195,12 +219,13 @@ class SimRobot:
             raise DriverError("the simulated robot is closed")
         q = self.limits.check_motion(q, speed, acceleration)
         rig = self.rig
+        q_ctrl, q = q, rig._to_model(q)  # the actual robot moves in model joints
         with rig._lock:
             if rig.protective_stop:
                 raise ProtectiveStop("the robot is in a protective stop; clear it before moving")
             rig.moves += 1
             k = rig.moves
-            duration = rig._move_duration(q, speed, acceleration)
+            duration = rig._move_duration(q_ctrl, speed, acceleration)
         if duration > 0:
             time.sleep(duration)
         with rig._lock:

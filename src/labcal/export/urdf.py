@@ -44,7 +44,17 @@ def urdf_model(model: LocalPOEModel) -> LocalPOEModel:
 
 
 def urdf_text(robot: CalibratedRobot, provenance: dict | None = None) -> str:
-    """The URDF document of robot.model (the identified frames)."""
+    """The URDF document of robot.model (the identified frames).
+
+    Refused for a robot with a joint map: a URDF's joint values are the model's, and whatever reads it (a ROS
+    controller stack, a simulator) would feed it the controller's joints, silently wrong for a coupled joint.
+    """
+    if robot.joint_map is not None:
+        raise ValueError(
+            "URDF export of a robot with a joint map (controller joints are not the model's joints) is refused: a "
+            "URDF has no way to say so, and a controller feeding it its own joints would get wrong poses; use the "
+            "json/npz compensator, which converts controller joints"
+        )
     notes = [
         f"labcal calibrated URDF: method {robot.method}",
         f"nominal robot {robot.nominal.name or '?'} sha256 {model_hash(robot.nominal)}",

@@ -395,8 +395,16 @@ def urscript_text(
         raise ValueError(f"iterations must be >= 1, got {iterations}")
     n = robot.n
     net = robot.network
+    if robot.joint_map is not None:
+        raise ValueError(
+            "URScript export of a robot with a joint map (controller joints are not the model's joints) is not "
+            "supported: UR controllers have no coupled or offset joints, so a map means this is not a UR arm; use "
+            "the json/npz compensator, which converts controller joints"
+        )
     if method == "paper" and net is None:
         raise ValueError("method 'paper' (eq. 24) needs a network; this calibration has none")
+    if method == "paper" and (why := robot.network_only_error("paper")):
+        raise ValueError(why)
     if n > 6:
         raise ValueError(
             f"URScript export of a {n}-joint robot is not supported (UR controllers drive 6 joints); "
