@@ -1,0 +1,603 @@
+"""Bad-input table (issue 12 acceptance): every mistake we could think of, fed through the real CLI.
+
+Each case writes its files into a fresh temporary folder and store and runs the commands a user would run —
+``labcal session import … → labcal fit … → labcal export …`` (default options: ``fit`` chooses with ``auto``,
+``export`` without ``--force``) — or the session / compensator command the fault is about. It prints one row per
+case: where the mistake was stopped (``import`` / ``fit`` / ``export`` / the command of a special case / ``NOT
+stopped`` when a compensator came out), the first line of the message, the exit code, and whether a Python
+traceback reached the user.
+
+Expectations: ``must-stop`` — issue 12's independent check: no compensator may come out of a unit slip, identical
+poses or pure noise without ``--force``; ``stop`` — a mistake that should be refused or gated; ``pass`` — good data
+that must go through untouched (no stop, no ``--force``); ``clean-error`` — a fault that must end in a one-line
+error (no traceback) with a non-zero exit code. The verdict column says ``ok``, ``FAIL`` (a must-stop case got
+through, a pass case was stopped, a clean-error case printed a traceback or exited 0) or ``open`` (a ``stop``
+case got through).
+
+Data: a simulated ``ur10`` (``ErrorSpec.default``) measured at 60 random non-singular poses, three targets
+(:data:`labcal.simulation.scenarios.TARGETS`) in a targets TOML in mm, CSV in metres and radians unless the case
+says otherwise; the corruptions come from :mod:`labcal.simulation.scenarios`.
+
+Run: ``python benchmarks/bad_inputs.py [--cases NAME …] [--method auto] [--out FILE]`` or
+``labcal bench bad-inputs``. Each case takes a few seconds to a minute (``fit`` with ``auto``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import signal
+import stat
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from labcal.robots import builtin_path
+from labcal.simulation import ErrorSpec
+from labcal.simulation import scenarios as S
+
+TIMEOUT = 900.0  # s per command: fit with auto on a loaded machine
+MEMORY_LIMIT = 3 * 1024**3  # bytes of address space for a child that might try to allocate without bound
+
+
+def labcal_command() -> list[str]:
+    """The ``labcal`` console script of this interpreter's environment (else ``python -c`` on the same entry)."""
+    script = Path(sys.executable).with_name("labcal")
+    if script.is_file():
+        return [str(script)]
+    return [sys.executable, "-c", "import sys; from labcal.cli.app import main; sys.exit(main())"]
+
+
+@dataclass
+class Outcome:
+    stage: str  # where it was stopped, or "NOT stopped"
+    message: str
+    code: int | None
+    traceback: bool = False
+
+
+@dataclass
+class Run:
+    code: int | None
+    out: str
+    err: str
+
+    @property
+    def traceback(self) -> bool:
+        return "Traceback (most recent call last)" in self.err or "Traceback (most recent call last)" in self.out
+
+    def first_line(self) -> str:
+        """The line a user reads first: the first 'error…' line, else the first stderr line, else stdout's last."""
+        lines = [ln.strip() for ln in (self.err + "\n" + self.out).splitlines() if ln.strip()]
+        for i, ln in enumerate(lines):
+            low = ln.lower()
+            if low.startswith(("error", "refus", "warning")) or " error:" in low:
+                # A summary line ("3 sanity checks failed") is followed by the named checks: show the first.
+                detail = lines[i + 1] if i + 1 < len(lines) and lines[i + 1].startswith("[") else ""
+                return (ln + (" | " + detail if detail else ""))[:220]
+        errs = [ln.strip() for ln in self.err.splitlines() if ln.strip()]
+        if errs:
+            return errs[-1][:160] if self.traceback else errs[0][:160]
+        outs = [ln.strip() for ln in self.out.splitlines() if ln.strip()]
+        return outs[-1][:160] if outs else ""
+
+
+def _limit_memory() -> None:
+    resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT, MEMORY_LIMIT))
+
+
+def run(args: list[str], *, cwd: Path, timeout: float = TIMEOUT, env: dict | None = None) -> Run:
+    """Run one labcal command (bounded in time and memory); never raises."""
+    try:
+        p = subprocess.run(
+            labcal_command() + args, cwd=cwd, capture_output=True, text=True, timeout=timeout,
+            env={**os.environ, "COLUMNS": "200", **(env or {})}, preexec_fn=_limit_memory,
+        )  # fmt: skip
+    except subprocess.TimeoutExpired as e:
+        return Run(None, str(e.stdout or ""), f"killed after {timeout:g} s (timeout)")
+    return Run(p.returncode, p.stdout, p.stderr)
+
+
+def python(code: str, *, cwd: Path, timeout: float = 300.0) -> Run:
+    """Run a Python snippet with this interpreter (for the compensator API cases)."""
+    try:
+        p = subprocess.run(
+            [sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, timeout=timeout,
+            preexec_fn=_limit_memory,
+        )  # fmt: skip
+    except subprocess.TimeoutExpired:
+        return Run(None, "", f"killed after {timeout:g} s (timeout)")
+    return Run(p.returncode, p.stdout, p.stderr)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# files
+def write_targets(path: Path, targets: np.ndarray) -> Path:
+    rows = ", ".join("[" + ", ".join(f"{v * 1e3:.6f}" for v in t) + "]" for t in targets)
+    path.write_text(f'unit = "mm"\npoints = [{rows}]\n')
+    return path
+
+
+def write_csv(path: Path, q: np.ndarray, points: np.ndarray, *, length: float = 1.0, angle: float = 1.0) -> Path:
+    """CSV with q1..qn and t1_x … t3_z; ``length`` and ``angle`` multiply the values (units of the file)."""
+    n = q.shape[1]
+    head = [f"q{j + 1}" for j in range(n)] + [f"t{i + 1}_{a}" for i in range(3) for a in "xyz"]
+    lines = [",".join(head)]
+    for qi, pi in zip(q * angle, points.reshape(len(points), 9) * length, strict=True):
+        lines.append(",".join(repr(float(v)) for v in (*qi, *pi)))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def robot_file_scaled(path: Path, *, lengths: float = 1.0, degrees: bool = False) -> Path:
+    """The built-in ur10 file with its lengths multiplied (mm) or its angles written in degrees."""
+    import re
+
+    text = builtin_path("ur10").read_text()
+
+    def scale(m: re.Match) -> str:
+        key, value = m.group(1), float(m.group(2))
+        if key in ("a", "d"):
+            value *= lengths
+        if key in ("alpha", "theta") and degrees:
+            value = np.degrees(value)
+        return f"{key} = {value!r}"
+
+    text = re.sub(r"^(a|d|alpha|theta) = ([-0-9.e]+)", scale, text, flags=re.M)
+    if degrees:
+        text = re.sub(r"limits = \[([-0-9.e]+), ([-0-9.e]+)\]",
+                      lambda m: f"limits = [{np.degrees(float(m.group(1)))!r}, {np.degrees(float(m.group(2)))!r}]",
+                      text)  # fmt: skip
+    path.write_text(text)
+    return path
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the pipeline a user runs
+def pipeline(
+    tmp: Path,
+    csv: Path,
+    targets: Path | None,
+    import_args: list[str] = (),  # type: ignore[assignment]
+    *,
+    robot: str = "ur10",
+    method: str = "auto",
+    out_name: str = "compensator.json",
+) -> tuple[Outcome, dict]:
+    """import → fit → export (json, no --force). Returns the outcome and the refs/paths for follow-up steps."""
+    store = tmp / "store"
+    cmd = ["session", "import", str(csv), "--robot", robot, "--store", str(store), *import_args]
+    if targets is not None:
+        cmd += ["--targets", str(targets)]
+    r = run(cmd, cwd=tmp)
+    if r.code != 0:
+        return Outcome("import", r.first_line(), r.code, r.traceback), {}
+    ref = r.out.strip().splitlines()[-1].strip()
+    ctx = {"ref": ref, "store": store, "import": r}
+    r = run(["fit", ref, "--store", str(store), "--method", method], cwd=tmp)
+    ctx["fit"] = r
+    if r.code != 0:
+        return Outcome("fit", r.first_line(), r.code, r.traceback), ctx
+    out = tmp / out_name
+    session = ref.split("@")[0]
+    r = run(["export", session, "--format", "json", "--out", str(out), "--store", str(store)], cwd=tmp)
+    ctx["export"], ctx["out"] = r, out
+    if r.code != 0:
+        return Outcome("export", r.first_line(), r.code, r.traceback), ctx
+    fit_msg = ctx["fit"].first_line() if "warning" in ctx["fit"].first_line().lower() else ""
+    return Outcome("NOT stopped", fit_msg or f"compensator written ({out.name})", 0, False), ctx
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the cases
+@dataclass
+class Case:
+    name: str
+    expect: str  # must-stop | stop | pass | clean-error | info
+    what: str
+    run: Callable[[Path, argparse.Namespace], Outcome]
+
+
+def _base(seed: int = 0, k: int = 60) -> S.Scenario:
+    return S.good("ur10", k, errors=ErrorSpec.default(), seed=seed)
+
+
+def _data_case(make: Callable[[], S.Scenario], *, length=1.0, angle=1.0, import_args=(), robot="ur10", targets=None):
+    """A case that writes a scenario's CSV (values × length / × angle) and runs the pipeline."""
+
+    def go(tmp: Path, args) -> Outcome:
+        scn = make()
+        q = scn.q if scn.q_controller is None else scn.q_controller
+        csv = write_csv(tmp / "data.csv", q, scn.points, length=length, angle=angle)
+        tgt = write_targets(tmp / "targets.toml", scn.targets if targets is None else targets(scn))
+        rob = robot(tmp) if callable(robot) else robot
+        return pipeline(tmp, csv, tgt, list(import_args), robot=rob, method=args.method)[0]
+
+    return go
+
+
+def _good_then(follow: Callable[[Path, dict, argparse.Namespace], Outcome]):
+    """Run the good pipeline, then a follow-up step on its store / compensator."""
+
+    def go(tmp: Path, args) -> Outcome:
+        scn = _base()
+        csv = write_csv(tmp / "data.csv", scn.q, scn.points)
+        tgt = write_targets(tmp / "targets.toml", scn.targets)
+        outcome, ctx = pipeline(tmp, csv, tgt, method=args.local_method)
+        if outcome.stage != "NOT stopped":
+            return Outcome(f"setup stopped at {outcome.stage}", outcome.message, outcome.code, outcome.traceback)
+        return follow(tmp, ctx, args)
+
+    return go
+
+
+def _export_again(tmp: Path, ctx: dict, args) -> Outcome:
+    session = ctx["ref"].split("@")[0]
+    before = ctx["out"].read_bytes()
+    r = run(["export", session, "--format", "json", "--out", str(ctx["out"]), "--store", str(ctx["store"])], cwd=tmp)
+    kept = ctx["out"].read_bytes() == before
+    stage = "export" if r.code != 0 else "NOT stopped"
+    return Outcome(stage, r.first_line() + ("" if kept else " [file changed]"), r.code, r.traceback)
+
+
+def _export_unwritable(tmp: Path, ctx: dict, args) -> Outcome:
+    locked = tmp / "locked"
+    locked.mkdir()
+    locked.chmod(stat.S_IRUSR | stat.S_IXUSR)
+    try:
+        session = ctx["ref"].split("@")[0]
+        r = run(["export", session, "--format", "json", "--out", str(locked / "c.json"), "--store", str(ctx["store"])],
+                cwd=tmp)  # fmt: skip
+    finally:
+        locked.chmod(stat.S_IRWXU)
+    return Outcome("export" if r.code != 0 else "NOT stopped", r.first_line(), r.code, r.traceback)
+
+
+def _compensator_api(snippet: str):
+    def follow(tmp: Path, ctx: dict, args) -> Outcome:
+        code = f"import json, numpy as np\nfrom labcal import compensator as C\npath = {str(ctx['out'])!r}\n{snippet}"
+        r = python(code, cwd=tmp)
+        stage = "compensator" if (r.code != 0 or "refused" in r.out) else "NOT stopped"
+        msg = r.first_line()
+        return Outcome(stage, msg, r.code, r.traceback)
+
+    return follow
+
+
+_EMPTY = """
+comp = C.load(path)
+out = comp.correct(np.zeros((0, 6)))
+print("returned shape", np.asarray(out).shape)
+"""
+_PAPER = """
+comp = C.load(path)
+try:
+    comp.correct(np.zeros(6) + 0.3, method="paper")
+    print("no error: q returned uncorrected?")
+except Exception as e:
+    print("refused:", type(e).__name__, str(e).splitlines()[0])
+"""
+
+
+def _tamper(field: str, change: str) -> str:
+    return f"""
+data = json.loads(open(path).read())
+{change}
+open(path, "w").write(json.dumps(data))
+try:
+    comp = C.load(path)
+    print("loaded the tampered file: {field} not covered")
+except Exception as e:
+    print("refused:", type(e).__name__, str(e).splitlines()[0])
+"""
+
+
+_TAMPER_RANGES = _tamper(
+    "joint_ranges",
+    """
+def widen(d):
+    for k, v in d.items():
+        if k == "joint_ranges":
+            d[k] = [[-10.0, 10.0] for _ in v]
+            return True
+        if isinstance(v, dict) and widen(v):
+            return True
+    return False
+assert widen(data), "no joint_ranges field in the compensator file"
+""",
+)
+_TAMPER_LENGTH = _tamper(
+    "length_scale",
+    """
+def bump(d):
+    for k, v in d.items():
+        if k == "length_scale":
+            d[k] = float(v) * 2
+            return True
+        if isinstance(v, dict) and bump(v):
+            return True
+    return False
+assert bump(data), "no length_scale field in the compensator file"
+""",
+)
+
+
+def _store_missing(tmp: Path, args) -> Outcome:
+    r = run(["fit", "S@v001", "--store", str(tmp / "no-such-store")], cwd=tmp)
+    return Outcome("fit" if r.code != 0 else "NOT stopped", r.first_line(), r.code, r.traceback)
+
+
+def _store_readonly(tmp: Path, args) -> Outcome:
+    scn = _base()
+    store = tmp / "store"
+    store.mkdir()
+    store.chmod(stat.S_IRUSR | stat.S_IXUSR)
+    try:
+        csv = write_csv(tmp / "data.csv", scn.q, scn.points)
+        tgt = write_targets(tmp / "targets.toml", scn.targets)
+        r = run(["session", "import", str(csv), "--robot", "ur10", "--targets", str(tgt), "--store", str(store)],
+                cwd=tmp)  # fmt: skip
+    finally:
+        store.chmod(stat.S_IRWXU)
+    return Outcome("import" if r.code != 0 else "NOT stopped", r.first_line(), r.code, r.traceback)
+
+
+def _huge_poses(tmp: Path, args) -> Outcome:
+    tgt = write_targets(tmp / "targets.toml", S.TARGETS)
+    r = run(["session", "new", "--robot", "ur10", "--targets", str(tgt), "--poses", "100000000",
+             "--store", str(tmp / "store")], cwd=tmp, timeout=120)  # fmt: skip
+    if r.code is None:
+        return Outcome("NOT stopped", "still running after 120 s (killed by the benchmark)", None, r.traceback)
+    return Outcome("session new" if r.code != 0 else "NOT stopped", r.first_line(), r.code, r.traceback)
+
+
+def _journal_path(store: Path) -> Path | None:
+    found = sorted(store.glob("*/journal.jsonl"))
+    return found[0] if found else None
+
+
+def _interrupted_session(tmp: Path, poses: int = 40) -> tuple[Run, Path]:
+    """Start ``session new`` and send SIGINT (Ctrl-C) once a few measurements are journalled."""
+    tgt = write_targets(tmp / "targets.toml", S.TARGETS)
+    store = tmp / "store"
+    cmd = [*labcal_command(), "session", "new", "--robot", "ur10", "--targets", str(tgt), "--poses", str(poses),
+           "--store", str(store)]  # fmt: skip
+    p = subprocess.Popen(cmd, cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env={**os.environ, "COLUMNS": "200"}, preexec_fn=_limit_memory)  # fmt: skip
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and p.poll() is None:
+        j = _journal_path(store)
+        if j is not None and j.is_file() and len(j.read_text().splitlines()) >= 6:
+            break
+        time.sleep(0.05)
+    if p.poll() is None:
+        p.send_signal(signal.SIGINT)
+    try:
+        out, err = p.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        out, err = p.communicate()
+    return Run(p.returncode, out, err), store
+
+
+def _ctrl_c(tmp: Path, args) -> Outcome:
+    r, _ = _interrupted_session(tmp, poses=400)
+    stage = "Ctrl-C" if r.code == 130 else ("NOT stopped" if r.code == 0 else "Ctrl-C (exit ≠ 130)")
+    return Outcome(stage, r.first_line(), r.code, r.traceback)
+
+
+def _corrupt_resume(tmp: Path, args) -> Outcome:
+    r, store = _interrupted_session(tmp, poses=40)
+    journal = _journal_path(store)
+    if journal is None:
+        return Outcome("setup failed", "no journal after the interrupted session", r.code, r.traceback)
+    lines = journal.read_text().splitlines()
+    measured = [i for i, ln in enumerate(lines) if '"measurement"' in ln]
+    if len(measured) < 3:
+        return Outcome("setup failed", f"only {len(measured)} measurements before Ctrl-C", r.code, r.traceback)
+    middle = measured[len(measured) // 2]
+    lines[middle] = lines[middle][: len(lines[middle]) // 2] + "#corrupt"
+    journal.write_text("\n".join(lines) + "\n")
+    before = len(lines)
+    session = journal.parent.name
+    r = run(["session", "resume", session, "--store", str(store)], cwd=tmp, timeout=600)
+    grew = len(journal.read_text().splitlines()) - before
+    note = f" [journal grew by {grew} lines: the robot moved]" if grew > 0 else " [no motion]"
+    return Outcome("resume" if r.code != 0 and grew <= 0 else "NOT stopped", r.first_line() + note, r.code,
+                   r.traceback)  # fmt: skip
+
+
+def _coupled_map_robot(tmp: Path) -> str:
+    path = builtin_path("coupled-elbow-6r")
+    return str(path) if path.is_file() else "coupled-elbow-6r"
+
+
+def _coupled_controller(mapped: bool) -> S.Scenario:
+    """Good fanuc-m1000ia data whose joints are the coupled-elbow controller's (the example robot file's map)."""
+    scn = S.good("fanuc-m1000ia", 60, errors=ErrorSpec.default(), seed=0)
+    path = builtin_path("coupled-elbow-6r")
+    if path.is_file():
+        from labcal.robots import load
+
+        q_ctrl = load(str(path)).joints.to_controller(scn.q)
+    else:  # the example file is not there yet: the plain coupled elbow (model J3 = J2 + J3)
+        q_ctrl = scn.q @ np.linalg.inv(S.COUPLED_ELBOW).T
+    return scn.changed("coupled", "controller joints", q_controller=q_ctrl)
+
+
+def _one_outlier() -> S.Scenario:
+    scn = _base()
+    p = scn.points.copy()
+    p[7] *= 1000.0
+    return scn.changed("one-outlier", "row 7 in mm", points=p)
+
+
+def _half_duplicated() -> S.Scenario:
+    scn = _base(k=30)
+    return scn.subset(np.repeat(np.arange(30), 2))
+
+
+def _nan_row(tmp: Path, args) -> Outcome:
+    scn = _base()
+    p = scn.points.copy()
+    p[5, 1, 2] = np.nan
+    csv = write_csv(tmp / "data.csv", scn.q, p)
+    return pipeline(tmp, csv, write_targets(tmp / "t.toml", scn.targets), method=args.method)[0]
+
+
+def _tracker_as_base() -> S.Scenario:
+    return S.in_tracker_frame(_base())
+
+
+CASES: list[Case] = [
+    Case("good", "pass", "60 good poses, m / rad, base frame", _data_case(_base)),
+    Case("mm-as-m", "must-stop", "CSV in mm imported as m (points ×1000)", _data_case(_base, length=1000.0)),
+    Case("m-as-mm", "must-stop", "CSV in m imported with --length-unit mm (×0.001)",
+         _data_case(_base, import_args=("--length-unit", "mm"))),
+    Case("inch-slip", "must-stop", "points ×25.4 (inches taken for mm)",
+         _data_case(_base, length=25.4e3, import_args=("--length-unit", "mm"))),
+    Case("deg-as-rad", "must-stop", "joints in degrees imported as radians", _data_case(_base, angle=180 / np.pi)),
+    Case("rad-as-deg", "stop", "joints in radians imported with --angle-unit deg",
+         _data_case(_base, import_args=("--angle-unit", "deg"))),
+    Case("identical-60", "must-stop", "one pose measured 60 times", _data_case(lambda: S.identical_poses("ur10", 60))),
+    Case("few-10", "stop", "only 10 poses", _data_case(lambda: S.few_poses("ur10", 10))),
+    Case("pure-noise", "must-stop", "uniform random points", _data_case(lambda: S.pure_noise(_base(), seed=1))),
+    Case("pure-noise-rigid", "must-stop", "the target triangle at random poses",
+         _data_case(lambda: S.pure_noise(_base(), rigid=True, seed=1))),
+    Case("shuffled-rows", "stop", "points paired with the wrong joints", _data_case(lambda: S.shuffled_rows(_base()))),
+    Case("one-outlier-row", "stop", "one row of 60 in mm (×1000)", _data_case(_one_outlier)),
+    Case("coupled-unconverted", "stop", "coupled-elbow controller joints imported for fanuc-m1000ia (no map)",
+         _data_case(lambda: _coupled_controller(False), robot="fanuc-m1000ia")),
+    Case("coupled-with-map", "pass", "the same controller joints with the coupled-elbow-6r robot file (joint map)",
+         _data_case(lambda: _coupled_controller(True), robot=_coupled_map_robot)),
+    Case("swapped-targets", "stop", "targets t1 and t2 swapped", _data_case(lambda: S.swapped_targets(_base()))),
+    Case("wrong-targets", "stop", "targets file of another tool", _data_case(lambda: S.wrong_targets(_base()))),
+    Case("tracker-as-base", "stop", "tracker-frame points imported as --frame base", _data_case(_tracker_as_base)),
+    Case("tracker-frame", "pass", "tracker-frame points imported with --frame tracker",
+         _data_case(_tracker_as_base, import_args=("--frame", "tracker"))),
+    Case("sweeps-singular", "info", "36 poses in single-joint sweeps, most with q5 ≈ 0 (honest but hard)",
+         _data_case(lambda: S.sweeps("ur10", 36, 4))),
+    Case("duplicated-half", "info", "30 poses each measured twice (duplicates reported, kept in one fold)",
+         _data_case(_half_duplicated)),
+    Case("nan-in-row", "stop", "a NaN coordinate in row 5", _nan_row),
+    Case("robot-in-mm", "stop", "robot file with lengths in mm",
+         _data_case(_base, robot=lambda tmp: str(robot_file_scaled(tmp / "ur10-mm.toml", lengths=1000.0)))),
+    Case("robot-in-deg", "stop", "robot file with angles in degrees",
+         _data_case(_base, robot=lambda tmp: str(robot_file_scaled(tmp / "ur10-deg.toml", degrees=True)))),
+    Case("export-existing", "stop", "export over an existing file without --force", _good_then(_export_again)),
+    Case("export-unwritable", "clean-error", "export into a read-only folder", _good_then(_export_unwritable)),
+    Case("store-missing", "clean-error", "fit with --store pointing nowhere", _store_missing),
+    Case("store-readonly", "clean-error", "import into a read-only store", _store_readonly),
+    Case("poses-1e8", "clean-error", "session new --poses 100000000", _huge_poses),
+    Case("ctrl-c", "clean-error", "Ctrl-C during session new (exit 130 expected)", _ctrl_c),
+    Case("journal-corrupt-resume", "clean-error", "corrupt middle journal line, then session resume", _corrupt_resume),
+    Case("correct-empty", "info", "compensator.correct(np.zeros((0, 6)))", _good_then(_compensator_api(_EMPTY))),
+    Case("paper-on-local-poe", "stop", 'correct(q, method="paper") on a local-POE compensator',
+         _good_then(_compensator_api(_PAPER))),
+    Case("tampered-ranges", "stop", "compensator file with widened joint_ranges",
+         _good_then(_compensator_api(_TAMPER_RANGES))),
+    Case("tampered-length-scale", "stop", "compensator file with a changed length_scale",
+         _good_then(_compensator_api(_TAMPER_LENGTH))),
+]  # fmt: skip
+
+
+def verdict(case: Case, o: Outcome) -> str:
+    stopped = o.stage != "NOT stopped" and not o.stage.startswith("setup")
+    if o.stage.startswith("setup"):
+        return "FAIL (setup)"
+    if case.expect == "pass":
+        return "ok" if not stopped else "FAIL"
+    if case.expect == "must-stop":
+        return "ok" if stopped else "FAIL"
+    if case.expect == "clean-error":
+        return "ok" if (stopped and o.code not in (0, None) and not o.traceback) else "FAIL"
+    if case.expect == "stop":
+        return ("ok" if not o.traceback else "traceback") if stopped else "open"
+    return "-"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+
+    def line(r):
+        return "  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
+
+    return [line(header), "  ".join("-" * w for w in widths), *[line(r) for r in rows]]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="bad-inputs", description=__doc__.split("\n\n")[0])
+    p.add_argument(
+        "--cases", nargs="+", help="run only these cases (default: all): " + ", ".join(c.name for c in CASES)
+    )
+    p.add_argument("--method", default="auto", help="fit method of the data cases (default auto, what a user gets)")
+    p.add_argument("--local-method", default="local-poe", help="fit method of the setup of export/compensator cases")
+    p.add_argument("--out", help="also write the table to this file")
+    p.add_argument("--note", help="a line printed under the command (e.g. which commit was measured)")
+    p.add_argument("--json", help="also write the raw outcomes as JSON here")
+    args = p.parse_args(argv)
+    cases = [c for c in CASES if not args.cases or c.name in args.cases]
+    unknown = set(args.cases or ()) - {c.name for c in CASES}
+    if unknown:
+        p.error(f"unknown case(s) {sorted(unknown)}")
+    out: list[str] = []
+
+    def say(line: str = "") -> None:
+        print(line, flush=True)
+        out.append(line)
+
+    say("bad-inputs: every mistake through the CLI (import → fit → export, no --force unless the case says so)")
+    say(f"command: python benchmarks/bad_inputs.py {' '.join(argv if argv is not None else sys.argv[1:])}".rstrip())
+    if args.note:
+        say(f"note: {args.note}")
+    rows, raw = [], []
+    started = time.perf_counter()
+    for case in cases:
+        t = time.perf_counter()
+        tmp = Path(tempfile.mkdtemp(prefix=f"labcal-bad-{case.name}-"))
+        try:
+            o = case.run(tmp, args)
+        except Exception as err:  # a broken case is reported, the table goes on
+            o = Outcome("setup failed", f"{type(err).__name__}: {err}".splitlines()[0][:160], None)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        v = verdict(case, o)
+        code = "-" if o.code is None else str(o.code)
+        rows.append([case.name, case.expect, o.stage, code, "yes" if o.traceback else "", v, o.message])
+        raw.append({"case": case.name, "what": case.what, "expect": case.expect, "stage": o.stage, "code": o.code,
+                    "traceback": o.traceback, "verdict": v, "message": o.message})  # fmt: skip
+        print(f"  {case.name}: {o.stage} (exit {code}, {time.perf_counter() - t:.0f} s) {o.message}", flush=True)
+    say("")
+    for line in _table(["case", "expect", "stopped at", "exit", "traceback", "verdict", "message (first line)"], rows):
+        say(line)
+    say("")
+    for c in cases:
+        say(f"  {c.name}: {c.what}")
+    counts = {v: sum(r[5] == v for r in rows) for v in ("ok", "FAIL", "open", "traceback", "-")}
+    stopped = sum(r[2] != "NOT stopped" for r in rows)
+    say("")
+    say(
+        f"{len(rows)} cases: {stopped} stopped; verdicts ok {counts['ok']}, FAIL {counts['FAIL']}, "
+        f"open {counts['open']}, traceback {counts['traceback']}, info {counts['-']} "
+        f"({time.perf_counter() - started:.0f} s)"
+    )
+    must = [r for r in rows if r[1] == "must-stop"]
+    say(
+        f"issue 12 independent check: must-stop cases stopped {sum(r[5] == 'ok' for r in must)}/{len(must)}; "
+        f"good file through untouched: {'yes' if any(r[0] == 'good' and r[5] == 'ok' for r in rows) else 'NO'}"
+    )
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text("\n".join(out) + "\n")
+    if args.json:
+        Path(args.json).write_text(json.dumps(raw, indent=1) + "\n")
+    return 0

@@ -1,0 +1,188 @@
+"""An independent plain least-squares calibration: the measuring stick of the robustness benchmark.
+
+Written for the benchmark only, with no labcal calibration code: numpy for the kinematics, scipy's
+``least_squares`` for the fit. It takes the robot's nominal frames (a :class:`LocalPOEModel` is only read for its
+frames, twists and joint types) and fits a **global POE** model on every row it is given:
+
+    T(q) = exp(ξ̂_1 q_1) · … · exp(ξ̂_n q_n) · M,      p_i(q) = T_tb · T(q) · t_i
+
+ξ_j: the joint twists in the base frame (revolute: unit axis ω and moment v ⟂ ω; prismatic: unit direction),
+M: the tool pose at q = 0, T_tb: the base's pose in the tracker frame (identity and not fitted for base-frame data),
+t_i: the targets in the tool frame. Joint offsets need no parameter: exp(ξ̂_j δq_j) moves through the following
+twists into M. The residuals are the measured minus predicted target points (m) of every row, plus a 1e-6 ridge on
+the parameter changes so the directions the normalisation removes (axis length, moment along the axis) stay put.
+Tracker-frame data start with T_tb from a rigid fit of the nominal points to the measured ones and a first fit of
+M and T_tb alone (the tool offset of a probe can be far from the nominal flange).
+
+Example::
+
+    >>> from labcal.robots import load
+    >>> model = load("ur10").model
+    >>> q = np.random.default_rng(0).uniform(-1, 1, (5, 6))
+    >>> bool(np.allclose(GlobalPOE(model).fk(GlobalPOE(model).x0(), q), model.fk(q)))
+    True
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+RIDGE = 1e-6
+
+
+def _skew(w: np.ndarray) -> np.ndarray:
+    W = np.zeros((*w.shape[:-1], 3, 3))
+    W[..., 0, 1], W[..., 0, 2], W[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    W[..., 1, 0], W[..., 2, 0], W[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    return W
+
+
+def exp_twist(v: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(…, 4, 4) exp of twists (v, ω) given as (…, 3) arrays (Rodrigues; any angle |ω|)."""
+    th = np.linalg.norm(w, axis=-1)[..., None, None]
+    W = _skew(w)
+    W2 = W @ W
+    small = th < 1e-9
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th**2 / 6, np.sin(ths) / ths)
+    b = np.where(small, 0.5 - th**2 / 24, (1 - np.cos(ths)) / ths**2)
+    c = np.where(small, 1.0 / 6 - th**2 / 120, (ths - np.sin(ths)) / ths**3)
+    eye = np.eye(3)
+    T = np.zeros((*w.shape[:-1], 4, 4))
+    T[..., :3, :3] = eye + a * W + b * W2
+    T[..., :3, 3] = ((eye + b * W + c * W2) @ v[..., None])[..., 0]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def _adjoint(T: np.ndarray) -> np.ndarray:
+    R, p = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3], A[3:, 3:], A[:3, 3:] = R, R, _skew(p) @ R
+    return A
+
+
+def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """(4, 4) rigid T minimising Σ|T·src − dst|² over (m, 3) point sets."""
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, cd - R @ cs
+    return T
+
+
+@dataclass
+class GlobalPOE:
+    """The nominal global-POE parameters of a model: base-frame twists (n, 6) as (v, ω) and M (4, 4)."""
+
+    twists: np.ndarray
+    M0: np.ndarray
+    revolute: np.ndarray
+
+    def __init__(self, model) -> None:
+        T = np.eye(4)
+        twists = []
+        for j in range(model.n):
+            T = T @ model.frames[j]
+            twists.append(_adjoint(T) @ np.asarray(model.twists[j], float))
+        self.twists = np.array(twists)
+        self.M0 = T @ model.frames[model.n]
+        self.revolute = np.array([t == "revolute" for t in model.joint_types])
+
+    @property
+    def n(self) -> int:
+        return len(self.twists)
+
+    def x0(self) -> np.ndarray:
+        """The parameter vector of the nominal model: 6 per joint (δv, δω), 6 for M."""
+        return np.zeros(6 * self.n + 6)
+
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d = x[: 6 * self.n].reshape(self.n, 6)
+        xi = self.twists + d
+        v, w = xi[:, :3].copy(), xi[:, 3:].copy()
+        for j in range(self.n):
+            if self.revolute[j]:
+                w[j] /= np.linalg.norm(w[j])
+                v[j] -= (v[j] @ w[j]) * w[j]  # a revolute joint has zero pitch
+            else:
+                v[j] /= np.linalg.norm(v[j])
+                w[j] = 0.0
+        dm = x[6 * self.n : 6 * self.n + 6]
+        M = self.M0 @ exp_twist(dm[:3], dm[3:])
+        return np.concatenate([v, w], axis=1), M
+
+    def fk(self, x: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """(k, 4, 4) tool poses in the base frame for parameters x and joints q (k, n)."""
+        xi, M = self.unpack(x)
+        q = np.atleast_2d(q)
+        T = np.broadcast_to(np.eye(4), (q.shape[0], 4, 4))
+        for j in range(self.n):
+            T = T @ exp_twist(xi[j, :3] * q[:, j, None], xi[j, 3:] * q[:, j, None])
+        return T @ M
+
+
+@dataclass
+class PlainFit:
+    """A fitted plain-LSQ model: predict target points (k, m, 3) in the data's frame."""
+
+    poe: GlobalPOE
+    x: np.ndarray
+    T_tb: np.ndarray
+    cost: float
+    nfev: int
+
+    def predict_points(self, q: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        T = self.T_tb @ self.poe.fk(self.x, q)
+        return np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
+
+
+def _points(poe: GlobalPOE, x: np.ndarray, T_tb: np.ndarray, q: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    T = T_tb @ poe.fk(x, q)
+    return np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
+
+
+def fit_plain(model, q: np.ndarray, points: np.ndarray, targets: np.ndarray, frame: str = "base") -> PlainFit:
+    """Fit the global POE model (and T_tb for tracker-frame data) to every row by nonlinear least squares."""
+    from scipy.optimize import least_squares  # only the benchmark needs scipy here
+
+    poe = GlobalPOE(model)
+    q, points, targets = np.asarray(q, float), np.asarray(points, float), np.asarray(targets, float)
+    tracker = frame == "tracker"
+    x = poe.x0()
+    p = len(x)
+    T0 = np.eye(4)
+    if tracker:
+        nominal = _points(poe, x, np.eye(4), q, targets)
+        T0 = kabsch(nominal.reshape(-1, 3), points.reshape(-1, 3))
+
+    def split(z):
+        xx = z[:p]
+        if not tracker:
+            return xx, T0
+        d = z[p:]
+        return xx, exp_twist(d[:3], d[3:]) @ T0
+
+    def residual(z):
+        xx, T_tb = split(z)
+        r = (_points(poe, xx, T_tb, q, targets) - points).ravel()
+        return np.concatenate([r, RIDGE * z])
+
+    z = np.zeros(p + (6 if tracker else 0))
+    if tracker:
+        # Tool and tracker pose first, with the joints nominal: a probe can sit far from the nominal flange.
+        free = np.r_[np.arange(6 * poe.n, p), np.arange(p, p + 6)]
+
+        def partial(y):
+            zz = z.copy()
+            zz[free] = y
+            return residual(zz)
+
+        z[free] = least_squares(partial, z[free], method="lm", xtol=1e-12, ftol=1e-12).x
+    sol = least_squares(residual, z, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=200 * len(z))
+    xx, T_tb = split(sol.x)
+    return PlainFit(poe, xx, T_tb, float(sol.cost), int(sol.nfev))
