@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import StoreOption, metrics_table, out, store_of, user_errors
+from labcal.cli.common import StoreOption, metrics_table, out, print_gates, store_of, targets_table, user_errors
 
 
 @user_errors
@@ -20,6 +20,12 @@ def fit(
     store: Path | None = StoreOption,
 ) -> None:
     """Fit a calibration, print its metrics table (mm, degrees) and store it; prints the fit id last.
+
+    The table shows the tool-pose error and, beside it, the distance error of every measured target point (a
+    targets file that does not match the data shows up there, not in the pose error). Every warning of the fit
+    (rank deficiency, over-fitting, rows dropped, worse than the registered nominal, large corrections, point
+    residuals …) is printed on stderr as `WARNING [code] …` and stored with the fit; `labcal export` refuses a
+    fit with warnings unless --force.
 
     Examples:
 
@@ -38,6 +44,11 @@ def fit(
     title = (
         f"{r.chosen} on {', '.join(outcome.refs)} (seed {seed}; rows train {r.n_train}, val {r.n_val}, test {r.n_test})"
     )
-    out.print(metrics_table(r.metrics, title))
+    metrics = outcome.metrics or r.metrics
+    out.print(metrics_table(metrics, title))
+    per_target = targets_table(metrics)
+    if per_target is not None:
+        out.print(per_target)
+    print_gates(outcome.gates, what=f"fit {outcome.fit_id}")
     out.print(f"stored under {outcome.ref}", markup=False)
     print(outcome.fit_id)

@@ -1,22 +1,93 @@
-"""`labcal export` as a function: write a stored fit in one of the export formats, with provenance."""
+"""`labcal export` as a function: write a stored fit in one of the export formats, with provenance.
+
+Order of checks, all before any work: the format, the output path (an existing file is refused without
+``force``; a missing or unwritable folder is a one-line error), then the fit's warnings (refused without
+``force``; a forced export records ``forced: true`` and the warnings in its provenance). The file is written to a
+temporary file in the same folder and moved into place with ``os.replace``, so a reader never sees half a file and
+an interrupted export leaves the previous file untouched.
+"""
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 from labcal.cli.ops.common import UserError
-from labcal.cli.ops.fitting import load_stored_fit
+from labcal.cli.ops.fitting import info_warnings, load_stored_fit
 from labcal.datasets import SessionStore
 
 
-def export_fit(store: SessionStore, ref: str, fmt: str, out: str | Path, fit_id: str | None = None) -> Path:
-    """Write a stored fit as json | npz | urscript | urdf, with provenance (session, fit id, data hashes)."""
-    from labcal.export import FORMATS, export
+def stored_warnings(meta: dict) -> list[dict]:
+    """The blocking warnings of a stored fit: fit.json's ``warnings``, or for fits stored before the gates
+    existed, the ones their stored diagnostics imply."""
+    if "warnings" in meta:
+        return list(meta.get("warnings") or [])
+    return info_warnings(meta.get("info") or {}, meta.get("chosen"))
+
+
+def check_output(out: str | Path, *, force: bool = False) -> Path:
+    """Refuse an output path that cannot be written, or that exists (without force), before any work."""
+    out = Path(out)
+    parent = out.parent
+    if out.is_dir():
+        raise UserError(f"--out {out} is a folder: give a file name")
+    if not parent.is_dir():
+        what = "is not a folder" if parent.exists() else "does not exist: create it first"
+        raise UserError(f"output folder {parent} {what}")
+    # Try it: os.access says yes to root and to a read-only mount, a file actually created does not lie.
+    try:
+        fd, probe = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".probe", dir=parent)
+    except OSError as e:
+        raise UserError(f"output folder {parent} is not writable ({e.strerror}): choose another --out") from None
+    os.close(fd)
+    os.unlink(probe)
+    if out.exists() and not force:
+        raise UserError(f"{out} already exists: pass --force to replace it (the old file is replaced atomically)")
+    return out
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _one_line(text: str) -> str:
+    # URScript comments and URDF/XML comments take one line and no "--".
+    return " ".join(str(text).split()).replace("--", "- -")
+
+
+def export_fit(
+    store: SessionStore,
+    ref: str,
+    fmt: str,
+    out: str | Path,
+    fit_id: str | None = None,
+    *,
+    force: bool = False,
+) -> Path:
+    """Write a stored fit as json | npz | urscript | urdf, with provenance (session, fit id, data hashes).
+
+    Raises UserError when the output exists (without force), its folder is missing or read-only, or the fit has
+    warnings (without force).
+    """
+    from labcal.export import FORMATS, SUFFIXES, export
 
     if fmt not in FORMATS:
         raise UserError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    out = check_output(out, force=force)
+    if fmt in ("json", "npz") and out.suffix.lower() != SUFFIXES[fmt]:
+        raise UserError(f"a {fmt} export must be written to a path ending in {SUFFIXES[fmt]}, got {out.name!r}")
     stored = load_stored_fit(store, ref, fit_id)
     record = store.load_fit(stored.ref, stored.fit_id, check_files=False)
+    warnings = stored_warnings(stored.meta)
+    if warnings and not force:
+        listed = "; ".join(f"[{w.get('code')}] {w.get('message')}" for w in warnings)
+        raise UserError(
+            f"fit {stored.fit_id} has {len(warnings)} warning(s) and is not exported: {listed}. "
+            "Fix the data or the fit, or pass --force to export it anyway (recorded in the export's provenance)"
+        )
     provenance = {
         "session": stored.ref,
         "fit_id": stored.fit_id,
@@ -24,7 +95,23 @@ def export_fit(store: SessionStore, ref: str, fmt: str, out: str | Path, fit_id:
         "data_sha256": ", ".join(i["manifest_sha256"] for i in record.inputs),
         "method": stored.robot.method,
     }
-    out = Path(out)
-    if out.parent and not out.parent.exists():
-        raise UserError(f"output folder {out.parent} does not exist")
-    return export(stored.robot, fmt, out, provenance)
+    if warnings:
+        provenance["forced"] = True
+        if fmt in ("json", "npz"):
+            provenance["warnings"] = [{"code": w.get("code"), "message": w.get("message")} for w in warnings]
+        else:
+            provenance["warnings"] = _one_line(" | ".join(f"[{w.get('code')}] {w.get('message')}" for w in warnings))
+    # Same folder ⇒ same file system ⇒ os.replace is atomic. The temporary name keeps the suffix the writers check.
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        export(stored.robot, fmt, tmp, provenance)
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; an export gets the mode a plain write would
+        os.replace(tmp, out)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return out

@@ -21,6 +21,8 @@ class FitOutcome:
     fit_id: str
     ref: str
     refs: list[str]
+    metrics: dict | None = None  # the stored split table (with per-target point errors)
+    gates: dict | None = None  # {"warnings", "notes", "cv"} as stored
 
 
 def run_fit(
@@ -52,6 +54,7 @@ def run_fit(
     if features is not None:
         options["features"] = tuple(features)
     result = fit(obs, spec.model, method, seed=seed, val_fraction=val_fraction, progress=progress, **options)
+    gates = fit_gates(result)
     meta = {
         "method": result.method,
         "chosen": result.chosen,
@@ -59,7 +62,10 @@ def run_fit(
         "val_fraction": val_fraction,
         "hidden": hidden,
         "robot": {"name": spec.name, "hash": spec.hash},
-        "metrics": result.metrics,
+        "metrics": fit_metrics(result),
+        "warnings": gates["warnings"],
+        "notes": gates["notes"],
+        "cv": gates["cv"],
         "rows": {"train": result.n_train, "val": result.n_val, "test": result.n_test},
         "split": list(map(str, result.obs.split)) if result.obs is not None else None,
         "fit_seconds": result.fit_seconds,
@@ -70,13 +76,153 @@ def run_fit(
         BEFORE_FILE: json.dumps(to_payload(result.before)),
     }
     record = store.save_fit([d.ref for d in datasets], files, jsonable(meta))
-    return FitOutcome(result, record.fit_id, record.ref, [d.ref for d in datasets])
+    return FitOutcome(result, record.fit_id, record.ref, [d.ref for d in datasets], meta["metrics"], gates)
+
+
+def fit_metrics(result) -> dict:
+    """The fit's split table with per-target point errors (metrics.split_table), whatever the fit computed.
+
+    Recomputed from the result's robots and split data so fit.json always carries the "points" entries.
+    """
+    from labcal.calibration.metrics import split_table
+
+    if result.obs is None:
+        return result.metrics
+    return split_table(result.before, result.robot, result.obs)
+
+
+# Ratio of the per-target point error to the pose error above which the targets do not match the data: the pose is
+# fitted to the measured points, so a wrong targets file (swapped or mis-measured targets) leaves the pose error
+# small while the points themselves are far off. Calibration error moves both alike (ratio near 1 … 3 with targets
+# ~0.1 m from the tool origin).
+POINT_RATIO = 10.0
+POINT_FLOOR = 1e-3  # m: below this the point residuals are not worth a blocking warning
+
+
+def fit_gates(result) -> dict:
+    """{"warnings": [{code, message}], "notes": [str], "cv": dict | None} of a fit result.
+
+    Reads ``FitResult.warnings`` / ``notes`` / ``cv`` (PLAN interface 4) where the calibration provides them, and
+    adds what the method diagnostics already say (see :func:`info_warnings`) plus two checks made here on the
+    stored metrics: a validation error not below the registered nominal's (``worse-than-nominal``), and point
+    residuals far above the pose error (``point-residuals``: the targets do not match the data). Every warning
+    blocks ``labcal export`` unless ``--force``. Each code appears once (the calibration's own entry wins).
+    """
+    warnings = [_as_warning(w) for w in (getattr(result, "warnings", None) or [])]
+    notes = [str(n) for n in (getattr(result, "notes", None) or [])]
+    cv = getattr(result, "cv", None)
+    extra = info_warnings(result.info, result.chosen)
+    metrics = fit_metrics(result)
+    extra += metric_warnings(metrics, nominal=result.chosen == "nominal")
+    generic = {"warning", "fit-warning"}
+    seen_codes = {w["code"] for w in warnings} - generic
+    seen_msgs = {w["message"] for w in warnings}
+    for w in extra:
+        if w["code"] in seen_codes or w["message"] in seen_msgs:
+            continue
+        warnings.append(w)
+        seen_msgs.add(w["message"])
+        if w["code"] not in generic:
+            seen_codes.add(w["code"])
+    return {"warnings": warnings, "notes": notes, "cv": cv}
+
+
+def _as_warning(w) -> dict:
+    if isinstance(w, dict):
+        return {"code": str(w.get("code") or "warning"), "message": str(w.get("message") or "")}
+    return {"code": "warning", "message": str(w)}
+
+
+def _relevant_infos(info: dict, chosen: str | None):
+    """The diagnostics of the stages that make up the chosen model (auto's losing candidates do not count)."""
+    if not isinstance(info, dict):
+        return
+    if isinstance(info.get("candidates"), dict) and chosen in info:
+        yield from _relevant_infos(info[chosen], chosen)
+        return
+    if "kept" in info:  # hybrid: the local-POE stage always, a stage-2 model only when kept
+        yield from _relevant_infos(info.get("local_poe") or {}, "local-poe")
+        kept = str(info.get("kept") or "")
+        for stage in ("ann", "series"):
+            if kept.endswith("+" + stage) and isinstance(info.get(stage), dict):
+                yield from _relevant_infos(info[stage], stage)
+        return
+    yield info
+
+
+def info_warnings(info: dict, chosen: str | None = None) -> list[dict]:
+    """Warnings the methods already compute in their info dicts, as {code, message}.
+
+    Local POE: ``warning`` (rank deficiency) with the unidentifiable directions; the network: ``warnings`` (e.g.
+    over-fitting). Works on a fresh info dict and on a stored (slimmed) one, so fits stored before the gates
+    existed are gated the same way.
+    """
+    out: list[dict] = []
+    for part in _relevant_infos(info, chosen):
+        msg = part.get("warning")
+        if msg:
+            if part.get("rank_deficient") or "rank" in str(msg):
+                rank, need = part.get("rank"), part.get("expected_rank")
+                head = "" if "rank" in str(msg) or rank is None else f"rank {rank} of {need}: "
+                missing = need - rank if isinstance(rank, int) and isinstance(need, int) else None
+                tail = (
+                    f" ({missing} identifiable combination(s) not excited; `labcal report` lists the unidentifiable"
+                    " directions)"
+                    if missing
+                    else ""
+                )
+                out.append({"code": "rank-deficient", "message": f"{head}{msg}{tail}"})
+            else:
+                out.append({"code": "fit-warning", "message": str(msg)})
+        for w in part.get("warnings") or []:
+            if msg and str(w) == str(msg):
+                continue  # the same rank warning, also listed under "warnings"
+            if isinstance(w, dict):
+                out.append(_as_warning(w))
+            elif "over-fitting" in str(w) or "overfit" in str(w):
+                out.append({"code": "overfit", "message": str(w)})
+            else:
+                out.append({"code": "fit-warning", "message": str(w)})
+    return out
+
+
+def metric_warnings(metrics: dict, *, nominal: bool = False) -> list[dict]:
+    """Blocking warnings read off the split table: worse than nominal on held-out rows (not for the nominal
+    itself, which is its own baseline); point residuals."""
+    out = []
+    for split in () if nominal else ("test", "val"):
+        m = metrics.get(split)
+        if not m:
+            continue
+        b, a = m["before"].get("pos_mean"), m["after"].get("pos_mean")
+        if b is not None and a is not None and a >= b:
+            out.append({
+                "code": "worse-than-nominal",
+                "message": f"{split} mean position error {a * 1e3:.4f} mm after calibration is not below the "
+                f"registered nominal's {b * 1e3:.4f} mm: the calibration does not generalize (too few or badly "
+                "spread poses, or a model that over-fits)",
+            })  # fmt: skip
+            break
+    m = metrics.get("all")
+    if m and "points" in m:
+        pose, pts = m["after"].get("pos_mean"), m["points"]["after"].get("mean")
+        if pose is not None and pts is not None and pts > POINT_FLOOR and pts > POINT_RATIO * pose:
+            per = m["points"]["after"].get("per_target") or []
+            each = ", ".join(f"t{i + 1} {t['mean'] * 1e3:.3f}" for i, t in enumerate(per) if t.get("mean") is not None)
+            out.append({
+                "code": "point-residuals",
+                "message": f"the measured target points are {pts * 1e3:.3f} mm from their predictions on average "
+                f"(per target mm: {each}) while the pose error is {pose * 1e3:.4f} mm: the targets file does not "
+                "match the data (targets swapped, mis-measured or in the wrong unit)",
+            })  # fmt: skip
+    return out
 
 
 _KEEP_INFO = {
     "curve", "stopped_at", "val_loss", "train_loss", "hidden", "features", "trainer", "std", "delta_zeta",
     "param_labels", "rank", "expected_rank", "sigma", "T_tracker_base_std", "kept", "val_error_local_poe",
     "val_error_hybrid", "candidates", "observations", "warnings", "iterations", "converged", "unidentifiable",
+    "warning", "rank_deficient", "null_directions", "null_space", "n_params", "singular_values", "cov",
 }  # fmt: skip
 
 

@@ -1,0 +1,76 @@
+"""`labcal evaluate`: score a held-out CSV file or stored session with a stored fit."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from labcal.cli.common import StoreOption, metrics_table, out, store_of, targets_table, user_errors
+
+
+@user_errors
+def evaluate(
+    fit_id: str = typer.Argument(..., help="Fit id (as printed by `labcal fit`)."),
+    data: str = typer.Option(..., "--data", help="Held-out data: a CSV file (imported first) or SESSION[@vN]."),
+    robot: str | None = typer.Option(None, "--robot", help="Robot model for a file (default: the fit's model)."),
+    targets: Path | None = typer.Option(None, "--targets", help="Targets TOML of a file (--form targets)."),
+    mapping: str | None = typer.Option(None, "--mapping", help="Column mapping TOML or shipped name of a file."),
+    length_unit: str = typer.Option("m", "--length-unit", help="m | mm (a file)"),
+    angle_unit: str = typer.Option("rad", "--angle-unit", help="rad | deg (a file)"),
+    frame: str = typer.Option("base", "--frame", help="base | tracker: frame of a file's points."),
+    form: str = typer.Option("targets", "--form", help="targets | probe (a file)"),
+    allow: list[str] = typer.Option([], "--allow", help="Override a failed import sanity check (as session import)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the evaluation as JSON (only) on stdout."),
+    store: Path | None = StoreOption,
+) -> None:
+    """Score held-out data with a stored fit: per-target point and pose errors before (registered nominal) and
+    after; the evaluation is stored under the fit. Prints the evaluation id last (or JSON with --json).
+
+    A FILE goes through `labcal session import` first (same options, same sanity checks and --allow overrides) and
+    becomes a new session, so the evaluated data are stored and traceable. Nothing of the calibration is refitted
+    on the evaluation data; for tracker-frame data only the 6-DOF base pose T_tracker_base is estimated on them
+    (the tracker stands elsewhere in every session), for the nominal and the calibrated robot separately.
+
+    Examples:
+
+      labcal evaluate 20261122-040000-123456-ab12cd --data S2@v1
+
+      labcal evaluate FIT --data heldout.csv --targets t.toml --length-unit mm --angle-unit deg --frame tracker
+
+      labcal evaluate FIT --data S2 --json > evaluation.json
+    """
+    from labcal.cli.ops.evaluating import evaluate_fit
+
+    options = {
+        "targets_file": targets, "mapping": mapping, "length_unit": length_unit, "angle_unit": angle_unit,
+        "frame": frame, "form": form, "allow": list(allow),
+    }  # fmt: skip
+    outcome = evaluate_fit(store_of(store), fit_id, data, robot=robot, import_options=options)
+    ev = outcome.evaluation
+    if as_json:
+        print(json.dumps({**ev, "stored_at": str(outcome.path)}, indent=1, sort_keys=True))
+        return
+    d = ev["data"]
+    if outcome.imported:
+        out.print(f"imported {data} as {outcome.data_ref}", markup=False)
+    title = (
+        f"fit {ev['fit_id']} ({ev['method']}, fitted on {', '.join(ev['fit_inputs'])}) on {d['ref']}: "
+        f"{d['rows']} rows, {d['frame']} frame"
+    )
+    out.print(metrics_table(ev["metrics"], title))
+    per_target = targets_table(ev["metrics"])
+    if per_target is not None:
+        out.print(per_target)
+    out.print(f"fitted on the evaluation data: {ev['registration']['fitted']}", markup=False)
+    if ev["overlap_with_fit"]:
+        out.print(f"note: {d['ref']} is one of the fit's own inputs: this is not a held-out score", markup=False)
+    if ev["outside_calibrated_ranges"]:
+        out.print(
+            f"note: {ev['outside_calibrated_ranges']} of {d['rows']} rows are outside the fit's calibrated joint "
+            "ranges (the model extrapolates there; the compensator refuses them without extrapolate)",
+            markup=False,
+        )
+    out.print(f"stored at {outcome.path}", markup=False)
+    print(ev["evaluation_id"])

@@ -1,0 +1,261 @@
+"""`labcal evaluate` as a function: score held-out data (a CSV file or a stored version) with a stored fit.
+
+What is fitted on the evaluation data, and what is not:
+
+- **Nothing of the calibration.** The fitted robot (identified frames, network / series) is used exactly as stored.
+- **Only the 6-DOF registration T_tracker_base, for tracker-frame data.** The tracker is set up anew for every
+  session, so the base pose in the tracker frame differs from the fit's; it is estimated on the evaluation data
+  by a closed-form least-squares rigid fit (Kabsch) of the robot's predicted target points to the measured ones,
+  for the calibrated robot and, separately, for the nominal ("before"). Six parameters against 9 numbers per
+  pose; the evaluation says so (``registration``). Base-frame data are scored as they are: nothing is fitted.
+
+A FILE is imported as a new session first (same options and sanity checks as ``labcal session import``), so the
+evaluated data are stored and traceable by their version; a SESSION[@vN] is read from the store. The evaluation
+(per-target point errors and pose errors, before/after, rows outside the fit's calibrated joint ranges) is written
+as JSON under the fit (see :data:`EVAL_DIR`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import inspect
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+from labcal.cli.ops.common import UserError, jsonable, load_observations, split_ref
+from labcal.cli.ops.fitting import load_stored_fit
+from labcal.datasets import SessionStore
+
+# Evaluations of fit F stored under version V live in V/fits/.evaluations/F/<evaluation id>.json. A dot folder: the
+# store's verify treats any other entry in fits/ or in a fit's folder as an unlisted (corrupt) file, and the fit's
+# own files are sealed by its fit.json, which must not change after the fit.
+EVAL_DIR = ".evaluations"
+
+
+@dataclass
+class EvaluationOutcome:
+    """What ``labcal evaluate`` produced: the evaluation document and where it was stored."""
+
+    evaluation: dict
+    path: Path
+    data_ref: str
+    imported: bool
+
+
+def _now() -> str:
+    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+
+
+def register_base(robot, obs) -> tuple[np.ndarray, float]:
+    """Least-squares T_tracker_base of robot on obs (tracker frame): the rigid transform that best maps the robot's
+    predicted base-frame target points onto the measured ones, all points pooled (Kabsch). Returns (T, rms m)."""
+    pred = robot.predict_points(obs.q, obs.targets).reshape(-1, 3)
+    meas = np.asarray(obs.points, dtype=float).reshape(-1, 3)
+    ok = np.isfinite(meas).all(axis=1)
+    a, b = pred[ok], meas[ok]
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, cb - R @ ca
+    rms = float(np.sqrt(np.mean(np.sum((b - (a @ R.T + T[:3, 3])) ** 2, axis=1))))
+    return T, rms
+
+
+def _robot_argument(store: SessionStore, stored, robot: str | None, tmpdir: Path) -> str:
+    """The --robot to import the file with: the user's, else the fit's model (a built-in name or its stored text)."""
+    from labcal.robots import BUILTINS
+
+    if robot is not None:
+        return robot
+    ds = store.load(stored.inputs[0])
+    rec = ds.robot
+    if rec.get("text"):
+        path = tmpdir / f"robot.{'urdf' if rec.get('format') == 'urdf' else 'toml'}"
+        path.write_text(rec["text"])
+        return str(path)
+    if rec.get("name") in BUILTINS:
+        return str(rec["name"])
+    raise UserError(f"the fit's robot model {rec.get('name')!r} is not built in: pass its file with --robot PATH")
+
+
+def import_for_evaluation(store: SessionStore, stored, path: Path, robot: str | None, options: dict) -> str:
+    """Import path as a new session through ``session import``'s own function (its checks and overrides)."""
+    from labcal.cli.ops.imports import import_session
+
+    options = {k: v for k, v in options.items() if v is not None}
+    if not options.get("allow"):
+        options.pop("allow", None)
+    elif "allow" not in inspect.signature(import_session).parameters:
+        raise UserError("this labcal's import has no --allow overrides")
+    with tempfile.TemporaryDirectory(prefix="labcal-eval-") as tmp:
+        robot_arg = _robot_argument(store, stored, robot, Path(tmp))
+        return import_session(store, path, robot=robot_arg, **options)
+
+
+def _is_file_argument(data: str) -> bool:
+    p = Path(data)
+    return p.is_file() or p.suffix.lower() in (".csv", ".txt", ".tsv")
+
+
+def evaluate_fit(
+    store: SessionStore,
+    fit_id: str,
+    data: str,
+    *,
+    robot: str | None = None,
+    import_options: dict | None = None,
+) -> EvaluationOutcome:
+    """Score data (a CSV path, imported first, or SESSION[@vN]) with stored fit fit_id; store and return the result.
+
+    import_options: keyword options of :func:`labcal.cli.ops.imports.import_session` (targets_file, mapping,
+    length_unit, angle_unit, frame, form, allow) for a file. Raises UserError for a fit or data that do not exist,
+    a different robot model, or a targets file that differs from the fit's.
+    """
+    from labcal.calibration.metrics import split_table
+
+    record = store.find_fit(fit_id)
+    stored = load_stored_fit(store, record.ref, fit_id)
+    imported = _is_file_argument(data)
+    if imported:
+        path = Path(data)
+        if not path.is_file():
+            raise UserError(f"no such file: {path}")
+        ref = import_for_evaluation(store, stored, path, robot, dict(import_options or {}))
+    else:
+        ref = str(store.resolve(split_ref(data)))
+    obs, datasets = load_observations(store, [ref])
+    ds = datasets[0]
+    fit_hash = (stored.meta.get("robot") or {}).get("hash")
+    if fit_hash and ds.robot.get("hash") != fit_hash:
+        raise UserError(
+            f"{ref} was recorded with robot model {ds.robot.get('name')!r} (hash {str(ds.robot.get('hash'))[:12]}…), "
+            f"fit {fit_id} with {(stored.meta.get('robot') or {}).get('name')!r} (hash {fit_hash[:12]}…): "
+            "a fit can only score data of the robot model it was fitted for"
+        )
+    fit_obs_targets = store.load(stored.inputs[0]).targets
+    if not np.allclose(obs.targets, fit_obs_targets, atol=1e-9):
+        raise UserError(
+            f"{ref} has different targets from the data of fit {fit_id}: the fitted tool frame belongs to the fit's "
+            "targets; evaluate with the same targets file"
+        )
+    obs = dataclasses.replace(obs, split=np.full(obs.k, "test", dtype=object))
+    registration: dict = {"frame": obs.frame}
+    if obs.frame == "tracker":
+        T_after, rms_after = register_base(stored.robot, obs)
+        T_before, rms_before = register_base(stored.before, obs)
+        after = dataclasses.replace(stored.robot, T_tracker_base=T_after)
+        before = dataclasses.replace(stored.before, T_tracker_base=T_before)
+        registration.update(
+            fitted="T_tracker_base only (6 parameters: rigid least-squares fit of the predicted to the measured "
+            "points, separately for before and after); nothing of the calibration is refitted",
+            parameters=6,
+            numbers=int(np.isfinite(obs.points).all(axis=2).sum() * 3),
+            T_tracker_base_after=T_after,
+            T_tracker_base_before=T_before,
+            rms_after=rms_after,
+            rms_before=rms_before,
+        )
+    else:
+        # Base-frame data are already in the robot's frame: score the stored models as they are.
+        after = dataclasses.replace(stored.robot, T_tracker_base=np.eye(4))
+        before = dataclasses.replace(stored.before, T_tracker_base=np.eye(4))
+        registration.update(fitted="nothing (base-frame data are scored as they are)", parameters=0)
+    table = split_table(before, after, obs)
+    lo, hi = np.asarray(after.joint_ranges, dtype=float).T
+    outside = ~np.all((obs.q >= lo - 1e-12) & (obs.q <= hi + 1e-12), axis=1)
+    manifest = store.manifest(ref)
+    evaluation = {
+        "kind": "labcal.evaluation",
+        "evaluation_id": None,
+        "created": _now(),
+        "fit_id": fit_id,
+        "fit_ref": stored.ref,
+        "fit_inputs": stored.inputs,
+        "method": stored.robot.method,
+        "data": {
+            "ref": ref,
+            "imported_from": str(Path(data).resolve()) if imported else None,
+            "import_options": {
+                k: str(Path(v).resolve()) if isinstance(v, Path) else v for k, v in (import_options or {}).items() if v
+            }
+            if imported
+            else None,
+            "manifest_sha256": manifest.get("manifest_sha256"),
+            "rows": int(obs.k),
+            "frame": obs.frame,
+        },
+        "overlap_with_fit": ref in stored.inputs,
+        "registration": registration,
+        "metrics": {"all": table["all"]} if "all" in table else {},
+        "outside_calibrated_ranges": int(outside.sum()),
+    }
+    path = save_evaluation(store, stored.ref, fit_id, evaluation)
+    return EvaluationOutcome(jsonable(evaluation), path, ref, imported)
+
+
+def save_evaluation(store: SessionStore, fit_ref: str, fit_id: str, evaluation: dict) -> Path:
+    """Write the evaluation atomically (temp file + fsync + os.replace) under the fit; returns its path.
+
+    The document carries the sha256 of its own content (``sha256``, computed with that field empty) so a change is
+    detectable. The evaluation id is the UTC time plus the first hex digits of that hash.
+    """
+    folder = store.version_dir(fit_ref) / "fits" / EVAL_DIR / fit_id
+    folder.mkdir(parents=True, exist_ok=True)
+    doc = jsonable(evaluation)
+    doc["sha256"] = ""
+    body = json.dumps(doc, sort_keys=True).encode()
+    digest = hashlib.sha256(body).hexdigest()
+    eval_id = datetime.now(UTC).strftime("%Y%m%d-%H%M%S-%f") + "-" + digest[:6]
+    doc["evaluation_id"] = eval_id
+    evaluation["evaluation_id"] = eval_id
+    doc["sha256"] = ""
+    doc["sha256"] = hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+    final = folder / f"{eval_id}.json"
+    fd, tmp = tempfile.mkstemp(prefix=f".{eval_id}.", suffix=".json", dir=folder)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(doc, fh, indent=1, sort_keys=True)
+            fh.write("\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, final)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    dfd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(dfd)
+    finally:
+        os.close(dfd)
+    return final
+
+
+def list_evaluations(store: SessionStore, fit_ref: str, fit_id: str) -> list[dict]:
+    """The stored evaluations of a fit, oldest first (each checked against its own sha256; a bad one is skipped
+    with ``corrupt: True``)."""
+    folder = store.version_dir(fit_ref) / "fits" / EVAL_DIR / fit_id
+    out = []
+    for p in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        if p.name.startswith("."):
+            continue
+        try:
+            doc = json.loads(p.read_text())
+            want = doc.get("sha256")
+            doc["sha256"] = ""
+            ok = hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest() == want
+            doc["sha256"] = want
+        except (OSError, ValueError):
+            doc, ok = {"evaluation_id": p.stem}, False
+        if not ok:
+            doc["corrupt"] = True
+        out.append(doc)
+    return out
