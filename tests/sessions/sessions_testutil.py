@@ -52,8 +52,11 @@ class CountingRobot:
         self._robot.close()
 
 
-def record_interrupted(store, spec, n_poses: int, interrupt_at: int, *, errors: str = "default", seed: int = 0):
-    """A sim session (resumable by ``labcal.cli.ops.resume_session``) aborted by Ctrl-C at move ``interrupt_at``."""
+def record_interrupted(
+    store, spec, n_poses: int, interrupt_at: int, *, errors: str = "default", seed: int = 0, seal: bool = True
+):
+    """A sim session (resumable by ``labcal.cli.ops.resume_session``) aborted by Ctrl-C at move ``interrupt_at``;
+    ``seal=False`` leaves its journal unsealed (as a crash would)."""
     from labcal.cli.ops.sessions import sim_actual
 
     rig = SimRig(sim_actual(spec, errors, seed), TARGETS, seed=seed)
@@ -62,6 +65,6 @@ def record_interrupted(store, spec, n_poses: int, interrupt_at: int, *, errors: 
     robot = CountingRobot(rig.robot(), interrupt_at)
     with robot, rig.tracker() as tracker:
         summary = run(store, spec, TARGETS, plan, robot, tracker, frame="base",
-                      metadata={"sim": {"errors": errors, "seed": seed}})  # fmt: skip
+                      metadata={"sim": {"errors": errors, "seed": seed}}, seal=seal)  # fmt: skip
     assert summary.exit_status == "aborted"
     return summary

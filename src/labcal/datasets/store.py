@@ -752,10 +752,13 @@ class SessionStore:
         if contents.corrupt_lines:
             first = contents.corrupt_lines[0]
             if not valid_prefix:
+                why = "; ".join(
+                    f"line {ln}: {contents.corrupt_reasons.get(ln, 'corrupt')}" for ln in contents.corrupt_lines
+                )
                 raise JournalCorrupted(
-                    f"journal of {session_id!r} has corrupt line(s) {contents.corrupt_lines}; refusing to seal "
-                    f"(`labcal session seal {session_id} --valid-prefix` seals the measurements before line "
-                    f"{first} and records what it left out):\n  " + "\n  ".join(contents.warnings)
+                    f"journal of {session_id!r} has corrupt line(s) {contents.corrupt_lines} ({why}); refusing to "
+                    f"seal (`labcal session seal {session_id} --valid-prefix` seals the measurements before line "
+                    f"{first} and records what it left out)"
                 )
             # Everything from the first corrupt line on is left out, readable or not: after an unexplained
             # corruption the order and completeness of the later documents cannot be trusted.
