@@ -1,5 +1,9 @@
 """Exports of a calibrated robot: the compensator (JSON/NPZ), a URScript function and a calibrated URDF.
 
+A robot whose file declares a joint map (controller joints ≠ model joints) exports only as json/npz: the
+compensator converts controller joints, while a URScript function or a URDF has no place for the map and would be
+fed the controller's joints, so both refuse it with a message saying so.
+
 Numpy only (import-linter: "The compensator runtime is numpy-only"). Example::
 
     from labcal.export import export
