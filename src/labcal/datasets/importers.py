@@ -26,7 +26,7 @@ import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -34,9 +34,13 @@ import pandas as pd
 from ._util import sha256_bytes, sha256_file
 from .errors import DatasetError, ImportFormatError, MappingError, TargetsError
 from .ids import validate_id
+from .sanity import Hints, SanityReport, check_measurements, check_names
 from .schema import FRAMES, SPLITS, TARGET_COLUMNS, joint_columns
 from .store import SessionStore, _plan_summary
 from .targets import LENGTH_UNITS, validate_targets
+
+if TYPE_CHECKING:
+    from labcal.robots import RobotSpec
 
 ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 #: Default virtual target offsets of the probe form, in the probe frame (m).
@@ -91,7 +95,7 @@ class ImportSpec:
         if self.joint_unit not in ANGLE_UNITS:
             raise MappingError(f'joint angle unit must be "rad" or "deg", got {self.joint_unit!r}')
         if self.length_unit not in LENGTH_UNITS:
-            raise MappingError(f'length unit must be "m" or "mm", got {self.length_unit!r}')
+            raise MappingError(f'length unit must be "m", "mm" or "in", got {self.length_unit!r}')
         if self.rotation_unit not in ANGLE_UNITS:
             raise MappingError(f'rotation angle unit must be "rad" or "deg", got {self.rotation_unit!r}')
         if len(self.separator) != 1 or len(self.decimal) != 1 or self.separator == self.decimal:
@@ -296,6 +300,40 @@ def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, offsets: np.ndarray
     return table
 
 
+def _sanity(
+    csvf: _Csv,
+    rows: pd.DataFrame,
+    spec: ImportSpec,
+    targets: np.ndarray,
+    robot: RobotSpec | None,
+    allow: frozenset[str],
+    hints: Hints | None,
+    existing_q: np.ndarray | None,
+) -> SanityReport:
+    """Run :mod:`labcal.datasets.sanity` on the parsed rows; fixes are phrased for CLI flags unless told otherwise."""
+    n = len([c for c in rows.columns if c[:1] == "q" and c[1:].isdigit()])
+    q = rows[[f"q{j + 1}" for j in range(n)]].to_numpy(dtype=float)
+    points = rows[list(TARGET_COLUMNS)].to_numpy(dtype=float).reshape(-1, 3, 3)
+    lines = csvf.lines
+    base = hints or Hints()
+    hints = Hints(
+        base.length, base.angle, base.frame, base.allow, base.row or (lambda i: f"row {i + 1} (line {int(lines[i])})")
+    )
+    return check_measurements(
+        q,
+        points,
+        targets,
+        robot=robot,
+        frame=spec.frame,
+        form=spec.form,
+        length_unit=spec.length_unit,
+        angle_unit=spec.joint_unit,
+        allow=allow,
+        hints=hints,
+        existing_q=existing_q,
+    )
+
+
 def _run_import(
     store: SessionStore | str | Path | None,
     path: str | Path,
@@ -309,17 +347,36 @@ def _run_import(
     session_id: str | None,
     metadata: Mapping[str, Any] | None,
     options: dict,
+    robot: RobotSpec | None = None,
+    allow: Sequence[str] = (),
+    hints: Hints | None = None,
 ) -> str:
     spec.check()
+    allowed = check_names(allow)
     store = store if isinstance(store, SessionStore) else SessionStore(store)
     if isinstance(n_joints, bool) or not isinstance(n_joints, int) or n_joints < 1:
         raise DatasetError(f"n_joints must be a positive integer, got {n_joints!r}")
+    record = {"name": str(robot_name), "hash": str(robot_hash), "n_joints": n_joints}
+    if robot is not None:
+        if (robot.name, robot.hash, robot.model.n) != (robot_name, robot_hash, n_joints):
+            raise DatasetError(
+                f"robot {robot.name!r} (hash {robot.hash[:12]}…, n={robot.model.n}) is not the model the data are "
+                f"labelled with ({robot_name!r}, hash {str(robot_hash)[:12]}…, n={n_joints})"
+            )
+        # The model itself (file text) goes with the data, so a version can be refitted without the robot file.
+        record = robot.record()
     path = Path(path)
     csvf = _Csv(path, spec.separator)
     rows = _build_rows(csvf, spec, n_joints, offsets)
+    existing_q = None
+    if session_id is not None and (store.root / validate_id(session_id)).is_dir() and store.versions(session_id):
+        existing_q = store.load(session_id).q
+    report = _sanity(csvf, rows, spec, targets, robot, allowed, hints, existing_q)
+    report.raise_if_failed()
+    options = {**options, "allow": sorted(allowed)}
     file_sha = sha256_file(path)
     meta = {
-        "robot": {"name": str(robot_name), "hash": str(robot_hash), "n_joints": n_joints},
+        "robot": record,
         "targets": targets.tolist(),
         "targets_unit": "m",
         "frame": spec.frame,
@@ -337,6 +394,7 @@ def _run_import(
             "rows": len(rows),
             "form": spec.form,
             "options": options,
+            "checks": report.as_dict(),
         }
     }
     source = f"import:{file_sha}"
@@ -364,6 +422,9 @@ def import_targets_csv(
     decimal: str = ".",
     session_id: str | None = None,
     metadata: Mapping[str, Any] | None = None,
+    robot: RobotSpec | None = None,
+    allow: Sequence[str] = (),
+    hints: Hints | None = None,
 ) -> str:
     """Import a three-target CSV (``q1..qn``, ``t1_x … t3_z``, optional ``split``); return ``SESSION@vNNN``.
 
@@ -371,6 +432,12 @@ def import_targets_csv(
     ("m" | "mm") applies to the target columns, ``angle_unit`` ("rad" | "deg") to the joints, ``frame``
     ("base" | "tracker") names the frame of the measured points. Joint columns beyond ``q{n_joints}`` are an
     error. With ``session_id`` of an existing session, the rows are appended as a new version.
+
+    Before anything is written the rows pass :func:`labcal.datasets.sanity.check_measurements` (target distances vs
+    ``targets``, duplicates; with ``robot`` (a :class:`~labcal.robots.RobotSpec` matching name, hash and n) also
+    joint limits, nominal consistency and reach, and the model's file text is stored with the session). A failed
+    check raises :class:`~labcal.datasets.sanity.SanityError` naming the fix; ``allow`` lists the checks to override
+    (recorded in the import provenance). ``hints`` phrases the fixes (default: the CLI's flags).
     """
     t = validate_targets(targets)
     spec = ImportSpec(
@@ -403,6 +470,9 @@ def import_targets_csv(
         session_id=session_id,
         metadata=metadata,
         options=options,
+        robot=robot,
+        allow=allow,
+        hints=hints,
     )
 
 
@@ -425,6 +495,9 @@ def import_probe_csv(
     decimal: str = ".",
     session_id: str | None = None,
     metadata: Mapping[str, Any] | None = None,
+    robot: RobotSpec | None = None,
+    allow: Sequence[str] = (),
+    hints: Hints | None = None,
 ) -> str:
     """Import a 6-DOF probe CSV (``q1..qn``, ``x, y, z, rx, ry, rz``); return ``SESSION@vNNN``.
 
@@ -432,6 +505,8 @@ def import_probe_csv(
     intrinsic, "xyz" extrinsic). ``length_unit`` applies to x, y, z; ``angle_unit`` to the joints;
     ``rotation_unit`` (default: ``angle_unit``) to rx, ry, rz. ``offsets``: (3, 3) m virtual target
     offsets in the probe frame (default :data:`DEFAULT_PROBE_OFFSETS`); they become the session's targets.
+    ``robot``, ``allow``, ``hints``: sanity checks as for :func:`import_targets_csv` (the probe's mount on the
+    flange is unknown, so the nominal check registers it).
     """
     v = validate_targets(DEFAULT_PROBE_OFFSETS if offsets is None else offsets)
     if len(columns) != 6:
@@ -474,6 +549,9 @@ def import_probe_csv(
         session_id=session_id,
         metadata=metadata,
         options=options,
+        robot=robot,
+        allow=allow,
+        hints=hints,
     )
 
 
@@ -595,7 +673,7 @@ def load_mapping(mapping: str | Path) -> tuple[ImportSpec, np.ndarray | None, di
         if "offsets" in p:
             unit = p.get("offsets_unit", "m")
             if unit not in LENGTH_UNITS:
-                raise MappingError(f'{src}: [probe] offsets_unit must be "m" or "mm", got {unit!r}')
+                raise MappingError(f'{src}: [probe] offsets_unit must be "m", "mm" or "in", got {unit!r}')
             try:
                 raw = validate_targets(p["offsets"], min_area=0, min_height=0, source=f"{src} [probe] offsets")
             except TargetsError as e:
@@ -628,11 +706,14 @@ def import_mapped(
     targets: Any = None,
     session_id: str | None = None,
     metadata: Mapping[str, Any] | None = None,
+    robot: RobotSpec | None = None,
+    allow: Sequence[str] = (),
+    hints: Hints | None = None,
 ) -> str:
     """Import ``path`` as described by a mapping TOML (a path, or a shipped name such as ``"ipa-ur10"``).
 
     ``targets`` (3, 3) m: required for a "targets" mapping; for a "probe" mapping it overrides the mapping's
-    virtual offsets. Returns ``SESSION@vNNN``.
+    virtual offsets. Returns ``SESSION@vNNN``. ``robot``, ``allow``, ``hints``: as for :func:`import_targets_csv`.
     """
     spec, offsets, doc = load_mapping(mapping)
     mpath = _resolve_mapping(mapping)
@@ -646,6 +727,14 @@ def import_mapped(
             targets if targets is not None else (offsets if offsets is not None else DEFAULT_PROBE_OFFSETS)
         )
         offsets = t
+    if hints is None:  # the units and frame of a mapped import are keys of the mapping, not flags
+        unit_key = "[targets] unit" if spec.form == "targets" else "[probe] position_unit"
+        where = f"in the mapping {mpath.name}"
+        hints = Hints(
+            length=f'{unit_key} = "{{unit}}" {where}',
+            angle=f'joint_unit = "{{unit}}" {where}',
+            frame=f'frame = "{{frame}}" {where}',
+        )
     text = mpath.read_bytes()
     options = {"mapping": mpath.stem, "mapping_sha256": sha256_bytes(text), "mapping_content": doc}
     return _run_import(
@@ -660,4 +749,7 @@ def import_mapped(
         session_id=session_id,
         metadata=metadata,
         options=options,
+        robot=robot,
+        allow=allow,
+        hints=hints,
     )

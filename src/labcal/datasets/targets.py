@@ -2,7 +2,7 @@
 
 File format (DESIGN.md section 4)::
 
-    unit = "mm"            # "m" or "mm"
+    unit = "mm"            # "m", "mm" or "in"
     points = [[0, 0, 0], [100, 0, 0], [0, 100, 0]]   # t1, t2, t3 in the tool frame
 
 Inside labcal targets are a (3, 3) float array in metres, row i = target t(i+1).
@@ -24,7 +24,8 @@ MIN_TARGET_AREA = 1e-6
 #: orientation about that line is unobservable and the fit ill-conditioned.
 MIN_TARGET_HEIGHT = 1e-3
 
-LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}
+#: Length units of targets files and imported measurements, to metres (inches for US-made tools and fixtures).
+LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "in": 0.0254}
 
 
 def validate_targets(
@@ -75,10 +76,10 @@ def load_targets(path: str | Path) -> np.ndarray:
     except tomllib.TOMLDecodeError as e:
         raise TargetsError(f"targets file {path}: not valid TOML: {e}") from None
     if "unit" not in doc:
-        raise TargetsError(f'targets file {path}: missing key "unit" (use unit = "m" or unit = "mm")')
+        raise TargetsError(f'targets file {path}: missing key "unit" (use unit = "m", "mm" or "in")')
     unit = doc["unit"]
     if unit not in LENGTH_UNITS:
-        raise TargetsError(f'targets file {path}: unit must be "m" or "mm", got {unit!r}')
+        raise TargetsError(f'targets file {path}: unit must be "m", "mm" or "in", got {unit!r}')
     if "points" not in doc:
         raise TargetsError(f'targets file {path}: missing key "points" (three [x, y, z] lists)')
     pts = doc["points"]

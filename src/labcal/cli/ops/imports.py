@@ -1,12 +1,15 @@
-"""`labcal session import` as a function: read a CSV into a new session."""
+"""`labcal session import` as a function: read a CSV into a new session, after the sanity checks."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 from labcal.cli.ops.common import UserError
 from labcal.datasets import SessionStore
 from labcal.robots import load
+
+FORMS = ("targets", "probe")
 
 
 def import_session(
@@ -20,27 +23,35 @@ def import_session(
     angle_unit: str = "rad",
     frame: str = "base",
     form: str = "targets",
+    allow: Sequence[str] = (),
 ) -> str:
-    """Import a CSV into a new session; returns SESSION@vNNN."""
+    """Import a CSV into a new session; returns SESSION@vNNN.
+
+    The rows pass :mod:`labcal.datasets.sanity` first (against the robot model, including its joint map); a failed
+    check is a :class:`~labcal.datasets.sanity.SanityError` naming the fix and the ``--allow`` flag that overrides
+    it. The robot's full record (file text included) is stored with the session.
+    """
     from labcal.datasets import import_mapped, import_probe_csv, import_targets_csv, load_targets
+    from labcal.datasets.sanity import check_names
 
     path = Path(path)
     if not path.is_file():
         raise UserError(f"no such file: {path}")
+    check_names(allow)  # an unknown --allow name is an error before any reading
+    if form not in FORMS:
+        raise UserError(f"--form must be 'targets' or 'probe', got {form!r}")
     spec = load(robot)
+    ident = (spec.name, spec.hash, spec.model.n)
     if mapping is not None:
         targets = load_targets(targets_file) if targets_file else None
-        return import_mapped(store, path, mapping, spec.name, spec.hash, spec.model.n, targets=targets)
+        return import_mapped(store, path, mapping, *ident, targets=targets, robot=spec, allow=allow)
     if form == "targets":
         if targets_file is None:
             raise UserError("--targets TARGETS.toml is required for --form targets")
         return import_targets_csv(
-            store, path, spec.name, spec.hash, spec.model.n, load_targets(targets_file),
-            length_unit=length_unit, angle_unit=angle_unit, frame=frame,
+            store, path, *ident, load_targets(targets_file), length_unit=length_unit, angle_unit=angle_unit,
+            frame=frame, robot=spec, allow=allow,
         )  # fmt: skip
-    if form == "probe":
-        return import_probe_csv(
-            store, path, spec.name, spec.hash, spec.model.n, length_unit=length_unit, angle_unit=angle_unit,
-            frame=frame,
-        )  # fmt: skip
-    raise UserError(f"--form must be 'targets' or 'probe', got {form!r}")
+    return import_probe_csv(
+        store, path, *ident, length_unit=length_unit, angle_unit=angle_unit, frame=frame, robot=spec, allow=allow
+    )

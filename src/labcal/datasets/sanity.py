@@ -1,0 +1,758 @@
+"""Sanity checks on measurements before they become a session (issue 12.1): catch the mistakes that fit and export
+would otherwise turn into a compensator that commands nonsense.
+
+Each check has a name; a failed check is an error that names the bad rows or fields and the likely fix, and only
+an explicit override that names the check lets the data through (``labcal session import … --allow NAME``,
+``allow=["NAME"]`` in Python). The overrides are recorded with the version (import provenance).
+
+====================  ==============================================================================================
+check                 what it refuses
+====================  ==============================================================================================
+``target-distances``  measured distances between the three targets that do not match the targets file: a length
+                      unit slip (×1000, ×0.001, ×25.4 …), a different triangle, or targets in another order
+``target-outliers``   single rows whose target distances are off the file's by more than a few mm
+``joint-limits``      joint values (model joints, after the robot file's joint map) outside the robot's limits
+``joint-span``        every joint moving less than 6° although the limits are wide (radians read as degrees)
+``nominal``           measured points farther than 25 mm (mean) from where the nominal model puts them, after
+                      registering the tracker frame (``frame = "tracker"``) and the probe mount (probe form)
+``reach``             base-frame points beyond the robot's reach (tracker coordinates imported as base)
+``duplicates``        more than half of the rows repeating a pose (identical joint rows are reported in any case)
+``few-poses``         fewer distinct poses than twice the joint count: too few to calibrate
+====================  ==============================================================================================
+
+Non-finite values, empty files and wrong columns are refused earlier, by the CSV reader, and cannot be overridden.
+
+This module uses numpy, the kinematics and the robot files only, so the importers and the session runner (at
+record time) call the same code::
+
+    report = check_measurements(q, points, targets, robot=spec, frame="tracker", allow=["duplicates"])
+    report.raise_if_failed()          # SanityError listing every failed check, or nothing
+
+``q`` are controller joints (k, n) in rad / m, ``points`` (k, 3, 3) the measured targets in m.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from labcal.robots import RobotSpec
+
+from .errors import DatasetError
+from .targets import LENGTH_UNITS as LENGTH_FACTORS
+
+#: Every check, with what it guards against (shown by ``labcal session import --help``).
+CHECKS: dict[str, str] = {
+    "target-distances": "target distances match the targets file (unit slips, wrong or permuted targets file)",
+    "target-outliers": "no single row's target distances are off the file's by more than 2 mm",
+    "joint-limits": "joint values inside the robot file's limits (after its joint map)",
+    "joint-span": "with --angle-unit deg, some joint moves more than 12.6° (catches radians read as degrees)",
+    "nominal": "points within 25 mm (mean) of the nominal model's prediction (after frame registration)",
+    "reach": "base-frame points within the robot's reach (catches tracker-frame data imported as base)",
+    "duplicates": "at most half of the rows repeat an earlier pose (identical joints; every repeat is reported)",
+    "few-poses": "at least 2 distinct poses per joint, the least a calibration can work with",
+}
+
+#: A measured/file distance ratio within this factor of a unit ratio is called a unit slip.
+UNIT_RATIO_TOL = 1.05
+#: Target distances may differ from the file's by this much (m) or TARGET_REL_TOL of the distance, whichever is
+#: larger, before the targets file is called wrong: tracker noise is ~0.05 mm, a hand-measured file ~1 mm.
+TARGET_ABS_TOL = 1.5e-3
+TARGET_REL_TOL = 0.02
+#: A single row is an outlier when a distance is off by more than this (m) and 6 robust sd of all rows.
+ROW_ABS_TOL = 2e-3
+#: Mean distance (m) between measured and nominally predicted points above which the data do not describe this
+#: robot as imported. Nominal robots are within a few mm; a coupled elbow left unconverted is ~40 mm, unit slips
+#: are hundreds of mm.
+NOMINAL_MEAN_LIMIT = 25e-3
+#: Joints whose whole span is below this (rad) while their limits span more than SPAN_WIDE_LIMITS look like
+#: radians read as degrees: a full ±2π rad range read as degrees spans only 4π° ≈ 12.6°.
+SPAN_TINY = math.radians(4 * math.pi)
+SPAN_WIDE_LIMITS = math.radians(60.0)
+#: Joint rows equal to within this (rad or m) are the same pose.
+DUPLICATE_TOL = 1e-6
+#: Rows used to test alternative explanations (units, frame, joint coupling) for a failed nominal check.
+HYPOTHESIS_ROWS = 400
+
+_PAIRS = ((0, 1), (0, 2), (1, 2))
+
+
+class SanityError(DatasetError, ValueError):
+    """Measurements failed one or more sanity checks. ``report`` holds every finding."""
+
+    def __init__(self, report: SanityReport, message: str) -> None:
+        super().__init__(message)
+        self.report = report
+
+
+@dataclass(frozen=True)
+class Hints:
+    """How to phrase a fix for the caller's interface: CLI flags, mapping keys, or the runner's settings.
+
+    Each field is a format string: ``length`` gets ``{unit}``, ``angle`` ``{unit}``, ``frame`` ``{frame}``,
+    ``allow`` ``{check}``. ``rows`` turns 0-based row indices into text (default "row 7").
+    """
+
+    length: str = "--length-unit {unit}"
+    angle: str = "--angle-unit {unit}"
+    frame: str = "--frame {frame}"
+    allow: str = "--allow {check}"
+    row: Callable[[int], str] | None = None
+
+    def row_text(self, i: int) -> str:
+        return self.row(i) if self.row is not None else f"row {i + 1}"
+
+    def rows_text(self, rows: Sequence[int], limit: int = 5) -> str:
+        shown = ", ".join(self.row_text(int(i)) for i in list(rows)[:limit])
+        return shown + (f" (+{len(rows) - limit} more)" if len(rows) > limit else "")
+
+
+@dataclass
+class Finding:
+    check: str
+    message: str
+    rows: list[int] = field(default_factory=list)  # 0-based rows at fault (first few), if the fault is per row
+
+    def as_dict(self) -> dict:
+        return {"check": self.check, "message": self.message, "rows": [int(r) + 1 for r in self.rows]}
+
+
+@dataclass
+class SanityReport:
+    """Outcome of :func:`check_measurements`. ``failures`` block; ``allowed`` would have blocked but were
+    overridden; ``notes`` never block (e.g. a few duplicated poses); ``stats`` are the numbers measured."""
+
+    failures: list[Finding] = field(default_factory=list)
+    allowed: list[Finding] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    stats: dict[str, Any] = field(default_factory=dict)
+    hints: Hints = field(default_factory=Hints)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failures
+
+    def as_dict(self) -> dict:
+        """JSON-ready summary, stored in the version's import provenance."""
+        return {
+            "allowed": [f.as_dict() for f in self.allowed],
+            "notes": list(self.notes),
+            "stats": _jsonable(self.stats),
+        }
+
+    def message(self) -> str:
+        n = len(self.failures)
+        head = f"{n} sanity check{'s' if n > 1 else ''} failed; nothing was written"
+        lines = [head]
+        for f in self.failures:
+            lines.append(f"  [{f.check}] {f.message}")
+        flags = " ".join(self.hints.allow.format(check=f.check) for f in self.failures)
+        lines.append(f"  Fix the input as suggested; only if the data are right as they are, pass {flags}")
+        return "\n".join(lines)
+
+    def raise_if_failed(self) -> None:
+        if self.failures:
+            raise SanityError(self, self.message())
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def check_names(allow: Iterable[str] | None) -> frozenset[str]:
+    """Validate override names; raise naming the unknown ones and listing the valid ones."""
+    names = frozenset(str(a).strip() for a in (allow or ()))
+    unknown = sorted(names - set(CHECKS))
+    if unknown:
+        raise DatasetError(f"unknown check(s) {unknown} for --allow; the checks are: {', '.join(CHECKS)}")
+    return names
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Geometry: rigid registration without labcal.calibration (datasets sits below it)
+
+
+def kabsch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and translation t minimising Σ |R a_i + t − b_i|² over (m, 3) point sets (a proper rotation)."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    H = (a - ca).T @ (b - cb)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, cb - R @ ca
+
+
+def _kabsch_batch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-row rigid fit: a (m, 3) the same for every row, b (k, m, 3) → R (k, 3, 3), t (k, 3)."""
+    ca, cb = a.mean(axis=0), b.mean(axis=1)
+    H = np.einsum("ma,kmb->kab", a - ca, b - cb[:, None, :])
+    U, _, Vt = np.linalg.svd(H)
+    V = np.swapaxes(Vt, 1, 2)
+    d = np.sign(np.linalg.det(V @ np.swapaxes(U, 1, 2)))
+    d[d == 0] = 1.0
+    D = np.zeros((len(b), 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = V @ D @ np.swapaxes(U, 1, 2)
+    return R, cb - np.einsum("kab,b->ka", R, ca)
+
+
+def _project_so3(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    return R
+
+
+def _apply(R: np.ndarray, t: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return p @ R.T + t
+
+
+def _hand_eye(F: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form Y (tracker ← base) and X (tool ← probe) with P_i ≈ Y F_i X, from (k, 4, 4) tool poses F and
+    measured probe poses P. Rotation of Y: A R_Y = R_Y B for relative motions A = R_Pi R_Pjᵀ, B = R_Fi R_Fjᵀ,
+    a linear null-space problem; then R_X by averaging, translations by linear least squares."""
+    k = len(F)
+    RF, RP = F[:, :3, :3], P[:, :3, :3]
+    step = max(1, k // 2)
+    i = np.arange(k)
+    j = np.concatenate([(i + 1) % k, (i + step) % k])
+    i = np.concatenate([i, i])
+    A = RP[i] @ np.swapaxes(RP[j], 1, 2)
+    B = RF[i] @ np.swapaxes(RF[j], 1, 2)
+    eye = np.eye(3)
+    # vec(A X) = (I ⊗ A) vec(X), vec(X B) = (Bᵀ ⊗ I) vec(X) with column-major vec.
+    rows = np.einsum("ab,kcd->kacbd", eye, A).reshape(-1, 9, 9) - np.einsum("kab,cd->kbcad", B, eye).reshape(-1, 9, 9)
+    rows = rows.reshape(-1, 9)
+    _, vecs = np.linalg.eigh(rows.T @ rows)  # null vector = eigenvector of the smallest eigenvalue (9×9, any k)
+    Ry = vecs[:, 0].reshape(3, 3, order="F")
+    if np.linalg.det(Ry) < 0:
+        Ry = -Ry
+    Ry = _project_so3(Ry)
+    Rx = _project_so3(np.einsum("kba,bc,kcd->ad", RF, Ry.T, RP))
+    # p_P − R_Y p_F = R_Y R_F p_X + p_Y
+    lhs = np.concatenate([np.einsum("ab,kbc->kac", Ry, RF), np.broadcast_to(eye, (k, 3, 3))], axis=2)
+    rhs = P[:, :3, 3] - F[:, :3, 3] @ Ry.T
+    sol, *_ = np.linalg.lstsq(lhs.reshape(-1, 6), rhs.reshape(-1), rcond=None)
+    return (Ry, sol[3:]), (Rx, sol[:3])
+
+
+def _points_from_poses(F: np.ndarray, X: tuple[np.ndarray, np.ndarray], v: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) points F_i · X · v in the frame of F."""
+    local = _apply(*X, v)  # (3, 3) in the tool frame
+    return np.einsum("kab,mb->kma", F[:, :3, :3], local) + F[:, None, :3, 3]
+
+
+def registered_residuals(
+    robot: RobotSpec,
+    q_model: np.ndarray,
+    points: np.ndarray,
+    targets: np.ndarray,
+    *,
+    frame: str,
+    tool_known: bool = True,
+) -> np.ndarray:
+    """(k,) mean distance (m) per row between the measured points and the nominal model's.
+
+    ``frame = "base"``: points compared as given; ``"tracker"``: after the best rigid tracker → base registration
+    over all points. ``tool_known = False`` (a 6-DOF probe, whose mount on the flange is unknown): the
+    tool → probe transform is registered too (closed form, then a few alternating refinements).
+    """
+    model = robot.model
+    if tool_known:
+        pred = model.target_points(q_model, targets)
+        if frame == "tracker":
+            R, t = kabsch(points.reshape(-1, 3), pred.reshape(-1, 3))
+            return np.linalg.norm(_apply(R, t, points) - pred, axis=2).mean(axis=1)
+        return np.linalg.norm(points - pred, axis=2).mean(axis=1)
+    F = model.fk(q_model)
+    if frame == "tracker":
+        P = np.zeros_like(F)
+        P[:, :3, :3], P[:, :3, 3] = _kabsch_batch(targets, points)
+        P[:, 3, 3] = 1.0
+        Y, X = _hand_eye(F, P)
+        base_pts = _apply(Y[0].T, -Y[0].T @ Y[1], points)  # tracker → base with the first estimate
+    else:
+        Y, base_pts = None, points
+    Finv_R = np.swapaxes(F[:, :3, :3], 1, 2)
+    for _ in range(4 if frame == "tracker" else 1):
+        local = np.einsum("kab,kmb->kma", Finv_R, base_pts - F[:, None, :3, 3])  # measured, in the tool frame
+        X = kabsch(np.tile(targets, (len(F), 1)), local.reshape(-1, 3))
+        pred = _points_from_poses(F, X, targets)
+        if frame != "tracker":
+            break
+        R, t = kabsch(points.reshape(-1, 3), pred.reshape(-1, 3))
+        base_pts = _apply(R, t, points)
+    return np.linalg.norm(base_pts - pred, axis=2).mean(axis=1)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The checks
+
+
+def _mm(x: float) -> str:
+    return f"{x * 1e3:.1f} mm" if abs(x) < 10 else f"{x:.3g} m"
+
+
+def _perm_text(perm: tuple[int, ...]) -> str:
+    moved = [i for i in range(3) if perm[i] != i]
+    if len(moved) == 2:
+        a, b = moved
+        return f"t{a + 1}↔t{b + 1}"
+    return "CSV " + ", ".join(f"t{i + 1}" for i in range(3)) + " = file " + ", ".join(f"t{p + 1}" for p in perm)
+
+
+def _unit_slip(ratio: float, used: str, hints: Hints, what: str) -> str | None:
+    """Explain a measured/expected length ratio as a unit mix-up, or None."""
+    for true, f_true in LENGTH_FACTORS.items():
+        if true == used:
+            continue
+        expected = LENGTH_FACTORS[used] / f_true
+        if abs(math.log(ratio / expected)) < math.log(UNIT_RATIO_TOL):
+            return (
+                f"length unit slip: {what} are {ratio:.4g}× the expected size: the data look like {true} imported as "
+                f"{used} — pass {hints.length.format(unit=true)}"
+            )
+    for a, b in itertools.permutations(LENGTH_FACTORS, 2):
+        expected = LENGTH_FACTORS[a] / LENGTH_FACTORS[b]
+        if abs(math.log(ratio / expected)) < math.log(UNIT_RATIO_TOL):
+            return (
+                f"length unit slip: {what} are {ratio:.4g}× the expected size (the factor between {b} and {a}): "
+                f"check the data's unit ({hints.length.format(unit='…')}, now {used}) and the targets file's unit"
+            )
+    return None
+
+
+def _check_target_distances(points, targets, length_unit, hints, report, allow) -> None:
+    d_file = np.array([np.linalg.norm(targets[a] - targets[b]) for a, b in _PAIRS])
+    d = np.stack([np.linalg.norm(points[:, a] - points[:, b], axis=1) for a, b in _PAIRS], axis=1)
+    med = np.median(d, axis=0)
+    ratio = float(np.median(d / d_file))
+    report.stats["target_distances"] = {
+        "file_mm": (d_file * 1e3).round(3).tolist(),
+        "measured_median_mm": (med * 1e3).round(3).tolist(),
+        "ratio": round(ratio, 6),
+    }
+    tol = np.maximum(TARGET_ABS_TOL, TARGET_REL_TOL * d_file)
+    listing = "; ".join(
+        f"t{a + 1}–t{b + 1} {_mm(m)} measured vs {_mm(f)} in the file"
+        for (a, b), m, f in zip(_PAIRS, med, d_file, strict=True)
+    )
+    finding = None
+    if np.all(np.abs(med - d_file) <= tol):
+        finding = None
+    elif (slip := _unit_slip(ratio, length_unit, hints, "the measured distances between the targets")) and np.all(
+        np.abs(med / d_file / ratio - 1) < UNIT_RATIO_TOL - 1
+    ):
+        finding = Finding("target-distances", f"{slip} (median over {len(points)} rows: {listing})")
+    else:
+        best, best_err = None, np.inf
+        for perm in itertools.permutations(range(3)):
+            if perm == (0, 1, 2):
+                continue
+            fp = np.array([np.linalg.norm(targets[perm[a]] - targets[perm[b]]) for a, b in _PAIRS])
+            err = float(np.max(np.abs(med - fp) - tol))
+            if err < best_err:
+                best, best_err = perm, err
+        if best is not None and best_err <= 0:
+            finding = Finding(
+                "target-distances",
+                f"targets look swapped: {_perm_text(best)} — the measured distances match the targets file with "
+                f"the targets in that order ({listing}); reorder the points in the targets file or the CSV's "
+                f"target columns",
+            )
+        else:
+            finding = Finding(
+                "target-distances",
+                f"the targets file's triangle does not match the data ({listing}; median over {len(points)} rows, "
+                f"tolerance {_mm(float(tol.min()))}): check that the targets file describes the targets that were "
+                f"measured, in the same order and unit",
+            )
+    if finding is not None:
+        _add(report, finding, allow)
+        if "target-distances" not in allow:
+            return  # per-row outliers mean nothing against the wrong triangle
+    dev = np.abs(d - d_file).max(axis=1)
+    sigma = 1.4826 * float(np.median(np.abs(d - d_file - np.median(d - d_file, axis=0))))
+    bad = np.flatnonzero(dev > max(ROW_ABS_TOL, 6 * sigma))
+    report.stats["target_outlier_rows"] = len(bad)
+    if len(bad):
+        worst = int(bad[np.argmax(dev[bad])])
+        pair = int(np.argmax(np.abs(d[worst] - d_file)))
+        a, b = _PAIRS[pair]
+        _add(
+            report,
+            Finding(
+                "target-outliers",
+                f"{len(bad)} row(s) have target distances off the targets file's by more than "
+                f"{_mm(max(ROW_ABS_TOL, 6 * sigma))}: {hints.rows_text(bad)}; worst {hints.row_text(worst)}: "
+                f"t{a + 1}–t{b + 1} {_mm(float(d[worst, pair]))} vs {_mm(float(d_file[pair]))} in the file — a "
+                f"target mis-measured or confused; remove or re-measure those rows",
+                rows=[int(i) for i in bad[:20]],
+            ),
+            allow,
+        )
+
+
+def _revolute(robot: RobotSpec) -> np.ndarray:
+    return np.array([t == "revolute" for t in robot.model.joint_types])
+
+
+def _joint_name(robot: RobotSpec, j: int) -> str:
+    names = getattr(robot.model, "joint_names", None)
+    name = names[j] if names and j < len(names) else ""
+    return f"joint {j + 1}" + (f" ({name})" if name and name != f"joint{j + 1}" else "")
+
+
+def _check_joint_limits(q, robot, angle_unit, hints, report, allow) -> None:
+    jm = robot.joints
+    qm = jm.to_model(q)
+    lim = robot.model.limits
+    eps = 1e-9
+    bad = (qm < lim[:, 0] - eps) | (qm > lim[:, 1] + eps)
+    report.stats["joint_limit_violations"] = int(bad.any(axis=1).sum())
+    if not bad.any():
+        return
+    rev = _revolute(robot)
+    parts = []
+    bad_joints = np.flatnonzero(bad.any(axis=0))
+    for j in bad_joints[:3]:
+        rows = np.flatnonzero(bad[:, j])
+        i = int(rows[0])
+        unit = "rad" if rev[j] else "m"
+        parts.append(
+            f"{_joint_name(robot, j)}: {len(rows)} row(s), first {hints.row_text(i)} = {qm[i, j]:.4g} {unit} outside "
+            f"[{lim[j, 0]:.4g}, {lim[j, 1]:.4g}] {unit}"
+        )
+    if len(bad_joints) > 3:
+        parts.append(f"and joint(s) {', '.join(str(j + 1) for j in bad_joints[3:])}")
+    mapped = "" if jm.is_identity else " (model joints, after the robot file's [joint_map])"
+    fix = "check the joint columns and the robot file's limits"
+    if angle_unit == "rad" and rev.any():
+        scaled = q.copy()
+        scaled[:, rev] = np.radians(q[:, rev])
+        if robot.model.within_limits(jm.to_model(scaled)).all() and np.abs(q[:, rev]).max() > 2 * math.pi:
+            fix = f"the values look like degrees — pass {hints.angle.format(unit='deg')}"
+    rows = np.flatnonzero(bad.any(axis=1))
+    _add(
+        report,
+        Finding(
+            "joint-limits",
+            f"joint values outside the robot's limits{mapped}: " + "; ".join(parts) + f": {fix}",
+            rows=[int(i) for i in rows[:20]],
+        ),
+        allow,
+    )
+
+
+def _check_joint_span(q, robot, angle_unit, hints, report, allow) -> None:
+    rev = _revolute(robot)
+    if angle_unit != "deg" or not rev.any() or len(q) < 3:
+        return
+    span = np.ptp(q[:, rev], axis=0)
+    width = np.diff(robot.model.limits[rev], axis=1)[:, 0]
+    report.stats["joint_span_deg_max"] = round(float(np.degrees(span.max())), 4)
+    # The raw numbers must also fit radians (|value| ≤ 2π), so a genuinely small sweep in degrees is not accused.
+    as_read = np.degrees(np.abs(q[:, rev])).max()
+    if np.all(span < SPAN_TINY) and np.all(width > SPAN_WIDE_LIMITS) and as_read <= 2 * math.pi * 1.001:
+        j = int(np.flatnonzero(rev)[np.argmax(span)])
+        _add(
+            report,
+            Finding(
+                "joint-span",
+                f"every joint moves less than {math.degrees(SPAN_TINY):.0f}° over the {len(q)} rows (largest span "
+                f"{math.degrees(span.max()):.2f}° on {_joint_name(robot, j)}) though the limits allow "
+                f"{math.degrees(width.min()):.0f}° or more: the values look like radians imported as degrees — pass "
+                f"{hints.angle.format(unit='rad')}",
+            ),
+            allow,
+        )
+
+
+@dataclass(frozen=True)
+class _Hypothesis:
+    text: str  # completes "the mean drops to X mm …"
+    cost: int  # how many things it changes: the simplest explanation that fits wins
+    q: np.ndarray
+    points: np.ndarray
+    targets: np.ndarray
+    frame: str
+
+
+def _hypotheses(
+    q_ctrl, points, targets, robot, *, angle_unit, length_unit, frame, form, probe_poses, hints, unit_ratio=None
+):
+    """Alternative readings of the input that a user could have meant, each with the fix that selects it."""
+    rev = _revolute(robot)
+    jm = robot.joints
+    angle_alts = [("", q_ctrl)]
+    alt_unit = "deg" if angle_unit == "rad" else "rad"
+    scaled = q_ctrl.copy()
+    scaled[:, rev] = np.radians(q_ctrl[:, rev]) if angle_unit == "rad" else np.degrees(q_ctrl[:, rev])
+    angle_alts.append((hints.angle.format(unit=alt_unit), scaled))
+    length_alts = [("", points)]
+    for unit, f in LENGTH_FACTORS.items():
+        if unit == length_unit:
+            continue
+        s = f / LENGTH_FACTORS[length_unit]
+        if probe_poses is not None:  # a probe's offsets are not in the CSV: only its position scales
+            R, t = probe_poses
+            alt = np.einsum("kab,mb->kma", R, targets) + s * t[:, None, :]
+        else:
+            alt = points * s
+        length_alts.append((hints.length.format(unit=unit), alt))
+    frames = [("", frame)] + ([(hints.frame.format(frame="tracker"), "tracker")] if frame == "base" else [])
+    out = []
+    for (ta, qa), (tl, pl), (tf, fr) in itertools.product(angle_alts, length_alts, frames):
+        changes = [t for t in (ta, tl, tf) if t]
+        if changes:
+            out.append(_Hypothesis(f"with {' and '.join(changes)}", len(changes), jm.to_model(qa), pl, targets, fr))
+    if not jm.is_identity:
+        out.append(_Hypothesis("without the robot file's [joint_map] (the CSV may hold model joints already)", 1,
+                               q_ctrl, points, targets, frame))  # fmt: skip
+    n = q_ctrl.shape[1]
+    for j in range(1, n):
+        if not (rev[j] and rev[j - 1]):
+            continue
+        for sign, op in ((1.0, "+"), (-1.0, "−")):
+            M = np.eye(n)
+            M[j, j - 1] = sign
+            out.append(_Hypothesis(
+                f"if model joint {j + 1} = J{j} {op} J{j + 1} (a coupled joint, e.g. an elbow measured from the "
+                f"horizontal; declare it in the robot file's [joint_map])", 1, jm.to_model(q_ctrl @ M.T), points,
+                targets, frame,
+            ))  # fmt: skip
+    for j in range(n):
+        M = np.eye(n)
+        M[j, j] = -1.0
+        out.append(_Hypothesis(f"if joint {j + 1} counts the other way (declare the sign in the robot file's "
+                               f"[joint_map])", 1, jm.to_model(q_ctrl @ M.T), points, targets, frame))  # fmt: skip
+    if unit_ratio is not None:  # the target distances already showed a unit slip between the CSV and targets file
+        out.append(_Hypothesis(f"once the length units agree (the data scaled by 1/{unit_ratio:.4g}, see "
+                               f"target-distances)", 1, jm.to_model(q_ctrl), points / unit_ratio, targets,
+                               frame))  # fmt: skip
+    if form == "targets":
+        for perm in itertools.permutations(range(3)):
+            if perm != (0, 1, 2):
+                out.append(_Hypothesis(f"with the targets reordered ({_perm_text(perm)}) in the targets file", 1,
+                                       jm.to_model(q_ctrl), points, targets[list(perm)], frame))  # fmt: skip
+    return out
+
+
+def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length_unit, hints, report, allow) -> None:
+    tool_known = form == "targets"
+    qm = robot.joints.to_model(q)
+    per_row = registered_residuals(robot, qm, points, targets, frame=frame, tool_known=tool_known)
+    mean = float(per_row.mean())
+    report.stats["nominal_mean_mm"] = round(mean * 1e3, 4)
+    report.stats["nominal_p95_mm"] = round(float(np.percentile(per_row, 95)) * 1e3, 4)
+    reach_bad = _far_rows(points, robot, targets) if frame == "base" else np.array([], int)
+    report.stats["rows_beyond_reach"] = len(reach_bad)
+    if mean <= NOMINAL_MEAN_LIMIT and not len(reach_bad):
+        return
+    # Which reading of the input would make the data agree with the model? Test on a spread subset of rows.
+    idx = np.unique(np.linspace(0, len(q) - 1, min(len(q), HYPOTHESIS_ROWS)).astype(int))
+    probe_poses = _kabsch_batch(targets, points[idx]) if form == "probe" else None
+    scored = []
+    for h in _hypotheses(q[idx], points[idx], targets, robot, angle_unit=angle_unit, length_unit=length_unit,
+                         frame=frame, form=form, probe_poses=probe_poses, hints=hints,
+                         unit_ratio=_known_unit_ratio(report.stats)):  # fmt: skip
+        try:
+            m = float(registered_residuals(robot, h.q, h.points, h.targets, frame=h.frame,
+                                           tool_known=tool_known).mean())  # fmt: skip
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        if np.isfinite(m):
+            scored.append((h, m))
+    best, best_mean = None, np.inf
+    if scored:
+        lowest = min(m for _, m in scored)
+        # Among the readings about as good as the best one, name the one that changes least (a registration
+        # absorbs a little noise, so "--length-unit mm and --frame tracker" may score a hair under "--length-unit mm").
+        near = [(h, m) for h, m in scored if m <= max(1.5 * lowest, lowest + 2e-3)]
+        best, best_mean = min(near, key=lambda hm: (hm[0].cost, hm[1]))
+    explained = best is not None and best_mean <= NOMINAL_MEAN_LIMIT and best_mean < 0.5 * mean
+    if explained:
+        report.stats["nominal_best_explanation"] = {"fix": best.text, "mean_mm": round(best_mean * 1e3, 4)}
+    if len(reach_bad):
+        i = int(reach_bad[0])
+        dist = float(np.linalg.norm(points[i], axis=1).max())
+        fix = (
+            f"the data fit the nominal model to {_mm(best_mean)} mean {best.text}"
+            if explained
+            else f"the points look like tracker coordinates — pass {hints.frame.format(frame='tracker')}"
+        )
+        _add(
+            report,
+            Finding(
+                "reach",
+                f"{len(reach_bad)} of {len(q)} rows have points farther from the base origin than the robot can "
+                f"reach ({_mm(_reach(robot, targets))}), e.g. {hints.row_text(i)} at {_mm(dist)}: {fix}",
+                rows=[int(r) for r in reach_bad[:20]],
+            ),
+            allow,
+        )
+    if mean <= NOMINAL_MEAN_LIMIT:
+        return
+    where = {
+        ("base", True): "in the base frame as given",
+        ("tracker", True): "after the best rigid tracker → base registration",
+        ("base", False): "after registering the probe's mount on the flange",
+        ("tracker", False): "after registering the tracker frame and the probe's mount on the flange",
+    }[(frame, tool_known)]
+    worst = np.argsort(per_row)[::-1][:3]
+    worst_text = ", ".join(f"{hints.row_text(int(i))} {_mm(float(per_row[i]))}" for i in worst)
+    if explained:
+        fix = f"the mean drops to {_mm(best_mean)} {best.text}"
+    else:
+        fix = (
+            f"no single fix found; likely causes: the joint angle unit ({hints.angle.format(unit='deg|rad')}), "
+            f"controller joints that are not the model's joints (coupled or reversed joints: the robot file's "
+            f"[joint_map]), the frame of the points ({hints.frame.format(frame='base|tracker')}), the targets file, "
+            f"or the wrong robot file"
+        )
+    _add(
+        report,
+        Finding(
+            "nominal",
+            f"the measured points are {_mm(mean)} (mean over {len(q)} rows) from where the nominal "
+            f"{robot.name} model puts them {where}; a robot matching its model is within a few mm (limit "
+            f"{_mm(NOMINAL_MEAN_LIMIT)}); worst {worst_text}: {fix}",
+        ),
+        allow,
+    )
+
+
+def _known_unit_ratio(stats: dict) -> float | None:
+    """The unit ratio (1000, 25.4, …) the target distances showed, or None."""
+    ratio = stats.get("target_distances", {}).get("ratio")
+    if not ratio or ratio <= 0:
+        return None
+    for a, b in itertools.permutations(LENGTH_FACTORS, 2):
+        expected = LENGTH_FACTORS[a] / LENGTH_FACTORS[b]
+        if abs(math.log(ratio / expected)) < math.log(UNIT_RATIO_TOL):
+            return expected
+    return None
+
+
+def _reach(robot: RobotSpec, targets: np.ndarray) -> float:
+    return robot.model.reach() + float(np.linalg.norm(targets, axis=1).max())
+
+
+def _far_rows(points: np.ndarray, robot: RobotSpec, targets: np.ndarray) -> np.ndarray:
+    """Rows with a point beyond the robot's reach (a generous bound: every link offset laid end to end, + 10 %)."""
+    limit = 1.1 * _reach(robot, targets) + 0.05
+    return np.flatnonzero(np.linalg.norm(points, axis=2).max(axis=1) > limit)
+
+
+def _check_duplicates(q, existing_q, final, hints, report, allow) -> None:
+    all_q = q if existing_q is None or not len(existing_q) else np.concatenate([existing_q, q])
+    offset = 0 if existing_q is None else len(existing_q)
+    keys = np.round(all_q / DUPLICATE_TOL).astype(np.int64)
+    _, first, inverse, counts = np.unique(keys, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    n_distinct = len(counts)
+    dup_rows = np.flatnonzero(first[inverse] != np.arange(len(all_q)))
+    report.stats["distinct_poses"] = int(n_distinct)
+    report.stats["duplicate_rows"] = len(dup_rows)
+    if len(dup_rows):
+        groups = [g for g in np.flatnonzero(counts > 1)]
+        examples = []
+        for g in groups[:3]:
+            members = np.flatnonzero(inverse == g)
+            examples.append(" = ".join(_row_or_earlier(int(m), offset, hints) for m in members[:4]))
+        report.notes.append(
+            f"{len(dup_rows)} row(s) repeat an earlier pose ({len(groups)} pose(s) measured more than once; "
+            f"identical joints: {'; '.join(examples)}{' …' if len(groups) > 3 else ''}); a fit keeps repeats of one "
+            f"pose together when it splits the data"
+        )
+    if len(dup_rows) > 0.5 * len(all_q):
+        _add(report, Finding("duplicates", f"{len(dup_rows)} of {len(all_q)} rows repeat a pose (only {n_distinct} "
+                             f"distinct): a fit would learn the repeats, not the robot; measure distinct poses",
+                             rows=[int(i) - offset for i in dup_rows[:20] if i >= offset]), allow)  # fmt: skip
+    need = 2 * all_q.shape[1]
+    if final and n_distinct < need:
+        _add(report, Finding("few-poses", f"only {n_distinct} distinct pose(s) in {len(all_q)} rows; calibrating "
+                             f"{all_q.shape[1]} joints needs at least {need} (2 per joint) spread over the workspace: "
+                             f"measure more poses"), allow)  # fmt: skip
+
+
+def _row_or_earlier(i: int, offset: int, hints: Hints) -> str:
+    return f"earlier pose {i}" if i < offset else hints.row_text(i - offset)
+
+
+def _add(report: SanityReport, finding: Finding, allow: frozenset[str]) -> None:
+    (report.allowed if finding.check in allow else report.failures).append(finding)
+
+
+def check_measurements(
+    q: np.ndarray,
+    points: np.ndarray,
+    targets: np.ndarray,
+    *,
+    robot: RobotSpec | None = None,
+    frame: str = "base",
+    form: str = "targets",
+    length_unit: str = "m",
+    angle_unit: str = "rad",
+    allow: Iterable[str] = (),
+    hints: Hints | None = None,
+    existing_q: np.ndarray | None = None,
+    final: bool = True,
+) -> SanityReport:
+    """Run every sanity check on measurements (already converted to SI with the given units); return the report.
+
+    q: (k, n) controller joints (rad / m); points: (k, 3, 3) measured targets (m) in ``frame``; targets: (3, 3) m
+    in the tool frame (for ``form = "probe"`` the probe's virtual offsets). ``robot``: the nominal robot; without
+    it only the data-only checks run (target distances, duplicates). ``length_unit`` / ``angle_unit``: the units the
+    numbers were read in, so a suggestion can name the other one. ``allow``: check names to override (they are
+    still run and reported in ``report.allowed``). ``existing_q``: joints already in the session (appending), for
+    the duplicate count. ``final = False`` (a session still recording): skip the too-few-poses rule.
+    """
+    allow = check_names(allow)
+    hints = hints or Hints()
+    report = SanityReport(hints=hints)
+    q = np.asarray(q, dtype=float)
+    points = np.asarray(points, dtype=float)
+    targets = np.asarray(targets, dtype=float)
+    if q.ndim != 2 or points.shape != (len(q), 3, 3) or targets.shape != (3, 3):
+        raise DatasetError(f"sanity checks need q (k, n), points (k, 3, 3), targets (3, 3); got {q.shape}, "
+                           f"{points.shape}, {targets.shape}")  # fmt: skip
+    finite = np.isfinite(q).all(axis=1) & np.isfinite(points).all(axis=(1, 2))
+    if not finite.all():
+        report.notes.append(f"{int((~finite).sum())} row(s) with non-finite values were left out of the checks")
+        keep = np.flatnonzero(finite)
+        q, points = q[keep], points[keep]
+        base_row = hints.row
+        hints = Hints(hints.length, hints.angle, hints.frame, hints.allow,
+                      lambda i: base_row(int(keep[i])) if base_row else f"row {int(keep[i]) + 1}")  # fmt: skip
+        report.hints = hints
+    report.stats["rows"] = len(q)
+    if len(q) == 0:
+        return report
+    if robot is not None and q.shape[1] != robot.model.n:
+        raise DatasetError(f"{q.shape[1]} joint values per row but robot {robot.name} has {robot.model.n} joints")
+    if form == "targets":
+        _check_target_distances(points, targets, length_unit, hints, report, allow)
+    if robot is not None:
+        _check_joint_limits(q, robot, angle_unit, hints, report, allow)
+        _check_joint_span(q, robot, angle_unit, hints, report, allow)
+        if len(q) >= 3:
+            _check_nominal(q, points, targets, robot, frame=frame, form=form, angle_unit=angle_unit,
+                           length_unit=length_unit, hints=hints, report=report, allow=allow)  # fmt: skip
+    _check_duplicates(q, existing_q, final, hints, report, allow)
+    return report
