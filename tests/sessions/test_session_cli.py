@@ -188,3 +188,22 @@ def test_seal_valid_prefix_cli_prints_what_it_left_out(tmp_path, targets):
     assert ref.endswith("@v001") and st.load(ref).pose.tolist() == [0, 1, 2]
     assert "left out line 5: unreadable" in r.stdout
     assert "left out line 6 (seq 5, pose 4): after the corrupt line 5" in r.stdout
+
+
+def test_verify_of_a_session_checks_the_fits_of_every_version(tmp_path):
+    from sessions_testutil import record_interrupted
+
+    from labcal.cli.ops import resume_session
+    from labcal.robots import load
+
+    st = SessionStore(tmp_path / "store")
+    first = record_interrupted(st, load("ur10"), n_poses=6, interrupt_at=4)
+    record = st.save_fit(first.ref, {"model.json": b"{}"}, {"method": "test"})
+    assert resume_session(st, first.session_id).ref.endswith("@v002")
+    (record.path / "model.json").chmod(0o644)
+    (record.path / "model.json").write_bytes(b"[]")
+    r = invoke("session", "verify", first.session_id, store=st.root)
+    assert r.exit_code == 1
+    assert f"{first.ref}: fits/{record.fit_id}/model.json: sha256 mismatch" in r.stdout
+    assert f"{first.session_id}@v002: ok" in r.stdout
+    assert invoke("session", "verify", f"{first.session_id}@v2", store=st.root).exit_code == 0

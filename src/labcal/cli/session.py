@@ -223,26 +223,35 @@ def seal(
 @app.command("verify")
 @user_errors
 def verify(session: str = typer.Argument(..., help="SESSION or SESSION@vN."), store: Path | None = StoreOption) -> None:
-    """Check every file hash of a version (the latest by default) and of every fit stored under it; exit 1 with
-    one line per problem if anything is wrong.
+    """Check every file hash of a version and of every fit stored under it; SESSION alone checks all its versions.
+    Exit 1 with one line per problem if anything is wrong.
 
     Example: labcal session verify 20261122-031500-ur10-3f9a@v1
     """
+    from labcal.datasets import Ref, parse_ref
+
     st = _store(store)
-    report = st.verify(session)
-    fits = st.verify_fits(report.ref)
-    problems = [*report.problems, *fits.problems]
-    if not problems:
-        n_fits = len({c.split("/")[1] for c in fits.checked})
-        out.print(
-            f"{report.ref}: ok ({len(report.checked)} files checked, {n_fits} fit(s) with "
-            f"{len(fits.checked)} files checked)",
-            markup=False,
-        )
-        return
-    for p in problems:
-        out.print(f"{report.ref}: {p}", markup=False)
-    raise typer.Exit(1)
+    r = parse_ref(session)
+    refs = [st.resolve(r)] if r.version is not None else [Ref(r.session_id, v) for v in st.versions(r.session_id)]
+    if not refs:
+        st.resolve(r)  # raises: the session has no version yet
+    bad = False
+    for ref in refs:
+        report = st.verify(ref)
+        fits = st.verify_fits(ref)
+        problems = [*report.problems, *fits.problems]
+        if not problems:
+            n_fits = len({c.split("/")[1] for c in fits.checked})
+            out.print(
+                f"{report.ref}: ok ({len(report.checked)} files checked, {n_fits} fit(s) with "
+                f"{len(fits.checked)} files checked)",
+                markup=False,
+            )
+        for p in problems:
+            out.print(f"{report.ref}: {p}", markup=False)
+        bad = bad or bool(problems)
+    if bad:
+        raise typer.Exit(1)
 
 
 app.command("import")(import_)
