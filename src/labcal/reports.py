@@ -1,10 +1,13 @@
 """Markdown reports with PNG plots (matplotlib, headless Agg backend) of the fits stored under a version.
 
-For every fit: its metrics table (train / val / test, before / after: mean, RMS, p95, max in mm and degrees),
+At the top: every fit's blocking warnings (the ones `labcal export` refuses without --force) and notes. For every
+fit: its warnings again, its metrics table (train / val / test, before / after: mean, RMS, p95, max in mm and
+degrees, and the per-target point error beside the pose error), the per-target point residuals (table and plot),
 the position and orientation error of every configuration before and after (the paper's Fig. 5), the training
-curve with the validation-stopping point when the fit trained a network (Fig. 4), and the identified local-POE
-frame parameters with their standard deviations when it identified frames. Across fits: histograms of the
-position error after calibration per method.
+curve with the validation-stopping point when the fit trained a network (Fig. 4), the identified local-POE frame
+parameters — with ± one standard deviation only where a parameter is identifiable on its own, "—" where it is
+not, and the identifiable combinations of the others with their standard deviations — and the evaluations stored
+for the fit (``labcal evaluate``). Across fits: histograms of the position error after calibration per method.
 
 Example::
 
@@ -19,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labcal.calibration.metrics import prediction_errors
+from labcal.calibration.metrics import point_errors, prediction_errors
 from labcal.calibration.observations import Observations
 from labcal.compensator import from_payload
 
@@ -35,19 +38,32 @@ def _plt():
     return plt
 
 
-def _fit_data(store, ref: str, fit_id: str) -> dict:
+def _fit_data(store, ref: str, fit_id: str, load_obs=None) -> dict:
+    """A fit's record, robots and data. load_obs(refs) → Observations (the CLI passes its loader, which converts
+    controller joints to model joints); without it the versions are pooled as stored."""
     record = store.load_fit(ref, fit_id)
     meta = record.metadata
     robot, _ = from_payload(json.loads(record.read(ROBOT_FILE)), f"fit {fit_id}")
     before, _ = from_payload(json.loads(record.read(BEFORE_FILE)), f"fit {fit_id}")
-    datasets = [store.load(i["ref"]) for i in record.inputs]
+    refs = [i["ref"] for i in record.inputs]
+    if load_obs is not None:
+        pooled = load_obs(refs)
+    else:
+        datasets = [store.load(r) for r in refs]
+        pooled = Observations(
+            q=np.concatenate([d.q for d in datasets]),
+            points=np.concatenate([d.points for d in datasets]),
+            targets=datasets[0].targets,
+            frame=datasets[0].frame,
+            split=np.concatenate([d.split for d in datasets]).astype(object),
+        )
     split = meta.get("split")
     obs = Observations(
-        q=np.concatenate([d.q for d in datasets]),
-        points=np.concatenate([d.points for d in datasets]),
-        targets=datasets[0].targets,
-        frame=datasets[0].frame,
-        split=np.array(split, dtype=object) if split else np.concatenate([d.split for d in datasets]).astype(object),
+        q=pooled.q,
+        points=pooled.points,
+        targets=pooled.targets,
+        frame=pooled.frame,
+        split=np.array(split, dtype=object) if split and len(split) == pooled.k else pooled.split,
     )
     return {"fit_id": fit_id, "meta": meta, "robot": robot, "before": before, "obs": obs}
 
@@ -68,6 +84,7 @@ def _md_metrics(metrics: dict) -> list[str]:
     cols = [f"pos {s} (mm)" for s in ("mean", "rms", "p95", "max")] + [
         f"ori {s} (°)" for s in ("mean", "rms", "p95", "max")
     ]
+    cols += [f"point {s} (mm)" for s in ("mean", "p95", "max")]
     lines = ["| split | n | | " + " | ".join(cols) + " |", "|---|---:|---|" + "---:|" * len(cols)]
     for split in ("train", "val", "test", "all"):
         if split not in metrics:
@@ -81,6 +98,8 @@ def _md_metrics(metrics: dict) -> list[str]:
 
             vals = [f(f"pos_{k}", 1e3) for k in ("mean", "rms", "p95", "max")]
             vals += [f(f"ori_{k}", 180 / np.pi) for k in ("mean", "rms", "p95", "max")]
+            pts = (metrics[split].get("points") or {}).get(when) or {}
+            vals += [_mm(pts.get(k)) for k in ("mean", "p95", "max")]
             n = str(int(s.get("count") or 0)) if when == "before" else ""
             lines.append(f"| {split if when == 'before' else ''} | {n} | {when} | " + " | ".join(vals) + " |")
     return lines
@@ -151,33 +170,300 @@ def _plot_histograms(plt, fits: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def _parameter_lines(info: dict) -> list[str]:
-    dz, std = _find(info, "delta_zeta"), _find(info, "std")
-    if dz is None:
+def _mm(v, scale: float = 1e3) -> str:
+    return "—" if v is None or not np.isfinite(v) else f"{v * scale:.4f}"
+
+
+def _md_targets(metrics: dict) -> list[str]:
+    """Per-target point error table (mm): split × before/after × target mean / p95 / max."""
+    splits = [s for s in ("train", "val", "test", "all") if s in metrics and "points" in metrics[s]]
+    if not splits:
         return []
-    dz = np.asarray(dz, dtype=float)
-    std = np.asarray(std, dtype=float) if std is not None else np.full_like(dz, np.nan)
-    names = ["vx (mm)", "vy (mm)", "vz (mm)", "ωx (mrad)", "ωy (mrad)", "ωz (mrad)"]
+    m = len(metrics[splits[0]]["points"]["after"].get("per_target") or [])
+    head = [f"t{i + 1} {k} (mm)" for i in range(m) for k in ("mean", "p95", "max")]
     lines = [
-        "Identified frame corrections δζ_j = log(A_j,nominal⁻¹ A_j,identified) ± one standard deviation "
-        "(— where not identifiable):",
+        "Per-target point error: distance between each measured target and its predicted position (a targets file "
+        "that does not match the data shows here, not in the pose error):",
+        "",
+        "| split | | " + " | ".join(head) + " |",
+        "|---|---|" + "---:|" * len(head),
+    ]
+    for split in splits:
+        for when in ("before", "after"):
+            per = metrics[split]["points"][when].get("per_target") or []
+            cells = [_mm(t.get(k)) for t in per for k in ("mean", "p95", "max")]
+            lines.append(f"| {split if when == 'before' else ''} | {when} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _plot_targets(plt, data: dict, path: Path) -> None:
+    """Point error of every target and configuration after calibration (solid) and before (faint)."""
+    obs = data["obs"]
+    order = np.argsort([{"train": 0, "val": 1, "test": 2}.get(s, 3) for s in obs.split], kind="stable")
+    d0 = point_errors(data["before"], obs)[order] * 1e3
+    d1 = point_errors(data["robot"], obs)[order] * 1e3
+    fig, ax = plt.subplots(figsize=(9, 4))
+    x = np.arange(obs.k)
+    for i in range(d1.shape[1]):
+        (line,) = ax.plot(x, d1[:, i], "o-", ms=3, lw=0.8, label=f"t{i + 1} after")
+        ax.plot(x, d0[:, i], ":", lw=0.8, color=line.get_color(), alpha=0.6, label=f"t{i + 1} before")
+    ax.set_yscale("log")
+    ax.set_xlabel("configuration (train, then val, then test)")
+    ax.set_ylabel("point error (mm)")
+    ax.set_title(f"{data['robot'].method}: per-target point error before/after calibration")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, ncol=3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _warning_lines(meta: dict, fit_id: str, *, heading: bool = True) -> list[str]:
+    warnings = meta.get("warnings")
+    notes = meta.get("notes") or []
+    lines = []
+    if warnings is None:
+        lines.append(f"- fit {fit_id}: stored before fit warnings were recorded; `labcal export` re-derives them.")
+    for w in warnings or []:
+        lines.append(f"- **WARNING [{w.get('code')}]** {'fit ' + fit_id + ': ' if heading else ''}{w.get('message')}")
+    for n in notes:
+        lines.append(f"- note: {'fit ' + fit_id + ': ' if heading else ''}{n}")
+    return lines
+
+
+def _chosen_info(info: dict, chosen: str | None) -> dict:
+    """The diagnostics of the model that was kept (auto keeps every candidate's info under its name)."""
+    if isinstance(info, dict) and isinstance(info.get("candidates"), dict) and chosen in info:
+        return info[chosen] or {}
+    return info
+
+
+def _local_poe_info(info: dict) -> dict | None:
+    """The local-POE stage's diagnostics (the fit itself, or a hybrid's first stage), if any."""
+    if not isinstance(info, dict):
+        return None
+    if "delta_zeta" in info:
+        return info
+    if isinstance(info.get("local_poe"), dict):
+        return _local_poe_info(info["local_poe"])
+    return None
+
+
+IDENTIFIABLE_LEVERAGE = 1e-6  # share of a parameter's unit vector inside the null space below which it is identified
+
+
+def _covariance(lp: dict, data: dict) -> np.ndarray | None:
+    """Parameter covariance (p × p, SI units) of the local-POE identification: the stored ``cov`` if the fit kept
+    it, else recomputed from the fit's rows at the identified model (σ² (JᵀJ)⁺ on the identified rank)."""
+    if lp.get("cov") is not None:
+        return np.asarray(lp["cov"], dtype=float)
+    try:
+        from labcal.calibration.local_poe import _residual_and_jacobian, fitting_rows
+    except ImportError:
+        return None
+    try:
+        obs, robot = data["obs"], data["robot"]
+        estimate_base = obs.frame == "tracker"
+        n = robot.model.n
+        frames = list(range(1 if estimate_base else 0, n + 1))
+        rows = fitting_rows(obs)
+        r, J = _residual_and_jacobian(
+            robot.model, robot.T_tracker_base, obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base
+        )
+        L = float(lp.get("length_scale") or robot.length_scale)
+        scale = np.tile([1.0] * 3 + [1.0 / L] * 3, J.shape[1] // 6)
+        lam, V = np.linalg.eigh((J * scale).T @ (J * scale))
+        rank = int(lp["rank"])
+        Vk, lk = V[:, -rank:], lam[-rank:]
+        sigma2 = float(r @ r) / max(r.size - rank, 1)
+        return sigma2 * (scale[:, None] * (Vk / lk) @ Vk.T * scale[None, :])
+    except Exception:  # an optional refinement: without it the combinations show no σ
+        return None
+
+
+def _parameter_lines(info: dict, data: dict | None = None) -> list[str]:
+    lp = _local_poe_info(_chosen_info(info, (data or {}).get("meta", {}).get("chosen")))
+    if lp is None:
+        return []
+    dz = np.asarray(lp["delta_zeta"], dtype=float)
+    std = np.asarray(lp["std"], dtype=float) if lp.get("std") is not None else np.full_like(dz, np.nan)
+    labels = list(lp.get("param_labels") or [])
+    null = np.asarray(lp.get("null_space") or np.zeros((len(labels), 0)), dtype=float)
+    n1 = dz.shape[0]
+    estimate_base = bool(labels) and labels[-1].startswith("T_tracker_base")
+    frames = list(range(n1 - len(labels) // 6 + (1 if estimate_base else 0), n1)) if labels else list(range(n1))
+    identified = np.zeros((n1, 6), bool)
+    leverage = None
+    if labels and null.ndim == 2 and null.shape[0] == len(labels):
+        L = float(lp.get("length_scale") or 1.0)
+        scale = np.tile([1.0] * 3 + [1.0 / L] * 3, len(labels) // 6)
+        Vn = null / scale[:, None]  # back to the orthonormal basis of the scaled problem
+        leverage = np.sum(Vn * Vn, axis=1)
+        for k, j in enumerate(frames):
+            identified[j] = leverage[6 * k : 6 * k + 6] < IDENTIFIABLE_LEVERAGE
+    else:
+        identified = np.isfinite(std)
+    names = ["vx (mm)", "vy (mm)", "vz (mm)", "ωx (mrad)", "ωy (mrad)", "ωz (mrad)"]
+    rank, need = lp.get("rank"), lp.get("expected_rank")
+    lines = []
+    if rank is not None:
+        lines += [
+            f"Local POE identified numerical rank **{rank}** (identifiable at most: {need}; {len(labels)} frame "
+            f"parameters, so {len(labels) - int(rank)} directions are not identified"
+            + (" — **fewer than the model allows: the poses do not excite every direction**" if need and rank < need
+               else "")
+            + ").",
+            "",
+        ]  # fmt: skip
+    lines += [
+        "Identified frame corrections δζ_j = log(A_j,nominal⁻¹ A_j,identified) ± one standard deviation, for "
+        "parameters identifiable on their own; **—** marks a parameter that is not identifiable on its own (its "
+        "value depends on an arbitrary choice inside the null space; only the combinations listed below are "
+        "determined by the data):",
         "",
         "| frame | " + " | ".join(names) + " |",
         "|---|" + "---:|" * 6,
     ]
     for j, (row, srow) in enumerate(zip(dz, std, strict=True)):
         cells = []
-        for i, (v, s) in enumerate(zip(row, srow, strict=True)):
-            scale = 1e3
-            cells.append(f"{v * scale:.4f} ± {s * scale:.4f}" if np.isfinite(s) else f"{v * scale:.4f} ± —")
-            del i
-        label = f"A{j + 1}" if j < len(dz) - 1 else f"A{j + 1} (tool)"
+        for i, (v, sd) in enumerate(zip(row, srow, strict=True)):
+            if not np.isfinite(sd) and j not in frames:
+                cells.append("not estimated")
+            elif identified[j, i] and np.isfinite(sd):
+                cells.append(f"{v * 1e3:.4f} ± {sd * 1e3:.4f}")
+            else:
+                cells.append("—")
+        label = f"A{j + 1}" if j < n1 - 1 else f"A{j + 1} (tool)"
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    if leverage is not None:
+        lines += ["", *_combination_lines(lp, data, dz, frames, labels, leverage)]
+    dirs = lp.get("null_directions") or []
+    if dirs:
+        lines += ["", "Directions the data do not determine (largest components):", ""]
+        lines += [f"- {d}" for d in dirs]
     return lines
 
 
-def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = None) -> Path:
-    """Write ``report.md`` and PNG plots for the fits of a version into out_dir; returns the report's path."""
+def _combination_lines(lp, data, dz, frames, labels, leverage) -> list[str]:
+    """The identifiable combinations of the parameters that are not identifiable on their own, with σ."""
+    S = np.flatnonzero(leverage >= IDENTIFIABLE_LEVERAGE)
+    if S.size == 0:
+        return ["Every parameter is identifiable on its own."]
+    L = float(lp.get("length_scale") or 1.0)
+    scale = np.tile([1.0] * 3 + [1.0 / L] * 3, len(labels) // 6)
+    null = np.asarray(lp["null_space"], dtype=float) / scale[:, None]
+    U, sv, _ = np.linalg.svd(null[S], full_matrices=True)
+    d = int(np.sum(sv > 1e-9))
+    B = U[:, d:].T  # rows: coefficient vectors (scaled coordinates) orthogonal to the null space
+    if B.shape[0] == 0:
+        return ["No combination of the parameters marked — is determined by the data."]
+    import scipy.linalg
+
+    _, _, piv = scipy.linalg.qr(B, pivoting=True)
+    pivots = piv[: B.shape[0]]
+    C = np.linalg.solve(B[:, pivots], B)  # each row: 1 at its pivot, 0 at the other pivots
+    x = np.zeros(len(labels))
+    for k, j in enumerate(frames):
+        x[6 * k : 6 * k + 6] = dz[j]
+    cov = _covariance(lp, data) if data is not None else None
+    units = ("mm", "mm", "mm", "mrad", "mrad", "mrad")
+    lines = [
+        "Identifiable combinations of the parameters marked — (first order; coefficients in SI units, value in "
+        "the unit of the leading parameter; Aj = frame j, A" + str(len(dz)) + " = tool; the five largest terms):",
+        "",
+        "| combination | value ± σ |",
+        "|---|---:|",
+    ]
+    short = [_short_label(x, len(dz)) for x in labels]
+    for row, p in zip(C, pivots, strict=True):
+        a = np.zeros(len(labels))
+        a[S] = row / scale[S] * scale[S[p]]  # scaled → SI coefficients, leading coefficient 1
+        rel = np.zeros(len(labels))
+        rel[S] = row / row[p]  # scaled coordinates (angles × reach): comparable sizes across units
+        # Terms below 1e-3 of the leading one (in the scaled metric) change the value by less than its rounding.
+        order = [S[p]] + [int(i) for i in np.argsort(-np.abs(rel)) if i != S[p] and abs(rel[i]) > 1e-3]
+        terms = [short[order[0]]] + [f"{a[i]:+.3g}·{short[i]}" for i in order[1:5]]
+        more = len(order) - 5
+        text = " ".join(terms) + (f" … (+{more} terms)" if more > 0 else "")
+        value = float(a @ x) * 1e3
+        sd = float(np.sqrt(max(a @ cov @ a, 0.0))) * 1e3 if cov is not None and cov.shape == (len(a), len(a)) else None
+        unit = units[S[p] % 6]
+        lines.append(f"| {text} | {value:.4f} ± {'—' if sd is None else f'{sd:.4f}'} {unit} |")
+    return lines
+
+
+def _short_label(label: str, n_frames: int) -> str:
+    """'frame A_3 (before joint 3) wy' → 'A3 ωy'; 'tool frame A_{n+1} vz' → 'A7 vz'; T_tracker_base → 'Tb'."""
+    import re
+
+    axis = label.rsplit(" ", 1)[-1].replace("w", "ω")
+    if label.startswith("T_tracker_base"):
+        return f"Tb {axis}"
+    if label.startswith("tool frame"):
+        return f"A{n_frames} {axis}"
+    m = re.match(r"frame A_(\d+)", label)
+    return f"A{m.group(1)} {axis}" if m else label
+
+
+def _evaluation_lines(store, ref: str, fit_id: str) -> list[str]:
+    """The stored `labcal evaluate` results of a fit (files under the fit, see labcal.cli.ops.evaluating)."""
+    folder = store.version_dir(ref) / "fits" / ".evaluations" / fit_id
+    docs = []
+    for p in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        try:
+            docs.append(json.loads(p.read_text()))
+        except (OSError, ValueError):
+            docs.append({"evaluation_id": p.stem, "corrupt": True})
+    if not docs:
+        return []
+    lines = [
+        "Evaluations on other data (`labcal evaluate`; only T_tracker_base is fitted on tracker-frame data):",
+        "",
+        "| evaluation | data | rows | pos mean before (mm) | pos mean after (mm) | point mean after (mm) | "
+        "point p95 after (mm) | point max after (mm) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for d in docs:
+        m = (d.get("metrics") or {}).get("all") or {}
+        pts = (m.get("points") or {}).get("after") or {}
+        data = d.get("data") or {}
+        lines.append(
+            f"| {d.get('evaluation_id')}{' (corrupt)' if d.get('corrupt') else ''} | {data.get('ref', '?')} | "
+            f"{data.get('rows', '?')} | {_mm((m.get('before') or {}).get('pos_mean'))} | "
+            f"{_mm((m.get('after') or {}).get('pos_mean'))} | {_mm(pts.get('mean'))} | {_mm(pts.get('p95'))} | "
+            f"{_mm(pts.get('max'))} |"
+        )
+    return lines
+
+
+def _cv_lines(cv) -> list[str]:
+    if not isinstance(cv, dict) or not cv.get("errors"):
+        return []
+    parts = []
+    for name, errs in cv["errors"].items():
+        e = np.asarray([x for x in (errs or []) if x is not None], dtype=float)
+        if e.size:
+            parts.append(f"{name} {e.mean() * 1e3:.4f} ± {e.std() * 1e3:.4f} mm ({e.size} folds)")
+        else:
+            parts.append(f"{name}: no fold could be scored")
+    lines = [
+        f"Cross-validation ({cv.get('folds')} folds, {cv.get('scheme')}; {cv.get('metric') or 'mean error'}): "
+        f"mean ± spread over the folds per candidate: {'; '.join(parts)}. Chosen: **{cv.get('chosen')}**.",
+        "",
+    ]
+    for name, why in (cv.get("failures") or {}).items():
+        lines += [f"- {name} failed on a fold: {why}"]
+    return [*lines, ""] if cv.get("failures") else lines
+
+
+def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = None, load_obs=None) -> Path:
+    """Write ``report.md`` and PNG plots for the fits of a version into out_dir; returns the report's path.
+
+    load_obs(refs) → Observations reads a fit's input versions (the CLI passes its loader, which converts controller
+    joints to model joints); default: the versions as stored.
+    """
+    from labcal.calibration.metrics import split_table
+
     plt = _plt()
     r = store.resolve(ref)
     ids = fit_ids or [f.fit_id for f in store.list_fits(r)]
@@ -185,7 +471,7 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
         raise ValueError(f"{r} has no fits to report on: run `labcal fit {r}` first")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    fits = [_fit_data(store, str(r), fid) for fid in ids]
+    fits = [_fit_data(store, str(r), fid, load_obs) for fid in ids]
     ds = store.load(r)
     lines = [
         f"# labcal calibration report — {r}",
@@ -194,25 +480,53 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
         f"{len(ds)} configurations, points in the {ds.frame} frame. Errors are the distance between the "
         "calibrated model's predicted tool pose and the pose fitted to the three measured targets "
         "(position, mm) and the angle between the "
-        "orientations (degrees); *before* is the nominal model registered to the data.",
+        "orientations (degrees), and the distance between each measured target point and its prediction "
+        "(point, mm); *before* is the nominal model registered to the data.",
         "",
     ]
+    summary = [line for data in fits for line in _warning_lines(data["meta"], data["fit_id"])]
+    blocked = [d["fit_id"] for d in fits if (d["meta"].get("warnings") or [])]
+    lines += ["## Warnings", ""]
+    if summary:
+        lines += [*summary, ""]
+        if blocked:
+            lines += [
+                f"`labcal export` refuses {', '.join(blocked)} unless `--force` (a forced export records the "
+                "warnings in its provenance).",
+                "",
+            ]
+    else:
+        lines += ["None: no fit in this report has warnings or notes.", ""]
     for data in fits:
         meta, fid = data["meta"], data["fit_id"]
+        metrics = meta.get("metrics") or {}
+        if not any("points" in m for m in metrics.values() if isinstance(m, dict)):
+            metrics = split_table(data["before"], data["robot"], data["obs"])  # fits stored before point errors
         lines += [
             f"## Fit {fid}: {meta.get('chosen', data['robot'].method)} "
             f"(asked: {meta.get('method')}, seed {meta.get('seed')})",
             "",
+        ]
+        own = _warning_lines(meta, fid, heading=False)
+        if own:
+            lines += [*own, ""]
+        lines += [
             f"Inputs: {', '.join(str(x) for x in (meta.get('inputs') or [])) or r}. Rows: "
             + ", ".join(f"{k} {v}" for k, v in (meta.get("rows") or {}).items())
             + ".",
             "",
-            *_md_metrics(meta.get("metrics") or {}),
+            *_md_metrics(metrics),
             "",
+            *_md_targets(metrics),
+            "",
+            *_cv_lines(meta.get("cv")),
         ]
         png = f"errors-{fid}.png"
         _plot_per_configuration(plt, data, out / png)
         lines += [f"![error per configuration]({png})", ""]
+        tpng = f"targets-{fid}.png"
+        _plot_targets(plt, data, out / tpng)
+        lines += [f"![per-target point error]({tpng})", ""]
         info = meta.get("info") or {}
         curve = _find(info, "curve")
         if curve and curve.get("train"):
@@ -226,11 +540,12 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
         if isinstance(cands, dict):
             lines += [
                 "Auto: validation mean position error "
-                + ", ".join(f"{k} {v * 1e3:.4f} mm" for k, v in cands.items() if v is not None)
+                + ", ".join(f"{k} {v * 1e3:.4f} mm" for k, v in cands.items() if isinstance(v, int | float))
                 + ".",
                 "",
             ]
-        lines += [*_parameter_lines(info), ""]
+        lines += [*_parameter_lines(info, data), ""]
+        lines += [*_evaluation_lines(store, str(r), fid), ""]
     hpng = "histogram.png"
     _plot_histograms(plt, fits, out / hpng)
     lines += ["## Position error after calibration, per method", "", f"![histograms]({hpng})", ""]

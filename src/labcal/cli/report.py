@@ -16,12 +16,31 @@ def report(
     fit_id: list[str] = typer.Option([], "--fit", help="Fit id(s) to include (default: every fit of the version)."),
     store: Path | None = StoreOption,
 ) -> None:
-    """Write report.md and its plots (errors per configuration, training curve, histograms, parameters).
+    """Write report.md and its plots; prints the report's path last.
 
-    Example: labcal report S@v1 --out report/
+    The report starts with every fit's warnings (the ones `labcal export` refuses without --force), then per
+    fit: pose and per-target point errors before/after (tables and plots), the training curve, the identified
+    parameters (± σ where identifiable on their own, "—" where not, and the identifiable combinations), and the
+    stored `labcal evaluate` results. The warnings are also printed on stderr.
+
+    Examples:
+
+      labcal report S@v1 --out report/
+
+      labcal report S --fit 20261122-040000-123456-ab12cd --out report-fit/
     """
-    from labcal.cli.ops import split_ref
+    from labcal.cli.common import print_gates
+    from labcal.cli.ops import load_observations, split_ref
     from labcal.reports import write_session_report
 
-    path = write_session_report(store_of(store), split_ref(session), out, fit_ids=fit_id or None)
+    st = store_of(store)
+    ref = split_ref(session)
+    path = write_session_report(
+        st, ref, out, fit_ids=fit_id or None, load_obs=lambda refs: load_observations(st, refs)[0]
+    )
+    for record in st.list_fits(ref):
+        if fit_id and record.fit_id not in fit_id:
+            continue
+        meta = record.metadata
+        print_gates({"warnings": meta.get("warnings"), "notes": meta.get("notes")}, what=f"fit {record.fit_id}")
     print(path)
