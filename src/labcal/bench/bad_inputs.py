@@ -149,14 +149,17 @@ def robot_file_scaled(path: Path, *, lengths: float = 1.0, degrees: bool = False
         if key in ("a", "d"):
             value *= lengths
         if key in ("alpha", "theta") and degrees:
-            value = np.degrees(value)
+            value = float(np.degrees(value))
         return f"{key} = {value!r}"
 
     text = re.sub(r"^(a|d|alpha|theta) = ([-0-9.e]+)", scale, text, flags=re.M)
     if degrees:
-        text = re.sub(r"limits = \[([-0-9.e]+), ([-0-9.e]+)\]",
-                      lambda m: f"limits = [{np.degrees(float(m.group(1)))!r}, {np.degrees(float(m.group(2)))!r}]",
-                      text)  # fmt: skip
+
+        def limits(m: re.Match) -> str:
+            lo, hi = (float(np.degrees(float(v))) for v in m.groups())
+            return f"limits = [{lo!r}, {hi!r}]"
+
+        text = re.sub(r"limits = \[([-0-9.e]+), ([-0-9.e]+)\]", limits, text)
     path.write_text(text)
     return path
 

@@ -9,7 +9,10 @@ import typer
 from labcal.cli.common import err
 
 app = typer.Typer(
-    help="Run the benchmarks. Examples:\n\n  labcal bench paper -- --quick\n\n  labcal bench speed",
+    help=(
+        "Run the benchmarks. Examples:\n\n  labcal bench paper -- --quick\n\n  labcal bench speed\n\n"
+        "  labcal bench robustness --quick"
+    ),
     no_args_is_help=True,
 )
 PASS = {"allow_extra_args": True, "ignore_unknown_options": True}
@@ -43,3 +46,21 @@ def real_ur10(ctx: typer.Context) -> None:
 def speed(ctx: typer.Context) -> None:
     """Compensator latency/throughput (extra arguments: --batch N, --repeats N, --robot NAME)."""
     _run("labcal.bench.speed_cli", ctx.args)
+
+
+@app.command("robustness", context_settings=PASS)
+def robustness(ctx: typer.Context) -> None:
+    """Every method with default options on sweeps, paper A/B and real UR10 vs a plain LSQ (--quick, --splits N)."""
+    _run("labcal.bench.robustness", ctx.args)
+
+
+@app.command("fit-time", context_settings=PASS)
+def fit_time(ctx: typer.Context) -> None:
+    """Fit wall time and peak memory vs N for every method (--sizes 50 1000 5000, --methods auto,hybrid)."""
+    _run("labcal.bench.fit_time", ctx.args)
+
+
+@app.command("bad-inputs", context_settings=PASS)
+def bad_inputs(ctx: typer.Context) -> None:
+    """Feed every bad-input case through import → fit → export and print where each was stopped (--cases …)."""
+    _run("labcal.bench.bad_inputs", ctx.args)
