@@ -49,7 +49,7 @@ from .targets import LENGTH_UNITS as LENGTH_FACTORS
 #: Every check, with what it guards against (shown by ``labcal session import --help``).
 CHECKS: dict[str, str] = {
     "target-distances": "target distances match the targets file (unit slips, wrong or permuted targets file)",
-    "target-outliers": "no single row's target distances are off the file's by more than 2 mm",
+    "target-outliers": "no single row's target distances are off the other rows' by more than 2 mm",
     "joint-limits": "joint values inside the robot file's limits (after its joint map)",
     "joint-span": "with --angle-unit deg, some joint moves more than 12.6° (catches radians read as degrees)",
     "nominal": "points within 25 mm (mean) of the nominal model's prediction (after frame registration)",
@@ -386,22 +386,25 @@ def _check_target_distances(points, targets, length_unit, hints, report, allow) 
         _add(report, finding, allow)
         if "target-distances" not in allow:
             return  # per-row outliers mean nothing against the wrong triangle
-    dev = np.abs(d - d_file).max(axis=1)
-    sigma = 1.4826 * float(np.median(np.abs(d - d_file - np.median(d - d_file, axis=0))))
-    bad = np.flatnonzero(dev > max(ROW_ABS_TOL, 6 * sigma))
+    # Rows against the data's own median distances: equal to the file's when the check above passed, and still
+    # meaningful when a scale mismatch was allowed.
+    dev = np.abs(d - med).max(axis=1)
+    sigma = 1.4826 * float(np.median(np.abs(d - med)))
+    limit = max(ROW_ABS_TOL * (med / d_file).mean(), 6 * sigma)
+    bad = np.flatnonzero(dev > limit)
     report.stats["target_outlier_rows"] = len(bad)
     if len(bad):
         worst = int(bad[np.argmax(dev[bad])])
-        pair = int(np.argmax(np.abs(d[worst] - d_file)))
+        pair = int(np.argmax(np.abs(d[worst] - med)))
         a, b = _PAIRS[pair]
         _add(
             report,
             Finding(
                 "target-outliers",
-                f"{len(bad)} row(s) have target distances off the targets file's by more than "
-                f"{_mm(max(ROW_ABS_TOL, 6 * sigma))}: {hints.rows_text(bad)}; worst {hints.row_text(worst)}: "
-                f"t{a + 1}–t{b + 1} {_mm(float(d[worst, pair]))} vs {_mm(float(d_file[pair]))} in the file — a "
-                f"target mis-measured or confused; remove or re-measure those rows",
+                f"{len(bad)} row(s) have target distances off the other rows' by more than {_mm(limit)}: "
+                f"{hints.rows_text(bad)}; worst {hints.row_text(worst)}: t{a + 1}–t{b + 1} "
+                f"{_mm(float(d[worst, pair]))} vs {_mm(float(med[pair]))} (median; {_mm(float(d_file[pair]))} in the "
+                f"targets file) — a target mis-measured or confused; remove or re-measure those rows",
                 rows=[int(i) for i in bad[:20]],
             ),
             allow,
