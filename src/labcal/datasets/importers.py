@@ -23,6 +23,7 @@ from __future__ import annotations
 import csv
 import math
 import tomllib
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -159,16 +160,26 @@ class _Csv:
         if dupes:
             raise ImportFormatError(f"duplicate column name(s) {dupes} in the header", path=str(path), line=1)
         try:
-            df = pd.read_csv(
-                path,
-                sep=separator,
-                dtype=str,
-                keep_default_na=False,
-                na_filter=False,
-                skip_blank_lines=False,
-                encoding="utf-8-sig",
-                engine="c",
-            )
+            with warnings.catch_warnings():
+                # Every row one field longer than the header would silently become the index (or lose its last
+                # field): refuse it like any other ragged row.
+                warnings.simplefilter("error", pd.errors.ParserWarning)
+                df = pd.read_csv(
+                    path,
+                    sep=separator,
+                    dtype=str,
+                    keep_default_na=False,
+                    na_filter=False,
+                    skip_blank_lines=False,
+                    encoding="utf-8-sig",
+                    engine="c",
+                    index_col=False,
+                )
+        except pd.errors.ParserWarning:
+            raise ImportFormatError(
+                f"a row has more fields than the {len(names)} columns of the header", path=str(path),
+                line=_first_long_line(path, separator, len(names)),
+            ) from None  # fmt: skip
         except pd.errors.ParserError as e:
             raise ImportFormatError(f"malformed CSV: {e}", path=str(path)) from None
         except pd.errors.EmptyDataError:
@@ -219,6 +230,15 @@ class _Csv:
         if allow_missing:
             values[~np.isfinite(values)] = np.nan
         return values
+
+
+def _first_long_line(path: Path, separator: str, n: int) -> int | None:
+    """1-based line of the first row with more than n fields (for the error message)."""
+    with open(path, encoding="utf-8-sig", newline="") as f:
+        for i, row in enumerate(csv.reader(f, delimiter=separator), start=1):
+            if len(row) > n:
+                return i
+    return None
 
 
 def _rotations(angles: np.ndarray, spec: ImportSpec) -> np.ndarray:

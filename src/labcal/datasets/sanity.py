@@ -355,6 +355,9 @@ def _check_target_distances(points, targets, length_unit, hints, report, allow) 
     finding = None
     if np.all(np.abs(med - d_file) <= tol):
         finding = None
+    elif not ratio > 0:  # every measured triangle collapsed to a point (zeros, one reflector reported thrice)
+        finding = Finding("target-distances", f"the measured targets coincide ({listing}): the target columns do not "
+                          f"hold three distinct measured points")  # fmt: skip
     elif (slip := _unit_slip(ratio, length_unit, hints, "the measured distances between the targets")) and np.all(
         np.abs(med / d_file / ratio - 1) < UNIT_RATIO_TOL - 1
     ):
