@@ -15,7 +15,12 @@ def fit(
     method: str = typer.Option("auto", "--method", help="local-poe | ann | hybrid | auto | nominal"),
     seed: int = typer.Option(0, "--seed", help="Seed of the split and the network initialisation."),
     hidden: int | None = typer.Option(None, "--hidden", help="Hidden nodes of the network (default √(6·inputs))."),
-    val_fraction: float = typer.Option(0.5, "--val-fraction", help="Fraction of unlabelled rows used to validate."),
+    val_fraction: float = typer.Option(
+        0.0,
+        "--val-fraction",
+        help="Fraction of unlabelled rows held out as a fixed validation split that is only scored (default 0: every "
+        "row is fitted; learned stages are chosen by K-fold cross-validation).",
+    ),
     robot: str | None = typer.Option(None, "--robot", help="Robot model file when the session's is not built in."),
     store: Path | None = StoreOption,
 ) -> None:
@@ -32,6 +37,8 @@ def fit(
       labcal fit 20261122-031500-ur10-3f9a --method local-poe
 
       labcal fit S1@v2 S2 --method hybrid --seed 3 --hidden 12
+
+      labcal fit S --method auto --val-fraction 0.3     # also score a fixed 30 % hold-out
     """
     from labcal.cli.ops import run_fit, split_ref
 

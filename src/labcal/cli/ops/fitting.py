@@ -32,7 +32,7 @@ def run_fit(
     *,
     seed: int = 0,
     hidden: int | None = None,
-    val_fraction: float = 0.5,
+    val_fraction: float = 0.0,
     robot: str | None = None,
     features: tuple[str, ...] | None = None,
     progress=None,
