@@ -214,3 +214,39 @@ def test_a_missing_store_is_named_by_any_command_that_reads_a_session(tmp_path):
     with pytest.raises(LookupError, match=r"no session store at .*nowhere"):
         store.load("20261122-031500-ur10-3f9a")
     assert not store.root.exists()
+
+
+# ------------------------------------------------------------------------------------------------ record-time sanity
+
+
+def _wrong_model_run(store, spec, allow=()):
+    """The session says ur10 but the arm is a ur5e: every pose is valid by itself (the target triangle is right),
+    only the nominal-model check can tell."""
+    rig = SimRig(simulate(load("ur5e"), ErrorSpec.none(), seed=0), TARGETS, seed=0)
+    plan = make_plan(random_configurations(spec.model, 20, seed=0, targets=TARGETS), samples=1, settle=0.0)
+    robot = CountingRobot(rig.robot())
+    with robot, rig.tracker() as tracker:
+        return run(store, spec, TARGETS, plan, robot, tracker, frame="base", allow=allow), robot
+
+
+def test_a_wrong_robot_model_stops_the_run_at_the_record_time_sanity_check(spec, store):
+    summary, robot = _wrong_model_run(store, spec)
+    assert summary.exit_status == "failed" and "[nominal]" in summary.reason and "--allow nominal" in summary.reason
+    assert robot.moves == 12 and summary.valid == 12  # checked at 2n = 12 valid poses, nothing moved after
+    assert summary.ref is not None and len(store.load(summary.ref)) == 12  # what was recorded is kept
+
+    rig = SimRig(simulate(load("ur5e"), ErrorSpec.none(), seed=0), TARGETS, seed=0)
+    again = CountingRobot(rig.robot())
+    with again, rig.tracker() as tracker, pytest.raises(SessionError, match=r"\[nominal\]"):
+        resume(store, summary.session_id, again, tracker, spec=spec)
+    assert again.moves == 0  # refused before any motion
+    with rig.robot() as robot2, rig.tracker() as tracker:
+        done = resume(store, summary.session_id, robot2, tracker, spec=spec, allow=["nominal"])
+    assert done.exit_status == "success" and done.valid == 20
+
+
+def test_an_allowed_check_lets_the_run_finish_and_is_recorded(spec, store):
+    summary, robot = _wrong_model_run(store, spec, allow=["nominal"])
+    assert summary.exit_status == "success" and robot.moves == 20
+    start = read_journal(store.session_dir(summary.session_id) / "journal.jsonl").start
+    assert start["metadata"]["runner"]["sanity_allow"] == ["nominal"]

@@ -13,6 +13,11 @@ from labcal.cli.session_import import import_
 # Exit codes of a recording run: success 0; failed / paused (nothing or not everything recorded) 1; Ctrl-C 130,
 # as a shell reports a command ended by SIGINT. User errors stay 2 (user_errors).
 _EXIT = {"success": 0, "failed": 1, "paused": 1, "aborted": 130}
+ALLOW_HELP = (
+    "Override a record-time sanity check by name (repeatable): "
+    "target-distances, target-outliers, joint-limits, joint-span, nominal, reach, duplicates. "
+    "Recorded with the session."
+)
 
 
 def _store(store: Path | None, *, create: bool = False, write: bool = False):
@@ -99,9 +104,13 @@ def new(
     samples: int = typer.Option(2000, "--samples", help="Candidate pool size of the optimal planner."),
     seed: int = typer.Option(0, "--seed", help="Seed of the planner and the simulator."),
     sim_errors: str = typer.Option("default", "--sim-errors", help="Sim robot errors: paper | default | none."),
+    allow: list[str] = typer.Option([], "--allow", help=ALLOW_HELP),
     store: Path | None = StoreOption,
 ) -> None:
     """Plan and record a new session; prints the new SESSION@vNNN last.
+
+    Once 2n poses are valid, the data pass the same sanity checks as an import (target distances, joint limits,
+    nominal model, reach): a failure stops the run before the next motion.
 
     Exit 0 on success, 1 when the run failed (e.g. no valid measurement) or paused, 130 after Ctrl-C, 2 for a bad
     argument or an unusable store (checked before anything is planned or moved).
@@ -112,12 +121,15 @@ def new(
     from labcal.cli.ops.sessions import check_plan_size
 
     check_plan_size(poses, planner, samples)
+    from labcal.datasets.sanity import check_names
+
+    check_names(allow)
     st = _store(store, create=True)
     with _RunProgress() as progress:
         summary = new_session(
             st, robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver,
             tracker_driver=tracker_driver, profile=profile, tracker_profile=tracker_profile, planner=planner,
-            samples=samples, seed=seed, sim_errors=sim_errors, progress=progress,
+            samples=samples, seed=seed, sim_errors=sim_errors, progress=progress, allow=tuple(allow),
         )  # fmt: skip
     _end_run(
         summary,
@@ -169,7 +181,10 @@ def show(session: str = typer.Argument(..., help="Session id."), store: Path | N
 @user_errors
 def resume(
     session: str = typer.Argument(..., help="Session id."),
-    robot: str | None = typer.Option(None, "--robot", help="Robot model file if not a built-in."),
+    robot: str | None = typer.Option(
+        None, "--robot", help="Override the robot model stored with the session (must have the same hash)."
+    ),
+    allow: list[str] = typer.Option([], "--allow", help=ALLOW_HELP),
     store: Path | None = StoreOption,
 ) -> None:
     """Continue an interrupted session at its first unmeasured pose (sim sessions); prints the new version last.
@@ -183,7 +198,7 @@ def resume(
 
     st = _store(store, write=True)
     with _RunProgress() as progress:
-        summary = resume_session(st, session, robot=robot, progress=progress)
+        summary = resume_session(st, session, robot=robot, progress=progress, allow=tuple(allow))
     _end_run(summary, f"{summary.exit_status}: {summary.reason or 'done'}")
 
 

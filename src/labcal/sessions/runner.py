@@ -48,13 +48,14 @@ Example::
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
 from labcal.datasets import Journal, JournalError, SessionStore
+from labcal.datasets.sanity import Hints, check_measurements, check_names
 from labcal.drivers.base import (
     DriverError,
     DriverTimeout,
@@ -72,6 +73,8 @@ from labcal.robots.joint_map import JointMap
 from labcal.sessions.plans import Plan, PoseStep
 
 EXTRA_UNITS = {"attempts": "1", "triangle_error": "m", "quality": ""}
+# The record-time sanity check (labcal.datasets.sanity) runs once the session has max(this, 2 n) valid poses.
+SANITY_MIN_ROWS = 3
 
 
 class SessionError(RuntimeError):
@@ -216,16 +219,63 @@ class _Run:
         progress: ProgressCallback | None,
         sleep: Callable[[float], None],
         joints: JointMap | None = None,
+        spec: RobotSpec | None = None,
+        allow: frozenset[str] = frozenset(),
     ) -> None:
         self.journal, self.plan, self.robot, self.tracker = journal, plan, robot, tracker
         self.validation, self.retry = validation, retry
         self.joints = joints if joints is not None else JointMap.identity(plan.n_joints)
+        self.targets = np.asarray(targets, dtype=float)
         self.nominal_sides = triangle_sides(targets)
         self._progress = progress
         self.sleep = sleep
         self.measured = 0
+        self.spec, self.allow = spec, allow
+        self.frame = journal.start.get("frame", "base")
         contents = journal.read()
         self.done = {d["pose_index"] for d in contents.measurements}
+        valid = [d for d in contents.measurements if d["status"] == "valid"]
+        # Valid rows so far (controller joints, points): the record-time sanity check runs on them.
+        self.rows = [(d["pose_index"], d["q_actual"] or d["q_commanded"], d["points"]) for d in valid]
+        self.sanity_at = max(SANITY_MIN_ROWS, 2 * plan.n_joints)
+        self.sanity_done = False
+
+    def sanity(self, at_end: bool = False) -> str:
+        """Run :func:`labcal.datasets.sanity.check_measurements` on the valid rows once there are enough of them
+        (``2 n``, as the import's few-poses rule: the nominal-model check needs rows to register the tracker frame);
+        return "" if they pass (or are too few yet), else why the run must stop. Overridden checks (``allow``) still
+        run and are only noted. ``at_end``: the run is over with fewer rows than that; check what there is (from 3)."""
+        needed = SANITY_MIN_ROWS if at_end else self.sanity_at
+        if self.sanity_done or len(self.rows) < needed:
+            return ""
+        self.sanity_done = True
+        poses = [r[0] for r in self.rows]
+        hints = Hints(
+            length="a tracker reporting in {unit} (check the tracker profile's unit)",
+            angle="joint values in {unit} (check the robot driver and the robot file's [joint_map])",
+            frame='frame "{frame}" (check which frame the tracker reports in)',
+            allow="--allow {check}",
+            row=lambda i: f"pose {poses[i]}",
+        )
+        report = check_measurements(
+            np.array([r[1] for r in self.rows], dtype=float),
+            np.array([r[2] for r in self.rows], dtype=float),
+            self.targets,
+            robot=self.spec,
+            frame=self.frame,
+            allow=self.allow,
+            hints=hints,
+            final=False,
+        )
+        if report.ok:
+            return ""
+        found = "; ".join(f"[{f.check}] {f.message}" for f in report.failures)
+        flags = " ".join(f"--allow {f.check}" for f in report.failures)
+        stopped = "the run is over" if at_end else "so the run stopped before measuring more"
+        return (
+            f"sanity check failed on the first {len(self.rows)} valid poses, {stopped}: {found}. Fix the setup and "
+            f"start a new session, or if the data are right resume with {flags}"
+        )
 
     def emit(self, pose: int | None, status: str, residual: float | None = None, message: str = "") -> None:
         if self._progress is not None:
@@ -264,6 +314,15 @@ class _Run:
                 self.done.add(step.index)
                 valid_now += outcome.status == "valid"
                 self.emit(step.index, outcome.status, outcome.residual, outcome.reason)
+                if outcome.status == "valid":
+                    self.rows.append((step.index, np.asarray(outcome.q_actual).tolist(), np.asarray(m.points).tolist()))
+                    # Checked after the measurement is journaled (nothing recorded is lost) and before the next
+                    # motion: a wrong robot model, targets file, unit or frame stops the run early.
+                    why = self.sanity()
+                    if why:
+                        _safe_stop(robot)
+                        journal.stop("failed", why)
+                        return "failed", why
                 silent = silent + 1 if outcome.silent else 0
                 if self.retry.max_silent_poses and silent >= self.retry.max_silent_poses:
                     _safe_stop(robot)
@@ -302,6 +361,10 @@ class _Run:
             reason += f" (last reason: {last})" if last else ""
             journal.stop("failed", reason)
             return "failed", reason
+        why = self.sanity(at_end=True)  # a short session still gets checked once
+        if why:
+            journal.stop("failed", why)
+            return "failed", why
         journal.stop("success", f"{self.plan.n_poses} poses done")
         return "success", ""
 
@@ -423,11 +486,14 @@ def run(
     metadata: Mapping[str, Any] | None = None,
     sleep: Callable[[float], None] = time.sleep,
     seal: bool = True,
+    allow: Iterable[str] = (),
 ) -> RunSummary:
     """Create a session for ``spec`` (robot model) and ``targets`` ((3, 3) m, tool frame) and execute ``plan``.
 
     frame: the frame of the tracker's points ("tracker", or "base" if the tracker reports in the robot base
-    frame). ``plan``: in model joints; the robot is commanded in controller joints (``spec.joints``). The start
+    frame). ``allow``: record-time sanity checks to override (names of :data:`labcal.datasets.sanity.CHECKS`; the
+    checks run once the session has ``2 n`` valid poses and a failure stops the run as "failed" before the next
+    motion). ``plan``: in model joints; the robot is commanded in controller joints (``spec.joints``). The start
     document records the robot model (name, hash and the robot file's text: ``spec.record()``), targets, tracker and
     robot identity
     (``tracker_info``/``robot_info``, default :func:`describe`), the plan (one entry per pose), the runner
@@ -441,7 +507,8 @@ def run(
             f"robot model {spec.name!r} has {spec.model.n} joints, the robot driver {robot.n_joints}, "
             f"the plan {plan.n_joints}"
         )
-    runner_settings = {"validation": asdict(validation), "retry": asdict(retry)}
+    allowed = check_names(allow)
+    runner_settings = {"validation": asdict(validation), "retry": asdict(retry), "sanity_allow": sorted(allowed)}
     journal = store.create_session(
         robot_name=spec.name,
         robot_hash=spec.hash,
@@ -456,7 +523,7 @@ def run(
         session_id=session_id,
         robot=spec.record(),
     )
-    state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep, spec.joints)
+    state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep, spec.joints, spec, allowed)
     try:
         status, reason = state.execute()
     except BaseException:
@@ -477,6 +544,7 @@ def resume(
     reason: str = "resumed by the operator",
     sleep: Callable[[float], None] = time.sleep,
     seal: bool = True,
+    allow: Iterable[str] = (),
 ) -> RunSummary:
     """Continue a session at the first plan pose without a measurement document (valid or finally rejected).
 
@@ -518,7 +586,11 @@ def resume(
         retry = RetryPolicy(**settings.get("retry", {}))
         targets = np.asarray(start["targets"], dtype=float)
         joints = spec.joints if spec is not None else None
-        state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep, joints)
+        allowed = check_names([*settings.get("sanity_allow", []), *allow])
+        state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep, joints, spec, allowed)
+        why = state.sanity()  # the rows already recorded, checked before anything moves
+        if why:
+            raise SessionError(why)
         if len(state.done) < plan.n_poses:
             if robot.state().protective_stop:
                 raise SessionError("the robot is still in a protective stop: clear it on the robot, then resume")

@@ -104,12 +104,16 @@ def new_session(
     seed: int = 0,
     sim_errors: str = "default",
     progress=None,
+    allow: tuple[str, ...] = (),
 ):
-    """Plan and record a session; returns the runner's RunSummary (its .ref is the new SESSION@vNNN)."""
+    """Plan and record a session; returns the runner's RunSummary (its .ref is the new SESSION@vNNN).
+
+    allow: record-time sanity checks to override (see :mod:`labcal.datasets.sanity`), checked before planning."""
     from labcal.datasets import load_targets
     from labcal.sessions import make_plan, run
 
     check_plan_size(poses, planner, samples)  # before anything is loaded, planned or allocated
+    allowed = _allowed(allow)
     spec = load(robot)
     targets = load_targets(targets_file)
     if sim_errors not in SIM_ERRORS:
@@ -122,11 +126,21 @@ def new_session(
         sim_errors=sim_errors, seed=seed,
     )  # fmt: skip
     with rob, trk:
-        return run(store, spec, targets, plan, rob, trk, frame=frame, progress=progress, metadata=meta)
+        return run(store, spec, targets, plan, rob, trk, frame=frame, progress=progress, metadata=meta, allow=allowed)
 
 
-def resume_session(store: SessionStore, session_id: str, *, robot: str | None = None, progress=None):
-    """Resume a session; a sim session re-creates its simulated robot from the recorded errors and seed."""
+def _allowed(allow) -> tuple[str, ...]:
+    from labcal.datasets.sanity import check_names
+
+    return tuple(sorted(check_names(allow)))  # an unknown name raises, listing the checks
+
+
+def resume_session(
+    store: SessionStore, session_id: str, *, robot: str | None = None, progress=None, allow: tuple[str, ...] = ()
+):
+    """Resume a session; a sim session re-creates its simulated robot from the recorded errors and seed.
+
+    allow: record-time sanity checks to override, added to those the session was started with."""
     from labcal.drivers.sim import SimRig
     from labcal.sessions import resume
 
@@ -141,4 +155,4 @@ def resume_session(store: SessionStore, session_id: str, *, robot: str | None = 
     targets = np.asarray(meta["targets"], dtype=float)
     rig = SimRig(sim_actual(spec, sim["errors"], int(sim["seed"])), targets, seed=int(sim["seed"]))
     with rig.robot() as rob, rig.tracker() as trk:
-        return resume(store, session_id, rob, trk, spec=spec, progress=progress)
+        return resume(store, session_id, rob, trk, spec=spec, progress=progress, allow=_allowed(allow))
