@@ -204,3 +204,28 @@ def test_resume_uses_the_joint_map_stored_with_the_session(store):
     assert done.exit_status == "success" and done.valid == 5
     np.testing.assert_allclose(np.array(robot.received), spec.joints.to_controller(q_model[2:]), atol=1e-12)
     assert loads(spec.text).hash == spec.hash
+
+
+def test_an_imported_custom_robot_session_is_refitted_and_exported_after_the_file_is_deleted(tmp_path):
+    from labcal.cli.ops import import_session
+
+    path = write_custom_robot(tmp_path)
+    spec = load(path)
+    # Measurements of the custom arm (sim rig, base frame), written as the CSV a user would import.
+    recorded = SessionStore(tmp_path / "rec")
+    rig = SimRig(simulate(spec, ErrorSpec.default(), seed=2), TARGETS, seed=2)
+    plan = make_plan(random_configurations(spec.model, 30, seed=2, targets=TARGETS), samples=1, settle=0.0)
+    with rig.robot() as robot, rig.tracker() as tracker:
+        ds = recorded.load(run(recorded, spec, TARGETS, plan, robot, tracker, frame="base").ref)
+    cols = [f"q{j + 1}" for j in range(6)] + [f"t{i}_{a}" for i in (1, 2, 3) for a in "xyz"]
+    csv = tmp_path / "data.csv"
+    ds.table[cols].to_csv(csv, index=False)
+    targets = tmp_path / "targets.toml"
+    targets.write_text(f'unit = "m"\npoints = {TARGETS.tolist()}\n')
+
+    store = SessionStore(tmp_path / "store")
+    ref = import_session(store, csv, robot=str(path), targets_file=targets)
+    path.unlink()
+    assert store.manifest(ref)["session"]["robot"]["text"] == spec.text
+    outcome = run_fit(store, [ref], "local-poe", val_fraction=0.0)
+    assert export_fit(store, ref, "json", tmp_path / "c.json", outcome.fit_id, force=True).is_file()
