@@ -223,3 +223,27 @@ def test_swapped_targets_show_in_the_point_error_and_block_export(world, tmp_pat
     out = tmp_path / "c.json"
     one_line_error(invoke("export", ref, "--format", "json", "--out", out, store=store), "point-residuals")
     assert not np.any([p.name == "c.json" for p in tmp_path.iterdir()])
+
+
+def test_ctrl_c_during_a_fit_exits_130_in_a_real_process(world):
+    """SIGINT to a running `labcal fit` (sent once it reports fitting): exit 130, one line, no traceback, no fit."""
+    import signal
+    import subprocess
+    import sys
+
+    exe = Path(sys.executable).parent / "labcal"
+    before = {f.fit_id for f in SessionStore(world["store"]).list_fits(world["refs"]["good"])}
+    p = subprocess.Popen(
+        [str(exe), "fit", world["refs"]["good"], "--method", "hybrid", "--store", str(world["store"])],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    for line in p.stdout:
+        if "fitting" in line:
+            break
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err
+    assert {f.fit_id for f in SessionStore(world["store"]).list_fits(world["refs"]["good"])} == before
