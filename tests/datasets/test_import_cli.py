@@ -128,3 +128,10 @@ def test_the_documented_ur10_command_imports_the_real_data_cleanly(tmp_path):
     checks = ds.manifest["provenance"]["import"]["checks"]
     assert len(ds) == 2773 and checks["allowed"] == [] and checks["notes"] == []
     assert checks["stats"]["nominal_mean_mm"] < 2.0  # the registered nominal UR10 is within ~1 mm of this robot
+
+
+def test_unit_flags_with_a_mapping_are_refused_not_ignored(files, tmp_path):
+    root, _ = files
+    r = invoke("session", "import", root / "data.csv", "--robot", "ur10", "--mapping", "ipa-ur10", "--length-unit",
+               "mm", "--store", tmp_path / "s")  # fmt: skip
+    assert r.exit_code == 2 and "--length-unit mm cannot be combined with --mapping" in r.stderr

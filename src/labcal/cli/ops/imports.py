@@ -43,6 +43,22 @@ def import_session(
     spec = load(robot)
     ident = (spec.name, spec.hash, spec.model.n)
     if mapping is not None:
+        # A mapping fixes units, frame and form itself; a flag that would be ignored is a user's misunderstanding.
+        ignored = [
+            f"{flag} {value}"
+            for flag, value, default in (
+                ("--length-unit", length_unit, "m"),
+                ("--angle-unit", angle_unit, "rad"),
+                ("--frame", frame, "base"),
+                ("--form", form, "targets"),
+            )
+            if value != default
+        ]
+        if ignored:
+            raise UserError(
+                f"{', '.join(ignored)} cannot be combined with --mapping: the mapping file sets units, frame and form "
+                f"(keys [targets] unit / [probe] position_unit, joint_unit, frame, form); edit a copy of the mapping"
+            )
         targets = load_targets(targets_file) if targets_file else None
         return import_mapped(store, path, mapping, *ident, targets=targets, robot=spec, allow=allow)
     if form == "targets":
