@@ -25,6 +25,7 @@ import numpy as np
 from labcal.calibration.metrics import point_errors, prediction_errors
 from labcal.calibration.observations import Observations
 from labcal.compensator import from_payload
+from labcal.datasets.errors import DatasetError
 
 ROBOT_FILE, BEFORE_FILE = "robot.json", "before.json"
 
@@ -471,7 +472,16 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
         raise ValueError(f"{r} has no fits to report on: run `labcal fit {r}` first")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    fits = [_fit_data(store, str(r), fid, load_obs) for fid in ids]
+    fits, unreadable = [], []
+    for fid in ids:
+        try:
+            fits.append(_fit_data(store, str(r), fid, load_obs))
+        except (ValueError, OSError, DatasetError) as e:  # a fit written by another labcal version, or damaged
+            if fit_ids:
+                raise
+            unreadable.append(f"- fit {fid} is left out: it cannot be read ({e})")
+    if not fits:
+        raise ValueError(f"no fit of {r} can be read:\n" + "\n".join(unreadable))
     ds = store.load(r)
     lines = [
         f"# labcal calibration report — {r}",
@@ -487,6 +497,8 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
     summary = [line for data in fits for line in _warning_lines(data["meta"], data["fit_id"])]
     blocked = [d["fit_id"] for d in fits if (d["meta"].get("warnings") or [])]
     lines += ["## Warnings", ""]
+    if unreadable:
+        lines += [*unreadable, ""]
     if summary:
         lines += [*summary, ""]
         if blocked:

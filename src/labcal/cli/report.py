@@ -31,6 +31,7 @@ def report(
     """
     from labcal.cli.common import print_gates
     from labcal.cli.ops import load_observations, split_ref
+    from labcal.cli.ops.exporting import stored_warnings
     from labcal.reports import write_session_report
 
     st = store_of(store)
@@ -42,5 +43,5 @@ def report(
         if fit_id and record.fit_id not in fit_id:
             continue
         meta = record.metadata
-        print_gates({"warnings": meta.get("warnings"), "notes": meta.get("notes")}, what=f"fit {record.fit_id}")
+        print_gates({"warnings": stored_warnings(meta), "notes": meta.get("notes")}, what=f"fit {record.fit_id}")
     print(path)
