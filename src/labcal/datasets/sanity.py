@@ -268,34 +268,49 @@ def registered_residuals(
 ) -> np.ndarray:
     """(k,) mean distance (m) per row between the measured points and the nominal model's.
 
-    ``frame = "base"``: points compared as given; ``"tracker"``: after the best rigid tracker → base registration
-    over all points. ``tool_known = False`` (a 6-DOF probe, whose mount on the flange is unknown): the
-    tool → probe transform is registered too (closed form, then a few alternating refinements).
+    ``frame = "base"``: points compared as given; ``"tracker"``: after the best rigid tracker → base registration.
+    ``tool_known = False`` (a 6-DOF probe, whose mount on the flange is unknown): the tool → probe transform is
+    registered too (closed form, then a few alternating refinements). A registration is fitted again without rows
+    far off the rest (> 5 × the median and > 25 mm), so one absurd row does not drag every other row's residual.
     """
     model = robot.model
     if tool_known:
         pred = model.target_points(q_model, targets)
-        if frame == "tracker":
-            R, t = kabsch(points.reshape(-1, 3), pred.reshape(-1, 3))
-            return np.linalg.norm(_apply(R, t, points) - pred, axis=2).mean(axis=1)
-        return np.linalg.norm(points - pred, axis=2).mean(axis=1)
-    F = model.fk(q_model)
+        if frame != "tracker":
+            return np.linalg.norm(points - pred, axis=2).mean(axis=1)
+    else:
+        pred = None
+    F = model.fk(q_model) if not tool_known else None
+    res = _registered(F, pred, points, targets, frame, np.ones(len(points), bool))
+    keep = res <= max(5 * float(np.median(res)), NOMINAL_MEAN_LIMIT)
+    if not keep.all() and keep.sum() >= max(3, len(res) // 2):
+        res = _registered(F, pred, points, targets, frame, keep)
+    return res
+
+
+def _registered(F, pred, points, targets, frame, fit_rows) -> np.ndarray:
+    """Residuals of every row after registering on ``fit_rows``: tracker only (``pred`` given, tool known), or
+    tool mount (``F`` = tool poses) and, for ``frame = "tracker"``, the tracker frame too."""
+    if pred is not None:
+        R, t = kabsch(points[fit_rows].reshape(-1, 3), pred[fit_rows].reshape(-1, 3))
+        return np.linalg.norm(_apply(R, t, points) - pred, axis=2).mean(axis=1)
     if frame == "tracker":
         P = np.zeros_like(F)
         P[:, :3, :3], P[:, :3, 3] = _kabsch_batch(targets, points)
         P[:, 3, 3] = 1.0
-        Y, X = _hand_eye(F, P)
+        Y, _ = _hand_eye(F[fit_rows], P[fit_rows])
         base_pts = _apply(Y[0].T, -Y[0].T @ Y[1], points)  # tracker → base with the first estimate
     else:
-        Y, base_pts = None, points
+        base_pts = points
     Finv_R = np.swapaxes(F[:, :3, :3], 1, 2)
+    m = int(fit_rows.sum())
     for _ in range(4 if frame == "tracker" else 1):
         local = np.einsum("kab,kmb->kma", Finv_R, base_pts - F[:, None, :3, 3])  # measured, in the tool frame
-        X = kabsch(np.tile(targets, (len(F), 1)), local.reshape(-1, 3))
+        X = kabsch(np.tile(targets, (m, 1)), local[fit_rows].reshape(-1, 3))
         pred = _points_from_poses(F, X, targets)
         if frame != "tracker":
             break
-        R, t = kabsch(points.reshape(-1, 3), pred.reshape(-1, 3))
+        R, t = kabsch(points[fit_rows].reshape(-1, 3), pred[fit_rows].reshape(-1, 3))
         base_pts = _apply(R, t, points)
     return np.linalg.norm(base_pts - pred, axis=2).mean(axis=1)
 
@@ -563,11 +578,27 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
     tool_known = form == "targets"
     qm = robot.joints.to_model(q)
     per_row = registered_residuals(robot, qm, points, targets, frame=frame, tool_known=tool_known)
-    mean = float(per_row.mean())
+    mean, far = _robust_mean(per_row)
     report.stats["nominal_mean_mm"] = round(mean * 1e3, 4)
     report.stats["nominal_p95_mm"] = round(float(np.percentile(per_row, 95)) * 1e3, 4)
+    report.stats["nominal_far_rows"] = len(far)
     reach_bad = _far_rows(points, robot, targets) if frame == "base" else np.array([], int)
     report.stats["rows_beyond_reach"] = len(reach_bad)
+    if len(far) and mean <= NOMINAL_MEAN_LIMIT:
+        # The data as a whole describe this robot; a few rows do not (a typo, a target swapped in one row).
+        _add(
+            report,
+            Finding(
+                "nominal",
+                f"{len(far)} of {len(q)} rows are far from where the nominal {robot.name} model puts the targets "
+                f"while the others are within {_mm(mean)} (mean): "
+                + ", ".join(f"{hints.row_text(int(i))} {_mm(float(per_row[i]))}" for i in far[:5])
+                + (f" (+{len(far) - 5} more)" if len(far) > 5 else "")
+                + ": a mistyped or mis-measured row; remove or re-measure it",
+                rows=[int(i) for i in far[:20]],
+            ),
+            allow,
+        )
     if mean <= NOMINAL_MEAN_LIMIT and not len(reach_bad):
         return
     # Which reading of the input would make the data agree with the model? Test on a spread subset of rows.
@@ -578,8 +609,8 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
                          frame=frame, form=form, probe_poses=probe_poses, hints=hints,
                          unit_ratio=_known_unit_ratio(report.stats)):  # fmt: skip
         try:
-            m = float(registered_residuals(robot, h.q, h.points, h.targets, frame=h.frame,
-                                           tool_known=tool_known).mean())  # fmt: skip
+            m = _robust_mean(registered_residuals(robot, h.q, h.points, h.targets, frame=h.frame,
+                                                  tool_known=tool_known))[0]  # fmt: skip
         except (np.linalg.LinAlgError, ValueError):
             continue
         if np.isfinite(m):
@@ -641,6 +672,15 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
         ),
         allow,
     )
+
+
+def _robust_mean(per_row: np.ndarray) -> tuple[float, np.ndarray]:
+    """Mean residual without the rows far off the rest (> 5 × median and > 25 mm) when those are at most a tenth
+    of the rows (single bad rows are named on their own), else the plain mean; and the far rows."""
+    far = np.flatnonzero(per_row > max(5 * float(np.median(per_row)), NOMINAL_MEAN_LIMIT))
+    if 0 < len(far) <= 0.1 * len(per_row):
+        return float(np.delete(per_row, far).mean()), far
+    return float(per_row.mean()), np.array([], int)
 
 
 def _known_unit_ratio(stats: dict) -> float | None:
