@@ -56,6 +56,19 @@ def fit(
     per_target = targets_table(metrics)
     if per_target is not None:
         out.print(per_target)
+    cv = (outcome.gates or {}).get("cv")
+    if isinstance(cv, dict) and cv.get("errors"):
+        parts = []
+        for name, errs in cv["errors"].items():
+            e = [x for x in errs or [] if x is not None]
+            if e:
+                m = sum(e) / len(e)
+                sd = (sum((x - m) ** 2 for x in e) / len(e)) ** 0.5
+                parts.append(f"{name} {m * 1e3:.4f} ± {sd * 1e3:.4f} mm")
+            else:
+                parts.append(f"{name} (no fold scored)")
+        head = f"cross-validation ({cv.get('folds')} folds, {cv.get('scheme')})"
+        out.print(f"{head}: {', '.join(parts)}; chose {cv.get('chosen')}", markup=False)
     print_gates(outcome.gates, what=f"fit {outcome.fit_id}")
     out.print(f"stored under {outcome.ref}", markup=False)
     print(outcome.fit_id)

@@ -128,8 +128,8 @@ def fit_gates(result) -> dict:
 
 
 def _as_warning(w) -> dict:
-    if isinstance(w, dict):
-        return {"code": str(w.get("code") or "warning"), "message": str(w.get("message") or "")}
+    if isinstance(w, dict):  # extra keys (details the calibration adds) are kept
+        return {**w, "code": str(w.get("code") or "warning"), "message": str(w.get("message") or "")}
     return {"code": "warning", "message": str(w)}
 
 
