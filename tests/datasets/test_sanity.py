@@ -283,3 +283,11 @@ def test_a_single_mistyped_row_is_named_and_does_not_spoil_the_registration(tmp_
                  frame="tracker")  # fmt: skip
     assert [f.check for f in e.report.failures] == ["nominal"]
     assert e.report.stats["nominal_mean_mm"] < 10  # the other rows, registered without row 12
+
+
+def test_a_joint_zero_offset_is_named(tmp_path, good):
+    q = good.q.copy()
+    q[:, 1] -= np.pi / 2  # the controller's J2 zero is a quarter turn from the model's
+    _refused(
+        tmp_path, q, good.points, good.targets, "nominal", "joint 2's zero is +90° from the model's", "[joint_map]"
+    )

@@ -562,6 +562,13 @@ def _hypotheses(
         M[j, j] = -1.0
         out.append(_Hypothesis(f"if joint {j + 1} counts the other way (declare the sign in the robot file's "
                                f"[joint_map])", 1, jm.to_model(q_ctrl @ M.T), points, targets, frame))  # fmt: skip
+    for j in np.flatnonzero(rev):
+        for offset in (math.pi / 2, -math.pi / 2, math.pi):
+            shifted = jm.to_model(q_ctrl)
+            shifted[:, j] += offset
+            out.append(_Hypothesis(f"if joint {j + 1}'s zero is {math.degrees(offset):+.0f}° from the model's (declare "
+                                   f"the offset in the robot file's [joint_map])", 1, shifted, points, targets,
+                                   frame))  # fmt: skip
     if unit_ratio is not None:  # the target distances already showed a unit slip between the CSV and targets file
         out.append(_Hypothesis(f"once the length units agree (the data scaled by 1/{unit_ratio:.4g}, see "
                                f"target-distances)", 1, jm.to_model(q_ctrl), points / unit_ratio, targets,
