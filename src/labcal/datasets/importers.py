@@ -16,6 +16,12 @@ existing session, a new version of it whose parent is the latest):
   laser-tracker data set.
 
 Errors name the file, the 1-based data row (header not counted) with its line in the file, and the column.
+
+Before anything is written the parsed rows pass :mod:`labcal.datasets.sanity` (unit slips, targets file vs data,
+joint limits after the robot's joint map, nominal consistency, reach, duplicated poses …; the model checks need
+``robot=RobotSpec``). A failed check raises :class:`~labcal.datasets.sanity.SanityError` naming the rows and the
+fix; ``allow=[CHECK, …]`` overrides named checks and is recorded in the version's import provenance together with
+the checks' notes and numbers (``provenance.import.checks``).
 """
 
 from __future__ import annotations

@@ -68,6 +68,11 @@ def import_session(
             store, path, *ident, load_targets(targets_file), length_unit=length_unit, angle_unit=angle_unit,
             frame=frame, robot=spec, allow=allow,
         )  # fmt: skip
+    if targets_file is not None:
+        raise UserError(
+            "--targets is not used with --form probe: the probe's pose is measured and three virtual targets 100 mm "
+            "apart in the probe frame become the session's targets (a --mapping with [probe] offsets can change them)"
+        )
     return import_probe_csv(
         store, path, *ident, length_unit=length_unit, angle_unit=angle_unit, frame=frame, robot=spec, allow=allow
     )
