@@ -247,3 +247,22 @@ def test_ctrl_c_during_a_fit_exits_130_in_a_real_process(world):
     assert p.returncode == 130, err
     assert "Traceback" not in err and "interrupted" in err
     assert {f.fit_id for f in SessionStore(world["store"]).list_fits(world["refs"]["good"])} == before
+
+
+def test_metric_warnings_read_off_the_split_table():
+    from labcal.cli.ops.fitting import metric_warnings
+
+    def table(before, after, pts_after):
+        pts = {"mean": pts_after, "p95": pts_after, "max": pts_after, "per_target": [{"mean": pts_after}] * 3}
+        return {"before": {"pos_mean": before}, "after": {"pos_mean": after}, "points": {"after": pts}}
+
+    good = table(4e-3, 1e-4, 1.2e-4)
+    assert metric_warnings({"val": good, "all": good}) == []
+    worse = table(3.4e-3, 7.4e-3, 7.5e-3)  # issue 12: 10 poses, validation worse than the nominal
+    assert [w["code"] for w in metric_warnings({"val": worse, "all": good})] == ["worse-than-nominal"]
+    assert metric_warnings({"val": worse, "all": good}, nominal=True) == []  # the nominal is its own baseline
+    swapped = table(4e-3, 2.9e-4, 74e-3)  # issue 13: 0.29 mm pose error, 74 mm point residuals
+    w = metric_warnings({"all": swapped})
+    assert [x["code"] for x in w] == ["point-residuals"] and "74.000 mm" in w[0]["message"]
+    # A hand-measured targets file ~1 mm off is below the floor: not blocked.
+    assert metric_warnings({"all": table(4e-3, 1e-4, 1.2e-3)}) == []

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import StoreOption, metrics_table, out, store_of, targets_table, user_errors
+from labcal.cli.common import StoreOption, err, metrics_table, out, store_of, targets_table, user_errors
 
 
 @user_errors
@@ -72,5 +72,7 @@ def evaluate(
             "ranges (the model extrapolates there; the compensator refuses them without extrapolate)",
             markup=False,
         )
+    for w in ev.get("warnings") or []:
+        err.print(f"WARNING [{w['code']}] {w['message']}", markup=False, style="bold yellow")
     out.print(f"stored at {outcome.path}", markup=False)
     print(ev["evaluation_id"])

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from labcal.cli.ops.common import UserError, jsonable, load_observations, split_ref
-from labcal.cli.ops.fitting import load_stored_fit
+from labcal.cli.ops.fitting import load_stored_fit, metric_warnings
 from labcal.datasets import SessionStore
 
 # Evaluations of fit F stored under version V live in V/fits/.evaluations/F/<evaluation id>.json. A dot folder: the
@@ -170,6 +170,9 @@ def evaluate_fit(
         before = dataclasses.replace(stored.before, T_tracker_base=np.eye(4))
         registration.update(fitted="nothing (base-frame data are scored as they are)", parameters=0)
     table = split_table(before, after, obs)
+    # Not a gate here (nothing is exported), but the same reading of the numbers: points far off while the pose
+    # fits mean the evaluation file's targets or units do not match the data.
+    warnings = metric_warnings({"test": table["all"], "all": table["all"]}) if "all" in table else []
     lo, hi = np.asarray(after.joint_ranges, dtype=float).T
     outside = ~np.all((obs.q >= lo - 1e-12) & (obs.q <= hi + 1e-12), axis=1)
     manifest = store.manifest(ref)
@@ -197,6 +200,7 @@ def evaluate_fit(
         "registration": registration,
         "metrics": {"all": table["all"]} if "all" in table else {},
         "outside_calibrated_ranges": int(outside.sum()),
+        "warnings": warnings,
     }
     path = save_evaluation(store, stored.ref, fit_id, evaluation)
     return EvaluationOutcome(jsonable(evaluation), path, ref, imported)
