@@ -291,3 +291,11 @@ def test_a_joint_zero_offset_is_named(tmp_path, good):
     _refused(
         tmp_path, q, good.points, good.targets, "nominal", "joint 2's zero is +90° from the model's", "[joint_map]"
     )
+
+
+def test_targets_in_another_tool_frame_are_named(tmp_path):
+    """Targets measured on a tool 150 mm from the flange, with a targets file written relative to the flange."""
+    offset = se3.pose([0.0, 0.05, 0.15], [0.0, 0.3, 0.0])
+    on_tool = (offset[:3, :3] @ sc.TARGETS.T).T + offset[:3, 3]
+    scn = sc.good("ur10", 40, seed=6, targets=on_tool)
+    _refused(tmp_path, scn.q, scn.points, sc.TARGETS, "nominal", "another frame than the robot file's tool frame")

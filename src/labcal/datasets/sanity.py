@@ -512,6 +512,7 @@ class _Hypothesis:
     points: np.ndarray
     targets: np.ndarray
     frame: str
+    free_tool: bool = False  # register the targets' mount on the flange instead of trusting the targets file
 
 
 def _hypotheses(
@@ -574,6 +575,9 @@ def _hypotheses(
                                f"target-distances)", 1, jm.to_model(q_ctrl), points / unit_ratio, targets,
                                frame))  # fmt: skip
     if form == "targets":
+        out.append(_Hypothesis("if the targets file's points were given in another frame than the robot file's tool "
+                               "frame (check its [tool] and the targets file)", 1, jm.to_model(q_ctrl), points, targets,
+                               frame, free_tool=True))  # fmt: skip
         for perm in itertools.permutations(range(3)):
             if perm != (0, 1, 2):
                 out.append(_Hypothesis(f"with the targets reordered ({_perm_text(perm)}) in the targets file", 1,
@@ -617,7 +621,7 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
                          unit_ratio=_known_unit_ratio(report.stats)):  # fmt: skip
         try:
             m = _robust_mean(registered_residuals(robot, h.q, h.points, h.targets, frame=h.frame,
-                                                  tool_known=tool_known))[0]  # fmt: skip
+                                                  tool_known=tool_known and not h.free_tool))[0]  # fmt: skip
         except (np.linalg.LinAlgError, ValueError):
             continue
         if np.isfinite(m):
