@@ -53,7 +53,7 @@ def point_rms(robot, q_model, points) -> float:
 
 def test_the_rig_reports_controller_joints_and_moves_the_model_joints(spec, recorded):
     q_model, q_rec, _ = recorded
-    np.testing.assert_allclose(q_rec, spec.joints.to_controller(q_model), atol=1e-15)
+    np.testing.assert_array_equal(q_rec, spec.joints.to_controller(q_model))  # exactly what it was commanded
     assert np.max(np.abs(q_rec - q_model)) > 0.1  # the controller's numbers really differ from the model's
     rig = rig_for(spec)
     with rig.robot() as robot:
@@ -120,3 +120,17 @@ def test_the_compensator_of_that_fit_takes_and_returns_controller_joints(spec, r
             nominal = TARGETS @ T[:3, :3].T + T[:3, 3]
             assert np.max(np.abs(rig.true_points() - nominal)) < 5 * NOISE
     np.testing.assert_allclose(comp.predict_pose(q_ctrl[:3]), robot.predict_pose(q_model[:3]), atol=1e-15)
+
+
+def test_a_protective_stop_halfway_leaves_controller_and_model_joints_consistent(spec):
+    from labcal.drivers.base import ProtectiveStop
+    from labcal.drivers.sim import SimFaults
+
+    rig = rig_for(spec, faults=SimFaults(protective_stop_at=[2]))
+    a, b = np.array([0.1, 0.2, 0.3, 0.0, 0.5, 0.0]), np.array([0.3, -0.2, 0.6, 0.2, 0.9, 0.1])
+    with rig.robot() as robot:
+        robot.move_joints(a, speed=0.5, acceleration=1.0)
+        with pytest.raises(ProtectiveStop):
+            robot.move_joints(b, speed=0.5, acceleration=1.0)
+        np.testing.assert_allclose(robot.joint_positions(), 0.5 * (a + b), atol=1e-15)
+        np.testing.assert_allclose(rig.q_model, spec.joints.to_model(0.5 * (a + b)), atol=1e-15)

@@ -146,6 +146,9 @@ class SimRig:
         if q.shape != (model.n,):
             raise ValueError(f"q0 must have shape ({model.n},), got {q.shape}")
         self._q = np.clip(q, model.limits[:, 0], model.limits[:, 1])  # model joints: what the actual robot is at
+        # the controller's own numbers, kept (not recomputed through the inverse map) so that it reports exactly
+        # the joints it was commanded, as the unmapped rig does
+        self._q_ctrl = self._q.copy() if self.joint_map is None else self.joint_map.to_controller(self._q)
         self._noise_rng = np.random.default_rng([self.seed, 0])
         self._fault_rng = np.random.default_rng([self.seed, 1])
         self._motion_rng = np.random.default_rng([self.seed, 2])
@@ -167,7 +170,7 @@ class SimRig:
     def q(self) -> np.ndarray:
         """(n,) current joint values as the controller reports them (controller joints)."""
         with self._lock:
-            return self._q.copy() if self.joint_map is None else self.joint_map.to_controller(self._q)
+            return self._q_ctrl.copy()
 
     @property
     def q_model(self) -> np.ndarray:
@@ -232,10 +235,11 @@ class SimRobot:
             if k in rig.faults.protective_stop_at:
                 # Stopped halfway: the robot is somewhere between start and goal.
                 rig._q = 0.5 * (rig._q + q)
+                rig._q_ctrl = 0.5 * (rig._q_ctrl + q_ctrl)  # the map is linear: still the same configuration
                 rig._true_points = rig._draw_true_points()
                 rig.protective_stop = True
                 raise ProtectiveStop(f"protective stop during move {k} (simulated)")
-            rig._q = q.copy()
+            rig._q, rig._q_ctrl = q.copy(), q_ctrl.copy()
             rig._true_points = rig._draw_true_points()
 
     def joint_positions(self) -> np.ndarray:
