@@ -10,11 +10,15 @@ check                 what it refuses
 ====================  ==============================================================================================
 ``target-distances``  measured distances between the three targets that do not match the targets file: a length
                       unit slip (×1000, ×0.001, ×25.4 …), a different triangle, or targets in another order
-``target-outliers``   single rows whose target distances are off the file's by more than a few mm
+``target-outliers``   single rows whose target distances are off the other rows' by more than 2 mm
 ``joint-limits``      joint values (model joints, after the robot file's joint map) outside the robot's limits
-``joint-span``        every joint moving less than 6° although the limits are wide (radians read as degrees)
+``joint-span``        with degrees: every joint moving less than 12.6° and no value beyond ±2π (radians read
+                      as degrees) although the limits are wide
 ``nominal``           measured points farther than 25 mm (mean) from where the nominal model puts them, after
-                      registering the tracker frame (``frame = "tracker"``) and the probe mount (probe form)
+                      registering the tracker frame (``frame = "tracker"``) and the probe mount (probe form); the
+                      message names the reading that makes the data fit when one does (another unit, frame,
+                      target order, a coupled / reversed / offset joint for the ``[joint_map]``); single rows far
+                      off the rest are named on their own
 ``reach``             base-frame points beyond the robot's reach (tracker coordinates imported as base)
 ``duplicates``        more than half of the rows repeating a pose (identical joint rows are reported in any case)
 ``few-poses``         fewer distinct poses than twice the joint count: too few to calibrate
@@ -67,8 +71,8 @@ TARGET_REL_TOL = 0.02
 #: A single row is an outlier when a distance is off by more than this (m) and 6 robust sd of all rows.
 ROW_ABS_TOL = 2e-3
 #: Mean distance (m) between measured and nominally predicted points above which the data do not describe this
-#: robot as imported. Nominal robots are within a few mm; a coupled elbow left unconverted is ~40 mm, unit slips
-#: are hundreds of mm.
+#: robot as imported. Nominal robots are within a few mm (the real UR10 data set: 0.92 mm after registration); a
+#: coupled elbow left unconverted is hundreds of mm before any fit, unit slips are hundreds of mm to metres.
 NOMINAL_MEAN_LIMIT = 25e-3
 #: Joints whose whole span is below this (rad) while their limits span more than SPAN_WIDE_LIMITS look like
 #: radians read as degrees: a full ±2π rad range read as degrees spans only 4π° ≈ 12.6°.
