@@ -153,7 +153,10 @@ def load(name_or_path: str | Path) -> RobotSpec:
     else:
         path = Path(text)
         if not path.is_file():
-            raise RobotFileError(f"robot {text!r} is neither a built-in ({', '.join(BUILTINS)}) nor an existing file")
+            raise RobotFileError(
+                f"robot {text!r} is neither a built-in ({', '.join(BUILTINS)}), an example "
+                f"({', '.join(EXAMPLES)}) nor an existing file"
+            )
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as err:
