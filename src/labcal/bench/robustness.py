@@ -72,6 +72,7 @@ class Cell:
     failures: dict = field(default_factory=dict)  # split → first line of the error
     seconds: list = field(default_factory=list)
     notes: list = field(default_factory=list)
+    warnings: dict = field(default_factory=dict)  # split → the fit's blocking warning codes (FitResult.warnings)
 
 
 def _sweeps(robot: str) -> Callable[[int], Data]:
@@ -170,6 +171,11 @@ def run_family(
             try:
                 result = fit(obs, nominal, m, seed=s)
                 cells[m].errors[s] = point_error(result.robot, q_te, p_te, data.targets)
+                codes = [
+                    str(w.get("code", w)) if isinstance(w, dict) else str(w) for w in getattr(result, "warnings", [])
+                ]
+                if codes:
+                    cells[m].warnings[s] = sorted(set(codes))
                 if m == "auto":
                     cells[m].notes.append(str(result.chosen))
                 elif m == "hybrid":
@@ -255,6 +261,15 @@ def report(results: dict, methods: tuple[str, ...], splits: int) -> tuple[list[s
     ]
     if fails:
         lines += ["", "Not run (first line of the error):", *fails]
+    warned = [
+        f"  {fam} / {m}: {len(c.warnings)}/{splits} splits — "
+        + "; ".join(f"split {s}: {', '.join(codes)}" for s, codes in sorted(c.warnings.items()))
+        for fam, (cells, _, _) in results.items()
+        for m, c in cells.items()
+        if c.warnings
+    ]
+    lines += ["", "Fits that carry blocking warnings (FitResult.warnings: export needs --force):"]
+    lines += warned or ["  none (or this version of fit() has no warnings)"]
     lines += ["", "Fit time, s (mean over splits)"]
     trows = [
         [fam, f"{np.mean(lsq.seconds):.1f}", *[f"{np.mean(cells[m].seconds):.1f}" for m in methods]]
