@@ -1162,9 +1162,11 @@ class Compensator:
         if self._map is None:
             self.robot.check_range(q)
             return
-        q_model = np.atleast_2d(self.to_model(q))
+        self._check_model_range(self.to_model(q))
+
+    def _check_model_range(self, q_model: np.ndarray) -> None:
         try:
-            self.robot._check_range(q_model)
+            self.robot._check_range(np.atleast_2d(q_model))
         except ValueError as err:
             raise ValueError(
                 f"{err} (model joints: the robot file's joint map turns the controller joints into these)"
@@ -1175,15 +1177,21 @@ class Compensator:
         controller joints q (an empty (0, n) q gives an empty answer)."""
         if self._map is None:
             return self.robot.correct(q, extrapolate=extrapolate, method=method)
-        self.check_range(q, extrapolate)
-        q_cmd = self.robot.correct(self.to_model(q), extrapolate=True, method=method)
-        return self._map.to_controller(q_cmd)
+        q_model = self.to_model(q)
+        if not extrapolate:
+            self._check_model_range(q_model)
+        return self._map.to_controller(self.robot.correct(q_model, extrapolate=True, method=method))
 
     def predict_pose(self, q, *, extrapolate: bool = False) -> np.ndarray:
         """Pose (4, 4) or (k, 4, 4) in the base frame that the real robot reaches when commanded the controller
         joints q (an empty (0, n) q gives (0, 4, 4))."""
-        self.check_range(q, extrapolate)
-        return self.robot.predict_pose(self.to_model(q))
+        if self._map is None:
+            self.robot.check_range(q, extrapolate)
+            return self.robot.predict_pose(q)
+        q_model = self.to_model(q)
+        if not extrapolate:
+            self._check_model_range(q_model)
+        return self.robot.predict_pose(q_model)
 
 
 def load(path) -> Compensator:
