@@ -631,3 +631,12 @@ def test_exports_that_cannot_hold_a_joint_map_refuse_it(tmp_path):
         export(robot, "urdf", tmp_path / "a.urdf")
     assert not (tmp_path / "a.script").exists() and not (tmp_path / "a.urdf").exists()
     assert Compensator.load(export(robot, "json", tmp_path / "a.json")).robot_hash == spec.hash
+
+
+def test_every_payload_field_is_checksummed():
+    """A field added to the export later must be covered too (or this test says which one is not)."""
+    from labcal.compensator import CHECKED_FIELDS, to_payload
+
+    payload = to_payload(hybrid("ur10"))
+    unchecked = set(payload) - set(CHECKED_FIELDS) - {"format", "schema_version", "checksums"}
+    assert not unchecked, f"export fields without a checksum: {sorted(unchecked)}"
