@@ -266,3 +266,9 @@ def test_metric_warnings_read_off_the_split_table():
     assert [x["code"] for x in w] == ["point-residuals"] and "74.000 mm" in w[0]["message"]
     # A hand-measured targets file ~1 mm off is below the floor: not blocked.
     assert metric_warnings({"all": table(4e-3, 1e-4, 1.2e-3)}) == []
+
+
+def test_old_fit_without_the_warning_text_is_still_rank_gated():
+    info = {"rank": 20, "expected_rank": 30, "delta_zeta": [[0.0] * 6]}  # what slim_info kept before the gates
+    assert [w["code"] for w in stored_warnings({"chosen": "local-poe", "info": info})] == ["rank-deficient"]
+    assert stored_warnings({"chosen": "local-poe", "info": {"rank": 30, "expected_rank": 30}}) == []

@@ -163,6 +163,10 @@ def info_warnings(info: dict, chosen: str | None = None) -> list[dict]:
     out: list[dict] = []
     for part in _relevant_infos(info, chosen):
         msg = part.get("warning")
+        rank, need = part.get("rank"), part.get("expected_rank")
+        if not msg and isinstance(rank, int) and isinstance(need, int) and rank < need:
+            # Fits stored before the gates kept rank and expected_rank but not the warning text.
+            msg = f"numerical rank {rank} < {need} identifiable parameters"
         if msg:
             if part.get("rank_deficient") or "rank" in str(msg):
                 rank, need = part.get("rank"), part.get("expected_rank")
