@@ -207,3 +207,8 @@ def test_verify_of_a_session_checks_the_fits_of_every_version(tmp_path):
     assert f"{first.ref}: fits/{record.fit_id}/model.json: sha256 mismatch" in r.stdout
     assert f"{first.session_id}@v002: ok" in r.stdout
     assert invoke("session", "verify", f"{first.session_id}@v2", store=st.root).exit_code == 0
+
+
+def test_show_says_whether_the_robot_file_is_stored(recorded):
+    r = invoke("session", "show", recorded["session"], store=recorded["store"])
+    assert r.exit_code == 0 and "lab-arm" in r.stdout and "robot file stored" in r.stdout

@@ -165,8 +165,9 @@ def show(session: str = typer.Argument(..., help="Session id."), store: Path | N
     """
     st = _store(store)
     info = st.show(session)
-    out.print(f"session {info.session_id}: robot {info.robot.get('name')} ({info.robot.get('hash', '')[:12]}…), "
-              f"frame {info.frame}, status {info.status}", markup=False)  # fmt: skip
+    stored = "robot file stored" if info.robot.get("text") else "robot file NOT stored (needs the built-in or --robot)"
+    out.print(f"session {info.session_id}: robot {info.robot.get('name')} ({info.robot.get('hash', '')[:12]}…, "
+              f"{stored}), frame {info.frame}, status {info.status}", markup=False)  # fmt: skip
     t = Table()
     for col in ("version", "rows", "created", "source", "parent", "fits"):
         t.add_column(col)

@@ -15,6 +15,7 @@ Recording a session (what the session runner does)::
 
     store = SessionStore()                                   # or SessionStore("path/to/store")
     with store.create_session(robot_name="ur10", robot_hash=model_sha256, n_joints=6,
+                              robot=spec.record(),           # the robot file itself: refit without the file
                               targets=targets,               # (3, 3) m, tool frame
                               frame="tracker",               # frame of the measured points
                               tracker={"driver": "ndi", "serial": "P9-01234"},
@@ -28,6 +29,8 @@ Recording a session (what the session runner does)::
                                        points=m.points, spread=m.spread, samples=5)
         journal.stop("success")
     print(store.seal(journal.session_id).ref)              # e.g. 20261122-031500-ur10-3f9a@v001
+    store.seal(session_id, valid_prefix=True)              # a journal with a corrupt line: seal the lines before
+                                                           # it; the version's provenance lists what was left out
 
 Resuming after Ctrl-C, a protective stop or a crash::
 
@@ -42,6 +45,7 @@ Reading, verifying, fitting::
     ds = load_version(store, "20261122-031500-ur10-3f9a@v1")   # verified; DatasetCorrupted if not intact
     ds.q, ds.points, ds.targets, ds.frame, ds.split          # (k, n), (k, 3, 3), (3, 3), str, (k,)
     store.verify("20261122-031500-ur10-3f9a").ok            # latest version
+    store.verify_fits("20261122-031500-ur10-3f9a@v1").ok    # every fit stored under that version
     store.list_sessions(); store.show(session_id)           # id, robot, status, versions with row counts
     fit = store.save_fit([ds.ref], {"model.npz": blob}, {"method": "local-poe", "seed": 0, "metrics": {...}})
     store.list_fits(ds.ref); store.load_fit(ds.ref, fit.fit_id).read("model.npz")
@@ -54,6 +58,11 @@ Importing external data (each returns the new ``SESSION@vNNN``)::
     import_probe_csv(store, "probe.csv", "ur10", h, 6, rotation="euler", euler_sequence="XYZ",
                      length_unit="mm", rotation_unit="deg", frame="tracker")
     import_mapped(store, "measurements_random_poses.csv", "ipa-ur10", "ur10", h, 6)
+
+Self-contained versions: a version's manifest (``session.robot``) holds the robot model's name, hash, joint count
+and, for data recorded or imported since the robot file's text was stored, the file text and format
+(``RobotSpec.record()``); ``labcal.cli.ops.robot_for`` reads it back, so fitting, reporting, exporting and resuming
+need nothing outside the store. Older versions without the text fall back to the built-in of that name.
 
 Versions are never rewritten: sealing again, appending to a journal, or importing into an existing session
 (``session_id=...``) makes ``vNNN+1`` with ``parent = vNNN`` holding the old rows plus the new ones.
