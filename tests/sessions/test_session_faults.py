@@ -250,3 +250,20 @@ def test_an_allowed_check_lets_the_run_finish_and_is_recorded(spec, store):
     assert summary.exit_status == "success" and robot.moves == 20
     start = read_journal(store.session_dir(summary.session_id) / "journal.jsonl").start
     assert start["metadata"]["runner"]["sanity_allow"] == ["nominal"]
+
+
+def test_a_store_that_cannot_be_written_is_one_error_line_not_a_traceback(spec, store, monkeypatch):
+    import errno
+
+    import labcal.datasets.store as store_module
+    from labcal.datasets import DatasetError
+
+    first = record_interrupted(store, spec, n_poses=4, interrupt_at=4)
+
+    def read_only(path, data):
+        raise OSError(errno.EROFS, "Read-only file system", str(path))
+
+    monkeypatch.setattr(store_module, "write_file_durable", read_only)
+    with pytest.raises(DatasetError, match=r"cannot store the fit in the session store .*Read-only file system"):
+        store.save_fit(first.ref, {"a.json": b"{}"}, {})
+    assert store.list_fits(first.ref) == []  # nothing half-written is visible

@@ -23,6 +23,7 @@ fit never touches the version's data files or manifest, and ``verify`` ignores `
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import os
@@ -59,6 +60,30 @@ MANIFEST = "manifest.json"
 FITS = "fits"
 FIT_JSON = "fit.json"
 _VERSION_DIR = re.compile(r"^v(\d{3,6})$")
+
+
+def _writes(what: str):
+    """Turn an OS error while writing (read-only store, full disk, permissions) into one DatasetError line that
+    names the store and the operation, instead of a traceback. Nothing half-written is left visible: every write
+    goes to a hidden temporary folder first (see the module docstring)."""
+
+    def decorate(fn):
+        @functools.wraps(fn)
+        def wrapper(self, *args, **kwargs):
+            try:
+                return fn(self, *args, **kwargs)
+            except DatasetError:
+                raise
+            except OSError as e:
+                where = f" ({e.filename})" if getattr(e, "filename", None) else ""
+                raise DatasetError(
+                    f"cannot {what} in the session store {self.root}: {e.strerror or e}{where} "
+                    "(is it read-only or full? set --store or LABCAL_STORE to a writable folder)"
+                ) from e
+
+        return wrapper
+
+    return decorate
 
 
 def default_root() -> Path:
@@ -384,6 +409,7 @@ class SessionStore:
         r = self.resolve(ref)
         return self.session_dir(r.session_id) / version_name(r.version)  # type: ignore[arg-type]
 
+    @_writes("create a session")
     def create_session(
         self,
         *,
@@ -679,6 +705,7 @@ class SessionStore:
         if not np.allclose(np.asarray(a["targets"]), np.asarray(b["targets"]), rtol=0, atol=1e-9):
             raise DatasetError(f"session {session_id!r} has targets {a['targets']}, new data {b['targets']}")
 
+    @_writes("write a new version")
     def append_rows(self, session_id: str, rows: pd.DataFrame, meta: dict, *, source: str, provenance: dict) -> str:
         """Make a new version of an existing session: all rows of the latest version plus ``rows``.
 
@@ -714,6 +741,7 @@ class SessionStore:
         self._write_version(d, number, table, manifest)
         return f"{session_id}@{version_name(number)}"
 
+    @_writes("write the imported session")
     def create_imported_session(
         self, rows: pd.DataFrame, meta: dict, *, source: str, provenance: dict, session_id: str | None = None
     ) -> str:
@@ -737,6 +765,7 @@ class SessionStore:
             raise
         return f"{session_id}@v001"
 
+    @_writes("seal the journal into a version")
     def seal(self, session_id: str, *, valid_prefix: bool = False) -> SealResult:
         """Make a new version from the journal's valid measurements not yet in a version.
 
@@ -824,6 +853,7 @@ class SessionStore:
         return SealResult(ref, True, len(new), f"sealed {len(new)} new measurement(s) into {ref}{left_out}")
 
     # ---------------------------------------------------------------------------------------------- fits
+    @_writes("store the fit")
     def save_fit(
         self,
         refs: str | Ref | Sequence[str | Ref],
