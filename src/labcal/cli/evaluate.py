@@ -13,7 +13,9 @@ from labcal.cli.common import StoreOption, err, metrics_table, out, store_of, ta
 @user_errors
 def evaluate(
     fit_id: str = typer.Argument(..., help="Fit id (as printed by `labcal fit`)."),
-    data: str = typer.Option(..., "--data", help="Held-out data: a CSV file (imported first) or SESSION[@vN]."),
+    data: str = typer.Option(
+        ..., "--data", help="Held-out data: a CSV file (imported first) or SESSION or SESSION@vN (stored)."
+    ),
     robot: str | None = typer.Option(None, "--robot", help="Robot model for a file (default: the fit's model)."),
     targets: Path | None = typer.Option(None, "--targets", help="Targets TOML of a file (--form targets)."),
     mapping: str | None = typer.Option(None, "--mapping", help="Column mapping TOML or shipped name of a file."),

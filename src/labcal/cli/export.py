@@ -11,7 +11,7 @@ from labcal.cli.common import StoreOption, err, store_of, user_errors
 
 @user_errors
 def export(
-    session: str = typer.Argument(..., help="SESSION[@vN] the fit is stored under."),
+    session: str = typer.Argument(..., help="SESSION or SESSION@vN the fit is stored under."),
     fmt: str = typer.Option(..., "--format", help="json | npz | urscript | urdf"),
     out: Path = typer.Option(..., "--out", help="Output file (.json / .npz for the compensator)."),
     fit_id: str | None = typer.Option(None, "--fit", help="Fit id (default: the newest fit of the version)."),

@@ -11,7 +11,9 @@ from labcal.cli.common import StoreOption, metrics_table, out, print_gates, stor
 
 @user_errors
 def fit(
-    sessions: list[str] = typer.Argument(..., help="SESSION[@vN] …; several sessions of the same robot are pooled."),
+    sessions: list[str] = typer.Argument(
+        ..., help="SESSION or SESSION@vN …; several sessions of the same robot are pooled."
+    ),
     method: str = typer.Option("auto", "--method", help="local-poe | ann | hybrid | auto | nominal"),
     seed: int = typer.Option(0, "--seed", help="Seed of the split and the network initialisation."),
     hidden: int | None = typer.Option(None, "--hidden", help="Hidden nodes of the network (default √(6·inputs))."),

@@ -11,7 +11,7 @@ from labcal.cli.common import StoreOption, store_of, user_errors
 
 @user_errors
 def report(
-    session: str = typer.Argument(..., help="SESSION[@vN]."),
+    session: str = typer.Argument(..., help="SESSION or SESSION@vN (default version: the latest)."),
     out: Path = typer.Option(..., "--out", help="Output folder (created)."),
     fit_id: list[str] = typer.Option([], "--fit", help="Fit id(s) to include (default: every fit of the version)."),
     store: Path | None = StoreOption,
