@@ -14,6 +14,7 @@ from datasets_testutil import ROBOT_HASH, TARGETS, fake_measurement, flip_byte, 
 
 from labcal.datasets import (
     DatasetCorrupted,
+    DatasetError,
     InvalidId,
     SessionStore,
     UnknownSession,
@@ -276,7 +277,8 @@ def test_a_failed_version_write_leaves_nothing(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(store_mod, "publish_dir", boom)
-    with pytest.raises(OSError, match="disk full"):
+    # One line naming the store and the operation (the CLI prints it without a traceback), the OS error chained.
+    with pytest.raises(DatasetError, match=r"cannot seal the journal into a version in the session store .*disk full"):
         store.seal(j.session_id)
     assert sorted(p.name for p in store.session_dir(j.session_id).iterdir()) == ["journal.jsonl"]
 
