@@ -9,9 +9,10 @@ Documents (each has ``type``, ``uid`` and ``time`` in UNIX seconds):
   ``robot_driver`` identity dicts, ``plan`` (list of JSON-able commands), ``extra_units`` (unit of each
   ``extra`` measurement field), ``software`` versions, ``metadata`` (user's).
 - ``measurement``: ``seq`` (1, 2, … in order of arrival), ``pose_index`` (position in the plan),
-  ``q_commanded``/``q_actual`` (n, rad), ``points`` (3×3, m, row i = target t(i+1)), ``spread`` (3, m),
-  ``samples``, ``status`` ("valid" | "rejected"), ``reason``, ``split`` ("train" | "val" | "test" | "" or
-  null), ``extra`` {name: value}, ``units``.
+  ``q_commanded``/``q_actual`` (n, rad; *controller* joints, as sent to and read from the robot — the plan in the
+  start document is in model joints, converted through the robot file's joint map), ``points`` (3×3, m, row i =
+  target t(i+1)), ``spread`` (3, m), ``samples``, ``status`` ("valid" | "rejected"), ``reason``, ``split``
+  ("train" | "val" | "test" | "" or null), ``extra`` {name: value}, ``units``.
 - ``pause`` / ``resume`` (``reason``: protective stop, Ctrl-C, restart after a crash …).
 - ``stop``: ``exit_status`` ("success" | "aborted" | "paused" | "failed") and ``reason``.
 - ``repair``: written by labcal itself when it reopens a journal whose last write was torn (``torn_lines``).
