@@ -212,3 +212,24 @@ def test_verify_of_a_session_checks_the_fits_of_every_version(tmp_path):
 def test_show_says_whether_the_robot_file_is_stored(recorded):
     r = invoke("session", "show", recorded["session"], store=recorded["store"])
     assert r.exit_code == 0 and "lab-arm" in r.stdout and "robot file stored" in r.stdout
+
+
+def test_a_coupled_elbow_session_records_controller_joints_and_fits_in_model_joints(tmp_path, targets):
+    import numpy as np
+
+    from labcal.cli.ops import load_observations
+    from labcal.robots import load
+    from labcal.sessions import Plan
+
+    spec = load("coupled-elbow-6r")
+    store = tmp_path / "store"
+    r = invoke("session", "new", "--robot", "coupled-elbow-6r", "--targets", targets, "--poses", 14, store=store)
+    assert r.exit_code == 0, r.stdout + r.stderr  # the record-time sanity check passed: the data are consistent
+    ref = r.stdout.strip().splitlines()[-1]
+    st = SessionStore(store)
+    contents = read_journal(st.session_dir(ref.split("@")[0]) / "journal.jsonl")
+    q_plan = Plan.from_pose_documents(contents.start["plan"]).configurations  # model joints
+    q_cmd = np.array([d["q_commanded"] for d in contents.measurements])
+    np.testing.assert_allclose(q_cmd, spec.joints.to_controller(q_plan), atol=1e-12)
+    obs, _ = load_observations(st, [ref])
+    np.testing.assert_allclose(obs.q, q_plan, atol=1e-6)

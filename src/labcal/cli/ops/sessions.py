@@ -77,7 +77,8 @@ def _drivers(robot_driver, tracker_driver, spec, targets, *, profile, tracker_pr
     if robot_driver == "sim":
         from labcal.drivers.sim import SimRig
 
-        rig = SimRig(sim_actual(spec, sim_errors, seed), targets, seed=seed)
+        # The simulated controller speaks the robot file's controller joints, as the real one would.
+        rig = SimRig(sim_actual(spec, sim_errors, seed), targets, seed=seed, joint_map=spec.joint_map)
         return rig.robot(), rig.tracker(), "base", {"sim": {"errors": sim_errors, "seed": seed}}
     from labcal.drivers.serial_tracker import open_tracker
     from labcal.drivers.ur import URRobot, load_ur_profile
@@ -153,6 +154,7 @@ def resume_session(
             "the same drivers (labcal.sessions.resume)"
         )
     targets = np.asarray(meta["targets"], dtype=float)
-    rig = SimRig(sim_actual(spec, sim["errors"], int(sim["seed"])), targets, seed=int(sim["seed"]))
+    seed = int(sim["seed"])
+    rig = SimRig(sim_actual(spec, sim["errors"], seed), targets, seed=seed, joint_map=spec.joint_map)
     with rig.robot() as rob, rig.tracker() as trk:
         return resume(store, session_id, rob, trk, spec=spec, progress=progress, allow=_allowed(allow))
