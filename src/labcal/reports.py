@@ -329,7 +329,7 @@ def _parameter_lines(info: dict, data: dict | None = None) -> list[str]:
         cells = []
         for i, (v, sd) in enumerate(zip(row, srow, strict=True)):
             if not np.isfinite(sd) and j not in frames:
-                cells.append("not estimated")
+                cells.append("in T_tracker_base" if estimate_base else "not estimated")
             elif identified[j, i] and np.isfinite(sd):
                 cells.append(f"{v * 1e3:.4f} ± {sd * 1e3:.4f}")
             else:
