@@ -267,3 +267,8 @@ def test_a_store_that_cannot_be_written_is_one_error_line_not_a_traceback(spec, 
     with pytest.raises(DatasetError, match=r"cannot store the fit in the session store .*Read-only file system"):
         store.save_fit(first.ref, {"a.json": b"{}"}, {})
     assert store.list_fits(first.ref) == []  # nothing half-written is visible
+
+
+def test_finding_a_fit_in_a_missing_store_names_the_store(tmp_path):
+    with pytest.raises(LookupError, match=r"no session store at .*nowhere \(does not exist"):
+        SessionStore(tmp_path / "nowhere").find_fit("20261123-203029-193273-f0a349")

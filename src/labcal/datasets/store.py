@@ -965,6 +965,7 @@ class SessionStore:
     def find_fit(self, fit_id: str) -> FitRecord:
         """Find a fit by id anywhere in the store."""
         validate_id(fit_id, "fit id")
+        self.require_root()
         for s in self.session_ids():
             for v in self.versions(s):
                 if (self.session_dir(s) / version_name(v) / FITS / fit_id / FIT_JSON).is_file():
