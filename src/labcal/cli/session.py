@@ -239,7 +239,8 @@ def seal(
 @app.command("verify")
 @user_errors
 def verify(session: str = typer.Argument(..., help="SESSION or SESSION@vN."), store: Path | None = StoreOption) -> None:
-    """Check every file hash of a version and of every fit stored under it; SESSION alone checks all its versions.
+    """Check the file hashes of a version and of the fits stored under it (SESSION alone: every version).
+
     Exit 1 with one line per problem if anything is wrong.
 
     Example: labcal session verify 20261122-031500-ur10-3f9a@v1
