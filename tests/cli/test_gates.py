@@ -272,3 +272,18 @@ def test_old_fit_without_the_warning_text_is_still_rank_gated():
     info = {"rank": 20, "expected_rank": 30, "delta_zeta": [[0.0] * 6]}  # what slim_info kept before the gates
     assert [w["code"] for w in stored_warnings({"chosen": "local-poe", "info": info})] == ["rank-deficient"]
     assert stored_warnings({"chosen": "local-poe", "info": {"rank": 30, "expected_rank": 30}}) == []
+
+
+def test_an_os_error_mid_export_is_one_line(world, tmp_path, monkeypatch):
+    import errno
+
+    import labcal.export
+
+    def full(robot, fmt, path, provenance=None, **options):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(labcal.export, "export", full)
+    r = invoke("export", world["refs"]["good"], "--format", "json", "--out", tmp_path / "c.json", "--force",
+               store=world["store"])  # fmt: skip
+    one_line_error(r, "No space left on device")
+    assert list(tmp_path.iterdir()) == []  # the temporary file is gone too

@@ -36,8 +36,17 @@ def user_errors(fn):
             # successful one. Whatever was recorded is already on disk (the journal is fsynced per measurement).
             err.print("interrupted (Ctrl-C)", markup=False)
             raise typer.Exit(INTERRUPTED) from None
-        except (ValueError, DatasetError, FileNotFoundError, PermissionError, KeyError, RuntimeError) as e:
-            msg = str(e) if not isinstance(e, KeyError) else f"missing field {e}"
+        except (ValueError, DatasetError, OSError, KeyError, RuntimeError) as e:
+            # OSError covers more than missing / forbidden files: a full disk or a read-only file system met
+            # mid-write is a one-line error too, not a traceback.
+            if isinstance(e, KeyError):
+                msg = f"missing field {e}"
+            elif isinstance(e, OSError) and e.strerror and not str(e).startswith("[Errno"):
+                msg = str(e)
+            elif isinstance(e, OSError) and e.strerror:
+                msg = f"{e.strerror}: {e.filename}" if e.filename else e.strerror
+            else:
+                msg = str(e)
             err.print(f"error: {msg}", markup=False)
             raise typer.Exit(2) from None
 
