@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labcal.calibration.ann import default_hidden, fit_ann, torch_predict
-from labcal.calibration.observations import ObservationError, Observations
+from labcal.calibration.ann import NetworkDataError, default_hidden, fit_ann, torch_predict
+from labcal.calibration.observations import Observations
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import se3
 from labcal.robots import load
+from labcal.simulation import ErrorSpec, simulate
 
 TARGETS = np.array([[0.1, 0.0, 0.0], [0.0, 0.15, 0.0], [0.0, 0.0, 0.2]])
 # A region of the UR10 away from the wrist (q5) and elbow (q3) singularities.
@@ -62,7 +63,9 @@ def test_learns_a_smooth_joint_error_field_on_held_out_configurations(data, fitt
     after = se3.pose_distance(T_meas, robot.predict_pose(test.q))[0]
     assert np.mean(after) < 0.3 * np.mean(before)
     assert robot.method == "ann" and robot.model is base.model
-    np.testing.assert_array_equal(robot.joint_ranges[:, 0], obs.where("train").q.min(axis=0))
+    # the ranges of every row the network was given (train + early-stopping rows), not only the rows it trained on
+    given = obs.subset(obs.split != "test").q
+    np.testing.assert_array_equal(robot.joint_ranges, np.stack([given.min(axis=0), given.max(axis=0)], axis=1))
     assert info["hidden"] == [default_hidden(6)] == [6]
     assert info["chosen_restart"] == int(np.argmin(info["restart_val_losses"]))
 
@@ -115,18 +118,59 @@ def test_every_trainer_and_option_lowers_the_validation_loss(data, options):
 
 def test_too_many_weights_are_warned_about(data):
     base, obs = data
-    small = obs.subset(np.r_[0:5, 100:105])
+    small = obs.subset(np.r_[0:10, 100:105])
     _, info = fit_ann(small, base, seed=0, restarts=1, hidden=20, max_iter=2)
     assert any("over-fitting" in w for w in info["warnings"])
 
 
+def test_without_val_rows_early_stopping_uses_an_inner_split_of_the_training_rows(data):
+    base, obs = data
+    train = obs.subset(obs.split == "train")
+    _, info = fit_ann(train, base, seed=0, restarts=1, max_iter=5)
+    assert "inner split" in info["early_stopping"]
+    assert info["train_rows"] + info["val_rows"] == train.k and info["val_rows"] == round(0.25 * train.k)
+    _, with_val = fit_ann(obs, base, seed=0, restarts=1, max_iter=5)
+    assert with_val["early_stopping"] == "the 'val' rows" and with_val["val_rows"] == int(np.sum(obs.split == "val"))
+    # unassigned rows are training rows
+    _, unsplit = fit_ann(Observations(train.q, train.points, train.targets), base, seed=0, restarts=1, max_iter=5)
+    assert unsplit["train_rows"] == info["train_rows"]
+
+
+def test_max_rows_caps_the_training_rows(data):
+    base, obs = data
+    _, info = fit_ann(obs, base, seed=0, restarts=1, max_iter=3, max_rows=40)
+    assert info["train_rows"] == 40 and info["subsampled_from"] == int(np.sum(obs.split == "train"))
+
+
+def test_analytic_jacobian_equals_forward_mode_autodiff():
+    import torch
+
+    from labcal.calibration import ann
+
+    rng = np.random.default_rng(0)
+    shapes = ann._layer_shapes(6, (5,))
+    theta = torch.as_tensor(ann._init_params(shapes, 0, 0) * 30)
+    x, y, w = rng.normal(size=(15, 6)), rng.normal(size=(15, 6)), rng.uniform(0.5, 1.0, 15)
+    A, b = rng.normal(size=(15, 9, 6)), rng.normal(size=(15, 9))
+    for prob in (ann._Problem(torch, x, y, w), ann._Problem(torch, x, None, w, A, b)):
+        auto = torch.func.jacfwd(lambda t, prob=prob: prob.residual(t, shapes))(theta)
+        np.testing.assert_allclose(prob.jacobian(theta, shapes).numpy(), auto.numpy(), atol=1e-14)
+
+
+def test_too_few_rows_after_the_condition_filter_names_the_singular_joint():
+    spec = load("ur10")
+    base = CalibratedRobot(spec.model, spec.model)
+    rng = np.random.default_rng(3)
+    q = rng.uniform(spec.model.limits[:, 0], spec.model.limits[:, 1], size=(30, 6))
+    q[:25, 4] = rng.normal(0.0, 1e-4, 25)  # a wrist at q5 ≈ 0: joints 4 and 6 align
+    obs = Observations(q, simulate(spec, ErrorSpec.paper(), seed=3).measure(q, TARGETS, rng), TARGETS)
+    with pytest.raises(NetworkDataError, match=r"joint 5 near a singular value \(q5 ≈ .*joints 4, 6") as err:
+        fit_ann(obs, base, seed=0, restarts=1)
+    assert err.value.causes[0]["joint"] == 5 and err.value.causes[0]["rows"] >= 25
+
+
 def test_clear_errors(data):
     base, obs = data
-    with pytest.raises(ObservationError, match="'val' split is empty"):
-        fit_ann(obs.subset(obs.split == "train"), base)
-    unsplit = Observations(obs.q, obs.points, obs.targets)
-    with pytest.raises(ObservationError, match="'train' split is empty"):
-        fit_ann(unsplit, base)
     with pytest.raises(ValueError, match="joint values per row"):
         fit_ann(Observations(obs.q[:, :4], obs.points, obs.targets, split=obs.split), base)
     with pytest.raises(ValueError, match="trainer"):

@@ -1,4 +1,4 @@
-"""The fit dispatcher: splits, methods, auto's choice and tie rule, metrics, determinism, lazy torch."""
+"""The fit dispatcher: every row fitted, cross-validated choice and its tie rule, metrics, determinism, lazy torch."""
 
 from __future__ import annotations
 
@@ -74,7 +74,20 @@ def test_nominal_method_is_the_registered_nominal():
     nominal, obs = observe()
     result = fit(obs, nominal, "nominal")
     assert result.robot is result.before
-    assert result.metrics["val"]["before"] == result.metrics["val"]["after"]
+    assert result.metrics["all"]["before"] == result.metrics["all"]["after"]
+    assert result.cv is None and result.warnings == []
+
+
+def test_by_default_local_poe_fits_every_row_and_reports_its_cross_validated_error():
+    nominal, obs = observe()
+    result = fit(obs, nominal, "local-poe")
+    assert (result.n_train, result.n_val, result.n_test) == (60, 0, 0)
+    every_row, _ = fit_local_poe(Observations(obs.q, obs.points, obs.targets), nominal)
+    assert np.array_equal(result.robot.model.frames, every_row.model.frames)
+    cv = result.cv
+    assert (cv["folds"], cv["scheme"], cv["chosen"]) == (5, "kfold", "local-poe")
+    assert len(cv["errors"]["local-poe"]) == 5 and cv["mean"]["local-poe"] < 0.1 * cv["mean"]["nominal"]
+    assert result.warnings == []
 
 
 def test_auto_picks_local_poe_when_the_network_does_not_help_and_ties_go_to_the_simpler(fake_ann):
@@ -85,26 +98,37 @@ def test_auto_picks_local_poe_when_the_network_does_not_help_and_ties_go_to_the_
     assert c["hybrid"] == c["local-poe"] < c["ann"]
     assert result.chosen == "local-poe" and result.robot.method == "local-poe"
     assert result.info["hybrid"]["kept"] == "local-poe"
+    assert result.cv["chosen"] == "local-poe" and set(result.cv["errors"]) == {
+        "nominal",
+        "local-poe",
+        "hybrid+ann",
+        "ann",
+    }
 
 
-def test_auto_picks_the_lowest_validation_error_and_prefers_hybrid_to_ann_on_a_tie(fake_ann):
+def test_auto_picks_the_lowest_cross_validated_error_and_prefers_hybrid_to_ann_on_a_tie(fake_ann):
     # Noise-free geometric data. The local-POE stage is stopped after one step (error ~1e-6 m); the fake network
     # returns the converged identification (error ~1e-15 m), so ann and hybrid reach the same, lower error.
     nominal, obs = observe(ErrorSpec.paper(tracker_noise=0.0))
-    exact, _ = fit_local_poe(obs.with_splits(0.5, 0), nominal)
+    exact, _ = fit_local_poe(obs, nominal)
     fake_ann(lambda obs, base: exact)
     result = fit(obs, nominal, "auto", seed=0, local_poe_options={"max_iter": 1}, stage2=("ann",))
     c = result.info["candidates"]
     assert c["ann"] == c["hybrid"] < c["local-poe"]
-    assert result.chosen == "hybrid"
-    assert set(result.fit_seconds) >= {"nominal", "local-poe", "ann", "hybrid"}
+    assert result.chosen == "hybrid" and result.info["hybrid"]["kept"] == "local-poe+ann"
+    assert set(result.fit_seconds) >= {"nominal", "local-poe", "cross-validation", "hybrid"}
 
 
-def test_methods_needing_validation_rows_refuse_without_them():
-    nominal, obs = observe()
-    for method in ("ann", "hybrid", "auto"):
-        with pytest.raises(ValueError, match="validation rows"):
-            fit(obs, nominal, method, val_fraction=0.0)
+def test_held_out_rows_are_only_measured_never_used_to_choose(fake_ann):
+    nominal, obs = observe(k=80)
+    fake_ann(lambda obs, base: base)
+    a = fit(obs, nominal, "auto", val_fraction=0.25, stage2=("ann",))
+    moved = obs.points.copy()
+    moved[a.obs.split == "val"] += 0.01
+    b = fit(Observations(obs.q, moved, obs.targets), nominal, "auto", val_fraction=0.25, stage2=("ann",))
+    assert (a.n_train, a.n_val) == (60, 20) and list(a.obs.split) == list(b.obs.split)
+    assert a.cv["errors"] == b.cv["errors"] and np.array_equal(a.robot.model.frames, b.robot.model.frames)
+    assert a.metrics["val"]["after"]["pos_mean"] < b.metrics["val"]["after"]["pos_mean"]
 
 
 def redundant_arm(tmp_path):
@@ -130,9 +154,9 @@ def test_network_methods_refuse_a_redundant_arm_and_auto_fits_local_poe_alone(tm
             fit(obs, spec.model, method)
     lines = []
     result = fit(obs, spec.model, "auto", progress=lines.append)
-    assert result.chosen == "local-poe" and set(result.info["candidates"]) == {"local-poe"}
-    assert any("at most 6 joints" in line for line in lines)
-    assert result.metrics["val"]["after"]["pos_mean"] < 0.1 * result.metrics["val"]["before"]["pos_mean"]
+    assert result.chosen == "local-poe" and result.info["cv_errors"].keys() == {"local-poe"}
+    assert any("at most 6 joints" in line for line in lines) and any("at most 6 joints" in n for n in result.notes)
+    assert result.cv["mean"]["local-poe"] < 0.1 * result.cv["mean"]["nominal"]
 
 
 def test_local_poe_fit_does_not_import_torch():

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from labcal.calibration import Observations
-from labcal.calibration.hybrid import fit_hybrid, validation_error
+from labcal.calibration.hybrid import fit_hybrid
 from labcal.calibration.local_poe import fit_local_poe, register
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
@@ -44,53 +44,77 @@ def fake_ann(monkeypatch):
     return install
 
 
-def test_second_stage_is_dropped_when_it_raises_the_validation_error(fake_ann):
+def test_second_stage_is_dropped_when_it_raises_the_cross_validated_error(fake_ann):
     nominal, obs = observe(ErrorSpec.paper())
     calls = fake_ann(lambda obs, base: register(obs, nominal)[0])  # stage 2 "forgets" the identification
     robot, info = fit_hybrid(obs, nominal, seed=3, stage2=("ann",), hidden=4)
     stage1, _ = fit_local_poe(obs, nominal)
-    assert info["kept"] == "local-poe"
+    assert info["kept"] == "local-poe" and info["selection"] == "cross-validation"
     assert info["val_error_hybrid"] > info["val_error_local_poe"]
     assert np.array_equal(robot.model.frames, stage1.model.frames) and robot.network is None
     assert robot.method == "hybrid"
-    # stage 2 was given the identified robot as its base, the seed, the network options and eq. (20)'s loss
-    base, seed, options = calls[0]
-    assert np.array_equal(base.model.frames, stage1.model.frames) and seed == 3
-    assert options == {"hidden": 4, "loss": "task"}
+    # 40 fitting rows: 10 folds. Every fold gave stage 2 its own identified robot (fitted without the held-out
+    # rows), the seed, the network options, eq. (20)'s loss and a single restart; far behind local POE after two
+    # folds, the network was not pursued, and the dropped candidate is not refitted on all rows
+    assert info["cv"]["folds"] == 10 and info["cv"]["pruned_after"] == {"hybrid+ann": 2} and len(calls) == 2
+    assert info["cv"]["errors"]["hybrid+ann"][2:] == [None] * 8
+    for base, seed, options in calls:
+        assert not np.array_equal(base.model.frames, stage1.model.frames) and seed == 3
+        assert options == {"hidden": 4, "loss": "task", "restarts": 1}
 
 
-def test_second_stage_is_kept_when_it_lowers_the_validation_error(fake_ann):
-    nominal, obs = observe(ErrorSpec.paper())
-    good, _ = fit_local_poe(obs, nominal)
-    fake_ann(lambda obs, base: good)
-    poor = register(obs, nominal)  # a deliberately poor first stage
-    robot, info = fit_hybrid(obs, nominal, stage1=poor, stage2=("ann",))
-    assert info["kept"] == "local-poe+ann"
-    assert info["val_error_hybrid"] == pytest.approx(validation_error(good, obs))
-    assert np.array_equal(robot.model.frames, good.model.frames)
+def _inexact_stage1(nominal, obs):
+    """Noise-free geometric data; local POE stopped after one step is ~1e-6 m off, the converged fit exact."""
+    return {"max_iter": 1}, fit_local_poe(obs, nominal)[0]
 
 
-def test_the_candidate_with_the_lower_validation_error_is_kept(fake_ann, monkeypatch):
-    nominal, obs = observe(ErrorSpec.paper())
-    good, _ = fit_local_poe(obs, nominal)
-    poor = register(obs, nominal)
-    fake_ann(lambda obs, base: poor[0])  # the network candidate is worse than the series candidate
+def test_second_stage_is_kept_when_it_lowers_the_cross_validated_error(fake_ann):
+    nominal, obs = observe(ErrorSpec.paper(tracker_noise=0.0))
+    lp_options, exact = _inexact_stage1(nominal, obs)
+    calls = fake_ann(lambda obs, base: exact)
+    robot, info = fit_hybrid(obs, nominal, stage2=("ann",), local_poe_options=lp_options)
+    assert info["kept"] == "local-poe+ann" and info["val_errors"]["ann"] < info["val_error_local_poe"]
+    assert np.array_equal(robot.model.frames, exact.model.frames)
+    assert len(calls) == info["cv"]["folds"] + 1  # the folds, then the kept stage refitted on all rows
+    assert calls[-1][2] == {"loss": "task"}  # the final refit uses the caller's restarts (fit_ann's default)
+
+
+def test_the_candidate_with_the_lower_cross_validated_error_is_kept(fake_ann, monkeypatch):
+    nominal, obs = observe(ErrorSpec.paper(tracker_noise=0.0))
+    lp_options, exact = _inexact_stage1(nominal, obs)
+    fake_ann(lambda obs, base: register(obs, nominal)[0])  # the network candidate is worse than the series
     import labcal.calibration.joint_series as joint_series
 
-    monkeypatch.setattr(joint_series, "fit_joint_series", lambda obs, base, **kw: (good, {"fake_series": True}))
-    robot, info = fit_hybrid(obs, nominal, stage1=poor)
+    monkeypatch.setattr(joint_series, "fit_joint_series", lambda obs, base, **kw: (exact, {"fake_series": True}))
+    robot, info = fit_hybrid(obs, nominal, local_poe_options=lp_options)
     assert info["kept"] == "local-poe+series"
     assert info["val_errors"]["series"] < info["val_errors"]["ann"]
-    assert info["series"] == {"fake_series": True} and np.array_equal(robot.model.frames, good.model.frames)
+    assert info["series"] == {"fake_series": True} and np.array_equal(robot.model.frames, exact.model.frames)
     with pytest.raises(ValueError, match="stage2"):
-        fit_hybrid(obs, nominal, stage1=poor, stage2=("kriging",))
+        fit_hybrid(obs, nominal, stage2=("kriging",))
 
 
-def test_hybrid_needs_validation_rows():
+def test_validation_rows_are_only_measured(fake_ann):
     nominal, obs = observe(ErrorSpec.paper())
+    fake_ann(lambda obs, base: base)
+    robot, info = fit_hybrid(obs, nominal, stage2=("ann",))
+    moved = obs.points.copy()
+    moved[obs.split == "val"] += 0.01
+    other, info2 = fit_hybrid(Observations(obs.q, moved, obs.targets, split=obs.split), nominal, stage2=("ann",))
+    assert np.array_equal(robot.model.frames, other.model.frames) and info["cv"] == info2["cv"]
+    assert info2["val_error"] > info["val_error"]
     train_only = Observations(obs.q, obs.points, obs.targets, split=np.full(obs.k, "train", dtype=object))
-    with pytest.raises(ValueError, match="validation rows"):
-        fit_hybrid(train_only, nominal)
+    _, info3 = fit_hybrid(train_only, nominal, stage2=("ann",))
+    assert info3["cv"]["folds"] == 5 and np.isnan(info3["val_error"])
+
+
+def test_too_few_distinct_poses_skip_the_learned_stages(fake_ann):
+    nominal, obs = observe(ErrorSpec.paper())
+    fake_ann(lambda obs, base: pytest.fail("a network was fitted without cross-validation"))
+    two = obs.subset(np.r_[np.zeros(20, int), np.ones(20, int)])  # two poses, each measured 20 times
+    robot, info = fit_hybrid(two, nominal, stage2=("ann",))
+    assert info["kept"] == "local-poe" and info["cv"] is None and robot.network is None
+    assert any(n.startswith("stage-skipped") for n in info["notes"])
 
 
 @pytest.mark.slow

@@ -39,10 +39,32 @@ def test_unknown_split_names_its_row_and_value():
 
 
 def test_with_splits_keeps_assigned_rows_and_is_seeded():
-    obs = Observations(np.zeros((10, 6)), _obs(10).points, TARGETS, split=np.array(["test"] + [""] * 9, object))
+    q = np.arange(60.0).reshape(10, 6)  # ten distinct poses
+    obs = Observations(q, _obs(10).points, TARGETS, split=np.array(["test"] + [""] * 9, object))
     a, b = obs.with_splits(0.5, seed=3), obs.with_splits(0.5, seed=3)
     assert a.split[0] == "test" and list(a.split) == list(b.split)
     assert sorted(a.split[1:]).count("val") in (4, 5)
+
+
+def test_units_join_repeated_poses_and_groups():
+    q = np.array([[0.0] * 6, [1.0] * 6, [0.0] * 6, [2.0] * 6, [3.0] * 6, [4.0] * 6])
+    group = np.array(["a", "b", "c", "d", "d", "e"], dtype=object)
+    obs = Observations(q, _obs(6).points, TARGETS, group=group)
+    # rows 0 and 2 are one pose, rows 3 and 4 one group; numbered by first appearance
+    assert obs.units().tolist() == [0, 1, 0, 2, 2, 3]
+    assert obs.subset([3, 4]).group.tolist() == ["d", "d"]
+    with pytest.raises(ObservationError, match="group must have shape"):
+        Observations(q, _obs(6).points, TARGETS, group=group[:3])
+
+
+def test_repeated_poses_are_never_split_across_train_and_validation():
+    rng = np.random.default_rng(0)
+    q = np.repeat(rng.normal(size=(8, 6)), 5, axis=0)  # eight poses measured five times each
+    obs = Observations(q, _obs(40).points, TARGETS)
+    for seed in range(5):
+        split = obs.with_splits(0.5, seed=seed).split.reshape(8, 5)
+        assert all(len(set(row)) == 1 for row in split)
+        assert 2 <= np.sum(split[:, 0] == "val") <= 6
 
 
 def test_rigid_fit_recovers_random_poses():

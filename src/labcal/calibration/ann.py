@@ -61,6 +61,10 @@ LOSSES = ("joint", "task")
 # first-order methods need thousands of full-batch steps.
 _DEFAULTS = {"lm": (200, 6, None), "adam": (5000, 200, 1e-2), "gd": (20000, 500, 0.05)}
 _MU0, _MU_MAX = 1e-3, 1e10
+STOP_FRACTION = 0.25  # share of the training rows held back for early stopping when no "val" rows are given
+MAX_ROWS = 2000  # training rows fed to the network at most (seeded subsample); cost is linear in them
+MIN_TRAIN_ROWS = 8  # after the condition filter; fewer cannot constrain even the bias terms sensibly
+MIN_STOP_ROWS = 3
 _OUTPUT_INIT = 1e-2  # relative scale of the initial output-layer weights
 
 ProgressFn = Callable[[int, int, float, float], None]
@@ -126,20 +130,22 @@ def _forward(theta, x, shapes):
 
 @contextmanager
 def _deterministic_torch(seed: int):
-    """Single thread, deterministic kernels, seeded global RNG; restores the caller's settings and RNG state."""
+    """Single thread and a seeded global RNG; restores the caller's thread count and RNG state.
+
+    Single-threaded float64 CPU kernels give the same bits on every run, which is what bit-identical fits need.
+    (``torch.use_deterministic_algorithms`` is not switched on: it changes nothing for these CPU operations and
+    its first call imports torch's compiler stack, about 3 s — measured, issue 13.7.)
+    """
     import torch
 
     threads = torch.get_num_threads()
-    det = torch.are_deterministic_algorithms_enabled()
     rng_state = torch.get_rng_state()
     torch.set_num_threads(1)
-    torch.use_deterministic_algorithms(True)
     torch.manual_seed(seed)
     try:
         yield torch
     finally:
         torch.set_num_threads(threads)
-        torch.use_deterministic_algorithms(det)
         torch.set_rng_state(rng_state)
 
 
@@ -162,6 +168,33 @@ class _Problem:
         else:
             r = self.b - self.torch.einsum("kab,kb->ka", self.A, out)
         return (r * self.sqrt_w).reshape(-1)
+
+    def jacobian(self, theta, shapes):
+        """Jacobian of :meth:`residual` for one hidden layer, written out (d tanh = 1 − tanh²).
+
+        torch.func.jacfwd pushes every weight's tangent through the network separately; with ~100 weights and
+        thousands of rows that was ~90 % of a hybrid fit (issue 13.7). Checked against jacfwd in the tests.
+        """
+        torch = self.torch
+        (W1, b1), (W2, _) = _unflatten(theta, shapes)
+        x = self.x
+        k, f = x.shape
+        hidden, outs = W1.shape[0], W2.shape[0]
+        a = torch.tanh(x @ W1.T + b1)  # (k, H)
+        slope = W2[None, :, :] * (1.0 - a * a)[:, None, :]  # (k, 6, H): d out / d pre-activation
+        eye = torch.eye(outs, dtype=x.dtype)
+        D = torch.cat(
+            [
+                (slope[:, :, :, None] * x[:, None, None, :]).reshape(k, outs, hidden * f),  # W1, row-major
+                slope,  # b1
+                (eye[None, :, :, None] * a[:, None, None, :]).reshape(k, outs, outs * hidden),  # W2
+                eye.expand(k, outs, outs),  # b2
+            ],
+            dim=2,
+        )  # (k, 6, P) d out / d θ
+        if self.A is not None:
+            D = -torch.einsum("kab,kbp->kap", self.A, D)
+        return (D * self.sqrt_w[:, :, None]).reshape(-1, D.shape[2])
 
 
 def _train_one(torch, theta0, shapes, train, val, trainer, weight_decay, max_iter, patience, lr, progress, restart):
@@ -189,7 +222,15 @@ def _train_one(torch, theta0, shapes, train, val, trainer, weight_decay, max_ite
         progress(restart, 0, tr, va)
 
     if trainer == "lm":
-        jac = torch.func.jacfwd(full_residual)  # few weights, many residuals: forward mode
+        if len(shapes) == 2:  # one hidden layer: the Jacobian in closed form
+
+            def jac(theta):
+                J = train.jacobian(theta, shapes)
+                if weight_decay > 0:
+                    J = torch.cat([J, sqrt_wd * torch.eye(theta.numel(), dtype=theta.dtype)[wmask]])
+                return J
+        else:
+            jac = torch.func.jacfwd(full_residual)  # few weights, many residuals: forward mode
         mu = _MU0
         eye = torch.eye(theta.numel(), dtype=torch.float64)
     else:
@@ -252,6 +293,42 @@ def _check_hidden(hidden, n_in: int) -> tuple[int, ...]:
     return tuple(int(h) for h in layers)
 
 
+class NetworkDataError(ObservationError):
+    """Too few usable rows for the network after the condition filter; ``causes`` as in dropped_causes."""
+
+    def __init__(self, message: str, causes: list[dict]) -> None:
+        super().__init__(message)
+        self.causes = causes
+
+
+def _inner_split(kept: np.ndarray, units: np.ndarray, fraction: float, seed: int) -> dict[str, np.ndarray]:
+    """Early-stopping rows drawn from the training rows: whole units, about ``fraction`` of the rows, seeded."""
+    target = max(MIN_STOP_ROWS, round(fraction * kept.size))
+    val = np.zeros(kept.size, bool)
+    for u in np.random.default_rng([seed, 15485863]).permutation(np.unique(units)):
+        if val.sum() >= target or (~val).sum() - np.sum(units == u) < 1:
+            break
+        val |= units == u
+    return {"train": kept[~val], "val": kept[val]}
+
+
+def _check_rows(rows: dict, jeo, fit_rows: np.ndarray, causes: list[dict]) -> None:
+    n_tr, n_va = rows["train"].size, rows["val"].size
+    if n_tr >= MIN_TRAIN_ROWS and n_va >= MIN_STOP_ROWS:
+        return
+    dropped = int(np.sum(~jeo.kept))
+    if dropped:
+        why = "; ".join(f"{c['cause']}: {c['rows']} rows" for c in causes)
+        why = f"{dropped} dropped by the condition filter — {why}); measure more configurations away from them"
+    else:
+        why = "none dropped by the condition filter); measure more distinct configurations"
+    raise NetworkDataError(
+        f"too few rows for the network: {n_tr} training and {n_va} early-stopping rows remain, it needs at least "
+        f"{MIN_TRAIN_ROWS} and {MIN_STOP_ROWS} ({int(fit_rows.sum())} training rows given, {why}",
+        causes,
+    )
+
+
 def fit_ann(
     obs: Observations,
     base: CalibratedRobot,
@@ -269,10 +346,20 @@ def fit_ann(
     patience: int | None = None,
     lr: float | None = None,
     progress: ProgressFn | None = None,
+    stop_fraction: float = STOP_FRACTION,
+    max_rows: int | None = MAX_ROWS,
 ) -> tuple[CalibratedRobot, dict]:
     """Fit the joint motion errors of ``base``'s equivalent robot with a neural network (paper eq. 16-22).
 
-    obs: observations with "train" and "val" rows (others are ignored); base: a network-free robot — the nominal
+    obs: the network is trained on the "train" and unassigned rows; "test" rows are ignored. Early stopping
+    uses the "val" rows when there are any (the caller chose them), else an inner split of the training rows:
+    ``stop_fraction`` of them (whole :meth:`~Observations.units`, seeded), so that rows a caller uses to judge
+    the network (cross-validation, a hold-out) never steer its training. ``max_rows``: at most this many
+    (seeded random) training rows feed the network — its cost is linear in them and a network of ~100 weights
+    gains nothing measurable beyond a few thousand (None: all). Rows the condition filter drops are reported
+    with their cause (``info["dropped_causes"]``); when fewer than :data:`MIN_TRAIN_ROWS` training or
+    :data:`MIN_STOP_ROWS` early-stopping rows remain, :class:`NetworkDataError` names the cause.
+    base: a network-free robot — the nominal
     one for the paper's method, an identified local-POE robot for the hybrid. hidden: nodes per hidden layer (an
     int or a tuple for several layers; default round(√(6 f)) for f inputs). features: network inputs, see
     :func:`labcal.compensator.input_features`. trainer: "lm" | "adam" | "gd". max_condition / soft_condition:
@@ -304,22 +391,34 @@ def fit_ann(
     if max_iter < 1 or patience < 1:
         raise ValueError(f"max_iter and patience must be >= 1, got {max_iter}, {patience}")
 
-    for s in ("train", "val"):
-        if not np.any(obs.split == s):
-            raise ObservationError(
-                f"the {s!r} split is empty ({obs.k} rows: {int(np.sum(obs.split == 'train'))} train, "
-                f"{int(np.sum(obs.split == 'val'))} val); fit_ann needs both (see Observations.with_splits)"
-            )
-    used = obs.subset(np.isin(obs.split, ["train", "val"]))
+    if not 0.0 < stop_fraction < 1.0:
+        raise ValueError(f"stop_fraction must be in (0, 1), got {stop_fraction}")
+    if max_rows is not None and int(max_rows) < MIN_TRAIN_ROWS:
+        raise ValueError(f"max_rows must be >= {MIN_TRAIN_ROWS} or None, got {max_rows}")
+
+    used = obs.subset(np.isin(obs.split, ["train", "", "val"]))
+    if used.k == 0:
+        raise NetworkDataError(f"no training rows: all {obs.k} rows are labelled 'test'", [])
     jeo = joint_error_observations(used, base, max_condition=max_condition, soft_condition=soft_condition)
-    rows = {s: np.flatnonzero((jeo.split == s) & jeo.kept) for s in ("train", "val")}
-    for s, idx in rows.items():
-        if idx.size == 0:
-            total = int(np.sum(jeo.split == s))
-            raise ObservationError(
-                f"the {s!r} split is empty after the condition filter ({total} rows before, "
-                f"{total - idx.size} dropped); fit_ann needs train and val rows (see Observations.with_splits)"
-            )
+    causes = jeo.causes(base) if not jeo.kept.all() else []
+    fit_rows = np.isin(used.split, ["train", ""])
+    if np.any(used.split == "val"):
+        stopping = "the 'val' rows"
+        rows = {"train": np.flatnonzero(fit_rows & jeo.kept), "val": np.flatnonzero((used.split == "val") & jeo.kept)}
+    else:
+        stopping = f"an inner split ({stop_fraction:.0%} of the training rows)"
+        kept = np.flatnonzero(fit_rows & jeo.kept)
+        rows = _inner_split(kept, used.units()[kept], stop_fraction, seed)
+    _check_rows(rows, jeo, fit_rows, causes)
+    n_subsampled = 0
+    if max_rows is not None and rows["train"].size > int(max_rows):
+        n_subsampled = int(rows["train"].size)
+        pick = np.random.default_rng([seed, 104729]).choice(rows["train"].size, int(max_rows), replace=False)
+        rows["train"] = np.sort(rows["train"][pick])
+        cap = max(int(max_rows) // 2, MIN_STOP_ROWS)
+        if rows["val"].size > cap:
+            pick = np.random.default_rng([seed, 130363]).choice(rows["val"].size, cap, replace=False)
+            rows["val"] = np.sort(rows["val"][pick])
 
     warnings: list[str] = []
     if obs.frame == "tracker" and np.allclose(base.T_tracker_base, np.eye(4)):
@@ -380,19 +479,23 @@ def fit_ann(
     export_diff = float(np.max(np.abs(check - network(jeo.q[tr], base.model))))
     if not export_diff <= 1e-12 * max(1.0, float(np.max(np.abs(check)))):
         raise RuntimeError(f"exported network differs from the torch model by {export_diff:.3g}")
-    q_train = jeo.q[tr]
     robot = CalibratedRobot(
         nominal=base.nominal,
         model=base.model,
         network=network,
         T_tracker_base=base.T_tracker_base,
-        joint_ranges=np.stack([q_train.min(axis=0), q_train.max(axis=0)], axis=1),
+        # Every row the fit was given, including the ones the condition filter kept out of training: the ranges
+        # say where the calibration data lie, and the network is smooth across the dropped (singular) points.
+        joint_ranges=np.stack([used.q.min(axis=0), used.q.max(axis=0)], axis=1),
         length_scale=base.length_scale,
         method="ann",
     )
     info = {
         "method": "ann",
         "observations": jeo.summary(),
+        "dropped_causes": causes,
+        "early_stopping": stopping,
+        "subsampled_from": n_subsampled,
         "max_condition": max_condition,
         "soft_condition": soft_condition,
         "train_rows": int(tr.size),

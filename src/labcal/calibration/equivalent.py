@@ -63,7 +63,8 @@ class JointErrorObservations:
     PJ: (k, 9, 6) P_k J_ρ,k; delta_rho: (k, 6) observed joint motion errors (rad, m for prismatic joints;
     NaN where PJ is numerically singular); condition: (k,) cond(P J_ρ S) (see module docstring);
     weight: (k,) 0 for dropped rows, (soft/cond)² in the down-weighted band, else 1;
-    reason: (k,) "" for kept rows, else why the row was dropped; split: (k,) the observations' split labels.
+    reason: (k,) "" for kept rows, else why the row was dropped; split: (k,) the observations' split labels;
+    targets: (3, 3) the targets in the tool frame (to name the cause of dropped rows, :func:`dropped_causes`).
     """
 
     q: np.ndarray
@@ -74,10 +75,15 @@ class JointErrorObservations:
     weight: np.ndarray
     reason: np.ndarray
     split: np.ndarray
+    targets: np.ndarray | None = None
 
     @property
     def kept(self) -> np.ndarray:
         return self.weight > 0
+
+    def causes(self, base: CalibratedRobot) -> list[dict]:
+        """Why the dropped rows are ill-conditioned, grouped: see :func:`dropped_causes`."""
+        return dropped_causes(self, base)
 
     def summary(self) -> dict:
         """Counts of dropped rows by reason and condition statistics of all rows (JSON-friendly)."""
@@ -179,4 +185,60 @@ def joint_error_observations(
     ok = ~singular
     if np.any(ok):
         delta_rho[ok] = np.einsum("kab,kb->ka", np.linalg.pinv(PJ[ok]), delta_p[ok])
-    return JointErrorObservations(q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split)
+    return JointErrorObservations(q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split, obs.targets)
+
+
+_PROBE_STEP = 0.1  # rad (revolute) or fraction of the reach (prismatic): the move that shows which joint causes it
+
+
+def dropped_causes(jeo: JointErrorObservations, base: CalibratedRobot) -> list[dict]:
+    """Name the cause of every row the condition filter dropped, grouped into one entry per cause.
+
+    For each dropped row: the joints whose motion errors the row cannot see (the largest components of the
+    smallest right singular vector of P J_ρ S — e.g. joints 4 and 6 when a wrist's axes align), and the joint
+    whose value puts the robot there (the joint whose move by 0.1 rad lowers the condition number most, e.g.
+    joint 5 of a UR10 at q5 ≈ 0). Returns ``[{"rows": count, "joint": j (1-based, 0 if none found),
+    "lost": [joints], "value": median q_j of the rows, "cause": text}]``, largest group first; the text reads
+    like "joint 5 near a singular value (q5 ≈ 0.002): joints 4, 6 cannot be told apart" (the joints lost in
+    most rows of the group).
+    """
+    dropped = np.flatnonzero(~jeo.kept)
+    if dropped.size == 0:
+        return []
+    scale = metric_scale(base)
+    n = base.n
+    q = jeo.q[dropped]
+    _, _, Vt = np.linalg.svd(jeo.PJ[dropped] * scale, full_matrices=False)
+    null = np.abs(Vt[:, -1, :])  # (d, 6)
+    cond0 = jeo.condition[dropped]
+    best_gain = np.ones(dropped.size)
+    culprit = np.zeros(dropped.size, dtype=int)
+    if jeo.targets is None:
+        raise ValueError("these observations carry no targets; build them with joint_error_observations")
+    for j in range(n):
+        step = _PROBE_STEP * (base.length_scale if base.model.joint_types[j] == "prismatic" else 1.0)
+        moved = q.copy()
+        moved[:, j] += step
+        pts = base.predict_points(moved, jeo.targets)
+        PJ = np.einsum("kab,kbc->kac", point_matrix(pts), base.equivalent_jacobian(moved))
+        cond = condition_numbers(PJ, scale)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gain = np.where(np.isfinite(cond0), cond0 / cond, np.where(np.isfinite(cond), np.inf, 1.0))
+        better = gain > np.maximum(best_gain, 2.0)
+        best_gain[better], culprit[better] = gain[better], j + 1
+    lost_sets = [np.flatnonzero(null[i] > 0.3 * null[i].max()) + 1 for i in range(dropped.size)]
+    out = []
+    for joint in sorted(set(culprit.tolist())):
+        rows = np.flatnonzero(culprit == joint)
+        counts = np.bincount(np.concatenate([lost_sets[i] for i in rows]), minlength=7)
+        lost = [int(j) for j in np.flatnonzero(counts >= max(1, len(rows) / 2))]  # lost in most of these rows
+        names = ", ".join(str(j) if j <= n else f"virtual {j}" for j in lost)
+        what = f"joints {names} cannot be told apart" if len(lost) > 1 else f"the error of joint {names} is not seen"
+        value = float(np.median(q[rows, joint - 1])) if joint else float("nan")
+        if joint:
+            cause = f"joint {joint} near a singular value (q{joint} ≈ {value:.2g}): {what}"
+        else:
+            cause = f"ill-conditioned configuration or target geometry: {what}"
+        out.append({"rows": len(rows), "joint": int(joint), "lost": lost, "value": value, "cause": cause})
+    out.sort(key=lambda c: (-c["rows"], c["joint"], c["lost"]))
+    return out

@@ -1,4 +1,4 @@
-"""One entry point for every calibration method: split the data, fit, measure.
+"""One entry point for every calibration method: fit on every row, choose by cross-validation, measure, warn.
 
 Methods (:data:`METHODS`):
 
@@ -6,16 +6,45 @@ Methods (:data:`METHODS`):
 - ``local-poe``: model-based identification of the frame errors (:mod:`labcal.calibration.local_poe`);
 - ``ann``: the paper's method — equivalent robot + network on the registered nominal
   (:mod:`labcal.calibration.ann`);
-- ``hybrid``: local POE, then the network on the identified robot, kept only if it helps on validation;
-- ``auto``: fits local-poe, ann and hybrid and keeps the lowest validation mean position error; a tie (within
-  1e-12 m) goes to the simpler model, in the order local-poe, hybrid, ann (hybrid without its network *is*
-  local POE; the paper's ANN has the least structure).
+- ``hybrid``: local POE, then a learned term on the identified robot (joint series or network), kept only when
+  cross-validation supports it (:mod:`labcal.calibration.hybrid`);
+- ``auto``: cross-validates local-poe, hybrid (+series, +ann) and ann in the same folds and keeps the simplest
+  within a near-tie of the best (order local-poe < hybrid+series < hybrid+ann < ann; :mod:`labcal.calibration.cv`).
 
 ann and hybrid learn the six joint motion errors of the equivalent robot, so they need a robot with at most 6 joints;
 for a redundant arm (n > 6) they are refused and auto fits local-poe alone.
 
-Unassigned rows are split into train / val with ``obs.with_splits(val_fraction, seed)``; rows already labelled
-keep their label, and "test" rows are never fitted on. Same data and seed ⇒ bit-identical parameters.
+**Rows.** By default (``val_fraction=0``) every row that is not labelled "val" or "test" is a fitting row: local
+POE and the registration use all of them, and the learned stages are chosen by K-fold cross-validation over them
+(:func:`labcal.calibration.cv.fold_plan`), then refitted on all of them. ``val_fraction > 0`` (or rows labelled
+"val"/"test") gives a fixed hold-out that is only measured (``metrics``), never used to fit, choose or early-stop.
+
+**Warnings** (``FitResult.warnings``, each ``{"code", "message"}``; every one should stop an export unless
+forced) and **notes** (``FitResult.notes``, information). Codes:
+
+- ``rank-deficient``: local POE's numerical rank is below the identifiable count; lists the unidentifiable
+  directions;
+- ``overfit``: the chosen model's cross-validated error is over :data:`OVERFIT_RATIO` times its error on the rows
+  it was fitted to, or a kept network has more weights than training numbers;
+- ``worse-than-nominal``: the cross-validated (or hold-out) error of the chosen model is not below the registered
+  nominal's;
+- ``poor-fit``: even on its own fitting rows the chosen model leaves a mean target-point error above
+  :data:`POOR_FIT` (wrong units, a wrong or swapped targets file, pure noise: no calibration explains such data);
+- ``large-correction``: ``robot.correct`` moves a joint by more than :data:`MAX_CORRECTION` (0.05 rad revolute,
+  10 mm prismatic) at 10 % or more of the checked configurations — the data's own and 256 random ones within
+  the data's joint ranges, leaving out those with cond(J_ρ S) > 100 (near a singularity any correction is large,
+  see ``_CORRECTION_SHARE``); the message gives the largest. Real joint-level calibration corrections are
+  milliradians; unit slips produced 0.1–0.6 rad;
+- ``rows-dropped``: a kept network was trained without more than 10 % of the rows (condition filter), with the
+  cause of each group; when no network is kept the same count is a note (the dropped rows only ever feed the
+  network);
+- ``stage-skipped``: reported as a note ("stage-skipped: …") when hybrid or auto drops a learned stage that could
+  not be fitted (too few rows after the condition filter, too few poses to cross-validate): what is kept is
+  still a complete model. ``ann`` alone raises a ValueError naming the cause instead (nothing else to return).
+
+``FitResult.cv``: ``{"folds", "scheme": "kfold"|"group", "errors": {candidate: [per-fold mean target-point
+error m, None where skipped]}, "mean", "std", "chosen", "pruned_after", "failures"}``, None for ``nominal`` or
+when there are too few distinct poses (< 3). Same data and seed ⇒ bit-identical parameters.
 
 Example::
 
@@ -27,38 +56,50 @@ Example::
     >>> targets = np.array([[0.05, 0, 0], [0, 0.05, 0], [-0.04, -0.03, 0.01]])
     >>> obs = Observations(q, actual.measure(q, targets, rng), targets)
     >>> result = fit(obs, spec.model, "local-poe")
-    >>> result.n_train, result.n_val, result.metrics["val"]["after"]["pos_mean"] < 1e-4
-    (20, 20, True)
+    >>> result.n_train, result.n_val, result.cv["folds"], result.cv["mean"]["local-poe"] < 1e-4
+    (40, 0, 10, True)
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from labcal.calibration.hybrid import fit_hybrid, validation_error
+from labcal.calibration._blas import single_blas_thread
 from labcal.calibration.local_poe import fit_local_poe, register
-from labcal.calibration.metrics import prediction_errors, split_table, summarize
-from labcal.calibration.observations import Observations
+from labcal.calibration.metrics import prediction_errors, summarize
+from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics.poe import LocalPOEModel
 
 METHODS = ("nominal", "local-poe", "ann", "hybrid", "auto")
-_SIMPLICITY = ("local-poe", "hybrid", "ann")  # tie-break order for auto
-_TIE = 1e-12  # m
+OVERFIT_RATIO = 2.0  # CV error / in-sample error of the chosen model above which it is flagged
+POOR_FIT = 5e-3  # m: mean target-point error on the fitting rows above which no model explains the data
+MAX_CORRECTION = {"revolute": 0.05, "prismatic": 0.01}  # rad, m: largest joint correction accepted silently
+DROPPED_SHARE = 0.10  # share of rows a kept network may miss before it is a warning
+_CORRECTION_SAMPLES = 256  # random configurations within the data's joint ranges for the correction check
+_SINGULAR = 1e2  # cond(J_ρ S) above which a configuration is left out of the correction check
+# Share of the checked configurations that must exceed the bound: near a singularity (a wrist at q5 ≈ 0.01) a
+# milliradian orientation error needs a tenth of a radian at joints 4 and 6, so a few configurations always do;
+# a unit slip or a wrong model exceeds it nearly everywhere.
+_CORRECTION_SHARE = 0.10
 
 
 @dataclass(frozen=True, eq=False)
 class FitResult:
     """The outcome of :func:`fit`.
 
-    method: what was asked; chosen: what was fitted (differs only for "auto"); robot: the calibrated robot;
-    before: the registered nominal; metrics: ``split_table(before, robot, obs)`` (per split, before/after);
-    info: method diagnostics (for auto: ``candidates`` {method: val error m} and each candidate's info);
-    seed; n_train / n_val / n_test: row counts; fit_seconds: wall time per fitted method; obs: the split data.
+    method: what was asked; chosen: what was fitted ("local-poe", "hybrid", "ann" for "auto"); robot: the
+    calibrated robot; before: the registered nominal; metrics: ``split_table(before, robot, obs)`` (per split,
+    before/after); info: method diagnostics (hybrid: ``kept``, ``val_errors`` … ; auto: ``candidates``
+    {method: CV error m} and each candidate's info); seed; n_train / n_val / n_test: row counts (train = the
+    fitting rows); fit_seconds: wall time per step; obs: the split data; warnings: blocking findings
+    [{code, message}]; notes: information; cv: the cross-validation record (module docstring) or None.
     """
 
     method: str
@@ -73,16 +114,13 @@ class FitResult:
     n_test: int
     fit_seconds: dict = field(default_factory=dict)
     obs: Observations | None = None
+    warnings: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+    cv: dict | None = None
 
 
 def _split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observations) -> dict:
-    """metrics.split_table, skipping absent splits before selecting them.
-
-    Observations.subset of zero rows raises at the moment (reshape of an empty array), so a data set without
-    test rows would fail in split_table; once that is fixed this reduces to split_table.
-    """
-    if all(np.any(obs.split == s) for s in ("train", "val", "test")):
-        return split_table(before, after, obs)
+    """metrics.split_table, skipping absent splits."""
     table = {}
     for name in ("train", "val", "test", "all"):
         mask = np.ones(obs.k, bool) if name == "all" else obs.split == name
@@ -96,30 +134,34 @@ def _split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observati
     return table
 
 
-def _ann(obs, base, seed, options):
-    from labcal.calibration.ann import fit_ann  # torch is imported only when a network is fitted
-
-    return fit_ann(obs, base, seed=seed, **options)
-
-
 def fit(
     obs: Observations,
     nominal: LocalPOEModel,
     method: str = "auto",
     *,
     seed: int = 0,
-    val_fraction: float = 0.5,
+    val_fraction: float = 0.0,
     progress: Callable[[str], None] | None = None,
     local_poe_options: dict | None = None,
     **options,
 ) -> FitResult:
-    """Fit one method (or choose one with "auto") and measure it against the registered nominal.
+    """Fit one method (or choose one with "auto"), measure it against the registered nominal, and check it.
 
     options: keyword options of the method's fitting function — ``fit_local_poe`` for "local-poe", ``fit_ann``
     for "ann", "hybrid" and "auto" (their network stage); ``local_poe_options`` go to the local-POE stage of
     "hybrid" and "auto"; ``stage2`` and ``series_options`` go to the hybrid only (see ``fit_hybrid``).
+    val_fraction: share of the unlabelled rows held out (only measured); 0 fits on every row.
     progress: optional callable receiving one status line per step.
     """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    with single_blas_thread():
+        return _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options)
+
+
+def _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options) -> FitResult:
+    from labcal.calibration.cv import cross_validate, fold_plan
+
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     obs.check_robot(nominal.n)
@@ -127,73 +169,144 @@ def fit(
     obs = obs.with_splits(val_fraction, seed)
     counts = {s: int(np.sum(obs.split == s)) for s in ("train", "val", "test")}
     if counts["train"] == 0:
-        raise ValueError("no training rows: every row is labelled val or test")
+        raise ValueError("no fitting rows: every row is labelled val or test")
     if method in ("hybrid", "ann") and nominal.n > 6:
         raise ValueError(
             f"method {method!r} learns the six joint motion errors of the equivalent robot (eq. 12-14), which needs a "
             f"robot with at most 6 joints; {nominal.name!r} has {nominal.n}: use local-poe"
         )
-    if method in ("hybrid", "auto", "ann") and counts["val"] == 0:
-        raise ValueError(f"method {method!r} needs validation rows: use val_fraction > 0 or label some rows 'val'")
     lp_opts = dict(local_poe_options or {})
     hybrid_opts = {key: options.pop(key) for key in ("stage2", "series_options") if key in options}
+    stage2 = tuple(hybrid_opts.get("stage2", ("ann", "series")))
+    series_opts = hybrid_opts.get("series_options")
+    fit_obs = obs.where("train")
     seconds: dict[str, float] = {}
-
-    say("registering the nominal model")
-    t0 = time.perf_counter()
-    before, reg_info = register(obs, nominal)
-    seconds["nominal"] = time.perf_counter() - t0
+    notes: list[str] = []
 
     def timed(name, fn):
-        say(f"fitting {name}")
         t = time.perf_counter()
         out = fn()
-        seconds[name] = time.perf_counter() - t
+        seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t
         return out
 
-    info: dict
+    say("registering the nominal model")
+    before, reg_info = timed("nominal", lambda: register(obs, nominal))
     if method == "nominal":
-        robot, info, chosen = before, {"register": reg_info}, "nominal"
-    elif method == "local-poe":
-        robot, info = timed("local-poe", lambda: fit_local_poe(obs, nominal, **{**lp_opts, **options}))
-        chosen = "local-poe"
+        return _result(
+            method, "nominal", before, before, {"register": reg_info}, obs, counts, seed, seconds, [], [], None
+        )
+
+    stage1 = None
+    if method != "ann":
+        say("fitting local-poe on every fitting row")
+        stage1 = timed("local-poe", lambda: fit_local_poe(fit_obs, nominal, **{**lp_opts, **(
+            options if method == "local-poe" else {})}))  # fmt: skip
+    if method == "local-poe":
+        candidates: tuple[str, ...] = ("nominal", "local-poe")
     elif method == "ann":
-        robot, info = timed("ann", lambda: _ann(obs, before, seed, options))
-        chosen = "ann"
-    elif method == "hybrid":
-        robot, info = timed(
-            "hybrid",
-            lambda: fit_hybrid(
-                obs, nominal, seed=seed, local_poe_options=lp_opts, progress=say, **hybrid_opts, **options
+        candidates = ("nominal", "ann")
+    else:
+        learned = tuple(c for c, s in (("hybrid+series", "series"), ("hybrid+ann", "ann")) if s in stage2)
+        candidates = ("nominal", "local-poe", *learned)
+        if method == "auto":
+            if nominal.n > 6:
+                say(f"auto: ann and hybrid need a robot with at most 6 joints ({nominal.name!r} has {nominal.n})")
+                notes.append(f"auto: ann and hybrid need at most 6 joints; {nominal.name!r} has {nominal.n}")
+                candidates = ("nominal", "local-poe")
+            else:
+                candidates = (*candidates, "ann")
+    folds, scheme = fold_plan(fit_obs, seed)
+    series_full = None
+    if "hybrid+series" in candidates:
+        from labcal.calibration.hybrid import prefit_series
+
+        series_full, skipped = timed(
+            "series", lambda: prefit_series(fit_obs, stage1[0], candidates, seed, series_opts, say)
+        )
+        notes += skipped
+        if series_full is None:
+            candidates = tuple(c for c in candidates if c != "hybrid+series")
+    cv = None
+    if folds:
+        from labcal.calibration.hybrid import series_fixed
+
+        say(f"cross-validation: {len(folds)} folds ({scheme}) over {fit_obs.k} rows")
+        ann_opts = {k: v for k, v in options.items()} if method != "local-poe" else {}
+        cv = timed(
+            "cross-validation",
+            lambda: cross_validate(
+                fit_obs,
+                nominal,
+                candidates,
+                folds,
+                scheme,
+                seed=seed,
+                start=None if stage1 is None else stage1[0],
+                local_poe_options=lp_opts if method != "local-poe" else {**lp_opts, **options},
+                series_options=series_opts,
+                series_fixed=series_fixed(series_full),
+                ann_options=ann_opts,
+                progress=say,
             ),
         )
-        chosen = "hybrid"
     else:
-        stage1 = timed("local-poe", lambda: fit_local_poe(obs, nominal, **lp_opts))
-        cands = {"local-poe": stage1}
-        if nominal.n > 6:
-            say(f"auto: ann and hybrid need a robot with at most 6 joints ({nominal.name!r} has {nominal.n})")
+        notes.append(
+            f"no cross-validation: {fit_obs.k} fitting rows hold fewer than 3 distinct poses (or groups); "
+            "nothing was held out, so no error below is an honest estimate"
+        )
+
+    info: dict
+    if method == "local-poe":
+        robot, info, chosen = stage1[0], stage1[1], "local-poe"
+    elif method == "ann":
+        robot, info = timed("ann", lambda: _fit_ann_or_explain(fit_obs, before, seed, options, cv))
+        chosen = "ann"
+    else:
+        from labcal.calibration.hybrid import STAGE2, finish_hybrid
+
+        hybrid_cands = tuple(c for c in candidates if c in ("local-poe", *STAGE2.values()))
+        if method == "hybrid":
+            robot, info = timed("hybrid", lambda: finish_hybrid(
+                fit_obs, obs, stage1, cv, hybrid_cands, seed=seed, series_full=series_full, ann_options=options,
+                say=say))  # fmt: skip
+            chosen = "hybrid"
+            notes += info["notes"]
         else:
-            cands["ann"] = timed("ann", lambda: _ann(obs, before, seed, options))
-            cands["hybrid"] = timed(
-                "hybrid",
-                lambda: fit_hybrid(obs, nominal, seed=seed, stage1=stage1, progress=say, **hybrid_opts, **options),
+            robot, info, chosen = _auto(
+                fit_obs,
+                obs,
+                nominal,
+                before,
+                stage1,
+                cv,
+                candidates,
+                hybrid_cands,
+                seed,
+                series_full,
+                options,
+                say,
+                notes,
+                timed,
             )
-            seconds["hybrid"] += seconds["local-poe"]  # the hybrid's first stage was shared
-        errors = {name: validation_error(r, obs) for name, (r, _) in cands.items()}
-        best = min(errors.values())
-        chosen = next(name for name in _SIMPLICITY if name in errors and errors[name] <= best + _TIE)
-        robot = cands[chosen][0]
-        info = {"candidates": errors, **{name: i for name, (_, i) in cands.items()}}
-        say("auto: validation mean position error " + ", ".join(f"{m} {e * 1e3:.4f} mm" for m, e in errors.items()))
-        say(f"auto: chose {chosen}")
+    if cv is not None:
+        chosen_key = _cv_key(chosen, info)
+        info_cv = cv.summary(chosen_key)
+    else:
+        chosen_key, info_cv = chosen, None
     metrics = _split_table(before, robot, obs)
+    warnings = _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, seed, notes)
+    for w in warnings:
+        say(f"warning [{w['code']}]: {w['message']}")
+    return _result(method, chosen, robot, before, info, obs, counts, seed, seconds, warnings, notes, info_cv, metrics)
+
+
+def _result(method, chosen, robot, before, info, obs, counts, seed, seconds, warnings, notes, cv, metrics=None):
     return FitResult(
         method=method,
         chosen=chosen,
         robot=robot,
         before=before,
-        metrics=metrics,
+        metrics=_split_table(before, robot, obs) if metrics is None else metrics,
         info=info,
         seed=seed,
         n_train=counts["train"],
@@ -201,4 +314,210 @@ def fit(
         n_test=counts["test"],
         fit_seconds=seconds,
         obs=obs,
+        warnings=warnings,
+        notes=notes,
+        cv=cv,
     )
+
+
+def _cv_key(chosen: str, info: dict) -> str:
+    """The cross-validation candidate that the returned model is."""
+    if chosen == "hybrid":
+        kept = info.get("kept") or info.get("hybrid", {}).get("kept", "local-poe")
+        return "local-poe" if kept == "local-poe" else "hybrid+" + kept.split("+")[1]
+    return chosen
+
+
+def _fit_ann_or_explain(fit_obs, before, seed, options, cv):
+    from labcal.calibration.ann import fit_ann
+
+    try:
+        robot, info = fit_ann(fit_obs, before, seed=seed, **options)
+    except ObservationError as err:  # NetworkDataError: too few usable rows, the message names the cause
+        raise ValueError(f"method 'ann' cannot be fitted: {err}; use local-poe or hybrid") from err
+    return dataclasses.replace(robot, joint_ranges=_data_ranges(fit_obs.q)), info
+
+
+def _data_ranges(q: np.ndarray) -> np.ndarray:
+    return np.stack([q.min(axis=0), q.max(axis=0)], axis=1)
+
+
+def _auto(fit_obs, obs, nominal, before, stage1, cv, candidates, hybrid_cands, seed, series_full, options, say,
+          notes, timed):  # fmt: skip
+    """auto: choose among every candidate by cross-validation and refit the chosen one on all rows."""
+    from labcal.calibration.cv import choose
+    from labcal.calibration.hybrid import finish_hybrid
+
+    pick = [c for c in candidates if c != "nominal"]
+    if cv is None:
+        choice = "local-poe"
+        notes.append("auto fell back to local-poe: too few distinct poses to cross-validate the learned stages")
+    else:
+        choice = choose(cv, tuple(pick))
+        skipped = [c for c in pick if not cv.available(c)]
+        for c in skipped:
+            notes.append(f"stage-skipped: {c}: {cv.failures.get(c, 'not evaluated')}")
+        if choice == "local-poe" and skipped and all(cv.available(c) is False for c in pick if c != "local-poe"):
+            notes.append("auto fell back to local-poe: no learned stage could be fitted (see the notes above)")
+    errors = {name: (cv.mean(name) if cv is not None and name in cv.rows else float("nan")) for name in pick}
+    candidates_info = {
+        "local-poe": errors.get("local-poe", float("nan")),
+        "hybrid": min((errors[c] for c in pick if c.startswith("hybrid+") and math.isfinite(errors[c])),
+                      default=float("nan")),
+    }  # fmt: skip
+    if "ann" in pick:
+        candidates_info["ann"] = errors["ann"]
+    info = {"candidates": candidates_info, "cv_errors": errors, "local-poe": stage1[1]}
+    if choice == "ann":
+        robot, ann_info = timed("ann", lambda: _fit_ann_or_explain(fit_obs, before, seed, options, cv))
+        info["ann"] = ann_info
+        chosen = "ann"
+    elif choice == "local-poe":
+        robot, chosen = stage1[0], "local-poe"
+    else:
+        robot, h_info = timed("hybrid", lambda: finish_hybrid(
+            fit_obs, obs, stage1, cv, hybrid_cands, seed=seed, series_full=series_full, ann_options=options,
+            say=say, choice=choice))  # fmt: skip
+        info["hybrid"] = h_info
+        chosen = "hybrid" if h_info["kept"] != "local-poe" else "local-poe"
+        if chosen == "local-poe":
+            robot = stage1[0]
+    if "hybrid" not in info:
+        info["hybrid"] = {"kept": choice.replace("hybrid+", "local-poe+") if "+" in choice else "local-poe"}
+    say("auto: cross-validated mean point error " + ", ".join(f"{m} {e * 1e3:.4f} mm" for m, e in errors.items()))
+    say(f"auto: chose {chosen}")
+    return robot, info, chosen
+
+
+def _warn(code: str, message: str) -> dict:
+    return {"code": code, "message": message}
+
+
+def _network_info(chosen_key: str, info: dict) -> dict | None:
+    """The info dict of the network in the returned model, if it has one."""
+    if chosen_key == "ann":
+        return info.get("ann", info) if "ann" in info and isinstance(info["ann"], dict) else info
+    if chosen_key == "hybrid+ann":
+        return info.get("ann") or info.get("hybrid", {}).get("ann")
+    return None
+
+
+def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, seed, notes) -> list[dict]:
+    """The blocking findings of a fit (module docstring); appends non-blocking ones to ``notes``."""
+    from labcal.calibration.cv import point_errors
+
+    warnings: list[dict] = []
+    uses_stage1 = stage1 is not None and chosen_key != "ann"
+    if uses_stage1:
+        lp = stage1[1]
+        if lp["rank"] < lp["expected_rank"]:
+            lines = lp.get("null_directions", [])
+            shown = "; ".join(lines[:8]) + (f"; … ({len(lines) - 8} more)" if len(lines) > 8 else "")
+            warnings.append(_warn(
+                "rank-deficient",
+                f"local POE identified numerical rank {lp['rank']} of {lp['expected_rank']} identifiable parameters "
+                f"from {lp['rows']} rows ({len(np.unique(fit_obs.units()))} distinct poses): "
+                f"{lp['expected_rank'] - lp['rank']} identifiable direction(s) are not excited by the data and "
+                f"were left at the nominal. Unidentifiable parameter combinations (largest components): {shown}. "
+                "Measure more, better spread configurations (every joint moved, not only single-joint sweeps)",
+            ))  # fmt: skip
+    in_sample = float(np.mean(point_errors(robot, fit_obs)))
+    if cv is not None and chosen_key in cv.rows:
+        e_cv = cv.mean(chosen_key)
+        if "nominal" in cv.rows:
+            common = np.isfinite(cv.rows["nominal"]) & np.isfinite(cv.rows[chosen_key])
+            e_c, e_n = float(np.mean(cv.rows[chosen_key][common])), float(np.mean(cv.rows["nominal"][common]))
+            if e_c >= e_n:
+                warnings.append(_warn(
+                    "worse-than-nominal",
+                    f"the cross-validated mean target-point error of {chosen_key} is {e_c * 1e3:.4g} mm, not below "
+                    f"the registered nominal's {e_n * 1e3:.4g} mm: the calibration does not generalise "
+                    "(too few or too similar poses, or data that do not match the robot/targets)",
+                ))  # fmt: skip
+        if e_cv > OVERFIT_RATIO * in_sample and e_cv - in_sample > 1e-5:
+            warnings.append(_warn(
+                "overfit",
+                f"{chosen_key} fits its own rows to {in_sample * 1e3:.4g} mm but cross-validates to "
+                f"{e_cv * 1e3:.4g} mm (over {OVERFIT_RATIO:g}×): it follows the noise of too few poses",
+            ))  # fmt: skip
+    for part in ("val", "test"):
+        if part in metrics and not any(w["code"] == "worse-than-nominal" for w in warnings):
+            after, bef = metrics[part]["after"]["pos_mean"], metrics[part]["before"]["pos_mean"]
+            if after >= bef:
+                warnings.append(_warn(
+                    "worse-than-nominal",
+                    f"on the held-out {part!r} rows the mean position error is {after * 1e3:.4g} mm after "
+                    f"calibration against {bef * 1e3:.4g} mm for the registered nominal",
+                ))  # fmt: skip
+    net = _network_info(chosen_key, info)
+    if net:
+        for text in net.get("warnings", []):
+            if "over-fitting" in text:
+                warnings.append(_warn("overfit", text))
+    if in_sample > POOR_FIT:
+        warnings.append(_warn(
+            "poor-fit",
+            f"the calibrated model leaves a mean target-point error of {in_sample * 1e3:.4g} mm on the very rows it "
+            f"was fitted to (above {POOR_FIT * 1e3:g} mm): no robot calibration explains these data — check the "
+            "length and angle units, the targets file (order of t1, t2, t3) and the frame (base/tracker)",
+        ))  # fmt: skip
+    big = _large_correction(robot, fit_obs.q, seed)
+    if big:
+        warnings.append(_warn("large-correction", big))
+    _dropped(robot, before, fit_obs, stage1, cv, chosen_key, net, warnings, notes)
+    return warnings
+
+
+def _large_correction(robot, q_data: np.ndarray, seed: int) -> str | None:
+    """A message when robot.correct moves a joint further than MAX_CORRECTION (module docstring), else None."""
+    if robot.network is None and robot.model is robot.nominal:
+        return None
+    lo, hi = q_data.min(axis=0), q_data.max(axis=0)
+    rng = np.random.default_rng([seed, 49979687])
+    q = np.concatenate([q_data, rng.uniform(lo, hi, size=(_CORRECTION_SAMPLES, q_data.shape[1]))])
+    if robot.n <= 6:
+        from labcal.calibration.equivalent import condition_numbers
+
+        J = robot.nominal.equivalent_jacobian(q, length_scale=robot.length_scale)
+        scale = np.array([1.0 / robot.length_scale] * 3 + [1.0] * 3)[:, None]  # metres → radians-equivalent
+        q = q[condition_numbers(J * scale, np.ones(6)) < _SINGULAR]
+    if q.shape[0] == 0:
+        return None
+    with np.errstate(all="ignore"):
+        dq = np.abs(robot.correct(q, extrapolate=True) - q)
+    bound = np.array([MAX_CORRECTION.get(t, MAX_CORRECTION["revolute"]) for t in robot.model.joint_types])
+    over = np.nan_to_num(dq, nan=np.inf) / bound
+    share = float(np.mean(np.any(over > 1.0, axis=1)))
+    if share < _CORRECTION_SHARE:
+        return None
+    i, j = np.unravel_index(int(np.argmax(over)), over.shape)
+    unit, factor = ("rad", 1.0) if robot.model.joint_types[j] != "prismatic" else ("mm", 1e3)
+    return (
+        f"the compensator would move joint {j + 1} by {dq[i, j] * factor:.3g} {unit} (bound "
+        f"{bound[j] * factor:g} {unit}; {share:.0%} of {q.shape[0]} checked configurations within the data's joint "
+        "ranges exceed it): real calibration corrections are milliradians — a unit slip (degrees as radians, "
+        "mm as m) or a wrong robot model is likely"
+    )
+
+
+def _dropped(robot, before, fit_obs, stage1, cv, chosen_key, net, warnings, notes) -> None:
+    """rows-dropped: a warning when a kept network misses > DROPPED_SHARE of the rows, else a note."""
+    if net is not None and "dropped_causes" in net:
+        count, causes = int(net["observations"]["dropped"]), net["dropped_causes"]
+    elif cv is not None and any(c in cv.rows for c in ("hybrid+ann", "ann")):
+        from labcal.calibration.equivalent import joint_error_observations
+
+        base = stage1[0] if stage1 is not None and "hybrid+ann" in cv.rows else before
+        jeo = joint_error_observations(fit_obs, base)
+        count = int(np.sum(~jeo.kept))
+        causes = jeo.causes(base) if count else []
+    else:
+        return
+    if count == 0:
+        return
+    why = "; ".join(f"{c['cause']}: {c['rows']} rows" for c in causes)
+    text = f"{count} of {fit_obs.k} rows dropped from the network's observations by the condition filter ({why})"
+    if net is not None and count > DROPPED_SHARE * fit_obs.k:
+        warnings.append(_warn("rows-dropped", text + "; the kept network never saw them"))
+    else:
+        notes.append("rows-dropped: " + text + ("" if net is not None else "; no network was kept"))

@@ -12,15 +12,19 @@ learned terms compete on the validation split:
 - ``series``: per-joint Fourier series of the joint errors (:func:`labcal.calibration.joint_series.fit_joint_series`),
   the structure of transmission errors, fitted in closed form.
 
-With purely geometric errors, or too few configurations, stage 2 can only fit noise, so the best candidate is
-kept only when it lowers the mean position error on the validation split (the rows neither stage fitted on; the
-network also uses them for early stopping, so the gate is slightly optimistic — the test split, when present, is
-the unbiased check). Torch is imported only when the ANN candidate runs.
+With purely geometric errors, or too few configurations, stage 2 can only fit noise, so a learned term is kept
+only when K-fold cross-validation over the fitting rows says it lowers the held-out error by more than a
+near-tie (:mod:`labcal.calibration.cv`: every stage, local POE included, refitted inside each fold; the network's
+early stopping on an inner split of the fold's training rows). The kept variant is then refitted on all fitting
+rows. "val" rows, when a caller labels some, are only measured, never used to choose. When the condition filter
+leaves too few rows for the network (most poses at a singular wrist) the network is skipped and the series still
+competes; torch is imported only when the ANN candidate runs.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -34,9 +38,12 @@ from labcal.kinematics.poe import LocalPOEModel
 def validation_error(robot: CalibratedRobot, obs: Observations) -> float:
     """Mean position error (m) of the robot's prediction on the validation rows (NaN when there are none)."""
     mask = obs.split == "val"
-    if not mask.any():  # checked first: selecting zero rows is not supported by Observations.subset
+    if not mask.any():
         return float("nan")
     return float(np.mean(prediction_errors(robot, obs.subset(mask))[0]))
+
+
+STAGE2 = {"series": "hybrid+series", "ann": "hybrid+ann"}
 
 
 def fit_hybrid(
@@ -51,56 +58,148 @@ def fit_hybrid(
     progress=None,
     **ann_options,
 ) -> tuple[CalibratedRobot, dict]:
-    """Local POE, then the best learned term on the identified robot's residual joint motion errors, gated.
+    """Local POE on every fitting row, then the learned term that cross-validation supports, refitted on all rows.
 
-    obs must have a non-empty "val" split (the gate needs it): use :func:`labcal.calibration.fit.fit`, which
-    assigns splits, or ``obs.with_splits``. stage1: an already computed ``fit_local_poe`` result to reuse.
-    stage2: the learned terms to try ("ann", "series"). ann_options go to ``fit_ann`` (hidden, features,
-    trainer, restarts, loss — default "task" here); series_options to ``fit_joint_series``.
+    Fitting rows: "train" and unassigned; "val" rows are only measured (``val_error`` in the info), "test" rows
+    ignored. stage1: an already computed ``fit_local_poe`` result on the fitting rows to reuse (the folds refit
+    their own). stage2: the learned terms to try ("ann", "series"). ann_options go to ``fit_ann`` (hidden,
+    features, trainer, restarts, loss — default "task" here); series_options to ``fit_joint_series``.
 
     Returns the kept robot (method "hybrid"; the local-POE robot relabelled when no learned term helped) and
-    info: ``kept`` ("local-poe+ann", "local-poe+series" or "local-poe"), ``val_error_local_poe``,
-    ``val_error_hybrid`` (the best stage-2 candidate's, kept or not) and ``val_errors`` per candidate (mean
-    position error on the validation split, m), ``local_poe`` and one info dict per candidate.
+    info: ``kept`` ("local-poe+ann", "local-poe+series" or "local-poe"), ``val_error_local_poe`` and
+    ``val_error_hybrid`` (cross-validated error of local POE and of the best stage-2 candidate, m — the names
+    predate cross-validation), ``val_errors`` per stage-2 candidate (CV, m; NaN when it could not run),
+    ``cv`` (:meth:`CVResult.summary`), ``skipped`` {candidate: why}, ``notes``, ``local_poe`` and the kept
+    stage's info.
     """
-    if not np.any(obs.split == "val"):
-        raise ValueError("fit_hybrid needs validation rows (split == 'val') to decide whether to keep the network")
-    say = progress or (lambda _msg: None)
-    if stage1 is None:
-        say("hybrid: stage 1, local-POE identification")
-        stage1 = fit_local_poe(obs, nominal, **(local_poe_options or {}))
-    robot1, info1 = stage1
-    unknown = [name for name in stage2 if name not in ("ann", "series")]
+    from labcal.calibration._blas import single_blas_thread
+
+    with single_blas_thread():
+        return _fit_hybrid(obs, nominal, seed, stage1, local_poe_options, stage2, series_options, progress, ann_options)
+
+
+def _fit_hybrid(obs, nominal, seed, stage1, local_poe_options, stage2, series_options, progress, ann_options):
+    from labcal.calibration.cv import cross_validate, fold_plan
+
+    unknown = [name for name in stage2 if name not in STAGE2]
     if unknown or not stage2:
         raise ValueError(f"stage2 must name 'ann' and/or 'series', got {stage2!r}")
-    candidates: dict[str, tuple[CalibratedRobot, dict]] = {}
-    if "series" in stage2:
-        from labcal.calibration.joint_series import fit_joint_series
+    say = progress or (lambda _msg: None)
+    fit_obs = obs.subset(np.isin(obs.split, ("train", "")))
+    fit_obs = fit_obs.with_split(np.full(fit_obs.k, "train", dtype=object))
+    if stage1 is None:
+        say("hybrid: stage 1, local-POE identification")
+        stage1 = fit_local_poe(fit_obs, nominal, **(local_poe_options or {}))
+    folds, scheme = fold_plan(fit_obs, seed)
+    candidates = ("local-poe", *(STAGE2[name] for name in ("series", "ann") if name in stage2))
+    series_full, notes = prefit_series(fit_obs, stage1[0], candidates, seed, series_options, say)
+    if series_full is None:
+        candidates = tuple(c for c in candidates if c != "hybrid+series")
+    if folds:
+        cv = cross_validate(
+            fit_obs,
+            nominal,
+            candidates,
+            folds,
+            scheme,
+            seed=seed,
+            start=stage1[0],
+            local_poe_options=local_poe_options,
+            series_options=series_options,
+            series_fixed=series_fixed(series_full),
+            ann_options=ann_options,
+            progress=say,
+        )
+    else:
+        cv = None
+    robot, info = finish_hybrid(
+        fit_obs, obs, stage1, cv, candidates, seed=seed, series_full=series_full, ann_options=ann_options, say=say
+    )
+    info["notes"] = notes + info["notes"]
+    return robot, info
 
-        say("hybrid: stage 2, per-joint series of the identified robot's joint motion errors")
-        candidates["series"] = fit_joint_series(obs, robot1, seed=seed, **(series_options or {}))
-    if "ann" in stage2:
-        from labcal.calibration.ann import fit_ann  # torch is imported only here
 
-        say("hybrid: stage 2, network on the identified robot's joint motion errors")
-        candidates["ann"] = fit_ann(obs, robot1, seed=seed, **{"loss": "task", **ann_options})
-    e1 = validation_error(robot1, obs)
-    errors = {name: validation_error(robot, obs) for name, (robot, _) in candidates.items()}
-    best = min(errors, key=lambda name: (errors[name], stage2.index(name)))
-    keep = bool(errors[best] < e1)
-    chosen = _relabel(candidates[best][0] if keep else robot1, "hybrid")
+def prefit_series(fit_obs, robot1, candidates, seed, series_options, say):
+    """The joint series on all fitting rows (its order is then fixed in the folds), or None with a note."""
+    if "hybrid+series" not in candidates:
+        return None, []
+    from labcal.calibration.joint_series import fit_joint_series
+    from labcal.calibration.observations import ObservationError
+
+    say("hybrid: joint series on every fitting row (chooses its order)")
+    try:
+        return fit_joint_series(fit_obs, robot1, seed=seed, **(series_options or {})), []
+    except ObservationError as err:
+        return None, [f"stage-skipped: hybrid+series: {err}"]
+
+
+def series_fixed(series_full) -> dict | None:
+    """The order and gravity switch the folds reuse (see labcal.calibration.cv.cross_validate)."""
+    if series_full is None or not {"harmonics", "gravity"} <= set(series_full[1]):
+        return None
+    info = series_full[1]
+    return {"harmonics": int(info["harmonics"]), "gravity": bool(info["gravity"])}
+
+
+def finish_hybrid(fit_obs, obs, stage1, cv, candidates, *, seed, series_full, ann_options, say, choice=None):
+    """Choose (unless ``choice`` is given) among the hybrid's candidates; the kept one fitted on all rows."""
+    from labcal.calibration.cv import choose
+
+    robot1, info1 = stage1
+    notes: list[str] = []
+    skipped: dict[str, str] = {}
+    if cv is None:
+        notes.append(
+            f"stage-skipped: the learned stages need cross-validation, which needs at least 3 distinct poses "
+            f"(or groups); {fit_obs.k} rows give fewer: kept local POE"
+        )
+        skipped = {c: "too few distinct poses to cross-validate" for c in candidates if c != "local-poe"}
+        kept = "local-poe"
+    else:
+        for c in candidates:
+            if c != "local-poe" and not cv.available(c):
+                skipped[c] = cv.failures.get(c, "not evaluated")
+                notes.append(f"stage-skipped: {c}: {skipped[c]}")
+        kept = choice or choose(cv, candidates)
+    robot, stage_info = robot1, {}
+    if kept == "hybrid+series":
+        robot, stage_info = series_full
+    elif kept == "hybrid+ann":
+        from labcal.calibration.ann import fit_ann
+        from labcal.calibration.observations import ObservationError
+
+        try:
+            robot, stage_info = fit_ann(fit_obs, robot1, seed=seed, **{"loss": "task", **(ann_options or {})})
+        except ObservationError as err:  # too few usable rows on all rows (the folds could): keep local POE
+            notes.append(f"stage-skipped: hybrid+ann on all rows: {err}")
+            kept, robot = "local-poe", robot1
+    # Every row the fit used, not only those a learned stage kept (issue 13.3).
+    robot = dataclasses.replace(robot, method="hybrid", joint_ranges=_ranges(fit_obs.q, robot))
+    errors = {name: (cv.mean(STAGE2[name]) if cv is not None and STAGE2[name] in cv.rows else float("nan"))
+              for name in ("series", "ann") if STAGE2[name] in candidates}  # fmt: skip
+    e1 = cv.mean("local-poe") if cv is not None else float("nan")
+    finite = {k: v for k, v in errors.items() if math.isfinite(v)}
     info = {
-        "kept": f"local-poe+{best}" if keep else "local-poe",
+        "kept": "local-poe" if kept == "local-poe" else "local-poe+" + kept.split("+")[1],
+        "selection": "cross-validation" if cv is not None else "none (too few poses)",
         "val_error_local_poe": e1,
-        "val_error_hybrid": errors[best],
+        "val_error_hybrid": min(finite.values()) if finite else float("nan"),
         "val_errors": errors,
+        "val_error": validation_error(robot, obs),
+        "cv": None if cv is None else cv.summary("hybrid" if kept != "local-poe" else "local-poe"),
+        "skipped": skipped,
+        "notes": notes,
         "local_poe": info1,
-        **{name: cand_info for name, (_, cand_info) in candidates.items()},
     }
+    if kept != "local-poe":
+        info[kept.split("+")[1]] = stage_info
     summary = ", ".join(f"{name} {e * 1e3:.4f} mm" for name, e in errors.items())
-    say(f"hybrid: validation mean position error local-poe {e1 * 1e3:.4f} mm, {summary}; kept {info['kept']}")
-    return chosen, info
+    say(f"hybrid: cross-validated mean point error local-poe {e1 * 1e3:.4f} mm, {summary}; kept {info['kept']}")
+    return robot, info
 
 
-def _relabel(robot: CalibratedRobot, method: str) -> CalibratedRobot:
-    return dataclasses.replace(robot, method=method)
+def _ranges(q: np.ndarray, robot: CalibratedRobot) -> np.ndarray:
+    """Joint ranges of the fitting rows for a learned model; a purely geometric one keeps the robot's limits."""
+    if robot.network is None:
+        return robot.joint_ranges
+    return np.stack([q.min(axis=0), q.max(axis=0)], axis=1)

@@ -30,13 +30,16 @@ class ObservationError(ValueError):
 @dataclass(frozen=True, eq=False)
 class Observations:
     """q: (k, n) commanded joints (rad, m); points: (k, 3, 3) measured targets (m), rows t1..t3;
-    targets: (3, 3) target positions in the tool frame (m); split: (k,) "train" | "val" | "test" | ""."""
+    targets: (3, 3) target positions in the tool frame (m); split: (k,) "train" | "val" | "test" | "";
+    group: optional (k,) labels of rows that belong together (a session of a pooled fit, a sweep): they are kept
+    in one cross-validation fold and on one side of a train/validation split (see :meth:`units`)."""
 
     q: np.ndarray
     points: np.ndarray
     targets: np.ndarray
     frame: str = "base"
     split: np.ndarray = field(default=None)  # type: ignore[assignment]
+    group: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         q = np.asarray(self.q, dtype=float)
@@ -63,6 +66,11 @@ class Observations:
         if unknown:
             row = int(np.argmax([s in unknown for s in split]))
             raise ObservationError(f"split of row {row} is {split[row]!r}; allowed: train, val, test or empty")
+        if self.group is not None:
+            group = np.asarray(self.group, dtype=object)
+            if group.shape != (k,):
+                raise ObservationError(f"group must have shape ({k},), got {group.shape}")
+            object.__setattr__(self, "group", group)
         for name, arr in (("q", q), ("points", points), ("targets", targets)):
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
@@ -84,23 +92,80 @@ class Observations:
     def subset(self, mask_or_index) -> Observations:
         """A new Observations of the selected rows (boolean mask or integer index)."""
         idx = np.asarray(mask_or_index)
-        return Observations(self.q[idx], self.points[idx], self.targets, self.frame, self.split[idx])
+        group = None if self.group is None else self.group[idx]
+        return Observations(self.q[idx], self.points[idx], self.targets, self.frame, self.split[idx], group)
+
+    def with_split(self, split) -> Observations:
+        """The same rows with new split labels."""
+        return Observations(self.q, self.points, self.targets, self.frame, np.asarray(split, dtype=object), self.group)
+
+    def units(self) -> np.ndarray:
+        """(k,) integer unit of every row: rows of one ``group`` label, and rows with identical joint values
+        (repeated measurements of one pose), share a unit. Splits and cross-validation folds never cut a unit,
+        so a held-out error is never measured on a pose (or a session) that was also fitted. Numbered by first
+        appearance, so the result depends only on the data."""
+        k = self.k
+        parent = np.arange(k)
+
+        def find(i: int) -> int:
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        def join(rows: np.ndarray) -> None:
+            root = find(int(rows[0]))
+            for r in rows[1:]:
+                other = find(int(r))
+                if other != root:
+                    parent[max(other, root)] = min(other, root)
+                    root = min(other, root)
+
+        if k:
+            _, inverse = np.unique(self.q, axis=0, return_inverse=True)
+            for label in (inverse.reshape(-1), None if self.group is None else self.group):
+                if label is None:
+                    continue
+                first: dict = {}
+                for i, g in enumerate(label.tolist()):
+                    first.setdefault(g, []).append(i)
+                for rows in first.values():
+                    if len(rows) > 1:
+                        join(np.array(rows))
+        roots = np.array([find(i) for i in range(k)], dtype=int)
+        _, first_index, inverse = np.unique(roots, return_index=True, return_inverse=True)
+        order = np.argsort(np.argsort(first_index, kind="stable"), kind="stable")
+        return order[inverse.reshape(-1)]
 
     def where(self, split: str) -> Observations:
         """The rows of one split."""
         return self.subset(self.split == split)
 
     def with_splits(self, val_fraction: float = 0.5, seed: int = 0) -> Observations:
-        """Assign unassigned rows ("") to train/val at random (seeded); rows already assigned stay."""
+        """Assign unassigned rows ("") to train/val at random (seeded); rows already assigned stay.
+
+        Whole units (:meth:`units`: a group, repeated measurements of one pose) go to one side, so the validation
+        share is round(val_fraction · free rows) up to the size of the last unit drawn."""
         if not 0.0 <= val_fraction < 1.0:
             raise ObservationError(f"val_fraction must be in [0, 1), got {val_fraction}")
         split = self.split.copy()
         free = np.flatnonzero(split == "")
-        order = np.random.default_rng(seed).permutation(free)
         n_val = round(val_fraction * len(free))
-        split[order[:n_val]] = "val"
-        split[order[n_val:]] = "train"
-        return Observations(self.q, self.points, self.targets, self.frame, split)
+        units = self.units()[free]
+        if len(np.unique(units)) == len(free):  # every row its own unit: the row permutation of earlier versions
+            order = np.random.default_rng(seed).permutation(free)
+            split[order[:n_val]] = "val"
+            split[order[n_val:]] = "train"
+        else:
+            split[free] = "train"
+            taken = 0
+            for u in np.random.default_rng(seed).permutation(np.unique(units)):
+                if taken >= n_val:
+                    break
+                rows = free[units == u]
+                split[rows] = "val"
+                taken += len(rows)
+        return Observations(self.q, self.points, self.targets, self.frame, split, self.group)
 
     def measured_poses(self) -> np.ndarray:
         """(k, 4, 4) tool poses fitted to the three measured points (least squares rigid fit, Kabsch).
