@@ -62,6 +62,11 @@ FIT_JSON = "fit.json"
 _VERSION_DIR = re.compile(r"^v(\d{3,6})$")
 
 
+class StoreWriteError(DatasetError, OSError):
+    """Writing to the session store failed (read-only, full, permissions). A DatasetError, so the CLI prints its one
+    line, and still an OSError, so callers that handle OS errors keep working; the original error is chained."""
+
+
 def _writes(what: str):
     """Turn an OS error while writing (read-only store, full disk, permissions) into one DatasetError line that
     names the store and the operation, instead of a traceback. Nothing half-written is left visible: every write
@@ -76,7 +81,7 @@ def _writes(what: str):
                 raise
             except OSError as e:
                 where = f" ({e.filename})" if getattr(e, "filename", None) else ""
-                raise DatasetError(
+                raise StoreWriteError(
                     f"cannot {what} in the session store {self.root}: {e.strerror or e}{where} "
                     "(is it read-only or full? set --store or LABCAL_STORE to a writable folder)"
                 ) from e
@@ -1016,6 +1021,7 @@ __all__ = [
     "SealResult",
     "SessionInfo",
     "SessionStore",
+    "StoreWriteError",
     "VerifyReport",
     "VersionInfo",
     "default_root",
