@@ -233,3 +233,12 @@ def test_a_coupled_elbow_session_records_controller_joints_and_fits_in_model_joi
     np.testing.assert_allclose(q_cmd, spec.joints.to_controller(q_plan), atol=1e-12)
     obs, _ = load_observations(st, [ref])
     np.testing.assert_allclose(obs.q, q_plan, atol=1e-6)
+
+
+def test_a_bad_argument_to_session_new_creates_no_store(tmp_path, targets):
+    r = invoke("session", "new", "--robot", "no-such-robot", "--targets", targets, "--poses", 3, store=tmp_path / "s")
+    one_line_error(r, "no-such-robot")
+    r = invoke("session", "new", "--robot", "ur10", "--targets", tmp_path / "none.toml", "--poses", 3,
+               store=tmp_path / "s")  # fmt: skip
+    assert r.exit_code == 2 and "Traceback" not in r.stderr
+    assert not (tmp_path / "s").exists()

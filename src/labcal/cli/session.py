@@ -121,9 +121,13 @@ def new(
     from labcal.cli.ops.sessions import check_plan_size
 
     check_plan_size(poses, planner, samples)
+    from labcal.datasets import load_targets
     from labcal.datasets.sanity import check_names
+    from labcal.robots import load
 
     check_names(allow)
+    load(robot)  # a typo in the robot or targets fails here, before the store is created
+    load_targets(targets)
     st = _store(store, create=True)
     with _RunProgress() as progress:
         summary = new_session(
