@@ -554,13 +554,18 @@ def _hypotheses(
     for j in range(1, n):
         if not (rev[j] and rev[j - 1]):
             continue
-        for sign, op in ((1.0, "+"), (-1.0, "−")):
+        # Coupled neighbours, with either joint possibly reversed: model q_j+1 = ±J_j+1 + c·J_j, q_j = ±J_j (the
+        # coupled elbow of several arm makers is q3 = J2 + J3, sometimes with J2 reversed too).
+        for s1, s2, c in itertools.product((1.0, -1.0), (1.0, -1.0), (0.0, 1.0, -1.0)):
+            if c == 0.0:
+                continue  # plain sign flips are below
             M = np.eye(n)
-            M[j, j - 1] = sign
+            M[j - 1, j - 1], M[j, j], M[j, j - 1] = s1, s2, c
+            rows = "; ".join(_map_row(M, r) for r in (j - 1, j) if not np.array_equal(M[r], np.eye(n)[r]))
             out.append(_Hypothesis(
-                f"if model joint {j + 1} = J{j} {op} J{j + 1} (a coupled joint, e.g. an elbow measured from the "
-                f"horizontal; declare it in the robot file's [joint_map])", 1, jm.to_model(q_ctrl @ M.T), points,
-                targets, frame,
+                f"if model {rows} (coupled or reversed joints, e.g. an elbow measured from the horizontal; declare "
+                f"it in the robot file's [joint_map])", 1 + int(s1 < 0) + int(s2 < 0), jm.to_model(q_ctrl @ M.T),
+                points, targets, frame,
             ))  # fmt: skip
     for j in range(n):
         M = np.eye(n)
@@ -587,6 +592,16 @@ def _hypotheses(
                 out.append(_Hypothesis(f"with the targets reordered ({_perm_text(perm)}) in the targets file", 1,
                                        jm.to_model(q_ctrl), points, targets[list(perm)], frame))  # fmt: skip
     return out
+
+
+def _map_row(M: np.ndarray, r: int) -> str:
+    """'q3 = J2 + J3' for row r of a joint map matrix."""
+    terms = []
+    for c in np.flatnonzero(M[r]):
+        sign = "−" if M[r, c] < 0 else "+"
+        terms.append(f"{sign} J{c + 1}")
+    text = " ".join(terms)
+    return f"q{r + 1} = " + (text[2:] if text.startswith("+ ") else "−" + text[2:])
 
 
 def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length_unit, hints, report, allow) -> None:
