@@ -215,10 +215,12 @@ def test_a_large_joint_offset_gives_a_large_correction_warning():
     assert "joint 2" in msg and "bound 0.05 rad" in msg
 
 
-def test_ten_poses_are_flagged_as_overfitted():
+def test_five_poses_are_flagged_as_overfitted_and_ten_get_a_note():
     q = random_poses(10)
-    r = fit(Observations(q, measure(q), TARGETS), UR10.model, "local-poe")
-    assert "overfit" in codes(r)
+    five = fit(Observations(q[:5], measure(q[:5]), TARGETS), UR10.model, "local-poe")  # 45 numbers, 30 parameters
+    assert "overfit" in codes(five) and five.cv["folds"] == 5
+    ten = fit(Observations(q, measure(q), TARGETS), UR10.model, "local-poe")
+    assert "overfit" not in codes(ten) and any(n.startswith("overfit-risk") for n in ten.notes)
 
 
 def test_same_data_and_seed_give_the_same_choice_errors_and_parameters():

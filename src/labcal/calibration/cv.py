@@ -4,7 +4,9 @@ Every row a fit is given is used (issue 13): the hyperparameter-free stages (reg
 on all of them, and whether a learned stage is worth keeping — the hybrid's network or joint series, the paper's
 network, ``auto``'s choice — is decided by K-fold cross-validation over the same rows. Inside a fold every stage
 is refitted on the fold's training rows only, local POE included (started from the all-rows identification,
-which only saves iterations: the minimum is the same), so a held-out error never contains a row its model saw.
+which only saves iterations: the minimum is the same — unless the fold's rows leave a direction unidentified,
+then it starts from the nominal, see :func:`cross_validate`), so a held-out error never contains a row its model
+saw.
 The network's early stopping uses an inner split of the fold's training rows (:func:`~labcal.calibration.ann.
 fit_ann`), never the held-out fold.
 
@@ -212,7 +214,11 @@ def cross_validate(
             if active & {"nominal", "ann"}:
                 before = register(train, nominal)[0]
             if active & {"local-poe", "hybrid+series", "hybrid+ann"}:
-                stage1 = fit_local_poe(train, nominal, start=start, **lp_opts)[0]
+                stage1, lp_info = fit_local_poe(train, nominal, start=start, **lp_opts)
+                if lp_info["rank"] < lp_info["expected_rank"]:
+                    # Directions the fold's rows do not identify keep their starting values; started from the
+                    # all-rows fit those would carry the held-out rows into the fold model. Start from the nominal.
+                    stage1 = fit_local_poe(train, nominal, **lp_opts)[0]
         except (IdentificationError, ObservationError) as err:
             for c in active:
                 res.failures.setdefault(c, f"fold {f + 1}: {err}")

@@ -24,8 +24,10 @@ forced) and **notes** (``FitResult.notes``, information). Codes:
 
 - ``rank-deficient``: local POE's numerical rank is below the identifiable count; lists the unidentifiable
   directions;
-- ``overfit``: the chosen model's cross-validated error is over :data:`OVERFIT_RATIO` times its error on the rows
-  it was fitted to, or a kept network has more weights than training numbers;
+- ``overfit``: the chosen model's cross-validated error is over :data:`OVERFIT_RATIO` (10) times its error on
+  the rows it was fitted to (it interpolates them: 5 poses for 30 parameters), or a kept network has more
+  weights than training numbers. Between 2× and 10× it is a note ("overfit-risk"): a cross-validated choice on
+  50 real poses (hybrid + series, UR10) sits at 3–4× and is still the best model available;
 - ``worse-than-nominal``: the cross-validated (or hold-out) error of the chosen model is not below the registered
   nominal's;
 - ``poor-fit``: even on its own fitting rows the chosen model leaves a mean target-point error above
@@ -78,7 +80,8 @@ from labcal.compensator import CalibratedRobot
 from labcal.kinematics.poe import LocalPOEModel
 
 METHODS = ("nominal", "local-poe", "ann", "hybrid", "auto")
-OVERFIT_RATIO = 2.0  # CV error / in-sample error of the chosen model above which it is flagged
+OVERFIT_RATIO = 10.0  # CV error / in-sample error above which the model interpolates its rows: blocking
+OVERFIT_NOTE_RATIO = 2.0  # above this a note: CV error ≫ fit error, the in-sample numbers flatter the model
 POOR_FIT = 5e-3  # m: mean target-point error on the fitting rows above which no model explains the data
 MAX_CORRECTION = {"revolute": 0.05, "prismatic": 0.01}  # rad, m: largest joint correction accepted silently
 DROPPED_SHARE = 0.10  # share of rows a kept network may miss before it is a warning
@@ -434,12 +437,11 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
                     f"the registered nominal's {e_n * 1e3:.4g} mm: the calibration does not generalise "
                     "(too few or too similar poses, or data that do not match the robot/targets)",
                 ))  # fmt: skip
+        text = f"{chosen_key} fits its own rows to {in_sample * 1e3:.4g} mm but cross-validates to {e_cv * 1e3:.4g} mm"
         if e_cv > OVERFIT_RATIO * in_sample and e_cv - in_sample > 1e-5:
-            warnings.append(_warn(
-                "overfit",
-                f"{chosen_key} fits its own rows to {in_sample * 1e3:.4g} mm but cross-validates to "
-                f"{e_cv * 1e3:.4g} mm (over {OVERFIT_RATIO:g}×): it follows the noise of too few poses",
-            ))  # fmt: skip
+            warnings.append(_warn("overfit", f"{text} (over {OVERFIT_RATIO:g}×): it interpolates too few poses"))
+        elif e_cv > OVERFIT_NOTE_RATIO * in_sample and e_cv - in_sample > 1e-5:
+            notes.append(f"overfit-risk: {text}; trust the cross-validated error, not the fit error")
     for part in ("val", "test"):
         if part in metrics and not any(w["code"] == "worse-than-nominal" for w in warnings):
             after, bef = metrics[part]["after"]["pos_mean"], metrics[part]["before"]["pos_mean"]
