@@ -427,8 +427,8 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
     in_sample = float(np.mean(point_errors(robot, fit_obs)))
     if cv is not None and chosen_key in cv.rows:
         e_cv = cv.mean(chosen_key)
-        if "nominal" in cv.rows:
-            common = np.isfinite(cv.rows["nominal"]) & np.isfinite(cv.rows[chosen_key])
+        common = np.isfinite(cv.rows.get("nominal", np.nan)) & np.isfinite(cv.rows[chosen_key])
+        if np.any(common):
             e_c, e_n = float(np.mean(cv.rows[chosen_key][common])), float(np.mean(cv.rows["nominal"][common]))
             if e_c >= e_n:
                 warnings.append(_warn(
@@ -438,7 +438,9 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
                     "(too few or too similar poses, or data that do not match the robot/targets)",
                 ))  # fmt: skip
         text = f"{chosen_key} fits its own rows to {in_sample * 1e3:.4g} mm but cross-validates to {e_cv * 1e3:.4g} mm"
-        if e_cv > OVERFIT_RATIO * in_sample and e_cv - in_sample > 1e-5:
+        if not math.isfinite(e_cv):
+            pass  # every fold failed for the chosen model (its notes say why): nothing to compare
+        elif e_cv > OVERFIT_RATIO * in_sample and e_cv - in_sample > 1e-5:
             warnings.append(_warn("overfit", f"{text} (over {OVERFIT_RATIO:g}×): it interpolates too few poses"))
         elif e_cv > OVERFIT_NOTE_RATIO * in_sample and e_cv - in_sample > 1e-5:
             notes.append(f"overfit-risk: {text}; trust the cross-validated error, not the fit error")
