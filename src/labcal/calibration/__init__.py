@@ -2,7 +2,7 @@
 
 The public API::
 
-    fit(obs, nominal, method="auto", seed=0) -> FitResult      # every method, split + metrics
+    fit(obs, nominal, method="auto", seed=0) -> FitResult      # every method on every row, CV choice, warnings
     fit_local_poe(obs, nominal) -> (CalibratedRobot, info)     # model-based (eq. 11)
     register(obs, nominal) -> (CalibratedRobot, info)          # the registered nominal ("before")
     fit_ann(obs, base, seed=0) -> (CalibratedRobot, info)      # the paper's method (imports torch lazily)

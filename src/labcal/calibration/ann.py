@@ -15,8 +15,10 @@ bit-identical weights:
 - trainers: ``"lm"`` Levenberg-Marquardt on the full weight vector (Jacobian of the residuals by
   ``torch.func.jacfwd``, damped normal equations, Marquardt's μ × 10 / ÷ 10 rule), ``"adam"`` (full batch) and
   ``"gd"``, plain gradient descent (eq. 22);
-- early stopping: after every iteration the validation loss is evaluated; the weights with the lowest validation
-  loss are kept, and training stops after ``patience`` iterations without improvement (the paper's Fig. 4);
+- early stopping: after every iteration the loss on the early-stopping rows is evaluated — the caller's "val"
+  rows if it gave any, else an inner split of the training rows (``stop_fraction``), so rows that later judge the
+  network never steer it; the weights with the lowest early-stopping loss are kept, and training stops after
+  ``patience`` iterations without improvement (the paper's Fig. 4);
 - ``restarts`` random initialisations (normal, scaled by 1/√fan-in, the output layer by a further 0.01; seeded
   by (seed, restart) through numpy), the one with the lowest validation loss wins.
 

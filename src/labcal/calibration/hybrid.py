@@ -3,7 +3,7 @@
 Stage 1 identifies the frame errors (:func:`labcal.calibration.local_poe.fit_local_poe`): it explains every
 geometric error down to the noise floor. Stage 2 treats the *identified* robot as the base of an equivalent robot
 and learns its remaining configuration-dependent joint motion errors δρ(q) (compliance, gear errors …). Two
-learned terms compete on the validation split:
+learned terms compete (chosen by cross-validation, see below):
 
 - ``ann``: the paper's network (:func:`labcal.calibration.ann.fit_ann`), trained here on the task-space loss of
   eq. (20) — measured on the simulator, the joint-space loss of eq. (21) spends the network on the very uneven

@@ -32,8 +32,8 @@ scara4 with 60 random configurations: 1.0e-2 … 2.5e-2 against 1.2e-8 … 1.4e-
 Optional Levenberg-Marquardt damping (``damping``, relative to s_max²) is raised automatically when a step
 does not lower the cost.
 
-Rows used: ``train`` and unassigned rows; ``include_val=True`` adds the validation rows. The default keeps the
-validation split out so every method is compared on data it did not fit (other methods early-stop on it).
+Rows used: ``train`` and unassigned rows; ``include_val=True`` adds the validation rows. "val" rows are a
+hold-out a caller chose (:func:`labcal.calibration.fit.fit` makes none by default, so every row is fitted there).
 """
 
 from __future__ import annotations
