@@ -926,21 +926,28 @@ def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
     return payload
 
 
-def from_payload(data: dict, source: str = "<payload>") -> tuple[CalibratedRobot, dict]:
-    """Rebuild (robot, payload) from export data; checks schema, model hash and golden vectors."""
+def from_payload(data: dict, source: str = "<payload>", *, stored: bool = False) -> tuple[CalibratedRobot, dict]:
+    """Rebuild (robot, payload) from export data; checks schema, model hash, field checksums and golden vectors.
+
+    stored: the payload is a fit's file inside a session store, whose own sha256 list already guards it. Such a
+    file may still be schema 1 (fits stored before joint maps and field checksums): it is read without a joint
+    map, so old sessions' fits can still be reported and exported. An export file on its own must be schema 2.
+    """
     if not isinstance(data, dict) or data.get("format") != SCHEMA:
         raise CompensatorFileError(f"{source}: not a labcal compensator export (format field is not {SCHEMA!r})")
     version = data.get("schema_version")
-    if version != SCHEMA_VERSION:
+    legacy = stored and version == 1
+    if version != SCHEMA_VERSION and not legacy:
         hint = "; export the fit again with this labcal" if version == 1 else ""
         raise CompensatorFileError(
             f"{source}: schema_version {version!r} is not supported (this labcal reads {SCHEMA_VERSION}){hint}"
         )
-    _check_checksums(data, source)
+    if not legacy:
+        _check_checksums(data, source)
     try:
         nominal = _model_from(data["robot"], f"{source}: robot")
         model = _model_from(data["model"], f"{source}: model")
-        jd = data["joint_map"]
+        jd = None if legacy else data["joint_map"]
         try:
             joint_map = None if jd is None else JointMap(np.asarray(jd["matrix"]), np.asarray(jd["offsets"]))
         except (KeyError, TypeError, ValueError) as err:

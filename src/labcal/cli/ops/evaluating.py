@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import inspect
 import json
 import os
 import tempfile
@@ -96,10 +95,9 @@ def import_for_evaluation(store: SessionStore, stored, path: Path, robot: str | 
     from labcal.cli.ops.imports import import_session
 
     options = {k: v for k, v in options.items() if v is not None}
-    if not options.get("allow"):
-        options.pop("allow", None)
-    elif "allow" not in inspect.signature(import_session).parameters:
-        raise UserError("this labcal's import has no --allow overrides")
+    # A held-out file only has to be scored, not to identify a model: a handful of poses is enough, and the
+    # override is recorded with the import like any other.
+    options["allow"] = sorted({*(options.get("allow") or ()), "few-poses"})
     with tempfile.TemporaryDirectory(prefix="labcal-eval-") as tmp:
         robot_arg = _robot_argument(store, stored, robot, Path(tmp))
         return import_session(store, path, robot=robot_arg, **options)
@@ -136,7 +134,7 @@ def evaluate_fit(
         ref = import_for_evaluation(store, stored, path, robot, dict(import_options or {}))
     else:
         ref = str(store.resolve(split_ref(data)))
-    obs, datasets = load_observations(store, [ref])
+    obs, datasets = load_observations(store, [ref], robot, with_spec=True)[:2]
     ds = datasets[0]
     fit_hash = (stored.meta.get("robot") or {}).get("hash")
     if fit_hash and ds.robot.get("hash") != fit_hash:

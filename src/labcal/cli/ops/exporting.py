@@ -16,6 +16,7 @@ from pathlib import Path
 from labcal.cli.ops.common import UserError
 from labcal.cli.ops.fitting import info_warnings, load_stored_fit
 from labcal.datasets import SessionStore
+from labcal.robots import model_hash
 
 
 def stored_warnings(meta: dict) -> list[dict]:
@@ -81,6 +82,14 @@ def export_fit(
         raise UserError(f"a {fmt} export must be written to a path ending in {SUFFIXES[fmt]}, got {out.name!r}")
     stored = load_stored_fit(store, ref, fit_id)
     record = store.load_fit(stored.ref, stored.fit_id, check_files=False)
+    recorded = store.load(stored.inputs[0]).robot.get("hash")
+    if recorded and model_hash(stored.robot.nominal, stored.robot.joint_map) != recorded:
+        # The compensator converts controller joints through the map it carries: one that lost its map (or carries
+        # another robot's) would correct the wrong joints.
+        raise UserError(
+            f"fit {stored.fit_id} does not carry the robot model (and joint map) its data were recorded with: "
+            f"refit {stored.inputs[0]} with this labcal"
+        )
     warnings = stored_warnings(stored.meta)
     if warnings and not force:
         listed = "; ".join(f"[{w.get('code')}] {w.get('message')}" for w in warnings)

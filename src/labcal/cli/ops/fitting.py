@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 
-from labcal.cli.ops.common import UserError, jsonable, load_observations, robot_for
+from labcal.cli.ops.common import UserError, jsonable, load_observations
 from labcal.compensator import CalibratedRobot, from_payload, to_payload
 from labcal.datasets import SessionStore
 
@@ -46,8 +47,7 @@ def run_fit(
         raise UserError(f"--val-fraction must be in [0, 1), got {val_fraction}")
     if hidden is not None and hidden < 1:
         raise UserError(f"--hidden must be a positive number of nodes, got {hidden}")
-    obs, datasets = load_observations(store, refs)
-    spec = robot_for(datasets[0].robot, robot)
+    obs, datasets, spec = load_observations(store, refs, robot, with_spec=True)
     options = {}
     if hidden is not None:
         options["hidden"] = hidden
@@ -72,9 +72,12 @@ def run_fit(
         "fit_seconds": result.fit_seconds,
         "info": slim_info(result.info),
     }
+    # The fit works in model joints; its compensator takes controller joints through the robot file's map.
+    fitted = dataclasses.replace(result.robot, joint_map=spec.joint_map)
+    before = dataclasses.replace(result.before, joint_map=spec.joint_map)
     files = {
-        ROBOT_FILE: json.dumps(to_payload(result.robot, {"sessions": [d.ref for d in datasets]})),
-        BEFORE_FILE: json.dumps(to_payload(result.before)),
+        ROBOT_FILE: json.dumps(to_payload(fitted, {"sessions": [d.ref for d in datasets]})),
+        BEFORE_FILE: json.dumps(to_payload(before)),
     }
     record = store.save_fit([d.ref for d in datasets], files, jsonable(meta))
     return FitOutcome(result, record.fit_id, record.ref, [d.ref for d in datasets], meta["metrics"], gates)
@@ -271,6 +274,6 @@ def load_stored_fit(store: SessionStore, ref: str, fit_id: str | None = None) ->
     record = store.load_fit(r, fit_id)
     if ROBOT_FILE not in record.files:
         raise UserError(f"fit {fit_id} of {r} has no {ROBOT_FILE} (not written by labcal fit)")
-    robot, _ = from_payload(json.loads(record.read(ROBOT_FILE)), f"fit {fit_id}/{ROBOT_FILE}")
-    before, _ = from_payload(json.loads(record.read(BEFORE_FILE)), f"fit {fit_id}/{BEFORE_FILE}")
+    robot, _ = from_payload(json.loads(record.read(ROBOT_FILE)), f"fit {fit_id}/{ROBOT_FILE}", stored=True)
+    before, _ = from_payload(json.loads(record.read(BEFORE_FILE)), f"fit {fit_id}/{BEFORE_FILE}", stored=True)
     return StoredFit(str(r), fit_id, robot, before, record.metadata, [i["ref"] for i in record.inputs])

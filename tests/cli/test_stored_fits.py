@@ -1,0 +1,98 @@
+"""Stored fits across versions of labcal, and fits of a robot whose controller joints are not its model joints."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from labcal.cli.ops import export_fit, load_stored_fit, new_session, open_store, run_fit
+from labcal.cli.ops.common import UserError
+from labcal.compensator import Compensator, CompensatorFileError, from_payload, to_payload
+from labcal.robots import load
+
+TARGETS = "drivers/targets-example.toml"
+
+
+def _schema1(payload: dict) -> dict:
+    """The payload as labcal wrote it before joint maps and field checksums (schema 1)."""
+    old = {k: v for k, v in payload.items() if k not in ("joint_map", "checksums")}
+    old["schema_version"] = 1
+    return old
+
+
+@pytest.fixture(scope="module")
+def ur10_fit(tmp_path_factory):
+    store = open_store(tmp_path_factory.mktemp("store"), create=True)
+    ref = new_session(store, robot="ur10", targets_file=TARGETS, poses=40, seed=3).ref
+    outcome = run_fit(store, [ref], "local-poe")
+    return store, ref, outcome
+
+
+def test_a_fit_stored_by_an_older_labcal_is_still_read_from_the_store(ur10_fit, tmp_path):
+    store, ref, outcome = ur10_fit
+    current = load_stored_fit(store, ref, outcome.fit_id)
+    files = {
+        name: json.dumps(_schema1(to_payload(robot)))
+        for name, robot in (("robot.json", current.robot), ("before.json", current.before))
+    }
+    record = store.save_fit([ref], files, dict(current.meta))
+    old = load_stored_fit(store, ref, record.fit_id)
+    q = np.array([[0.3, -1.2, 1.4, -1.8, -1.5, 0.4]])
+    assert np.array_equal(old.robot.correct(q), current.robot.correct(q))
+    out = export_fit(store, ref, "json", tmp_path / "old.json", record.fit_id)
+    assert Compensator.load(out).joint_map.is_identity  # re-exported in the current schema
+
+
+def test_a_loose_schema_1_export_is_refused(ur10_fit):
+    store, ref, outcome = ur10_fit
+    payload = _schema1(to_payload(load_stored_fit(store, ref, outcome.fit_id).robot))
+    with pytest.raises(CompensatorFileError, match=r"schema_version 1 is not supported.*export the fit again"):
+        from_payload(payload, "old.json")
+
+
+@pytest.fixture(scope="module")
+def coupled(tmp_path_factory):
+    store = open_store(tmp_path_factory.mktemp("store"), create=True)
+    ref = new_session(store, robot="coupled-elbow-6r", targets_file=TARGETS, poses=60, seed=2).ref
+    return store, ref, run_fit(store, [ref], "local-poe")
+
+
+def test_a_coupled_elbow_fit_exports_a_compensator_in_controller_joints(coupled, tmp_path):
+    store, ref, outcome = coupled
+    spec = load("coupled-elbow-6r")
+    errors = outcome.result.metrics["all"]
+    assert errors["after"]["pos_mean"] < 0.1 * errors["before"]["pos_mean"]  # the map was applied before fitting
+    comp = Compensator.load(export_fit(store, ref, "json", tmp_path / "c.json", outcome.fit_id))
+    assert comp.robot_hash == spec.hash
+    q_model = spec.model.limits.mean(axis=1) + 0.1
+    q_ctrl = spec.joints.to_controller(q_model)
+    q_cmd = comp.correct(q_ctrl)
+    # The calibrated robot, commanded in controller joints, reaches the pose the nominal model gives for q.
+    T_reached = comp.predict_pose(q_cmd)
+    assert np.allclose(T_reached, spec.model.fk(q_model), atol=1e-9)
+    # …and the command is not the model-joint answer: the map is applied at the compensator's edges.
+    model_answer = outcome.result.robot.correct(q_model)
+    assert np.allclose(spec.joints.to_model(q_cmd), model_answer, atol=1e-9)
+    assert not np.allclose(q_cmd, model_answer, atol=1e-3)
+
+
+def test_a_coupled_elbow_fit_is_not_exported_to_a_ur_controller(coupled, tmp_path):
+    store, ref, outcome = coupled
+    with pytest.raises(ValueError, match="joint map"):
+        export_fit(store, ref, "urscript", tmp_path / "c.script", outcome.fit_id)
+
+
+def test_a_fit_that_lost_its_joint_map_is_not_exported(coupled, tmp_path):
+    store, ref, outcome = coupled
+    stored = load_stored_fit(store, ref, outcome.fit_id)
+    # What a fit stored before joint maps holds: the model without its map, in schema 1.
+    files = {
+        name: json.dumps(_schema1(to_payload(dataclasses.replace(robot, joint_map=None))))
+        for name, robot in (("robot.json", stored.robot), ("before.json", stored.before))
+    }
+    record = store.save_fit([ref], files, dict(stored.meta))
+    with pytest.raises(UserError, match="does not carry the robot model"):
+        export_fit(store, ref, "json", tmp_path / "lost.json", record.fit_id)
