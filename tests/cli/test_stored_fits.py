@@ -94,5 +94,21 @@ def test_a_fit_that_lost_its_joint_map_is_not_exported(coupled, tmp_path):
         for name, robot in (("robot.json", stored.robot), ("before.json", stored.before))
     }
     record = store.save_fit([ref], files, dict(stored.meta))
-    with pytest.raises(UserError, match="does not carry the robot model"):
+    with pytest.raises(UserError, match="does not carry the joint map"):
         export_fit(store, ref, "json", tmp_path / "lost.json", record.fit_id)
+
+
+def test_probe_data_fit_with_the_probe_mount_as_nominal_tool(tmp_path):
+    """The committed example is real IPA UR10 probe data: the probe sits ~93 mm / 90° off the bare flange."""
+    import shutil
+
+    shutil.copytree("sessions", tmp_path / "store")
+    store = open_store(tmp_path / "store")
+    outcome = run_fit(store, ["example"], "local-poe")
+    assert any(note.startswith("probe data: the probe's mount") for note in outcome.gates["notes"])
+    assert not [w for w in outcome.gates["warnings"] if w["code"] == "large-correction"]
+    comp = Compensator.load(export_fit(store, "example", "json", tmp_path / "ipa.json", outcome.fit_id))
+    q = store.load("example").q
+    q = q[np.abs(q[:, 4]) > 0.2]  # away from the wrist singularity (the first row is the home pose, q5 = 0)
+    # Without the mount in the nominal the wrist turned ~0.6 rad to bring the probe onto the flange's pose.
+    assert np.max(np.abs(comp.correct(q) - q)) < 0.05

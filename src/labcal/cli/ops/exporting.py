@@ -13,10 +13,12 @@ import os
 import tempfile
 from pathlib import Path
 
-from labcal.cli.ops.common import UserError
+import numpy as np
+
+from labcal.cli.ops.common import UserError, robot_for
 from labcal.cli.ops.fitting import info_warnings, load_stored_fit
 from labcal.datasets import SessionStore
-from labcal.robots import model_hash
+from labcal.robots.joint_map import JointMap
 
 
 def stored_warnings(meta: dict) -> list[dict]:
@@ -46,6 +48,11 @@ def check_output(out: str | Path, *, force: bool = False) -> Path:
     if out.exists() and not force:
         raise UserError(f"{out} already exists: pass --force to replace it (the old file is replaced atomically)")
     return out
+
+
+def _map_arrays(joint_map, n: int) -> np.ndarray:
+    jm = joint_map if joint_map is not None else JointMap.identity(n)  # None: controller joints are model joints
+    return np.concatenate([jm.matrix.ravel(), jm.offsets])
 
 
 def _umask() -> int:
@@ -82,12 +89,12 @@ def export_fit(
         raise UserError(f"a {fmt} export must be written to a path ending in {SUFFIXES[fmt]}, got {out.name!r}")
     stored = load_stored_fit(store, ref, fit_id)
     record = store.load_fit(stored.ref, stored.fit_id, check_files=False)
-    recorded = store.load(stored.inputs[0]).robot.get("hash")
-    if recorded and model_hash(stored.robot.nominal, stored.robot.joint_map) != recorded:
+    spec = robot_for(store.load(stored.inputs[0]).robot)
+    if not np.array_equal(_map_arrays(stored.robot.joint_map, spec.model.n), _map_arrays(spec.joint_map, spec.model.n)):
         # The compensator converts controller joints through the map it carries: one that lost its map (or carries
         # another robot's) would correct the wrong joints.
         raise UserError(
-            f"fit {stored.fit_id} does not carry the robot model (and joint map) its data were recorded with: "
+            f"fit {stored.fit_id} does not carry the joint map of the robot its data were recorded with: "
             f"refit {stored.inputs[0]} with this labcal"
         )
     warnings = stored_warnings(stored.meta)
