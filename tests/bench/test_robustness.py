@@ -122,6 +122,10 @@ def test_bad_input_files(tmp_path):
     deg = tomllib.loads(B.robot_file_scaled(tmp_path / "ur10-deg.toml", degrees=True).read_text())["joints"]
     assert np.isclose(deg[0]["alpha"], np.degrees(nominal[0]["alpha"])) and deg[0]["limits"][1] > 300
     assert [c.name for c in B.CASES].count("good") == 1 and len({c.name for c in B.CASES}) == len(B.CASES)
+    # Every must-stop data mistake is also run with the import checks overridden, so the fit/export gates are measured.
+    names = {c.name: c for c in B.CASES}
+    for name in ("mm-as-m", "m-as-mm", "deg-as-rad", "identical-60", "pure-noise", "pure-noise-rigid"):
+        assert names[name].expect == "must-stop" and names[name + "+allow"].expect == "must-stop"
 
 
 def test_bench_cli_runs_the_fit_time_table(tmp_path):
