@@ -60,7 +60,7 @@ def test_second_stage_is_dropped_when_it_raises_the_cross_validated_error(fake_a
     assert info["cv"]["errors"]["hybrid+ann"][2:] == [None] * 8
     for base, seed, options in calls:
         assert not np.array_equal(base.model.frames, stage1.model.frames) and seed == 3
-        assert options == {"hidden": 4, "loss": "task", "restarts": 1, "max_iter": 60, "max_rows": 1000}
+        assert options == {"hidden": 4, "loss": "task", "restarts": 1, "max_iter": 40, "max_rows": 1000}
 
 
 def _inexact_stage1(nominal, obs):

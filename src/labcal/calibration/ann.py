@@ -184,19 +184,21 @@ class _Problem:
         hidden, outs = W1.shape[0], W2.shape[0]
         a = torch.tanh(x @ W1.T + b1)  # (k, H)
         slope = W2[None, :, :] * (1.0 - a * a)[:, None, :]  # (k, 6, H): d out / d pre-activation
-        eye = torch.eye(outs, dtype=x.dtype)
-        D = torch.cat(
-            [
-                (slope[:, :, :, None] * x[:, None, None, :]).reshape(k, outs, hidden * f),  # W1, row-major
-                slope,  # b1
-                (eye[None, :, :, None] * a[:, None, None, :]).reshape(k, outs, outs * hidden),  # W2
-                eye.expand(k, outs, outs),  # b2
-            ],
-            dim=2,
-        )  # (k, 6, P) d out / d θ
-        if self.A is not None:
-            D = -torch.einsum("kab,kbp->kap", self.A, D)
-        return (D * self.sqrt_w[:, :, None]).reshape(-1, D.shape[2])
+        # B: d residual / d out per row, (k, m, 6) — the weighted identity (eq. 21) or −√w A (eq. 20). The blocks
+        # of d residual / d θ are formed from it directly, never the (k, 6, P) Jacobian of the outputs.
+        if self.A is None:
+            B = torch.diag_embed(self.sqrt_w.expand(k, outs))
+        else:
+            B = -self.sqrt_w[:, :, None] * self.A
+        m = B.shape[1]
+        C = torch.bmm(B, slope)  # (k, m, H)
+        blocks = [
+            (C[:, :, :, None] * x[:, None, None, :]).reshape(k, m, hidden * f),  # W1, row-major
+            C,  # b1
+            (B[:, :, :, None] * a[:, None, None, :]).reshape(k, m, outs * hidden),  # W2
+            B,  # b2
+        ]
+        return torch.cat(blocks, dim=2).reshape(k * m, -1)
 
 
 def _train_one(torch, theta0, shapes, train, val, trainer, weight_decay, max_iter, patience, lr, progress, restart):

@@ -34,8 +34,8 @@ difference)``. So a learned stage is kept only for a gain the data support, not 
 
 **Time.** The joint series' order (and gravity terms) is chosen once on all rows; each fold refits the
 series at that order and re-chooses its ridge λ (see :func:`cross_validate`). A network candidate is trained
-inside the folds with one restart, at most 60 Levenberg-Marquardt iterations and at most 1,000 (seeded) rows —
-measured ~50 ms per iteration at 1,000 rows, so a fold's network costs at most ~3 s — and is dropped from the
+inside the folds with one restart, at most 40 Levenberg-Marquardt iterations and at most 1,000 (seeded) rows —
+measured ~50 ms per iteration at 1,000 rows, so a fold's network costs at most ~2 s — and is dropped from the
 remaining folds once, after at least two folds, it is more than 10 % worse than the best other candidate on the
 rows evaluated so far (``pruned_after`` in the result); its CV error is then the mean over the folds it ran.
 """
@@ -58,7 +58,7 @@ NETWORKS = ("hybrid+ann", "ann")
 NEAR_TIE = 0.01  # relative: a gain below 1 % of the error is never worth a more complex model
 PRUNE_MARGIN = 0.10  # a network > 10 % worse than the best other candidate after two folds is not pursued
 CV_RESTARTS = 1  # network restarts inside a fold (the final refit uses the caller's, default 3)
-CV_MAX_ITER = 60  # Levenberg-Marquardt iterations inside a fold (LM converges in tens; the paper's Fig. 4: 11)
+CV_MAX_ITER = 40  # Levenberg-Marquardt iterations inside a fold (LM converges in tens; the paper's Fig. 4: 11)
 CV_MAX_ROWS = 1000  # training rows of a fold's network (seeded subsample; the final refit takes up to 2,000)
 
 
@@ -259,7 +259,7 @@ def cross_validate(
 
 
 def _fold_network_options(ann_options: dict | None) -> dict:
-    """The caller's network options with the fold budget: one restart, ≤ 60 LM iterations, ≤ 1,000 rows."""
+    """The caller's network options with the fold budget: one restart, ≤ 40 LM iterations, ≤ 1,000 rows."""
     opts = {**dict(ann_options or {}), "restarts": CV_RESTARTS}
     if opts.get("trainer", "lm") == "lm":
         opts["max_iter"] = min(int(opts.get("max_iter") or CV_MAX_ITER), CV_MAX_ITER)
