@@ -9,6 +9,7 @@ from labcal.calibration import Observations, fit
 from labcal.calibration.cv import CVResult, choose, cross_validate, fold_count, fold_plan
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
+from labcal.simulation import scenarios as S
 
 TARGETS = np.array([[0.12, 0.0, 0.05], [-0.06, 0.15, 0.05], [-0.07, -0.11, 0.04]])
 UR10 = load("ur10")
@@ -233,3 +234,24 @@ def test_same_data_and_seed_give_the_same_choice_errors_and_parameters():
     if a.robot.network is not None:
         for x, y in zip(a.robot.network.weights, b.robot.network.weights, strict=True):
             assert np.array_equal(x, y)
+
+
+CORRUPTIONS = {
+    "targets t1 and t2 swapped": lambda g: S.swapped_targets(g),
+    "degrees read as radians": lambda g: S.degrees_as_radians(g),
+    "mm read as m": lambda g: S.unit_slip(g, 1000.0),
+    "m read as mm": lambda g: S.unit_slip(g, 0.001),
+    "inches read as mm": lambda g: S.unit_slip(g, 25.4),
+    "pure noise": lambda g: S.pure_noise(g),
+    "tracker-frame points read as base frame": lambda g: S.in_tracker_frame(g),
+}
+
+
+@pytest.mark.parametrize("case", list(CORRUPTIONS))
+def test_corrupted_data_never_fit_without_a_blocking_warning(case):
+    good = S.good("ur10", 60, seed=0)
+    arrays = CORRUPTIONS[case](good).arrays()
+    arrays["frame"] = "base"  # the mistake in the last case: tracker-frame points imported as base frame
+    result = fit(Observations(**arrays), UR10.model, "local-poe")
+    assert codes(result) & {"poor-fit", "large-correction"}, result.warnings
+    assert fit(Observations(**good.arrays()), UR10.model, "local-poe").warnings == []
