@@ -19,7 +19,8 @@ def demo(
     out_dir: Path | None = typer.Option(
         None, "--out", help="Folder for the store, exports and report (default: a new temp folder)."
     ),
-    poses: int = typer.Option(120, "--poses", help="Simulated configurations (half train, half validation)."),
+    poses: int = typer.Option(120, "--poses", help="Simulated configurations to calibrate on (every row is fitted)."),
+    held_out: int = typer.Option(60, "--held-out", help="Fresh configurations, recorded apart, that score each fit."),
     seed: int = typer.Option(0, "--seed", help="Seed of the simulated robot, planner and fits."),
 ) -> None:
     """A simulated UR10 with geometric and non-geometric errors: record, fit every method, export, report.
@@ -27,32 +28,43 @@ def demo(
     Example: labcal demo --out /tmp/labcal-demo
     """
     from labcal.cli.ops import export_fit, new_session, open_store, run_fit
+    from labcal.cli.ops.evaluating import evaluate_fit
     from labcal.reports import write_session_report
 
     root = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="labcal-demo-"))
     root.mkdir(parents=True, exist_ok=True)
-    store = open_store(root / "sessions")
+    store = open_store(root / "sessions", create=True)
     targets = root / "targets.toml"
     targets.write_text(DEMO_TARGETS)
-    out.print(f"1/4 recording {poses} poses on the sim rig (ur10, geometric + compliance + gear errors)", markup=False)
-    summary = new_session(store, robot="ur10", targets_file=targets, poses=poses, seed=seed, sim_errors="default")
-    ref = summary.ref
-    if ref is None:
-        raise RuntimeError(f"the simulated session did not produce a version: {summary.reason}")
-    table = Table(title=f"demo: {ref} — validation rows, after calibration (before → after)", title_justify="left")
-    for col in ("method", "fit", "pos mean mm", "pos max mm", "ori mean °", "ori max °"):
+    sessions = {}
+    for what, count, plan_seed in (("calibration", poses, seed), ("held-out", held_out, seed + 1000)):
+        out.print(f"1/4 recording {count} {what} poses on the sim rig (ur10, geometric + compliance + gear errors)")
+        # The same simulated robot (errors seeded by seed) at other planned configurations.
+        summary = new_session(
+            store, robot="ur10", targets_file=targets, poses=count, seed=plan_seed, sim_seed=seed, sim_errors="default"
+        )
+        if summary.ref is None:
+            raise RuntimeError(f"the simulated {what} session did not produce a version: {summary.reason}")
+        sessions[what] = summary.ref
+    ref, held = sessions["calibration"], sessions["held-out"]
+    table = Table(
+        title=f"demo: fitted on {ref} (every row), scored on the held-out {held} (before → after)",
+        title_justify="left",
+    )
+    for col in ("method", "fit", "point mean mm", "point max mm", "pos mean mm", "ori mean °"):
         table.add_column(col)
     fits = {}
     for method in METHODS:
-        out.print(f"2/4 fitting {method}", markup=False)
+        out.print(f"2/4 fitting {method}, scoring it on the held-out poses", markup=False)
         outcome = run_fit(store, [ref], method, seed=seed)
         fits[method] = outcome.fit_id
-        val = outcome.result.metrics.get("val") or outcome.result.metrics["all"]
-        b, a = val["before"], val["after"]
+        scored = evaluate_fit(store, outcome.fit_id, held).evaluation["metrics"]["all"]
+        b, a = scored["before"], scored["after"]
+        pb, pa = scored["points"]["before"], scored["points"]["after"]
         table.add_row(
             method, outcome.fit_id,
-            f"{mm(b['pos_mean'])} → {mm(a['pos_mean'])}", f"{mm(b['pos_max'])} → {mm(a['pos_max'])}",
-            f"{deg(b['ori_mean'])} → {deg(a['ori_mean'])}", f"{deg(b['ori_max'])} → {deg(a['ori_max'])}",
+            f"{mm(pb['mean'])} → {mm(pa['mean'])}", f"{mm(pb['max'])} → {mm(pa['max'])}",
+            f"{mm(b['pos_mean'])} → {mm(a['pos_mean'])}", f"{deg(b['ori_mean'])} → {deg(a['ori_mean'])}",
         )  # fmt: skip
     out.print("3/4 exporting (compensator json + URScript of the hybrid, URDF of local POE)", markup=False)
     exports = root / "exports"

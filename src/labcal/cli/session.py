@@ -104,6 +104,9 @@ def new(
     samples: int = typer.Option(2000, "--samples", help="Candidate pool size of the optimal planner."),
     seed: int = typer.Option(0, "--seed", help="Seed of the planner and the simulator."),
     sim_errors: str = typer.Option("default", "--sim-errors", help="Sim robot errors: paper | default | none."),
+    sim_seed: int | None = typer.Option(
+        None, "--sim-seed", help="Seed of the simulated robot's errors (default --seed): measure the same robot again."
+    ),
     allow: list[str] = typer.Option([], "--allow", help=ALLOW_HELP),
     store: Path | None = StoreOption,
 ) -> None:
@@ -115,7 +118,11 @@ def new(
     Exit 0 on success, 1 when the run failed (e.g. no valid measurement) or paused, 130 after Ctrl-C, 2 for a bad
     argument or an unusable store (checked before anything is planned or moved).
 
-    Example: labcal session new --robot ur10 --robot-driver sim --tracker-driver sim --targets t.toml --poses 60
+    Examples:
+
+      labcal session new --robot ur10 --robot-driver sim --tracker-driver sim --targets t.toml --poses 60
+
+      labcal session new --robot ur10 --targets t.toml --poses 40 --seed 7 --sim-seed 0   # same sim robot, new poses
     """
     from labcal.cli.ops import new_session
     from labcal.cli.ops.sessions import check_plan_size
@@ -133,7 +140,7 @@ def new(
         summary = new_session(
             st, robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver,
             tracker_driver=tracker_driver, profile=profile, tracker_profile=tracker_profile, planner=planner,
-            samples=samples, seed=seed, sim_errors=sim_errors, progress=progress, allow=tuple(allow),
+            samples=samples, seed=seed, sim_errors=sim_errors, progress=progress, allow=tuple(allow), sim_seed=sim_seed,
         )  # fmt: skip
     _end_run(
         summary,

@@ -66,7 +66,17 @@ def check_plan_size(poses: int, planner: str = "random", samples: int = 2000) ->
             raise UserError(f"--samples ({samples}) must be at least --poses ({poses}) for the optimal planner")
 
 
-def _drivers(robot_driver, tracker_driver, spec, targets, *, profile, tracker_profile, sim_errors, seed):
+def _sim_rig(spec: RobotSpec, targets, sim: dict):
+    """The sim rig of a session's recorded ``sim`` metadata: the simulated robot's errors come from ``seed``, the
+    tracker noise from ``noise_seed`` (the same seed unless another session of the same robot was asked for)."""
+    from labcal.drivers.sim import SimRig
+
+    actual = sim_actual(spec, sim["errors"], int(sim["seed"]))
+    # The simulated controller speaks the robot file's controller joints, as the real one would.
+    return SimRig(actual, targets, seed=int(sim.get("noise_seed", sim["seed"])), joint_map=spec.joint_map)
+
+
+def _drivers(robot_driver, tracker_driver, spec, targets, *, profile, tracker_profile, sim_errors, seed, sim_seed):
     """(robot, tracker, frame, metadata, closers) for the chosen drivers."""
     if robot_driver not in ROBOT_DRIVERS:
         raise UserError(f"--robot-driver must be one of {', '.join(ROBOT_DRIVERS)}, got {robot_driver!r}")
@@ -75,11 +85,9 @@ def _drivers(robot_driver, tracker_driver, spec, targets, *, profile, tracker_pr
     if (robot_driver == "sim") != (tracker_driver == "sim"):
         raise UserError("the sim robot and the sim tracker go together: use --robot-driver sim --tracker-driver sim")
     if robot_driver == "sim":
-        from labcal.drivers.sim import SimRig
-
-        # The simulated controller speaks the robot file's controller joints, as the real one would.
-        rig = SimRig(sim_actual(spec, sim_errors, seed), targets, seed=seed, joint_map=spec.joint_map)
-        return rig.robot(), rig.tracker(), "base", {"sim": {"errors": sim_errors, "seed": seed}}
+        sim = {"errors": sim_errors, "seed": seed if sim_seed is None else sim_seed, "noise_seed": seed}
+        rig = _sim_rig(spec, targets, sim)
+        return rig.robot(), rig.tracker(), "base", {"sim": sim}
     from labcal.drivers.serial_tracker import open_tracker
     from labcal.drivers.ur import URRobot, load_ur_profile
 
@@ -106,8 +114,12 @@ def new_session(
     sim_errors: str = "default",
     progress=None,
     allow: tuple[str, ...] = (),
+    sim_seed: int | None = None,
 ):
     """Plan and record a session; returns the runner's RunSummary (its .ref is the new SESSION@vNNN).
+
+    seed: the planner's and the sim rig's (robot errors and tracker noise); sim_seed: another simulated robot's
+    errors than seed's (the same robot as another session's seed, measured at other configurations).
 
     allow: record-time sanity checks to override (see :mod:`labcal.datasets.sanity`), checked before planning."""
     from labcal.datasets import load_targets
@@ -124,7 +136,7 @@ def new_session(
     plan = make_plan(q, samples=3 if sim else 5, settle=0.0 if sim else 0.5)
     rob, trk, frame, meta = _drivers(
         robot_driver, tracker_driver, spec, targets, profile=profile, tracker_profile=tracker_profile,
-        sim_errors=sim_errors, seed=seed,
+        sim_errors=sim_errors, seed=seed, sim_seed=sim_seed,
     )  # fmt: skip
     with rob, trk:
         return run(store, spec, targets, plan, rob, trk, frame=frame, progress=progress, metadata=meta, allow=allowed)
@@ -142,7 +154,6 @@ def resume_session(
     """Resume a session; a sim session re-creates its simulated robot from the recorded errors and seed.
 
     allow: record-time sanity checks to override, added to those the session was started with."""
-    from labcal.drivers.sim import SimRig
     from labcal.sessions import resume
 
     meta = store.session_meta(session_id)
@@ -153,8 +164,6 @@ def resume_session(
             f"session {session_id} was not recorded on the sim rig; resume real-hardware sessions from Python with "
             "the same drivers (labcal.sessions.resume)"
         )
-    targets = np.asarray(meta["targets"], dtype=float)
-    seed = int(sim["seed"])
-    rig = SimRig(sim_actual(spec, sim["errors"], seed), targets, seed=seed, joint_map=spec.joint_map)
+    rig = _sim_rig(spec, np.asarray(meta["targets"], dtype=float), sim)
     with rig.robot() as rob, rig.tracker() as trk:
         return resume(store, session_id, rob, trk, spec=spec, progress=progress, allow=_allowed(allow))
