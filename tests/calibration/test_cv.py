@@ -255,3 +255,14 @@ def test_corrupted_data_never_fit_without_a_blocking_warning(case):
     result = fit(Observations(**arrays), UR10.model, "local-poe")
     assert codes(result) & {"poor-fit", "large-correction"}, result.warnings
     assert fit(Observations(**good.arrays()), UR10.model, "local-poe").warnings == []
+
+
+def test_four_poses_every_method_but_ann_runs_and_says_what_it_could_not_do():
+    q = random_poses(4)  # 36 numbers: local POE on all of them, but no fold of three poses can identify it
+    obs = Observations(q, measure(q), TARGETS)
+    for method in ("local-poe", "hybrid", "auto"):
+        r = fit(obs, UR10.model, method)
+        assert r.robot.network is None and r.cv["failures"]["local-poe"].startswith("fold 1: local-POE")
+        assert any("local POE" in n or "local-poe" in n for n in r.notes)
+    with pytest.raises(ValueError, match="'ann' cannot be fitted"):
+        fit(obs, UR10.model, "ann")

@@ -352,9 +352,10 @@ def _auto(fit_obs, obs, nominal, before, stage1, cv, candidates, hybrid_cands, s
     from labcal.calibration.hybrid import finish_hybrid
 
     pick = [c for c in candidates if c != "nominal"]
-    if cv is None:
+    if cv is None or not cv.available("local-poe"):
         choice = "local-poe"
-        notes.append("auto fell back to local-poe: too few distinct poses to cross-validate the learned stages")
+        why = "too few distinct poses" if cv is None else "too few poses in a fold to identify local POE"
+        notes.append(f"auto fell back to local-poe: {why} to cross-validate the learned stages")
     else:
         choice = choose(cv, tuple(pick))
         skipped = [c for c in pick if not cv.available(c)]
@@ -425,6 +426,10 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
                 "Measure more, better spread configurations (every joint moved, not only single-joint sweeps)",
             ))  # fmt: skip
     in_sample = float(np.mean(point_errors(robot, fit_obs)))
+    if cv is not None and not cv.available(chosen_key):
+        notes.append(
+            f"no cross-validated error for {chosen_key}: {cv.failures.get(chosen_key, 'no fold could fit it')}"
+        )
     if cv is not None and chosen_key in cv.rows:
         e_cv = cv.mean(chosen_key)
         common = np.isfinite(cv.rows.get("nominal", np.nan)) & np.isfinite(cv.rows[chosen_key])

@@ -160,7 +160,11 @@ def finish_hybrid(fit_obs, obs, stage1, cv, candidates, *, seed, series_full, an
             if c != "local-poe" and not cv.available(c):
                 skipped[c] = cv.failures.get(c, "not evaluated")
                 notes.append(f"stage-skipped: {c}: {skipped[c]}")
-        kept = choice or choose(cv, candidates)
+        if cv.available("local-poe"):
+            kept = choice or choose(cv, candidates)
+        else:  # not even local POE could be fitted on a fold's rows: nothing to compare a learned stage with
+            notes.append(f"stage-skipped: no fold could fit local POE ({cv.failures.get('local-poe', '')}): kept it")
+            kept = "local-poe"
     robot, stage_info = robot1, {}
     if kept == "hybrid+series":
         robot, stage_info = series_full
