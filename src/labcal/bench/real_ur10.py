@@ -226,7 +226,8 @@ def table(runs: list[Run], size: int, methods: tuple[str, ...]) -> str:
         for arrs, scale in (("pos", 1e3), ("ori", 1e3)):
             for what in ("mean", "p95", "max"):
                 row.append(_cell([_stat(getattr(r, arrs)[m], what) for r in rs], scale))
-        row.append(_cell([r.val.get(m, math.nan) for r in rs], 1e3))
+        vals = [r.val.get(m, math.nan) for r in rs]
+        row.append("-" if all(math.isnan(v) for v in vals) else _cell(vals, 1e3))  # no val rows: nothing to show
         row.append(_cell([r.seconds.get(m, math.nan) for r in rs], 1.0, 1) if m != "auto" else "-")
         rows.append(row)
     widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
