@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -148,8 +150,12 @@ def test_every_method_runs_on_few_pose_sweeps_and_singular_wrists(case):
         for method in ("hybrid", "auto"):
             notes = " ".join(results[method].notes)
             assert "stage-skipped: hybrid+ann" in notes and "joint 5 near a singular value" in notes
-        with pytest.raises(ValueError, match=r"'ann' cannot be fitted: too few rows.*joint 5 near a singular value"):
-            fit(obs, UR10.model, "ann", seed=0)
+        # ann runs, but what it could not learn blocks the export: the fit is the registered nominal
+        ann = fit(obs, UR10.model, "ann", seed=0)
+        assert ann.robot.network is None and ann.robot.model is ann.before.model
+        (first, *_) = ann.warnings
+        assert first["code"] == "no-network"
+        assert re.search(r"could not be trained: too few rows.*joint 5 near a singular value", first["message"])
     else:
         assert fit(obs, UR10.model, "ann", seed=0, restarts=1).robot.network is not None
 
@@ -257,12 +263,12 @@ def test_corrupted_data_never_fit_without_a_blocking_warning(case):
     assert fit(Observations(**good.arrays()), UR10.model, "local-poe").warnings == []
 
 
-def test_four_poses_every_method_but_ann_runs_and_says_what_it_could_not_do():
+def test_four_poses_every_method_runs_and_says_what_it_could_not_do():
     q = random_poses(4)  # 36 numbers: local POE on all of them, but no fold of three poses can identify it
     obs = Observations(q, measure(q), TARGETS)
     for method in ("local-poe", "hybrid", "auto"):
         r = fit(obs, UR10.model, method)
         assert r.robot.network is None and r.cv["failures"]["local-poe"].startswith("fold 1: local-POE")
         assert any("local POE" in n or "local-poe" in n for n in r.notes)
-    with pytest.raises(ValueError, match="'ann' cannot be fitted"):
-        fit(obs, UR10.model, "ann")
+    ann = fit(obs, UR10.model, "ann")
+    assert ann.robot.network is None and [w["code"] for w in ann.warnings][:1] == ["no-network"]

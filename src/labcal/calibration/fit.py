@@ -262,7 +262,7 @@ def _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, 
     if method == "local-poe":
         robot, info, chosen = stage1[0], stage1[1], "local-poe"
     elif method == "ann":
-        robot, info = timed("ann", lambda: _fit_ann_or_explain(fit_obs, before, seed, options, cv))
+        robot, info = timed("ann", lambda: _fit_ann_or_nominal(fit_obs, before, seed, options))
         chosen = "ann"
     else:
         from labcal.calibration.hybrid import STAGE2, finish_hybrid
@@ -298,6 +298,8 @@ def _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, 
         chosen_key, info_cv = chosen, None
     metrics = _split_table(before, robot, obs)
     warnings = _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, seed, notes)
+    if "no_network" in info:
+        warnings.insert(0, {"code": "no-network", "message": info["no_network"] + ": use local-poe or hybrid"})
     for w in warnings:
         say(f"warning [{w['code']}]: {w['message']}")
     return _result(method, chosen, robot, before, info, obs, counts, seed, seconds, warnings, notes, info_cv, metrics)
@@ -331,13 +333,17 @@ def _cv_key(chosen: str, info: dict) -> str:
     return chosen
 
 
-def _fit_ann_or_explain(fit_obs, before, seed, options, cv):
+def _fit_ann_or_nominal(fit_obs, before, seed, options):
+    """The paper's network on the registered nominal; where too few rows can train it (a singular wrist in most
+    poses …), the registered nominal itself, with the reason in ``info["no_network"]`` (a blocking warning): the
+    method runs on any data, and what it could not learn is said, not exported by accident."""
     from labcal.calibration.ann import fit_ann
 
     try:
         robot, info = fit_ann(fit_obs, before, seed=seed, **options)
     except ObservationError as err:  # NetworkDataError: too few usable rows, the message names the cause
-        raise ValueError(f"method 'ann' cannot be fitted: {err}; use local-poe or hybrid") from err
+        reason = f"the paper's network could not be trained: {err}; this fit is the registered nominal (no correction)"
+        return dataclasses.replace(before, method="ann"), {"method": "ann", "no_network": reason}
     return dataclasses.replace(robot, joint_ranges=_data_ranges(fit_obs.q)), info
 
 
@@ -373,9 +379,12 @@ def _auto(fit_obs, obs, nominal, before, stage1, cv, candidates, hybrid_cands, s
         candidates_info["ann"] = errors["ann"]
     info = {"candidates": candidates_info, "cv_errors": errors, "local-poe": stage1[1]}
     if choice == "ann":
-        robot, ann_info = timed("ann", lambda: _fit_ann_or_explain(fit_obs, before, seed, options, cv))
+        robot, ann_info = timed("ann", lambda: _fit_ann_or_nominal(fit_obs, before, seed, options))
         info["ann"] = ann_info
         chosen = "ann"
+        if "no_network" in ann_info:  # it cross-validated, yet the refit on all rows found too few usable rows
+            notes.append(f"auto fell back to local-poe: {ann_info.pop('no_network')}")
+            robot, chosen = stage1[0], "local-poe"
     elif choice == "local-poe":
         robot, chosen = stage1[0], "local-poe"
     else:
