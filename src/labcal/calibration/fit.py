@@ -33,16 +33,18 @@ forced) and **notes** (``FitResult.notes``, information). Codes:
 - ``poor-fit``: even on its own fitting rows the chosen model leaves a mean target-point error above
   :data:`POOR_FIT` (wrong units, a wrong or swapped targets file, pure noise: no calibration explains such data);
 - ``large-correction``: ``robot.correct`` moves a joint by more than :data:`MAX_CORRECTION` (0.05 rad revolute,
-  10 mm prismatic) at 10 % or more of the checked configurations — the data's own and 256 random ones within
-  the data's joint ranges, leaving out those with cond(J_ρ S) > 100 (near a singularity any correction is large,
-  see ``_CORRECTION_SHARE``); the message gives the largest. Real joint-level calibration corrections are
-  milliradians; unit slips produced 0.1–0.6 rad;
+  10 mm prismatic) and the nominal tool by more than :data:`MAX_TOOL_CORRECTION` (10 mm or 0.02 rad) at 10 % or
+  more of the checked configurations — the data's own and 256 random ones within the data's joint ranges (near a
+  singular wrist a tiny orientation error needs tenths of a radian at joints 4 and 6 but hardly moves the tool,
+  so the joint bound alone would flag good fits); the message gives the largest. Real calibration corrections
+  are milliradians and millimetres; unit slips produced 0.1–0.6 rad;
 - ``rows-dropped``: a kept network was trained without more than 10 % of the rows (condition filter), with the
   cause of each group; when no network is kept the same count is a note (the dropped rows only ever feed the
   network);
 - ``stage-skipped``: reported as a note ("stage-skipped: …") when hybrid or auto drops a learned stage that could
   not be fitted (too few rows after the condition filter, too few poses to cross-validate): what is kept is
-  still a complete model. ``ann`` alone raises a ValueError naming the cause instead (nothing else to return).
+  still a complete model;
+- ``no-network``: ``ann`` alone could not train its network (the same causes): the fit is the registered nominal.
 
 ``FitResult.cv``: ``{"folds", "scheme": "kfold"|"group", "errors": {candidate: [per-fold mean target-point
 error m, None where skipped]}, "mean", "std", "chosen", "pruned_after", "failures"}``, None for ``nominal`` or
@@ -77,6 +79,7 @@ from labcal.calibration.local_poe import fit_local_poe, register
 from labcal.calibration.metrics import prediction_errors, summarize
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot
+from labcal.kinematics import se3
 from labcal.kinematics.poe import LocalPOEModel
 
 METHODS = ("nominal", "local-poe", "ann", "hybrid", "auto")
@@ -86,10 +89,10 @@ POOR_FIT = 5e-3  # m: mean target-point error on the fitting rows above which no
 MAX_CORRECTION = {"revolute": 0.05, "prismatic": 0.01}  # rad, m: largest joint correction accepted silently
 DROPPED_SHARE = 0.10  # share of rows a kept network may miss before it is a warning
 _CORRECTION_SAMPLES = 256  # random configurations within the data's joint ranges for the correction check
-_SINGULAR = 1e2  # cond(J_ρ S) above which a configuration is left out of the correction check
-# Share of the checked configurations that must exceed the bound: near a singularity (a wrist at q5 ≈ 0.01) a
-# milliradian orientation error needs a tenth of a radian at joints 4 and 6, so a few configurations always do;
-# a unit slip or a wrong model exceeds it nearly everywhere.
+# m, rad: a correction that moves the nominal tool less than this is the size of real robot errors (mm, < 1°)
+MAX_TOOL_CORRECTION = (0.01, 0.02)
+# Share of the checked configurations that must exceed both bounds: a unit slip or a wrong model exceeds them
+# nearly everywhere, a good fit at most in a few extrapolated corners of its data's joint ranges.
 _CORRECTION_SHARE = 0.10
 
 
@@ -487,34 +490,39 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
 
 
 def _large_correction(robot, q_data: np.ndarray, seed: int) -> str | None:
-    """A message when robot.correct moves a joint further than MAX_CORRECTION (module docstring), else None."""
+    """A message when robot.correct makes large corrections (module docstring: MAX_CORRECTION), else None.
+
+    A correction is large when it moves a joint beyond MAX_CORRECTION *and* moves the nominal tool beyond
+    MAX_TOOL_CORRECTION: near a singular wrist a milliradian of orientation error needs tenths of a radian at
+    joints 4 and 6 while the tool barely moves, which is the geometry, not a bad fit; a unit slip or a wrong model
+    moves both, nearly everywhere.
+    """
     if robot.network is None and robot.model is robot.nominal:
         return None
     lo, hi = q_data.min(axis=0), q_data.max(axis=0)
     rng = np.random.default_rng([seed, 49979687])
     q = np.concatenate([q_data, rng.uniform(lo, hi, size=(_CORRECTION_SAMPLES, q_data.shape[1]))])
-    if robot.n <= 6:
-        from labcal.calibration.equivalent import condition_numbers
-
-        J = robot.nominal.equivalent_jacobian(q, length_scale=robot.length_scale)
-        scale = np.array([1.0 / robot.length_scale] * 3 + [1.0] * 3)[:, None]  # metres → radians-equivalent
-        q = q[condition_numbers(J * scale, np.ones(6)) < _SINGULAR]
-    if q.shape[0] == 0:
-        return None
     with np.errstate(all="ignore"):
-        dq = np.abs(robot.correct(q, extrapolate=True) - q)
+        q_cmd = robot.correct(q, extrapolate=True)
+        dq = np.abs(q_cmd - q)
+        moved, turned = se3.pose_distance(robot.nominal.fk(q), robot.nominal.fk(np.nan_to_num(q_cmd)))
     bound = np.array([MAX_CORRECTION.get(t, MAX_CORRECTION["revolute"]) for t in robot.model.joint_types])
     over = np.nan_to_num(dq, nan=np.inf) / bound
-    share = float(np.mean(np.any(over > 1.0, axis=1)))
+    tool = (moved > MAX_TOOL_CORRECTION[0]) | (turned > MAX_TOOL_CORRECTION[1]) | ~np.isfinite(moved)
+    large = np.any(over > 1.0, axis=1) & tool
+    share = float(np.mean(large))
     if share < _CORRECTION_SHARE:
         return None
+    over = np.where(large[:, None], over, 0.0)
     i, j = np.unravel_index(int(np.argmax(over)), over.shape)
     unit, factor = ("rad", 1.0) if robot.model.joint_types[j] != "prismatic" else ("mm", 1e3)
     return (
-        f"the compensator would move joint {j + 1} by {dq[i, j] * factor:.3g} {unit} (bound "
-        f"{bound[j] * factor:g} {unit}; {share:.0%} of {q.shape[0]} checked configurations within the data's joint "
-        "ranges exceed it): real calibration corrections are milliradians — a unit slip (degrees as radians, "
-        "mm as m) or a wrong robot model is likely"
+        f"the compensator would move joint {j + 1} by {dq[i, j] * factor:.3g} {unit} and the tool by "
+        f"{moved[i] * 1e3:.3g} mm / {np.degrees(turned[i]):.2g}° (bounds {bound[j] * factor:g} {unit}, "
+        f"{MAX_TOOL_CORRECTION[0] * 1e3:g} mm / {np.degrees(MAX_TOOL_CORRECTION[1]):.2g}°; {share:.0%} of "
+        f"{q.shape[0]} checked configurations within the data's joint ranges exceed both): real calibration "
+        "corrections are milliradians and millimetres — a unit slip (degrees as radians, mm as m) or a wrong robot "
+        "model is likely"
     )
 
 
