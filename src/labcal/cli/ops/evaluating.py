@@ -55,17 +55,14 @@ def _now() -> str:
 def register_base(robot, obs) -> tuple[np.ndarray, float]:
     """Least-squares T_tracker_base of robot on obs (tracker frame): the rigid transform that best maps the robot's
     predicted base-frame target points onto the measured ones, all points pooled (Kabsch). Returns (T, rms m)."""
+    from labcal.calibration.observations import rigid_fit
+
     pred = robot.predict_points(obs.q, obs.targets).reshape(-1, 3)
     meas = np.asarray(obs.points, dtype=float).reshape(-1, 3)
     ok = np.isfinite(meas).all(axis=1)
     a, b = pred[ok], meas[ok]
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, cb - R @ ca
-    rms = float(np.sqrt(np.mean(np.sum((b - (a @ R.T + T[:3, 3])) ** 2, axis=1))))
+    T = rigid_fit(a, b[None])[0]
+    rms = float(np.sqrt(np.mean(np.sum((b - (a @ T[:3, :3].T + T[:3, 3])) ** 2, axis=1))))
     return T, rms
 
 
