@@ -8,24 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
+from cli_testutil import TARGETS, invoke, last_line
 
-from labcal.cli.app import app
 from labcal.compensator import Compensator
 from labcal.datasets import SessionStore
 from labcal.kinematics import from_urdf
-
-TARGETS = 'unit = "mm"\npoints = [[120.0, 0.0, 60.0], [-60.0, 100.0, 60.0], [-60.0, -100.0, 90.0]]\n'
-runner = CliRunner()
-
-
-def invoke(*args, store: Path | None = None):
-    argv = [str(a) for a in args] + (["--store", str(store)] if store is not None else [])
-    return runner.invoke(app, argv)
-
-
-def last_line(result) -> str:
-    return result.stdout.strip().splitlines()[-1]
 
 
 def assert_user_error(result, *fragments: str) -> None:

@@ -8,28 +8,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
+from cli_testutil import SWAPPED, TARGETS, invoke, last_line
 
-from labcal.cli.app import app
 from labcal.cli.ops.evaluating import list_evaluations
 from labcal.cli.ops.sessions import sim_actual
 from labcal.datasets import SessionStore, load_targets
 from labcal.kinematics import se3
 from labcal.robots import load
 
-TARGETS = 'unit = "mm"\npoints = [[120.0, 0.0, 60.0], [-60.0, 100.0, 60.0], [-60.0, -100.0, 90.0]]\n'
-SWAPPED = 'unit = "mm"\npoints = [[-60.0, 100.0, 60.0], [120.0, 0.0, 60.0], [-60.0, -100.0, 90.0]]\n'
 SEED = 11
-runner = CliRunner()
-
-
-def invoke(*args, store: Path | None = None):
-    argv = [str(a) for a in args] + (["--store", str(store)] if store is not None else [])
-    return runner.invoke(app, argv)
-
-
-def last_line(result) -> str:
-    return result.stdout.strip().splitlines()[-1]
 
 
 def one_line_error(result, *fragments: str) -> None:
