@@ -285,3 +285,16 @@ def test_a_good_fit_of_singular_wrist_sweeps_is_not_a_large_correction():
     dq = np.abs(r.robot.correct(obs.q, extrapolate=True) - obs.q)
     assert dq.max() > 0.1  # the wrist joints do move by tenths of a radian on these data…
     assert "large-correction" not in codes(r), r.warnings  # …and the fit is still good
+
+
+def test_fewer_than_two_poses_per_joint_block_the_export_even_when_the_fit_looks_good():
+    """The import refuses such data unless --allow few-poses; the fit must not turn that override into an export."""
+    q = random_poses(12)
+    eleven = fit(Observations(q[:11], measure(q[:11]), TARGETS), UR10.model, "local-poe")
+    assert "few-poses" in codes(eleven)
+    assert "only 11 distinct poses" in next(w["message"] for w in eleven.warnings if w["code"] == "few-poses")
+    twelve = fit(Observations(q, measure(q), TARGETS), UR10.model, "local-poe")
+    assert "few-poses" not in codes(twelve)
+    # a pose measured twice is one pose
+    repeated = np.concatenate([q[:11], q[:1]])
+    assert "few-poses" in codes(fit(Observations(repeated, measure(repeated), TARGETS), UR10.model, "local-poe"))

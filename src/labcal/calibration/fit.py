@@ -44,6 +44,8 @@ forced) and **notes** (``FitResult.notes``, information). Codes:
 - ``stage-skipped``: reported as a note ("stage-skipped: …") when hybrid or auto drops a learned stage that could
   not be fitted (too few rows after the condition filter, too few poses to cross-validate): what is kept is
   still a complete model;
+- ``few-poses``: fewer than 2 distinct poses per joint were fitted (the import's ``few-poses`` check, which
+  ``--allow few-poses`` overrides at import but not here);
 - ``no-network``: ``ann`` alone could not train its network (the same causes): the fit is the registered nominal.
 
 ``FitResult.cv``: ``{"folds", "scheme": "kfold"|"group", "errors": {candidate: [per-fold mean target-point
@@ -87,6 +89,7 @@ OVERFIT_RATIO = 10.0  # CV error / in-sample error above which the model interpo
 OVERFIT_NOTE_RATIO = 2.0  # above this a note: CV error ≫ fit error, the in-sample numbers flatter the model
 POOR_FIT = 5e-3  # m: mean target-point error on the fitting rows above which no model explains the data
 MAX_CORRECTION = {"revolute": 0.05, "prismatic": 0.01}  # rad, m: largest joint correction accepted silently
+MIN_POSES_PER_JOINT = 2  # as labcal.datasets.sanity's few-poses check: below it a fit is a warning
 DROPPED_SHARE = 0.10  # share of rows a kept network may miss before it is a warning
 _CORRECTION_SAMPLES = 256  # random configurations within the data's joint ranges for the correction check
 # m, rad: a correction that moves the nominal tool less than this is the size of real robot errors (mm, < 1°)
@@ -423,6 +426,14 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
     from labcal.calibration.cv import point_errors
 
     warnings: list[dict] = []
+    distinct = len(np.unique(fit_obs.q, axis=0))
+    if distinct < MIN_POSES_PER_JOINT * fit_obs.n:
+        warnings.append(_warn(
+            "few-poses",
+            f"only {distinct} distinct poses for a robot with {fit_obs.n} joints (fewer than "
+            f"{MIN_POSES_PER_JOINT} per joint, the least the import checks accept): whatever the errors say, so few "
+            f"poses pin down little of the robot; measure at least {MIN_POSES_PER_JOINT * fit_obs.n} spread poses",
+        ))  # fmt: skip
     uses_stage1 = stage1 is not None and chosen_key != "ann"
     if uses_stage1:
         lp = stage1[1]
