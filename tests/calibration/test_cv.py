@@ -292,7 +292,7 @@ def test_fewer_than_two_poses_per_joint_block_the_export_even_when_the_fit_looks
     q = random_poses(12)
     eleven = fit(Observations(q[:11], measure(q[:11]), TARGETS), UR10.model, "local-poe")
     assert "few-poses" in codes(eleven)
-    assert "only 11 distinct poses" in next(w["message"] for w in eleven.warnings if w["code"] == "few-poses")
+    assert "only 11 distinct pose(s)" in next(w["message"] for w in eleven.warnings if w["code"] == "few-poses")
     twelve = fit(Observations(q, measure(q), TARGETS), UR10.model, "local-poe")
     assert "few-poses" not in codes(twelve)
     # a pose measured twice is one pose

@@ -414,7 +414,8 @@ def _interrupted_session(tmp: Path, poses: int = 40) -> tuple[Run, Path]:
 
 
 def _ctrl_c(tmp: Path, args) -> Outcome:
-    r, _ = _interrupted_session(tmp, poses=400)
+    # Enough poses that the sim rig (milliseconds a pose on an idle machine) is still recording when SIGINT lands.
+    r, _ = _interrupted_session(tmp, poses=20000)
     stage = "Ctrl-C" if r.code == 130 else ("NOT stopped" if r.code == 0 else "Ctrl-C (exit ≠ 130)")
     return Outcome(stage, r.first_line(), r.code, r.traceback)
 

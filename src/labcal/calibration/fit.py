@@ -430,7 +430,7 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
     if distinct < MIN_POSES_PER_JOINT * fit_obs.n:
         warnings.append(_warn(
             "few-poses",
-            f"only {distinct} distinct poses for a robot with {fit_obs.n} joints (fewer than "
+            f"only {distinct} distinct pose(s) for a robot with {fit_obs.n} joints (fewer than "
             f"{MIN_POSES_PER_JOINT} per joint, the least the import checks accept): whatever the errors say, so few "
             f"poses pin down little of the robot; measure at least {MIN_POSES_PER_JOINT * fit_obs.n} spread poses",
         ))  # fmt: skip
