@@ -547,7 +547,10 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
             lines += [f"![training curve]({cpng})", ""]
         kept = _find(info, "kept")
         if kept:
-            lines += [f"Hybrid: kept **{kept}** (validation decides whether the network stage stays).", ""]
+            lines += [
+                f"Hybrid: kept **{kept}** (cross-validation decides which learned stage, if any, stays).",
+                "",
+            ]
         cands = _find(info, "candidates")
         if isinstance(cands, dict):
             lines += [

@@ -144,7 +144,7 @@ class CVResult:
             "mean": {n: self.mean(n) for n in names},
             "std": spread,
             "chosen": chosen,
-            "metric": "mean target-point distance (m) on the held-out fold",
+            "metric": "mean target-point distance on the held-out fold",
             "pruned_after": dict(self.pruned_after),
             "failures": dict(self.failures),
         }
