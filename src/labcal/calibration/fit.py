@@ -78,7 +78,7 @@ import numpy as np
 
 from labcal.calibration._blas import single_blas_thread
 from labcal.calibration.local_poe import fit_local_poe, register
-from labcal.calibration.metrics import prediction_errors, summarize
+from labcal.calibration.metrics import split_table
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import se3
@@ -126,21 +126,6 @@ class FitResult:
     warnings: list = field(default_factory=list)
     notes: list = field(default_factory=list)
     cv: dict | None = None
-
-
-def _split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observations) -> dict:
-    """metrics.split_table, skipping absent splits."""
-    table = {}
-    for name in ("train", "val", "test", "all"):
-        mask = np.ones(obs.k, bool) if name == "all" else obs.split == name
-        if not mask.any():
-            continue
-        part = obs.subset(mask)
-        table[name] = {
-            "before": summarize(*prediction_errors(before, part)),
-            "after": summarize(*prediction_errors(after, part)),
-        }
-    return table
 
 
 def fit(
@@ -302,7 +287,7 @@ def _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, 
         info_cv = cv.summary(chosen_key)
     else:
         chosen_key, info_cv = chosen, None
-    metrics = _split_table(before, robot, obs)
+    metrics = split_table(before, robot, obs)
     warnings = _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, seed, notes)
     if "no_network" in info:
         warnings.insert(0, {"code": "no-network", "message": info["no_network"] + ": use local-poe or hybrid"})
@@ -317,7 +302,7 @@ def _result(method, chosen, robot, before, info, obs, counts, seed, seconds, war
         chosen=chosen,
         robot=robot,
         before=before,
-        metrics=_split_table(before, robot, obs) if metrics is None else metrics,
+        metrics=split_table(before, robot, obs) if metrics is None else metrics,
         info=info,
         seed=seed,
         n_train=counts["train"],

@@ -57,8 +57,8 @@ def run_fit(
         options["features"] = tuple(features)
     nominal, tool_note = nominal_for(obs, datasets, spec.model)
     result = fit(obs, nominal, method, seed=seed, val_fraction=val_fraction, progress=progress, **options)
-    metrics = fit_metrics(result)
-    gates = fit_gates(result, metrics)
+    metrics = result.metrics
+    gates = fit_gates(result)
     if tool_note:
         gates["notes"] = [tool_note, *gates["notes"]]
     meta = {
@@ -111,18 +111,6 @@ def nominal_for(obs, datasets, model):
     return model.with_tool(mount), note
 
 
-def fit_metrics(result) -> dict:
-    """The fit's split table with per-target point errors (metrics.split_table), whatever the fit computed.
-
-    Recomputed from the result's robots and split data so fit.json always carries the "points" entries.
-    """
-    from labcal.calibration.metrics import split_table
-
-    if result.obs is None:
-        return result.metrics
-    return split_table(result.before, result.robot, result.obs)
-
-
 # Ratio of the per-target point error to the pose error above which the targets do not match the data: the pose is
 # fitted to the measured points, so a wrong targets file (swapped or mis-measured targets) leaves the pose error
 # small while the points themselves are far off. Calibration error moves both alike (ratio near 1 … 3 with targets
@@ -133,7 +121,7 @@ POINT_RATIO = 10.0
 POINT_FLOOR = 2e-3
 
 
-def fit_gates(result, metrics: dict | None = None) -> dict:
+def fit_gates(result) -> dict:
     """{"warnings": [{code, message}], "notes": [str], "cv": dict | None} of a fit result.
 
     Reads ``FitResult.warnings`` / ``notes`` / ``cv`` (PLAN interface 4) where the calibration provides them, and
@@ -146,8 +134,7 @@ def fit_gates(result, metrics: dict | None = None) -> dict:
     notes = [str(n) for n in (getattr(result, "notes", None) or [])]
     cv = getattr(result, "cv", None)
     extra = info_warnings(result.info, result.chosen)
-    metrics = fit_metrics(result) if metrics is None else metrics
-    extra += metric_warnings(metrics, nominal=result.chosen == "nominal")
+    extra += metric_warnings(result.metrics, nominal=result.chosen == "nominal")
     generic = {"warning", "fit-warning"}
     seen_codes = {w["code"] for w in warnings} - generic
     seen_msgs = {w["message"] for w in warnings}
