@@ -32,6 +32,8 @@ forced) and **notes** (``FitResult.notes``, information). Codes:
   nominal's;
 - ``poor-fit``: even on its own fitting rows the chosen model leaves a mean target-point error above
   :data:`POOR_FIT` (wrong units, a wrong or swapped targets file, pure noise: no calibration explains such data);
+- ``point-residuals``: the target points are far off (> 10× the pose error, > 2 mm) while the pose fits: the
+  targets file does not match the data (:func:`labcal.calibration.metrics.point_residual_warning`);
 - ``large-correction``: ``robot.correct`` moves a joint by more than :data:`MAX_CORRECTION` (0.05 rad revolute,
   10 mm prismatic) and the nominal tool by more than :data:`MAX_TOOL_CORRECTION` (10 mm or 0.02 rad) at 10 % or
   more of the checked configurations — the data's own and 256 random ones within the data's joint ranges (near a
@@ -78,7 +80,7 @@ import numpy as np
 
 from labcal.calibration._blas import single_blas_thread
 from labcal.calibration.local_poe import fit_local_poe, register
-from labcal.calibration.metrics import split_table
+from labcal.calibration.metrics import point_residual_warning, split_table
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import se3
@@ -478,6 +480,9 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
             f"was fitted to (above {POOR_FIT * 1e3:g} mm): no robot calibration explains these data — check the "
             "length and angle units, the targets file (order of t1, t2, t3) and the frame (base/tracker)",
         ))  # fmt: skip
+    points = point_residual_warning(metrics.get("all"))
+    if points:
+        warnings.append(points)
     big = _large_correction(robot, fit_obs.q, seed)
     if big:
         warnings.append(_warn("large-correction", big))

@@ -120,3 +120,30 @@ def split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observatio
 def reduction(before: float, after: float) -> float:
     """Percentage reduction of an error statistic (the paper's figure of merit)."""
     return 100.0 * (1.0 - after / before) if before > 0 else float("nan")
+
+
+# The pose is fitted to the measured points, so a wrong targets file (swapped or mis-measured targets) leaves the pose
+# error small while the points themselves are far off; calibration error moves both alike (ratio ~1-3 with targets
+# ~0.1 m from the tool origin). Below POINT_FLOOR (m) the residuals are within a hand-measured targets file's ~1 mm.
+POINT_RATIO = 10.0
+POINT_FLOOR = 2e-3
+
+
+def point_residual_warning(entry: dict) -> dict | None:
+    """{"code": "point-residuals", "message"} when a split-table entry's points are far off while its pose fits.
+
+    entry: one split of :func:`split_table` ({"after": …, "points": {"after": …}}); None when the points agree.
+    """
+    if not entry or "points" not in entry:
+        return None
+    pose, pts = entry["after"].get("pos_mean"), entry["points"]["after"].get("mean")
+    if pose is None or pts is None or not (pts > POINT_FLOOR and pts > POINT_RATIO * pose):
+        return None
+    per = entry["points"]["after"].get("per_target") or []
+    each = ", ".join(f"t{i + 1} {t['mean'] * 1e3:.3f}" for i, t in enumerate(per) if t.get("mean") is not None)
+    return {
+        "code": "point-residuals",
+        "message": f"the measured target points are {pts * 1e3:.3f} mm from their predictions on average (per "
+        f"target mm: {each}) while the pose error is {pose * 1e3:.4f} mm: the targets file does not match the data "
+        "(targets swapped, mis-measured or in the wrong unit)",
+    }

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from labcal.calibration.metrics import point_residual_warning
 from labcal.cli.ops.common import UserError, jsonable, load_observations
 from labcal.compensator import CalibratedRobot, from_payload, to_payload
 from labcal.datasets import SessionStore
@@ -111,41 +112,17 @@ def nominal_for(obs, datasets, model):
     return model.with_tool(mount), note
 
 
-# Ratio of the per-target point error to the pose error above which the targets do not match the data: the pose is
-# fitted to the measured points, so a wrong targets file (swapped or mis-measured targets) leaves the pose error
-# small while the points themselves are far off. Calibration error moves both alike (ratio near 1 … 3 with targets
-# ~0.1 m from the tool origin).
-POINT_RATIO = 10.0
-# m: below this the point residuals are not worth a blocking warning. Above the import's tolerance on target
-# distances (1.5 mm: a hand-measured targets file is ~1 mm off), so a usable but imprecise file is not blocked.
-POINT_FLOOR = 2e-3
-
-
 def fit_gates(result) -> dict:
-    """{"warnings": [{code, message}], "notes": [str], "cv": dict | None} of a fit result.
+    """{"warnings": [{code, message}], "notes": [str], "cv": dict | None} of a fit result, as fit.json stores them.
 
-    Reads ``FitResult.warnings`` / ``notes`` / ``cv`` (PLAN interface 4) where the calibration provides them, and
-    adds what the method diagnostics already say (see :func:`info_warnings`) plus two checks made here on the
-    stored metrics: a validation error not below the registered nominal's (``worse-than-nominal``), and point
-    residuals far above the pose error (``point-residuals``: the targets do not match the data). Every warning
-    blocks ``labcal export`` unless ``--force``. Each code appears once (the calibration's own entry wins).
+    The calibration makes every check (``FitResult.warnings``, see :mod:`labcal.calibration.fit`); each warning
+    blocks ``labcal export`` unless ``--force``.
     """
-    warnings = [_as_warning(w) for w in (getattr(result, "warnings", None) or [])]
-    notes = [str(n) for n in (getattr(result, "notes", None) or [])]
-    cv = getattr(result, "cv", None)
-    extra = info_warnings(result.info, result.chosen)
-    extra += metric_warnings(result.metrics, nominal=result.chosen == "nominal")
-    generic = {"warning", "fit-warning"}
-    seen_codes = {w["code"] for w in warnings} - generic
-    seen_msgs = {w["message"] for w in warnings}
-    for w in extra:
-        if w["code"] in seen_codes or w["message"] in seen_msgs:
-            continue
-        warnings.append(w)
-        seen_msgs.add(w["message"])
-        if w["code"] not in generic:
-            seen_codes.add(w["code"])
-    return {"warnings": warnings, "notes": notes, "cv": cv}
+    return {
+        "warnings": [_as_warning(w) for w in result.warnings],
+        "notes": [str(n) for n in result.notes],
+        "cv": result.cv,
+    }
 
 
 def _as_warning(w) -> dict:
@@ -212,8 +189,8 @@ def info_warnings(info: dict, chosen: str | None = None) -> list[dict]:
 
 
 def metric_warnings(metrics: dict, *, nominal: bool = False) -> list[dict]:
-    """Blocking warnings read off the split table: worse than nominal on held-out rows (not for the nominal
-    itself, which is its own baseline); point residuals."""
+    """Warnings read off a split table (an evaluation's): worse than nominal on held-out rows (not for the nominal
+    itself, which is its own baseline); point residuals (the calibration's own check)."""
     out = []
     for split in () if nominal else ("test", "val"):
         m = metrics.get(split)
@@ -228,18 +205,9 @@ def metric_warnings(metrics: dict, *, nominal: bool = False) -> list[dict]:
                 "spread poses, or a model that over-fits)",
             })  # fmt: skip
             break
-    m = metrics.get("all")
-    if m and "points" in m:
-        pose, pts = m["after"].get("pos_mean"), m["points"]["after"].get("mean")
-        if pose is not None and pts is not None and pts > POINT_FLOOR and pts > POINT_RATIO * pose:
-            per = m["points"]["after"].get("per_target") or []
-            each = ", ".join(f"t{i + 1} {t['mean'] * 1e3:.3f}" for i, t in enumerate(per) if t.get("mean") is not None)
-            out.append({
-                "code": "point-residuals",
-                "message": f"the measured target points are {pts * 1e3:.3f} mm from their predictions on average "
-                f"(per target mm: {each}) while the pose error is {pose * 1e3:.4f} mm: the targets file does not "
-                "match the data (targets swapped, mis-measured or in the wrong unit)",
-            })  # fmt: skip
+    points = point_residual_warning(metrics.get("all"))
+    if points:
+        out.append(points)
     return out
 
 
