@@ -174,6 +174,8 @@ def _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, 
     lp_opts = dict(local_poe_options or {})
     hybrid_opts = {key: options.pop(key) for key in ("stage2", "series_options") if key in options}
     stage2 = tuple(hybrid_opts.get("stage2", ("ann", "series")))
+    if not stage2 or any(name not in ("ann", "series") for name in stage2):
+        raise ValueError(f"stage2 must name 'ann' and/or 'series', got {stage2!r}")
     series_opts = hybrid_opts.get("series_options")
     fit_obs = obs.where("train")
     seconds: dict[str, float] = {}

@@ -28,7 +28,6 @@ import math
 
 import numpy as np
 
-from labcal.calibration.local_poe import fit_local_poe
 from labcal.calibration.metrics import prediction_errors
 from labcal.calibration.observations import Observations
 from labcal.compensator import CalibratedRobot
@@ -51,7 +50,6 @@ def fit_hybrid(
     nominal: LocalPOEModel,
     *,
     seed: int = 0,
-    stage1: tuple[CalibratedRobot, dict] | None = None,
     local_poe_options: dict | None = None,
     stage2: tuple[str, ...] = ("ann", "series"),
     series_options: dict | None = None,
@@ -60,10 +58,10 @@ def fit_hybrid(
 ) -> tuple[CalibratedRobot, dict]:
     """Local POE on every fitting row, then the learned term that cross-validation supports, refitted on all rows.
 
-    Fitting rows: "train" and unassigned; "val" rows are only measured (``val_error`` in the info), "test" rows
-    ignored. stage1: an already computed ``fit_local_poe`` result on the fitting rows to reuse (the folds refit
-    their own). stage2: the learned terms to try ("ann", "series"). ann_options go to ``fit_ann`` (hidden,
-    features, trainer, restarts, loss — default "task" here); series_options to ``fit_joint_series``.
+    ``fit(obs, nominal, "hybrid", …)`` without its metrics and checks: (robot, info). Fitting rows: "train" and
+    unassigned; "val" rows are only measured (``val_error`` in the info), "test" rows ignored. stage2: the learned
+    terms to try ("ann", "series"). ann_options go to ``fit_ann`` (hidden, features, trainer, restarts, loss —
+    default "task" here); series_options to ``fit_joint_series``.
 
     Returns the kept robot (method "hybrid"; the local-POE robot relabelled when no learned term helped) and
     info: ``kept`` ("local-poe+ann", "local-poe+series" or "local-poe"), ``val_error_local_poe`` and
@@ -72,51 +70,13 @@ def fit_hybrid(
     ``cv`` (:meth:`CVResult.summary`), ``skipped`` {candidate: why}, ``notes``, ``local_poe`` and the kept
     stage's info.
     """
-    from labcal.calibration._blas import single_blas_thread
+    from labcal.calibration.fit import fit  # fit() runs the hybrid's stages; this is its (robot, info) view
 
-    with single_blas_thread():
-        return _fit_hybrid(obs, nominal, seed, stage1, local_poe_options, stage2, series_options, progress, ann_options)
-
-
-def _fit_hybrid(obs, nominal, seed, stage1, local_poe_options, stage2, series_options, progress, ann_options):
-    from labcal.calibration.cv import cross_validate, fold_plan
-
-    unknown = [name for name in stage2 if name not in STAGE2]
-    if unknown or not stage2:
-        raise ValueError(f"stage2 must name 'ann' and/or 'series', got {stage2!r}")
-    say = progress or (lambda _msg: None)
-    fit_obs = obs.subset(np.isin(obs.split, ("train", "")))
-    fit_obs = fit_obs.with_split(np.full(fit_obs.k, "train", dtype=object))
-    if stage1 is None:
-        say("hybrid: stage 1, local-POE identification")
-        stage1 = fit_local_poe(fit_obs, nominal, **(local_poe_options or {}))
-    folds, scheme = fold_plan(fit_obs, seed)
-    candidates = ("local-poe", *(STAGE2[name] for name in ("series", "ann") if name in stage2))
-    series_full, notes = prefit_series(fit_obs, stage1[0], candidates, seed, series_options, say)
-    if series_full is None:
-        candidates = tuple(c for c in candidates if c != "hybrid+series")
-    if folds:
-        cv = cross_validate(
-            fit_obs,
-            nominal,
-            candidates,
-            folds,
-            scheme,
-            seed=seed,
-            start=stage1[0],
-            local_poe_options=local_poe_options,
-            series_options=series_options,
-            series_fixed=series_fixed(series_full),
-            ann_options=ann_options,
-            progress=say,
-        )
-    else:
-        cv = None
-    robot, info = finish_hybrid(
-        fit_obs, obs, stage1, cv, candidates, seed=seed, series_full=series_full, ann_options=ann_options, say=say
-    )
-    info["notes"] = notes + info["notes"]
-    return robot, info
+    result = fit(
+        obs, nominal, "hybrid", seed=seed, progress=progress, local_poe_options=local_poe_options, stage2=stage2,
+        series_options=series_options, **ann_options,
+    )  # fmt: skip
+    return result.robot, {**result.info, "notes": list(result.notes)}
 
 
 def prefit_series(fit_obs, robot1, candidates, seed, series_options, say):
