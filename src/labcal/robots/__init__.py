@@ -321,47 +321,34 @@ def _millimetres_message(field: str, value: float) -> str:
 def _check_units(kind: str, joints: list, tool: dict, fail) -> None:
     """Refuse numbers that look like degrees or millimetres (the type checks come later, in parse)."""
 
-    def number(x) -> bool:
-        return _is_number(x)
-
-    def vector(row: dict, key: str) -> list:
+    def numbers(row: dict, key: str) -> list[tuple[str, float]]:
+        """(index suffix, value) of the numbers in a scalar or list field."""
         value = row.get(key)
-        return list(value) if isinstance(value, list) else []
+        items = [(f"[{i + 1}]", x) for i, x in enumerate(value)] if isinstance(value, list) else [("", value)]
+        return [(suffix, x) for suffix, x in items if _is_number(x)]
 
-    for j, row in enumerate(joints, start=1):
-        if not isinstance(row, dict):
-            continue  # parse names that error
-        where = f"joints[{j}]"
-        revolute = row.get("type", REVOLUTE) == REVOLUTE
-        angles = ("alpha", "theta") if kind in ("dh", "mdh") else ()
-        lengths = ("a", "d") if kind in ("dh", "mdh") else ()
+    def check(where: str, row: dict, angles: tuple, lengths: tuple, revolute: bool) -> None:
         for key in angles:
-            if number(row.get(key)) and abs(row[key]) > MAX_ANGLE:
-                raise fail(_degrees_message(f"{where}.{key}", row[key]))
+            for suffix, x in numbers(row, key):
+                if abs(x) > MAX_ANGLE:
+                    raise fail(_degrees_message(f"{where}.{key}{suffix}", x))
         for key in lengths:
-            if number(row.get(key)) and abs(row[key]) > MAX_LENGTH:
-                raise fail(_millimetres_message(f"{where}.{key}", row[key]))
-        for i, x in enumerate(vector(row, "rpy")):
-            if number(x) and abs(x) > MAX_ANGLE:
-                raise fail(_degrees_message(f"{where}.rpy[{i + 1}]", x))
-        for key in ("xyz", "com"):
-            for i, x in enumerate(vector(row, key)):
-                if number(x) and abs(x) > MAX_LENGTH:
-                    raise fail(_millimetres_message(f"{where}.{key}[{i + 1}]", x))
-        for i, x in enumerate(vector(row, "limits")):
-            if not number(x):
-                continue
+            for suffix, x in numbers(row, key):
+                if abs(x) > MAX_LENGTH:
+                    raise fail(_millimetres_message(f"{where}.{key}{suffix}", x))
+        for suffix, x in numbers(row, "limits"):
             if revolute and abs(x) > MAX_REVOLUTE_LIMIT:
-                raise fail(_degrees_message(f"{where}.limits[{i + 1}]", x))
+                raise fail(_degrees_message(f"{where}.limits{suffix}", x))
             if not revolute and abs(x) > MAX_LENGTH:
-                raise fail(_millimetres_message(f"{where}.limits[{i + 1}]", x))
-    for i, x in enumerate(vector(tool, "rpy")):
-        if number(x) and abs(x) > MAX_ANGLE:
-            raise fail(_degrees_message(f"tool.rpy[{i + 1}]", x))
-    for key in ("xyz", "com"):
-        for i, x in enumerate(vector(tool, key)):
-            if number(x) and abs(x) > MAX_LENGTH:
-                raise fail(_millimetres_message(f"tool.{key}[{i + 1}]", x))
+                raise fail(_millimetres_message(f"{where}.limits{suffix}", x))
+
+    dh = kind in ("dh", "mdh")
+    for j, row in enumerate(joints, start=1):
+        if isinstance(row, dict):  # parse names a row that is not a table
+            angles = ("alpha", "theta", "rpy") if dh else ("rpy",)
+            lengths = ("a", "d", "xyz", "com") if dh else ("xyz", "com")
+            check(f"joints[{j}]", row, angles, lengths, row.get("type", REVOLUTE) == REVOLUTE)
+    check("tool", tool if isinstance(tool, dict) else {}, ("rpy",), ("xyz", "com"), revolute=True)
 
 
 def _spec(name, model, tool, joints, _unused, source, fail=None) -> RobotSpec:
