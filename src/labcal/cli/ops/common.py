@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import uuid
 from pathlib import Path
@@ -118,8 +117,8 @@ def load_observations(
 
     The robot model is resolved with :func:`robot_for` (stored file text, else built-in; ``robot`` overrides) and
     the stored controller joints are converted to model joints with its joint map: this is the ONE place where
-    that conversion happens (PLAN.md interface 2). When several sessions are pooled, ``Observations.group`` (if
-    that field exists) holds each row's session ref, so cross-validation keeps a session in one fold.
+    that conversion happens. When several sessions are pooled, ``Observations.group`` holds each row's session
+    ref, so cross-validation keeps a session in one fold.
     ``with_spec=True`` also returns the RobotSpec (callers that fit need it; the 2-tuple stays for old callers).
     """
     if not refs:
@@ -150,17 +149,15 @@ def load_observations(
             f"{first.ref} has {q_controller.shape[1]} joint columns, "
             f"robot model {spec.name!r} has {spec.model.n} joints"
         )
-    fields = {f.name for f in dataclasses.fields(Observations)}
-    extra = {}
-    if len(datasets) > 1 and "group" in fields:
-        extra["group"] = np.concatenate([np.full(len(d), d.ref, dtype=object) for d in datasets])
+    # Pooled sessions: cross-validation keeps each session's rows in one fold.
+    group = np.concatenate([np.full(len(d), d.ref, dtype=object) for d in datasets]) if len(datasets) > 1 else None
     obs = Observations(
         q=spec.joints.to_model(q_controller) if spec is not None else q_controller,
         points=np.concatenate([d.points for d in datasets]),
         targets=first.targets,
         frame=first.frame,
         split=np.concatenate([d.split for d in datasets]).astype(object),
-        **extra,
+        group=group,
     )
     if with_spec:
         return obs, datasets, spec
