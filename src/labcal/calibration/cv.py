@@ -130,7 +130,7 @@ class CVResult:
         return name in self.rows and bool(np.any(np.isfinite(self.rows[name])))
 
     def summary(self, chosen: str) -> dict:
-        """The ``FitResult.cv`` record (PLAN interface 4) plus pooled means, fold spread and pruning."""
+        """The ``FitResult.cv`` record plus pooled means, fold spread and pruning."""
         names = [n for n in ORDER if n in self.rows]
         errors = {n: self.fold_errors(n) for n in names}
         spread = {}
