@@ -34,7 +34,6 @@ Run: ``python benchmarks/real_ur10.py`` (full: N = 50, 150, 500, 1500, seeds 0-4
 from __future__ import annotations
 
 import argparse
-import inspect
 import math
 import os
 import sys
@@ -46,7 +45,6 @@ from pathlib import Path
 import numpy as np
 
 from labcal.calibration import Observations, fit, register
-from labcal.calibration import hybrid as hybrid_module
 from labcal.calibration.hybrid import validation_error
 from labcal.calibration.joint_series import fit_joint_series
 from labcal.calibration.metrics import prediction_errors
@@ -62,8 +60,6 @@ SEEDS = (0, 1, 2, 3, 4)
 VAL_FRACTION = 1.0 / 3.0
 README_NOMINAL_MM = (0.91, 1.62, 2.26)  # the data README's registered-nominal mean / p95 / max (150 poses)
 README_LOCAL_POE_MM = 0.45
-_SIMPLICITY = ("local-poe", "hybrid", "series", "ann")  # auto's tie-break: the simpler model first
-_TIE = 1e-12
 
 
 class DataNotFound(FileNotFoundError):
@@ -121,11 +117,6 @@ class Run:
     seconds: dict
 
 
-def _series_in_fit() -> bool:
-    """True when the library's hybrid (and so auto) already lets the joint series compete as its second stage."""
-    return "series_options" in inspect.signature(hybrid_module.fit_hybrid).parameters
-
-
 def run_one(
     obs_all: Observations,
     size: int,
@@ -171,28 +162,13 @@ def run_one(
     hybrid_kept, auto_chose = "", ""
     if "hybrid" in methods or "auto" in methods:
         t = time.perf_counter()
-        if _series_in_fit():
-            h = fit(obs, nominal, "hybrid", seed=seed, **ann_options)
-            robots["hybrid"], hybrid_kept = h.robot, str(h.info.get("kept", ""))
-        else:
-            # fit()'s hybrid gates the network; the series candidate joins it under the same rule.
-            h = fit(obs, nominal, "hybrid", seed=seed, **ann_options)
-            cands = {"local-poe": lpoe.robot, "local-poe+ann": h.robot, "local-poe+series": series}
-            errs = {name: validation_error(r, obs) for name, r in cands.items()}
-            hybrid_kept = min(cands, key=lambda name: (errs[name], list(cands).index(name)))
-            if hybrid_kept == "local-poe+ann" and h.info.get("kept") == "local-poe":
-                hybrid_kept = "local-poe"
-            robots["hybrid"] = cands[hybrid_kept]
+        h = fit(obs, nominal, "hybrid", seed=seed, **ann_options)
+        robots["hybrid"], hybrid_kept = h.robot, str(h.info.get("kept", ""))
         seconds["hybrid"] = time.perf_counter() - t + seconds["local-poe"]
     val = {m: validation_error(r, obs) for m, r in robots.items()}
     if "auto" in methods:
-        if _series_in_fit():
-            a = fit(obs, nominal, "auto", seed=seed, **ann_options)
-            robots["auto"], auto_chose = a.robot, a.chosen
-        else:
-            best = min(val[m] for m in _SIMPLICITY)
-            auto_chose = next(m for m in _SIMPLICITY if val[m] <= best + _TIE)
-            robots["auto"] = robots[auto_chose]
+        a = fit(obs, nominal, "auto", seed=seed, **ann_options)
+        robots["auto"], auto_chose = a.robot, a.chosen
         val["auto"] = validation_error(robots["auto"], obs)
     pos, ori = {}, {}
     for m in methods:
@@ -318,14 +294,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{150 - round(args.val_fraction * 150)} fitted / {round(args.val_fraction * 150)} val), test = every other "
         "pose; probe frame registered on the fitted rows"
     )
-    say(
-        "hybrid/auto: "
-        + (
-            "labcal.calibration.fit (its hybrid lets the series compete)"
-            if _series_in_fit()
-            else "composed here (the library hybrid has no series stage yet)"
-        )
-    )
+    say("hybrid/auto: labcal.calibration.fit (its hybrid lets the series compete)")
     say("errors: position of the probe origin (mm), orientation (mrad); cells are mean ± std over seeds")
     runs: list[Run] = []
     for size in sizes:
