@@ -407,14 +407,8 @@ def _short_label(label: str, n_frames: int) -> str:
 
 
 def _evaluation_lines(store, ref: str, fit_id: str) -> list[str]:
-    """The stored `labcal evaluate` results of a fit (files under the fit, see labcal.cli.ops.evaluating)."""
-    folder = store.version_dir(ref) / "fits" / ".evaluations" / fit_id
-    docs = []
-    for p in sorted(folder.glob("*.json")) if folder.is_dir() else []:
-        try:
-            docs.append(json.loads(p.read_text()))
-        except (OSError, ValueError):
-            docs.append({"evaluation_id": p.stem, "corrupt": True})
+    """The stored `labcal evaluate` results of a fit (SessionStore.list_evaluations)."""
+    docs = store.list_evaluations(ref, fit_id)
     if not docs:
         return []
     lines = [

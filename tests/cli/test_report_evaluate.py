@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from cli_testutil import SWAPPED, TARGETS, invoke, last_line
 
-from labcal.cli.ops.evaluating import list_evaluations
 from labcal.cli.ops.sessions import sim_actual
 from labcal.datasets import SessionStore, load_targets
 from labcal.kinematics import se3
@@ -137,7 +136,7 @@ def test_evaluate_a_held_out_file(world, tmp_path):
     assert r.exit_code == 0, r.stderr
     eval_id = last_line(r)
     assert "imported" in r.stdout and "point mean mm" in r.stdout and "t2 max" in r.stdout
-    docs = list_evaluations(SessionStore(s), world["refs"]["good"], fit)
+    docs = SessionStore(s).list_evaluations(world["refs"]["good"], fit)
     doc = next(d for d in docs if d["evaluation_id"] == eval_id)
     assert not doc.get("corrupt")
     m = doc["metrics"]["all"]
@@ -214,3 +213,18 @@ def test_report_lists_the_stored_evaluations(world, tmp_path):
 def test_help_has_examples(cmd):
     r = invoke(*cmd, "--help")
     assert r.exit_code == 0 and "Example" in r.stdout
+
+
+def test_session_verify_checks_stored_evaluations(world, tmp_path):
+    s, fit, ref = world["store"], world["fits"]["good"], world["refs"]["good"]
+    r = invoke("evaluate", fit, "--data", ref, store=s)
+    assert r.exit_code == 0, r.stderr
+    store = SessionStore(s)
+    (path,) = [p for p in (store.version_dir(ref) / "fits" / ".evaluations" / fit).glob("*.json")
+               if p.stem == last_line(r)]  # fmt: skip
+    assert invoke("session", "verify", ref.split("@")[0], store=s).exit_code == 0
+    path.chmod(0o644)
+    path.write_text(path.read_text().replace('"rows": ', '"rows": 1'))  # an edited evaluation
+    bad = invoke("session", "verify", ref.split("@")[0], store=s)
+    assert bad.exit_code == 1 and path.name in bad.stdout, bad.stdout
+    assert next(d for d in store.list_evaluations(ref, fit) if d["evaluation_id"] == path.stem)["corrupt"]

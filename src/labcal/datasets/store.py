@@ -59,6 +59,9 @@ MEASUREMENTS = "measurements.parquet"
 MANIFEST = "manifest.json"
 FITS = "fits"
 FIT_JSON = "fit.json"
+# V/fits/.evaluations/<fit id>/<evaluation id>.json: `labcal evaluate` results, beside the sealed fit folders (a fit's
+# folder never changes after save_fit), each a self-hashed JSON document like fit.json.
+EVALUATIONS = ".evaluations"
 _VERSION_DIR = re.compile(r"^v(\d{3,6})$")
 
 
@@ -632,6 +635,12 @@ class SessionStore:
                         f"{where}: input {inp['ref']} is not the data the fit read (manifest sha256 "
                         f"{inp.get('manifest_sha256')} when fitted, {current} now)"
                     )
+        for ep in sorted((fits_dir / EVALUATIONS).glob("*/*.json")):
+            where = f"{FITS}/{EVALUATIONS}/{ep.parent.name}/{ep.name}"
+            checked.append(where)
+            problems += _load_sealed(ep.read_bytes(), "evaluation_sha256", where)[1]
+            if not (fits_dir / ep.parent.name / FIT_JSON).is_file():
+                problems.append(f"{where}: evaluates fit {ep.parent.name}, which is not stored under {r}")
         return VerifyReport(str(r), problems, checked)
 
     def verify_session(self, session_id: str) -> list[VerifyReport]:
@@ -931,6 +940,40 @@ class SessionStore:
         return FitRecord(
             fit_id, str(resolved[0]), fits_dir / fit_id, json.loads((fits_dir / fit_id / FIT_JSON).read_text())
         )
+
+    def save_evaluation(self, ref: str | Ref, fit_id: str, doc: Mapping[str, Any]) -> tuple[str, Path]:
+        """Store one evaluation of fit fit_id (stored under ref); returns (evaluation id, path).
+
+        The document is written like fit.json: canonical, self-hashed (``evaluation_sha256``), durable (temp file,
+        fsync, rename, fsync of the folder). The id is the UTC time plus six hex digits.
+        """
+        r = self.resolve(ref)
+        fit_dir = self.session_dir(r.session_id) / version_name(r.version) / FITS  # type: ignore[arg-type]
+        if not (fit_dir / validate_id(fit_id) / FIT_JSON).is_file():
+            raise DatasetError(f"{r} has no fit {fit_id!r} to store an evaluation under")
+        folder = fit_dir / EVALUATIONS / fit_id
+        folder.mkdir(parents=True, exist_ok=True)
+        eval_id = new_fit_id()
+        data = _dump_sealed({**jsonable(dict(doc)), "evaluation_id": eval_id}, "evaluation_sha256")
+        tmp = folder / f".{eval_id}.json.tmp"
+        try:
+            write_file_durable(tmp, data)
+            os.replace(tmp, folder / f"{eval_id}.json")
+        except OSError as e:
+            tmp.unlink(missing_ok=True)
+            raise StoreWriteError(f"cannot store the evaluation of fit {fit_id} under {r}: {e}") from e
+        fsync_dir(folder)
+        return eval_id, folder / f"{eval_id}.json"
+
+    def list_evaluations(self, ref: str | Ref, fit_id: str) -> list[dict]:
+        """The stored evaluations of a fit, oldest first; one that fails its own hash has ``corrupt: True``."""
+        r = self.resolve(ref)
+        folder = self.session_dir(r.session_id) / version_name(r.version) / FITS / EVALUATIONS / fit_id  # type: ignore[arg-type]
+        out = []
+        for p in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+            doc, problems = _load_sealed(p.read_bytes(), "evaluation_sha256", p.name)
+            out.append({**(doc or {"evaluation_id": p.stem}), **({"corrupt": True} if problems else {})})
+        return out
 
     def list_fits(self, ref: str | Ref) -> list[FitRecord]:
         """Fits stored under a version, oldest first (fit.json checked, fit files not read)."""

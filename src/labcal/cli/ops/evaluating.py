@@ -12,15 +12,12 @@ What is fitted on the evaluation data, and what is not:
 A FILE is imported as a new session first (same options and sanity checks as ``labcal session import``), so the
 evaluated data are stored and traceable by their version; a SESSION[@vN] is read from the store. The evaluation
 (per-target point errors and pose errors, before/after, rows outside the fit's calibrated joint ranges) is written
-as JSON under the fit (see :data:`EVAL_DIR`).
+as JSON under the fit (:meth:`SessionStore.save_evaluation`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
-import os
 import tempfile
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -31,11 +28,6 @@ import numpy as np
 from labcal.cli.ops.common import UserError, jsonable, load_observations, split_ref
 from labcal.cli.ops.fitting import load_stored_fit, metric_warnings
 from labcal.datasets import SessionStore
-
-# Evaluations of fit F stored under version V live in V/fits/.evaluations/F/<evaluation id>.json. A dot folder: the
-# store's verify treats any other entry in fits/ or in a fit's folder as an unlisted (corrupt) file, and the fit's
-# own files are sealed by its fit.json, which must not change after the fit.
-EVAL_DIR = ".evaluations"
 
 
 @dataclass
@@ -201,64 +193,5 @@ def evaluate_fit(
         "outside_calibrated_ranges": int(outside.sum()),
         "warnings": warnings,
     }
-    path = save_evaluation(store, stored.ref, fit_id, evaluation)
+    evaluation["evaluation_id"], path = store.save_evaluation(stored.ref, fit_id, jsonable(evaluation))
     return EvaluationOutcome(jsonable(evaluation), path, ref, imported)
-
-
-def save_evaluation(store: SessionStore, fit_ref: str, fit_id: str, evaluation: dict) -> Path:
-    """Write the evaluation atomically (temp file + fsync + os.replace) under the fit; returns its path.
-
-    The document carries the sha256 of its own content (``sha256``, computed with that field empty) so a change is
-    detectable. The evaluation id is the UTC time plus the first hex digits of that hash.
-    """
-    folder = store.version_dir(fit_ref) / "fits" / EVAL_DIR / fit_id
-    folder.mkdir(parents=True, exist_ok=True)
-    doc = jsonable(evaluation)
-    doc["sha256"] = ""
-    body = json.dumps(doc, sort_keys=True).encode()
-    digest = hashlib.sha256(body).hexdigest()
-    eval_id = datetime.now(UTC).strftime("%Y%m%d-%H%M%S-%f") + "-" + digest[:6]
-    doc["evaluation_id"] = eval_id
-    evaluation["evaluation_id"] = eval_id
-    doc["sha256"] = ""
-    doc["sha256"] = hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
-    final = folder / f"{eval_id}.json"
-    fd, tmp = tempfile.mkstemp(prefix=f".{eval_id}.", suffix=".json", dir=folder)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(doc, fh, indent=1, sort_keys=True)
-            fh.write("\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, final)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    dfd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(dfd)
-    finally:
-        os.close(dfd)
-    return final
-
-
-def list_evaluations(store: SessionStore, fit_ref: str, fit_id: str) -> list[dict]:
-    """The stored evaluations of a fit, oldest first (each checked against its own sha256; a bad one is skipped
-    with ``corrupt: True``)."""
-    folder = store.version_dir(fit_ref) / "fits" / EVAL_DIR / fit_id
-    out = []
-    for p in sorted(folder.glob("*.json")) if folder.is_dir() else []:
-        if p.name.startswith("."):
-            continue
-        try:
-            doc = json.loads(p.read_text())
-            want = doc.get("sha256")
-            doc["sha256"] = ""
-            ok = hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest() == want
-            doc["sha256"] = want
-        except (OSError, ValueError):
-            doc, ok = {"evaluation_id": p.stem}, False
-        if not ok:
-            doc["corrupt"] = True
-        out.append(doc)
-    return out
