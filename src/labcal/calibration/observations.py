@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from labcal.kinematics import se3
+from labcal.kinematics.se3 import rigid_fit
 
 SPLITS = ("train", "val", "test", "")
 MIN_TRIANGLE_AREA = 1e-6  # m²: 1 mm × 2 mm; below this the three targets cannot fix an orientation
@@ -185,25 +185,3 @@ def check_targets(targets: np.ndarray) -> None:
         raise ObservationError(
             f"the three targets are (nearly) collinear: triangle area {area:.3g} m² < {MIN_TRIANGLE_AREA} m²"
         )
-
-
-def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Best rigid transforms T with ``dst[k] ≈ T[k] · src`` (Kabsch): src (m, 3), dst (k, m, 3) → (k, 4, 4)."""
-    src = np.asarray(src, dtype=float)
-    dst = np.atleast_3d(np.asarray(dst, dtype=float))
-    cs, cd = src.mean(axis=0), dst.mean(axis=1)
-    H = np.einsum("ma,kmb->kab", src - cs, dst - cd[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
-    D = np.zeros((len(d), 3, 3))
-    D[:, 0, 0], D[:, 1, 1], D[:, 2, 2] = 1.0, 1.0, d
-    R = np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
-    t = cd - np.einsum("kab,b->ka", R, cs)
-    return se3.pose(t) @ _rot4(R)
-
-
-def _rot4(R: np.ndarray) -> np.ndarray:
-    out = np.zeros((*R.shape[:-2], 4, 4))
-    out[..., :3, :3] = R
-    out[..., 3, 3] = 1.0
-    return out

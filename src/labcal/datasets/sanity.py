@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from labcal.kinematics import se3
 from labcal.robots import RobotSpec
 
 from .errors import DatasetError
@@ -186,32 +187,19 @@ def check_names(allow: Iterable[str] | None) -> frozenset[str]:
 
 
 # --------------------------------------------------------------------------------------------------------------
-# Geometry: rigid registration without labcal.calibration (datasets sits below it)
+# Geometry: rigid registration (labcal.kinematics.se3.rigid_fit)
 
 
 def kabsch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation R and translation t minimising Σ |R a_i + t − b_i|² over (m, 3) point sets (a proper rotation)."""
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    H = (a - ca).T @ (b - cb)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return R, cb - R @ ca
+    T = se3.rigid_fit(a, np.asarray(b, dtype=float)[None])[0]
+    return T[:3, :3], T[:3, 3]
 
 
 def _kabsch_batch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-row rigid fit: a (m, 3) the same for every row, b (k, m, 3) → R (k, 3, 3), t (k, 3)."""
-    ca, cb = a.mean(axis=0), b.mean(axis=1)
-    H = np.einsum("ma,kmb->kab", a - ca, b - cb[:, None, :])
-    U, _, Vt = np.linalg.svd(H)
-    V = np.swapaxes(Vt, 1, 2)
-    d = np.sign(np.linalg.det(V @ np.swapaxes(U, 1, 2)))
-    d[d == 0] = 1.0
-    D = np.zeros((len(b), 3, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = V @ D @ np.swapaxes(U, 1, 2)
-    return R, cb - np.einsum("kab,b->ka", R, ca)
+    T = se3.rigid_fit(a, b)
+    return T[:, :3, :3], T[:, :3, 3]
 
 
 def _project_so3(M: np.ndarray) -> np.ndarray:

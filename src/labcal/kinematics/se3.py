@@ -235,3 +235,29 @@ def pose_distance(T_a: np.ndarray, T_b: np.ndarray) -> tuple[np.ndarray, np.ndar
     dp = np.linalg.norm(T_a[..., :3, 3] - T_b[..., :3, 3], axis=-1)
     dR = T_a[..., :3, :3] @ np.swapaxes(T_b[..., :3, :3], -1, -2)
     return dp, np.linalg.norm(log_so3(dR), axis=-1)
+
+
+def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Best rigid transforms T with ``dst[k] ≈ T[k] · src`` (Kabsch): src (m, 3), dst (k, m, 3) → (k, 4, 4).
+
+    Example::
+
+        >>> src = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]])
+        >>> T = pose([0.1, 0.2, 0.3], [0.0, 0.0, 0.5])
+        >>> dst = src @ T[:3, :3].T + T[:3, 3]
+        >>> bool(np.allclose(rigid_fit(src, dst[None])[0], T))
+        True
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.atleast_3d(np.asarray(dst, dtype=float))
+    cs, cd = src.mean(axis=0), dst.mean(axis=1)
+    H = np.einsum("ma,kmb->kab", src - cs, dst - cd[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
+    d[d == 0] = 1.0  # coincident or collinear points: any proper rotation of the best fit will do
+    D = np.zeros((len(d), 3, 3))
+    D[:, 0, 0], D[:, 1, 1], D[:, 2, 2] = 1.0, 1.0, d
+    R = np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
+    T = np.zeros((len(d), 4, 4))
+    T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, cd - np.einsum("kab,b->ka", R, cs), 1.0
+    return T
