@@ -1,0 +1,76 @@
+"""Code size of labcal: lines per area, the longest functions, and the largest classes by method count.
+
+Lines are non-blank, non-comment source lines (docstrings count: they are read too). Run it on two trees to set a
+restructuring's before and after side by side:
+
+    python benchmarks/code_size.py                       # this checkout's src/labcal
+    python benchmarks/code_size.py --src /tmp/before/src/labcal --top 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+from collections import Counter
+from pathlib import Path
+
+
+def code_lines(text: str) -> int:
+    return sum(1 for line in text.splitlines() if line.strip() and not line.strip().startswith("#"))
+
+
+def functions(tree: ast.AST, module: str) -> list[tuple[int, str]]:
+    """(length in lines, qualified name) of every function and method."""
+    out = []
+
+    def visit(node: ast.AST, prefix: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef):
+                name = f"{prefix}{child.name}"
+                out.append((child.end_lineno - child.lineno + 1, f"{module}:{name}"))
+                visit(child, name + ".")
+            elif isinstance(child, ast.ClassDef):
+                visit(child, f"{prefix}{child.name}.")
+
+    visit(tree, "")
+    return out
+
+
+def classes(tree: ast.AST, module: str) -> list[tuple[int, str]]:
+    """(number of methods, qualified name) of every class."""
+    return [
+        (sum(isinstance(b, ast.FunctionDef | ast.AsyncFunctionDef) for b in node.body), f"{module}:{node.name}")
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ClassDef)
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--src", type=Path, default=Path(__file__).resolve().parents[1] / "src" / "labcal")
+    ap.add_argument("--top", type=int, default=5, help="how many of the longest functions and largest classes")
+    args = ap.parse_args(argv)
+    per_area: Counter = Counter()
+    funcs, klasses = [], []
+    for path in sorted(args.src.rglob("*.py")):
+        rel = path.relative_to(args.src)
+        text = path.read_text()
+        area = rel.parts[0] if len(rel.parts) > 1 else rel.stem
+        per_area[area] += code_lines(text)
+        tree = ast.parse(text)
+        funcs += functions(tree, str(rel))
+        klasses += classes(tree, str(rel))
+    print(f"code lines in {args.src}: {sum(per_area.values())}")
+    for area, n in sorted(per_area.items(), key=lambda kv: -kv[1]):
+        print(f"  {area:14s} {n:6d}")
+    print(f"longest functions (lines), of {len(funcs)}:")
+    for n, name in sorted(funcs, reverse=True)[: args.top]:
+        print(f"  {n:4d}  {name}")
+    print("largest classes (methods):")
+    for n, name in sorted(klasses, reverse=True)[: args.top]:
+        print(f"  {n:4d}  {name}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
