@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from labcal.kinematics import se3
+from labcal.kinematics import metric, se3
 
 REVOLUTE, PRISMATIC = "revolute", "prismatic"
 # Below this many configurations the chain is walked with 4×4 matmuls (few numpy calls: single-configuration
@@ -426,8 +426,7 @@ class LocalPOEModel:
         k, n = J.shape[0], self.n
         if n >= 6:
             return J
-        L = length_scale if length_scale is not None else self.reach()
-        D = np.array([1 / L] * 3 + [1.0] * 3)
+        D = metric.twist_weights(length_scale if length_scale is not None else self.reach())
         out = np.empty((k, 6, 6))
         out[:, :, :n] = J
         Q, _ = np.linalg.qr(D[:, None] * J)  # (k, 6, n), one LAPACK call per configuration
