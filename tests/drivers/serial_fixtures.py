@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from labcal.drivers.fakes import ScriptedTransport
+from labcal.testing.fakes import ScriptedTransport
 from labcal.drivers.serial_tracker import NDIProfile, PortSettings, SerialTracker, parse_profile
 
 # Targets in the tool frame (m): a clearly scalene triangle, sides 100 mm, 70 mm, ~122.07 mm.

@@ -7,7 +7,7 @@ import pytest
 from serial_fixtures import TARGETS, ascii_line, ascii_profile, tool_to_tracker
 
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
-from labcal.drivers.fakes import ScriptedTransport
+from labcal.testing.fakes import ScriptedTransport
 from labcal.drivers.serial.ascii import DeviceError
 from labcal.drivers.serial_tracker import SerialTracker
 

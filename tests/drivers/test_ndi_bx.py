@@ -28,7 +28,7 @@ from serial_fixtures import (
 )
 
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
-from labcal.drivers.fakes import BREAK, ScriptedTransport, encode_bx_reply
+from labcal.testing.fakes import BREAK, ScriptedTransport, encode_bx_reply
 from labcal.drivers.serial_tracker import NDIError, SerialTracker, StrayFrame, parse_bx_strays
 
 SEEN = tool_to_tracker()  # (3, 3) m, rows t1, t2, t3

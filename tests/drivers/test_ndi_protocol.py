@@ -30,7 +30,7 @@ from labcal.drivers.base import (
     ProtocolError,
     Tracker,
 )
-from labcal.drivers.fakes import BREAK, ScriptedTransport
+from labcal.testing.fakes import BREAK, ScriptedTransport
 from labcal.drivers.serial_tracker import NDIError, SerialTracker, parse_tx_strays
 
 SEEN = tool_to_tracker()  # (3, 3) m, what the tracker should report, rows t1, t2, t3

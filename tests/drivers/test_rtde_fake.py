@@ -8,7 +8,7 @@ import struct
 
 import pytest
 
-from labcal.drivers.rtde_fake import (
+from labcal.testing.rtde_fake import (
     FakeRTDEServer,
     pack_values,
     read_package,

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from serial_fixtures import crc16_arc_bitwise
 
 from labcal.drivers.base import ConnectionFailed, DriverTimeout, ProtocolError
-from labcal.drivers.fakes import ScriptedTransport
+from labcal.testing.fakes import ScriptedTransport
 from labcal.drivers.serial.crc import xor8
 from labcal.drivers.serial_tracker import SerialLink, crc16_arc, decode_reply, encode_command, open_serial
 

@@ -13,7 +13,7 @@ import pytest
 from ur_fixtures import make_profile
 
 from labcal.drivers.base import EmergencyStop, ProtectiveStop
-from labcal.drivers.rtde_fake import FakeRTDEServer
+from labcal.testing.rtde_fake import FakeRTDEServer
 from labcal.drivers.ur import URRobot
 
 pytest.importorskip("rtde_control")

@@ -10,7 +10,7 @@ import pytest
 from ur_fixtures import make_profile, silent_listener
 
 from labcal.drivers.base import ConnectionFailed, DriverTimeout, ProtocolError, StaleData
-from labcal.drivers.rtde_fake import FakeRTDEServer
+from labcal.testing.rtde_fake import FakeRTDEServer
 from labcal.drivers.ur import ProbeTimeout, URRobot, probe_rtde
 
 pytest.importorskip("rtde_receive")

@@ -680,7 +680,7 @@ def _apply(
 
 
 class FakeRTDEServer:
-    """Start a fake UR controller in a child process (``python -m labcal.drivers.rtde_fake``); a context manager.
+    """Start a fake UR controller in a child process (``python -m labcal.testing.rtde_fake``); a context manager.
 
     q0: (6,) initial joint positions, rad. control: also serve dashboard/script ports and emulate ur-rtde's
     control registers. controller_version: answered to ``v`` (major, minor, bugfix, build).
@@ -726,7 +726,7 @@ class FakeRTDEServer:
 
     def start(self) -> None:
         self._process = subprocess.Popen(
-            [sys.executable, "-m", "labcal.drivers.rtde_fake", json.dumps(self._options)],
+            [sys.executable, "-m", "labcal.testing.rtde_fake", json.dumps(self._options)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
         )
