@@ -7,9 +7,9 @@ import pytest
 from serial_fixtures import TARGETS, ascii_line, ascii_profile, tool_to_tracker
 
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
-from labcal.testing.fakes import ScriptedTransport
 from labcal.drivers.serial.ascii import DeviceError
 from labcal.drivers.serial_tracker import SerialTracker
+from labcal.testing.fakes import ScriptedTransport
 
 SEEN = tool_to_tracker()
 

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from serial_fixtures import BX, COMM_9600, COMM_115200, INIT, TARGETS, TSTART, TSTOP, TX, tool_to_tracker
 
-from labcal.testing.fakes import FakeNDIDevice
 from labcal.drivers.serial_tracker import ERROR_CODES, SerialTracker, encode_command, load_profile
+from labcal.testing.fakes import FakeNDIDevice
 
 ndicapy = pytest.importorskip("ndicapy")
 

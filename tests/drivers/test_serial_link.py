@@ -9,9 +9,9 @@ from hypothesis import strategies as st
 from serial_fixtures import crc16_arc_bitwise
 
 from labcal.drivers.base import ConnectionFailed, DriverTimeout, ProtocolError
-from labcal.testing.fakes import ScriptedTransport
 from labcal.drivers.serial.crc import xor8
 from labcal.drivers.serial_tracker import SerialLink, crc16_arc, decode_reply, encode_command, open_serial
+from labcal.testing.fakes import ScriptedTransport
 
 
 def test_crc16_arc_check_value():

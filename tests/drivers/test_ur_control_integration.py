@@ -13,8 +13,8 @@ import pytest
 from ur_fixtures import make_profile
 
 from labcal.drivers.base import EmergencyStop, ProtectiveStop
-from labcal.testing.rtde_fake import FakeRTDEServer
 from labcal.drivers.ur import URRobot
+from labcal.testing.rtde_fake import FakeRTDEServer
 
 pytest.importorskip("rtde_control")
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(40)]
