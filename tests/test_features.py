@@ -44,7 +44,9 @@ def test_parse_size_and_clear_errors():
         features.parse("harmonics:x")
     with pytest.raises(ValueError, match="1 … 512, got 0"):
         features.compute(np.zeros((1, 2)), "harmonics:0")
-    with pytest.raises(ValueError, match="unknown feature 'gravity'"):
+    with pytest.raises(ValueError, match="unknown feature 'gravitation'; known: q, sincos"):
+        features.compute(np.zeros((1, 2)), "gravitation")
+    with pytest.raises(ValueError, match="'gravity' needs the link frames"):
         features.compute(np.zeros((1, 2)), "gravity")
     with pytest.raises(ValueError, match="need the joint limits"):
         features.harmonics(np.zeros((1, 1)), 2, ("prismatic",))
@@ -52,6 +54,59 @@ def test_parse_size_and_clear_errors():
         features.harmonics(np.zeros((1, 1)), 2, ("prismatic",), np.array([[0.2, 0.2]]))
     with pytest.raises(ValueError, match="2 entries for 1 joint values"):
         features.harmonics(np.zeros((1, 1)), 2, ("revolute", "revolute"))
+
+
+NAMES = ("q", "sincos", "sincos2", "gravity", "harmonics:3")
+
+
+def _evaluate_columns(cols, q, frames):
+    """The Column recipes interpreted one by one with plain math: what a code generator must reproduce."""
+    out = np.empty((q.shape[0], len(cols)))
+    for c, col in enumerate(cols):
+        if col.op == "q":
+            out[:, c] = q[:, col.joint]
+        elif col.op == "zero":
+            out[:, c] = 0.0
+        elif col.op == "gravity":
+            out[:, c] = -frames[:, col.link, 2, col.axis]
+        else:
+            theta = q[:, col.joint]
+            if col.stroke is not None:
+                lo, hi = col.stroke
+                theta = np.pi * (theta - lo) / (hi - lo)
+            out[:, c] = (np.sin if col.op == "sin" else np.cos)(col.order * theta)
+    return out
+
+
+@pytest.mark.parametrize("robot", ["ur10", "scara4"])
+def test_every_registered_feature_matches_its_column_recipes_and_size(robot):
+    from labcal.robots import load
+
+    model = load(robot).model
+    rng = np.random.default_rng(1)
+    q = rng.uniform(model.limits[:, 0], model.limits[:, 1], size=(9, model.n))
+    frames = model.link_frames(q)
+    for name in NAMES:
+        feature = features.get(name)
+        x = feature.compute(q, model.joint_types, model.limits, frames)
+        assert x.shape == (9, feature.size(model.n)) == (9, features.size(name, model.n))
+        cols = feature.columns(model.joint_types, model.limits)
+        np.testing.assert_allclose(x, _evaluate_columns(cols, q, frames), rtol=0, atol=1e-12, err_msg=name)
+    together = features.compute_all(q, NAMES, model.joint_types, model.limits, frames)
+    assert together.shape[1] == sum(features.size(name, model.n) for name in NAMES)
+    assert all(features.is_feature(name) for name in NAMES) and not features.is_feature("harmonics")
+
+
+def test_gravity_is_the_base_down_direction_in_each_link_frame():
+    from labcal.robots import load
+
+    model = load("ur10").model
+    q = np.random.default_rng(2).uniform(-2, 2, size=(4, 6))
+    frames = model.link_frames(q)
+    g = features.compute(q, "gravity", frames=frames).reshape(4, 6, 3)
+    for j in range(6):
+        R = frames[:, j + 1, :3, :3]
+        np.testing.assert_allclose(g[:, j], np.einsum("kba,b->ka", R, [0.0, 0.0, -1.0]), atol=1e-15)
 
 
 def test_module_imports_numpy_only():

@@ -1,6 +1,21 @@
-"""Structured input features of learned error terms, numpy only (the compensator runtime evaluates them).
+"""The network input features: the one place that knows their names, sizes and numpy computation. Numpy only.
 
-``harmonics:H`` — a separable Fourier basis of each joint's own angle, orders 1 … H::
+A learned error term (the paper's network, the per-joint series) maps features of the joint values to the
+equivalent robot's joint motion errors δρ. Fitting (:mod:`labcal.calibration`), the runtime
+(:mod:`labcal.compensator`) and the URScript exporter all read the features from here:
+
+=================  ===========  ===========================================================================
+name               columns      meaning (n joints, θ_j the joint angle, see :func:`joint_angles`)
+=================  ===========  ===========================================================================
+``q``              n            the joint values themselves (the paper's choice)
+``sincos``         2n           sin q_j (all j), then cos q_j; a prismatic joint gives q_j and 0
+``sincos2``        2n           sin 2q_j, then cos 2q_j (twice-per-revolution effects); prismatic: 0 and 0
+``gravity``        3n           base −z in the frames of links 1 … n: −(row 2 of R_j), j = 1 … n. Every
+                                gravity torque of a rigid arm is linear in these, whatever its mass model
+``harmonics:H``    2nH          sin(h θ_j), cos(h θ_j), h = 1 … H, joint by joint (layout below)
+=================  ===========  ===========================================================================
+
+``harmonics:H`` is a separable Fourier basis of each joint's own angle::
 
     x[:, j·2H + 2(h−1)]     = sin(h θ_j)
     x[:, j·2H + 2(h−1) + 1] = cos(h θ_j)          j = 0 … n−1, h = 1 … H
@@ -9,33 +24,41 @@
 depends on that joint alone: encoder eccentricity (h = 1), gear and bearing run-out and the transmission errors
 of a reducer's output stages (orders set by the gearing). A linear map from these features to the equivalent
 robot's joint motion errors with zeros outside each joint's own block is the per-joint Fourier series
-``δρ_j(q_j) = Σ_h a_jh sin(h q_j) + b_jh cos(h q_j)`` (:mod:`labcal.calibration.joint_series`).
+``δρ_j(q_j) = Σ_h a_jh sin(h q_j) + b_jh cos(h q_j)`` (:mod:`labcal.calibration.joint_series`). A prismatic joint
+has no natural period: θ_j = π (q_j − lo_j) / (hi_j − lo_j) maps its joint range (from the model's limits) onto
+[0, π], so the sines and cosines form a smooth series over the stroke that does not force the two ends to agree.
 
-A prismatic joint has no natural period: θ_j = π (q_j − lo_j) / (hi_j − lo_j) maps its joint range (from the
-model's limits) onto [0, π], so the sines and cosines form a smooth series over the stroke that does not force
-the two ends to agree.
+The registry: :func:`get` turns a name into a :class:`Feature` (size, ``compute``, and ``columns``: one
+:class:`Column` recipe per column for code generators such as the URScript exporter); :func:`compute_all`
+evaluates a tuple of names into one (k, f) input matrix.
 
 Example::
 
     >>> x = harmonics(np.array([[0.5, -1.0]]), 2)
     >>> x.shape, bool(np.isclose(x[0, 2], np.sin(2 * 0.5))), bool(np.isclose(x[0, 5], np.cos(-1.0)))
     ((1, 8), True, True)
-
-This module imports numpy only.
+    >>> get("sincos").size(6), get("harmonics:3").size(6), get("gravity").needs_frames
+    (12, 36, True)
+    >>> [c.op for c in get("sincos").columns(("revolute", "prismatic"))]
+    ['sin', 'q', 'cos', 'zero']
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 HARMONICS = "harmonics"
 MAX_HARMONICS = 512  # a sanity bound: orders above this cannot be sampled by any calibration data set
+SIMPLE = ("q", "sincos", "sincos2", "gravity")  # the names without a parameter
+NAMES = (*SIMPLE, HARMONICS + ":H")  # for messages: every name the registry accepts
 
 
 def parse(name: str) -> tuple[str, int] | None:
-    """``"harmonics:H"`` → ("harmonics", H); None for a name this module does not define.
+    """``"harmonics:H"`` → ("harmonics", H); None for any other name (use :func:`get` for the whole registry).
 
-    Raises ValueError for a malformed name of a feature this module defines (e.g. ``"harmonics:x"``).
+    Raises ValueError for a malformed harmonics name (e.g. ``"harmonics:x"``).
     """
     if not isinstance(name, str) or not name.startswith(HARMONICS + ":"):
         return None
@@ -49,20 +72,132 @@ def parse(name: str) -> tuple[str, int] | None:
     return HARMONICS, order
 
 
+@dataclass(frozen=True)
+class Column:
+    """How to compute one feature column, for code generators (e.g. URScript). Ops:
+
+    - ``"q"``: q_j;  ``"zero"``: 0;
+    - ``"sin"`` / ``"cos"``: sin(order · θ_j) / cos(order · θ_j), θ_j = q_j, or for ``stroke = (lo, hi)`` (a
+      prismatic joint's harmonics) θ_j = π (q_j − lo) / (hi − lo);
+    - ``"gravity"``: −R_link[2, axis], R_link the rotation of link frame ``link`` (1 … n; index ``link`` of
+      :meth:`LocalPOEModel.link_frames`, the frame before its joint moves it).
+    """
+
+    op: str
+    joint: int = -1
+    order: int = 1
+    stroke: tuple[float, float] | None = None
+    link: int = 0
+    axis: int = 0
+
+
+@dataclass(frozen=True)
+class Feature:
+    """One registered input feature: ``kind`` ∈ SIMPLE or "harmonics" (then ``order`` = H). See the module table."""
+
+    name: str
+    kind: str
+    order: int = 0
+
+    @property
+    def needs_frames(self) -> bool:
+        """True when :meth:`compute` needs the link frames (the gravity directions)."""
+        return self.kind == "gravity"
+
+    def size(self, n: int) -> int:
+        """Number of columns for a robot with n joints."""
+        return {"q": n, "sincos": 2 * n, "sincos2": 2 * n, "gravity": 3 * n}.get(self.kind, 2 * n * self.order)
+
+    def compute(self, q: np.ndarray, joint_types=None, limits=None, frames=None) -> np.ndarray:
+        """(k, n) joint values → (k, size) columns.
+
+        joint_types: n strings (default all revolute); limits: (n, 2), needed by harmonics of a prismatic joint;
+        frames: (k, n+1, 4, 4) link frames at q (or their (k, n+1, 6, 6) adjoints: only rotation rows are read),
+        needed by ``gravity``.
+        """
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        if self.kind == "harmonics":
+            return harmonics(q, self.order, joint_types, limits)
+        if self.kind == "gravity":
+            if frames is None:
+                raise ValueError(f"feature {self.name!r} needs the link frames at q (frames=model.link_frames(q))")
+            return -frames[:, 1:, 2, :3].reshape(frames.shape[0], -1)
+        if self.kind == "q":
+            return q
+        revolute = _revolute(joint_types, q.shape[1])
+        if self.kind == "sincos":
+            if revolute is None:
+                return np.concatenate([np.sin(q), np.cos(q)], axis=1)
+            return np.concatenate([np.where(revolute, np.sin(q), q), np.where(revolute, np.cos(q), 0.0)], axis=1)
+        if revolute is None:
+            revolute = np.ones(q.shape[1], dtype=bool)
+        return np.concatenate([np.where(revolute, np.sin(2 * q), 0.0), np.where(revolute, np.cos(2 * q), 0.0)], axis=1)
+
+    def columns(self, joint_types, limits=None) -> tuple[Column, ...]:
+        """One :class:`Column` recipe per column, in :meth:`compute`'s order (limits: for prismatic harmonics)."""
+        types = tuple(joint_types)
+        n = len(types)
+        rev = [t != "prismatic" for t in types]
+        if self.kind == "q":
+            return tuple(Column("q", j) for j in range(n))
+        if self.kind == "gravity":
+            return tuple(Column("gravity", link=j, axis=a) for j in range(1, n + 1) for a in range(3))
+        if self.kind in ("sincos", "sincos2"):
+            h = 1 if self.kind == "sincos" else 2
+            other = "q" if h == 1 else "zero"
+            sines = [Column("sin", j, h) if rev[j] else Column(other, j) for j in range(n)]
+            return tuple(sines + [Column("cos", j, h) if rev[j] else Column("zero", j) for j in range(n)])
+        lim = None if limits is None else np.asarray(limits, dtype=float).reshape(n, 2)
+        out = []
+        for j in range(n):
+            stroke = None
+            if not rev[j]:
+                if lim is None:
+                    raise ValueError("harmonics of a prismatic joint need the joint limits (the stroke: the period)")
+                stroke = (float(lim[j, 0]), float(lim[j, 1]))
+            for h in range(1, self.order + 1):
+                out += [Column("sin", j, h, stroke), Column("cos", j, h, stroke)]
+        return tuple(out)
+
+
+def get(name: str) -> Feature:
+    """The registered feature called ``name``; ValueError naming the known names otherwise."""
+    if name in SIMPLE:
+        return Feature(name, name)
+    kind = parse(name)
+    if kind is None:
+        raise ValueError(f"unknown feature {name!r}; known: {', '.join(NAMES)}")
+    return Feature(name, HARMONICS, kind[1])
+
+
 def is_feature(name: str) -> bool:
-    """True for a well-formed feature name defined here (``harmonics:H``)."""
+    """True for a well-formed registered feature name (``q``, ``sincos``, …, ``harmonics:H``)."""
     try:
-        return parse(name) is not None
+        get(name)
     except ValueError:
         return False
+    return True
 
 
 def size(name: str, n: int) -> int:
     """Number of feature columns of ``name`` for a robot with n joints."""
-    kind = parse(name)
-    if kind is None:
-        raise ValueError(f"unknown feature {name!r}; labcal.features defines 'harmonics:H'")
-    return 2 * n * kind[1]
+    return get(name).size(n)
+
+
+def compute_all(q: np.ndarray, names, joint_types=None, limits=None, frames=None) -> np.ndarray:
+    """(k, n) joint values → (k, f) network inputs: the features ``names`` side by side (see Feature.compute)."""
+    parts = [get(name).compute(q, joint_types, limits, frames) for name in names]
+    return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+
+
+def _revolute(joint_types, n: int) -> np.ndarray | None:
+    """(n,) bool revolute mask, or None when every joint is revolute (the common case: no np.where needed)."""
+    if joint_types is None:
+        return None
+    mask = np.array([t != "prismatic" for t in joint_types])
+    if len(mask) != n:
+        raise ValueError(f"joint_types has {len(mask)} entries for {n} joint values")
+    return None if mask.all() else mask
 
 
 def joint_angles(q: np.ndarray, joint_types=None, limits=None) -> np.ndarray:
@@ -107,12 +242,9 @@ def harmonics(q: np.ndarray, order: int, joint_types=None, limits=None) -> np.nd
     return out.reshape(k, 2 * n * order)
 
 
-def compute(q: np.ndarray, name: str, joint_types=None, limits=None) -> np.ndarray:
+def compute(q: np.ndarray, name: str, joint_types=None, limits=None, frames=None) -> np.ndarray:
     """Evaluate the feature ``name`` (e.g. ``"harmonics:24"``) at (k, n) joint values → (k, f)."""
-    kind = parse(name)
-    if kind is None:
-        raise ValueError(f"unknown feature {name!r}; labcal.features defines 'harmonics:H'")
-    return harmonics(q, kind[1], joint_types, limits)
+    return get(name).compute(q, joint_types, limits, frames)
 
 
 def harmonic_orders(order: int, n: int) -> np.ndarray:
