@@ -233,9 +233,77 @@ def test_protective_stop_at_move_k_until_cleared(spec):
         (dict(dropout_at={0}), "counts calls from 1"),
         (dict(timeout_probability=1.5), "timeout_probability"),
         (dict(dropout_mode="vanish"), "dropout_mode"),
-        (dict(dropout_target=3), "dropout_target"),
+        (dict(dropout_target=-1), "dropout_target"),
     ],
 )
 def test_bad_fault_settings_are_named(faults, message):
     with pytest.raises(ValueError, match=message):
         SimFaults(**faults)
+
+
+def test_a_dropout_target_the_rig_does_not_have_is_named(spec):
+    with pytest.raises(ValueError, match="dropout_target 3 is not one of the 3 targets"):
+        rig_for(spec, faults=SimFaults(dropout_target=3))
+
+
+# -- any number of targets, per-target drop-out ---------------------------------------------------------------
+
+
+def test_any_number_of_targets_are_measured_where_the_actual_robot_puts_them(spec):
+    for targets in (TARGETS[:1], TARGETS[:2], np.vstack([TARGETS, [[0.0, 0.0, 0.12]]])):
+        rig = SimRig(simulate(spec, ErrorSpec.none()), targets, seed=0)
+        with rig.robot() as robot, rig.tracker() as tracker:
+            robot.move_joints(Q, speed=0.5, acceleration=1.0)
+            m = tracker.measure(samples=2)
+        assert m.points.shape == (len(targets), 3) and m.spread.shape == (len(targets),)
+        np.testing.assert_allclose(m.points, spec.model.target_points(Q, targets)[0], atol=1e-12)
+
+
+def test_three_targets_without_dropout_measure_exactly_as_before_the_dropout_stream(spec):
+    # The drop-out stream is separate: a rig with dropout 0 draws the same noise as one that never heard of it, and
+    # switching drop-out on changes only which rows are NaN, not the noise of the rows that are seen.
+    plain, lossy = rig_for(spec), rig_for(spec, dropout=0.4)
+    with plain.tracker() as a, lossy.tracker() as b:
+        for _ in range(12):
+            ma, mb = a.measure(2), b.measure(2)
+            np.testing.assert_array_equal(mb.points[mb.seen], ma.points[mb.seen])
+
+
+def test_per_target_dropout_is_seeded_and_follows_each_probability(spec):
+    def seen_matrix(seed):
+        rig = rig_for(spec, seed=seed, dropout=[0.0, 0.5, 1.0])
+        rows = []
+        with rig.tracker() as tracker:
+            for _ in range(200):
+                m = tracker.measure()
+                rows.append(m.seen)
+                assert m.quality == tuple(f"missing:t{i + 1}" for i in np.flatnonzero(~m.seen))
+                assert np.all(np.isnan(m.spread[~m.seen])) and np.all(np.isfinite(m.points[m.seen]))
+        return np.array(rows)
+
+    seen = seen_matrix(7)
+    assert seen[:, 0].all() and not seen[:, 2].any()
+    assert 0.35 < seen[:, 1].mean() < 0.65  # 200 fair coins: outside this band once in ~20,000 runs
+    np.testing.assert_array_equal(seen_matrix(7), seen)
+    assert not np.array_equal(seen_matrix(8), seen)
+
+
+def test_a_measurement_that_sees_no_target_is_rejected(spec):
+    rig = SimRig(simulate(spec, ErrorSpec.none()), TARGETS[:1], seed=0, dropout=1.0)
+    with rig.tracker() as tracker, pytest.raises(MeasurementRejected, match="none of the 1 target"):
+        tracker.measure()
+
+
+@pytest.mark.parametrize(
+    "dropout, message",
+    [(1.5, "probability in"), ([0.1, 0.2], "3 of them"), (-0.1, "probability in")],
+)
+def test_bad_dropout_is_named(spec, dropout, message):
+    with pytest.raises(ValueError, match=message):
+        rig_for(spec, dropout=dropout)
+
+
+@pytest.mark.parametrize("targets", [np.zeros((0, 3)), np.zeros((2, 2)), [[0.0, np.nan, 0.0]]])
+def test_bad_targets_are_named(spec, targets):
+    with pytest.raises(ValueError, match=r"finite \(m, 3\)"):
+        SimRig(simulate(spec, ErrorSpec.none()), targets, seed=0)

@@ -11,12 +11,12 @@ Example::
     with SimRig(...).robot() as robot, SimRig(...).tracker() as tracker:
         limits.check_motion(q, speed=0.5, acceleration=1.0)
         robot.move_joints(q, speed=0.5, acceleration=1.0)
-        m = tracker.measure(samples=5)   # m.points: (3, 3) metres, rows t1, t2, t3
+        m = tracker.measure(samples=5)   # m.points: (m, 3) metres, rows t1 … tm, NaN rows where not seen
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -91,19 +91,59 @@ class RobotState:
 
 @dataclass(frozen=True)
 class Measurement:
-    """One (possibly averaged) tracker reading of the three targets.
+    """One (possibly averaged) tracker reading of the session's m targets (m ≥ 1).
 
-    points: (3, 3) target positions in the tracker frame, metres, rows in target order t1, t2, t3.
-    spread: (3,) per-target RMS distance of the averaged samples from their mean, metres (0 for one sample).
+    points: (m, 3) target positions in the tracker frame, metres, rows in target order t1 … tm; a row of NaN is a
+    target the tracker did not see. A row is either wholly finite or wholly NaN, and at least one is seen.
+    spread: (m,) per-target RMS distance of the averaged samples from their mean, metres (0 for one sample, NaN
+    where the target was not seen); default: 0 for every seen target.
     timestamp: time of the last sample, s (device clock if it has one, else host monotonic clock).
-    quality: free-form flags from the device, e.g. ("out_of_volume:t2",); empty when all is well.
+    quality: free-form flags from the device, e.g. ("out_of_volume:t2", "missing:t3"); empty when all is well.
+
+    >>> m = Measurement(np.array([[0.1, 0.2, 1.5], [np.nan] * 3]), timestamp=0.0)
+    >>> m.seen.tolist(), m.spread.tolist()
+    ([True, False], [0.0, nan])
     """
 
     points: np.ndarray
     timestamp: float
-    spread: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    spread: np.ndarray | None = None
     samples: int = 1
     quality: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        points = np.asarray(self.points, dtype=float)
+        if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0:
+            raise ValueError(f"Measurement.points must be (m, 3) with m >= 1 targets, got shape {points.shape}")
+        finite = np.isfinite(points)
+        partial = np.flatnonzero(finite.any(axis=1) & ~finite.all(axis=1))
+        if partial.size:
+            i = int(partial[0])
+            raise ValueError(
+                f"Measurement.points: target t{i + 1} is partly missing {points[i].tolist()}: a target is either "
+                "seen (3 finite coordinates) or not (3 NaN)"
+            )
+        seen = finite.all(axis=1)
+        if not seen.any():
+            raise ValueError("Measurement.points: no target seen (every row NaN); that is not a measurement")
+        if self.spread is None:
+            spread = np.where(seen, 0.0, np.nan)
+        else:
+            spread = np.asarray(self.spread, dtype=float)
+            if spread.shape != (points.shape[0],):
+                raise ValueError(f"Measurement.spread must be ({points.shape[0]},), got shape {spread.shape}")
+        object.__setattr__(self, "points", points)
+        object.__setattr__(self, "spread", spread)
+
+    @property
+    def seen(self) -> np.ndarray:
+        """(m,) bool: True where the target was seen."""
+        return np.isfinite(self.points).all(axis=1)
+
+    @property
+    def m(self) -> int:
+        """Number of targets (seen or not)."""
+        return int(self.points.shape[0])
 
 
 @dataclass(frozen=True)
@@ -181,7 +221,7 @@ class Robot(Protocol):
 
 @runtime_checkable
 class Tracker(Protocol):
-    """A 3D tracker that measures the three targets on the end effector."""
+    """A 3D tracker that measures the session's m targets on the end effector (any of them may be unseen)."""
 
     def measure(self, samples: int = 1) -> Measurement:
         """Average ``samples`` frames. Raises MeasurementRejected, DriverTimeout, ProtocolError."""
@@ -195,17 +235,51 @@ class Tracker(Protocol):
 
 
 def average_frames(frames: list[np.ndarray], timestamp: float, quality: tuple[str, ...] = ()) -> Measurement:
-    """Average k frames of (3, 3) points into one Measurement with per-target RMS spread.
+    """Average frames of (m, 3) points into one Measurement: each target over the frames that saw it.
+
+    A frame's NaN row is a target it did not see. The spread of a target is the RMS distance of its samples from
+    their mean. A target seen in no frame stays NaN and gets a ``missing:tK`` quality flag. Raises
+    MeasurementRejected for a frame that saw no target, a partly missing point, or frames of different shapes.
 
     >>> m = average_frames([np.zeros((3, 3)), np.ones((3, 3)) * 2e-6], timestamp=1.0)
-    >>> m.points[0, 0], round(float(m.spread[0]) * 1e6, 3)
+    >>> float(m.points[0, 0]), round(float(m.spread[0]) * 1e6, 3)
     (1e-06, 1.732)
+    >>> lost = np.array([[1.0, 2.0, 3.0], [np.nan] * 3])
+    >>> m = average_frames([lost, lost + [[0.002, 0, 0], [0, 0, 0]]], timestamp=1.0)
+    >>> m.points[0].tolist(), m.points[1].tolist(), round(float(m.spread[0]), 6), m.quality
+    ([1.001, 2.0, 3.0], [nan, nan, nan], 0.001, ('missing:t2',))
     """
-    stack = np.asarray(frames, dtype=float)
-    if stack.ndim != 3 or stack.shape[1:] != (3, 3) or stack.shape[0] == 0:
-        raise MeasurementRejected(f"expected k frames of 3 targets x 3 coordinates, got shape {stack.shape}")
-    if not np.all(np.isfinite(stack)):
-        raise MeasurementRejected("a frame contains a missing (non-finite) target coordinate")
-    mean = stack.mean(axis=0)
-    spread = np.sqrt(np.mean(np.sum((stack - mean) ** 2, axis=2), axis=0))
-    return Measurement(points=mean, timestamp=timestamp, spread=spread, samples=stack.shape[0], quality=quality)
+    try:
+        stack = np.asarray(frames, dtype=float)
+    except ValueError as exc:  # ragged: frames with different numbers of targets
+        raise MeasurementRejected(f"frames of different shapes cannot be averaged: {exc}") from exc
+    if stack.ndim != 3 or stack.shape[2] != 3 or stack.shape[0] == 0 or stack.shape[1] == 0:
+        raise MeasurementRejected(f"expected k frames of m targets x 3 coordinates, got shape {stack.shape}")
+    finite = np.isfinite(stack)
+    if finite.all():
+        # Every target in every frame: the plain mean (the same floating-point operations as before NaN rows).
+        mean = stack.mean(axis=0)
+        spread = np.sqrt(np.mean(np.sum((stack - mean) ** 2, axis=2), axis=0))
+        return Measurement(points=mean, timestamp=timestamp, spread=spread, samples=stack.shape[0], quality=quality)
+    seen = finite.all(axis=2)  # (k, m)
+    partial = np.argwhere(finite.any(axis=2) & ~seen)
+    if partial.size:
+        f, t = (int(v) for v in partial[0])
+        raise MeasurementRejected(
+            f"frame {f + 1}: target t{t + 1} has a missing (non-finite) coordinate: {stack[f, t].tolist()}"
+        )
+    blank = np.flatnonzero(~seen.any(axis=1))
+    if blank.size:
+        raise MeasurementRejected(
+            f"frame {int(blank[0]) + 1} of {stack.shape[0]} saw none of the {stack.shape[1]} targets"
+        )
+    count = seen.sum(axis=0)  # (m,) frames that saw each target
+    filled = np.where(seen[:, :, None], stack, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = filled.sum(axis=0) / count[:, None]
+        dev = np.where(seen, np.sum((np.where(seen[:, :, None], stack, mean) - mean) ** 2, axis=2), 0.0)
+        spread = np.sqrt(dev.sum(axis=0) / count)
+    mean[count == 0] = np.nan
+    spread[count == 0] = np.nan
+    flags = tuple(dict.fromkeys((*quality, *(f"missing:t{i + 1}" for i in np.flatnonzero(count == 0)))))
+    return Measurement(points=mean, timestamp=timestamp, spread=spread, samples=stack.shape[0], quality=flags)

@@ -3,7 +3,9 @@
 The robot reports the commanded joint values (its encoders are perfect; the errors are in the kinematics). The
 tracker reports the *true* target positions of the actual robot at the current commanded configuration, in the
 tracker frame of the actual robot, plus Gaussian noise (``ActualRobot.errors.tracker_noise``), averaged over the
-requested samples with :func:`labcal.drivers.base.average_frames`. Repeatability noise, if the error model has
+requested samples with :func:`labcal.drivers.base.average_frames`. There may be any number m ≥ 1 of targets; each
+can be lost at a measurement with its own drop-out probability (``dropout``), and comes back as a NaN row.
+Repeatability noise, if the error model has
 any, is drawn once per motion (the robot lands slightly differently each time it moves, not each time it is
 looked at), so the true points are computed once per move and only the tracker noise is drawn per frame.
 
@@ -12,8 +14,9 @@ simulated robot is a controller whose joints are not the model's: ``move_joints`
 ``joint_positions`` / ``state`` report them, and the actual robot moves to ``q_model = M q + b``. Joint limits stay
 the model's (checked after conversion); speed and acceleration caps apply to the controller joints.
 
-Seeded: the same actual robot, targets, seed, faults and sequence of calls give the same measurements. Faults
-draw from their own random stream, so switching a fault on does not change the noise of the other frames.
+Seeded: the same actual robot, targets, seed, faults, drop-out and sequence of calls give the same measurements.
+Faults and drop-outs draw from their own random streams, so switching them on does not change the noise of the
+other frames.
 
 Example::
 
@@ -73,7 +76,8 @@ class SimFaults:
 
     dropout: one target is lost — with ``dropout_mode="nan"`` the measurement comes back with that target's
     coordinates NaN and a ``missing:tK`` quality flag, with ``"reject"`` the tracker raises MeasurementRejected.
-    ``dropout_target``: which target (0, 1, 2) is lost; None picks one at random.
+    ``dropout_target``: which target (0-based index) is lost; None picks one at random. (Independent per-target
+    drop-out, the common case of a lab, is :class:`SimRig`'s ``dropout``.)
     timeout: ``measure`` raises DriverTimeout. garbled: ``measure`` raises ProtocolError.
     protective_stop_at: the k-th accepted move stops halfway with ProtectiveStop and the robot stays in a
     protective stop until :meth:`SimRobot.clear_protective_stop`.
@@ -96,19 +100,22 @@ class SimFaults:
             object.__setattr__(self, name, _probability(getattr(self, name), name))
         if self.dropout_mode not in DROPOUT_MODES:
             raise ValueError(f"SimFaults.dropout_mode must be one of {DROPOUT_MODES}, got {self.dropout_mode!r}")
-        if self.dropout_target is not None and self.dropout_target not in (0, 1, 2):
-            raise ValueError(f"SimFaults.dropout_target must be 0, 1, 2 or None, got {self.dropout_target!r}")
+        target = self.dropout_target
+        if target is not None and (isinstance(target, bool) or not isinstance(target, int) or target < 0):
+            raise ValueError(f"SimFaults.dropout_target must be a target index >= 0 or None, got {target!r}")
 
 
 class SimRig:
     """One simulated actual robot shared by a :class:`SimRobot` and a :class:`SimTracker`.
 
-    actual: the true robot; targets: (3, 3) m, target points in the tool frame (rows t1, t2, t3); seed: seeds
-    the tracker noise, repeatability and random faults; motion_time: seconds per move (float), or
-    ``"realistic"`` for a trapezoidal-profile time of the slowest joint from its distance, the move's speed and
-    acceleration; q0: (n,) initial joint values, controller joints (default: the model's zeros clipped into the
-    limits); max_speed (rad/s) and max_acceleration (rad/s²): the robot's motion caps; joint_map: controller → model
-    joints (None: the same), e.g. ``spec.joint_map`` of the robot file.
+    actual: the true robot; targets: (m, 3) m, target points in the tool frame (rows t1 … tm, m ≥ 1); seed:
+    seeds the tracker noise, repeatability, random faults and drop-outs; dropout: probability that a target is
+    not seen at a measurement, one float for all targets or (m,) one per target, drawn independently per target
+    and per ``measure`` call (a call in which no target is seen raises MeasurementRejected); motion_time: seconds
+    per move (float), or ``"realistic"`` for a trapezoidal-profile time of the slowest joint from its distance,
+    the move's speed and acceleration; q0: (n,) initial joint values, controller joints (default: the model's
+    zeros clipped into the limits); max_speed (rad/s) and max_acceleration (rad/s²): the robot's motion caps;
+    joint_map: controller → model joints (None: the same), e.g. ``spec.joint_map`` of the robot file.
     """
 
     def __init__(
@@ -123,14 +130,27 @@ class SimRig:
         max_speed: float = 1.0,
         max_acceleration: float = 1.4,
         joint_map: JointMap | None = None,
+        dropout=0.0,
     ) -> None:
         targets = np.asarray(targets, dtype=float)
-        if targets.shape != (3, 3) or not np.all(np.isfinite(targets)):
-            raise ValueError(f"targets must be a finite (3, 3) array (m, tool frame), got shape {targets.shape}")
+        if targets.ndim != 2 or targets.shape[1] != 3 or targets.shape[0] == 0 or not np.all(np.isfinite(targets)):
+            raise ValueError(f"targets must be a finite (m, 3) array (m >= 1, metres, tool frame), got {targets.shape}")
+        m = targets.shape[0]
+        dropout = np.asarray(dropout, dtype=float)
+        dropout = np.full(m, float(dropout)) if dropout.ndim == 0 else dropout
+        if dropout.shape != (m,) or not np.all((dropout >= 0) & (dropout <= 1)):
+            raise ValueError(
+                f"dropout must be a probability in [0, 1], or {m} of them (one per target), got {dropout!r}"
+            )
+        if faults is not None and faults.dropout_target is not None and faults.dropout_target >= m:
+            raise ValueError(
+                f"SimFaults.dropout_target {faults.dropout_target} is not one of the {m} targets (0 … {m - 1})"
+            )
         if not (motion_time == "realistic" or (isinstance(motion_time, int | float) and motion_time >= 0)):
             raise ValueError(f"motion_time must be seconds >= 0 or 'realistic', got {motion_time!r}")
         self.actual = actual
         self.targets = targets
+        self.dropout = dropout
         self.seed = int(seed)
         self.motion_time = motion_time
         self.faults = faults or SimFaults()
@@ -152,6 +172,7 @@ class SimRig:
         self._noise_rng = np.random.default_rng([self.seed, 0])
         self._fault_rng = np.random.default_rng([self.seed, 1])
         self._motion_rng = np.random.default_rng([self.seed, 2])
+        self._dropout_rng = np.random.default_rng([self.seed, 3])
         self._lock = threading.RLock()
         self._true_points = self._draw_true_points()
         self.protective_stop = False
@@ -182,7 +203,7 @@ class SimRig:
         return q if self.joint_map is None else self.joint_map.to_model(q)
 
     def true_points(self) -> np.ndarray:
-        """(3, 3) m: the targets' true positions in the base frame at the current pose."""
+        """(m, 3) m: the targets' true positions in the base frame at the current pose."""
         with self._lock:
             return self._true_points.copy()
 
@@ -278,10 +299,13 @@ class SimTracker:
         self._closed = False
 
     def identity(self) -> dict:
-        return {"driver": "sim", "noise_m": self.rig.actual.errors.tracker_noise, "seed": self.rig.seed}
+        identity = {"driver": "sim", "noise_m": self.rig.actual.errors.tracker_noise, "seed": self.rig.seed}
+        if self.rig.dropout.any():  # only then: identities of rigs without drop-out read as before
+            identity["dropout"] = self.rig.dropout.tolist()
+        return identity
 
     def measure(self, samples: int = 1) -> Measurement:
-        """Average ``samples`` frames: points (3, 3) m in the tracker frame, per-target spread (3,) m.
+        """Average ``samples`` frames: points (m, 3) m in the tracker frame (NaN rows: not seen), spread (m,) m.
 
         Raises MeasurementRejected, DriverTimeout or ProtocolError when a fault is injected.
         """
@@ -296,7 +320,9 @@ class SimTracker:
             k = rig.measurements
             # Always draw, so the fault stream does not depend on which faults fired before.
             u_timeout, u_garbled, u_dropout = rig._fault_rng.random(3)
-            lost = int(rig._fault_rng.integers(3)) if faults.dropout_target is None else faults.dropout_target
+            m = rig.targets.shape[0]
+            lost = int(rig._fault_rng.integers(m)) if faults.dropout_target is None else faults.dropout_target
+            seen = rig._dropout_rng.random(m) >= rig.dropout if rig.dropout.any() else np.ones(m, dtype=bool)
             if k in faults.timeout_at or u_timeout < faults.timeout_probability:
                 raise DriverTimeout(f"simulated tracker did not answer measurement {k} in time")
             if k in faults.garbled_at or u_garbled < faults.garbled_probability:
@@ -304,20 +330,18 @@ class SimTracker:
             T = rig.actual.T_tracker_base
             true = rig._true_points @ T[:3, :3].T + T[:3, 3]
             noise = rig.actual.errors.tracker_noise
-            frames = [
-                true + (rig._noise_rng.normal(0.0, noise, size=(3, 3)) if noise > 0 else 0.0) for _ in range(samples)
-            ]
+            frames = np.array(
+                [true + (rig._noise_rng.normal(0.0, noise, size=(m, 3)) if noise > 0 else 0.0) for _ in range(samples)]
+            )
             now = rig._clock()
         if k in faults.dropout_at or u_dropout < faults.dropout_probability:
             if faults.dropout_mode == "reject":
                 raise MeasurementRejected(f"target t{lost + 1} not visible in measurement {k} (simulated dropout)")
-            m = average_frames(frames, now)
-            points = m.points.copy()
-            points[lost] = np.nan
-            spread = m.spread.copy()
-            spread[lost] = np.nan
-            return Measurement(points, now, spread, samples=m.samples, quality=(f"missing:t{lost + 1}",))
-        return average_frames(frames, now)
+            seen[lost] = False
+        if not seen.any():
+            raise MeasurementRejected(f"none of the {m} target(s) visible in measurement {k} (simulated drop-out)")
+        frames[:, ~seen] = np.nan
+        return average_frames(list(frames), now)
 
     def close(self) -> None:
         self._closed = True
