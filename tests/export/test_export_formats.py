@@ -10,20 +10,28 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-sys.path.insert(0, str(Path(__file__).parents[1]))
 
 import urscript_subset
+from export_fixtures import hybrid, make_network, sample
 
 from labcal.compensator import CalibratedRobot, Compensator
 from labcal.export import export
 from labcal.export.urdf import urdf_text
 from labcal.export.urscript import urscript_text
-from labcal.kinematics import from_urdf
+from labcal.kinematics import from_urdf, se3
+from labcal.kinematics.poe import REVOLUTE, LocalPOEModel
 from labcal.robots import load
-from test_compensator import hybrid, make_network, redundant_robot, sample
+
+
+def redundant_robot(seed=3) -> CalibratedRobot:
+    """A 7-joint arm (a random z-revolute chain) and its calibrated copy: local POE only."""
+    rng = np.random.default_rng(seed)
+    nominal = LocalPOEModel.from_frames(se3.exp_se3(rng.normal(size=(8, 6)) * 0.3), (REVOLUTE,) * 7)
+    return CalibratedRobot(nominal, nominal.perturbed(rng.normal(size=(8, 6)) * 0.5e-3), method="local-poe")
 
 
 def run_script(text: str, q: np.ndarray, name: str = "labcal_correct") -> np.ndarray:
+    urscript_subset.check(text)
     ns = urscript_subset.load(text)
     return np.array([ns[name](list(map(float, row))) for row in q])
 

@@ -1,4 +1,4 @@
-"""Exports of a calibrated robot: the compensator (JSON/NPZ), a URScript function and a calibrated URDF.
+"""Exports of a calibrated robot: the compensator (JSON/NPZ), URScript (function file or program), a calibrated URDF.
 
 A robot whose file declares a joint map (controller joints ≠ model joints) exports only as json/npz: the
 compensator converts controller joints, while a URScript function or a URDF has no place for the map and would be
@@ -17,15 +17,16 @@ from pathlib import Path
 from labcal.compensator import CalibratedRobot
 from labcal.compensator import save as save_compensator
 
-FORMATS = ("json", "npz", "urscript", "urdf")
-SUFFIXES = {"json": ".json", "npz": ".npz", "urscript": ".script", "urdf": ".urdf"}
+FORMATS = ("json", "npz", "urscript", "urscript-program", "urdf")
+SUFFIXES = {"json": ".json", "npz": ".npz", "urscript": ".script", "urscript-program": ".script", "urdf": ".urdf"}
 
 
 def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = None, **options) -> Path:
     """Write robot in format fmt (json | npz | urscript | urdf) to path; returns the path written.
 
-    json/npz: the compensator file (path must end in .json / .npz); urscript: ``labcal_correct(q)`` (options:
-    method, iterations, function_name); urdf: the identified frames.
+    json/npz: the compensator file (path must end in .json / .npz); urscript: the function file with
+    ``labcal_correct(q)`` for a Script node, urscript-program: the ``def`` program for the script port (options of
+    both: method, iterations, function_name, statements_per_sync); urdf: the identified frames.
     """
     path = Path(path)
     if fmt not in FORMATS:
@@ -38,6 +39,10 @@ def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = Non
         from labcal.export.urscript import write_urscript
 
         return write_urscript(robot, path, provenance, **options)
+    if fmt == "urscript-program":
+        from labcal.export.urscript import write_urscript_program
+
+        return write_urscript_program(robot, path, provenance, **options)
     from labcal.export.urdf import write_urdf
 
     return write_urdf(robot, path, provenance)

@@ -1,7 +1,12 @@
-"""URScript export: a self-contained ``labcal_correct(q)`` that runs the compensator on a UR controller.
+"""URScript export: the compensator as URScript a UR controller runs, in two deployable forms.
 
-The generated file defines global constants (all prefixed ``lc_``) and functions; include it in a robot program
-and call ``q_cmd = labcal_correct(q)`` with a target joint list q (rad), then ``movej(q_cmd, …)``.
+- **function file** (``urscript_text``, ``--format urscript``): global ``lc_`` constants and functions, ending in
+  ``labcal_correct(q)``. Load it in a *Script* node (file mode) before the first call, then
+  ``q_cmd = labcal_correct(q)`` and ``movej(q_cmd, …)``.
+- **program** (``urscript_program_text``, ``--format urscript-program``): the same definitions inside one
+  ``def labcal_program(): … end`` for the primary/secondary script port (30001/30002). On its own it runs a self
+  test (the golden configurations of the export, compared with the Python runtime's q_cmd within
+  :data:`FLOAT32_BOUND`) and says so with ``textmsg``; a caller may pass ``body`` lines (e.g. ``movej``) to run after.
 
 What it computes (``method="newton"``, the default, matches :meth:`CalibratedRobot.correct`):
 
@@ -10,19 +15,42 @@ What it computes (``method="newton"``, the default, matches :meth:`CalibratedRob
    ``log(T_nominal(q) T_model(q_cmd)⁻¹) − J(q_cmd) δρ(q_cmd) = 0``: the identified frames' forward kinematics, the
    joint twists J, the network δρ (tanh hidden layers, normalisation folded into the weights) and a 6×6 solve by
    Gaussian elimination with partial pivoting — the same equations as the Python runtime, which stops adaptively
-   where the script always runs ``iterations`` steps (four reach ≤ 1e-9 rad on non-singular configurations);
+   where the script always runs ``iterations`` steps;
 3. ``method="paper"`` instead emits eq. (24), q − δρ_a(q): one network evaluation, exact for the paper's method.
+
+Rules the emitted script keeps (checked on every emitted script by ``tests/export/urscript_subset.check``):
+
+- **List capacity.** Since PolyScope 5.15 a list can only be assigned to an existing list of greater or equal
+  capacity, and a list literal's capacity is its length. Every list is created at its full size (``[0.0, …]`` of
+  the length it will hold, or the result of a function whose returned list has that length) and only lists of
+  the same length are assigned to it later.
+- **Integer indexing.** Indices are int expressions (int literals and int variables under + − ×); a variable keeps
+  the type of its first assignment (an int counter never receives a float).
+- **Scope.** Every variable a function assigns is declared ``local`` (or is a parameter), so a user program's
+  global of the same name (``i``, ``q`` …) is never overwritten; globals are the ``lc_``-prefixed constants.
+- **Built-ins.** Only sin, cos, sqrt, atan2, pow, sync, popup, textmsg, movej (and ``halt``); URScript has no ``exp`` or
+  ``tanh`` (tanh is built from pow).
+- **Statement budget.** The manual asks for ``sync()`` next to computation-heavy code (a thread that uses its
+  whole 2 ms frame without one risks "Lost communication with Controller" and a protective stop). Each heavy
+  phase (a chain, the twists, each network layer, the solve) starts with ``sync()`` and loops over joints,
+  outputs or pivots call ``sync()`` every few iterations, sized so that at most ``statements_per_sync``
+  statements run between two ``sync()`` calls; the manual gives no number, so the default
+  :data:`STATEMENTS_PER_SYNC` is a conservative choice: lower it if the controller reports a thread that used too
+  much time, raise it for fewer frames per call. Each ``sync()`` costs one 2 ms frame, so a call takes at least
+  2 ms × the number of syncs it executes.
+
+Numbers: the script prints every constant with 17 significant digits, but the controller computes in 32-bit
+floats. The float32 result differs from ``correct()`` by rounding, amplified by the configuration's conditioning:
+within :data:`FLOAT32_BOUND` rad on configurations whose length-scaled joint Jacobian has a condition number
+≤ 100 (the test evaluates every script in float32 and holds it to this bound; the exact double-precision
+agreement holds only in double precision).
 
 Not covered (say so where it matters): configurations outside the calibrated joint ranges stop the program
 (``popup`` + ``halt``) — there is no ``extrapolate``; there is no Levenberg-Marquardt fallback, so near a singular
 configuration the script returns whatever the fixed Gauss-Newton steps give (the Python runtime would damp them);
 robots with fewer than 6 joints are supported without a network only (virtual joints need a QR decomposition),
-robots with more than 6 not at all (a UR controller drives six);
-the rotation logarithm assumes a residual rotation below π/2 (corrections are milliradians).
-
-The emitted language is a small subset of URScript: ``def``/``end``, ``while``, ``if``/``elif``/``else``,
-``local`` assignments, flat lists with integer indexing, ``+ - * /``, comparisons, ``and``/``or``/``not``,
-and the built-ins sin, cos, sqrt, atan2, pow, popup and halt.
+robots with more than 6 not at all (a UR controller drives six); the rotation logarithm assumes a residual rotation
+below π/2 (corrections are milliradians).
 """
 
 from __future__ import annotations
@@ -32,19 +60,26 @@ from pathlib import Path
 import numpy as np
 
 from labcal import features as feature_lib
-from labcal.compensator import CalibratedRobot
+from labcal.compensator import CalibratedRobot, golden_configurations
 from labcal.export.zform import ZAxisForm
 from labcal.robots import model_hash
 
-BUILTINS = ("sin", "cos", "sqrt", "atan2", "pow", "popup", "halt")
+BUILTINS = ("sin", "cos", "sqrt", "atan2", "pow", "sync", "popup", "textmsg", "halt", "movej")
+STATEMENTS_PER_SYNC = 1000  # default budget of statements between two sync() calls (see the module docstring)
+FLOAT32_BOUND = 2e-5  # rad: |script in float32 − correct()| on configurations with scaled condition ≤ 100
+SELF_TEST_COUNT = 4
 
 
 def _num(x: float) -> str:
+    """A float literal URScript and the test interpreter both read as a float (always with a decimal point)."""
     x = float(x)
     if not np.isfinite(x):
         raise ValueError(f"cannot write the non-finite number {x} into URScript")
     text = repr(x)
-    return text if ("." in text or "e" in text or "n" in text) else text + ".0"
+    if "e" in text:
+        mantissa, exponent = text.split("e")
+        return (mantissa if "." in mantissa else mantissa + ".0") + "e" + exponent
+    return text if "." in text else text + ".0"
 
 
 def _list(values) -> str:
@@ -57,6 +92,34 @@ def _bools(values) -> str:
 
 def _zeros(m: int) -> str:
     return "[" + ", ".join(["0.0"] * m) + "]"
+
+
+class _Budget:
+    """How many loop iterations fit between two sync() calls: half the budget per chunk, so that a chunk plus the
+    straight-line code after it (up to the next phase's sync) stays within the budget."""
+
+    def __init__(self, statements: int) -> None:
+        if statements < 200:
+            raise ValueError(f"statements_per_sync must be >= 200 (one joint's chain step needs ~60), got {statements}")
+        self.statements = int(statements)
+        self.chunk = self.statements // 2
+
+    def every(self, cost: int) -> int:
+        """Iterations of a loop whose body runs at most ``cost`` statements that fit in one chunk (≥ 1)."""
+        return max(1, self.chunk // max(1, cost))
+
+
+def _counter(indent: str, name: str, every: int, trips: int) -> list[str]:
+    """Lines that call sync() after every ``every`` iterations of a loop (none when the loop fits in one chunk)."""
+    if every >= trips:
+        return []
+    return [
+        f"{indent}{name} = {name} + 1",
+        f"{indent}if {name} >= {every}:",
+        f"{indent}  sync()",
+        f"{indent}  {name} = 0",
+        f"{indent}end",
+    ]
 
 
 def _frames12(kin: ZAxisForm) -> np.ndarray:
@@ -76,7 +139,10 @@ def _mul_function() -> list[str]:
     return ["def lc_mul(a, b):", "  return [" + ", ".join(terms) + "]", "end"]
 
 
-def _chain_function(n: int) -> list[str]:
+_CHAIN_JOINT_COST = 50  # statements of one joint's step in lc_chain (upper bound; the tests measure it)
+
+
+def _chain_function(n: int, budget: _Budget) -> list[str]:
     m = 12 * (n + 1)
     g = []
     for k in range(4):
@@ -84,9 +150,11 @@ def _chain_function(n: int) -> list[str]:
     for k in range(4):
         g.append(f"s * A[o + {k}] + c * A[o + {4 + k}]")
     g += ["A[o + 8]", "A[o + 9]", "A[o + 10]", "A[o + 11] + lin[j] * q[j]"]
+    every = budget.every(_CHAIN_JOINT_COST)
     return [
         "# frames T'_0 … T'_n of a chain (3×4 row-major blocks); the last block is the tool pose",
         "def lc_chain(A, lin, rev, q):",
+        "  sync()",
         f"  local F = {_zeros(m)}",
         "  local i = 0",
         "  local j = 0",
@@ -94,9 +162,10 @@ def _chain_function(n: int) -> list[str]:
         "  local s = 0.0",
         "  local o = 0",
         "  local b = 0",
-        "  local G = [0.0]",
-        "  local P = [0.0]",
-        "  local R = [0.0]",
+        "  local cnt = 0",
+        f"  local G = {_zeros(12)}",
+        f"  local P = {_zeros(12)}",
+        f"  local R = {_zeros(12)}",
         "  while i < 12:",
         "    F[i] = A[i]",
         "    i = i + 1",
@@ -119,6 +188,7 @@ def _chain_function(n: int) -> list[str]:
         "      i = i + 1",
         "    end",
         "    j = j + 1",
+        *_counter("    ", "cnt", every, n),
         "  end",
         "  return F",
         "end",
@@ -129,6 +199,7 @@ def _twists_function(n: int) -> list[str]:
     return [
         "# joint twists in the base frame, 6×n row-major (v, w): Ad(T'_j)(h_j e_z, e_z)",
         "def lc_twists(F, rev, pitch):",
+        "  sync()",
         f"  local J = {_zeros(6 * n)}",
         "  local j = 0",
         "  local b = 0",
@@ -199,16 +270,23 @@ def _log_function() -> list[str]:
     ]
 
 
-def _solve_function(n: int) -> list[str]:
+def _solve_function(n: int, budget: _Budget) -> list[str]:
+    # One pivot column: search (4 per row) and swap (4 per column + 5); then each row below it (8 + 3 per column).
+    every = budget.every(10 + 8 * n)
+    row_every = budget.every(8 + 3 * n)
+    back_every = budget.every(6 + 3 * n)
     return [
         f"# solve M x = y for a {n}×{n} row-major M (Gaussian elimination, partial pivoting)",
         "def lc_solve(M, y):",
+        "  sync()",
         f"  local A = {_zeros(n * n)}",
         f"  local x = {_zeros(n)}",
         "  local i = 0",
         "  local r = 0",
         "  local k = 0",
         "  local p = 0",
+        "  local cnt = 0",
+        "  local rc = 0",
         "  local best = 0.0",
         "  local t = 0.0",
         "  local f = 0.0",
@@ -221,6 +299,7 @@ def _solve_function(n: int) -> list[str]:
         "    x[i] = y[i]",
         "    i = i + 1",
         "  end",
+        "  sync()",
         "  i = 0",
         f"  while i < {n}:",
         "    p = i",
@@ -255,9 +334,13 @@ def _solve_function(n: int) -> list[str]:
         "      end",
         "      x[r] = x[r] - f * x[i]",
         "      r = r + 1",
+        *_counter("      ", "rc", row_every, n - 1),
         "    end",
         "    i = i + 1",
+        *_counter("    ", "cnt", every, n),
         "  end",
+        "  sync()",
+        "  cnt = 0",
         f"  i = {n - 1}",
         "  while i >= 0:",
         "    k = i + 1",
@@ -267,6 +350,7 @@ def _solve_function(n: int) -> list[str]:
         "    end",
         f"    x[i] = x[i] / A[i * {n} + i]",
         "    i = i - 1",
+        *_counter("    ", "cnt", back_every, n),
         "  end",
         "  return x",
         "end",
@@ -279,69 +363,97 @@ def _solve_function(n: int) -> list[str]:
     ]
 
 
-def _network_functions(robot: CalibratedRobot, kin: ZAxisForm) -> tuple[list[str], list[str]]:
+def _folded(net) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The network's layers with the input/output standardisation folded into the first/last layer:
+    weights (out, in) and biases (out,), acting on raw features and giving δρ directly."""
+    Ws = [np.array(W, dtype=float) for W in net.weights]
+    bs = [np.array(b, dtype=float) for b in net.biases]
+    in_scale = np.asarray(net.in_scale, dtype=float)
+    in_mean = np.asarray(net.in_mean, dtype=float)
+    W0 = Ws[0] / in_scale
+    bs[0] = bs[0] - W0 @ in_mean
+    Ws[0] = W0
+    out_scale = np.asarray(net.out_scale, dtype=float)
+    Ws[-1] = Ws[-1] * out_scale[:, None]
+    bs[-1] = bs[-1] * out_scale + np.asarray(net.out_mean, dtype=float)
+    return Ws, bs
+
+
+def _feature_parts(name: str, robot: CalibratedRobot, kin: ZAxisForm) -> list[str]:
+    """URScript expressions of one network input feature's columns (in the runtime's column order)."""
+    n = robot.n
+    if name == "q":
+        return [f"q[{j}]" for j in range(n)]
+    if name in ("sincos", "sincos2"):
+        sines, cosines = [], []
+        for j in range(n):
+            if not kin.revolute[j]:
+                sines.append(f"q[{j}]" if name == "sincos" else "0.0")
+                cosines.append("0.0")
+            elif name == "sincos":
+                sines.append(f"sin(q[{j}])")
+                cosines.append(f"cos(q[{j}])")
+            else:
+                sines.append(f"2.0 * sin(q[{j}]) * cos(q[{j}])")
+                cosines.append(f"cos(q[{j}]) * cos(q[{j}]) - sin(q[{j}]) * sin(q[{j}])")
+        return sines + cosines
+    if name == "gravity":
+        # −z of the base in link frame j is minus the third row of R_j (the chain's frame T'_j, j = 1 … n).
+        parts = []
+        for j in range(1, n + 1):
+            rows = [f"F[{12 * j + 8 + a}]" for a in range(3)]
+            if kin.identity_C:
+                parts += [f"-{r}" for r in rows]
+            else:
+                RC = kin.RC_T[j - 1]
+                for col in range(3):
+                    parts.append("-(" + " + ".join(f"{rows[a]} * {_num(RC[a, col])}" for a in range(3)) + ")")
+        return parts
+    kind = feature_lib.parse(name)
+    if kind is None:
+        raise ValueError(f"cannot export network feature {name!r} to URScript")
+    H = kind[1]
+    lo, hi = robot.model.limits[:, 0], robot.model.limits[:, 1]
+    parts = []
+    for j in range(n):
+        theta = f"q[{j}]" if kin.revolute[j] else f"({_num(np.pi)} * (q[{j}] - {_num(lo[j])}) / {_num(hi[j] - lo[j])})"
+        for h in range(1, H + 1):
+            parts += [f"sin({h}.0 * {theta})", f"cos({h}.0 * {theta})"]
+    return parts
+
+
+def _network_functions(robot: CalibratedRobot, kin: ZAxisForm, budget: _Budget) -> tuple[list[str], list[str]]:
     """(constant lines, function lines) of the feature map and the network forward pass lc_rho(q, F)."""
     net = robot.network
-    n = robot.n
-    Wt, bs = net._folded
+    Ws, bs = _folded(net)
     consts, lines = [], []
-    # -- features -------------------------------------------------------------------------------------------
     parts: list[str] = []
     for name in net.features:
-        if name == "q":
-            parts += [f"q[{j}]" for j in range(n)]
-        elif name in ("sincos", "sincos2"):
-            sines, cosines = [], []
-            for j in range(n):
-                if not kin.revolute[j]:
-                    sines.append(f"q[{j}]" if name == "sincos" else "0.0")
-                    cosines.append("0.0")
-                elif name == "sincos":
-                    sines.append(f"sin(q[{j}])")
-                    cosines.append(f"cos(q[{j}])")
-                else:
-                    sines.append(f"2.0 * sin(q[{j}]) * cos(q[{j}])")
-                    cosines.append(f"cos(q[{j}]) * cos(q[{j}]) - sin(q[{j}]) * sin(q[{j}])")
-            parts += sines + cosines
-        elif name == "gravity":
-            for j in range(1, n + 1):
-                rows = [f"F[{12 * j + 8 + a}]" for a in range(3)]
-                if kin.identity_C:
-                    parts += [f"-{r}" for r in rows]
-                else:
-                    RC = kin.RC_T[j - 1]
-                    for col in range(3):
-                        parts.append("-(" + " + ".join(f"{rows[a]} * {_num(RC[a, col])}" for a in range(3)) + ")")
-        else:
-            kind = feature_lib.parse(name)
-            if kind is None:
-                raise ValueError(f"cannot export network feature {name!r} to URScript")
-            H = kind[1]
-            lo, hi = robot.model.limits[:, 0], robot.model.limits[:, 1]
-            for j in range(n):
-                theta = (
-                    f"q[{j}]"
-                    if kin.revolute[j]
-                    else f"({_num(np.pi)} * (q[{j}] - {_num(lo[j])}) / {_num(hi[j] - lo[j])})"
-                )
-                for h in range(1, H + 1):
-                    parts += [f"sin({h}.0 * {theta})", f"cos({h}.0 * {theta})"]
-    f = len(parts)
-    if f != Wt[0].shape[0]:
-        raise ValueError(f"network expects {Wt[0].shape[0]} inputs, the features give {f}")
+        parts += _feature_parts(name, robot, kin)
+    if len(parts) != Ws[0].shape[1]:
+        raise ValueError(f"network expects {Ws[0].shape[1]} inputs, the features give {len(parts)}")
     lines += ["# network inputs (normalisation is folded into lc_W0 / lc_b0)", "def lc_features(q, F):"]
     lines += ["  return [" + ", ".join(parts) + "]", "end"]
-    # -- layers ---------------------------------------------------------------------------------------------
-    last = len(Wt) - 1
-    for i, (W, b) in enumerate(zip(Wt, bs, strict=True)):
-        nin, nout = W.shape
-        consts.append(f"lc_W{i} = {_list(W.T)}")
+    last = len(Ws) - 1
+    for i, (W, b) in enumerate(zip(Ws, bs, strict=True)):
+        nout, nin = W.shape
+        consts.append(f"lc_W{i} = {_list(W)}")
         consts.append(f"lc_b{i} = {_list(b)}")
+        inner = 3  # statements per input: the loop test, the multiply-add, the increment
+        out_cost = 12 + inner * nin
+        if out_cost <= budget.chunk:
+            k_sync: list[str] = []
+        else:  # one output's sum alone is more than a chunk: sync inside it too
+            k_sync = _counter("      ", "kc", budget.every(inner + 5), nin)
+            out_cost = 12 + budget.chunk
         lines += [
             f"def lc_layer{i}(x):",
+            "  sync()",
             f"  local y = {_zeros(nout)}",
             "  local o = 0",
             "  local k = 0",
+            "  local cnt = 0",
+            "  local kc = 0",
             "  local acc = 0.0",
             f"  while o < {nout}:",
             f"    acc = lc_b{i}[o]",
@@ -349,15 +461,17 @@ def _network_functions(robot: CalibratedRobot, kin: ZAxisForm) -> tuple[list[str
             f"    while k < {nin}:",
             f"      acc = acc + lc_W{i}[o * {nin} + k] * x[k]",
             "      k = k + 1",
+            *k_sync,
             "    end",
             "    y[o] = " + ("acc" if i == last else "lc_tanh(acc)"),
             "    o = o + 1",
+            *_counter("    ", "cnt", budget.every(out_cost), nout),
             "  end",
             "  return y",
             "end",
         ]
     call = "lc_features(q, F)"
-    for i in range(len(Wt)):
+    for i in range(len(Ws)):
         call = f"lc_layer{i}({call})"
     lines += [
         "def lc_tanh(x):",
@@ -378,23 +492,14 @@ def _network_functions(robot: CalibratedRobot, kin: ZAxisForm) -> tuple[list[str
     return consts, lines
 
 
-def urscript_text(
-    robot: CalibratedRobot,
-    *,
-    method: str = "newton",
-    iterations: int = 4,
-    function_name: str = "labcal_correct",
-    provenance: dict | None = None,
-) -> str:
-    """The URScript source of ``function_name(q)`` for this calibrated robot (see the module docstring)."""
+def _check_exportable(robot: CalibratedRobot, method: str, iterations: int, function_name: str) -> None:
     if method not in ("newton", "paper"):
         raise ValueError(f"urscript method must be 'newton' or 'paper', got {method!r}")
     if not function_name.isidentifier():
         raise ValueError(f"function name {function_name!r} is not an identifier")
     if iterations < 1:
         raise ValueError(f"iterations must be >= 1, got {iterations}")
-    n = robot.n
-    net = robot.network
+    n, net = robot.n, robot.network
     if robot.joint_map is not None:
         raise ValueError(
             "URScript export of a robot with a joint map (controller joints are not the model's joints) is not "
@@ -415,17 +520,16 @@ def urscript_text(
             f"URScript export of a network for a {n}-joint robot is not supported (virtual joints); "
             "use the json/npz compensator"
         )
+
+
+def _definitions(
+    robot: CalibratedRobot, method: str, iterations: int, function_name: str, budget: _Budget
+) -> tuple[list[str], list[str]]:
+    """(constant lines, function lines) of the compensator, ending with ``function_name(q)``."""
+    n, net = robot.n, robot.network
     kin, nom = ZAxisForm(robot.model), ZAxisForm(robot.nominal)
     lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
-
-    head = [
-        f"# labcal compensator for {robot.nominal.name or 'robot'} — method {robot.method}, script: {method}",
-        f"# nominal robot sha256 {model_hash(robot.nominal)}",
-    ]
-    head += [f"# {k}: {v}" for k, v in sorted((provenance or {}).items())]
-    head += [
-        f"# usage: q_cmd = {function_name}(q)   (q: {n} joint angles in rad, the pose you want the nominal model of)",
-        "# generated by labcal.export.urscript; do not edit (the numbers are the calibration)",
+    consts = [
         f"lc_lo = {_list(lo)}",
         f"lc_hi = {_list(hi)}",
         f"lc_A = {_list(_frames12(kin))}",
@@ -436,10 +540,16 @@ def urscript_text(
         f"lc_nlin = {_list(nom.lin)}",
         f"lc_nrev = {_bools(nom.revolute)}",
     ]
-    funcs = _mul_function() + _chain_function(n) + _twists_function(n) + _log_function() + _solve_function(n)
+    funcs = (
+        _mul_function()
+        + _chain_function(n, budget)
+        + _twists_function(n)
+        + _log_function()
+        + _solve_function(n, budget)
+    )
     if net is not None:
-        consts, net_lines = _network_functions(robot, kin)
-        head += consts
+        net_consts, net_lines = _network_functions(robot, kin, budget)
+        consts += net_consts
         funcs += net_lines
 
     check = [
@@ -453,14 +563,15 @@ def urscript_text(
         "  end",
     ]
     main = [f"def {function_name}(q):", *check]
+    m = 12 * (n + 1)
     if method == "paper":
-        F = "lc_chain(lc_A, lc_lin, lc_rev, q)" if "gravity" in net.features else "[0.0]"
+        F = "lc_chain(lc_A, lc_lin, lc_rev, q)" if "gravity" in net.features else _zeros(m)
         main += [
             f"  local rho = lc_rho(q, {F})",
             "  return [" + ", ".join(f"q[{j}] - rho[{j}]" for j in range(n)) + "]",
             "end",
         ]
-        return "\n".join(head + funcs + main) + "\n"
+        return consts, funcs + main
 
     last = 12 * n
     main += [
@@ -468,12 +579,13 @@ def urscript_text(
         "  local Rt = [" + ", ".join(f"T[{last + 4 * a + b}]" for a in range(3) for b in range(3)) + "]",
         "  local pt = [" + ", ".join(f"T[{last + 4 * a + 3}]" for a in range(3)) + "]",
         f"  local qc = [{', '.join(f'q[{j}]' for j in range(n))}]",
-        "  local F = [0.0]",
-        "  local J = [0.0]",
-        "  local dR = [0.0]",
-        "  local dp = [0.0]",
-        "  local r = [0.0]",
-        "  local st = [0.0]",
+        f"  local F = {_zeros(m)}",
+        f"  local J = {_zeros(6 * n)}",
+        f"  local dR = {_zeros(9)}",
+        f"  local dp = {_zeros(3)}",
+        f"  local r = {_zeros(6)}",
+        f"  local rho = {_zeros(6)}",
+        f"  local st = {_zeros(n)}",
         "  local it = 0",
         f"  while it < {int(iterations)}:",
         "    F = lc_chain(lc_A, lc_lin, lc_rev, qc)",
@@ -483,17 +595,17 @@ def urscript_text(
     dR = []
     for a in range(3):
         for b in range(3):
-            dR.append(" + ".join(f"Rt[{3 * a + m}] * F[{last + 4 * b + m}]" for m in range(3)))
+            dR.append(" + ".join(f"Rt[{3 * a + k}] * F[{last + 4 * b + k}]" for k in range(3)))
     main.append("    dR = [" + ", ".join(dR) + "]")
     dp = [
-        f"pt[{a}] - (" + " + ".join(f"dR[{3 * a + m}] * F[{last + 4 * m + 3}]" for m in range(3)) + ")"
+        f"pt[{a}] - (" + " + ".join(f"dR[{3 * a + k}] * F[{last + 4 * k + 3}]" for k in range(3)) + ")"
         for a in range(3)
     ]
     main.append("    dp = [" + ", ".join(dp) + "]")
     main.append("    r = lc_log(dR, dp)")
     if net is not None:
-        main.append("    local rho = lc_rho(qc, F)")
-        dy = [" + ".join(f"J[{6 * a + m}] * rho[{m}]" for m in range(6)) for a in range(6)]
+        main.append("    rho = lc_rho(qc, F)")
+        dy = [" + ".join(f"J[{6 * a + k}] * rho[{k}]" for k in range(6)) for a in range(6)]
         main.append("    r = [" + ", ".join(f"r[{a}] - ({dy[a]})" for a in range(6)) + "]")
     if n >= 6:
         main.append("    st = lc_solve(J, r)")
@@ -514,10 +626,107 @@ def urscript_text(
         "  return qc",
         "end",
     ]
-    return "\n".join(head + funcs + main) + "\n"
+    return consts, funcs + main
+
+
+def _header(robot: CalibratedRobot, method: str, provenance: dict | None, usage: str) -> list[str]:
+    head = [
+        f"# labcal compensator for {robot.nominal.name or 'robot'} — method {robot.method}, script: {method}",
+        f"# nominal robot sha256 {model_hash(robot.nominal)}",
+    ]
+    head += [f"# {k}: {_one_line(v)}" for k, v in sorted((provenance or {}).items())]
+    head += [usage, "# generated by labcal.export.urscript; do not edit (the numbers are the calibration)"]
+    return head
+
+
+def _one_line(value) -> str:
+    return " ".join(str(value).split())
+
+
+def urscript_text(
+    robot: CalibratedRobot,
+    *,
+    method: str = "newton",
+    iterations: int = 4,
+    function_name: str = "labcal_correct",
+    provenance: dict | None = None,
+    statements_per_sync: int = STATEMENTS_PER_SYNC,
+) -> str:
+    """The function file: constants and ``function_name(q)`` for a Script node (see the module docstring)."""
+    _check_exportable(robot, method, iterations, function_name)
+    consts, funcs = _definitions(robot, method, iterations, function_name, _Budget(statements_per_sync))
+    usage = (
+        f"# usage (Script node, file mode, before the first call): q_cmd = {function_name}(q)   "
+        f"(q: {robot.n} joint angles in rad, the pose you want the nominal model of)"
+    )
+    return "\n".join(_header(robot, method, provenance, usage) + consts + funcs) + "\n"
+
+
+def urscript_program_text(
+    robot: CalibratedRobot,
+    *,
+    method: str = "newton",
+    iterations: int = 4,
+    function_name: str = "labcal_correct",
+    provenance: dict | None = None,
+    statements_per_sync: int = STATEMENTS_PER_SYNC,
+    program_name: str = "labcal_program",
+    body: list[str] | None = None,
+    self_test: bool = True,
+) -> str:
+    """The ``def`` program for the script port: definitions, a self test, then ``body`` (lines, unindented).
+
+    The self test corrects the export's first golden configurations and halts with a popup when the controller's
+    q_cmd differs from the Python runtime's by more than :data:`FLOAT32_BOUND` (a wrong file, or a controller that
+    computes differently from what this export assumes).
+    """
+    _check_exportable(robot, method, iterations, function_name)
+    if not program_name.isidentifier():
+        raise ValueError(f"program name {program_name!r} is not an identifier")
+    consts, funcs = _definitions(robot, method, iterations, function_name, _Budget(statements_per_sync))
+    usage = f"# usage: send this file to the controller's script port (30002); it runs {program_name}()"
+    lines = [f"def {program_name}():"]
+    lines += ["  " + line for line in consts + funcs]
+    if self_test:
+        q = golden_configurations(robot)[:SELF_TEST_COUNT]
+        expected = robot.correct(q, method=method)
+        n = robot.n
+        lines += [
+            "  # self test: the Python runtime's q_cmd at a few configurations, within the float32 bound",
+            f"  local lc_tq = {_list(q)}",
+            f"  local lc_tx = {_list(expected)}",
+            f"  local lc_tin = {_zeros(n)}",
+            f"  local lc_tout = {_zeros(n)}",
+            "  local lc_ti = 0",
+            "  local lc_tj = 0",
+            f"  while lc_ti < {len(q)}:",
+            "    lc_tin = [" + ", ".join(f"lc_tq[lc_ti * {n} + {j}]" for j in range(n)) + "]",
+            f"    lc_tout = {function_name}(lc_tin)",
+            "    lc_tj = 0",
+            f"    while lc_tj < {n}:",
+            f"      if lc_abs(lc_tout[lc_tj] - lc_tx[lc_ti * {n} + lc_tj]) > {_num(FLOAT32_BOUND)}:",
+            '        popup("labcal: self test failed (this controller does not reproduce the export)", '
+            "error=True, blocking=True)",
+            "        halt",
+            "      end",
+            "      lc_tj = lc_tj + 1",
+            "    end",
+            "    lc_ti = lc_ti + 1",
+            "  end",
+            '  textmsg("labcal: compensator self test passed")',
+        ]
+    lines += ["  " + line for line in body or []]
+    lines.append("end")
+    return "\n".join(_header(robot, method, provenance, usage) + lines) + "\n"
 
 
 def write_urscript(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:
     path = Path(path)
     path.write_text(urscript_text(robot, provenance=provenance, **options))
+    return path
+
+
+def write_urscript_program(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:
+    path = Path(path)
+    path.write_text(urscript_program_text(robot, provenance=provenance, **options))
     return path
