@@ -82,8 +82,8 @@ def test_signs_form_is_the_diagonal_matrix():
         ("signs = [1, 2]", r"joint_map\.signs must be 2 values of 1 or -1"),
         ("matrix = [[1, 0], [0, 1]]\nsigns = [1, 1]", "exactly one of 'matrix'"),
         ("offsets = [0.0, 0.0]", "exactly one of 'matrix'"),
-        ("signs = [1, 1]\noffsets = [0.0]", r"joint_map\.offsets must be 2 numbers"),
-        ("signs = [1, 1]\noffset = [0.0, 0.0]", r"unknown field\(s\) offset"),
+        ("signs = [1, 1]\noffsets = [0.0]", r"joint_map\.offsets must be a list of 2 numbers \(rad.*got \[0.0\]"),
+        ("signs = [1, 1]\noffset = [0.0, 0.0]", r"joint_map: unknown key 'offset' \(did you mean 'offsets'\?\)"),
         ("signs = [1, 1]\noffsets = [0.0, 90.0]", r"joint_map\.offsets\[2\] = 90 looks like degrees"),
     ],
 )
@@ -93,7 +93,7 @@ def test_bad_joint_maps_name_the_field(table, match):
 
 
 def test_joint_map_must_be_a_table():
-    with pytest.raises(RobotFileError, match=r"\[joint_map\] must be a table"):
+    with pytest.raises(RobotFileError, match=r"joint_map must be a table, got 3"):
         loads(two(top="joint_map = 3"))
 
 
@@ -161,5 +161,37 @@ def test_plausible_values_pass_and_every_shipped_file_is_in_si_units():
 
 
 def test_units_checked_must_be_a_boolean():
-    with pytest.raises(RobotFileError, match="'units_checked' must be true or false"):
+    with pytest.raises(RobotFileError, match="units_checked must be true or false, got 'yes'"):
         loads(two(top='units_checked = "yes"'))
+
+
+# -- the schema: unknown keys, shapes and the keys a kinematics takes ------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "extra,match",
+    [
+        ("[tool]\nxyz = [0.0, 0.0, 0.1]\nrpz = [0.0, 0.0, 0.0]", r"tool: unknown key 'rpz' \(did you mean 'rpy'\?\)"),
+        ("kinematic = 'dh'", r"robot file: unknown key 'kinematic' \(did you mean 'kinematics'\?\)"),
+    ],
+)
+def test_unknown_keys_are_refused_with_a_did_you_mean(extra, match):
+    text = two().replace("[tool]\nxyz = [0.0, 0.0, 0.1]\n", "") + "\n" + extra if "[tool]" in extra else two(top=extra)
+    with pytest.raises(RobotFileError, match=match) as err:
+        loads(text, source="arm.toml")
+    assert str(err.value).startswith("arm.toml: ")
+
+
+def test_a_joint_key_of_the_other_kinematics_is_refused():
+    # a dh file with a poe key is almost surely a mixed-up file: the key would be ignored without a word
+    limits = "limits = [-3.0, 3.0]"
+    text = two().replace(f"theta = 0.0\n{limits}", f"theta = 0.0\nxyz = [0.0, 0.0, 0.1]\n{limits}")
+    with pytest.raises(RobotFileError, match=r"joints\[1\]: unknown key 'xyz'; allowed: a, alpha, com, d, limits"):
+        loads(text, source="arm.toml")
+
+
+def test_every_builtin_and_example_follows_the_schema():
+    from labcal.robots import BUILTINS
+
+    for name in BUILTINS + EXAMPLES:
+        assert load(name).model.n >= 4

@@ -70,6 +70,8 @@ from labcal.kinematics import se3
 from labcal.kinematics.conversions import from_dh, from_mdh, from_urdf
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 from labcal.robots.joint_map import JointMap
+from labcal.tomlschema import Key, SchemaError, Table, validate
+from labcal.tomlschema import is_number as _is_number
 
 BUILTINS = ("ur5e", "ur10", "ur10e", "fanuc-m1000ia", "scara4")
 # Example robot files shipped beside the built-ins and loadable by name, but not robots of their own: models to copy
@@ -80,9 +82,10 @@ TWO_PI = 2.0 * np.pi
 MAX_ANGLE = TWO_PI + 1e-9  # rad: alpha, theta, rpy, revolute offsets; a larger value is almost surely degrees
 MAX_REVOLUTE_LIMIT = 2.0 * TWO_PI + 1e-9  # rad: two turns each way covers multi-turn wrists; 170 or 360 is degrees
 MAX_LENGTH = 10.0  # m: no arm has a 10 m link or tool offset, while millimetre values are hundreds
+_DH_KEYS = {"a": "m", "alpha": "rad", "d": "m", "theta": "rad"}  # dh and mdh joints, all required
 
 
-class RobotFileError(ValueError):
+class RobotFileError(SchemaError):
     """A robot model file is missing, unreadable or has a bad field (the message names it)."""
 
 
@@ -168,7 +171,7 @@ def loads(text: str, format: str = "toml", source: str = "<text>") -> RobotSpec:
     """A robot from the text of a robot file (``format`` "toml" or "urdf"), e.g. the copy a session stored."""
     if format == "urdf":
         model = from_urdf(text)
-        spec = _spec(model.name or Path(source).stem, model, {}, [], {}, source)
+        spec = _spec(model.name or Path(source).stem, model, {}, [], source)
     elif format == "toml":
         try:
             data = tomllib.loads(text)
@@ -180,116 +183,121 @@ def loads(text: str, format: str = "toml", source: str = "<text>") -> RobotSpec:
     return dataclasses.replace(spec, text=text, format=format)
 
 
+def _lo_below_hi(lim: list[float]) -> str | None:
+    return f"has lo {lim[0]} greater than hi {lim[1]}" if lim[0] > lim[1] else None
+
+
+def _non_negative(value: float) -> str | None:
+    return f"must be >= 0, got {value}" if value < 0 else None
+
+
+def _non_zero(axis: list[float]) -> str | None:
+    return "must not be zero" if np.linalg.norm(axis) < 1e-12 else None
+
+
+def _unit_signs(signs: list[float]) -> str | None:
+    return f"must be {len(signs)} values of 1 or -1, got {signs}" if any(abs(x) != 1 for x in signs) else None
+
+
+_JOINT = {
+    "name": Key("str", doc="joint name (default joint1, joint2, …)"),
+    "type": Key("str", default=REVOLUTE, choices=(REVOLUTE, PRISMATIC)),
+    "limits": Key("vector", shape=(2,), unit="rad, m for prismatic", expect="[lo, hi] numbers", check=_lo_below_hi),
+    "mass": Key("number", unit="kg", check=_non_negative, doc="mass of the link this joint moves"),
+    "com": Key("vector", shape=(3,), unit="m", doc="centre of mass, base frame, all joints at 0"),
+}
+_DH_JOINT = Table({**_JOINT, **{k: Key("number", required=True, unit=u) for k, u in _DH_KEYS.items()}})
+_POE_JOINT = Table(
+    {
+        **_JOINT,
+        "xyz": Key("vector", shape=(3,), unit="m", required=True, doc="origin of K_j in K_{j-1} at q = 0"),
+        "rpy": Key("vector", shape=(3,), unit="rad", default=[0.0, 0.0, 0.0]),
+        "axis": Key("vector", shape=(3,), default=[0.0, 0.0, 1.0], check=_non_zero),
+    }
+)
+_TOOL = Table(
+    {
+        "xyz": Key("vector", shape=(3,), unit="m", default=[0.0, 0.0, 0.0]),
+        "rpy": Key("vector", shape=(3,), unit="rad", default=[0.0, 0.0, 0.0]),
+        "mass": Key("number", unit="kg", check=_non_negative, doc="payload"),
+        "com": Key("vector", shape=(3,), unit="m"),
+    }
+)
+_JOINT_MAP = Table(
+    {
+        "matrix": Key(
+            "vectors", shape=("n", "n"), doc="q_model = matrix · q_controller + offsets, one row per model joint"
+        ),
+        "signs": Key("vector", shape=("n",), check=_unit_signs, doc="instead of matrix: its diagonal of ±1"),
+        "offsets": Key("vector", shape=("n",), unit="rad, m for prismatic joints"),
+    }
+)
+
+
+def _robot_schema(joint: Table) -> Table:
+    return Table(
+        {
+            "name": Key("str", required=True, check=lambda s: None if s else "must not be empty"),
+            "description": Key("str"),
+            "kinematics": Key("str", required=True, choices=("dh", "mdh", "poe")),
+            "units_checked": Key("bool", default=False, doc="true: the numbers are not degrees/mm, skip that check"),
+            "joints": Key("tables", table=joint, required=True, min_items=1),
+            "tool": Key("table", table=_TOOL, default={}),
+            "joint_map": Key("table", table=_JOINT_MAP),
+        },
+        name="robot file",
+    )
+
+
+#: The schemas of a robot file, by ``kinematics`` (``tomlschema.describe(ROBOT_SCHEMAS["dh"])`` lists every key).
+ROBOT_SCHEMAS = {"dh": _robot_schema(_DH_JOINT), "mdh": _robot_schema(_DH_JOINT), "poe": _robot_schema(_POE_JOINT)}
+
+
 def parse(data: dict, source: str = "<dict>") -> RobotSpec:
     """Build a RobotSpec from the parsed TOML of a robot file; errors name the file and field."""
 
     def fail(msg: str) -> RobotFileError:
-        return RobotFileError(f"{source}: {msg}")
+        return RobotFileError(f"{source}: {msg}", source)
 
-    name = data.get("name")
-    if not isinstance(name, str) or not name:
-        raise fail("'name' must be a non-empty string")
-    kind = data.get("kinematics")
-    if kind not in ("dh", "mdh", "poe"):
-        raise fail(f'\'kinematics\' must be "dh", "mdh" or "poe", got {kind!r}')
-    joints = data.get("joints")
-    if not isinstance(joints, list) or not joints:
-        raise fail("needs at least one [[joints]] table")
-    tool = data.get("tool", {})
-    if not isinstance(tool, dict):
-        raise fail("[tool] must be a table")
-    units_checked = data.get("units_checked", False)
-    if not isinstance(units_checked, bool):
-        raise fail(f"'units_checked' must be true or false, got {units_checked!r}")
-    if not units_checked:
+    raw_joints = data.get("joints") if isinstance(data, dict) else None
+    n = len(raw_joints) if isinstance(raw_joints, list) else 0
+    kind = data.get("kinematics") if isinstance(data, dict) else None
+    schema = ROBOT_SCHEMAS.get(kind if isinstance(kind, str) else "", ROBOT_SCHEMAS["dh"])
+    doc = validate(data, schema, source=source, error=RobotFileError, dims={"n": n})
+    name, kind, joints, tool = doc["name"], doc["kinematics"], doc["joints"], doc["tool"]
+    if not doc["units_checked"]:
         _check_units(kind, joints, tool, fail)
 
-    rows = []
-    for j, row in enumerate(joints, start=1):
-        where = f"joints[{j}]"
-        if not isinstance(row, dict):
-            raise fail(f"{where} must be a table, got {row!r}")
-        jtype = row.get("type", REVOLUTE)
-        if jtype not in (REVOLUTE, PRISMATIC):
-            raise fail(f'{where}.type must be "revolute" or "prismatic", got {jtype!r}')
-        keys = ("a", "alpha", "d", "theta") if kind in ("dh", "mdh") else ()
-        clean = {"type": jtype}
-        for key in keys:
-            clean[key] = _number(row, key, where, fail)
-        if kind == "poe":
-            clean["xyz"] = _vector(row, "xyz", where, fail, default=None)
-            clean["rpy"] = _vector(row, "rpy", where, fail, default=[0.0, 0.0, 0.0])
-            clean["axis"] = _vector(row, "axis", where, fail, default=[0.0, 0.0, 1.0])
-            if np.linalg.norm(clean["axis"]) < 1e-12:
-                raise fail(f"{where}.axis must not be zero")
-        if "limits" in row:
-            lim = row["limits"]
-            if not (isinstance(lim, list) and len(lim) == 2 and all(_is_number(x) for x in lim)):
-                raise fail(f"{where}.limits must be [lo, hi] numbers, got {lim!r}")
-            if lim[0] > lim[1]:
-                raise fail(f"{where}.limits: lo {lim[0]} is greater than hi {lim[1]}")
-            clean["limits"] = [float(lim[0]), float(lim[1])]
-        rows.append(clean)
-
-    T_tool = se3.pose(
-        _vector(tool, "xyz", "tool", fail, [0.0, 0.0, 0.0]), _vector(tool, "rpy", "tool", fail, [0.0] * 3)
-    )
-    names = tuple(str(row.get("name", f"joint{j + 1}")) for j, row in enumerate(joints))
+    T_tool = se3.pose(np.asarray(tool["xyz"]), np.asarray(tool["rpy"]))
+    names = tuple(row.get("name", f"joint{j + 1}") for j, row in enumerate(joints))
     if kind == "dh":
-        model = from_dh(rows, T_tool, name=name, joint_names=names)
+        model = from_dh(joints, T_tool, name=name, joint_names=names)
     elif kind == "mdh":
-        model = from_mdh(rows, T_tool, name=name, joint_names=names)
+        model = from_mdh(joints, T_tool, name=name, joint_names=names)
     else:
-        frames = [se3.pose(r["xyz"], r["rpy"]) for r in rows] + [T_tool]
-        twists = [
-            np.concatenate([np.zeros(3), r["axis"] / np.linalg.norm(r["axis"])])
-            if r["type"] == REVOLUTE
-            else np.concatenate([r["axis"] / np.linalg.norm(r["axis"]), np.zeros(3)])
-            for r in rows
-        ]
-        limits = [r.get("limits") for r in rows]
-        limits = [
-            lim if lim is not None else ([-np.pi, np.pi] if r["type"] == REVOLUTE else [-1.0, 1.0])
-            for lim, r in zip(limits, rows, strict=True)
-        ]
+        frames = [se3.pose(np.asarray(r["xyz"]), np.asarray(r["rpy"])) for r in joints] + [T_tool]
+        twists = []
+        for r in joints:
+            axis = np.asarray(r["axis"]) / np.linalg.norm(r["axis"])
+            twists.append(np.concatenate([np.zeros(3), axis] if r["type"] == REVOLUTE else [axis, np.zeros(3)]))
+        limits = [r.get("limits", [-np.pi, np.pi] if r["type"] == REVOLUTE else [-1.0, 1.0]) for r in joints]
         model = LocalPOEModel(
-            np.array(frames), tuple(r["type"] for r in rows), np.array(twists), np.array(limits), name, names
+            np.array(frames), tuple(r["type"] for r in joints), np.array(twists), np.array(limits), name, names
         )
-    spec = _spec(name, model, tool, joints, {}, source, fail)
-    if "joint_map" not in data:
+    spec = _spec(name, model, tool, joints, source)
+    if "joint_map" not in doc:
         return spec
-    joint_map = _joint_map(data["joint_map"], model, units_checked, fail)
+    joint_map = _joint_map(doc["joint_map"], model, doc["units_checked"], fail)
     return dataclasses.replace(spec, joint_map=joint_map, hash=model_hash(model, joint_map))
 
 
-def _joint_map(table, model: LocalPOEModel, units_checked: bool, fail) -> JointMap:
-    """The [joint_map] table → JointMap; every error names the field and says what it should be."""
+def _joint_map(table: dict, model: LocalPOEModel, units_checked: bool, fail) -> JointMap:
+    """The validated [joint_map] table → JointMap; the checks the schema cannot make name the field too."""
     n = model.n
-    if not isinstance(table, dict):
-        raise fail("[joint_map] must be a table with 'matrix' (or 'signs') and optional 'offsets'")
-    unknown = sorted(set(table) - {"matrix", "signs", "offsets"})
-    if unknown:
-        raise fail(f"joint_map: unknown field(s) {', '.join(unknown)}; known: matrix, signs, offsets")
     if ("matrix" in table) == ("signs" in table):
         raise fail("joint_map needs exactly one of 'matrix' (n×n coupling) or 'signs' (n values of +1/-1)")
-    if "matrix" in table:
-        M = table["matrix"]
-        if not (
-            isinstance(M, list)
-            and len(M) == n
-            and all(isinstance(row, list) and len(row) == n and all(_is_number(x) for x in row) for row in M)
-        ):
-            raise fail(f"joint_map.matrix must be {n} rows of {n} numbers (one row per model joint), got {M!r}")
-        matrix = np.array(M, dtype=float)
-    else:
-        signs = table["signs"]
-        if not (isinstance(signs, list) and len(signs) == n and all(_is_number(x) and abs(x) == 1 for x in signs)):
-            raise fail(f"joint_map.signs must be {n} values of 1 or -1, got {signs!r}")
-        matrix = np.diag(np.array(signs, dtype=float))
-    offsets = table.get("offsets", [0.0] * n)
-    if not (isinstance(offsets, list) and len(offsets) == n and all(_is_number(x) for x in offsets)):
-        raise fail(f"joint_map.offsets must be {n} numbers (rad, m for prismatic joints), got {offsets!r}")
-    offsets = np.array(offsets, dtype=float)
+    matrix = np.array(table["matrix"]) if "matrix" in table else np.diag(np.array(table["signs"]))
+    offsets = np.array(table.get("offsets", [0.0] * n))
     if not units_checked:
         for j, (value, jtype) in enumerate(zip(offsets, model.joint_types, strict=True)):
             if jtype == REVOLUTE and abs(value) > MAX_ANGLE:
@@ -351,8 +359,8 @@ def _check_units(kind: str, joints: list, tool: dict, fail) -> None:
     check("tool", tool if isinstance(tool, dict) else {}, ("rpy",), ("xyz", "com"), revolute=True)
 
 
-def _spec(name, model, tool, joints, _unused, source, fail=None) -> RobotSpec:
-    fail = fail or (lambda msg: RobotFileError(f"{source}: {msg}"))
+def _spec(name, model, tool, joints, source) -> RobotSpec:
+    """The spec with its mass model; ``tool`` and ``joints`` are validated tables (URDF: empty)."""
     n = model.n
     frames0 = model.link_frames(np.zeros(n))[0]  # (n+1, 4, 4) at q = 0
     origins = frames0[:, :3, 3]
@@ -360,36 +368,7 @@ def _spec(name, model, tool, joints, _unused, source, fail=None) -> RobotSpec:
     coms = np.empty((n + 1, 3))
     for j in range(n + 1):
         row = joints[j] if j < n and j < len(joints) else (tool if j == n else {})
-        if "mass" in row:
-            m = row["mass"]
-            if not _is_number(m) or m < 0:
-                raise fail(f"{'tool' if j == n else f'joints[{j + 1}]'}.mass must be a number >= 0, got {m!r}")
-            masses[j] = float(m)
+        masses[j] = row.get("mass", 0.0)
         default = origins[j] if j == n else 0.5 * (origins[j] + origins[j + 1])
-        coms[j] = _vector(row, "com", "tool" if j == n else f"joints[{j + 1}]", fail, default)
+        coms[j] = row.get("com", default)
     return RobotSpec(name=name, model=model, masses=masses, coms=coms, source=source, hash=model_hash(model))
-
-
-def _is_number(x) -> bool:
-    """A finite int or float; TOML booleans are not numbers here, although Python's bool is an int."""
-    return isinstance(x, int | float) and not isinstance(x, bool) and bool(np.isfinite(x))
-
-
-def _number(row: dict, key: str, where: str, fail) -> float:
-    if key not in row:
-        raise fail(f"{where}.{key} is missing")
-    value = row[key]
-    if not _is_number(value):
-        raise fail(f"{where}.{key} must be a finite number, got {value!r}")
-    return float(value)
-
-
-def _vector(row: dict, key: str, where: str, fail, default) -> np.ndarray:
-    if key not in row:
-        if default is None:
-            raise fail(f"{where}.{key} is missing")
-        return np.asarray(default, dtype=float)
-    value = row[key]
-    if not isinstance(value, list) or len(value) != 3 or not all(_is_number(x) for x in value):
-        raise fail(f"{where}.{key} must be a list of 3 numbers, got {value!r}")
-    return np.asarray(value, dtype=float)

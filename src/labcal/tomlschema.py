@@ -1,0 +1,269 @@
+"""One declarative validator for labcal's TOML files (robots, device profiles, targets, import mappings).
+
+A schema is a :class:`Table` of :class:`Key` s. Each key states its kind, whether it is required, its default,
+its shape (for lists), its unit (shown in messages) and its allowed values; keys a table does not declare are
+refused with a did-you-mean, because in a hand-written file an unknown key is almost always a typo that would
+otherwise be silently ignored. :func:`validate` returns the document with defaults filled in and numbers as
+floats; every error names the file, the table and the key::
+
+    >>> POINT = Table({"unit": Key("str", choices=("m", "mm"), default="m"),
+    ...                "points": Key("vectors", shape=(None, 3), unit="in unit", required=True)})
+    >>> validate({"unit": "mm", "points": [[0, 0, 1]]}, POINT, source="t.toml")
+    {'unit': 'mm', 'points': [[0.0, 0.0, 1.0]]}
+    >>> validate({"units": "mm", "points": [[0, 0, 1]]}, POINT, source="t.toml")
+    Traceback (most recent call last):
+    ...
+    labcal.tomlschema.SchemaError: t.toml: unknown key 'units' (did you mean 'unit'?); allowed: points, unit
+
+Kinds: ``str``, ``int``, ``bool``, ``number`` (a finite int or float; TOML booleans are not numbers), ``vector``
+(a list of numbers; ``shape=(3,)``), ``vectors`` (a list of lists of numbers, ``shape=(rows, cols)``, ``None`` =
+any count), ``strings`` (a list of strings, ``shape=(n,)`` or ``None``), ``table`` (a nested :class:`Table`),
+``tables`` (an array of tables, each checked against ``table``), ``any`` (no check). ``shape`` entries may be
+names (``"n"``) bound by the caller through ``dims``. Semantic checks that need more than one key (a lower
+limit below an upper one, a regex's groups) stay with the loader; it raises them through :func:`fail` so that
+they read the same.
+
+Pure standard library: this module sits below every layer that reads a file.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import tomllib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+MISSING: Any = object()
+KINDS = ("str", "int", "bool", "number", "vector", "vectors", "strings", "table", "tables", "any")
+
+
+class SchemaError(ValueError):
+    """A file does not follow its schema; the message names the file, the table and the key.
+
+    ``source`` is the file, ``path`` the dotted key path (``joints[2].alpha``; empty for the whole document).
+    """
+
+    def __init__(self, message: str, source: str = "", path: str = ""):
+        super().__init__(message)
+        self.source = source
+        self.path = path
+
+
+@dataclass(frozen=True)
+class Key:
+    """One key of a table.
+
+    ``check(value) -> phrase | None`` adds a rule of its own after the type check; the phrase follows the key's
+    path in the message (``"must not be zero"`` → ``joints[4].axis must not be zero``). ``expect`` replaces the
+    generated description of the kind in type errors (``"[lo, hi] numbers"``).
+    """
+
+    kind: str
+    required: bool = False
+    default: Any = MISSING
+    choices: tuple | None = None
+    shape: tuple | None = None
+    unit: str = ""
+    table: Table | None = None
+    min_items: int = 0
+    check: Callable[[Any], str | None] | None = None
+    expect: str = ""
+    doc: str = ""
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"Key kind must be one of {KINDS}, got {self.kind!r}")
+        if self.kind in ("table", "tables") and self.table is None:
+            raise ValueError(f"a {self.kind!r} key needs its table schema")
+
+
+@dataclass(frozen=True)
+class Table:
+    """A table's keys; ``name`` is how messages call it when it is the whole document (e.g. "robot file")."""
+
+    keys: Mapping[str, Key] = field(default_factory=dict)
+    name: str = ""
+
+
+def fail(source: str, path: str, message: str, error: type[SchemaError] = SchemaError) -> SchemaError:
+    """The error for ``path`` in ``source``: ``"arm.toml: joints[2].alpha must be …"`` (raise it)."""
+    where = f"{source}: " if source else ""
+    return error(f"{where}{path + ' ' if path else ''}{message}", source, path)
+
+
+def read_toml(path: str | Path, error: type[SchemaError] = SchemaError, what: str = "file") -> dict:
+    """Parse a TOML file; an unreadable file or bad TOML raises ``error`` naming the file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"{path}: cannot read {what}: {exc}", str(path)) from exc
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: not valid TOML: {exc}", str(path)) from exc
+
+
+def is_number(value: Any) -> bool:
+    """A finite int or float; True/False are not numbers here, although Python's bool is an int."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}{'' if n == 1 else 's'}"
+
+
+def _dim(value: Any, dims: Mapping[str, int]) -> int | None:
+    return dims.get(value) if isinstance(value, str) else value
+
+
+def _expected(key: Key, dims: Mapping[str, int]) -> str:
+    unit = f" ({key.unit})" if key.unit else ""
+    if key.expect:
+        return key.expect + unit
+    shape = tuple(_dim(s, dims) for s in key.shape) if key.shape else ()
+    if key.kind == "number":
+        return f"a finite number{unit}"
+    if key.kind == "vector":
+        n = shape[0] if shape else None
+        return (f"a list of {_plural(n, 'number')}" if n is not None else "a list of numbers") + unit
+    if key.kind == "vectors":
+        rows, cols = (*shape, None, None)[:2]
+        inner = _plural(cols, "number") if cols is not None else "numbers"
+        return (f"{rows} rows of {inner}" if rows is not None else f"a list of rows of {inner}") + unit
+    if key.kind == "strings":
+        n = shape[0] if shape else None
+        return f"a list of {_plural(n, 'string')}" if n is not None else "a list of strings"
+    return {"str": "a string", "int": "an integer", "bool": "true or false", "table": "a table"}.get(
+        key.kind, "an array of tables"
+    )
+
+
+def _numbers(value: Any, n: int | None) -> bool:
+    return isinstance(value, list) and (n is None or len(value) == n) and all(is_number(x) for x in value)
+
+
+def _check_kind(key: Key, value: Any, dims: Mapping[str, int]) -> Any:
+    """The value converted (numbers to float), or MISSING when it is not of the key's kind."""
+    kind = key.kind
+    shape = tuple(_dim(s, dims) for s in key.shape) if key.shape else (None, None)
+    if kind == "any":
+        return value
+    if kind == "str":
+        return value if isinstance(value, str) else MISSING
+    if kind == "bool":
+        return value if isinstance(value, bool) else MISSING
+    if kind == "int":
+        return value if isinstance(value, int) and not isinstance(value, bool) else MISSING
+    if kind == "number":
+        return float(value) if is_number(value) else MISSING
+    if kind == "vector":
+        return [float(x) for x in value] if _numbers(value, shape[0]) else MISSING
+    if kind == "vectors":
+        rows, cols = (*shape, None, None)[:2]
+        ok = isinstance(value, list) and (rows is None or len(value) == rows) and all(_numbers(r, cols) for r in value)
+        return [[float(x) for x in r] for r in value] if ok else MISSING
+    if kind == "strings":
+        ok = isinstance(value, list) and (shape[0] is None or len(value) == shape[0])
+        return list(value) if ok and all(isinstance(s, str) for s in value) else MISSING
+    return value  # table / tables: checked by the caller
+
+
+def _unknown(data: Mapping, table: Table, source: str, path: str, error: type[SchemaError]) -> None:
+    unknown = [k for k in data if k not in table.keys]
+    if not unknown:
+        return
+    allowed = sorted(table.keys)
+    key = unknown[0]
+    close = difflib.get_close_matches(key, allowed, n=1, cutoff=0.6)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    where = path or table.name
+    others = f" (and {', '.join(map(repr, unknown[1:]))})" if len(unknown) > 1 else ""
+    message = f"unknown key {key!r}{others}{hint}; allowed: {', '.join(allowed)}"
+    prefix = f"{source}: " if source else ""
+    raise error(f"{prefix}{where + ': ' if where else ''}{message}", source, f"{path}.{key}" if path else key)
+
+
+def validate(
+    data: Any,
+    table: Table,
+    *,
+    source: str = "",
+    path: str = "",
+    error: type[SchemaError] = SchemaError,
+    dims: Mapping[str, int] | None = None,
+) -> dict:
+    """Check ``data`` (a parsed TOML table) against ``table``; return a copy with defaults filled in.
+
+    Numbers come back as floats, lists of numbers as lists of floats; keys without a value and without a default
+    are left out. Raises ``error`` (a :class:`SchemaError`) for the first problem, naming ``source`` and the key.
+    """
+    dims = dims or {}
+    if not isinstance(data, dict):
+        raise fail(source, path or table.name, f"must be a table, got {data!r}", error)
+    _unknown(data, table, source, path, error)
+    out: dict = {}
+    for name, key in table.keys.items():
+        where = f"{path}.{name}" if path else name
+        if name not in data:
+            if key.required:
+                raise fail(source, where, "is missing (required)", error)
+            if key.default is not MISSING and key.kind == "table":
+                assert key.table is not None  # an absent table is its default run through its schema (defaults)
+                out[name] = validate(key.default, key.table, source=source, path=where, error=error, dims=dims)
+            elif key.default is not MISSING:
+                out[name] = key.default
+            continue
+        value = data[name]
+        if key.kind == "table":
+            assert key.table is not None
+            out[name] = validate(value, key.table, source=source, path=where, error=error, dims=dims)
+            continue
+        if key.kind == "tables":
+            assert key.table is not None
+            if not isinstance(value, list) or len(value) < key.min_items:
+                need = "one" if key.min_items == 1 else str(key.min_items)
+                what = f"needs at least {need} [[{where}]] table" if key.min_items else "must be an array of tables"
+                raise fail(source, where, f"{what}, got {value!r}", error)
+            out[name] = [
+                validate(row, key.table, source=source, path=f"{where}[{i}]", error=error, dims=dims)
+                for i, row in enumerate(value, start=1)
+            ]
+            continue
+        converted = _check_kind(key, value, dims)
+        if converted is MISSING:
+            raise fail(source, where, f"must be {_expected(key, dims)}, got {value!r}", error)
+        if key.choices is not None and converted not in key.choices:
+            options = ", ".join(repr(c) for c in key.choices)
+            close = difflib.get_close_matches(str(converted), [str(c) for c in key.choices], n=1, cutoff=0.6)
+            hint = f" (did you mean {close[0]!r}?)" if close and isinstance(converted, str) else ""
+            raise fail(source, where, f"must be one of {options}, got {value!r}{hint}", error)
+        if key.check is not None and (problem := key.check(converted)):
+            raise fail(source, where, problem, error)
+        out[name] = converted
+    return out
+
+
+def describe(table: Table, indent: str = "") -> str:
+    """A plain-text listing of a schema's keys (kind, unit, required/default, doc), for docs and ``--help``."""
+    lines = []
+    for name, key in table.keys.items():
+        bits = [key.kind + (f" {key.shape}" if key.shape else "")]
+        if key.unit:
+            bits.append(key.unit)
+        if key.required:
+            bits.append("required")
+        elif key.default is not MISSING:
+            bits.append(f"default {key.default!r}")
+        if key.choices:
+            bits.append("one of " + ", ".join(map(repr, key.choices)))
+        lines.append(f"{indent}{name}: {'; '.join(bits)}" + (f" — {key.doc}" if key.doc else ""))
+        if key.table is not None:
+            lines.append(describe(key.table, indent + "    "))
+    return "\n".join(lines)
+
+
+__all__ = ["MISSING", "Key", "SchemaError", "Table", "describe", "fail", "is_number", "read_toml", "validate"]
