@@ -17,14 +17,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from labcal.tomlschema import Key, SchemaError, Table, fail, read_toml, validate
+
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6}
 AXES = ("x", "y", "z")
-COORD_GROUPS = tuple(f"t{i}_{a}" for i in (1, 2, 3) for a in AXES)
+COORD_GROUPS = tuple(f"t{i}_{a}" for i in (1, 2, 3) for a in AXES)  # the three-target example's groups
+_COORD_GROUP = re.compile(r"t([1-9][0-9]*)_[xyz]")
 CHECKSUMS = ("none", "nmea", "crc16-arc")
 PARITIES = ("N", "E", "O", "M", "S")
 
 
-class ProfileError(ValueError):
+class ProfileError(SchemaError):
     """A device profile is missing a field or has a bad value; the message names file and field."""
 
 
@@ -50,10 +53,11 @@ class InitStep:
 
 @dataclass(frozen=True)
 class AsciiProfile:
-    """A line-based ASCII protocol whose reply names the nine coordinates with regex groups t1_x ... t3_z.
+    """A line-based ASCII protocol whose reply names the coordinates of k targets with regex groups t1_x ... tk_z.
 
     axes: for tracker-frame x, y, z, which device axis (with optional '-') holds it, e.g. ("x", "-z", "y").
-    length_scale: device length unit in metres. triangle_tolerance: m, or None to skip the side-length check.
+    length_scale: device length unit in metres. triangle_tolerance: m, or None to skip the check of the distances
+    between the targets seen (it needs two of them). targets: k, the number of targets a reply names.
     """
 
     name: str
@@ -74,6 +78,10 @@ class AsciiProfile:
     triangle_tolerance: float | None = None
     source: str = "<profile>"
     protocol: str = "ascii"
+
+    @property
+    def targets(self) -> int:
+        return reply_targets(self.reply, self.source)
 
     @property
     def length_scale(self) -> float:
@@ -123,198 +131,210 @@ NDI_REPLIES = ("tx", "bx")
 NDI_BAUD_CODES = {9600: 0, 14400: 1, 19200: 2, 38400: 3, 57600: 4, 115200: 5, 921600: 6, 1228739: 7, 230400: 8}
 
 
-class _Table:
-    """Typed, path-aware access to one TOML table; unknown keys are errors (they are usually typos)."""
-
-    def __init__(self, data: Any, where: str, source: str):
-        if not isinstance(data, dict):
-            raise ProfileError(f"{source}: {where} must be a table, got {type(data).__name__}")
-        self.data = dict(data)
-        self.where = where
-        self.source = source
-        self.used: set[str] = set()
-
-    def fail(self, key: str, message: str) -> ProfileError:
-        return ProfileError(f"{self.source}: {self.where}.{key}: {message}")
-
-    def get(self, key: str, kind: type | tuple[type, ...], default: Any = ..., *, choices: Any = None) -> Any:
-        self.used.add(key)
-        if key not in self.data:
-            if default is ...:
-                raise self.fail(key, "required field is missing")
-            return default
-        value = self.data[key]
-        kinds = kind if isinstance(kind, tuple) else (kind,)
-        if isinstance(value, bool) and bool not in kinds:
-            raise self.fail(key, f"expected {'/'.join(k.__name__ for k in kinds)}, got {value!r}")
-        if float in kinds and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if not isinstance(value, kinds):
-            raise self.fail(key, f"expected {'/'.join(k.__name__ for k in kinds)}, got {value!r}")
-        if choices is not None and value not in choices:
-            raise self.fail(key, f"{value!r} is not one of {list(choices)}")
-        return value
-
-    def positive(self, key: str, default: Any = ..., *, allow_zero: bool = False) -> float:
-        value = self.get(key, float, default)
-        if value is None:
-            return value
-        if not (value > 0 or (allow_zero and value == 0)) or value != value or value == float("inf"):
-            raise self.fail(key, f"must be {'>= 0' if allow_zero else '> 0'} and finite, got {value!r}")
-        return value
-
-    def regex(self, key: str, default: Any = ...) -> re.Pattern[str] | None:
-        text = self.get(key, str, default)
-        if text is None:
-            return None
-        try:
-            return re.compile(text)
-        except re.error as exc:
-            raise self.fail(key, f"invalid regular expression {text!r}: {exc}") from exc
-
-    def finish(self) -> None:
-        unknown = sorted(set(self.data) - self.used)
-        if unknown:
-            raise ProfileError(f"{self.source}: {self.where}: unknown field(s) {unknown}")
+def _positive(value: float) -> str | None:
+    return None if value > 0 else f"must be > 0, got {value}"
 
 
-def _terminator(table: _Table, key: str, default: str) -> bytes:
-    text = table.get(key, str, default)
-    if not text:
-        raise table.fail(key, "must not be empty")
+def _non_negative(value: float) -> str | None:
+    return None if value >= 0 else f"must be >= 0, got {value}"
+
+
+def _regex(text: str) -> str | None:
     try:
-        return text.encode("ascii")
-    except UnicodeEncodeError as exc:
-        raise table.fail(key, f"must be ASCII, got {text!r}") from exc
+        re.compile(text)
+    except re.error as exc:
+        return f"is not a valid regular expression ({exc}): {text!r}"
+    return None
 
 
-def _stopbits(t: _Table) -> float:
-    value = t.get("stopbits", (int, float), 1, choices=(1, 1.5, 2))
-    return int(value) if value == int(value) else value
+def _terminator(text: str) -> str | None:
+    if not text:
+        return "must not be empty"
+    return None if text.isascii() else f"must be ASCII, got {text!r}"
 
 
-def _port(data: Any, source: str) -> PortSettings:
-    t = _Table(data, "[port]", source)
-    port = PortSettings(
-        url=t.get("url", str, None),
-        baudrate=int(t.get("baudrate", int, 9600)),
-        bytesize=t.get("bytesize", int, 8, choices=(5, 6, 7, 8)),
-        parity=t.get("parity", str, "N", choices=PARITIES),
-        stopbits=_stopbits(t),
-        timeout=t.positive("timeout", 1.0),
-    )
-    if port.baudrate <= 0:
-        raise t.fail("baudrate", f"must be > 0, got {port.baudrate}")
-    t.finish()
-    return port
-
-
-def _axes(t: _Table) -> tuple[str, str, str]:
-    axes = t.get("axes", list, list(AXES))
-    if len(axes) != 3 or not all(isinstance(a, str) for a in axes):
-        raise t.fail("axes", f"expected three strings like ['x', '-z', 'y'], got {axes!r}")
+def _axes(axes: list[str]) -> str | None:
     names = [a.lstrip("+-") for a in axes]
     if sorted(names) != list(AXES) or any(len(a) - len(n) > 1 for a, n in zip(axes, names, strict=True)):
-        raise t.fail("axes", f"must use each of x, y, z once, optionally signed, got {axes!r}")
-    return (axes[0], axes[1], axes[2])
+        return f"must use each of x, y, z once, optionally signed, got {axes!r}"
+    return None
 
 
-def _ascii(data: Any, port: PortSettings, name: str, source: str) -> AsciiProfile:
-    t = _Table(data, "[ascii]", source)
-    mode = t.get("mode", str, "poll", choices=("poll", "stream"))
-    measure_command = t.get("measure_command", str, None)
-    if mode == "poll" and not measure_command:
-        raise t.fail("measure_command", 'required when mode = "poll"')
-    reply = t.regex("reply")
-    assert reply is not None
-    missing_groups = [g for g in COORD_GROUPS if g not in reply.groupindex]
-    if missing_groups:
-        raise t.fail("reply", f"regex lacks named group(s) {missing_groups} (use (?P<t1_x>...) ... (?P<t3_z>...))")
-    error_reply = t.regex("error_reply", None)
-    missing = t.regex("missing", None)
-    init_steps = []
-    for k, step in enumerate(t.get("init", list, [])):
-        st = _Table(step, f"[ascii].init[{k}]", source)
-        init_steps.append(InitStep(command=st.get("command", str), expect=st.regex("expect", None)))
-        st.finish()
-    close_commands = t.get("close_commands", list, [])
-    if not all(isinstance(c, str) for c in close_commands):
-        raise t.fail("close_commands", f"expected a list of strings, got {close_commands!r}")
-    retries = t.get("retries", int, 2)
-    if retries < 0:
-        raise t.fail("retries", f"must be >= 0, got {retries}")
-    tol_mm = t.positive("triangle_tolerance_mm", None)
-    profile = AsciiProfile(
+PORT_SCHEMA = Table(
+    {
+        "url": Key("str", doc="serial port or pyserial URL (socket://, loop://, a pty path)"),
+        "baudrate": Key("int", default=9600, check=_positive),
+        "bytesize": Key("int", default=8, choices=(5, 6, 7, 8)),
+        "parity": Key("str", default="N", choices=PARITIES),
+        "stopbits": Key("number", default=1.0, choices=(1.0, 1.5, 2.0)),
+        "timeout": Key("number", default=1.0, unit="s", check=_positive, doc="wait for one reply line"),
+    }
+)
+INIT_SCHEMA = Table({"command": Key("str", required=True), "expect": Key("str", check=_regex)})
+ASCII_SCHEMA = Table(
+    {
+        "mode": Key("str", default="poll", choices=("poll", "stream")),
+        "measure_command": Key("str", doc='required when mode = "poll"'),
+        "reply": Key("str", required=True, check=_regex, doc="full-match regex naming t1_x … tk_z"),
+        "error_reply": Key("str", check=_regex),
+        "missing": Key("str", check=_regex, doc="a coordinate matching this means the target was not seen"),
+        "write_terminator": Key("str", default="\r\n", check=_terminator),
+        "read_terminator": Key("str", default="\r\n", check=_terminator),
+        "length_unit": Key("str", default="mm", choices=tuple(LENGTH_UNITS)),
+        "axes": Key(
+            "strings", shape=(3,), default=list(AXES), expect="three strings like ['x', '-z', 'y']", check=_axes
+        ),
+        "checksum": Key("str", default="none", choices=CHECKSUMS),
+        "init": Key("tables", table=INIT_SCHEMA, default=[]),
+        "close_commands": Key("strings", default=[]),
+        "retries": Key("int", default=2, check=_non_negative),
+        "triangle_tolerance_mm": Key("number", unit="mm", check=_positive, doc="pairwise-distance check"),
+    }
+)
+NDI_SCHEMA = Table(
+    {
+        "reply": Key("str", default="tx", choices=NDI_REPLIES),
+        "baudrate": Key("int", default=115200, choices=tuple(NDI_BAUD_CODES)),
+        "handshake": Key("bool", default=False),
+        "switch_delay": Key("number", default=0.15, unit="s", check=_non_negative),
+        "init_timeout": Key("number", default=5.0, unit="s", check=_positive),
+        "match_tolerance_mm": Key("number", default=0.5, unit="mm", check=_positive),
+        "retries": Key("int", default=2, check=_non_negative),
+        "reset_on_failure": Key("bool", default=True),
+    }
+)
+
+
+def _profile_schema(protocol: str) -> Table:
+    keys = {
+        "protocol": Key("str", required=True, choices=("ascii", "ndi")),
+        "name": Key("str"),
+        "description": Key("str"),
+        "port": Key("table", table=PORT_SCHEMA, default={}),
+    }
+    if protocol == "ndi":
+        keys["ndi"] = Key("table", table=NDI_SCHEMA, default={})
+    else:
+        keys["ascii"] = Key("table", table=ASCII_SCHEMA, required=True)
+    return Table(keys, name="device profile")
+
+
+def _fail(source: str, path: str, message: str) -> ProfileError:
+    return fail(source, path, message, ProfileError)  # type: ignore[return-value]
+
+
+def reply_targets(reply: re.Pattern[str], source: str = "<profile>") -> int:
+    """The number of targets k a reply regex names (groups t1_x … tk_z, all of them); ProfileError otherwise."""
+    found = [int(m.group(1)) for g in reply.groupindex if (m := _COORD_GROUP.fullmatch(g))]
+    k = max(found, default=1)
+    missing = [f"t{i}_{a}" for i in range(1, k + 1) for a in AXES if f"t{i}_{a}" not in reply.groupindex]
+    if missing:
+        raise _fail(
+            source,
+            "ascii.reply",
+            f"regex lacks named group(s) {missing} (name every coordinate: (?P<t1_x>...) ... (?P<t{k}_z>...))",
+        )
+    return k
+
+
+def _ascii(t: dict, port: PortSettings, name: str, source: str) -> AsciiProfile:
+    if t["mode"] == "poll" and not t.get("measure_command"):
+        raise _fail(source, "ascii.measure_command", 'is required when mode = "poll"')
+    reply = re.compile(t["reply"])
+    targets = reply_targets(reply, source)
+    tol_mm = t.get("triangle_tolerance_mm")
+    if tol_mm is not None and targets < 2:
+        raise _fail(source, "ascii.triangle_tolerance_mm", "needs at least two targets in the reply to compare")
+    optional = {key: re.compile(t[key]) if key in t else None for key in ("error_reply", "missing")}
+    return AsciiProfile(
         name=name,
         port=port,
         reply=reply,
-        mode=mode,
-        measure_command=measure_command,
-        write_terminator=_terminator(t, "write_terminator", "\r\n"),
-        read_terminator=_terminator(t, "read_terminator", "\r\n"),
-        error_reply=error_reply,
-        missing=missing,
-        length_unit=t.get("length_unit", str, "mm", choices=tuple(LENGTH_UNITS)),
-        axes=_axes(t),
-        checksum=t.get("checksum", str, "none", choices=CHECKSUMS),
-        init=tuple(init_steps),
-        close_commands=tuple(close_commands),
-        retries=retries,
+        mode=t["mode"],
+        measure_command=t.get("measure_command"),
+        write_terminator=t["write_terminator"].encode("ascii"),
+        read_terminator=t["read_terminator"].encode("ascii"),
+        error_reply=optional["error_reply"],
+        missing=optional["missing"],
+        length_unit=t["length_unit"],
+        axes=tuple(t["axes"]),
+        checksum=t["checksum"],
+        init=tuple(InitStep(s["command"], re.compile(s["expect"]) if "expect" in s else None) for s in t["init"]),
+        close_commands=tuple(t["close_commands"]),
+        retries=t["retries"],
         triangle_tolerance=None if tol_mm is None else tol_mm * 1e-3,
         source=source,
     )
-    t.finish()
-    return profile
 
 
-def _ndi(data: Any, port: PortSettings, name: str, source: str) -> NDIProfile:
-    t = _Table(data, "[ndi]", source)
-    baudrate = t.get("baudrate", int, 115200, choices=tuple(NDI_BAUD_CODES))
-    retries = t.get("retries", int, 2)
-    if retries < 0:
-        raise t.fail("retries", f"must be >= 0, got {retries}")
-    profile = NDIProfile(
+def _ndi(t: dict, port: PortSettings, name: str, source: str) -> NDIProfile:
+    if port.baudrate != 9600 or port.bytesize != 8 or port.parity != "N" or port.stopbits != 1:
+        raise _fail(
+            source, "port", "is wrong for NDI: an NDI device starts at 9600 8N1; set the target rate in [ndi].baudrate"
+        )
+    return NDIProfile(
         name=name,
         port=port,
-        reply=t.get("reply", str, "tx", choices=NDI_REPLIES),
-        baudrate=baudrate,
-        handshake=t.get("handshake", bool, False),
-        switch_delay=t.positive("switch_delay", 0.15, allow_zero=True),
-        init_timeout=t.positive("init_timeout", 5.0),
-        match_tolerance=t.positive("match_tolerance_mm", 0.5) * 1e-3,
-        retries=retries,
-        reset_on_failure=t.get("reset_on_failure", bool, True),
+        reply=t["reply"],
+        baudrate=t["baudrate"],
+        handshake=t["handshake"],
+        switch_delay=t["switch_delay"],
+        init_timeout=t["init_timeout"],
+        match_tolerance=t["match_tolerance_mm"] * 1e-3,
+        retries=t["retries"],
+        reset_on_failure=t["reset_on_failure"],
         source=source,
     )
-    if port.baudrate != 9600 or port.bytesize != 8 or port.parity != "N" or port.stopbits != 1:
-        raise ProfileError(f"{source}: [port]: an NDI device starts at 9600 8N1; set the target rate in [ndi].baudrate")
-    t.finish()
-    return profile
 
 
 def parse_profile(data: dict[str, Any], source: str = "<profile>") -> Profile:
     """Build a profile from an already-parsed TOML document (``source`` names it in error messages)."""
-    top = _Table(data, "(top level)", source)
-    protocol = top.get("protocol", str, choices=("ascii", "ndi"))
-    name = top.get("name", str, Path(source).stem)
-    port = _port(top.get("port", dict, {}), source)
-    if protocol == "ascii":
-        profile: Profile = _ascii(top.get("ascii", dict), port, name, source)
-    else:
-        profile = _ndi(top.get("ndi", dict, {}), port, name, source)
-    top.finish()
-    return profile
+    protocol = data.get("protocol") if isinstance(data, dict) else None
+    doc = validate(data, _profile_schema(protocol if protocol == "ndi" else "ascii"), source=source, error=ProfileError)
+    pt = doc["port"]
+    stopbits = int(pt["stopbits"]) if pt["stopbits"] == int(pt["stopbits"]) else pt["stopbits"]
+    port = PortSettings(pt.get("url"), pt["baudrate"], pt["bytesize"], pt["parity"], stopbits, pt["timeout"])
+    name = doc.get("name", Path(source).stem)
+    if doc["protocol"] == "ascii":
+        return _ascii(doc["ascii"], port, name, source)
+    return _ndi(doc["ndi"], port, name, source)
 
 
 def load_profile(path: str | Path) -> Profile:
-    """Read a device profile TOML file. Raises ProfileError naming the file and the bad field."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ProfileError(f"{path}: cannot read device profile: {exc}") from exc
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ProfileError(f"{path}: not valid TOML: {exc}") from exc
-    return parse_profile(data, str(path))
+    """Read a device profile TOML file, or a built-in profile by name (:data:`BUILTIN_PROFILES`).
+
+    Raises ProfileError naming the file and the bad field.
+    """
+    if str(path) in BUILTIN_PROFILES and not Path(path).is_file():
+        return parse_profile(tomllib.loads(BUILTIN_PROFILES[str(path)]), f"built-in profile {path}")
+    return parse_profile(read_toml(path, ProfileError, "device profile"), str(path))
+
+
+#: Profiles that ship inside labcal, loadable by name (``--tracker-profile ascii-single-smr``); print one to start a
+#: profile of your own. A file of the same name in the working directory wins.
+BUILTIN_PROFILES = {
+    "ascii-single-smr": """\
+# One spherically mounted retroreflector (SMR) per pose: a laser tracker (or the lab PC relaying it) that
+# answers each poll with one point.  host "MEAS?\\r\\n" -> device "$PTS,x,y,z*HH\\r\\n" in millimetres, HH the
+# NMEA-style checksum; a lost beam comes back as empty fields or "nan". The session's targets file has one point.
+name = "Single-reflector ASCII tracker"
+protocol = "ascii"
+
+[port]
+baudrate = 115200
+timeout = 1.0
+
+[ascii]
+mode = "poll"
+measure_command = "MEAS?"
+reply = 'PTS,(?P<t1_x>[^,]*),(?P<t1_y>[^,]*),(?P<t1_z>[^,]*)'
+error_reply = 'ERR,(?P<code>\\d+)'
+missing = 'nan|NaN|-+'
+length_unit = "mm"
+checksum = "nmea"
+
+[[ascii.init]]
+command = "UNITS MM"
+expect = "OK"
+""",
+}
