@@ -1,4 +1,5 @@
-"""Exports of a calibrated robot: the compensator (JSON/NPZ), URScript (function file or program), a calibrated URDF.
+"""Exports of a calibrated robot: the compensator (JSON/NPZ), URScript (function file or program), a calibrated URDF,
+ur_description's calibration YAML.
 
 A robot whose file declares a joint map (controller joints ≠ model joints) exports only as json/npz: the
 compensator converts controller joints, while a URScript function or a URDF has no place for the map and would be
@@ -17,8 +18,15 @@ from pathlib import Path
 from labcal.compensator import CalibratedRobot
 from labcal.compensator import save as save_compensator
 
-FORMATS = ("json", "npz", "urscript", "urscript-program", "urdf")
-SUFFIXES = {"json": ".json", "npz": ".npz", "urscript": ".script", "urscript-program": ".script", "urdf": ".urdf"}
+FORMATS = ("json", "npz", "urscript", "urscript-program", "urdf", "ur-kinematics")
+SUFFIXES = {
+    "json": ".json",
+    "npz": ".npz",
+    "urscript": ".script",
+    "urscript-program": ".script",
+    "urdf": ".urdf",
+    "ur-kinematics": ".yaml",
+}
 
 
 def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = None, **options) -> Path:
@@ -26,7 +34,9 @@ def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = Non
 
     json/npz: the compensator file (path must end in .json / .npz); urscript: the function file with
     ``labcal_correct(q)`` for a Script node, urscript-program: the ``def`` program for the script port (options of
-    both: method, iterations, function_name, statements_per_sync); urdf: the identified frames.
+    both: method, iterations, function_name, statements_per_sync); urdf: the identified frames (options: velocity,
+    effort, masses, coms, ur_names, geometry_only, unknown_dynamics); ur-kinematics: ur_description's calibration
+    YAML (option: geometry_only).
     """
     path = Path(path)
     if fmt not in FORMATS:
@@ -43,9 +53,13 @@ def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = Non
         from labcal.export.urscript import write_urscript_program
 
         return write_urscript_program(robot, path, provenance, **options)
+    if fmt == "ur-kinematics":
+        from labcal.export.ros import write_ur_kinematics
+
+        return write_ur_kinematics(robot, path, provenance, **options)
     from labcal.export.urdf import write_urdf
 
-    return write_urdf(robot, path, provenance)
+    return write_urdf(robot, path, provenance, **options)
 
 
 __all__ = ["FORMATS", "SUFFIXES", "export"]

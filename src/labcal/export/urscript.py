@@ -379,47 +379,33 @@ def _folded(net) -> tuple[list[np.ndarray], list[np.ndarray]]:
     return Ws, bs
 
 
+def _column_expression(col: feature_lib.Column, kin: ZAxisForm) -> str:
+    """The URScript expression of one feature column (the registry's recipe; F: the chain's frames at q)."""
+    if col.op == "q":
+        return f"q[{col.joint}]"
+    if col.op == "zero":
+        return "0.0"
+    if col.op in ("sin", "cos"):
+        theta = f"q[{col.joint}]"
+        if col.stroke is not None:
+            lo, hi = col.stroke
+            theta = f"({_num(np.pi)} * (q[{col.joint}] - {_num(lo)}) / {_num(hi - lo)})"
+        arg = theta if col.order == 1 else f"{col.order}.0 * {theta}"
+        return f"{col.op}({arg})"
+    if col.op == "gravity":
+        # −(row 2 of R_link): lc_chain's block ``link`` is that frame in the z-axis form (times C_link⁻¹ back).
+        rows = [f"F[{12 * col.link + 8 + a}]" for a in range(3)]
+        if kin.identity_C:
+            return f"-{rows[col.axis]}"
+        RC = kin.RC_T[col.link - 1]
+        return "-(" + " + ".join(f"{rows[a]} * {_num(RC[a, col.axis])}" for a in range(3)) + ")"
+    raise ValueError(f"feature column {col.op!r} has no URScript form")
+
+
 def _feature_parts(name: str, robot: CalibratedRobot, kin: ZAxisForm) -> list[str]:
-    """URScript expressions of one network input feature's columns (in the runtime's column order)."""
-    n = robot.n
-    if name == "q":
-        return [f"q[{j}]" for j in range(n)]
-    if name in ("sincos", "sincos2"):
-        sines, cosines = [], []
-        for j in range(n):
-            if not kin.revolute[j]:
-                sines.append(f"q[{j}]" if name == "sincos" else "0.0")
-                cosines.append("0.0")
-            elif name == "sincos":
-                sines.append(f"sin(q[{j}])")
-                cosines.append(f"cos(q[{j}])")
-            else:
-                sines.append(f"2.0 * sin(q[{j}]) * cos(q[{j}])")
-                cosines.append(f"cos(q[{j}]) * cos(q[{j}]) - sin(q[{j}]) * sin(q[{j}])")
-        return sines + cosines
-    if name == "gravity":
-        # −z of the base in link frame j is minus the third row of R_j (the chain's frame T'_j, j = 1 … n).
-        parts = []
-        for j in range(1, n + 1):
-            rows = [f"F[{12 * j + 8 + a}]" for a in range(3)]
-            if kin.identity_C:
-                parts += [f"-{r}" for r in rows]
-            else:
-                RC = kin.RC_T[j - 1]
-                for col in range(3):
-                    parts.append("-(" + " + ".join(f"{rows[a]} * {_num(RC[a, col])}" for a in range(3)) + ")")
-        return parts
-    kind = feature_lib.parse(name)
-    if kind is None:
-        raise ValueError(f"cannot export network feature {name!r} to URScript")
-    H = kind[1]
-    lo, hi = robot.model.limits[:, 0], robot.model.limits[:, 1]
-    parts = []
-    for j in range(n):
-        theta = f"q[{j}]" if kin.revolute[j] else f"({_num(np.pi)} * (q[{j}] - {_num(lo[j])}) / {_num(hi[j] - lo[j])})"
-        for h in range(1, H + 1):
-            parts += [f"sin({h}.0 * {theta})", f"cos({h}.0 * {theta})"]
-    return parts
+    """URScript expressions of one network input feature's columns, from the feature registry's recipes."""
+    columns = feature_lib.get(name).columns(robot.model.joint_types, robot.model.limits)
+    return [_column_expression(col, kin) for col in columns]
 
 
 def _network_functions(robot: CalibratedRobot, kin: ZAxisForm, budget: _Budget) -> tuple[list[str], list[str]]:
