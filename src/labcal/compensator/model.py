@@ -1,0 +1,400 @@
+"""The calibrated robot: identified frames, learned joint motion errors, and the corrections they imply.
+
+A :class:`CalibratedRobot` is the output of every calibration method and the content of every export:
+
+- ``model``: the identified local-POE frames (equal to ``nominal`` for the paper's pure ANN method);
+- ``network``: optional learned joint motion errors δρ(q) of the equivalent robot built on ``model`` (eq. 12-16),
+  six outputs: the n actuated joints, then 6 − n virtual joints; its inputs are :mod:`labcal.features`;
+- ``T_tracker_base``: the estimated pose of the robot base in the tracker frame (identity for base-frame data).
+
+The real robot commanded q reaches (first order in δρ, eq. 14)::
+
+    T_real(q) = exp( (J_ρ(q) δρ(q))^ ) · T_model(q)
+
+and :meth:`CalibratedRobot.correct` finds q_cmd with ``T_real(q_cmd) = T_nominal(q)`` by
+:func:`labcal.compensator.solve.solve` over the residual :meth:`CalibratedRobot.residual`. ``method="paper"`` is
+eq. (23-24), ``q_cmd = q − δρ_a(q)``.
+
+Example::
+
+    >>> from labcal.robots import load
+    >>> nominal = load("ur10").model
+    >>> robot = CalibratedRobot(nominal=nominal, model=nominal)       # an uncalibrated robot
+    >>> q = np.array([0.1, -1.2, 1.0, -1.4, -1.5, 0.2])
+    >>> np.allclose(robot.correct(q), q)
+    True
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from labcal import features as feature_lib
+from labcal.compensator import solve as solver
+from labcal.kinematics import metric, se3
+from labcal.kinematics.poe import LocalPOEModel
+from labcal.robots.joint_map import JointMap
+
+FEATURES = feature_lib.SIMPLE  # the parameter-free feature names (every registry name is accepted)
+
+
+def input_features(q: np.ndarray, names: tuple[str, ...], model: LocalPOEModel, frames=None) -> np.ndarray:
+    """(k, n) joint values → (k, f) network inputs: the :mod:`labcal.features` ``names`` side by side.
+
+    frames: the model's link frames at q when the caller has them (``gravity`` needs them; computed otherwise).
+    """
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    for name in names:
+        if not feature_lib.is_feature(name):
+            raise ValueError(f"unknown network input feature {name!r}; known: {', '.join(feature_lib.NAMES)}")
+    if frames is None and any(feature_lib.get(name).needs_frames for name in names):
+        frames = model.link_frames(q)
+    return feature_lib.compute_all(q, names, model.joint_types, model.limits, frames)
+
+
+@dataclass(frozen=True, eq=False)
+class Network:
+    """A feed-forward network in numpy: normalised features → tanh hidden layers → 6 linear outputs.
+
+    weights[i]: (out_i, in_i); biases[i]: (out_i,). Inputs are standardised with in_mean/in_scale and outputs
+    de-standardised with out_mean/out_scale, so the stored weights act on unit-scale numbers.
+    """
+
+    features: tuple[str, ...]
+    weights: tuple[np.ndarray, ...]
+    biases: tuple[np.ndarray, ...]
+    in_mean: np.ndarray
+    in_scale: np.ndarray
+    out_mean: np.ndarray
+    out_scale: np.ndarray
+
+    def __call__(self, q: np.ndarray, model: LocalPOEModel) -> np.ndarray:
+        """(k, n) joint values → (k, 6) joint motion errors δρ (rad or m)."""
+        h = (input_features(q, self.features, model) - self.in_mean) / self.in_scale
+        last = len(self.weights) - 1
+        for i, (W, b) in enumerate(zip(self.weights, self.biases, strict=True)):
+            h = h @ W.T + b
+            if i < last:
+                h = np.tanh(h)
+        return h * self.out_scale + self.out_mean
+
+    @property
+    def hidden(self) -> tuple[int, ...]:
+        return tuple(W.shape[0] for W in self.weights[:-1])
+
+    @functools.cached_property
+    def _folded(self) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+        """Transposed weights with the input/output standardisation folded into the first/last layer."""
+        Ws = [np.array(W, dtype=float) for W in self.weights]
+        bs = [np.array(b, dtype=float) for b in self.biases]
+        W0 = Ws[0] / self.in_scale
+        bs[0] = bs[0] - W0 @ self.in_mean
+        Ws[0] = W0
+        Ws[-1] = Ws[-1] * self.out_scale[:, None]
+        bs[-1] = bs[-1] * self.out_scale + self.out_mean
+        return tuple(np.ascontiguousarray(W.T) for W in Ws), tuple(bs)
+
+    def forward_features(self, x: np.ndarray) -> np.ndarray:
+        """(k, f) raw (un-normalised) features → (k, 6) outputs; the fast path of __call__."""
+        Wt, bs = self._folded
+        h = x
+        last = len(Wt) - 1
+        for i in range(len(Wt)):
+            h = h @ Wt[i]
+            h += bs[i]
+            if i < last:
+                np.tanh(h, out=h)
+        return h
+
+
+# Small-angle exponential and logarithm: a correction's pose errors are milliradians, where a few series terms are
+# exact to rounding and cost a handful of array operations instead of kinematics.se3's general branches.
+_I3 = np.eye(3)
+_SKEW = np.zeros((3, 9))  # w @ _SKEW = skew(w).ravel()
+_SKEW[2, 1], _SKEW[1, 2], _SKEW[2, 3], _SKEW[0, 5], _SKEW[1, 6], _SKEW[0, 7] = -1, 1, 1, -1, -1, 1
+_ANTI9 = np.zeros((9, 4))  # R.ravel() @ _ANTI9 = (2 · unskew(R), trace(R))
+_ANTI9[7, 0], _ANTI9[5, 0], _ANTI9[2, 1], _ANTI9[6, 1], _ANTI9[3, 2], _ANTI9[1, 2] = 1, -1, 1, -1, 1, -1
+_ANTI9[0, 3] = _ANTI9[4, 3] = _ANTI9[8, 3] = 1.0
+_SMALL = 1e-2  # rad: below this the series are exact to rounding (as in kinematics.se3)
+
+
+def _exp_small(xi: np.ndarray) -> np.ndarray:
+    """(k, 6) twists → (k, 4, 4); series for rotations below _SMALL, else kinematics.se3."""
+    w = xi[:, 3:]
+    t2 = np.einsum("ka,ka->k", w, w)
+    if t2.size and t2.max() >= _SMALL * _SMALL:
+        return se3.exp_se3(xi)
+    k = xi.shape[0]
+    a = (1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42)))[:, None, None]
+    b = (0.5 - t2 / 24 * (1 - t2 / 30 * (1 - t2 / 56)))[:, None, None]
+    c = (1 / 6 - t2 / 120 * (1 - t2 / 42 * (1 - t2 / 72)))[:, None, None]
+    K = (w @ _SKEW).reshape(k, 3, 3)
+    K2 = K @ K
+    out = np.zeros((k, 4, 4))
+    out[:, :3, :3] = _I3 + a * K + b * K2
+    out[:, :3, 3] = ((_I3 + b * K + c * K2) @ xi[:, :3, None])[:, :, 0]
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def _log_small(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Rotation (k, 3, 3) and translation (k, 3) → (k, 6) twist of the pose; series below _SMALL."""
+    k = R.shape[0]
+    at = R.reshape(k, 9) @ _ANTI9  # (2 · unskew(R), trace(R))
+    anti = 0.5 * at[:, :3]
+    s2 = (anti * anti).sum(axis=1)
+    if s2.max() >= (0.5 * _SMALL) ** 2:
+        T = np.zeros((k, 4, 4))
+        T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, p, 1.0
+        return se3.log_se3(T)
+    theta = np.arctan2(np.sqrt(s2), 0.5 * (at[:, 3] - 1.0))
+    t2 = theta * theta
+    out = np.empty((k, 6))
+    w = out[:, 3:]
+    np.divide(anti, (1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42)))[:, None], out=w)
+    d = (1 / 12 + t2 / 720 + t2 * t2 / 30240)[:, None, None]
+    K = (w @ _SKEW).reshape(k, 3, 3)
+    out[:, :3] = ((_I3 - 0.5 * K + d * (K @ K)) @ p[:, :, None])[:, :, 0]
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class CalibratedRobot:
+    """A calibrated robot: what every fit returns and every export stores.
+
+    joint_ranges: (n, 2) the joint ranges the calibration data covered; ``correct`` refuses q outside them unless
+    ``extrapolate=True``. length_scale: metres per radian used to build virtual joints (n < 6), fixed at fit time.
+    joint_map: the robot file's controller → model joint map (None: identity). Every method here works in *model*
+    joints; the map only travels with the robot into its export, where :class:`Compensator` converts through it.
+    """
+
+    nominal: LocalPOEModel
+    model: LocalPOEModel
+    network: Network | None = None
+    T_tracker_base: np.ndarray = field(default_factory=lambda: np.eye(4))
+    joint_ranges: np.ndarray | None = None
+    length_scale: float | None = None
+    method: str = "nominal"
+    joint_map: JointMap | None = None
+
+    def __post_init__(self) -> None:
+        if self.model.n != self.nominal.n:
+            raise ValueError(f"model has {self.model.n} joints, nominal has {self.nominal.n}")
+        if self.joint_map is not None:
+            if self.joint_map.n != self.nominal.n:
+                raise ValueError(f"joint map is for {self.joint_map.n} joints, the robot has {self.nominal.n}")
+            if self.joint_map.is_identity:
+                object.__setattr__(self, "joint_map", None)  # one stored form: no map
+        if self.joint_ranges is None:
+            object.__setattr__(self, "joint_ranges", self.nominal.limits.copy())
+        if self.length_scale is None:
+            object.__setattr__(self, "length_scale", self.nominal.reach())
+        if self.network is not None and self.n > 6:
+            raise ValueError(
+                f"a joint-motion-error network needs a robot with at most 6 joints (the equivalent robot has six, "
+                f"eq. 12-14); this one has {self.n}"
+            )
+
+    @property
+    def n(self) -> int:
+        return self.nominal.n
+
+    def _batch(self, q) -> tuple[np.ndarray, bool]:
+        try:
+            q = np.asarray(q, dtype=float)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"q must be numbers of shape ({self.n},) or (k, {self.n}): {err}") from err
+        single = q.ndim == 1
+        q2 = q[None, :] if single else q
+        if q2.ndim != 2 or q2.shape[1] != self.n:
+            raise ValueError(
+                f"q must have shape ({self.n},) or (k, {self.n}) for this {self.n}-joint robot, got {q.shape}"
+            )
+        if not np.isfinite(q2).all():
+            i, j = np.argwhere(~np.isfinite(q2))[0]
+            raise ValueError(f"q contains non-finite values: configuration {i}, joint {j + 1} is {q2[i, j]}")
+        return q2, single
+
+    def check_range(self, q, extrapolate: bool = False) -> None:
+        """Raise ValueError naming the first configuration and joint outside the calibrated joint ranges."""
+        if extrapolate:
+            return
+        q2, _ = self._batch(q)
+        self._check_range(q2)
+
+    def _check_range(self, q2: np.ndarray) -> None:
+        lo, hi = self._ranges
+        if (q2 >= lo).all() and (q2 <= hi).all():
+            return
+        bad = (q2 < lo) | (q2 > hi)
+        i, j = np.argwhere(bad)[0]
+        raise ValueError(
+            f"configuration {i}: joint {j + 1} = {q2[i, j]:.6f} is outside the calibrated range "
+            f"[{self.joint_ranges[j, 0]:.6f}, {self.joint_ranges[j, 1]:.6f}]; pass extrapolate=True to correct it "
+            "anyway"
+        )
+
+    # the dataclass is frozen; cached_property writes __dict__ directly
+    @functools.cached_property
+    def _ranges(self) -> tuple[np.ndarray, np.ndarray]:
+        r = np.asarray(self.joint_ranges, dtype=float)
+        return r[:, 0] - 1e-12, r[:, 1] + 1e-12
+
+    # -- the calibrated forward model ----------------------------------------------------------------------------
+    def _evaluate(self, q2: np.ndarray, need_twists: bool = True):
+        """One walk of the identified chain: (link frames (k, n+1, 4, 4), actuated twists J (k, 6, n) or None,
+        dy (k, 6) or None): dy = J_ρ δρ is the pose error twist the network predicts on top of the model (eq. 14).
+        """
+        if need_twists or self.network is not None:
+            frames, J = self.model.frames_and_twists(q2)
+        else:
+            frames, J = self.model.link_frames(q2), None
+        dy = None
+        if self.network is not None:
+            rho = self.network.forward_features(input_features(q2, self.network.features, self.model, frames))
+            J_rho = J if self.n >= 6 else self.model.equivalent_jacobian(q2, length_scale=self.length_scale)
+            dy = (J_rho @ rho[:, :, None])[:, :, 0]
+        return frames, J, dy
+
+    def joint_motion_errors(self, q) -> np.ndarray:
+        """(k, 6) predicted joint motion errors δρ(q) of the equivalent robot (zeros without a network)."""
+        q2, _ = self._batch(q)
+        if self.network is None or q2.shape[0] == 0:
+            return np.zeros((q2.shape[0], 6))
+        return self.network.forward_features(input_features(q2, self.network.features, self.model))
+
+    def equivalent_jacobian(self, q) -> np.ndarray:
+        """(k, 6, 6) J_ρ of the identified model (actuated + virtual joints, eq. 12-14)."""
+        return self.model.equivalent_jacobian(q, length_scale=self.length_scale)
+
+    def predict_pose(self, q) -> np.ndarray:
+        """Pose (4, 4) or (k, 4, 4) in the base frame that the real robot reaches when commanded q."""
+        q2, single = self._batch(q)
+        T = self._predict(q2)
+        return T[0] if single else T
+
+    def _predict(self, q2: np.ndarray) -> np.ndarray:
+        if q2.shape[0] == 0:
+            return np.zeros((0, 4, 4))
+        frames, _, dy = self._evaluate(q2, need_twists=False)
+        T = frames[:, -1]
+        if dy is None:
+            return T.copy()
+        return _exp_small(dy) @ T
+
+    def predict_points(self, q, targets) -> np.ndarray:
+        """(k, m, 3) predicted target positions in the base frame (targets (m, 3) in the tool frame)."""
+        q2, _ = self._batch(q)
+        T = self._predict(q2)
+        targets = np.asarray(targets, dtype=float)
+        return np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
+
+    def residual(self, qc: np.ndarray, T_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pose residual r (k, 6) and the model's joint twists J (k, 6, n) at q_cmd (k, n), targets (k, 4, 4).
+
+        r = log(T_target T_model⁻¹) − J_ρ δρ: zero exactly when exp(J_ρ δρ) T_model = T_target, and it needs no
+        exponential of the network's correction. Its Jacobian is −J up to O(|r| + |dδρ/dq|), so Gauss-Newton
+        gains a few digits per step. For n < 6 (a least-squares problem) r is the exact log(T_target T_real⁻¹),
+        whose minimiser is what the length-scaled metric defines (the difference form has the same zero but not
+        the same minimum).
+        """
+        frames, J, dy = self._evaluate(qc)
+        T = frames[:, -1]
+        if dy is not None and self.n < 6:
+            T = _exp_small(dy) @ T
+            dy = None
+        Rm, pm = T[:, :3, :3], T[:, :3, 3]
+        Rt, pt = T_target[:, :3, :3], T_target[:, :3, 3]
+        dR = Rt @ Rm.transpose(0, 2, 1)
+        dp = pt - (dR @ pm[:, :, None])[:, :, 0]
+        r = _log_small(dR, dp)
+        if dy is not None:
+            r -= dy
+        return r, J
+
+    # -- corrections -------------------------------------------------------------------------------------------
+    def correct(
+        self,
+        q,
+        *,
+        method: str = "newton",
+        iterations: int = 10,
+        tol: float = 1e-11,
+        extrapolate: bool = False,
+    ) -> np.ndarray:
+        """Joint commands that make the real robot reach the nominal pose of q. (n,) or (k, n), like q.
+
+        method: ``"newton"`` (default) solves ``T_real(q_cmd) = T_nominal(q)`` on the calibrated forward model with
+        :func:`labcal.compensator.solve.solve`: Gauss-Newton (least squares in the length-scaled metric for n < 6:
+        only actuated joints are corrected; minimum-norm steps for a redundant arm, n > 6, so q_cmd is a solution
+        near q) until the estimated distance to the solution is below ``tol`` (rad), and where a full step does
+        not contract (near a singularity) a damped iteration from q that never makes the error worse than at q.
+        ``"paper"`` is eq. (24), q − δρ_a(q); ``"fixed-point"`` iterates q_cmd = q − δρ_a(q_cmd). Both apply the
+        network alone, so they are refused (a ValueError saying why) unless the identified frames are the nominal
+        ones and there is a network: the paper's ANN method. An empty (0, n) q gives an empty (0, n) answer.
+        """
+        q2, single = self._batch(q)
+        if method not in ("newton", "paper", "fixed-point"):
+            raise ValueError(f"method must be 'newton', 'paper' or 'fixed-point', got {method!r}")
+        if method != "newton" and (why := self.network_only_error(method)):
+            raise ValueError(why)
+        if not extrapolate:
+            self._check_range(q2)
+        if q2.shape[0] == 0:
+            return q2.copy()  # nothing to correct: an empty (0, n) answer, like the input
+        n = self.n
+        if method == "paper":
+            out = q2 - self.joint_motion_errors(q2)[:, :n]
+        elif method == "fixed-point":
+            out = q2.copy()
+            for _ in range(iterations):
+                nxt = q2 - self.joint_motion_errors(out)[:, :n]
+                done = np.max(np.abs(nxt - out)) < tol
+                out = nxt
+                if done:
+                    break
+        else:
+            T_target = self.nominal.fk(q2)
+
+            def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                return self.residual(qc, T_target[rows])
+
+            weights = metric.twist_weights(self.length_scale)
+            out = solver.solve(residual, q2, iterations=iterations, tol=tol, weights=weights)
+        return out[0] if single else out
+
+    def network_only_error(self, method: str = "paper") -> str | None:
+        """Why ``method`` ("paper" / "fixed-point": q − δρ_a, the network alone) cannot correct this robot, or None.
+
+        It would silently return q unchanged without a network, and silently drop the identified frames' correction
+        of a local-POE or hybrid calibration: both are refused rather than applied halfway.
+        """
+        if self.network is None:
+            return (
+                f"method={method!r} applies only the learned joint motion errors (eq. 24), and this {self.method} "
+                "calibration has no network: it would return q uncorrected. Use method='newton'"
+            )
+        if not self._nominal_frames:
+            return (
+                f"method={method!r} applies only the learned joint motion errors (eq. 24) and would ignore the "
+                f"identified frames of this {self.method} calibration. Use method='newton'"
+            )
+        return None
+
+    @functools.cached_property
+    def _nominal_frames(self) -> bool:
+        """True when the identified model is the nominal one (the paper's ANN method)."""
+        return bool(
+            np.array_equal(self.model.frames, self.nominal.frames)
+            and np.array_equal(self.model.twists, self.nominal.twists)
+        )
+
+    def save(self, path, provenance: dict | None = None) -> Path:
+        """Write this robot as a compensator export (``.json`` or ``.npz`` by extension); returns the path."""
+        from labcal.compensator.io import save
+
+        return save(self, path, provenance)

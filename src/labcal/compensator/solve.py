@@ -1,0 +1,138 @@
+"""The compensator's one solver: Gauss-Newton with a damped (Levenberg-Marquardt) fallback, over a residual function.
+
+:func:`solve` finds q with ``r(q) = 0`` (or ``|W r(q)|`` least, for fewer than six joints) for a batch of rows at
+once, given a function that returns the residual r (m, 6) and the joint twists J (m, 6, n) at m configurations:
+
+- **Gauss-Newton** first, from q0, with the full step ``J⁻¹ r`` (least squares in the metric W for n < 6,
+  minimum norm for n > 6). A row stops when its estimated distance to the solution, ``|step| ρ / (1 − ρ)`` with ρ
+  the ratio of its last two steps (linear convergence), is below ``tol``. A row *fails* when its steps stop
+  contracting (a step more than half the previous one), are not finite, or exceed :data:`GN_MAX_STEP`: a
+  (near-)singular configuration.
+- The failed rows then start over from q0 in **damped** mode: steps ``(JᵀJ + λ μ I)⁻¹ Jᵀ r`` in the length-scaled
+  metric W (μ the mean of JᵀJ's diagonal), clipped to :data:`DAMPED_MAX_STEP`, kept only where they lower
+  ``|W r|``; λ falls tenfold after a kept step and rises tenfold after a refused one. They stop together when every
+  row's last step (kept or refused) was below ``tol`` or λ passed 1e6 (no step helps), or after
+  ``damped_iterations`` steps. So near a singularity the answer is never worse than q0.
+
+Both modes are one loop each over the same residual function, so a single configuration (k = 1) takes exactly the
+path a batch takes; only the residual function may be specialised for it (:mod:`labcal.compensator.model`).
+
+Example (six "joints" whose twists are the unit twists, so r = target − q)::
+
+    >>> target = np.array([[0.1, -0.2, 0.3, 0.0, 0.0, 0.0]])
+    >>> def residual(q, rows):
+    ...     J = np.broadcast_to(np.eye(6), (len(rows), 6, 6)).copy()
+    ...     return target[rows] - q, J
+    >>> solve(residual, np.zeros((1, 6))).round(12) + 0.0
+    array([[ 0.1, -0.2,  0.3,  0. ,  0. ,  0. ]])
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+GN_MAX_STEP = 0.3  # rad: a full Gauss-Newton step this large means a (near-)singular configuration
+DAMPED_MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so larger steps mean a singularity
+LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP = 1e-6, 1e-12, 1e6
+
+#: residual(q (m, n), rows (m,) indices into the batch) → (r (m, 6), J (m, 6, n)).
+Residual = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def gauss_newton_step(r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+    """(m, 6) residuals, (m, 6, n) Jacobians → (m, n) full steps: J⁻¹ r (n = 6), least squares in diag(weights)
+    (n < 6), or the minimum-norm step Jᵀ (J Jᵀ)⁻¹ r (n > 6). NaN rows where J is singular."""
+    n = J.shape[2]
+    if weights is not None:
+        r, J = r * weights, J * weights[:, None]
+    try:
+        if n == 6:
+            return np.linalg.solve(J, r[:, :, None])[:, :, 0]
+        Jt = J.transpose(0, 2, 1)
+        if n > 6:
+            return (Jt @ np.linalg.solve(J @ Jt, r[:, :, None]))[:, :, 0]
+        return np.linalg.solve(Jt @ J, Jt @ r[:, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:
+        return np.full((r.shape[0], n), np.nan)
+
+
+def damped_step(r: np.ndarray, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """(m, 6) weighted residuals, (m, 6, n) weighted Jacobians, (m,) λ → (m, n) clipped Levenberg-Marquardt steps."""
+    n = J.shape[2]
+    JtJ = np.einsum("kai,kaj->kij", J, J)
+    mean_diag = (np.trace(JtJ, axis1=1, axis2=2) / n)[:, None, None]
+    rhs = np.einsum("kai,ka->ki", J, r)[..., None]
+    step = np.linalg.solve(JtJ + (lam[:, None, None] * mean_diag) * np.eye(n), rhs)[..., 0]
+    return np.clip(step, -DAMPED_MAX_STEP, DAMPED_MAX_STEP)
+
+
+def solve(
+    residual: Residual,
+    q0: np.ndarray,
+    *,
+    iterations: int = 10,
+    tol: float = 1e-11,
+    weights: np.ndarray | None = None,
+    damped_iterations: int | None = None,
+) -> np.ndarray:
+    """(k, n) start q0 → (k, n) solutions of ``residual(q) = 0`` (module docstring: the two modes).
+
+    weights: (6,) the metric W of the damped mode, and of Gauss-Newton's least squares for n < 6. iterations:
+    Gauss-Newton steps per row (at least 1); damped_iterations: damped steps (default ``3 · max(iterations, 10)``).
+    """
+    k, n = q0.shape
+    w = np.ones(6) if weights is None else np.asarray(weights, dtype=float)
+    out = q0.copy()
+    prev_step = np.full(k, np.inf)
+    failed = np.zeros(k, dtype=bool)
+    active = np.arange(k)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a singular J gives a NaN step
+        for _ in range(max(iterations, 1)):
+            r, J = residual(out[active], active)
+            step = gauss_newton_step(r, J, w if n < 6 else None)
+            size = np.abs(step).max(axis=1)
+            prev = prev_step[active]
+            bad = ~(size <= np.minimum(GN_MAX_STEP, 0.5 * prev))
+            ratio = np.where(np.isfinite(prev), np.minimum(size / np.maximum(prev, 1e-300), 0.5), 0.5)
+            done = (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol)
+            step[bad] = 0.0
+            out[active] += step
+            failed[active[bad]] = True
+            prev_step[active] = size
+            active = active[~(bad | done)]
+            if active.size == 0:
+                break
+        # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
+        if failed.any():
+            rows = np.flatnonzero(failed)
+            budget = max(iterations, 10) * 3 if damped_iterations is None else int(damped_iterations)
+            out[rows] = _damped(residual, q0[rows], rows, w, budget, tol)
+    return out
+
+
+def _damped(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray, budget: int, tol: float):
+    """The damped mode from q0 (m, n) for the batch rows ``rows``: steps kept only where they lower |W r|.
+
+    The rows iterate together until every one has stopped (a kept step below tol, or a refused step below tol:
+    the cost cannot fall further in floating point, or λ past LAMBDA_GIVE_UP), or the budget is spent.
+    """
+    out = q0.copy()
+    r, J = residual(out, rows)
+    err, jac = r * w, J * w[:, None]
+    cost = np.sum(err * err, axis=1)
+    lam = np.full(len(out), LAMBDA_START)
+    for _ in range(budget):
+        step = damped_step(err, jac, lam)
+        cand = out + step
+        r, J = residual(cand, rows)
+        err_c, jac_c = r * w, J * w[:, None]
+        cost_c = np.sum(err_c * err_c, axis=1)
+        ok = cost_c <= cost
+        out[ok], err[ok], jac[ok], cost[ok] = cand[ok], err_c[ok], jac_c[ok], cost_c[ok]
+        lam = np.where(ok, np.maximum(lam / 10, LAMBDA_MIN), lam * 10)
+        small = np.abs(step).max(axis=1) < tol
+        if np.all(small | (~ok & (lam > LAMBDA_GIVE_UP))):
+            break
+    return out
