@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from labcal.calibration.observations import ObservationError, Observations, rigid_fit
+from labcal.calibration.observations import ObservationError, Observations, rigid_fit, target_geometry
 from labcal.kinematics import exp_se3
 
 TARGETS = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.15, 0.0]])
@@ -27,10 +27,52 @@ def test_non_finite_point_names_its_row():
         Observations(obs.q, points, TARGETS)
 
 
-def test_collinear_targets_are_refused():
+def test_collinear_targets_are_accepted_and_measure_no_pose():
     line = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.0, 0.0]])
-    with pytest.raises(ObservationError, match="collinear"):
-        Observations(np.zeros((1, 6)), line[None], line)
+    obs = Observations(np.zeros((1, 6)), line[None], line)
+    assert target_geometry(line)[0] == "line" and not obs.pose_rows().any()
+    assert np.isnan(obs.measured_poses()).all()
+
+
+def test_target_geometry_names_point_line_and_plane():
+    assert target_geometry(np.zeros((1, 3)))[0] == "point"
+    assert target_geometry(np.array([[0.0, 0, 0], [0.0004, 0, 0]]))[0] == "point"  # closer than MIN_SPREAD
+    kind, (_on, direction) = target_geometry(np.array([[0.0, 0, 0], [0.0, 0.2, 0]]))
+    assert kind == "line" and np.allclose(np.abs(direction), [0, 1, 0])
+    assert target_geometry(TARGETS)[0] == "plane"
+
+
+def test_missing_targets_are_nan_rows_and_a_partly_empty_point_names_its_row_and_target():
+    points = _obs(3).points.copy()
+    points[1, 2] = np.nan  # t3 not seen in row 1
+    obs = Observations(np.zeros((3, 6)), points, TARGETS)
+    assert obs.m == 3 and obs.seen.tolist() == [[True] * 3, [True, True, False], [True] * 3]
+    assert not obs.complete and not obs.seen.flags.writeable
+    points = points.copy()
+    points[2, 0, 1] = np.nan
+    with pytest.raises(ObservationError, match=r"t1 of configuration \(row\) 2 is partly empty"):
+        Observations(np.zeros((3, 6)), points, TARGETS)
+
+
+def test_a_row_without_any_target_is_refused_by_row():
+    points = np.full((3, 1, 3), 0.1)
+    points[2] = np.nan
+    with pytest.raises(ObservationError, match="row 2 has no target seen"):
+        Observations(np.zeros((3, 6)), points, TARGETS[:1])
+
+
+def test_measured_poses_only_where_three_non_collinear_targets_are_seen():
+    rng = np.random.default_rng(1)
+    four = np.vstack([TARGETS, [[0.05, 0.05, 0.1]]])
+    T = exp_se3(rng.normal(size=(4, 6)))
+    points = np.einsum("kab,mb->kma", T[:, :3, :3], four) + T[:, None, :3, 3]
+    points[1, [0, 1]] = np.nan  # two left: no pose
+    points[2, 3] = np.nan  # three left: a pose
+    obs = Observations(np.zeros((4, 6)), points, four)
+    assert obs.pose_rows().tolist() == [True, False, True, True]
+    poses = obs.measured_poses()
+    assert np.isnan(poses[1]).all()
+    assert np.allclose(poses[[0, 2, 3]], T[[0, 2, 3]], atol=1e-12)
 
 
 def test_unknown_split_names_its_row_and_value():

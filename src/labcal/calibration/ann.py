@@ -45,9 +45,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numpy as np
 
+from labcal import features as feature_lib
 from labcal.calibration.equivalent import (
     MAX_CONDITION,
     SOFT_CONDITION,
@@ -55,7 +57,7 @@ from labcal.calibration.equivalent import (
     joint_error_observations,
 )
 from labcal.calibration.observations import ObservationError, Observations
-from labcal.compensator import FEATURES, CalibratedRobot, Network, input_features
+from labcal.compensator import CalibratedRobot, Network, input_features
 
 TRAINERS = ("lm", "adam", "gd")
 LOSSES = ("joint", "task")
@@ -201,8 +203,34 @@ class _Problem:
         return torch.cat(blocks, dim=2).reshape(k * m, -1)
 
 
-def _train_one(torch, theta0, shapes, train, val, trainer, weight_decay, max_iter, patience, lr, progress, restart):
+@dataclass(frozen=True)
+class TrainOptions:
+    """How one network is trained (:func:`fit_ann`'s trainer settings, defaults resolved)."""
+
+    trainer: str
+    weight_decay: float
+    max_iter: int
+    patience: int
+    lr: float | None
+    progress: ProgressFn | None = None
+
+
+@dataclass(frozen=True)
+class _Job:
+    """One training problem: layer shapes, the training and early-stopping problems, and the options."""
+
+    shapes: list
+    train: _Problem
+    val: _Problem
+    options: TrainOptions
+
+
+def _train_one(torch, job: _Job, theta0: np.ndarray, restart: int):
     """One initialisation. Returns (best θ (np), curve train, curve val, best iteration, iterations run)."""
+    shapes, train, val, opts = job.shapes, job.train, job.val, job.options
+    trainer, weight_decay, max_iter, patience, lr, progress = (
+        opts.trainer, opts.weight_decay, opts.max_iter, opts.patience, opts.lr, opts.progress
+    )  # fmt: skip
     wmask = torch.as_tensor(_weight_mask(shapes))
     sqrt_wd = math.sqrt(weight_decay)
 
@@ -333,6 +361,20 @@ def _check_rows(rows: dict, jeo, fit_rows: np.ndarray, causes: list[dict]) -> No
     )
 
 
+def check_features(features) -> tuple[str, ...]:
+    """The network input names as a tuple, refused unless the feature registry (:mod:`labcal.features`, which the
+    runtime and the exporters use) knows every one of them: whatever the compensator computes (``q``, ``sincos``,
+    ``gravity``, ``harmonics:H`` …) trains here, and nothing it cannot compute is ever trained."""
+    names = (features,) if isinstance(features, str) else tuple(features)
+    unknown = [name for name in names if not isinstance(name, str) or not feature_lib.is_feature(name)]
+    if not names or unknown:
+        raise ValueError(
+            f"features must be a non-empty sequence of network inputs ({', '.join(feature_lib.NAMES)}), "
+            f"got {features!r}" + (f": unknown {', '.join(map(repr, unknown))}" if unknown else "")
+        )
+    return names
+
+
 def fit_ann(
     obs: Observations,
     base: CalibratedRobot,
@@ -376,10 +418,7 @@ def fit_ann(
     the chosen restart, its training curve and stopping point, train/val loss, and warnings.
     """
     obs.check_robot(base.n)
-    features = tuple(features)
-    unknown = [f for f in features if f not in FEATURES]
-    if not features or unknown:
-        raise ValueError(f"features must be a non-empty subset of {FEATURES}, got {features!r}")
+    features = check_features(features)
     if trainer not in TRAINERS:
         raise ValueError(f"trainer must be one of {TRAINERS}, got {trainer!r}")
     if loss not in LOSSES:
@@ -404,6 +443,16 @@ def fit_ann(
     if used.k == 0:
         raise NetworkDataError(f"no training rows: all {obs.k} rows are labelled 'test'", [])
     jeo = joint_error_observations(used, base, max_condition=max_condition, soft_condition=soft_condition)
+    loss_note = None
+    if jeo.partial and loss == "joint":
+        # Where a row's points see fewer than six joint-error directions its eq. (21) "observation" is only the
+        # part of δρ they see (minimum norm), not δρ: a joint-space fit would learn that projection. Eq. (20)
+        # compares the network with the points themselves, so it is the one loss these data define.
+        loss_note = (
+            f"{int(np.sum(jeo.rank < 6))} of {used.k} rows see fewer than six joint-error directions (fewer than "
+            "three non-collinear targets): trained on the point loss of eq. (20) instead of eq. (21)"
+        )
+        loss = "task"
     causes = jeo.causes(base) if not jeo.kept.all() else []
     fit_rows = np.isin(used.split, ["train", ""])
     if np.any(used.split == "val"):
@@ -446,21 +495,20 @@ def fit_ann(
         if loss == "joint":
             return _Problem(torch, x[idx], y[idx], jeo.weight[idx])
         # eq. (20) on standardised outputs: δp − PJ (s ⊙ N + m), scaled to unit RMS on the training rows.
-        unit = math.sqrt(np.mean(jeo.delta_p[tr] ** 2)) or 1.0
+        if jeo.seen is None:
+            unit = math.sqrt(np.mean(jeo.delta_p[tr] ** 2)) or 1.0
+        else:  # over the coordinates the rows measured (unseen targets are zero rows)
+            unit = math.sqrt(np.sum(jeo.delta_p[tr] ** 2) / (3.0 * np.sum(jeo.seen[tr]))) or 1.0
         A = jeo.PJ[idx] * out_scale / unit
         b = (jeo.delta_p[idx] - jeo.PJ[idx] @ out_mean) / unit
         return _Problem(torch, x[idx], None, jeo.weight[idx], A, b)
 
     runs = []
+    options = TrainOptions(trainer, weight_decay, max_iter, patience, lr, progress)
     with _deterministic_torch(seed) as torch:
-        train_p, val_p = problem(torch, tr), problem(torch, va)
+        job = _Job(shapes, problem(torch, tr), problem(torch, va), options)
         for r in range(int(restarts)):
-            theta0 = _init_params(shapes, seed, r)
-            runs.append(
-                _train_one(
-                    torch, theta0, shapes, train_p, val_p, trainer, weight_decay, max_iter, patience, lr, progress, r
-                )
-            )
+            runs.append(_train_one(torch, job, _init_params(shapes, seed, r), r))
     val_losses = [float(run[2][run[3]]) for run in runs]
     finite = [v if math.isfinite(v) else math.inf for v in val_losses]
     best = int(np.argmin(finite))
@@ -510,6 +558,7 @@ def fit_ann(
         "weights": n_params,
         "trainer": trainer,
         "loss": loss,
+        "loss_note": loss_note,
         "weight_decay": weight_decay,
         "max_iter": max_iter,
         "patience": patience,

@@ -5,11 +5,19 @@ the n actuated joints, then 6 − n virtual joints) of a *base* robot — the no
 the identified local-POE model for the hybrid. At configuration k:
 
 - the base robot predicts target points p̂_i (base frame) and, through ``T_tracker_base``, in the observation frame;
-- δp_k = measured − predicted (9,), rotated back into the base frame (so it matches eq. 18 in K0);
-- ``P_k = [[I, r̂_1], [I, r̂_2], [I, r̂_3]]`` with r_i = −p̂_i, the vector from target i to the origin of K0:
+- δp_k = measured − predicted (3m,), rotated back into the base frame (so it matches eq. 18 in K0);
+- ``P_k = [[I, r̂_1], …, [I, r̂_m]]`` with r_i = −p̂_i, the vector from target i to the origin of K0:
   a twist δy = (δv, δω) moves a point p by δv + δω × p = δv + r̂ δω (eq. 18);
 - J_ρ,k is the base robot's equivalent Jacobian (eq. 14, virtual joints for n < 6);
 - the observation is δρ_k = (P_k J_ρ,k)^+ δp_k (eq. 21), computed once.
+
+**Fewer than three targets in a row.** Eq. (21) uses the rows of P that the pose has: a target the tracker did not
+see gets zero rows in P J_ρ and in δp (so it adds nothing to any fit built on them: the joint series' normal
+equations, the network's task loss). Three non-collinear points fix all six joint errors; two fix five (a
+rotation about the line through them moves neither), one fixes three. Such a row's ``rank`` is 5 or 3 and its
+δρ is the minimum-norm solution — only the part of δρ the points see, not δρ itself — so a network trained on
+these observations must use the point loss (eq. 20; :func:`labcal.calibration.ann.fit_ann` switches to it and
+says so). Its ``condition`` is σ_max / σ_rank of P J_ρ S: the conditioning of what the points can see.
 
 **Condition filter.** Near a singular configuration (a wrist at q5 ≈ 0, an elbow stretched out) J_ρ loses rank
 and eq. 21 turns millimetres of noise into radians of "joint error" (DESIGN.md section 1). Each observation's
@@ -47,9 +55,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from labcal.calibration.observations import Observations
+from labcal.calibration.observations import Observations, seen_patterns, target_geometry
 from labcal.compensator import CalibratedRobot
-from labcal.kinematics import se3
+from labcal.kinematics import metric, se3
 
 MAX_CONDITION = 1e3
 SOFT_CONDITION = 1e2
@@ -59,12 +67,15 @@ SOFT_CONDITION = 1e2
 class JointErrorObservations:
     """Eq. 21 for every configuration of an :class:`Observations`, plus the condition filter's verdict.
 
-    q: (k, n) joints; delta_p: (k, 9) measured − predicted target positions in the base frame (m);
-    PJ: (k, 9, 6) P_k J_ρ,k; delta_rho: (k, 6) observed joint motion errors (rad, m for prismatic joints;
+    q: (k, n) joints; delta_p: (k, 3m) measured − predicted target positions in the base frame (m; 0 for a
+    target the row did not see); PJ: (k, 3m, 6) P_k J_ρ,k (zero rows for unseen targets); delta_rho: (k, 6)
+    observed joint motion errors (rad, m for prismatic joints; the minimum-norm solution where ``rank`` < 6;
     NaN where PJ is numerically singular); condition: (k,) cond(P J_ρ S) (see module docstring);
     weight: (k,) 0 for dropped rows, (soft/cond)² in the down-weighted band, else 1;
     reason: (k,) "" for kept rows, else why the row was dropped; split: (k,) the observations' split labels;
-    targets: (3, 3) the targets in the tool frame (to name the cause of dropped rows, :func:`dropped_causes`).
+    targets: (m, 3) the targets in the tool frame (to name the cause of dropped rows, :func:`dropped_causes`);
+    seen: (k, m) the targets each row saw (None: all); rank: (k,) the joint-error directions the row's points
+    can see (6, 5 with two points or a line of them, 3 with one; None: 6 everywhere).
     """
 
     q: np.ndarray
@@ -76,10 +87,17 @@ class JointErrorObservations:
     reason: np.ndarray
     split: np.ndarray
     targets: np.ndarray | None = None
+    seen: np.ndarray | None = None
+    rank: np.ndarray | None = None
 
     @property
     def kept(self) -> np.ndarray:
         return self.weight > 0
+
+    @property
+    def partial(self) -> bool:
+        """Some row cannot see all six joint-error directions (rank < 6)."""
+        return self.rank is not None and bool(np.any(self.rank < 6))
 
     def causes(self, base: CalibratedRobot) -> list[dict]:
         """Why the dropped rows are ill-conditioned, grouped: see :func:`dropped_causes`."""
@@ -111,11 +129,11 @@ class JointErrorObservations:
 
 
 def point_matrix(points: np.ndarray) -> np.ndarray:
-    """P of eq. (18): predicted points (k, 3, 3) in the base frame → (k, 9, 6), δp = P δy with δy = (δv, δω)."""
+    """P of eq. (18): predicted points (k, m, 3) in the base frame → (k, 3m, 6), δp = P δy with δy = (δv, δω)."""
     points = np.asarray(points, dtype=float)
-    k = points.shape[0]
-    P = np.zeros((k, 9, 6))
-    for i in range(3):
+    k, m = points.shape[0], points.shape[1]
+    P = np.zeros((k, 3 * m, 6))
+    for i in range(m):
         P[:, 3 * i : 3 * i + 3, :3] = np.eye(3)
         P[:, 3 * i : 3 * i + 3, 3:] = se3.skew(-points[:, i])  # r_i = −p̂_i: from target i to the K0 origin
     return P
@@ -123,18 +141,47 @@ def point_matrix(points: np.ndarray) -> np.ndarray:
 
 def metric_scale(base: CalibratedRobot) -> np.ndarray:
     """(6,) column scaling S of the length-scaled metric: L for prismatic actuated joints, 1 otherwise."""
-    s = np.ones(6)
-    for j, t in enumerate(base.model.joint_types):
-        if t == "prismatic":
-            s[j] = base.length_scale
-    return s
+    return metric.joint_weights(base.model.joint_types, base.length_scale, size=6)
 
 
-def condition_numbers(PJ: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """(k, 9, 6) P J_ρ and (6,) column scaling → (k,) condition numbers (inf where rank deficient)."""
+def condition_numbers(PJ: np.ndarray, scale: np.ndarray, rank: np.ndarray | None = None) -> np.ndarray:
+    """(k, 3m, 6) P J_ρ and (6,) column scaling → (k,) condition numbers (inf where rank deficient).
+
+    rank: (k,) the directions each row can see (module docstring); the condition is then σ_max / σ_rank."""
     sv = np.linalg.svd(PJ * scale, compute_uv=False)
-    with np.errstate(divide="ignore"):
-        return np.where(sv[:, -1] > 0, sv[:, 0] / np.where(sv[:, -1] > 0, sv[:, -1], 1.0), np.inf)
+    if rank is None:
+        with np.errstate(divide="ignore"):
+            return np.where(sv[:, -1] > 0, sv[:, 0] / np.where(sv[:, -1] > 0, sv[:, -1], 1.0), np.inf)
+    low = np.take_along_axis(sv, (np.asarray(rank, int) - 1)[:, None], axis=1)[:, 0] if len(sv) else sv[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(low > 0, sv[:, 0] / np.where(low > 0, low, 1.0), np.inf)
+
+
+_RANK = {"point": 3, "line": 5, "plane": 6}  # joint-error directions the points of a row can see
+
+
+def row_ranks(targets: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """(k,) joint-error directions each row's seen targets can see: 6, 5 (a line of targets) or 3 (one point)."""
+    rank = np.full(seen.shape[0], 6)
+    for pattern, rows in seen_patterns(seen):
+        rank[rows] = _RANK[target_geometry(targets[pattern])[0]]
+    return rank
+
+
+def _masked_pj(base: CalibratedRobot, q: np.ndarray, targets: np.ndarray, seen: np.ndarray):
+    """(predicted points (k, m, 3), P J_ρ (k, 3m, 6)) with zero rows for the targets a row did not see."""
+    predicted = base.predict_points(q, targets)
+    PJ = np.einsum("kab,kbc->kac", point_matrix(predicted), base.equivalent_jacobian(q))
+    PJ[~np.repeat(seen, 3, axis=1)] = 0.0
+    return predicted, PJ
+
+
+def _min_norm(PJ: np.ndarray, delta_p: np.ndarray, rank: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """(k, 6) minimum-norm solutions of P J_ρ δρ = δp in the length-scaled metric, truncated at each row's rank."""
+    U, s, Vt = np.linalg.svd(PJ * scale, full_matrices=False)
+    keep = np.arange(s.shape[1])[None, :] < rank[:, None]
+    coef = np.where(keep, np.einsum("kai,ka->ki", U, delta_p) / np.where(keep, s, 1.0), 0.0)
+    return scale * np.einsum("kij,ki->kj", Vt, coef)
 
 
 def joint_error_observations(
@@ -162,6 +209,8 @@ def joint_error_observations(
             raise ValueError(f"soft_condition {soft_condition} exceeds max_condition {max_condition}")
     q = obs.q
     k = obs.k
+    if not obs.complete or target_geometry(obs.targets)[0] != "plane":
+        return _partial_observations(obs, base, max_condition, soft_condition)
     predicted = base.predict_points(q, obs.targets) if k else np.zeros((0, 3, 3))  # (k, 3, 3) base frame
     R, t = base.T_tracker_base[:3, :3], base.T_tracker_base[:3, 3]
     in_obs_frame = np.einsum("ab,kmb->kma", R, predicted) + t
@@ -188,6 +237,39 @@ def joint_error_observations(
     return JointErrorObservations(q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split, obs.targets)
 
 
+def _partial_observations(obs, base, max_condition, soft_condition) -> JointErrorObservations:
+    """:func:`joint_error_observations` when a row misses targets or the targets do not span a plane (module
+    docstring): zero rows for unseen targets, each row's rank, the condition of what it can see, min-norm δρ."""
+    q, k, m = obs.q, obs.k, obs.m
+    seen = obs.seen
+    rank = row_ranks(obs.targets, seen)
+    predicted, PJ = _masked_pj(base, q, obs.targets, seen) if k else (np.zeros((0, m, 3)), np.zeros((0, 3 * m, 6)))
+    R, t = base.T_tracker_base[:3, :3], base.T_tracker_base[:3, 3]
+    in_obs_frame = np.einsum("ab,kmb->kma", R, predicted) + t
+    diff = np.where(seen[..., None], obs.points - in_obs_frame, 0.0)
+    delta_p = np.einsum("ba,kmb->kma", R, diff).reshape(k, 3 * m)
+    scale = metric_scale(base)
+    condition = condition_numbers(PJ, scale, rank) if k else np.zeros(0)
+    reason = np.full(k, "", dtype=object)
+    weight = np.ones(k)
+    delta_rho = np.full((k, 6), np.nan)
+    singular = ~np.isfinite(condition) | (condition > 1e12)
+    reason[singular] = "singular P·J_rho (rank deficient)"
+    if max_condition is not None:
+        high = ~singular & (condition > max_condition)
+        reason[high] = f"condition > {max_condition:g}"
+    weight[reason != ""] = 0.0
+    if soft_condition is not None:
+        band = (weight > 0) & (condition > soft_condition)
+        weight[band] = (soft_condition / condition[band]) ** 2
+    ok = ~singular
+    if np.any(ok):
+        delta_rho[ok] = _min_norm(PJ[ok], delta_p[ok], rank[ok], scale)
+    return JointErrorObservations(
+        q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split, obs.targets, seen, rank
+    )
+
+
 _PROBE_STEP = 0.1  # rad (revolute) or fraction of the reach (prismatic): the move that shows which joint causes it
 
 
@@ -209,7 +291,10 @@ def dropped_causes(jeo: JointErrorObservations, base: CalibratedRobot) -> list[d
     n = base.n
     q = jeo.q[dropped]
     _, _, Vt = np.linalg.svd(jeo.PJ[dropped] * scale, full_matrices=False)
-    null = np.abs(Vt[:, -1, :])  # (d, 6)
+    if jeo.rank is None:
+        null = np.abs(Vt[:, -1, :])  # (d, 6)
+    else:  # the weakest direction the row's points can see
+        null = np.abs(np.take_along_axis(Vt, (jeo.rank[dropped] - 1)[:, None, None], axis=1)[:, 0])
     cond0 = jeo.condition[dropped]
     best_gain = np.ones(dropped.size)
     culprit = np.zeros(dropped.size, dtype=int)
@@ -219,9 +304,13 @@ def dropped_causes(jeo: JointErrorObservations, base: CalibratedRobot) -> list[d
         step = _PROBE_STEP * (base.length_scale if base.model.joint_types[j] == "prismatic" else 1.0)
         moved = q.copy()
         moved[:, j] += step
-        pts = base.predict_points(moved, jeo.targets)
-        PJ = np.einsum("kab,kbc->kac", point_matrix(pts), base.equivalent_jacobian(moved))
-        cond = condition_numbers(PJ, scale)
+        if jeo.rank is None:
+            pts = base.predict_points(moved, jeo.targets)
+            PJ = np.einsum("kab,kbc->kac", point_matrix(pts), base.equivalent_jacobian(moved))
+            cond = condition_numbers(PJ, scale)
+        else:
+            PJ = _masked_pj(base, moved, jeo.targets, jeo.seen[dropped])[1]
+            cond = condition_numbers(PJ, scale, jeo.rank[dropped])
         with np.errstate(divide="ignore", invalid="ignore"):
             gain = np.where(np.isfinite(cond0), cond0 / cond, np.where(np.isfinite(cond), np.inf, 1.0))
         better = gain > np.maximum(best_gain, 2.0)

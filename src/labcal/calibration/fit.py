@@ -48,7 +48,19 @@ forced) and **notes** (``FitResult.notes``, information). Codes:
   still a complete model;
 - ``few-poses``: fewer than 2 distinct poses per joint were fitted (the import's ``few-poses`` check, which
   ``--allow few-poses`` overrides at import but not here);
-- ``no-network``: ``ann`` alone could not train its network (the same causes): the fit is the registered nominal.
+- ``no-network``: ``ann`` alone could not train its network (the same causes): the fit is the registered nominal;
+- ``unobservable`` (a note): the targets cannot show some rotations of the tool (one target: the tool's
+  orientation; targets on a line: the rotation about it), named in words. It is a note, not a warning: those
+  directions are a property of the measuring set-up, not a failure of the data, and the fit leaves them at the
+  nominal (the minimum-norm step), so the compensator makes no correction along them — it does not invent one.
+  What it cannot do is promise the tool's orientation; ``FitResult.observability`` says what orientation
+  accuracy can be claimed. A direction the *robot's* parameters lose for lack of poses is still
+  ``rank-deficient`` (blocking).
+
+**Any number of targets.** Every method fits point residuals (:mod:`labcal.calibration.local_poe`,
+:mod:`labcal.calibration.equivalent`), so 1 … m targets per row and targets missing in some rows all fit; with
+fewer than three targets in a row the network trains on the point loss (eq. 20) and the metrics' primary figures
+are point errors (:mod:`labcal.calibration.metrics`).
 
 ``FitResult.cv``: ``{"folds", "scheme": "kfold"|"group", "errors": {candidate: [per-fold mean target-point
 error m, None where skipped]}, "mean", "std", "chosen", "pruned_after", "failures"}``, None for ``nominal`` or
@@ -80,7 +92,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from labcal.calibration.local_poe import fit_local_poe, register
-from labcal.calibration.metrics import point_residual_warning, split_table
+from labcal.calibration.metrics import observability, point_residual_warning, split_table
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import se3
@@ -110,7 +122,9 @@ class FitResult:
     before/after); info: method diagnostics (hybrid: ``kept``, ``val_errors`` … ; auto: ``candidates``
     {method: CV error m} and each candidate's info); seed; n_train / n_val / n_test: row counts (train = the
     fitting rows); fit_seconds: wall time per step; obs: the split data; warnings: blocking findings
-    [{code, message}]; notes: information; cv: the cross-validation record (module docstring) or None.
+    [{code, message}]; notes: information; cv: the cross-validation record (module docstring) or None;
+    observability: what orientation accuracy the targets support (:func:`labcal.calibration.metrics.
+    observability`: ``orientation`` "measured" | "partial" | "none", ``unobservable`` in words, ``claim`` text).
     """
 
     method: str
@@ -128,6 +142,7 @@ class FitResult:
     warnings: list = field(default_factory=list)
     notes: list = field(default_factory=list)
     cv: dict | None = None
+    observability: dict = field(default_factory=dict)
 
 
 def fit(
@@ -304,6 +319,12 @@ def _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, 
 
 
 def _result(method, chosen, robot, before, info, obs, counts, seed, seconds, warnings, notes, cv, metrics=None):
+    seen = obs.seen[obs.split == "train"]
+    unseen = ", ".join(f"t{i + 1}" for i in np.flatnonzero(~seen.any(axis=0))) if seen.size else ""
+    if unseen:
+        notes.append(f"targets never seen in the fitting rows: {unseen} (they add nothing to this fit)")
+    claims = observability(obs)
+    notes.extend(f"unobservable: {text}" for text in claims["unobservable"])
     return FitResult(
         method=method,
         chosen=chosen,
@@ -320,6 +341,7 @@ def _result(method, chosen, robot, before, info, obs, counts, seed, seconds, war
         warnings=warnings,
         notes=notes,
         cv=cv,
+        observability=claims,
     )
 
 
@@ -466,14 +488,20 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
             notes.append(f"overfit-risk: {text}; trust the cross-validated error, not the fit error")
     for part in ("val", "test"):
         if part in metrics and not any(w["code"] == "worse-than-nominal" for w in warnings):
-            after, bef = metrics[part]["after"]["pos_mean"], metrics[part]["before"]["pos_mean"]
+            entry = metrics[part]
+            if entry.get("primary", "pose") == "pose":
+                what, after, bef = "position", entry["after"]["pos_mean"], entry["before"]["pos_mean"]
+            else:
+                what, after, bef = "target-point", entry["points"]["after"]["mean"], entry["points"]["before"]["mean"]
             if after >= bef:
                 warnings.append(_warn(
                     "worse-than-nominal",
-                    f"on the held-out {part!r} rows the mean position error is {after * 1e3:.4g} mm after "
+                    f"on the held-out {part!r} rows the mean {what} error is {after * 1e3:.4g} mm after "
                     f"calibration against {bef * 1e3:.4g} mm for the registered nominal",
                 ))  # fmt: skip
     net = _network_info(chosen_key, info)
+    if net and net.get("loss_note"):
+        notes.append(f"network: {net['loss_note']}")
     if net:
         for text in net.get("warnings", []):
             if "over-fitting" in text:

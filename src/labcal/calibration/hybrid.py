@@ -28,18 +28,20 @@ import math
 
 import numpy as np
 
-from labcal.calibration.metrics import prediction_errors
+from labcal.calibration.metrics import primary_error
 from labcal.calibration.observations import Observations
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics.poe import LocalPOEModel
 
 
 def validation_error(robot: CalibratedRobot, obs: Observations) -> float:
-    """Mean position error (m) of the robot's prediction on the validation rows (NaN when there are none)."""
+    """Mean position error (m) of the robot's prediction on the validation rows (NaN when there are none); the
+    mean target-point error when those rows do not all fix a pose (:func:`~labcal.calibration.metrics.
+    primary_error`)."""
     mask = obs.split == "val"
     if not mask.any():
         return float("nan")
-    return float(np.mean(prediction_errors(robot, obs.subset(mask))[0]))
+    return primary_error(robot, obs.subset(mask))[0]
 
 
 STAGE2 = {"series": "hybrid+series", "ann": "hybrid+ann"}

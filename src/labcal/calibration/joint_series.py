@@ -50,7 +50,7 @@ import numpy as np
 
 from labcal import features as feature_lib
 from labcal.calibration.equivalent import joint_error_observations
-from labcal.calibration.metrics import prediction_errors
+from labcal.calibration.metrics import primary_error
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot, Network, input_features
 
@@ -84,8 +84,11 @@ class _Design:
     of 9 n² m² for the explicit design matrix.
     """
 
-    def __init__(self, PJ: np.ndarray, delta_p: np.ndarray, basis: np.ndarray) -> None:
+    def __init__(self, PJ: np.ndarray, delta_p: np.ndarray, basis: np.ndarray, points: np.ndarray | None = None):
+        """points: (k,) target points each row saw when some row missed targets (their rows of PJ and δp are
+        zero); None when every row saw every target."""
         n = basis.shape[1]
+        self.points = points
         self.PJ = PJ[:, :, :n]  # (k, 9, n)
         self.delta_p = delta_p  # (k, 9)
         self.basis = basis  # (k, n, m)
@@ -117,7 +120,9 @@ class _Design:
     def residual_score(self, rows: np.ndarray, rho: np.ndarray) -> np.ndarray:
         """(r,) RMS target-position residual of each row after subtracting P J ρ (m)."""
         r = self.delta_p[rows] - np.einsum("rai,ri->ra", self.PJ[rows], rho)
-        return np.sqrt(np.mean(r.reshape(-1, 3, 3) ** 2, axis=(1, 2)) * 3.0)
+        if self.points is None:
+            return np.sqrt(np.mean(r.reshape(len(rows), -1, 3) ** 2, axis=(1, 2)) * 3.0)
+        return np.sqrt(np.sum(r**2, axis=1) / self.points[rows])
 
 
 def _solve_path(G: np.ndarray, b: np.ndarray, pen: np.ndarray, scale: float, lambdas) -> list[np.ndarray]:
@@ -152,7 +157,8 @@ def fit_joint_series(
 
     Returns (robot, info): robot.method "series", network features ``("harmonics:H",)``; info holds
     ``harmonics`` (H), ``lambda``, ``cv`` ({H: [cv score per λ]}, m), ``cv_error`` (m), ``train_error`` and
-    ``val_error`` (mean position error of the tool origin, m; NaN without val rows), ``amplitudes``
+    ``val_error`` (mean position error of the tool origin, m, where the rows fix a pose, else the mean target-point
+    error: ``error_metric`` "pose" or "points"; NaN without val rows), ``amplitudes``
     ((n, H) rad, sqrt(a² + b²) per joint and order), ``constants`` (n,), row counts.
     """
     obs.check_robot(base.n)
@@ -182,7 +188,7 @@ def fit_joint_series(
         ],
         axis=2,
     )
-    design = _Design(jeo.PJ, jeo.delta_p, basis)
+    design = _Design(jeo.PJ, jeo.delta_p, basis, None if train.complete else train.seen.sum(axis=1))
 
     order = np.random.default_rng(seed).permutation(k_fit)
     fold_rows = [np.sort(f) for f in np.array_split(order, int(folds))]
@@ -251,6 +257,7 @@ def fit_joint_series(
     )
     amplitudes = np.hypot(coef[:, 1 + g_cols :: 2], coef[:, 2 + g_cols :: 2])
     val = obs.subset(obs.split == "val") if np.any(obs.split == "val") else None
+    train_error, kind = primary_error(robot, train)
     info = {
         "method": "series",
         "harmonics": int(H),
@@ -265,8 +272,9 @@ def fit_joint_series(
         "cv_error": float(cv_error),
         "train_rows": k_fit,
         "val_rows": 0 if val is None else val.k,
-        "train_error": float(np.mean(prediction_errors(robot, train)[0])),
-        "val_error": float("nan") if val is None else float(np.mean(prediction_errors(robot, val)[0])),
+        "train_error": train_error,
+        "val_error": float("nan") if val is None else primary_error(robot, val)[0],
+        "error_metric": kind,
         "amplitudes": amplitudes,
         "constants": coef[:, 0].copy(),
         "virtual_joints": "not modelled (zero)" if n < 6 else "none",

@@ -3,10 +3,10 @@
 Every initial relative frame is right-perturbed, ``A_j(0) · exp(δζ̂_j)`` for j = 1 … n+1 (6n + 6 parameters).
 The pose error this causes is the spatial twist ``δy = Σ_j Ad_{j0} δζ_j`` in K0 (eq. 11,
 :meth:`LocalPOEModel.frame_jacobian`), and a target point p_i on the tool moves by ``dp_i = δv + δω × p_i``
-(eq. 18 written per point: P δy with the rows ``[I, −p̂_i]``). The measured points give 9 coordinates per
-configuration; the parameters are found by iterated Gauss-Newton: linearise at the current model, solve the
-linear least-squares step with a truncated SVD, compose the step into the frames, repeat until the step is
-below ``tol``.
+(eq. 18 written per point: P δy with the rows ``[I, −p̂_i]``). Every measured point gives 3 coordinates (9 per
+configuration with three targets; a target a row did not see gives none); the parameters are found by iterated
+Gauss-Newton: linearise at the current model, solve the linear least-squares step with a truncated SVD, compose
+the step into the frames, repeat until the step is below ``tol``.
 
 **Identifiability.** The 6n + 6 frame errors are not independent. For a revolute joint about the local z axis,
 a rotation about z and a translation along z of A_j(0) commute with ``exp(ξ̂_j q_j)`` and can be pushed into
@@ -32,6 +32,15 @@ scara4 with 60 random configurations: 1.0e-2 … 2.5e-2 against 1.2e-8 … 1.4e-
 Optional Levenberg-Marquardt damping (``damping``, relative to s_max²) is raised automatically when a step
 does not lower the cost.
 
+**What the targets cannot show.** The tool frame's error is one of the parameters, so the points fix it only as
+far as the targets span: one target (or targets closer than 1 mm) shows no rotation of the tool about it, 3
+directions (the tool's orientation; its position — where the target sits on the flange — is still identified),
+and targets on a line show no rotation about that line, 1 direction. These directions are structural, not a
+lack of data: the identifiable count is reduced by them (``expected_rank`` in the info), the truncated SVD leaves
+them at the starting value (the minimum-norm step), and the info names them in words (``unobservable``). Which
+targets count is the set seen in at least one fitting row: the tool frame is the same in every row, so three
+targets seen in different rows fix it too.
+
 Rows used: ``train`` and unassigned rows; ``include_val=True`` adds the validation rows. "val" rows are a
 hold-out a caller chose (:func:`labcal.calibration.fit.fit` makes none by default, so every row is fitted there).
 """
@@ -42,9 +51,9 @@ import math
 
 import numpy as np
 
-from labcal.calibration.observations import Observations, rigid_fit
+from labcal.calibration.observations import Observations, rigid_fit, target_geometry
 from labcal.compensator import CalibratedRobot
-from labcal.kinematics import se3
+from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 
 AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
@@ -60,6 +69,9 @@ def expected_rank(model: LocalPOEModel) -> int:
     n_r = sum(t == REVOLUTE for t in model.joint_types)
     n_p = sum(t == PRISMATIC for t in model.joint_types)
     return 4 * n_r + 2 * n_p + 6
+
+
+STRUCTURAL = {"point": 3, "line": 1, "plane": 0}  # tool rotations a target set cannot show (module docstring)
 
 
 def fitting_rows(obs: Observations, include_val: bool = False) -> np.ndarray:
@@ -91,30 +103,32 @@ def _residual_and_jacobian(
     measured: np.ndarray,
     frames: list[int],
     estimate_base: bool,
+    seen: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Residual (9k,) measured − predicted and its Jacobian (9k, p) w.r.t. the parameters (SI units)."""
-    k = q.shape[0]
+    """Residual (3s,) measured − predicted and its Jacobian (3s, p) w.r.t. the parameters (SI units), s the seen
+    points: every point when ``seen`` is None, else the (k, m) cells marked seen (in row order)."""
+    k, m = q.shape[0], targets.shape[0]
     initial, T = model._chain(q)
-    p_base = np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]  # (k, 3, 3)
+    p_base = np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]  # (k, m, 3)
     R_tb = T_tb[:3, :3]
     p_meas_frame = np.einsum("ab,kmb->kma", R_tb, p_base) + T_tb[:3, 3]
-    residual = (measured - p_meas_frame).reshape(-1)
+    residual = (measured - p_meas_frame).reshape(-1) if seen is None else (measured - p_meas_frame)[seen].reshape(-1)
     blocks = []
     if frames:
         # dp_i = [I, −p̂_i] δy in the base frame, rotated into the measurement frame.
-        G = np.zeros((k, 3, 3, 6))
+        G = np.zeros((k, m, 3, 6))
         G[..., :3] = np.eye(3)
         G[..., 3:] = -se3.skew(p_base)
         G = np.einsum("ab,kmbc->kmac", R_tb, G)
         Ad = se3.adjoint(initial[:, frames])  # (k, f, 6, 6)
-        Jf = np.einsum("kmac,kfcd->kmafd", G, Ad).reshape(k, 3, 3, 6 * len(frames))
-        blocks.append(Jf.reshape(9 * k, -1))
+        Jf = np.einsum("kmac,kfcd->kmafd", G, Ad).reshape(k, m, 3, 6 * len(frames))
+        blocks.append(Jf.reshape(3 * m * k, -1) if seen is None else Jf[seen].reshape(-1, 6 * len(frames)))
     if estimate_base:
         # Left perturbation exp(δβ̂)·T_tb moves a point m by δβ_v + δβ_ω × m.
-        Gb = np.zeros((k, 3, 3, 6))
+        Gb = np.zeros((k, m, 3, 6))
         Gb[..., :3] = np.eye(3)
         Gb[..., 3:] = -se3.skew(p_meas_frame)
-        blocks.append(Gb.reshape(9 * k, 6))
+        blocks.append(Gb.reshape(3 * m * k, 6) if seen is None else Gb[seen].reshape(-1, 6))
     return residual, np.concatenate(blocks, axis=1)
 
 
@@ -141,12 +155,15 @@ def _gauss_newton(
     tol: float,
     rank_rtol: float,
     damping: float,
+    seen: np.ndarray | None = None,
 ) -> dict:
-    """Iterated, rank-revealing Gauss-Newton / LM. Returns the final model, T_tb and diagnostics."""
+    """Iterated, rank-revealing Gauss-Newton / LM. Returns the final model, T_tb and diagnostics.
+
+    seen: (k, m) cells with a measured point, None when every point was seen."""
     n_params = 6 * len(frames) + (6 if estimate_base else 0)
     # Parameter scaling: angular parameters in units of length_scale metres (unit-consistent truncation).
-    scale = np.tile([1.0] * 3 + [1.0 / length_scale] * 3, n_params // 6)
-    r, J = _residual_and_jacobian(model, T_tb, q, targets, measured, frames, estimate_base)
+    scale = metric.parameter_weights(n_params // 6, length_scale)
+    r, J = _residual_and_jacobian(model, T_tb, q, targets, measured, frames, estimate_base, seen)
     cost = float(r @ r)
     history = [cost]
     lam = damping
@@ -157,7 +174,7 @@ def _gauss_newton(
         g = V[:, keep].T @ ((J * scale).T @ r)
         step = scale * (V[:, keep] @ (g / (lam_k[keep] + lam * lam_k[-1])))
         cand_model, cand_T = _apply(model, T_tb, step, frames, estimate_base)
-        r_c, J_c = _residual_and_jacobian(cand_model, cand_T, q, targets, measured, frames, estimate_base)
+        r_c, J_c = _residual_and_jacobian(cand_model, cand_T, q, targets, measured, frames, estimate_base, seen)
         cost_c = float(r_c @ r_c)
         step_size = float(np.linalg.norm(step / scale))
         if cost_c <= cost * (1 + 1e-12) or step_size < tol:
@@ -233,19 +250,91 @@ def _describe_null(null: np.ndarray, labels: list[str], top: int = 2) -> list[st
 def _check(obs: Observations, nominal: LocalPOEModel, rows: np.ndarray, needed: int, what: str) -> None:
     obs.check_robot(nominal.n)
     k = int(rows.sum())
-    if 9 * k < needed:
+    if obs.complete and obs.m == 3:
+        if 9 * k < needed:
+            raise IdentificationError(
+                f"{what} needs at least {needed} measured coordinates but the fitting rows hold {9 * k} "
+                f"({k} configuration(s) × 3 points × 3): measure at least {math.ceil(needed / 9)} configurations "
+                f"(well spread; several times more to average the noise)"
+            )
+        return
+    points = int(obs.seen[rows].sum())
+    if 3 * points < needed:
+        per_row = points / k if k else float(obs.m)
         raise IdentificationError(
-            f"{what} needs at least {needed} measured coordinates but the fitting rows hold {9 * k} "
-            f"({k} configuration(s) × 3 points × 3): measure at least {math.ceil(needed / 9)} configurations "
-            f"(well spread; several times more to average the noise)"
+            f"{what} needs at least {needed} measured coordinates but the fitting rows hold {3 * points} "
+            f"({k} configuration(s), {points} target point(s) seen × 3): measure at least "
+            f"{math.ceil(needed / (3 * max(per_row, 1.0)))} configurations (well spread; several times more to "
+            "average the noise)"
         )
 
 
+def _seen_rows(obs: Observations, rows: np.ndarray) -> np.ndarray | None:
+    """The (k_rows, m) seen mask of the fitting rows, None when every point of them was seen (the dense path)."""
+    seen = obs.seen[rows]
+    return None if seen.all() else seen
+
+
+def target_null(obs: Observations, rows: np.ndarray, n_frames_before_tool: int, n_params: int) -> dict:
+    """The tool rotations the targets seen in the fitting rows cannot show (module docstring).
+
+    Returns {"geometry": "point"|"line"|"plane", "count": directions, "words": [text], "basis": (n_params, count)
+    parameter vectors (SI units) of those directions — the tool frame's parameters sit at
+    ``6 · n_frames_before_tool``}.
+    """
+    used = obs.seen[rows].any(axis=0) if rows.any() else np.ones(obs.m, bool)
+    names = [f"t{i + 1}" for i in np.flatnonzero(used)]
+    kind, where = target_geometry(obs.targets[used])
+    basis = np.zeros((n_params, STRUCTURAL[kind]))
+    col = 6 * n_frames_before_tool
+    # A right perturbation (δv, δω) of the tool frame moves a tool-frame point t by δv + δω × t: a rotation δω
+    # about an axis through c with δv = −δω × c leaves every target on that axis where it was.
+    if kind == "point":
+        for a in range(3):
+            w = np.eye(3)[a]
+            basis[col : col + 3, a], basis[col + 3 : col + 6, a] = -np.cross(w, where), w
+        words = [
+            f"the orientation of the tool (any rotation of the tool frame about target {names[0]}"
+            + (f" and the coincident {', '.join(names[1:])}" if len(names) > 1 else "")
+            + ", 3 directions): one point per pose shows no rotation of the tool; its orientation stays nominal"
+        ]
+    elif kind == "line":
+        on, u = where
+        basis[col : col + 3, 0], basis[col + 3 : col + 6, 0] = -np.cross(u, on), u
+        words = [
+            f"the rotation of the tool about the line through {', '.join(names)} (direction "
+            f"({u[0]:+.3f}, {u[1]:+.3f}, {u[2]:+.3f}) in the tool frame, 1 direction): targets on a line do not "
+            "move when the tool turns about it"
+        ]
+    else:
+        words = []
+    return {"geometry": kind, "count": STRUCTURAL[kind], "words": words, "basis": basis}
+
+
+def _without(null: np.ndarray, known: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """The part of a null-space basis (SI units) not spanned by the known structural directions, in the scaled
+    metric the rank decision uses."""
+    if known.shape[1] == 0 or null.shape[1] == 0:
+        return null
+    N, K = null / scale[:, None], known / scale[:, None]
+    Qk, _ = np.linalg.qr(K)
+    rest = N - Qk @ (Qk.T @ N)
+    U, s, _ = np.linalg.svd(rest, full_matrices=False)
+    keep = s > 1e-6 * max(1.0, float(s[0]) if s.size else 1.0)
+    return U[:, keep] * scale[:, None]
+
+
 def _initial_base(obs: Observations, model: LocalPOEModel, rows: np.ndarray) -> np.ndarray:
-    """Closed-form T_tracker_base: Kabsch over all points, model-predicted (base) vs measured (tracker)."""
-    pred = model.target_points(obs.q[rows], obs.targets).reshape(1, -1, 3)
-    meas = obs.points[rows].reshape(1, -1, 3)
-    return rigid_fit(pred[0], meas)[0]
+    """Closed-form T_tracker_base: Kabsch over all seen points, model-predicted (base) vs measured (tracker).
+
+    One target per row is enough once its points over the rows are not collinear (a few spread poses)."""
+    seen = _seen_rows(obs, rows)
+    if seen is None:
+        pred = model.target_points(obs.q[rows], obs.targets).reshape(1, -1, 3)
+        meas = obs.points[rows].reshape(1, -1, 3)
+        return rigid_fit(pred[0], meas)[0]
+    pred = model.target_points(obs.q[rows], obs.targets)[seen]
+    return rigid_fit(pred, obs.points[rows][seen][None])[0]
 
 
 def _robot(nominal, model, T_tb, obs, method) -> CalibratedRobot:
@@ -269,7 +358,8 @@ def register(
     rows = fitting_rows(obs, include_val)
     estimate_base = obs.frame == "tracker"
     frames = [nominal.n] if estimate_tool else []
-    needed = 6 * (len(frames) + estimate_base)
+    structural = target_null(obs, rows, 0, 6 * len(frames) + 6 * estimate_base) if estimate_tool else None
+    needed = 6 * (len(frames) + estimate_base) - (structural["count"] if structural else 0)
     _check(obs, nominal, rows, max(needed, 1), "registration")
     if not frames and not estimate_base:
         robot = _robot(nominal, nominal, np.eye(4), obs, "nominal")
@@ -288,6 +378,7 @@ def register(
         tol=tol,
         rank_rtol=DEFAULT_RANK_RTOL,
         damping=0.0,
+        seen=_seen_rows(obs, rows),
     )
     robot = _robot(nominal, out["model"], out["T_tb"], obs, "nominal")
     info = {
@@ -297,6 +388,8 @@ def register(
         "T_tracker_base": out["T_tb"],
         "residual_rms": float(np.sqrt(np.mean(out["residual"] ** 2))),
     }
+    if structural and structural["count"]:
+        info["unobservable"] = structural["words"]
     return robot, info
 
 
@@ -327,6 +420,8 @@ def fit_local_poe(
     ``rank``, ``expected_rank``, ``n_params``, ``unidentifiable`` (count), ``null_directions`` (text: the
     largest components of each unidentifiable direction) and ``null_space`` ((n_params, unidentifiable) basis
     in SI units, rows labelled by ``param_labels``),
+    ``target_geometry`` ("point", "line" or "plane": the targets seen), ``unobservable`` (words: the tool
+    rotations those targets cannot show, counted out of ``expected_rank``; empty for three non-collinear targets),
     ``delta_zeta`` (n+1, 6) total identified frame errors w.r.t. the nominal frames (zero rows for frames that
     were not estimated), ``std`` (n+1, 6) their standard deviations (from the residual variance and the truncated
     pseudo-inverse; NaN where not estimated), ``T_tracker_base`` (+ ``T_tracker_base_std`` (6,)), ``sigma`` (m,
@@ -337,7 +432,9 @@ def fit_local_poe(
     rows = fitting_rows(obs, include_val)
     n = nominal.n
     frames = list(range(1 if estimate_base else 0, n + 1))
-    needed = expected_rank(nominal)
+    labels = _param_labels(frames, estimate_base, n)
+    structural = target_null(obs, rows, len(frames) - 1, len(labels))
+    needed = expected_rank(nominal) - structural["count"]
     _check(obs, nominal, rows, needed, f"local-POE identification of {nominal.name or 'the robot'}")
     L = float(length_scale or nominal.reach())
     model0 = nominal
@@ -362,13 +459,14 @@ def fit_local_poe(
         tol=tol,
         rank_rtol=rank_rtol,
         damping=damping,
+        seen=_seen_rows(obs, rows),
     )
     model = out["model"]
-    labels = _param_labels(frames, estimate_base, n)
     delta = se3.log_se3(se3.inv(nominal.frames) @ model.frames)
     std = np.full((n + 1, 6), np.nan)
     std[frames] = out["std"][: 6 * len(frames)].reshape(len(frames), 6)
-    null_lines = _describe_null(out["null_space"], labels)
+    scale = metric.parameter_weights(len(labels) // 6, L)
+    null_lines = _describe_null(_without(out["null_space"], structural["basis"], scale), labels)
     n_params = len(labels)
     info = {
         "rank": out["rank"],
@@ -379,6 +477,8 @@ def fit_local_poe(
         "null_space": out["null_space"],
         "param_labels": labels,
         "rank_deficient": out["rank"] < needed,
+        "target_geometry": structural["geometry"],
+        "unobservable": structural["words"],
         "singular_values": out["singular_values"],
         "delta_zeta": delta,
         "std": std,

@@ -1,12 +1,19 @@
 """Accuracy metrics: one definition used by fits, reports, benchmarks and the CLI.
 
 Position error: distance between predicted and measured tool origins (m). Orientation error: the angle of
-``R_measured R_predictedᵀ`` (rad), measured on the manifold. For three-point data the measured pose is the rigid
-fit of the targets to the measured points (:func:`labcal.calibration.observations.rigid_fit`).
+``R_measured R_predictedᵀ`` (rad), measured on the manifold. The measured pose is the rigid fit of the targets to
+the measured points (:func:`labcal.calibration.observations.rigid_fit`), so it exists only in rows that see three
+non-collinear targets (:meth:`~labcal.calibration.observations.Observations.pose_rows`); elsewhere the pose
+errors are NaN and the summaries count only the rows that have one.
 
 Point error: distance between each predicted target point and its measured position (m), per configuration and
 target (:func:`point_errors`). The pose error hides a targets file that does not match the data (the rigid fit
 absorbs it); the point error does not, so both are reported side by side.
+
+**Primary metric.** Point errors are what every fit minimises and what any tracker measures. Pose errors are the
+primary figure only when every row fixes a pose; whenever some row sees fewer than three (non-collinear) targets
+the per-target point errors are (``split_table``'s ``"primary"``, :func:`primary_error`), and
+:func:`observability` says what orientation accuracy the data can support.
 
 Example::
 
@@ -27,9 +34,15 @@ STATS = ("mean", "rms", "p95", "max", "std")
 
 
 def summarize(pos: np.ndarray, ori: np.ndarray) -> dict[str, float]:
-    """Mean, RMS, 95th percentile, max and std of position (m) and orientation (rad) errors."""
+    """Mean, RMS, 95th percentile, max and std of position (m) and orientation (rad) errors.
+
+    NaN entries (rows without a measured pose) are skipped; ``count`` is the number of rows summarised."""
+    pos, ori = np.asarray(pos, float), np.asarray(ori, float)
+    if not (np.isfinite(pos).all() and np.isfinite(ori).all()):  # rows without a measured pose
+        defined = np.isfinite(pos) & np.isfinite(ori)
+        pos, ori = pos[defined], ori[defined]
     out: dict[str, float] = {"count": float(len(pos))}
-    for name, e in (("pos", np.asarray(pos, float)), ("ori", np.asarray(ori, float))):
+    for name, e in (("pos", pos), ("ori", ori)):
         if e.size == 0:
             out.update({f"{name}_{s}": float("nan") for s in STATS})
             continue
@@ -44,12 +57,19 @@ def summarize(pos: np.ndarray, ori: np.ndarray) -> dict[str, float]:
 def prediction_errors(robot: CalibratedRobot, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
     """Per-configuration (position m, orientation rad) error of the robot's predicted pose vs the measured one.
 
-    Tracker-frame data are compared in the tracker frame through the robot's T_tracker_base.
+    Tracker-frame data are compared in the tracker frame through the robot's T_tracker_base. NaN in rows that do
+    not see three non-collinear targets (no measured pose).
     """
     if obs.k == 0:
         return np.zeros(0), np.zeros(0)
     T_pred = robot.T_tracker_base @ robot.predict_pose(obs.q)
-    return se3.pose_distance(obs.measured_poses(), T_pred)
+    has = obs.pose_rows()
+    if has.all():
+        return se3.pose_distance(obs.measured_poses(), T_pred)
+    pos, ori = np.full(obs.k, np.nan), np.full(obs.k, np.nan)
+    if has.any():
+        pos[has], ori[has] = se3.pose_distance(obs.measured_poses()[has], T_pred[has])
+    return pos, ori
 
 
 def point_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
@@ -93,12 +113,23 @@ def summarize_points(d: np.ndarray) -> dict:
     return out
 
 
-def split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observations) -> dict[str, dict]:
-    """{split: {"before": summary, "after": summary, "points": {"before": …, "after": …}}} per split present
-    (and "all").
+def primary_error(robot: CalibratedRobot, obs: Observations) -> tuple[float, str]:
+    """(mean error m, "pose" | "points"): the tool origin's position error when every row fixes a pose, else the
+    mean target-point error over the seen targets (module docstring). NaN for no rows."""
+    if obs.k == 0 or obs.pose_rows().all():
+        return float(np.mean(prediction_errors(robot, obs)[0])) if obs.k else float("nan"), "pose"
+    d = point_errors(robot, obs)
+    return float(np.mean(d[np.isfinite(d)])), "points"
 
-    "before"/"after": :func:`summarize` of the pose errors; "points": :func:`summarize_points` of the per-target
-    point errors (:func:`point_errors`). Absent splits are skipped before selecting rows.
+
+def split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observations) -> dict[str, dict]:
+    """{split: {"before": summary, "after": summary, "points": {"before": …, "after": …}, "primary": "pose" |
+    "points"}} per split present (and "all").
+
+    "before"/"after": :func:`summarize` of the pose errors (rows with a measured pose only: ``count`` says how
+    many; NaN statistics when none has one); "points": :func:`summarize_points` of the per-target point errors
+    (:func:`point_errors`); "primary": which of the two is the figure to quote (module docstring). Absent splits
+    are skipped before selecting rows.
     """
     table: dict[str, dict] = {}
     for split in ("train", "val", "test", "all"):
@@ -113,8 +144,61 @@ def split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observatio
                 "before": summarize_points(point_errors(before, part)),
                 "after": summarize_points(point_errors(after, part)),
             },
+            "primary": "pose" if part.pose_rows().all() else "points",
         }
     return table
+
+
+def observability(obs: Observations, unobservable: list[str] | None = None) -> dict:
+    """What the targets of ``obs`` let a fit claim about orientation (JSON-ready).
+
+    ``{"targets": m, "geometry": "point" | "line" | "plane" (the targets seen in at least one row), "rows",
+    "rows_with_pose", "orientation": "measured" | "partial" | "none", "unobservable": [words], "claim": text}``.
+    "measured": every row fixes a pose, orientation errors are measured and reported; "partial": the targets
+    span a plane over the rows but only some rows fix a pose (or the tool is fixed only up to a rotation about a
+    line): orientation is calibrated and reported on the rows that have a pose, or only partly; "none": one
+    target point — positions only. ``unobservable``: the directions a fit could not identify, in words (from
+    the local-POE info), else those of the target geometry.
+    """
+    from labcal.calibration.local_poe import target_null
+
+    rows = np.ones(obs.k, bool)
+    null = target_null(obs, rows, 0, 6)
+    kind = null["geometry"]
+    with_pose = int(obs.pose_rows().sum()) if obs.k else 0
+    words = list(unobservable) if unobservable is not None else list(null["words"])
+    names = ", ".join(f"t{i + 1}" for i in np.flatnonzero(obs.seen.any(axis=0))) if obs.k else ""
+    if kind == "point":
+        level = "none"
+        claim = (
+            f"Only target point {names} was measured: the calibration and its errors are point positions; no "
+            "orientation accuracy can be claimed (the tool's orientation is the nominal one, unmeasured), and "
+            f"points of the tool away from {names} inherit that orientation's error."
+        )
+    elif kind == "line":
+        level = "partial"
+        claim = (
+            f"The targets {names} lie on a line: the tool's rotation about that line is not measured, so only the "
+            "orientation of that line can be claimed, not the rotation about it; errors are point errors."
+        )
+    elif with_pose == obs.k:
+        level = "measured"
+        claim = "Every pose saw three non-collinear targets: position and orientation errors are both measured."
+    else:
+        level = "partial"
+        claim = (
+            f"{with_pose} of {obs.k} poses saw three non-collinear targets: orientation errors are measured on "
+            "those poses only; the primary figures are the per-target point errors."
+        )
+    return {
+        "targets": int(obs.m),
+        "geometry": kind,
+        "rows": int(obs.k),
+        "rows_with_pose": with_pose,
+        "orientation": level,
+        "unobservable": words,
+        "claim": claim,
+    }
 
 
 def reduction(before: float, after: float) -> float:
@@ -137,6 +221,7 @@ def point_residual_warning(entry: dict) -> dict | None:
     if not entry or "points" not in entry:
         return None
     pose, pts = entry["after"].get("pos_mean"), entry["points"]["after"].get("mean")
+    # NaN pose (no row fixes a pose: fewer than three targets) compares False: no pose to contrast the points with
     if pose is None or pts is None or not (pts > POINT_FLOOR and pts > POINT_RATIO * pose):
         return None
     per = entry["points"]["after"].get("per_target") or []

@@ -1,14 +1,24 @@
-"""Calibration input: configurations and the three measured target points, validated once.
+"""Calibration input: configurations and the measured target points (1 … m targets, any of them missing).
 
 Every method takes an :class:`Observations`. Measured points are in the base frame (``frame="base"``) or in the
 tracker frame (``frame="tracker"``, the tracker-to-base pose is then estimated by the fit).
+
+**Targets.** ``targets`` (m, 3) are the m ≥ 1 target points in the tool frame; ``points[r, i]`` is where target i
+was measured in row r, or a whole row of NaN when the tracker did not see it (``seen[r, i]`` False). A row must
+see at least one target. The targets may lie on a line or coincide (one reflector): that is not an error, but the
+points then cannot show some rotations of the tool; :func:`target_geometry` says which, and the fits report it.
+A tool pose is measured (:meth:`Observations.measured_poses`) only in rows that see three non-collinear targets.
 
 Example::
 
     >>> obs = Observations(q=np.zeros((2, 1)), points=np.zeros((2, 3, 3)) + [[0, 0, 0], [1, 0, 0], [0, 1, 0]],
     ...                    targets=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]))
-    >>> obs.k, obs.n, obs.split.tolist()
-    (2, 1, ['', ''])
+    >>> obs.k, obs.n, obs.m, obs.split.tolist()
+    (2, 1, 3, ['', ''])
+    >>> two = Observations(q=np.zeros((2, 1)), points=np.array([[[0, 0, 0], [1, 0, 0]], [[np.nan] * 3, [1, 0, 0]]]),
+    ...                    targets=np.array([[0, 0, 0], [1, 0, 0.0]]))      # t1 not seen in row 1
+    >>> two.m, two.seen.tolist(), bool(two.pose_rows().any())
+    (2, [[True, True], [False, True]], False)
 """
 
 from __future__ import annotations
@@ -20,7 +30,8 @@ import numpy as np
 from labcal.kinematics.se3 import rigid_fit
 
 SPLITS = ("train", "val", "test", "")
-MIN_TRIANGLE_AREA = 1e-6  # m²: 1 mm × 2 mm; below this the three targets cannot fix an orientation
+MIN_TRIANGLE_AREA = 1e-6  # m²: 1 mm × 2 mm; below this three targets cannot fix an orientation
+MIN_SPREAD = 1e-3  # m: targets closer than this to each other are one point (they cannot show a rotation)
 
 
 class ObservationError(ValueError):
@@ -29,8 +40,9 @@ class ObservationError(ValueError):
 
 @dataclass(frozen=True, eq=False)
 class Observations:
-    """q: (k, n) commanded joints (rad, m); points: (k, 3, 3) measured targets (m), rows t1..t3;
-    targets: (3, 3) target positions in the tool frame (m); split: (k,) "train" | "val" | "test" | "";
+    """q: (k, n) commanded joints (rad, m); points: (k, m, 3) measured targets (m), rows t1..tm, a NaN row where
+    the target was not seen; targets: (m, 3) target positions in the tool frame (m);
+    split: (k,) "train" | "val" | "test" | "";
     group: optional (k,) labels of rows that belong together (a session of a pooled fit, a sweep): they are kept
     in one cross-validation fold and on one side of a train/validation split (see :meth:`units`)."""
 
@@ -48,15 +60,19 @@ class Observations:
         if q.ndim != 2:
             raise ObservationError(f"q must have shape (k, n), got {q.shape}")
         k = q.shape[0]
-        if points.shape != (k, 3, 3):
-            raise ObservationError(f"points must have shape ({k}, 3, 3) for {k} configurations, got {points.shape}")
-        if targets.shape != (3, 3):
-            raise ObservationError(f"targets must have shape (3, 3), got {targets.shape}")
+        if targets.ndim != 2 or targets.shape[1] != 3 or targets.shape[0] < 1:
+            raise ObservationError(f"targets must have shape (m, 3) with m >= 1 targets, got {targets.shape}")
+        m = targets.shape[0]
+        if points.shape != (k, m, 3):
+            raise ObservationError(
+                f"points must have shape ({k}, {m}, 3) for {k} configurations and {m} targets, got {points.shape}"
+            )
         check_targets(targets)
-        for name, arr in (("q", q), ("points", points)):
-            bad = ~np.isfinite(arr.reshape(k, int(np.prod(arr.shape[1:])))).all(axis=1)
-            if np.any(bad):
-                raise ObservationError(f"{name} of configuration (row) {int(np.argmax(bad))} is not finite")
+        bad = ~np.isfinite(q).all(axis=1)
+        if np.any(bad):
+            raise ObservationError(f"q of configuration (row) {int(np.argmax(bad))} is not finite")
+        seen = _seen(points)
+        object.__setattr__(self, "_seen", seen)
         if self.frame not in ("base", "tracker"):
             raise ObservationError(f"frame must be 'base' or 'tracker', got {self.frame!r}")
         split = np.full(k, "", dtype=object) if self.split is None else np.asarray(self.split, dtype=object)
@@ -79,6 +95,21 @@ class Observations:
     @property
     def k(self) -> int:
         return self.q.shape[0]
+
+    @property
+    def m(self) -> int:
+        """The number of targets."""
+        return self.targets.shape[0]
+
+    @property
+    def seen(self) -> np.ndarray:
+        """(k, m) bool, read-only: True where the target was measured in that row."""
+        return self._seen
+
+    @property
+    def complete(self) -> bool:
+        """Every target seen in every row."""
+        return bool(self._seen.all())
 
     @property
     def n(self) -> int:
@@ -167,21 +198,91 @@ class Observations:
                 taken += len(rows)
         return Observations(self.q, self.points, self.targets, self.frame, split, self.group)
 
+    def pose_rows(self) -> np.ndarray:
+        """(k,) bool: rows whose seen targets fix a tool pose (three or more, not collinear)."""
+        out = np.zeros(self.k, bool)
+        for pattern, rows in seen_patterns(self._seen):
+            out[rows] = target_geometry(self.targets[pattern])[0] == "plane"
+        return out
+
     def measured_poses(self) -> np.ndarray:
-        """(k, 4, 4) tool poses fitted to the three measured points (least squares rigid fit, Kabsch).
+        """(k, 4, 4) tool poses fitted to the measured points (least squares rigid fit, Kabsch), NaN in rows that
+        do not see three non-collinear targets (:meth:`pose_rows`).
 
         In the observation frame. Noise-free points give the exact pose; noisy ones the best rigid fit.
         """
-        return rigid_fit(self.targets, self.points)
+        if self.complete and target_geometry(self.targets)[0] == "plane":
+            return rigid_fit(self.targets, self.points)
+        out = np.full((self.k, 4, 4), np.nan)
+        for pattern, rows in seen_patterns(self._seen):
+            if target_geometry(self.targets[pattern])[0] == "plane":
+                out[rows] = rigid_fit(self.targets[pattern], self.points[rows][:, pattern])
+        return out
 
 
 def check_targets(targets: np.ndarray) -> None:
-    """Raise ObservationError if the three target points are (nearly) collinear."""
+    """Raise ObservationError if a target is not finite (a row of the targets file names it).
+
+    Collinear or coincident targets are accepted: :func:`target_geometry` reports what they cannot show."""
     targets = np.asarray(targets, dtype=float)
-    if not np.all(np.isfinite(targets)):
-        raise ObservationError("targets contain non-finite values")
-    area = 0.5 * np.linalg.norm(np.cross(targets[1] - targets[0], targets[2] - targets[0]))
-    if area < MIN_TRIANGLE_AREA:
+    bad = ~np.isfinite(targets).all(axis=-1)
+    if np.any(bad):
+        raise ObservationError(f"target t{int(np.argmax(bad)) + 1} has a non-finite coordinate: {targets[bad][0]}")
+
+
+def target_geometry(targets: np.ndarray) -> tuple[str, np.ndarray]:
+    """What a set of tool-frame targets (m, 3) spans: ``("point", centroid)``, ``("line", (point, unit
+    direction))`` as a (2, 3) array, or ``("plane", centroid)`` (three or more non-collinear targets).
+
+    Targets within :data:`MIN_SPREAD` of each other are one point (a rotation about it moves none of them); a
+    line when no target leaves the line through the two farthest apart by a triangle of :data:`MIN_TRIANGLE_AREA`
+    (a rotation about that line moves none of them).
+
+    >>> target_geometry(np.array([[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0]]))[0]
+    'line'
+    """
+    t = np.asarray(targets, dtype=float).reshape(-1, 3)
+    centroid = t.mean(axis=0)
+    d = np.linalg.norm(t[:, None] - t[None], axis=-1)
+    a, b = np.unravel_index(int(np.argmax(d)), d.shape)
+    if d[a, b] < MIN_SPREAD:
+        return "point", centroid
+    u = (t[b] - t[a]) / d[a, b]
+    area = 0.5 * np.linalg.norm(np.cross(t[b] - t[a], t - t[a]), axis=-1)
+    if t.shape[0] < 3 or float(np.max(area)) < MIN_TRIANGLE_AREA:
+        return "line", np.stack([t[a], u])
+    return "plane", centroid
+
+
+def _seen(points: np.ndarray) -> np.ndarray:
+    """(k, m) seen mask of (k, m, 3) points; raises naming the row for a partly empty point or an empty row."""
+    nan = np.isnan(points)
+    partial = nan.any(axis=-1) & ~nan.all(axis=-1)
+    if np.any(partial):
+        r, i = np.argwhere(partial)[0]
         raise ObservationError(
-            f"the three targets are (nearly) collinear: triangle area {area:.3g} m² < {MIN_TRIANGLE_AREA} m²"
+            f"point t{i + 1} of configuration (row) {r} is partly empty ({points[r, i].tolist()}): a target is "
+            "either seen (x, y and z) or not seen (all three empty)"
         )
+    inf = np.isinf(points).any(axis=-1)
+    if np.any(inf):
+        r, i = np.argwhere(inf)[0]
+        raise ObservationError(f"points of configuration (row) {r} are not finite (t{i + 1} is infinite)")
+    seen = ~nan.any(axis=-1)
+    empty = ~seen.any(axis=1) if seen.shape[1] else np.ones(seen.shape[0], bool)
+    if np.any(empty):
+        raise ObservationError(
+            f"row {int(np.argmax(empty))} has no target seen (every point is empty): it is not a measurement; "
+            "drop the row"
+        )
+    seen.setflags(write=False)
+    return seen
+
+
+def seen_patterns(seen: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[(target mask (m,), row indices)] for each distinct seen pattern, in order of first appearance."""
+    if seen.shape[0] == 0:
+        return []
+    uniq, first, inverse = np.unique(seen, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    return [(uniq[u], np.flatnonzero(inverse == u)) for u in np.argsort(first, kind="stable")]
