@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labcal.datasets import SessionStore
+from labcal.datasets import SessionHeader, SessionStore
 
 ROBOT_HASH = "5" * 64
 TARGETS = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.08, 0.02]])
@@ -24,11 +24,12 @@ def shared_data_dir() -> Path | None:
 
 
 def new_journal(store: SessionStore, n_joints: int = 6, plan_len: int = 10, **kw):
-    return store.create_session(
-        robot_name="ur10",
-        robot_hash=ROBOT_HASH,
-        n_joints=n_joints,
-        targets=TARGETS,
+    header = SessionHeader.of(
+        "ur10",
+        ROBOT_HASH,
+        n_joints,
+        kw.pop("robot", None),
+        targets=kw.pop("targets", TARGETS),
         frame=kw.pop("frame", "base"),
         tracker={"driver": "sim", "seed": 1},
         robot_driver={"driver": "sim"},
@@ -37,6 +38,7 @@ def new_journal(store: SessionStore, n_joints: int = 6, plan_len: int = 10, **kw
         metadata={"operator": "test"},
         **kw,
     )
+    return store.create_session(header)
 
 
 def fake_measurement(rng: np.random.Generator, n_joints: int = 6) -> dict:

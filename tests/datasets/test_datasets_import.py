@@ -236,7 +236,7 @@ def test_ragged_row_and_blank_lines(tmp_path):
     assert len(store.load(import_targets_csv(store, good, "r", ROBOT_HASH, N, TARGETS, allow=["few-poses"]))) == 3
     short = tmp_path / "short.csv"
     short.write_text("\n".join([text[0], text[1], "", ",".join(text[2].split(",")[:10])]))
-    with pytest.raises(ImportFormatError, match="missing value") as e:
+    with pytest.raises(ImportFormatError, match="target t2 is partly empty") as e:
         import_targets_csv(store, short, "r", ROBOT_HASH, N, TARGETS)
     assert (e.value.row, e.value.line, e.value.column) == (2, 4, "t2_y")  # q1..q6, t1_x..t2_x present
     with pytest.raises(ImportFormatError, match="line 3"):
@@ -269,7 +269,8 @@ def test_load_targets(tmp_path):
     p.write_text('unit = "mm"\npoints = [[0, 0, 0], [100, 0, 0], [0, 80, 20]]\n')
     np.testing.assert_allclose(load_targets(p), TARGETS, rtol=1e-15)
     cases = {
-        'unit = "m"\npoints = [[0, 0, 0], [0.1, 0, 0]]': "exactly 3",
+        'unit = "m"\npoints = []': "at least 1",
+        'unit = "m"\npoints = [[0, 0, 0], [0.0001, 0, 0]]': "t1 and t2 coincide",
         'unit = "m"\npoints = [[0, 0, 0], [0.1, 0, 0], [0, "a", 0]]': "t3 coordinate y",
         'unit = "m"\npoints = [[0, 0, 0], [0.1, 0, 0], [0.2, 0.0001, 0]]': "collinear",
         'unit = "m"\npoints = [[0, 0, 0], [0, 0, 0], [0, 0.1, 0]]': "collinear",

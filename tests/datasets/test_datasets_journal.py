@@ -16,7 +16,7 @@ from datasets_testutil import ROBOT_HASH, TARGETS, fake_measurement, new_journal
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from labcal.datasets import Journal, JournalError, SessionStore, read_journal
+from labcal.datasets import Journal, JournalError, SessionHeader, SessionStore, read_journal
 
 
 def test_documents_have_the_event_model_shape(tmp_path):
@@ -43,7 +43,7 @@ def test_documents_have_the_event_model_shape(tmp_path):
     assert len(start["plan"]) == 10 and start["session_id"] == j.session_id
     assert {"labcal", "python", "numpy"} <= set(start["software"])
     assert [d["seq"] for d in docs if d["type"] == "measurement"] == [1, 2]
-    assert m["units"]["q_actual"] == "rad" and m["units"]["points"] == "m"
+    assert m.units["q_actual"] == "rad" and m.units["points"] == "m"
     assert docs[2]["status"] == "rejected" and docs[2]["points"] is None
     assert docs[-1]["exit_status"] == "success"
     assert len({d["uid"] for d in docs}) == len(docs)
@@ -77,7 +77,7 @@ def test_resume_helpers_and_lifecycle(tmp_path):
         assert j2.valid_pose_indices() == {0, 5}
         assert j2.next_seq == 4 and j2.state == "stopped"
         j2.resume("continue")
-        assert j2.append_measurement(pose_index=7, **fake_measurement(rng))["seq"] == 4
+        assert j2.append_measurement(pose_index=7, **fake_measurement(rng)).seq == 4
     c = store.read_journal(sid)
     assert c.valid_pose_indices() == {0, 5, 7} and c.status == "open"
 
@@ -121,7 +121,7 @@ def test_torn_last_line_is_ignored_and_next_append_starts_a_fresh_line(tmp_path)
     with open(path, "ab") as f:
         f.write(half.encode())
     c = read_journal(path)
-    assert [d["seq"] for d in c.measurements] == [1, 2, 3]
+    assert [d.seq for d in c.measurements] == [1, 2, 3]
     assert c.needs_newline and c.torn_lines == [5] and not c.corrupt_lines
     assert any("torn" in w for w in c.warnings)
     with store.open_journal(sid) as j:
@@ -130,7 +130,7 @@ def test_torn_last_line_is_ignored_and_next_append_starts_a_fresh_line(tmp_path)
     data = path.read_bytes()
     assert data.startswith(whole + half.encode() + b"\n")  # earlier bytes untouched, fresh line started
     c = read_journal(path)
-    assert [d["seq"] for d in c.measurements] == [1, 2, 3, 4]
+    assert [d.seq for d in c.measurements] == [1, 2, 3, 4]
     assert not c.corrupt_lines and not c.needs_newline
     assert any("repaired" in w for w in c.warnings)
     assert store.seal(sid).rows_added == 4
@@ -147,7 +147,7 @@ def test_unexplained_corrupt_middle_line_blocks_sealing(tmp_path):
     lines[2] = lines[2][:10]  # damage seq 2 in the middle of the file
     path.write_bytes(b"\n".join(lines))
     c = read_journal(path)
-    assert c.corrupt_lines == [3] and [d["seq"] for d in c.measurements] == [1, 3]
+    assert c.corrupt_lines == [3] and [d.seq for d in c.measurements] == [1, 3]
     from labcal.datasets import JournalCorrupted
 
     with pytest.raises(JournalCorrupted, match=r"\[3\]"):
@@ -157,10 +157,10 @@ def test_unexplained_corrupt_middle_line_blocks_sealing(tmp_path):
 _WRITER = textwrap.dedent(
     """
     import sys, numpy as np
-    from labcal.datasets import SessionStore
+    from labcal.datasets import SessionHeader, SessionStore
     store = SessionStore(sys.argv[1])
-    j = store.create_session(robot_name="ur10", robot_hash="5" * 64, n_joints=6,
-                             targets=[[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], frame="base", session_id="crash")
+    j = store.create_session(SessionHeader.of("ur10", "5" * 64, 6, targets=[[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]],
+                                              frame="base", session_id="crash"))
     rng = np.random.default_rng(0)
     i = 0
     while True:
@@ -168,7 +168,7 @@ _WRITER = textwrap.dedent(
         # A big document makes a kill in the middle of a write likely.
         d = j.append_measurement(pose_index=i, q_commanded=q, q_actual=q, points=rng.normal(size=(3, 3)),
                                  extra={f"pad{k}": "x" * 200 for k in range(40)})
-        print(d["seq"], flush=True)
+        print(d.seq, flush=True)
         i += 1
     """
 )
@@ -193,7 +193,7 @@ def test_kill_9_loses_nothing_fsynced_and_duplicates_nothing(tmp_path):
     acked += [int(s) for s in rest.split()]
     store = SessionStore(tmp_path)
     c = store.read_journal("crash")
-    seqs = [d["seq"] for d in c.measurements]
+    seqs = [d.seq for d in c.measurements]
     assert seqs == list(range(1, len(seqs) + 1))  # no gaps, no duplicates
     assert set(acked) <= set(seqs)
     assert not c.corrupt_lines
@@ -201,7 +201,7 @@ def test_kill_9_loses_nothing_fsynced_and_duplicates_nothing(tmp_path):
         assert j.next_seq == len(seqs) + 1
         j.append_measurement(pose_index=0, q_commanded=None, q_actual=[0] * 6, points=np.eye(3))
     c2 = store.read_journal("crash")
-    assert [d["seq"] for d in c2.measurements] == [*seqs, len(seqs) + 1]
+    assert [d.seq for d in c2.measurements] == [*seqs, len(seqs) + 1]
     assert not c2.corrupt_lines and not c2.torn_lines
 
 
@@ -224,7 +224,7 @@ _floats = st.floats(allow_nan=False, allow_infinity=False, width=64)
 def test_journal_round_trip_property(tmp_path_factory, rows):
     store = SessionStore(tmp_path_factory.mktemp("prop"))
     written = []
-    with store.create_session(robot_name="r", robot_hash=ROBOT_HASH, n_joints=3, targets=TARGETS, frame="tracker") as j:
+    with store.create_session(SessionHeader.of("r", ROBOT_HASH, 3, targets=TARGETS, frame="tracker")) as j:
         for i, (q, pts, status, split, extra) in enumerate(rows):
             written.append(
                 j.append_measurement(
@@ -241,7 +241,7 @@ def test_journal_round_trip_property(tmp_path_factory, rows):
     read = read_journal(j.path).measurements
     assert read == written  # JSON float round trip is exact (repr), incl. -0.0 and subnormals
     for d, (q, _pts, _s, _sp, _e) in zip(read, rows, strict=True):
-        assert np.array_equal(np.array(d["q_actual"]).view(np.uint64), np.array(q, dtype=np.float64).view(np.uint64))
+        assert np.array_equal(np.array(d.q_actual).view(np.uint64), np.array(q, dtype=np.float64).view(np.uint64))
     # ... and so is sealing into parquet and loading again (valid rows only, in order).
     res = store.seal(j.session_id)
     valid = [r for r in rows if r[2] == "valid"]

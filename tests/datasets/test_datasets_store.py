@@ -16,6 +16,7 @@ from labcal.datasets import (
     DatasetCorrupted,
     DatasetError,
     InvalidId,
+    SessionHeader,
     SessionStore,
     UnknownSession,
     UnknownVersion,
@@ -54,12 +55,12 @@ def test_seal_then_load_equals_what_was_written_bit_for_bit(tmp_path):
     res = store.seal(j.session_id)
     assert res.created and res.rows_added == 6 and res.ref == f"{j.session_id}@v001"
     ds = load_version(store, res.ref)
-    q = np.array([d["q_actual"] for d in written])
-    pts = np.array([d["points"] for d in written])
+    q = np.array([d.q_actual for d in written])
+    pts = np.array([d.points for d in written])
     assert ds.q.tobytes() == q.tobytes()
     assert ds.points.tobytes() == pts.tobytes()
-    assert ds.table["timestamp"].to_numpy().tobytes() == np.array([d["time"] for d in written]).tobytes()
-    assert ds.spread.tobytes() == np.array([d["spread"] for d in written]).tobytes()
+    assert ds.table["timestamp"].to_numpy().tobytes() == np.array([d.time for d in written]).tobytes()
+    assert ds.spread.tobytes() == np.array([d.spread for d in written]).tobytes()
     assert ds.split.tolist() == ["train", "val", "test", "", "", "train"]
     assert ds.pose.tolist() == [0, 1, 2, 3, 4, 5]
     assert ds.table["x_temperature"].tolist() == [20, 21, 22, 23, 24, 25]
@@ -287,7 +288,7 @@ def test_a_refused_session_leaves_no_folder(tmp_path):
     store = SessionStore(tmp_path)
     with pytest.raises(Exception, match="collinear"):
         store.create_session(
-            robot_name="r", robot_hash=ROBOT_HASH, n_joints=6, targets=np.zeros((3, 3)), frame="base", session_id="bad"
+            SessionHeader.of("r", ROBOT_HASH, 6, targets=np.zeros((3, 3)), frame="base", session_id="bad")
         )
     assert store.session_ids() == [] and not (tmp_path / "bad").exists()
 

@@ -228,8 +228,8 @@ def test_a_coupled_elbow_session_records_controller_joints_and_fits_in_model_joi
     ref = r.stdout.strip().splitlines()[-1]
     st = SessionStore(store)
     contents = read_journal(st.session_dir(ref.split("@")[0]) / "journal.jsonl")
-    q_plan = Plan.from_pose_documents(contents.start["plan"]).configurations  # model joints
-    q_cmd = np.array([d["q_commanded"] for d in contents.measurements])
+    q_plan = Plan.from_pose_documents(contents.start.plan).configurations  # model joints
+    q_cmd = np.array([d.q_commanded for d in contents.measurements])
     np.testing.assert_allclose(q_cmd, spec.joints.to_controller(q_plan), atol=1e-12)
     obs, _ = load_observations(st, [ref])
     np.testing.assert_allclose(obs.q, q_plan, atol=1e-6)

@@ -111,7 +111,7 @@ def test_a_tracker_that_never_answers_fails_the_run_after_a_few_poses(spec, stor
     assert summary.valid == 0 and summary.ref is None
     assert rig.moves == 3  # it stopped instead of walking the robot through the other 9 poses
     stop = read_journal(store.session_dir(summary.session_id) / "journal.jsonl").stop
-    assert stop["exit_status"] == "failed"
+    assert stop.exit_status == "failed"
 
 
 def test_a_run_where_every_pose_is_rejected_is_a_failure_that_says_why(spec, store):
@@ -249,7 +249,7 @@ def test_an_allowed_check_lets_the_run_finish_and_is_recorded(spec, store):
     summary, robot = _wrong_model_run(store, spec, allow=["nominal"])
     assert summary.exit_status == "success" and robot.moves == 20
     start = read_journal(store.session_dir(summary.session_id) / "journal.jsonl").start
-    assert start["metadata"]["runner"]["sanity_allow"] == ["nominal"]
+    assert start.metadata["runner"]["sanity_allow"] == ["nominal"]
 
 
 def test_a_store_that_cannot_be_written_is_one_error_line_not_a_traceback(spec, store, monkeypatch):

@@ -180,8 +180,8 @@ def test_the_runner_plans_in_model_joints_and_commands_and_records_controller_jo
     q_ctrl = spec.joints.to_controller(q_model)
     np.testing.assert_allclose(np.array(robot.received), q_ctrl, atol=1e-12)
     docs = read_journal(store.session_dir(summary.session_id) / "journal.jsonl").measurements
-    np.testing.assert_allclose([d["q_commanded"] for d in docs], q_ctrl, atol=1e-12)
-    np.testing.assert_allclose([d["q_actual"] for d in docs], q_ctrl, atol=1e-9)
+    np.testing.assert_allclose([d.q_commanded for d in docs], q_ctrl, atol=1e-12)
+    np.testing.assert_allclose([d.q_actual for d in docs], q_ctrl, atol=1e-9)
     obs, _ = load_observations(store, [summary.ref])
     np.testing.assert_allclose(obs.q, q_model, atol=1e-9)
 

@@ -139,8 +139,10 @@ def test_dropouts_and_timeouts_are_retried_then_rejected_with_reasons(spec, actu
     faults = SimFaults(dropout_at={2}, timeout_at={4, 5, 6})
     rig = SimRig(actual, TARGETS, seed=1, faults=faults)
     events: list[Progress] = []
+    every_target = Validation(min_targets=3)  # a pose with a lost target is measured again
     with rig.robot() as robot, rig.tracker() as tracker:
-        summary = run(store, spec, TARGETS, plan_of(spec, 4), robot, tracker, progress=events.append)
+        summary = run(store, spec, TARGETS, plan_of(spec, 4), robot, tracker, progress=events.append,
+                      validation=every_target)  # fmt: skip
     docs = measurements(store, summary.session_id)
     assert [(d["pose_index"], d["status"], d["extra"]["attempts"]) for d in docs] == [
         (0, "valid", 1),
@@ -161,7 +163,8 @@ def test_missing_target_every_time_is_rejected_and_remove_moves_again(spec, actu
     faults = SimFaults(dropout_at={1, 2}, garbled_at={3})
     rig = SimRig(actual, TARGETS, seed=1, faults=faults)
     with rig.robot() as robot, rig.tracker() as tracker:
-        summary = run(store, spec, TARGETS, plan_of(spec, 2), robot, tracker, retry=RetryPolicy(3, remove=True))
+        summary = run(store, spec, TARGETS, plan_of(spec, 2), robot, tracker, retry=RetryPolicy(3, remove=True),
+                      validation=Validation(min_targets=3))  # fmt: skip
     docs = measurements(store, summary.session_id)
     assert docs[0]["status"] == "rejected"
     assert docs[0]["reason"].count("missing target") == 2 and "ProtocolError" in docs[0]["reason"]
@@ -189,7 +192,10 @@ def test_triangle_check_uses_the_tolerance_plus_the_spread():
     assert "triangle" in why and residual == pytest.approx(error)
     assert check_measurement(noisy, nominal, Validation(absolute_tolerance=0.5e-3, spread_factor=5.0))[0] == ""
     lost = Measurement(np.where(np.arange(3)[:, None] == 2, np.nan, TARGETS), 0.0)
-    assert check_measurement(lost, nominal, Validation())[0] == "missing target(s) t3"
+    assert check_measurement(lost, nominal, Validation(min_targets=3))[0] == "missing target(s) t3 (2 seen, 3 needed)"
+    # By default a pose with a target lost is valid: the distance t1–t2 is checked, the two involving t3 are not.
+    assert check_measurement(lost, nominal, Validation()) == ("", pytest.approx(0.0, abs=1e-15))
+    assert check_measurement(lost, TARGETS, Validation())[0] == ""
 
 
 def test_a_plan_pose_outside_the_limits_is_rejected_without_retries(spec, actual, store):
@@ -356,12 +362,12 @@ def test_kill_9_loses_nothing_and_resume_measures_nothing_twice(spec, actual, st
     assert summary.exit_status == "success" and summary.measured == 40 - len(before)
     assert rig.moves == 40 - len(before)  # no pose recorded before the kill was visited again
     after = read_journal(journal)
-    poses = [d["pose_index"] for d in after.measurements]
+    poses = [d.pose_index for d in after.measurements]
     assert sorted(poses) == list(range(40))  # exact count, no duplicates
-    kept = {d["uid"]: d for d in after.measurements}
-    assert all(kept[d["uid"]] == d for d in before)  # every fsynced document survived unchanged
+    kept = {d.uid: d for d in after.measurements}
+    assert all(kept[d.uid] == d for d in before)  # every fsynced document survived unchanged
     resumed = [d for d in after.documents if d["type"] == "resume"]
     assert len(resumed) == 1 and "without a stop document" in resumed[0]["reason"]
     ds = store.load(summary.ref)
-    assert len(ds) == summary.valid == sum(d["status"] == "valid" for d in after.measurements)
+    assert len(ds) == summary.valid == sum(d.status == "valid" for d in after.measurements)
     assert json.loads(json.dumps(ds.manifest))["row_count"] == len(ds)

@@ -83,7 +83,7 @@ class _RunProgress:
         if self._task is None:  # started on the first event: argument errors before it print nothing extra
             self._bar.start()
             self._task = self._bar.add_task("poses", total=p.total, completed=p.done, status="")
-        residual = "" if p.residual is None else f", triangle residual {p.residual * 1e3:.3f} mm"
+        residual = "" if p.residual is None else f", target distance residual {p.residual * 1e3:.3f} mm"
         where = "" if p.pose is None else f"pose {p.pose}: "
         self._bar.update(self._task, completed=p.done, total=p.total, status=f"{where}{p.status}{residual}")
         if p.status in ("retry", "rejected", "paused", "aborted", "failed"):
@@ -94,7 +94,9 @@ class _RunProgress:
 @user_errors
 def new(
     robot: str = typer.Option(..., "--robot", help="Robot model: built-in name or TOML/URDF path."),
-    targets: Path = typer.Option(..., "--targets", help="Targets TOML (unit, three points in the tool frame)."),
+    targets: Path = typer.Option(
+        ..., "--targets", help="Targets TOML: unit and the points in the tool frame (1 or more; one for a single SMR)."
+    ),
     poses: int = typer.Option(..., "--poses", help="Number of configurations to measure."),
     robot_driver: str = typer.Option("sim", "--robot-driver", help="sim | ur"),
     tracker_driver: str = typer.Option("sim", "--tracker-driver", help="sim | serial"),
@@ -107,10 +109,16 @@ def new(
     sim_seed: int | None = typer.Option(
         None, "--sim-seed", help="Seed of the simulated robot's errors (default --seed): measure the same robot again."
     ),
+    sim_dropout: float = typer.Option(
+        0.0, "--sim-dropout", help="Sim tracker: probability (0 to <1) that a target is not seen in a pose."
+    ),
     allow: list[str] = typer.Option([], "--allow", help=ALLOW_HELP),
     store: Path | None = StoreOption,
 ) -> None:
     """Plan and record a new session; prints the new SESSION@vNNN last.
+
+    The targets file gives the number of targets (1 or more). A target the tracker does not see in a pose is
+    recorded as not seen (an empty cell); a pose where it sees none is retried, then rejected.
 
     Once 2n poses are valid, the data pass the same sanity checks as an import (target distances, joint limits,
     nominal model, reach): a failure stops the run before the next motion.
@@ -123,25 +131,25 @@ def new(
       labcal session new --robot ur10 --robot-driver sim --tracker-driver sim --targets t.toml --poses 60
 
       labcal session new --robot ur10 --targets t.toml --poses 40 --seed 7 --sim-seed 0   # same sim robot, new poses
+
+      labcal session new --robot ur10 --targets one-smr.toml --poses 120 --sim-dropout 0.1
     """
     from labcal.cli.ops import new_session
-    from labcal.cli.ops.sessions import check_plan_size
-
-    check_plan_size(poses, planner, samples)
+    from labcal.cli.ops.sessions import SessionRequest
     from labcal.datasets import load_targets
-    from labcal.datasets.sanity import check_names
     from labcal.robots import load
 
-    check_names(allow)
+    request = SessionRequest(
+        robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver, tracker_driver=tracker_driver,
+        profile=profile, tracker_profile=tracker_profile, planner=planner, samples=samples, seed=seed,
+        sim_errors=sim_errors, sim_seed=sim_seed, sim_dropout=sim_dropout, allow=tuple(allow),
+    )  # fmt: skip
+    request.check()
     load(robot)  # a typo in the robot or targets fails here, before the store is created
     load_targets(targets)
     st = _store(store, create=True)
     with _RunProgress() as progress:
-        summary = new_session(
-            st, robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver,
-            tracker_driver=tracker_driver, profile=profile, tracker_profile=tracker_profile, planner=planner,
-            samples=samples, seed=seed, sim_errors=sim_errors, progress=progress, allow=tuple(allow), sim_seed=sim_seed,
-        )  # fmt: skip
+        summary = new_session(st, request, progress=progress)
     _end_run(
         summary,
         f"{summary.exit_status}: {summary.valid} valid, {summary.rejected} rejected, {summary.remaining} remaining",

@@ -13,6 +13,9 @@ _CHECK_LIST = "\n\n".join(f"  {name}: {what}" for name, what in CHECKS.items())
 
 _HELP = f"""Import measurements from a CSV into a new session; prints SESSION@vNNN last.
 
+The targets form has the columns q1..qn and t1_x … tm_z for the m points of the targets file; leave a target's three
+cells empty in a row where it was not seen (a row needs at least one target).
+
 Before anything is written the rows are checked against the targets file and the robot model. A failed check
 stops the import (exit 2) with the bad rows and the likely fix; only --allow CHECK, naming the check, lets such
 data through, and the override is recorded in the version's provenance. The checks:
@@ -41,12 +44,16 @@ Examples:
 def import_(
     file: Path = typer.Argument(..., help="CSV file to import."),
     robot: str = typer.Option(..., "--robot", help="Robot model: built-in name or robot file (TOML / URDF)."),
-    targets: Path | None = typer.Option(None, "--targets", help="Targets TOML (required for --form targets)."),
+    targets: Path | None = typer.Option(
+        None, "--targets", help="Targets TOML, 1 or more points (required for --form targets)."
+    ),
     mapping: str | None = typer.Option(None, "--mapping", help="Column mapping TOML or shipped name (ipa-ur10)."),
     length_unit: str = typer.Option("m", "--length-unit", help="Unit of the measured lengths: m | mm | in."),
     angle_unit: str = typer.Option("rad", "--angle-unit", help="Unit of the joint angles: rad | deg."),
     frame: str = typer.Option("base", "--frame", help="base | tracker: frame of the measured points."),
-    form: str = typer.Option("targets", "--form", help="targets (t1_x … t3_z) | probe (x y z rx ry rz)."),
+    form: str = typer.Option(
+        "targets", "--form", help="targets (t1_x … tm_z, an empty cell = not seen) | probe (x y z rx ry rz)."
+    ),
     allow: list[str] = typer.Option(
         [], "--allow", help=f"Let data through a failed check (repeatable): {', '.join(CHECKS)}.", show_default=False
     ),

@@ -14,19 +14,20 @@ Recording a session (what the session runner does)::
     from labcal.datasets import SessionStore
 
     store = SessionStore()                                   # or SessionStore("path/to/store")
-    with store.create_session(robot_name="ur10", robot_hash=model_sha256, n_joints=6,
-                              robot=spec.record(),           # the robot file itself: refit without the file
-                              targets=targets,               # (3, 3) m, tool frame
-                              frame="tracker",               # frame of the measured points
-                              tracker={"driver": "ndi", "serial": "P9-01234"},
-                              robot_driver={"driver": "ur", "host": "192.168.0.10"},
-                              plan=[{"q": q.tolist()} for q in plan_q]) as journal:
+    header = SessionHeader(robot=spec.record(),              # name, hash, n_joints + the robot file itself
+                           targets=targets,                  # (m, 3) m, tool frame (1..k targets)
+                           frame="tracker",                  # frame of the measured points
+                           tracker={"driver": "ndi", "serial": "P9-01234"},
+                           robot_driver={"driver": "ur", "host": "192.168.0.10"},
+                           plan=[{"q": q.tolist()} for q in plan_q])
+    with store.create_session(header) as journal:
         for i, q in enumerate(plan_q):
             if i in journal.valid_pose_indices():            # already measured in an earlier run
                 continue
             ...move, measure...
             journal.append_measurement(pose_index=i, q_commanded=q, q_actual=q_read,
-                                       points=m.points, spread=m.spread, samples=5)
+                                       points=m.points,      # (m, 3), a NaN row = target not seen
+                                       spread=m.spread, samples=5)
         journal.stop("success")
     print(store.seal(journal.session_id).ref)              # e.g. 20261122-031500-ur10-3f9a@v001
     store.seal(session_id, valid_prefix=True)              # a journal with a corrupt line: seal the lines before
@@ -43,7 +44,8 @@ Resuming after Ctrl-C, a protective stop or a crash::
 Reading, verifying, fitting::
 
     ds = load_version(store, "20261122-031500-ur10-3f9a@v1")   # verified; DatasetCorrupted if not intact
-    ds.q, ds.points, ds.targets, ds.frame, ds.split          # (k, n), (k, 3, 3), (3, 3), str, (k,)
+    ds.q, ds.points, ds.targets, ds.frame, ds.split          # (k, n), (k, m, 3), (m, 3), str, (k,)
+    ds.seen                                                  # (k, m) bool: False where points[r, i] is NaN
     store.verify("20261122-031500-ur10-3f9a").ok            # latest version
     store.verify_fits("20261122-031500-ur10-3f9a@v1").ok    # every fit stored under that version
     store.list_sessions(); store.show(session_id)           # id, robot, status, versions with row counts
@@ -53,10 +55,10 @@ Reading, verifying, fitting::
 Importing external data (each returns the new ``SESSION@vNNN``)::
 
     targets = load_targets("targets.toml")                   # unit = "mm", points = [[...], [...], [...]]
-    import_targets_csv(store, "data.csv", "ur10", h, 6, targets, length_unit="mm", angle_unit="deg",
-                       frame="tracker")
-    import_probe_csv(store, "probe.csv", "ur10", h, 6, rotation="euler", euler_sequence="XYZ",
-                     length_unit="mm", rotation_unit="deg", frame="tracker")
+    import_targets_csv(store, "data.csv", "ur10", h, 6, targets,   # t1_x … tm_z, an empty cell = not seen
+                       ImportOptions(length_unit="mm", angle_unit="deg", frame="tracker"))
+    import_probe_csv(store, "probe.csv", "ur10", h, 6, ImportOptions(rotation="euler", euler_sequence="XYZ",
+                     length_unit="mm", rotation_unit="deg", frame="tracker"))
     import_mapped(store, "measurements_random_poses.csv", "ipa-ur10", "ur10", h, 6)
 
 Self-contained versions: a version's manifest (``session.robot``) holds the robot model's name, hash, joint count
@@ -68,6 +70,7 @@ Versions are never rewritten: sealing again, appending to a journal, or importin
 (``session_id=...``) makes ``vNNN+1`` with ``parent = vNNN`` holding the old rows plus the new ones.
 """
 
+from .documents import MeasurementDoc, SessionHeader, StartDoc, StopDoc
 from .errors import (
     DatasetCorrupted,
     DatasetError,
@@ -83,6 +86,7 @@ from .errors import (
 from .ids import Ref, new_fit_id, new_session_id, parse_ref, validate_id, version_name
 from .importers import (
     DEFAULT_PROBE_OFFSETS,
+    ImportOptions,
     ImportSpec,
     import_mapped,
     import_probe_csv,
@@ -92,7 +96,7 @@ from .importers import (
     probe_points,
 )
 from .journal import EXIT_STATUSES, Journal, JournalContents, read_journal
-from .schema import SCHEMA_VERSION, SPLITS, core_columns, joint_columns
+from .schema import SCHEMA_VERSION, SPLITS, core_columns, joint_columns, spread_columns, target_columns
 from .store import (
     Dataset,
     FitRecord,
@@ -120,6 +124,7 @@ __all__ = [
     "DatasetError",
     "FitRecord",
     "ImportFormatError",
+    "ImportOptions",
     "ImportSpec",
     "InvalidId",
     "Journal",
@@ -127,10 +132,14 @@ __all__ = [
     "JournalCorrupted",
     "JournalError",
     "MappingError",
+    "MeasurementDoc",
     "Ref",
     "SealResult",
+    "SessionHeader",
     "SessionInfo",
     "SessionStore",
+    "StartDoc",
+    "StopDoc",
     "StoreWriteError",
     "TargetsError",
     "UnknownSession",
@@ -152,6 +161,8 @@ __all__ = [
     "parse_ref",
     "probe_points",
     "read_journal",
+    "spread_columns",
+    "target_columns",
     "validate_id",
     "validate_targets",
     "verify",

@@ -3,8 +3,10 @@
 Three forms, all ending in one atomic step: a new session with ``v001`` (or, with ``session_id`` of an
 existing session, a new version of it whose parent is the latest):
 
-- :func:`import_targets_csv`: columns ``q1..qn`` and ``t1_x, t1_y, t1_z, t2_x … t3_z`` (three measured
-  target points), optional ``split`` column (train / val / test / empty).
+- :func:`import_targets_csv`: columns ``q1..qn`` and ``t1_x, t1_y, t1_z, t2_x … tm_z`` (the m measured target
+  points, m = the number of points in the targets file), optional ``split`` column (train / val / test / empty).
+  An empty target cell means the target was not seen in that row: all three cells of a target are empty or none
+  is, and every row has at least one target (errors name the row, its line and the column).
 - :func:`import_probe_csv`: columns ``q1..qn`` and ``x, y, z, rx, ry, rz``: the pose of a 6-DOF probe (the
   tool) in the base or tracker frame. The rotation is a rotation vector (UR style) or Euler angles with a scipy
   sequence (``"XYZ"`` = intrinsic, ``"xyz"`` = extrinsic). Each row becomes three *virtual* targets
@@ -14,6 +16,12 @@ existing session, a new version of it whose parent is the latest):
   columns, target or probe columns, units, Euler convention, frame, passthrough columns). Shipped mappings
   live in ``labcal/datasets/mappings/`` (see :func:`list_mappings`), e.g. ``ipa-ur10`` for the public UR10
   laser-tracker data set.
+
+How to read the file (units, frame, separator, probe convention …) and what to record with it (session, metadata,
+robot model, allowed checks) is one :class:`ImportOptions`; keyword arguments of the same names are a shorthand::
+
+    import_targets_csv(store, "data.csv", "ur10", h, 6, targets, ImportOptions(length_unit="mm", frame="tracker"))
+    import_targets_csv(store, "data.csv", "ur10", h, 6, targets, length_unit="mm", frame="tracker")   # the same
 
 Errors name the file, the 1-based data row (header not counted) with its line in the file, and the column.
 
@@ -27,6 +35,7 @@ the checks' notes and numbers (``provenance.import.checks``).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import tomllib
 import warnings
@@ -42,7 +51,7 @@ from ._util import sha256_bytes, sha256_file
 from .errors import DatasetError, ImportFormatError, MappingError, TargetsError
 from .ids import validate_id
 from .sanity import Hints, SanityReport, check_measurements, check_names
-from .schema import FRAMES, SPLITS, TARGET_COLUMNS, joint_columns
+from .schema import FRAMES, SPLITS, joint_columns, target_columns
 from .store import SessionStore, _plan_summary
 from .targets import LENGTH_UNITS, validate_targets
 
@@ -114,8 +123,8 @@ class ImportSpec:
                 raise MappingError(f'rotation convention must be "rotvec" or "euler", got {self.convention!r}')
             if self.convention == "euler":
                 _check_sequence(self.euler_sequence)
-        if self.form == "targets" and len(self.target_columns) != 3:
-            raise MappingError("the targets form needs three target column triples")
+        if self.form == "targets" and len(self.target_columns) < 1:
+            raise MappingError("the targets form needs a target column triple [x, y, z] per target")
         names = [e.name for e in self.extras]
         if len(set(names)) != len(names):
             raise MappingError(f"duplicate extra column names {names}")
@@ -213,8 +222,10 @@ class _Csv:
             message, path=str(self.path), row=index + 1, line=int(self.lines[index]), column=column
         )
 
-    def numbers(self, column: str, decimal: str, *, allow_missing: bool = False) -> np.ndarray:
-        """Column ``column`` as float64; raises naming the first bad row (missing, non-numeric, NaN, inf)."""
+    def numbers(self, column: str, decimal: str, *, allow_missing: bool = False, empty_ok: bool = False) -> np.ndarray:
+        """Column ``column`` as float64; raises naming the first bad row (missing, non-numeric, NaN, inf).
+
+        ``allow_missing``: empty cells and NaN/inf become NaN; ``empty_ok``: empty cells only (a target not seen)."""
         text = self.frame[column].str.strip()
         if decimal != ".":
             if (bad := text.str.contains(".", regex=False)).any():
@@ -225,17 +236,44 @@ class _Csv:
         for i in np.flatnonzero(~np.isfinite(values)):
             raw = text[int(i)]
             if raw == "":
-                if allow_missing:
+                if allow_missing or empty_ok:
                     continue
                 raise self.error("missing value", int(i), column)
             low = raw.lower().lstrip("+-")
             if low in ("nan", "inf", "infinity") and not allow_missing:
-                raise self.error(f"non-finite value {raw!r} (NaN/inf are not measurements)", int(i), column)
+                empty = "; leave the cell empty for a target not seen" if empty_ok else ""
+                raise self.error(f"non-finite value {raw!r} (NaN/inf are not measurements{empty})", int(i), column)
             if low not in ("nan", "inf", "infinity"):
                 raise self.error(f"non-numeric value {self.frame[column][int(i)]!r}", int(i), column)
-        if allow_missing:
+        if allow_missing or empty_ok:
             values[~np.isfinite(values)] = np.nan
         return values
+
+    def check_seen(self, columns: Sequence[str], points: np.ndarray) -> None:
+        """Refuse a target partly empty and a row with no target seen (points (k, m, 3), NaN = empty cell)."""
+        nan = np.isnan(points)
+        partly = nan.any(axis=2) & ~nan.all(axis=2)
+        if partly.any():
+            i, t = (int(v) for v in np.argwhere(partly)[0])
+            cols = columns[3 * t : 3 * t + 3]
+            empty = [c for c, e in zip(cols, nan[i, t], strict=True) if e]
+            given = [c for c, e in zip(cols, nan[i, t], strict=True) if not e]
+            raise self.error(
+                f"target t{t + 1} is partly empty ({', '.join(given)} given, {', '.join(empty)} empty): give all "
+                "three coordinates, or leave all three empty if the target was not seen",
+                i,
+                empty[0],
+            )
+        blind = np.flatnonzero(nan.all(axis=(1, 2)))
+        if blind.size:
+            more = f" ({blind.size - 1} more row(s) like it)" if blind.size > 1 else ""
+            raise ImportFormatError(
+                f"no target seen: every target column ({columns[0]} … {columns[-1]}) is empty; a row needs at least "
+                f"one measured target: remove the row{more}",
+                path=str(self.path),
+                row=int(blind[0]) + 1,
+                line=int(self.lines[int(blind[0])]),
+            )
 
 
 def _first_long_line(path: Path, separator: str, n: int) -> int | None:
@@ -260,8 +298,8 @@ def _rotations(angles: np.ndarray, spec: ImportSpec) -> np.ndarray:
 def probe_points(position: np.ndarray, rotation: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """Virtual targets of a 6-DOF probe: ``p_i = R · v_i + t``.
 
-    position: (k, 3) m; rotation: (k, 3, 3); offsets: (3, 3) m, row i = v_i in the probe frame.
-    Returns (k, 3, 3) m, ``[:, i]`` = target t(i+1).
+    position: (k, 3) m; rotation: (k, 3, 3); offsets: (m, 3) m, row i = v_i in the probe frame.
+    Returns (k, m, 3) m, ``[:, i]`` = target t(i+1).
     """
     return np.einsum("kab,ib->kia", rotation, offsets) + position[:, None, :]
 
@@ -292,14 +330,25 @@ def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, offsets: np.ndarray
     if spec.form == "targets":
         cols = [c for triple in spec.target_columns for c in triple]
         csvf.require(cols, "target")
-        for name, col in zip(TARGET_COLUMNS, cols, strict=True):
-            rows[name] = csvf.numbers(col, d) * scale
+        m = len(spec.target_columns)
+        if spec.reject_extra_joints:  # the plain form: a t(m+1) column means the targets file lacks targets
+            more = [c for c in csvf.columns if c.startswith(f"t{m + 1}_")]
+            if more:
+                raise ImportFormatError(
+                    f"target column(s) {more} present but the targets file has {m} target(s): add the missing "
+                    "target(s) to the targets file (tool frame), in the order of the CSV",
+                    path=str(csvf.path),
+                )
+        values = np.stack([csvf.numbers(c, d, empty_ok=True) for c in cols], axis=1)
+        csvf.check_seen(cols, values.reshape(len(csvf), m, 3))
+        for j, name in enumerate(target_columns(m)):
+            rows[name] = values[:, j] * scale
     else:
         csvf.require([*spec.position, *spec.rotation], "probe pose")
         t = np.stack([csvf.numbers(c, d) for c in spec.position], axis=1) * scale
         ang = np.stack([csvf.numbers(c, d) for c in spec.rotation], axis=1)
         pts = probe_points(t, _rotations(ang, spec), offsets)  # type: ignore[arg-type]
-        for i, name in enumerate(TARGET_COLUMNS):
+        for i, name in enumerate(target_columns(pts.shape[1])):
             rows[name] = pts[:, i // 3, i % 3]
     if spec.split_column and spec.split_column in csvf.columns:
         values = csvf.frame[spec.split_column].str.strip().tolist()
@@ -339,7 +388,8 @@ def _sanity(
     """Run :mod:`labcal.datasets.sanity` on the parsed rows; fixes are phrased for CLI flags unless told otherwise."""
     n = len([c for c in rows.columns if c[:1] == "q" and c[1:].isdigit()])
     q = rows[[f"q{j + 1}" for j in range(n)]].to_numpy(dtype=float)
-    points = rows[list(TARGET_COLUMNS)].to_numpy(dtype=float).reshape(-1, 3, 3)
+    m = len(targets)
+    points = rows[list(target_columns(m))].to_numpy(dtype=float).reshape(-1, m, 3)
     lines = csvf.lines
     base = hints or Hints()
     hints = Hints(
@@ -360,57 +410,105 @@ def _sanity(
     )
 
 
+@dataclass(frozen=True)
+class ImportOptions:
+    """How to read an import file and what to record with it: one object for every import form.
+
+    Reading: ``length_unit`` ("m" | "mm" | "in": target / probe position columns), ``angle_unit`` ("rad" | "deg":
+    joints), ``frame`` ("base" | "tracker": frame of the measured points), ``separator`` and ``decimal`` mark.
+    Probe form only: ``rotation`` ("rotvec" | "euler"), ``euler_sequence`` (scipy: "XYZ" intrinsic, "xyz"
+    extrinsic), ``rotation_unit`` (default ``angle_unit``), ``offsets`` ((m, 3) m virtual targets in the probe
+    frame, default :data:`DEFAULT_PROBE_OFFSETS`), ``columns`` (the names of x, y, z, rx, ry, rz). (A mapping file
+    sets the reading options itself.) Recording: ``session_id`` (an existing session gets a new version),
+    ``metadata`` (the user's), ``robot`` (a :class:`~labcal.robots.RobotSpec` matching name, hash and n: enables
+    the model checks and stores the robot file with the data), ``allow`` (sanity checks to override, recorded in
+    the provenance), ``hints`` (how the fixes are phrased; default: the CLI's flags).
+    """
+
+    length_unit: str = "m"
+    angle_unit: str = "rad"
+    frame: str = "base"
+    separator: str = ","
+    decimal: str = "."
+    rotation: str = "rotvec"
+    euler_sequence: str | None = None
+    rotation_unit: str | None = None
+    offsets: Any = None
+    columns: Sequence[str] = ("x", "y", "z", "rx", "ry", "rz")
+    session_id: str | None = None
+    metadata: Mapping[str, Any] | None = None
+    robot: RobotSpec | None = None
+    allow: Sequence[str] = ()
+    hints: Hints | None = None
+
+    def with_changes(self, **changes: Any) -> ImportOptions:
+        """These options with some fields replaced (an unknown name is a :class:`DatasetError` listing the fields)."""
+        if not changes:
+            return self
+        known = {f.name for f in dataclasses.fields(self)}
+        if unknown := sorted(set(changes) - known):
+            raise DatasetError(f"unknown import option(s) {unknown}; the options are {sorted(known)}")
+        return dataclasses.replace(self, **changes)
+
+
+def _options(options: ImportOptions | None, changes: Mapping[str, Any]) -> ImportOptions:
+    return (options or ImportOptions()).with_changes(**changes)
+
+
+@dataclass(frozen=True)
+class _Labels:
+    """What the imported rows are labelled with: the robot model (name, hash, joints) and the session's targets."""
+
+    robot_name: str
+    robot_hash: str
+    n_joints: int
+    targets: np.ndarray
+    offsets: np.ndarray | None  # the probe's virtual targets (the probe form), else None
+
+
 def _run_import(
     store: SessionStore | str | Path | None,
     path: str | Path,
     spec: ImportSpec,
-    *,
-    robot_name: str,
-    robot_hash: str,
-    n_joints: int,
-    targets: np.ndarray,
-    offsets: np.ndarray | None,
-    session_id: str | None,
-    metadata: Mapping[str, Any] | None,
-    options: dict,
-    robot: RobotSpec | None = None,
-    allow: Sequence[str] = (),
-    hints: Hints | None = None,
+    labels: _Labels,
+    opts: ImportOptions,
+    recorded_options: dict,
 ) -> str:
     spec.check()
-    allowed = check_names(allow)
+    allowed = check_names(opts.allow)
     store = store if isinstance(store, SessionStore) else SessionStore(store)
+    n_joints, robot, session_id = labels.n_joints, opts.robot, opts.session_id
     if isinstance(n_joints, bool) or not isinstance(n_joints, int) or n_joints < 1:
         raise DatasetError(f"n_joints must be a positive integer, got {n_joints!r}")
-    record = {"name": str(robot_name), "hash": str(robot_hash), "n_joints": n_joints}
+    record = {"name": str(labels.robot_name), "hash": str(labels.robot_hash), "n_joints": n_joints}
     if robot is not None:
-        if (robot.name, robot.hash, robot.model.n) != (robot_name, robot_hash, n_joints):
+        if (robot.name, robot.hash, robot.model.n) != (labels.robot_name, labels.robot_hash, n_joints):
             raise DatasetError(
                 f"robot {robot.name!r} (hash {robot.hash[:12]}…, n={robot.model.n}) is not the model the data are "
-                f"labelled with ({robot_name!r}, hash {str(robot_hash)[:12]}…, n={n_joints})"
+                f"labelled with ({labels.robot_name!r}, hash {str(labels.robot_hash)[:12]}…, n={n_joints})"
             )
         # The model itself (file text) goes with the data, so a version can be refitted without the robot file.
         record = robot.record()
     path = Path(path)
     csvf = _Csv(path, spec.separator)
-    rows = _build_rows(csvf, spec, n_joints, offsets)
+    rows = _build_rows(csvf, spec, n_joints, labels.offsets)
     existing_q = None
     if session_id is not None and (store.root / validate_id(session_id)).is_dir() and store.versions(session_id):
         existing_q = store.load(session_id).q
-    report = _sanity(csvf, rows, spec, targets, robot, allowed, hints, existing_q)
+    report = _sanity(csvf, rows, spec, labels.targets, robot, allowed, opts.hints, existing_q)
     report.raise_if_failed()
-    options = {**options, "allow": sorted(allowed)}
+    options = {**recorded_options, "allow": sorted(allowed)}
     file_sha = sha256_file(path)
     meta = {
         "robot": record,
-        "targets": targets.tolist(),
+        "targets": labels.targets.tolist(),
         "targets_unit": "m",
         "frame": spec.frame,
         "tracker": dict(spec.tracker),
         "robot_driver": {},
         "plan": _plan_summary([]),
         "extra_units": {e.name: _TO_SI.get(e.unit, (e.unit, 1.0))[0] for e in spec.extras},
-        "metadata": dict(metadata or {}),
+        "metadata": dict(opts.metadata or {}),
     }
     provenance = {
         "import": {
@@ -440,66 +538,44 @@ def import_targets_csv(
     robot_hash: str,
     n_joints: int,
     targets: Any,
-    *,
-    length_unit: str = "m",
-    angle_unit: str = "rad",
-    frame: str = "base",
-    separator: str = ",",
-    decimal: str = ".",
-    session_id: str | None = None,
-    metadata: Mapping[str, Any] | None = None,
-    robot: RobotSpec | None = None,
-    allow: Sequence[str] = (),
-    hints: Hints | None = None,
+    options: ImportOptions | None = None,
+    **changes: Any,
 ) -> str:
-    """Import a three-target CSV (``q1..qn``, ``t1_x … t3_z``, optional ``split``); return ``SESSION@vNNN``.
+    """Import a targets CSV (``q1..qn``, ``t1_x … tm_z``, optional ``split``); return ``SESSION@vNNN``.
 
-    ``targets``: (3, 3) m, the targets in the tool frame (e.g. from :func:`load_targets`). ``length_unit``
-    ("m" | "mm") applies to the target columns, ``angle_unit`` ("rad" | "deg") to the joints, ``frame``
-    ("base" | "tracker") names the frame of the measured points. Joint columns beyond ``q{n_joints}`` are an
-    error. With ``session_id`` of an existing session, the rows are appended as a new version.
+    ``targets``: (m, 3) m, the targets in the tool frame (e.g. from :func:`load_targets`); the CSV has their
+    m column triples, and an empty triple where a target was not seen. ``options`` (:class:`ImportOptions`, or
+    its fields as keywords): ``length_unit`` applies to the target columns, ``angle_unit`` to the joints,
+    ``frame`` names the frame of the measured points; joint columns beyond ``q{n_joints}`` and target columns
+    beyond ``t{m}`` are errors. With ``session_id`` of an existing session, the rows are appended as a new version.
 
-    Before anything is written the rows pass :func:`labcal.datasets.sanity.check_measurements` (target distances vs
-    ``targets``, duplicates; with ``robot`` (a :class:`~labcal.robots.RobotSpec` matching name, hash and n) also
-    joint limits, nominal consistency and reach, and the model's file text is stored with the session). A failed
-    check raises :class:`~labcal.datasets.sanity.SanityError` naming the fix; ``allow`` lists the checks to override
-    (recorded in the import provenance). ``hints`` phrases the fixes (default: the CLI's flags).
+    Before anything is written the rows pass :func:`labcal.datasets.sanity.check_measurements` (distances between
+    targets seen together vs ``targets``, duplicates; with ``robot`` also joint limits, nominal consistency and
+    reach, and the model's file text is stored with the session). A failed check raises
+    :class:`~labcal.datasets.sanity.SanityError` naming the fix; ``allow`` lists the checks to override.
     """
+    opts = _options(options, changes)
     t = validate_targets(targets)
     spec = ImportSpec(
         form="targets",
         joints=tuple(joint_columns(n_joints)),
-        frame=frame,
-        joint_unit=angle_unit,
-        separator=separator,
-        decimal=decimal,
-        target_columns=tuple(tuple(TARGET_COLUMNS[3 * i : 3 * i + 3]) for i in range(3)),  # type: ignore[misc]
-        length_unit=length_unit,
+        frame=opts.frame,
+        joint_unit=opts.angle_unit,
+        separator=opts.separator,
+        decimal=opts.decimal,
+        target_columns=tuple(tuple(target_columns(len(t))[3 * i : 3 * i + 3]) for i in range(len(t))),  # type: ignore[misc]
+        length_unit=opts.length_unit,
         reject_extra_joints=True,
     )
-    options = {
-        "length_unit": length_unit,
-        "angle_unit": angle_unit,
-        "frame": frame,
-        "separator": separator,
-        "decimal": decimal,
+    recorded = {
+        "length_unit": opts.length_unit,
+        "angle_unit": opts.angle_unit,
+        "frame": opts.frame,
+        "separator": opts.separator,
+        "decimal": opts.decimal,
     }
-    return _run_import(
-        store,
-        path,
-        spec,
-        robot_name=robot_name,
-        robot_hash=robot_hash,
-        n_joints=n_joints,
-        targets=t,
-        offsets=None,
-        session_id=session_id,
-        metadata=metadata,
-        options=options,
-        robot=robot,
-        allow=allow,
-        hints=hints,
-    )
+    labels = _Labels(robot_name, robot_hash, n_joints, t, None)
+    return _run_import(store, path, spec, labels, opts, recorded)
 
 
 def import_probe_csv(
@@ -508,77 +584,51 @@ def import_probe_csv(
     robot_name: str,
     robot_hash: str,
     n_joints: int,
-    *,
-    length_unit: str = "m",
-    angle_unit: str = "rad",
-    rotation_unit: str | None = None,
-    frame: str = "base",
-    rotation: str = "rotvec",
-    euler_sequence: str | None = None,
-    offsets: Any = None,
-    columns: Sequence[str] = ("x", "y", "z", "rx", "ry", "rz"),
-    separator: str = ",",
-    decimal: str = ".",
-    session_id: str | None = None,
-    metadata: Mapping[str, Any] | None = None,
-    robot: RobotSpec | None = None,
-    allow: Sequence[str] = (),
-    hints: Hints | None = None,
+    options: ImportOptions | None = None,
+    **changes: Any,
 ) -> str:
     """Import a 6-DOF probe CSV (``q1..qn``, ``x, y, z, rx, ry, rz``); return ``SESSION@vNNN``.
 
-    ``rotation``: "rotvec" (rotation vector, UR style) or "euler" with ``euler_sequence`` (scipy: "XYZ"
-    intrinsic, "xyz" extrinsic). ``length_unit`` applies to x, y, z; ``angle_unit`` to the joints;
-    ``rotation_unit`` (default: ``angle_unit``) to rx, ry, rz. ``offsets``: (3, 3) m virtual target
-    offsets in the probe frame (default :data:`DEFAULT_PROBE_OFFSETS`); they become the session's targets.
-    ``robot``, ``allow``, ``hints``: sanity checks as for :func:`import_targets_csv` (the probe's mount on the
-    flange is unknown, so the nominal check registers it).
+    ``options`` (:class:`ImportOptions`, or its fields as keywords): ``rotation`` "rotvec" (rotation vector, UR
+    style) or "euler" with ``euler_sequence``; ``length_unit`` applies to x, y, z, ``angle_unit`` to the joints,
+    ``rotation_unit`` (default ``angle_unit``) to rx, ry, rz; ``offsets``: (m, 3) m virtual target offsets in
+    the probe frame (default :data:`DEFAULT_PROBE_OFFSETS`), which become the session's targets. ``robot``,
+    ``allow``, ``hints``: sanity checks as for :func:`import_targets_csv` (the probe's mount on the flange is
+    unknown, so the nominal check registers it).
     """
-    v = validate_targets(DEFAULT_PROBE_OFFSETS if offsets is None else offsets)
+    opts = _options(options, changes)
+    v = validate_targets(DEFAULT_PROBE_OFFSETS if opts.offsets is None else opts.offsets)
+    columns = list(opts.columns)
     if len(columns) != 6:
-        raise DatasetError(f"columns must name x, y, z, rx, ry, rz (6 names), got {list(columns)}")
+        raise DatasetError(f"columns must name x, y, z, rx, ry, rz (6 names), got {columns}")
     spec = ImportSpec(
         form="probe",
         joints=tuple(joint_columns(n_joints)),
-        frame=frame,
-        joint_unit=angle_unit,
-        separator=separator,
-        decimal=decimal,
-        length_unit=length_unit,
+        frame=opts.frame,
+        joint_unit=opts.angle_unit,
+        separator=opts.separator,
+        decimal=opts.decimal,
+        length_unit=opts.length_unit,
         position=tuple(columns[:3]),  # type: ignore[arg-type]
         rotation=tuple(columns[3:]),  # type: ignore[arg-type]
-        rotation_unit=rotation_unit or angle_unit,
-        convention=rotation,
-        euler_sequence=euler_sequence,
+        rotation_unit=opts.rotation_unit or opts.angle_unit,
+        convention=opts.rotation,
+        euler_sequence=opts.euler_sequence,
     )
-    options = {
-        "length_unit": length_unit,
-        "angle_unit": angle_unit,
+    recorded = {
+        "length_unit": opts.length_unit,
+        "angle_unit": opts.angle_unit,
         "rotation_unit": spec.rotation_unit,
-        "frame": frame,
-        "rotation": rotation,
-        "euler_sequence": euler_sequence,
+        "frame": opts.frame,
+        "rotation": opts.rotation,
+        "euler_sequence": opts.euler_sequence,
         "offsets_m": v.tolist(),
-        "columns": list(columns),
-        "separator": separator,
-        "decimal": decimal,
+        "columns": columns,
+        "separator": opts.separator,
+        "decimal": opts.decimal,
     }
-    return _run_import(
-        store,
-        path,
-        spec,
-        robot_name=robot_name,
-        robot_hash=robot_hash,
-        n_joints=n_joints,
-        targets=v,
-        offsets=v,
-        session_id=session_id,
-        metadata=metadata,
-        options=options,
-        robot=robot,
-        allow=allow,
-        hints=hints,
-    )
+    labels = _Labels(robot_name, robot_hash, n_joints, v, v)
+    return _run_import(store, path, spec, labels, opts, recorded)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -680,8 +730,8 @@ def load_mapping(mapping: str | Path) -> tuple[ImportSpec, np.ndarray | None, di
         if bad := sorted(set(t) - _TARGET_KEYS):
             raise MappingError(f"{src}: unknown key(s) in [targets]: {bad}")
         cols = t.get("columns")
-        if not isinstance(cols, list) or len(cols) != 3:
-            raise MappingError(f"{src}: [targets] columns must be three [x, y, z] column-name lists")
+        if not isinstance(cols, list) or len(cols) < 1:
+            raise MappingError(f"{src}: [targets] columns must be one [x, y, z] column-name list per target")
         kw["target_columns"] = tuple(_strings(c, 3, "[targets] columns", src) for c in cols)
         kw["length_unit"] = t.get("unit", "m")
     else:
@@ -728,31 +778,40 @@ def import_mapped(
     robot_name: str,
     robot_hash: str,
     n_joints: int,
+    options: ImportOptions | None = None,
     *,
     targets: Any = None,
-    session_id: str | None = None,
-    metadata: Mapping[str, Any] | None = None,
-    robot: RobotSpec | None = None,
-    allow: Sequence[str] = (),
-    hints: Hints | None = None,
+    **changes: Any,
 ) -> str:
     """Import ``path`` as described by a mapping TOML (a path, or a shipped name such as ``"ipa-ur10"``).
 
-    ``targets`` (3, 3) m: required for a "targets" mapping; for a "probe" mapping it overrides the mapping's
-    virtual offsets. Returns ``SESSION@vNNN``. ``robot``, ``allow``, ``hints``: as for :func:`import_targets_csv`.
+    ``targets`` (m, 3) m: required for a "targets" mapping (one point per ``[targets] columns`` triple); for a
+    "probe" mapping it overrides the mapping's virtual offsets. Returns ``SESSION@vNNN``. ``options``
+    (:class:`ImportOptions`, or its fields as keywords): the recording options ``session_id``, ``metadata``,
+    ``robot``, ``allow``, ``hints`` as for :func:`import_targets_csv`; the mapping sets units, frame and form.
     """
+    opts = _options(options, changes)
     spec, offsets, doc = load_mapping(mapping)
     mpath = _resolve_mapping(mapping)
     if spec.form == "targets":
         if targets is None:
-            raise TargetsError(f"mapping {mpath.name} imports measured targets: pass targets (3x3, tool frame)")
+            raise TargetsError(
+                f"mapping {mpath.name} imports measured targets: pass targets ({len(spec.target_columns)}x3, tool "
+                "frame)"
+            )
         t = validate_targets(targets)
+        if len(t) != len(spec.target_columns):
+            raise TargetsError(
+                f"mapping {mpath.name} has {len(spec.target_columns)} target column triple(s) but the targets file "
+                f"{len(t)} point(s): give one point per measured target, in the order of the mapping's columns"
+            )
         offsets = None
     else:
         t = validate_targets(
             targets if targets is not None else (offsets if offsets is not None else DEFAULT_PROBE_OFFSETS)
         )
         offsets = t
+    hints = opts.hints
     if hints is None:  # the units and frame of a mapped import are keys of the mapping, not flags
         unit_key = "[targets] unit" if spec.form == "targets" else "[probe] position_unit"
         where = f"in the mapping {mpath.name}"
@@ -762,20 +821,6 @@ def import_mapped(
             frame=f'frame = "{{frame}}" {where}',
         )
     text = mpath.read_bytes()
-    options = {"mapping": mpath.stem, "mapping_sha256": sha256_bytes(text), "mapping_content": doc}
-    return _run_import(
-        store,
-        path,
-        spec,
-        robot_name=robot_name,
-        robot_hash=robot_hash,
-        n_joints=n_joints,
-        targets=t,
-        offsets=offsets,
-        session_id=session_id,
-        metadata=metadata,
-        options=options,
-        robot=robot,
-        allow=allow,
-        hints=hints,
-    )
+    recorded = {"mapping": mpath.stem, "mapping_sha256": sha256_bytes(text), "mapping_content": doc}
+    labels = _Labels(robot_name, robot_hash, n_joints, t, offsets)
+    return _run_import(store, path, spec, labels, opts.with_changes(hints=hints), recorded)

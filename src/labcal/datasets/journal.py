@@ -5,14 +5,15 @@ Documents (each has ``type``, ``uid`` and ``time`` in UNIX seconds):
 - ``start`` (first line): ``session_id``, ``schema_version``, ``robot`` {name, hash, n_joints, and, since the
   self-contained versions, ``text``/``format``: the robot file itself, so a session can be refitted or resumed
   from the store alone}, ``targets``
-  (3×3, m, tool frame), ``frame`` ("base" | "tracker": the frame of the measured points), ``tracker`` and
+  (m×3, m, tool frame; m ≥ 1 targets), ``frame`` ("base" | "tracker": the frame of the measured points), ``tracker`` and
   ``robot_driver`` identity dicts, ``plan`` (list of JSON-able commands), ``extra_units`` (unit of each
   ``extra`` measurement field), ``software`` versions, ``metadata`` (user's).
 - ``measurement``: ``seq`` (1, 2, … in order of arrival), ``pose_index`` (position in the plan),
   ``q_commanded``/``q_actual`` (n, rad; *controller* joints, as sent to and read from the robot — the plan in the
-  start document is in model joints, converted through the robot file's joint map), ``points`` (3×3, m, row i =
-  target t(i+1)), ``spread`` (3, m), ``samples``, ``status`` ("valid" | "rejected"), ``reason``, ``split``
-  ("train" | "val" | "test" | "" or null), ``extra`` {name: value}, ``units``.
+  start document is in model joints, converted through the robot file's joint map), ``points`` (m entries, m, entry
+  i = target t(i+1) as [x, y, z], or null when it was not seen), ``spread`` (m, m; null where not seen),
+  ``samples``, ``status`` ("valid" | "rejected"), ``reason``, ``split`` ("train" | "val" | "test" | "" or null),
+  ``extra`` {name: value}, ``units``.
 - ``pause`` / ``resume`` (``reason``: protective stop, Ctrl-C, restart after a crash …).
 - ``stop``: ``exit_status`` ("success" | "aborted" | "paused" | "failed") and ``reason``.
 - ``repair``: written by labcal itself when it reopens a journal whose last write was torn (``torn_lines``).
@@ -23,30 +24,46 @@ reader ignores it (with a warning in :attr:`JournalContents.warnings`) and :meth
 next document on a fresh line (it writes a newline and a ``repair`` document; earlier bytes are never
 rewritten). Only one process may hold a journal open for appending (an exclusive ``flock``).
 
+The start, measurement and stop documents are read and written as the typed documents of
+:mod:`labcal.datasets.documents` (:class:`StartDoc`, :class:`MeasurementDoc`, :class:`StopDoc`); their JSON is the
+JSON above, so journals written before the types existed read unchanged.
+
 Lifecycle: measurements are accepted while the run is *running*; ``pause`` → paused, ``stop`` → stopped,
 ``resume`` (also after a crash) → running again. A session may therefore hold several runs.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
 import re
 import time as _time
 import uuid
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ._util import canonical_json, fsync_dir, jsonable, software_versions
+from ._util import canonical_json, fsync_dir, jsonable
+from .documents import (
+    EXIT_STATUSES,
+    MEASUREMENT_UNITS,
+    STATUSES,
+    MeasurementDoc,
+    SessionHeader,
+    StartDoc,
+    StopDoc,
+    measured_points,
+    measured_spread,
+    robot_document,
+)
 from .errors import JournalCorrupted, JournalError
 from .ids import validate_id
-from .schema import FRAMES, SCHEMA_VERSION, SPLITS
-from .targets import validate_targets
+from .schema import SPLITS
 
 try:  # POSIX only; without it we simply do not lock.
     import fcntl
@@ -55,9 +72,17 @@ except ImportError:  # pragma: no cover
 
 JOURNAL_NAME = "journal.jsonl"
 DOC_TYPES = ("start", "measurement", "pause", "resume", "stop", "repair")
-EXIT_STATUSES = ("success", "aborted", "paused", "failed")
-STATUSES = ("valid", "rejected")
-MEASUREMENT_UNITS = {"q_commanded": "rad", "q_actual": "rad", "points": "m", "spread": "m", "time": "s"}
+__all__ = [
+    "DOC_TYPES",
+    "EXIT_STATUSES",
+    "JOURNAL_NAME",
+    "MEASUREMENT_UNITS",
+    "STATUSES",
+    "Journal",
+    "JournalContents",
+    "read_journal",
+    "robot_document",
+]
 _EXTRA_KEY = re.compile(r"^[A-Za-z0-9_]{1,64}$")
 
 
@@ -80,13 +105,16 @@ class JournalContents:
     #: why each line in ``corrupt_lines`` was not accepted (line number → reason).
     corrupt_reasons: dict[int, str] = field(default_factory=dict)
 
-    @property
-    def start(self) -> dict | None:
-        return self.documents[0] if self.documents and self.documents[0]["type"] == "start" else None
+    @functools.cached_property
+    def start(self) -> StartDoc | None:
+        """The start document (None if the first document is not one)."""
+        first = self.documents[0] if self.documents else None
+        return StartDoc.from_json(first) if first is not None and first["type"] == "start" else None
 
-    @property
-    def measurements(self) -> list[dict]:
-        return [d for d in self.documents if d["type"] == "measurement"]
+    @functools.cached_property
+    def measurements(self) -> list[MeasurementDoc]:
+        """Every measurement document, valid and rejected, in order of ``seq``."""
+        return [MeasurementDoc.from_json(d) for d in self.documents if d["type"] == "measurement"]
 
     @property
     def state(self) -> str:
@@ -101,28 +129,28 @@ class JournalContents:
         return "running"
 
     @property
-    def stop(self) -> dict | None:
+    def stop(self) -> StopDoc | None:
         """The last ``stop`` document if the journal is stopped, else None."""
         if self.state != "stopped":
             return None
-        return next(d for d in reversed(self.documents) if d["type"] == "stop")
+        return StopDoc.from_json(next(d for d in reversed(self.documents) if d["type"] == "stop"))
 
     @property
     def status(self) -> str:
         """The session's status for listings: the stop document's exit_status, "paused", or "open"."""
         state = self.state
         if state == "stopped":
-            return self.stop["exit_status"]  # type: ignore[index]
+            return self.stop.exit_status  # type: ignore[union-attr]
         return "paused" if state == "paused" else "open"
 
     @property
     def next_seq(self) -> int:
         ms = self.measurements
-        return ms[-1]["seq"] + 1 if ms else 1
+        return ms[-1].seq + 1 if ms else 1
 
     def valid_pose_indices(self) -> set[int]:
         """Plan positions that already have a valid measurement (skip them when resuming)."""
-        return {d["pose_index"] for d in self.measurements if d["status"] == "valid"}
+        return {d.pose_index for d in self.measurements if d.valid}
 
 
 def _check_doc(doc: Any) -> str | None:
@@ -232,29 +260,14 @@ def _vector(value: Any, n: int, name: str, *, allow_none: bool) -> list[float] |
     return a.tolist()
 
 
-def _points(value: Any, *, allow_none: bool) -> list[list[float]] | None:
-    if value is None:
-        if allow_none:
-            return None
-        raise JournalError("points are required for a valid measurement")
-    a = np.asarray(value, dtype=np.float64)
-    if a.shape != (3, 3):
-        raise JournalError(f"points must have shape (3, 3) (targets × xyz, m), got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        if allow_none:  # a rejected measurement may have lost a target: keep what JSON can hold
-            return None
-        raise JournalError(f"points have a non-finite value: {a.tolist()}")
-    return a.tolist()
-
-
 class Journal:
     """An open, append-only journal of one session. Use :meth:`create` or :meth:`open`; close it (or use
     ``with``) to release the file lock.
 
     Example::
 
-        with Journal.create(path, session_id="s1", robot_name="ur10", robot_hash=h, n_joints=6,
-                            targets=targets, frame="tracker", plan=plan) as j:
+        header = SessionHeader.of("ur10", h, 6, targets=targets, frame="tracker", plan=plan)
+        with Journal.create(path, header, session_id="s1") as j:
             done = j.valid_pose_indices()
             j.append_measurement(pose_index=0, q_commanded=q, q_actual=q_meas, points=p, spread=s, samples=5)
             j.stop("success")
@@ -267,9 +280,10 @@ class Journal:
         start = contents.start
         if start is None:
             raise JournalError(f"{path}: journal has no start document")
-        self.start: dict = start
-        self.n_joints: int = int(start["robot"]["n_joints"])
-        self.plan_length: int = len(start.get("plan") or [])
+        self.start: StartDoc = start
+        self.n_joints: int = start.n_joints
+        self.n_targets: int = start.n_targets
+        self.plan_length: int = len(start.plan)
         self._state = contents.state
         self._next_seq = contents.next_seq
         self._valid = contents.valid_pose_indices()
@@ -277,56 +291,15 @@ class Journal:
 
     # ---------------------------------------------------------------------------------------------- opening
     @classmethod
-    def create(
-        cls,
-        path: str | Path,
-        *,
-        session_id: str,
-        robot_name: str,
-        robot_hash: str,
-        n_joints: int,
-        targets: Any,
-        frame: str,
-        tracker: Mapping[str, Any] | None = None,
-        robot_driver: Mapping[str, Any] | None = None,
-        plan: Sequence[Any] | None = None,
-        extra_units: Mapping[str, str] | None = None,
-        metadata: Mapping[str, Any] | None = None,
-        time: float | None = None,
-        robot: Mapping[str, Any] | None = None,
-    ) -> Journal:
-        """Create a new journal at ``path`` (must not exist) and write its start document.
+    def create(cls, path: str | Path, header: SessionHeader, *, session_id: str, time: float | None = None) -> Journal:
+        """Create a new journal at ``path`` (must not exist) and write the start document of ``header``.
 
-        ``targets``: (3, 3) in metres, tool frame. ``frame``: frame of the measured points. ``robot``: the robot
-        model's full record (``RobotSpec.record()``: name, hash, n_joints, text, format); its extra keys (the file
-        text) are stored with name/hash/n_joints, which must agree with ``robot_name``/``robot_hash``/``n_joints``.
+        ``header.targets``: (m, 3) in metres, tool frame; ``header.frame``: frame of the measured points;
+        ``header.robot``: the robot model's record (``RobotSpec.record()``: name, hash, n_joints, text, format).
         """
         path = Path(path)
         validate_id(session_id)
-        if frame not in FRAMES:
-            raise JournalError(f"frame must be one of {FRAMES}, got {frame!r}")
-        if not isinstance(n_joints, int) or isinstance(n_joints, bool) or n_joints < 1:
-            raise JournalError(f"n_joints must be a positive integer, got {n_joints!r}")
-        for k in extra_units or {}:
-            if not _EXTRA_KEY.match(k):
-                raise JournalError(f"extra field name {k!r} must match [A-Za-z0-9_]+")
-        doc = {
-            "type": "start",
-            "uid": str(uuid.uuid4()),
-            "time": float(_time.time() if time is None else time),
-            "session_id": session_id,
-            "schema_version": SCHEMA_VERSION,
-            "robot": robot_document(robot_name, robot_hash, n_joints, robot),
-            "targets": validate_targets(targets).tolist(),
-            "targets_unit": "m",
-            "frame": frame,
-            "tracker": jsonable(dict(tracker or {})),
-            "robot_driver": jsonable(dict(robot_driver or {})),
-            "plan": jsonable(list(plan or [])),
-            "extra_units": dict(extra_units or {}),
-            "software": software_versions(),
-            "metadata": jsonable(dict(metadata or {})),
-        }
+        doc = header.start_document(session_id, time=time).to_json()
         line = _encode(doc)
         try:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, 0o644)
@@ -391,7 +364,7 @@ class Journal:
     # ---------------------------------------------------------------------------------------------- queries
     @property
     def session_id(self) -> str:
-        return self.start["session_id"]
+        return self.start.session_id
 
     @property
     def state(self) -> str:
@@ -424,12 +397,13 @@ class Journal:
         split: str | None = None,
         extra: Mapping[str, Any] | None = None,
         time: float | None = None,
-    ) -> dict:
+    ) -> MeasurementDoc:
         """Append and fsync one measurement; return the document written (with its ``seq``).
 
-        ``q_commanded``, ``q_actual``: (n,) rad. ``points``: (3, 3) m, row i = target t(i+1), in the
-        session's frame. ``spread``: (3,) m, one per target. A rejected measurement needs a ``reason``
-        and may have ``points=None`` (or non-finite points, stored as null).
+        ``q_commanded``, ``q_actual``: (n,) rad. ``points``: (m, 3) m, row i = target t(i+1), in the
+        session's frame, a NaN row for a target not seen (stored as null; at least one target must be seen).
+        ``spread``: (m,) m, one per target. A rejected measurement needs a ``reason`` and may have
+        ``points=None`` (or non-finite points, stored as null).
         """
         if self._state != "running":
             raise JournalError(f"cannot record a measurement while the run is {self._state}; call resume() first")
@@ -458,24 +432,25 @@ class Journal:
             if v is not None and not isinstance(v, bool | int | float | str):
                 raise JournalError(f"extra field {k!r} must be a number, string, bool or None, got {type(v)}")
             extra_doc[k] = v
-        doc = {
-            "type": "measurement",
-            "uid": str(uuid.uuid4()),
-            "time": float(_time.time() if time is None else time),
-            "seq": self._next_seq,
-            "pose_index": pose_index,
-            "q_commanded": _vector(q_commanded, n, "q_commanded", allow_none=True),
-            "q_actual": _vector(q_actual, n, "q_actual", allow_none=not valid),
-            "points": _points(points, allow_none=not valid),
-            "spread": _vector(spread, 3, "spread", allow_none=True) if spread is not None or valid else None,
-            "samples": int(samples),
-            "status": status,
-            "reason": str(reason),
-            "split": split,
-            "extra": extra_doc,
-            "units": dict(MEASUREMENT_UNITS),
-        }
-        self._append(doc)
+        q_cmd = _vector(q_commanded, n, "q_commanded", allow_none=True)
+        q_act = _vector(q_actual, n, "q_actual", allow_none=not valid)
+        stored = measured_points(points, self.n_targets, allow_none=not valid)
+        doc = MeasurementDoc(
+            seq=self._next_seq,
+            pose_index=pose_index,
+            q_commanded=q_cmd,
+            q_actual=q_act,
+            points=stored,
+            spread=measured_spread(spread, stored, self.n_targets),
+            samples=int(samples),
+            status=status,
+            reason=str(reason),
+            split=split,
+            extra=extra_doc,
+            units=dict(MEASUREMENT_UNITS),
+            time=float(_time.time() if time is None else time),
+        )
+        self._append(doc.to_json())
         self._next_seq += 1
         if valid:
             self._valid.add(pose_index)
@@ -495,22 +470,14 @@ class Journal:
         self._state = "running"
         return doc
 
-    def stop(self, exit_status: str, reason: str = "") -> dict:
+    def stop(self, exit_status: str, reason: str = "") -> StopDoc:
         """Record the end of a run: exit_status "success" | "aborted" | "paused" | "failed"."""
         if exit_status not in EXIT_STATUSES:
             raise JournalError(f"exit_status must be one of {EXIT_STATUSES}, got {exit_status!r}")
         if self._state == "stopped":
             raise JournalError("the run is already stopped")
-        doc = self._append(
-            {
-                "type": "stop",
-                "uid": str(uuid.uuid4()),
-                "time": _time.time(),
-                "exit_status": exit_status,
-                "reason": str(reason),
-                "num_measurements": self._next_seq - 1,
-            }
-        )
+        doc = StopDoc(exit_status, str(reason), self._next_seq - 1, time=_time.time())
+        self._append(doc.to_json())
         self._state = "stopped"
         return doc
 
@@ -527,22 +494,6 @@ class Journal:
             self._broken = True
             raise JournalError(f"writing to journal {self.path} failed: {e}") from e
         return doc
-
-
-def robot_document(name: str, robot_hash: str, n_joints: int, record: Mapping[str, Any] | None = None) -> dict:
-    """The ``robot`` block of a start document / manifest: name, hash, n_joints plus the record's other keys.
-
-    The record (``RobotSpec.record()``) carries the robot file's text so the data can be refitted without the
-    file; it must describe the same model (same name, hash and joint count), else the session would be mislabelled.
-    """
-    doc: dict[str, Any] = {"name": str(name), "hash": str(robot_hash), "n_joints": n_joints}
-    for key, value in dict(record or {}).items():
-        if key in doc:
-            if value is not None and value != doc[key]:
-                raise JournalError(f"robot record {key} = {value!r} disagrees with the session's {doc[key]!r}")
-            continue
-        doc[str(key)] = jsonable(value)
-    return doc
 
 
 def _encode(doc: dict) -> bytes:

@@ -8,8 +8,8 @@ an explicit override that names the check lets the data through (``labcal sessio
 ====================  ==============================================================================================
 check                 what it refuses
 ====================  ==============================================================================================
-``target-distances``  measured distances between the three targets that do not match the targets file: a length
-                      unit slip (×1000, ×0.001, ×25.4 …), a different triangle, or targets in another order
+``target-distances``  measured distances between targets seen in the same row that do not match the targets file: a
+                      length unit slip (×1000, ×0.001, ×25.4 …), a different triangle, or targets in another order
 ``target-outliers``   single rows whose target distances are off the other rows' by more than 2 mm
 ``joint-limits``      joint values (model joints, after the robot file's joint map) outside the robot's limits
 ``joint-span``        with degrees: every joint moving less than 12.6° and no value beyond ±2π (radians read
@@ -32,7 +32,9 @@ record time) call the same code::
     report = check_measurements(q, points, targets, robot=spec, frame="tracker", allow=["duplicates"])
     report.raise_if_failed()          # SanityError listing every failed check, or nothing
 
-``q`` are controller joints (k, n) in rad / m, ``points`` (k, 3, 3) the measured targets in m.
+``q`` are controller joints (k, n) in rad / m, ``points`` (k, m, 3) the measured targets in m (m >= 1 targets, a
+NaN row for a target not seen in that row: the distance checks use the pairs seen together, the nominal check the
+targets seen).
 """
 
 from __future__ import annotations
@@ -269,7 +271,7 @@ def registered_residuals(
     if tool_known:
         pred = model.target_points(q_model, targets)
         if frame != "tracker":
-            return np.linalg.norm(points - pred, axis=2).mean(axis=1)
+            return _row_mean(np.linalg.norm(points - pred, axis=2))
     else:
         pred = None
     F = model.fk(q_model) if not tool_known else None
@@ -284,8 +286,10 @@ def _registered(F, pred, points, targets, frame, fit_rows) -> np.ndarray:
     """Residuals of every row after registering on ``fit_rows``: tracker only (``pred`` given, tool known), or
     tool mount (``F`` = tool poses) and, for ``frame = "tracker"``, the tracker frame too."""
     if pred is not None:
-        R, t = kabsch(points[fit_rows].reshape(-1, 3), pred[fit_rows].reshape(-1, 3))
-        return np.linalg.norm(_apply(R, t, points) - pred, axis=2).mean(axis=1)
+        a, b = points[fit_rows].reshape(-1, 3), pred[fit_rows].reshape(-1, 3)
+        seen = np.isfinite(a).all(axis=1)
+        R, t = kabsch(a[seen], b[seen]) if not seen.all() else kabsch(a, b)
+        return _row_mean(np.linalg.norm(_apply(R, t, points) - pred, axis=2))
     if frame == "tracker":
         P = np.zeros_like(F)
         P[:, :3, :3], P[:, :3, 3] = _kabsch_batch(targets, points)
@@ -305,6 +309,17 @@ def _registered(F, pred, points, targets, frame, fit_rows) -> np.ndarray:
         R, t = kabsch(points[fit_rows].reshape(-1, 3), pred[fit_rows].reshape(-1, 3))
         base_pts = _apply(R, t, points)
     return np.linalg.norm(base_pts - pred, axis=2).mean(axis=1)
+
+
+def _row_mean(dist: np.ndarray) -> np.ndarray:
+    """(k, m) distances, NaN for targets not seen → (k,) mean over the seen ones (the plain mean when all are)."""
+    if np.isnan(dist).any():
+        return np.nanmean(dist, axis=1)
+    return dist.mean(axis=1)
+
+
+def _pairs(m: int) -> tuple[tuple[int, int], ...]:
+    return _PAIRS if m == 3 else tuple(itertools.combinations(range(m), 2))
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -345,10 +360,24 @@ def _unit_slip(ratio: float, used: str, hints: Hints, what: str) -> str | None:
 
 
 def _check_target_distances(points, targets, length_unit, hints, report, allow) -> None:
-    d_file = np.array([np.linalg.norm(targets[a] - targets[b]) for a, b in _PAIRS])
-    d = np.stack([np.linalg.norm(points[:, a] - points[:, b], axis=1) for a, b in _PAIRS], axis=1)
-    med = np.median(d, axis=0)
-    ratio = float(np.median(d / d_file))
+    """Distances between targets seen together in a row against the targets file (pairs never seen together, and
+    sessions with one target, have nothing to compare)."""
+    pairs = _pairs(len(targets))
+    d_file = np.array([np.linalg.norm(targets[a] - targets[b]) for a, b in pairs])
+    d = np.stack([np.linalg.norm(points[:, a] - points[:, b], axis=1) for a, b in pairs], axis=1)
+    if np.isnan(d).any():  # targets not seen: compare the pairs that were seen together, where they were
+        together = ~np.isnan(d).all(axis=0)
+        pairs = tuple(p for p, ok in zip(pairs, together, strict=True) if ok)
+        d_file, d = d_file[together], d[:, together]
+        rows = ~np.isnan(d).all(axis=1)
+        points, d = points[rows], d[rows]
+        if not len(pairs):
+            return
+        med = np.nanmedian(d, axis=0)
+        ratio = float(np.nanmedian(d / d_file))
+    else:
+        med = np.median(d, axis=0)
+        ratio = float(np.median(d / d_file))
     report.stats["target_distances"] = {
         "file_mm": (d_file * 1e3).round(3).tolist(),
         "measured_median_mm": (med * 1e3).round(3).tolist(),
@@ -357,21 +386,21 @@ def _check_target_distances(points, targets, length_unit, hints, report, allow) 
     tol = np.maximum(TARGET_ABS_TOL, TARGET_REL_TOL * d_file)
     listing = "; ".join(
         f"t{a + 1}–t{b + 1} {_mm(m)} measured vs {_mm(f)} in the file"
-        for (a, b), m, f in zip(_PAIRS, med, d_file, strict=True)
+        for (a, b), m, f in zip(pairs, med, d_file, strict=True)
     )
     finding = None
     if np.all(np.abs(med - d_file) <= tol):
         finding = None
     elif not ratio > 0:  # every measured triangle collapsed to a point (zeros, one reflector reported thrice)
         finding = Finding("target-distances", f"the measured targets coincide ({listing}): the target columns do not "
-                          f"hold three distinct measured points")  # fmt: skip
+                          f"hold distinct measured points")  # fmt: skip
     elif (slip := _unit_slip(ratio, length_unit, hints, "the measured distances between the targets")) and np.all(
         np.abs(med / d_file / ratio - 1) < UNIT_RATIO_TOL - 1
     ):
         finding = Finding("target-distances", f"{slip} (median over {len(points)} rows: {listing})")
     else:
         best, best_err = None, np.inf
-        for perm in itertools.permutations(range(3)):
+        for perm in itertools.permutations(range(3)) if pairs == _PAIRS else ():
             if perm == (0, 1, 2):
                 continue
             fp = np.array([np.linalg.norm(targets[perm[a]] - targets[perm[b]]) for a, b in _PAIRS])
@@ -388,7 +417,8 @@ def _check_target_distances(points, targets, length_unit, hints, report, allow) 
         else:
             finding = Finding(
                 "target-distances",
-                f"the targets file's triangle does not match the data ({listing}; median over {len(points)} rows, "
+                f"the targets file's {'triangle does' if pairs == _PAIRS else 'distances do'} not match the data "
+                f"({listing}; median over {len(points)} rows, "
                 f"tolerance {_mm(float(tol.min()))}): check that the targets file describes the targets that were "
                 f"measured, in the same order and unit",
             )
@@ -398,15 +428,16 @@ def _check_target_distances(points, targets, length_unit, hints, report, allow) 
             return  # per-row outliers mean nothing against the wrong triangle
     # Rows against the data's own median distances: equal to the file's when the check above passed, and still
     # meaningful when a scale mismatch was allowed.
-    dev = np.abs(d - med).max(axis=1)
-    sigma = 1.4826 * float(np.median(np.abs(d - med)))
+    gap = np.abs(d - med)
+    dev = np.nanmax(gap, axis=1) if np.isnan(gap).any() else gap.max(axis=1)
+    sigma = 1.4826 * float(np.nanmedian(gap) if np.isnan(gap).any() else np.median(gap))
     limit = max(ROW_ABS_TOL * (med / d_file).mean(), 6 * sigma)
     bad = np.flatnonzero(dev > limit)
     report.stats["target_outlier_rows"] = len(bad)
     if len(bad):
         worst = int(bad[np.argmax(dev[bad])])
-        pair = int(np.argmax(np.abs(d[worst] - med)))
-        a, b = _PAIRS[pair]
+        pair = int(np.nanargmax(gap[worst]))
+        a, b = pairs[pair]
         _add(
             report,
             Finding(
@@ -571,7 +602,8 @@ def _hypotheses(
         out.append(_Hypothesis(f"once the length units agree (the data scaled by 1/{unit_ratio:.4g}, see "
                                f"target-distances)", 1, jm.to_model(q_ctrl), points / unit_ratio, targets,
                                frame))  # fmt: skip
-    if form == "targets":
+    complete = points.shape[1] == 3 and np.isfinite(points).all()
+    if form == "targets" and complete:  # re-registering the targets' mount needs three seen targets per row
         out.append(_Hypothesis("if the targets file's points were given in another frame than the robot file's tool "
                                "frame (check its [tool] and the targets file)", 1, jm.to_model(q_ctrl), points, targets,
                                frame, free_tool=True))  # fmt: skip
@@ -645,7 +677,7 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
         report.stats["nominal_best_explanation"] = {"fix": best.text, "mean_mm": round(best_mean * 1e3, 4)}
     if len(reach_bad):
         i = int(reach_bad[0])
-        dist = float(np.linalg.norm(points[i], axis=1).max())
+        dist = float(np.nanmax(np.linalg.norm(points[i], axis=1)))
         fix = (
             f"the data fit the nominal model to {_mm(best_mean)} mean {best.text}"
             if explained
@@ -720,7 +752,8 @@ def _reach(robot: RobotSpec, targets: np.ndarray) -> float:
 def _far_rows(points: np.ndarray, robot: RobotSpec, targets: np.ndarray) -> np.ndarray:
     """Rows with a point beyond the robot's reach (a generous bound: every link offset laid end to end, + 10 %)."""
     limit = 1.1 * _reach(robot, targets) + 0.05
-    return np.flatnonzero(np.linalg.norm(points, axis=2).max(axis=1) > limit)
+    dist = np.linalg.norm(points, axis=2)
+    return np.flatnonzero((np.nanmax(dist, axis=1) if np.isnan(dist).any() else dist.max(axis=1)) > limit)
 
 
 def _check_duplicates(q, existing_q, final, hints, report, allow) -> None:
@@ -780,8 +813,9 @@ def check_measurements(
 ) -> SanityReport:
     """Run every sanity check on measurements (already converted to SI with the given units); return the report.
 
-    q: (k, n) controller joints (rad / m); points: (k, 3, 3) measured targets (m) in ``frame``; targets: (3, 3) m
-    in the tool frame (for ``form = "probe"`` the probe's virtual offsets). ``robot``: the nominal robot; without
+    q: (k, n) controller joints (rad / m); points: (k, m, 3) measured targets (m) in ``frame``, a NaN row for a
+    target not seen; targets: (m, 3) m in the tool frame (for ``form = "probe"`` the probe's virtual offsets).
+    ``robot``: the nominal robot; without
     it only the data-only checks run (target distances, duplicates). ``length_unit`` / ``angle_unit``: the units the
     numbers were read in, so a suggestion can name the other one. ``allow``: check names to override (they are
     still run and reported in ``report.allowed``). ``existing_q``: joints already in the session (appending), for
@@ -793,10 +827,16 @@ def check_measurements(
     q = np.asarray(q, dtype=float)
     points = np.asarray(points, dtype=float)
     targets = np.asarray(targets, dtype=float)
-    if q.ndim != 2 or points.shape != (len(q), 3, 3) or targets.shape != (3, 3):
-        raise DatasetError(f"sanity checks need q (k, n), points (k, 3, 3), targets (3, 3); got {q.shape}, "
+    m = targets.shape[0] if targets.ndim == 2 else 0
+    if q.ndim != 2 or targets.shape != (m, 3) or m < 1 or points.shape != (len(q), m, 3):
+        raise DatasetError(f"sanity checks need q (k, n), points (k, m, 3), targets (m, 3); got {q.shape}, "
                            f"{points.shape}, {targets.shape}")  # fmt: skip
-    finite = np.isfinite(q).all(axis=1) & np.isfinite(points).all(axis=(1, 2))
+    # A target not seen is a NaN row; a row is left out when a joint or a partly seen target is non-finite, or
+    # nothing was seen.
+    nan_rows = np.isnan(points).all(axis=2)
+    finite = (
+        np.isfinite(q).all(axis=1) & (np.isfinite(points).all(axis=2) | nan_rows).all(axis=1) & ~nan_rows.all(axis=1)
+    )
     if not finite.all():
         report.notes.append(f"{int((~finite).sum())} row(s) with non-finite values were left out of the checks")
         keep = np.flatnonzero(finite)

@@ -50,10 +50,11 @@ from ._util import (
     utc_now,
     write_file_durable,
 )
+from .documents import MeasurementDoc, SessionHeader, StartDoc
 from .errors import DatasetCorrupted, DatasetError, JournalCorrupted, UnknownSession, UnknownVersion
 from .ids import Ref, new_fit_id, new_session_id, parse_ref, validate_id, version_name
 from .journal import JOURNAL_NAME, Journal, JournalContents, read_journal
-from .schema import SCHEMA_VERSION, SPREAD_COLUMNS, TARGET_COLUMNS, column_units, joint_columns, normalize_table
+from .schema import SCHEMA_VERSION, column_units, joint_columns, normalize_table, spread_columns, target_columns
 
 MEASUREMENTS = "measurements.parquet"
 MANIFEST = "manifest.json"
@@ -156,8 +157,13 @@ class Dataset:
 
     @property
     def targets(self) -> np.ndarray:
-        """(3, 3) m: the target points in the tool frame, row i = target t(i+1)."""
-        return np.asarray(self.manifest["session"]["targets"], dtype=np.float64)
+        """(m, 3) m: the target points in the tool frame, row i = target t(i+1)."""
+        return np.asarray(self.manifest["session"]["targets"], dtype=np.float64).reshape(-1, 3)
+
+    @property
+    def n_targets(self) -> int:
+        """m: the number of targets (the length of the manifest's targets list)."""
+        return len(self.manifest["session"]["targets"])
 
     @property
     def q(self) -> np.ndarray:
@@ -167,8 +173,14 @@ class Dataset:
 
     @property
     def points(self) -> np.ndarray:
-        """(k, 3, 3) m: measured targets; ``points[:, i]`` is target t(i+1)."""
-        return self.table[list(TARGET_COLUMNS)].to_numpy(dtype=np.float64).reshape(-1, 3, 3)
+        """(k, m, 3) m: measured targets; ``points[:, i]`` is target t(i+1), all NaN where it was not seen."""
+        m = self.n_targets
+        return self.table[list(target_columns(m))].to_numpy(dtype=np.float64).reshape(-1, m, 3)
+
+    @property
+    def seen(self) -> np.ndarray:
+        """(k, m) bool: target t(i+1) was seen in the row (``points[r, i]`` is finite)."""
+        return ~np.isnan(self.points).all(axis=2)
 
     @property
     def split(self) -> np.ndarray:
@@ -182,10 +194,11 @@ class Dataset:
 
     @property
     def spread(self) -> np.ndarray | None:
-        """(k, 3) m tracker spread per target, or None if the version has none."""
-        if not all(c in self.table.columns for c in SPREAD_COLUMNS):
+        """(k, m) m tracker spread per target (NaN where not seen or unknown), or None if the version has none."""
+        cols = list(spread_columns(self.n_targets))
+        if not all(c in self.table.columns for c in cols):
             return None
-        return self.table[list(SPREAD_COLUMNS)].to_numpy(dtype=np.float64)
+        return self.table[cols].to_numpy(dtype=np.float64)
 
     @property
     def units(self) -> dict[str, str]:
@@ -334,19 +347,19 @@ def with_robot_record(meta: dict) -> dict:
     return {**meta, "robot": robot, "metadata": user}
 
 
-def session_meta_from_start(start: dict) -> dict:
+def session_meta_from_start(start: StartDoc) -> dict:
     """The ``session`` block of a manifest, from a journal's start document."""
     return {
-        "session_id": start["session_id"],
-        "robot": dict(start["robot"]),
-        "targets": start["targets"],
+        "session_id": start.session_id,
+        "robot": dict(start.robot),
+        "targets": start.targets,
         "targets_unit": "m",
-        "frame": start["frame"],
-        "tracker": start.get("tracker", {}),
-        "robot_driver": start.get("robot_driver", {}),
-        "plan": _plan_summary(start.get("plan") or []),
-        "extra_units": dict(start.get("extra_units") or {}),
-        "metadata": start.get("metadata", {}),
+        "frame": start.frame,
+        "tracker": start.tracker,
+        "robot_driver": start.robot_driver,
+        "plan": _plan_summary(start.plan),
+        "extra_units": dict(start.extra_units),
+        "metadata": start.metadata,
     }
 
 
@@ -420,29 +433,15 @@ class SessionStore:
         return self.session_dir(r.session_id) / version_name(r.version)  # type: ignore[arg-type]
 
     @_writes("create a session")
-    def create_session(
-        self,
-        *,
-        robot_name: str,
-        robot_hash: str,
-        n_joints: int,
-        targets: Any,
-        frame: str,
-        tracker: Mapping[str, Any] | None = None,
-        robot_driver: Mapping[str, Any] | None = None,
-        plan: Sequence[Any] | None = None,
-        extra_units: Mapping[str, str] | None = None,
-        metadata: Mapping[str, Any] | None = None,
-        session_id: str | None = None,
-        robot: Mapping[str, Any] | None = None,
-    ) -> Journal:
-        """Create a session folder and its journal (start document written and fsynced); return the open
-        :class:`Journal` (close it when done).
+    def create_session(self, header: SessionHeader) -> Journal:
+        """Create a session folder and its journal (start document of ``header`` written and fsynced); return the
+        open :class:`Journal` (close it when done).
 
-        ``robot``: the model's full record (``RobotSpec.record()``, with the file text); stored in the start
+        ``header.robot``: the model's full record (``RobotSpec.record()``, with the file text) is stored in the start
         document and so in every version sealed from it, which makes the session refittable without the file.
+        ``header.session_id``: None = a new id from the robot name and the time.
         """
-        session_id = validate_id(session_id) if session_id else new_session_id(robot_name)
+        session_id = validate_id(header.session_id) if header.session_id else new_session_id(header.robot_name)
         self.root.mkdir(parents=True, exist_ok=True)
         d = self.root / session_id
         try:
@@ -451,21 +450,7 @@ class SessionStore:
             raise DatasetError(f"session {session_id!r} already exists in {self.root}") from None
         fsync_dir(self.root)
         try:
-            return Journal.create(
-                d / JOURNAL_NAME,
-                session_id=session_id,
-                robot_name=robot_name,
-                robot_hash=robot_hash,
-                n_joints=n_joints,
-                targets=targets,
-                frame=frame,
-                tracker=tracker,
-                robot_driver=robot_driver,
-                plan=plan,
-                extra_units=extra_units,
-                metadata=metadata,
-                robot=robot,
-            )
+            return Journal.create(d / JOURNAL_NAME, header, session_id=session_id)
         except BaseException:
             # Nothing was written (or the start document failed): leave no empty session behind.
             for p in (d / JOURNAL_NAME, d):
@@ -718,7 +703,8 @@ class SessionStore:
             )
         if a["frame"] != b["frame"]:
             raise DatasetError(f"session {session_id!r} has points in the {a['frame']} frame, new data in {b['frame']}")
-        if not np.allclose(np.asarray(a["targets"]), np.asarray(b["targets"]), rtol=0, atol=1e-9):
+        ta, tb = np.asarray(a["targets"], dtype=float), np.asarray(b["targets"], dtype=float)
+        if ta.shape != tb.shape or not np.allclose(ta, tb, rtol=0, atol=1e-9):
             raise DatasetError(f"session {session_id!r} has targets {a['targets']}, new data {b['targets']}")
 
     @_writes("write a new version")
@@ -741,7 +727,7 @@ class SessionStore:
         else:
             through = 0
             table = rows
-        table = normalize_table(table, n)
+        table = normalize_table(table, n, len(session["targets"]))
         number = (versions[-1] if versions else 0) + 1
         merged = {**session, "extra_units": {**meta.get("extra_units", {}), **session.get("extra_units", {})}}
         manifest = self._manifest(
@@ -768,7 +754,7 @@ class SessionStore:
         final = self.root / session_id
         if final.exists():
             raise DatasetError(f"session {session_id!r} already exists in {self.root}")
-        table = normalize_table(rows, int(meta["robot"]["n_joints"]))
+        table = normalize_table(rows, int(meta["robot"]["n_joints"]), len(meta["targets"]))
         manifest = self._manifest(
             session_id, 1, table, meta, parent=None, source=source, provenance=provenance, journal_seq_through=0
         )
@@ -814,7 +800,7 @@ class SessionStore:
                 if doc["type"] != "measurement":
                     continue
                 if ln < first:
-                    measurements.append(doc)
+                    measurements.append(MeasurementDoc.from_json(doc))
                 else:
                     skipped.append(
                         {"line": ln, "seq": doc["seq"], "pose_index": doc["pose_index"], "status": doc["status"],
@@ -828,22 +814,22 @@ class SessionStore:
         parent = versions[-1] if versions else None
         parent_ds = self.load(Ref(session_id, parent)) if parent else None
         through = int(parent_ds.manifest.get("journal_seq_through", 0)) if parent_ds is not None else 0
-        new = [m for m in measurements if m["seq"] > through and m["status"] == "valid"]
+        new = [m for m in measurements if m.seq > through and m.valid]
         latest = f"{session_id}@{version_name(parent)}" if parent else None
         if not new:
             where = f"since {latest}" if latest else "in the journal"
             return SealResult(latest, False, 0, f"nothing new to seal {where} (no new valid measurements)")
         meta = session_meta_from_start(start)
-        rows = journal_rows(new, int(start["robot"]["n_joints"]))
+        rows = journal_rows(new, start.n_joints, start.n_targets)
         table = pd.concat([parent_ds.table, rows], ignore_index=True) if parent_ds is not None else rows
-        table = normalize_table(table, int(start["robot"]["n_joints"]))
-        seq_through = max(m["seq"] for m in measurements)
+        table = normalize_table(table, start.n_joints, start.n_targets)
+        seq_through = max(m.seq for m in measurements)
         provenance = {
             "journal": {
                 "seq_through": seq_through,
                 "bytes": contents.size,
                 "sha256": sha256_file(d / JOURNAL_NAME, limit=contents.size),
-                "new_seqs": [m["seq"] for m in new],
+                "new_seqs": [m.seq for m in new],
                 "warnings": contents.warnings,
             }
         }
@@ -1021,22 +1007,26 @@ class SessionStore:
         raise UnknownVersion(f"no fit {fit_id!r} in store {self.root}")
 
 
-def journal_rows(measurements: Sequence[dict], n_joints: int) -> pd.DataFrame:
-    """Measurement documents → table rows (q from q_actual, falling back to q_commanded)."""
+def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_targets: int = 3) -> pd.DataFrame:
+    """Measurement documents → table rows (q from q_actual, falling back to q_commanded).
+
+    A target written as ``null`` (not seen) becomes NaN in its three columns and its spread.
+    """
     recs = []
     for m in measurements:
-        q = m["q_actual"] if m.get("q_actual") is not None else m["q_commanded"]
-        rec: dict[str, Any] = {"pose": m["pose_index"]}
+        q = m.q
+        rec: dict[str, Any] = {"pose": m.pose_index}
         rec.update({f"q{j + 1}": float(q[j]) for j in range(n_joints)})
-        for i in range(3):
+        for i in range(n_targets):
+            point = m.points[i]  # type: ignore[index]
             for a, axis in enumerate("xyz"):
-                rec[f"t{i + 1}_{axis}"] = float(m["points"][i][a])
-        rec["split"] = m.get("split") or ""
-        spread = m.get("spread")
-        for i, c in enumerate(SPREAD_COLUMNS):
-            rec[c] = float(spread[i]) if spread is not None else np.nan
-        rec["timestamp"] = float(m["time"])
-        for k, v in (m.get("extra") or {}).items():
+                rec[f"t{i + 1}_{axis}"] = np.nan if point is None else float(point[a])
+        rec["split"] = m.split or ""
+        spread = m.spread
+        for i, c in enumerate(spread_columns(n_targets)):
+            rec[c] = float(spread[i]) if spread is not None and spread[i] is not None else np.nan
+        rec["timestamp"] = float(m.time)
+        for k, v in m.extra.items():
             rec[f"x_{k}"] = np.nan if v is None else v
         recs.append(rec)
     table = pd.DataFrame.from_records(recs)

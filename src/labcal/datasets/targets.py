@@ -1,11 +1,16 @@
-"""The three target points on the end effector: validation and the targets TOML file.
+"""The target points on the end effector (1 to k of them): validation and the targets TOML file.
 
 File format (DESIGN.md section 4)::
 
     unit = "mm"            # "m", "mm" or "in"
     points = [[0, 0, 0], [100, 0, 0], [0, 100, 0]]   # t1, t2, t3 in the tool frame
 
-Inside labcal targets are a (3, 3) float array in metres, row i = target t(i+1).
+    points = [[0, 0, 45]]  # a single reflector (SMR) 45 mm in front of the flange: one target
+
+Inside labcal targets are an (m, 3) float array in metres, row i = target t(i+1). Three targets must span a
+triangle (three in a row would leave the rotation about their line unmeasured, so the file is most likely wrong);
+one or two targets, or more than three, are accepted as long as no two of them coincide. What a set of fewer than
+three targets cannot identify is the fit's to report.
 """
 
 from __future__ import annotations
@@ -35,16 +40,17 @@ def validate_targets(
     min_height: float = MIN_TARGET_HEIGHT,
     source: str = "targets",
 ) -> np.ndarray:
-    """Return the targets as a (3, 3) float64 array in metres, or raise :class:`TargetsError`.
+    """Return the targets as an (m, 3) float64 array in metres (m >= 1), or raise :class:`TargetsError`.
 
-    ``points`` must already be in metres. Rejects a wrong count, non-numeric or non-finite values and
-    (nearly) collinear targets: triangle area < ``min_area`` m² or a triangle height < ``min_height`` m.
+    ``points`` must already be in metres. Rejects no points, non-numeric or non-finite values, two targets closer
+    than ``min_height`` m (the same point twice) and, for exactly three targets, (nearly) collinear ones: triangle
+    area < ``min_area`` m² or a triangle height < ``min_height`` m.
     """
     rows = points.tolist() if isinstance(points, np.ndarray) else points
-    if not isinstance(rows, list | tuple) or len(rows) != 3:
+    if not isinstance(rows, list | tuple) or len(rows) < 1:
         n = len(rows) if isinstance(rows, list | tuple) else "no"
-        raise TargetsError(f"{source}: expected exactly 3 target points, got {n}")
-    out = np.empty((3, 3))
+        raise TargetsError(f"{source}: expected at least 1 target point ([x, y, z] each), got {n}")
+    out = np.empty((len(rows), 3))
     for i, p in enumerate(rows):
         if not isinstance(p, list | tuple) or len(p) != 3:
             raise TargetsError(f"{source}: target t{i + 1} must be [x, y, z], got {p!r}")
@@ -52,6 +58,16 @@ def validate_targets(
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
                 raise TargetsError(f"{source}: target t{i + 1} coordinate {'xyz'[j]} is not a finite number: {v!r}")
             out[i, j] = float(v)
+    if len(out) != 3:
+        for i in range(len(out)):
+            for j in range(i):
+                gap = float(np.linalg.norm(out[i] - out[j]))
+                if gap < min_height:
+                    raise TargetsError(
+                        f"{source}: targets t{j + 1} and t{i + 1} coincide ({gap * 1e3:.3g} mm apart, minimum "
+                        f"{min_height * 1e3:g} mm): list each target once"
+                    )
+        return out
     a, b, c = out
     area = 0.5 * float(np.linalg.norm(np.cross(b - a, c - a)))
     sides = [np.linalg.norm(c - b), np.linalg.norm(a - c), np.linalg.norm(b - a)]
@@ -66,7 +82,7 @@ def validate_targets(
 
 
 def load_targets(path: str | Path) -> np.ndarray:
-    """Read a targets TOML file; return the (3, 3) targets in metres (row i = target t(i+1))."""
+    """Read a targets TOML file; return the (m, 3) targets in metres (row i = target t(i+1))."""
     path = Path(path)
     try:
         with open(path, "rb") as f:
@@ -81,12 +97,12 @@ def load_targets(path: str | Path) -> np.ndarray:
     if unit not in LENGTH_UNITS:
         raise TargetsError(f'targets file {path}: unit must be "m", "mm" or "in", got {unit!r}')
     if "points" not in doc:
-        raise TargetsError(f'targets file {path}: missing key "points" (three [x, y, z] lists)')
+        raise TargetsError(f'targets file {path}: missing key "points" (a list of [x, y, z] lists, one per target)')
     pts = doc["points"]
     # Check the numbers before scaling so that a message shows what the user wrote.
-    if not isinstance(pts, list) or len(pts) != 3:
+    if not isinstance(pts, list) or len(pts) < 1:
         n = len(pts) if isinstance(pts, list) else "no"
-        raise TargetsError(f"targets file {path}: expected exactly 3 points, got {n}")
+        raise TargetsError(f"targets file {path}: expected at least 1 point ([x, y, z] each), got {n}")
     scaled = []
     for i, p in enumerate(pts):
         if not isinstance(p, list) or len(p) != 3:

@@ -24,12 +24,14 @@ from labcal.sessions.plans import Measure, Move, Plan, PlanError, PoseStep, Sett
 from labcal.sessions.runner import (
     Progress,
     RetryPolicy,
+    RunOptions,
     RunSummary,
     SessionError,
     Validation,
     check_measurement,
     resume,
     run,
+    target_distances,
 )
 
 __all__ = [
@@ -45,6 +47,7 @@ __all__ = [
     "PoseStep",
     "Progress",
     "RetryPolicy",
+    "RunOptions",
     "RunSummary",
     "SessionError",
     "Settle",
@@ -63,4 +66,5 @@ __all__ = [
     "random_configurations",
     "resume",
     "run",
+    "target_distances",
 ]

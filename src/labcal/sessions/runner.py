@@ -3,10 +3,11 @@ every measurement durably before the robot moves again.
 
 Per pose: move → settle → read the joints → measure (N samples averaged, spread kept) → validate → append the
 measurement document to the session journal (written and fsynced by :class:`labcal.datasets.Journal`) →
-next pose. Validation (:class:`Validation`): no missing (non-finite) target; the measured target triangle's
-side lengths agree with those of the nominal targets within ``absolute_tolerance + spread_factor · spread``
-(spread: the largest per-target spread of the averaged frames); the robot reports the commanded joints within
-``joint_tolerance``. A failed attempt is retried (:class:`RetryPolicy`: re-measure, optionally re-move) up to
+next pose. Validation (:class:`Validation`): at least ``min_targets`` targets seen (a target not seen is a NaN
+row of ``Measurement.points``; one seen is finite); the distances between the targets seen together agree with
+those of the nominal targets within ``absolute_tolerance + spread_factor · spread`` (spread: the largest spread
+of the targets seen; with one target seen there is no distance to check); the robot reports the commanded joints
+within ``joint_tolerance``. A failed attempt is retried (:class:`RetryPolicy`: re-measure, optionally re-move) up to
 ``max_attempts`` times; then the pose is recorded as *rejected* with every attempt's reason and the run moves
 on. Only final outcomes are journaled, so each plan pose has at most one measurement document per session.
 
@@ -36,25 +37,31 @@ corrupt line stops it with the line named (seal the valid prefix with ``SessionS
 The runner never draws anything: pass ``progress`` (a callable taking :class:`Progress`) to show it (the CLI
 renders it with rich).
 
+How a run records (frame, validation, retries, overrides, driver identities, metadata, progress …) is one
+:class:`RunOptions`; its fields may also be given as keywords of :func:`run` and :func:`resume`. The runner turns
+them, the robot model, the targets and the plan into the session's :class:`~labcal.datasets.SessionHeader`.
+
 Example::
 
     rig = SimRig(actual, targets, seed=0)
     plan = make_plan(random_configurations(spec.model, 20, seed=1), samples=5, settle=0.0)
     with rig.robot() as robot, rig.tracker() as tracker:
-        summary = run(SessionStore(root), spec, targets, plan, robot, tracker)
+        summary = run(SessionStore(root), spec, targets, plan, robot, tracker, RunOptions(frame="base"))
     summary.exit_status, summary.ref          # ("success", "20261122-031500-ur10-3f9a@v001")
 """
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
-from labcal.datasets import Journal, JournalError, SessionStore
+from labcal.datasets import Journal, JournalError, MeasurementDoc, SessionHeader, SessionStore, StartDoc
 from labcal.datasets.sanity import Hints, check_measurements, check_names
 from labcal.drivers.base import (
     DriverError,
@@ -85,20 +92,26 @@ class SessionError(RuntimeError):
 class Validation:
     """Acceptance of one measurement.
 
-    absolute_tolerance: m, allowed |measured − nominal| side length of the target triangle, plus
-    spread_factor × the largest per-target spread (m) of the averaged frames; joint_tolerance: rad (m), largest
-    allowed |q_actual − q_commanded| after a move.
+    absolute_tolerance: m, allowed |measured − nominal| distance between two targets seen together (the sides of
+    the target triangle for three), plus spread_factor × the largest per-target spread (m) of the averaged frames;
+    joint_tolerance: rad (m), largest allowed |q_actual − q_commanded| after a move; min_targets: fewest targets
+    seen for a valid measurement (1: any pose where the tracker saw something; the session's target count: every
+    target in every row, retrying a pose where one was lost).
     """
 
     absolute_tolerance: float = 0.5e-3
     spread_factor: float = 5.0
     joint_tolerance: float = 1e-3
+    min_targets: int = 1
 
     def __post_init__(self) -> None:
         for name in ("absolute_tolerance", "spread_factor", "joint_tolerance"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
                 raise ValueError(f"Validation.{name} must be a finite number >= 0, got {v!r}")
+        n = self.min_targets
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ValueError(f"Validation.min_targets must be an integer >= 1, got {n!r}")
 
 
 @dataclass(frozen=True)
@@ -179,29 +192,104 @@ class _Outcome:
     silent: bool = False  # the tracker timed out on every attempt
 
 
+def _pairs(m: int) -> list[tuple[int, int]]:
+    """Target pairs whose distances are checked: the triangle's sides t1t2, t2t3, t3t1 for three targets (the order
+    of :func:`triangle_sides`), every pair otherwise."""
+    if m == 3:
+        return [(0, 1), (1, 2), (2, 0)]
+    return list(itertools.combinations(range(m), 2))
+
+
 def triangle_sides(points: np.ndarray) -> np.ndarray:
     """(3, 3) points → (3,) side lengths |t1t2|, |t2t3|, |t3t1| in the points' unit."""
     p = np.asarray(points, dtype=float)
     return np.linalg.norm(p - np.roll(p, -1, axis=0), axis=1)
 
 
-def check_measurement(m: Measurement, nominal_sides: np.ndarray, validation: Validation) -> tuple[str, float | None]:
-    """("" if acceptable else the reason, triangle error m or None). See :class:`Validation`."""
+def target_distances(points: np.ndarray) -> np.ndarray:
+    """(m, 3) points → distances of the target pairs (:func:`_pairs`; for m = 3 exactly :func:`triangle_sides`),
+    NaN where either target is not seen (a NaN row). ``(0,)`` for one target."""
+    p = np.asarray(points, dtype=float)
+    if p.shape == (3, 3):
+        return triangle_sides(p)
+    pairs = _pairs(len(p))
+    return np.array([np.linalg.norm(p[a] - p[b]) for a, b in pairs], dtype=float).reshape(len(pairs))
+
+
+def check_measurement(m: Measurement, nominal: np.ndarray, validation: Validation) -> tuple[str, float | None]:
+    """("" if acceptable else the reason, largest distance error in m, or None when fewer than two targets were
+    seen). ``nominal``: the targets (m, 3) in the tool frame (or, for three targets, their :func:`triangle_sides`).
+    See :class:`Validation`."""
+    nominal = np.asarray(nominal, dtype=float)
+    if nominal.ndim == 1:  # the triangle's sides, as callers before 1..k targets passed them
+        n_targets, sides = 3, nominal
+    else:
+        n_targets, sides = len(nominal), target_distances(nominal)
     points = np.asarray(m.points, dtype=float)
-    if points.shape != (3, 3):
-        return f"tracker returned points of shape {points.shape}, expected (3, 3)", None
-    missing = [f"t{i + 1}" for i in range(3) if not np.all(np.isfinite(points[i]))]
-    if missing:
-        return f"missing target(s) {', '.join(missing)}", None
-    error = float(np.max(np.abs(triangle_sides(points) - nominal_sides)))
+    if points.shape != (n_targets, 3):
+        return f"tracker returned points of shape {points.shape}, expected ({n_targets}, 3)", None
+    finite = np.isfinite(points)
+    seen = finite.all(axis=1)
+    partly = finite.any(axis=1) & ~seen
+    if partly.any():
+        bad = ", ".join(f"t{i + 1}" for i in np.flatnonzero(partly))
+        return f"target(s) {bad} partly non-finite (a target is either seen, finite, or not seen, all NaN)", None
+    missing = [f"t{i + 1}" for i in np.flatnonzero(~seen)]
+    if int(seen.sum()) < validation.min_targets:
+        if not seen.any():
+            return "no target seen", None
+        return f"missing target(s) {', '.join(missing)} ({int(seen.sum())} seen, {validation.min_targets} needed)", None
+    together = np.array([seen[a] and seen[b] for a, b in _pairs(n_targets)], dtype=bool)
+    if not together.any():
+        return "", None
+    measured = target_distances(points)
+    error = float(np.max(np.abs(measured[together] - sides[together])))
     spread = np.asarray(m.spread, dtype=float)
-    worst = float(np.max(spread)) if spread.size and np.all(np.isfinite(spread)) else 0.0
+    spread_seen = spread[seen] if spread.shape == (n_targets,) else spread
+    worst = float(np.max(spread_seen)) if spread_seen.size and np.all(np.isfinite(spread_seen)) else 0.0
     tol = validation.absolute_tolerance + validation.spread_factor * worst
     if error > tol:
+        what = "target triangle" if n_targets == 3 and together.all() else "distances between the targets seen"
         return (
-            f"target triangle differs from the nominal targets by {error * 1e3:.3f} mm (tolerance {tol * 1e3:.3f} mm)"
+            f"{what} differs from the nominal targets by {error * 1e3:.3f} mm (tolerance {tol * 1e3:.3f} mm)"
         ), error
     return "", error
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How :func:`run` records a session (and :func:`resume` continues it; resume reads validation, retry and the
+    overrides from the start document).
+
+    frame: "tracker", or "base" if the tracker reports in the robot base frame; validation, retry: see
+    :class:`Validation`, :class:`RetryPolicy`; allow: record-time sanity checks to override (names of
+    :data:`labcal.datasets.sanity.CHECKS`); progress: callable taking :class:`Progress`; session_id: None = a new
+    id; tracker_info / robot_info: identity of the drivers for the start document (default :func:`describe`);
+    metadata: the caller's (sim seeds, profiles …); sleep: how to wait for settling (tests pass a no-op); seal:
+    make a version at the end.
+    """
+
+    frame: str = "tracker"
+    validation: Validation = field(default_factory=Validation)
+    retry: RetryPolicy = field(default_factory=RetryPolicy)
+    allow: tuple[str, ...] = ()
+    progress: ProgressCallback | None = None
+    session_id: str | None = None
+    tracker_info: Mapping[str, Any] | None = None
+    robot_info: Mapping[str, Any] | None = None
+    metadata: Mapping[str, Any] | None = None
+    sleep: Callable[[float], None] = time.sleep
+    seal: bool = True
+
+    def with_changes(self, **changes: Any) -> RunOptions:
+        """These options with some fields replaced (None for validation/retry keeps the default)."""
+        known = {f.name for f in dataclasses.fields(self)}
+        if unknown := sorted(set(changes) - known):
+            raise TypeError(f"unknown run option(s) {unknown}; the options are {sorted(known)}")
+        changes = {k: v for k, v in changes.items() if not (k in ("validation", "retry") and v is None)}
+        if "allow" in changes:
+            changes["allow"] = tuple(changes["allow"])
+        return dataclasses.replace(self, **changes) if changes else self
 
 
 class _Run:
@@ -213,30 +301,23 @@ class _Run:
         plan: Plan,
         robot: Robot,
         tracker: Tracker,
-        targets: np.ndarray,
-        validation: Validation,
-        retry: RetryPolicy,
-        progress: ProgressCallback | None,
-        sleep: Callable[[float], None],
-        joints: JointMap | None = None,
+        options: RunOptions,
         spec: RobotSpec | None = None,
-        allow: frozenset[str] = frozenset(),
     ) -> None:
         self.journal, self.plan, self.robot, self.tracker = journal, plan, robot, tracker
-        self.validation, self.retry = validation, retry
-        self.joints = joints if joints is not None else JointMap.identity(plan.n_joints)
-        self.targets = np.asarray(targets, dtype=float)
-        self.nominal_sides = triangle_sides(targets)
-        self._progress = progress
-        self.sleep = sleep
+        self.validation, self.retry = options.validation, options.retry
+        self.joints = spec.joints if spec is not None else JointMap.identity(plan.n_joints)
+        self.targets = journal.start.targets_array()
+        self._progress = options.progress
+        self.sleep = options.sleep
         self.measured = 0
-        self.spec, self.allow = spec, allow
-        self.frame = journal.start.get("frame", "base")
+        self.spec, self.allow = spec, check_names(options.allow)
+        self.frame = journal.start.frame
         contents = journal.read()
-        self.done = {d["pose_index"] for d in contents.measurements}
-        valid = [d for d in contents.measurements if d["status"] == "valid"]
-        # Valid rows so far (controller joints, points): the record-time sanity check runs on them.
-        self.rows = [(d["pose_index"], d["q_actual"] or d["q_commanded"], d["points"]) for d in valid]
+        self.done = {d.pose_index for d in contents.measurements}
+        # Valid rows so far (controller joints, points with NaN rows for targets not seen): the record-time sanity
+        # check runs on them.
+        self.rows = [(d.pose_index, d.q, d.points_array(len(self.targets))) for d in contents.measurements if d.valid]
         self.sanity_at = max(SANITY_MIN_ROWS, 2 * plan.n_joints)
         self.sanity_done = False
 
@@ -259,7 +340,7 @@ class _Run:
         )
         report = check_measurements(
             np.array([r[1] for r in self.rows], dtype=float),
-            np.array([r[2] for r in self.rows], dtype=float),
+            np.array([r[2] for r in self.rows], dtype=float).reshape(len(self.rows), len(self.targets), 3),
             self.targets,
             robot=self.spec,
             frame=self.frame,
@@ -300,7 +381,7 @@ class _Run:
                     q_commanded=q_command,
                     q_actual=outcome.q_actual,
                     points=None if m is None else m.points,
-                    spread=None if m is None or not np.all(np.isfinite(m.spread)) else m.spread,
+                    spread=_spread_of(m),
                     samples=0 if m is None else int(m.samples),
                     status=outcome.status,
                     reason=outcome.reason,
@@ -315,7 +396,7 @@ class _Run:
                 valid_now += outcome.status == "valid"
                 self.emit(step.index, outcome.status, outcome.residual, outcome.reason)
                 if outcome.status == "valid":
-                    self.rows.append((step.index, np.asarray(outcome.q_actual).tolist(), np.asarray(m.points).tolist()))
+                    self.rows.append((step.index, np.asarray(outcome.q_actual).tolist(), np.asarray(m.points)))
                     # Checked after the measurement is journaled (nothing recorded is lost) and before the next
                     # motion: a wrong robot model, targets file, unit or frame stops the run early.
                     why = self.sanity()
@@ -356,7 +437,7 @@ class _Run:
             # A run that measured poses and kept none is not a success, whatever the cause (dead tracker, wrong
             # targets file, robot never reaching the poses): say why instead of sealing nothing quietly.
             contents = journal.read()
-            last = next((d["reason"] for d in reversed(contents.measurements) if d["status"] != "valid"), "")
+            last = next((d.reason for d in reversed(contents.measurements) if not d.valid), "")
             reason = f"no valid measurement: all {self.measured} pose(s) measured in this run were rejected"
             reason += f" (last reason: {last})" if last else ""
             journal.stop("failed", reason)
@@ -417,7 +498,7 @@ class _Run:
             if robot.state().protective_stop:
                 raise ProtectiveStop("robot entered a protective stop while measuring")
             last = m
-            why, residual = check_measurement(m, self.nominal_sides, v)
+            why, residual = check_measurement(m, self.targets, v)
             if not why:
                 return _Outcome("valid", q_actual, m, "", attempt, residual)
             reasons.append(why)
@@ -425,19 +506,30 @@ class _Run:
         return _Outcome("rejected", q_actual, last, _join(reasons), self.retry.max_attempts, residual, silent)
 
 
+def _spread_of(m: Measurement | None) -> np.ndarray | None:
+    """The spread to journal: per target (NaN where not seen), or None when a seen target's spread is unknown."""
+    if m is None:
+        return None
+    spread = np.asarray(m.spread, dtype=float)
+    seen = np.isfinite(np.asarray(m.points, dtype=float)).all(axis=-1)
+    if spread.shape != seen.shape or not np.isfinite(spread[seen]).all():
+        return None
+    return np.where(seen, spread, np.nan)
+
+
 def _join(reasons: list[str]) -> str:
     return "; ".join(f"attempt {i + 1}: {r}" for i, r in enumerate(reasons))
 
 
-def _spec_of_start(start: dict) -> RobotSpec | None:
+def _spec_of_start(start: StartDoc) -> RobotSpec | None:
     """The robot model stored in a start document (None when the session predates stored robot files)."""
-    record = start.get("robot") or {}
+    record = start.robot
     if not record.get("text"):
         return None
     try:
-        return loads(record["text"], record.get("format") or "toml", source=f"<robot file of {start['session_id']}>")
+        return loads(record["text"], record.get("format") or "toml", source=f"<robot file of {start.session_id}>")
     except ValueError as e:
-        raise SessionError(f"the robot file stored with session {start['session_id']} cannot be read: {e}") from None
+        raise SessionError(f"the robot file stored with session {start.session_id} cannot be read: {e}") from None
 
 
 def _safe_stop(robot: Robot) -> None:
@@ -451,10 +543,10 @@ def _finish(
     store: SessionStore, journal: Journal, exit_status: str, reason: str, measured: int, plan: Plan, seal: bool
 ) -> RunSummary:
     contents = journal.read()
-    docs = contents.measurements
-    valid = sum(d["status"] == "valid" for d in docs)
+    docs: list[MeasurementDoc] = contents.measurements
+    valid = sum(d.valid for d in docs)
     rejected = len(docs) - valid
-    remaining = plan.n_poses - len({d["pose_index"] for d in docs})
+    remaining = plan.n_poses - len({d.pose_index for d in docs})
     journal.close()
     ref, messages = None, []
     session_id = journal.session_id
@@ -475,62 +567,53 @@ def run(
     plan: Plan,
     robot: Robot,
     tracker: Tracker,
-    *,
-    frame: str = "tracker",
-    validation: Validation | None = None,
-    retry: RetryPolicy | None = None,
-    progress: ProgressCallback | None = None,
-    session_id: str | None = None,
-    tracker_info: Mapping[str, Any] | None = None,
-    robot_info: Mapping[str, Any] | None = None,
-    metadata: Mapping[str, Any] | None = None,
-    sleep: Callable[[float], None] = time.sleep,
-    seal: bool = True,
-    allow: Iterable[str] = (),
+    options: RunOptions | None = None,
+    **changes: Any,
 ) -> RunSummary:
-    """Create a session for ``spec`` (robot model) and ``targets`` ((3, 3) m, tool frame) and execute ``plan``.
+    """Create a session for ``spec`` (robot model) and ``targets`` ((m, 3) m, tool frame) and execute ``plan``.
 
-    frame: the frame of the tracker's points ("tracker", or "base" if the tracker reports in the robot base
-    frame). ``allow``: record-time sanity checks to override (names of :data:`labcal.datasets.sanity.CHECKS`; the
-    checks run once the session has ``2 n`` valid poses and a failure stops the run as "failed" before the next
-    motion). ``plan``: in model joints; the robot is commanded in controller joints (``spec.joints``). The start
-    document records the robot model (name, hash and the robot file's text: ``spec.record()``), targets, tracker and
-    robot identity
-    (``tracker_info``/``robot_info``, default :func:`describe`), the plan (one entry per pose), the runner
-    settings (so :func:`resume` validates the same way) and software versions.
+    ``options`` (:class:`RunOptions`, or its fields as keywords): frame, validation, retry, allow (record-time sanity
+    checks to override; the checks run once the session has ``2 n`` valid poses and a failure stops the run as
+    "failed" before the next motion), progress, session id, driver identities, metadata. ``plan``: in model joints;
+    the robot is commanded in controller joints (``spec.joints``). The start document records the robot model
+    (name, hash and the robot file's text: ``spec.record()``), the targets, the tracker and robot identity, the plan
+    (one entry per pose), the runner settings (so :func:`resume` validates the same way) and software versions.
     """
-    validation = validation or Validation()
-    retry = retry or RetryPolicy()
+    opts = (options or RunOptions()).with_changes(**changes)
     targets = np.asarray(targets, dtype=float)
     if robot.n_joints != spec.model.n or plan.n_joints != spec.model.n:
         raise SessionError(
             f"robot model {spec.name!r} has {spec.model.n} joints, the robot driver {robot.n_joints}, "
             f"the plan {plan.n_joints}"
         )
-    allowed = check_names(allow)
-    runner_settings = {"validation": asdict(validation), "retry": asdict(retry), "sanity_allow": sorted(allowed)}
-    journal = store.create_session(
-        robot_name=spec.name,
-        robot_hash=spec.hash,
-        n_joints=spec.model.n,
+    allowed = check_names(opts.allow)
+    runner_settings = {
+        "validation": asdict(opts.validation),
+        "retry": asdict(opts.retry),
+        "sanity_allow": sorted(allowed),
+    }
+    if opts.validation.min_targets == 1:  # sessions before 1..k targets have no such key: keep their documents
+        del runner_settings["validation"]["min_targets"]
+    header = SessionHeader(
+        robot=spec.record(),
         targets=targets,
-        frame=frame,
-        tracker=dict(tracker_info) if tracker_info is not None else describe(tracker),
-        robot_driver=dict(robot_info) if robot_info is not None else describe(robot),
+        frame=opts.frame,
+        tracker=dict(opts.tracker_info) if opts.tracker_info is not None else describe(tracker),
+        robot_driver=dict(opts.robot_info) if opts.robot_info is not None else describe(robot),
         plan=plan.pose_documents(),
         extra_units=EXTRA_UNITS,
-        metadata={"runner": runner_settings, "robot_source": spec.source, **dict(metadata or {})},
-        session_id=session_id,
-        robot=spec.record(),
+        metadata={"runner": runner_settings, "robot_source": spec.source, **dict(opts.metadata or {})},
+        session_id=opts.session_id,
     )
-    state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep, spec.joints, spec, allowed)
+    journal = store.create_session(header)
+    state = _Run(journal, plan, robot, tracker, opts.with_changes(allow=tuple(sorted(allowed))), spec)
     try:
         status, reason = state.execute()
     except BaseException:
         journal.close()
         raise
     state.emit(None, status, message=reason)
-    return _finish(store, journal, status, reason, state.measured, plan, seal)
+    return _finish(store, journal, status, reason, state.measured, plan, opts.seal)
 
 
 def resume(
@@ -540,11 +623,9 @@ def resume(
     tracker: Tracker,
     *,
     spec: RobotSpec | None = None,
-    progress: ProgressCallback | None = None,
     reason: str = "resumed by the operator",
-    sleep: Callable[[float], None] = time.sleep,
-    seal: bool = True,
-    allow: Iterable[str] = (),
+    options: RunOptions | None = None,
+    **changes: Any,
 ) -> RunSummary:
     """Continue a session at the first plan pose without a measurement document (valid or finally rejected).
 
@@ -552,11 +633,13 @@ def resume(
     journal is reopened, a torn last line repaired). ``spec``: if given, its hash must match the session's
     robot model; else the robot file stored in the start document is used (its joint map converts the plan to
     controller joints; a session recorded before robot files were stored uses the identity). Uses the plan,
-    targets and runner settings stored in the start document.
+    targets and runner settings stored in the start document; of ``options`` (or keywords) only progress, sleep,
+    seal and allow (added to the session's overrides) apply.
 
     Raises :class:`SessionError` before anything moves when the journal has a corrupt line (naming it): the run
     could not be sealed afterwards, so measuring would only move the robot for nothing.
     """
+    opts = (options or RunOptions()).with_changes(**changes)
     journal = store.open_journal(session_id)
     try:
         start = journal.start
@@ -573,21 +656,21 @@ def resume(
             )
         if spec is None:
             spec = _spec_of_start(start)
-        if spec is not None and spec.hash != start["robot"]["hash"]:
+        if spec is not None and spec.hash != start.robot_hash:
             raise SessionError(
-                f"session {session_id} was recorded with robot model {start['robot']['name']!r} "
-                f"(hash {start['robot']['hash'][:12]}…), not {spec.name!r} (hash {spec.hash[:12]}…)"
+                f"session {session_id} was recorded with robot model {start.robot['name']!r} "
+                f"(hash {start.robot_hash[:12]}…), not {spec.name!r} (hash {spec.hash[:12]}…)"
             )
         if robot.n_joints != journal.n_joints:
             raise SessionError(f"session {session_id} has {journal.n_joints} joints, the robot {robot.n_joints}")
-        plan = Plan.from_pose_documents(start.get("plan") or [])
-        settings = (start.get("metadata") or {}).get("runner") or {}
-        validation = Validation(**settings.get("validation", {}))
-        retry = RetryPolicy(**settings.get("retry", {}))
-        targets = np.asarray(start["targets"], dtype=float)
-        joints = spec.joints if spec is not None else None
-        allowed = check_names([*settings.get("sanity_allow", []), *allow])
-        state = _Run(journal, plan, robot, tracker, targets, validation, retry, progress, sleep, joints, spec, allowed)
+        plan = Plan.from_pose_documents(start.plan)
+        settings = start.metadata.get("runner") or {}
+        recorded = opts.with_changes(
+            validation=Validation(**settings.get("validation", {})),
+            retry=RetryPolicy(**settings.get("retry", {})),
+            allow=tuple(check_names([*settings.get("sanity_allow", []), *opts.allow])),
+        )
+        state = _Run(journal, plan, robot, tracker, recorded, spec)
         why = state.sanity()  # the rows already recorded, checked before anything moves
         if why:
             raise SessionError(why)
@@ -605,7 +688,7 @@ def resume(
         journal.close()
         raise
     state.emit(None, status, message=why)
-    return _finish(store, journal, status, why, state.measured, plan, seal)
+    return _finish(store, journal, status, why, state.measured, plan, opts.seal)
 
 
 __all__ = [
@@ -613,6 +696,7 @@ __all__ = [
     "Progress",
     "ProgressCallback",
     "RetryPolicy",
+    "RunOptions",
     "RunSummary",
     "SessionError",
     "Validation",
@@ -620,5 +704,6 @@ __all__ = [
     "describe",
     "resume",
     "run",
+    "target_distances",
     "triangle_sides",
 ]

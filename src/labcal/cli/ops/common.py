@@ -118,7 +118,9 @@ def load_observations(
     The robot model is resolved with :func:`robot_for` (stored file text, else built-in; ``robot`` overrides) and
     the stored controller joints are converted to model joints with its joint map: this is the ONE place where
     that conversion happens. When several sessions are pooled, ``Observations.group`` holds each row's session
-    ref, so cross-validation keeps a session in one fold.
+    ref, so cross-validation keeps a session in one fold. ``Observations.points`` is (rows, m, 3) for the m targets of
+    the sessions (m from their manifests), with a NaN row where a target was not seen; three-target sessions recorded
+    before 1..k targets load exactly as they always did.
     ``with_spec=True`` also returns the RobotSpec (callers that fit need it; the 2-tuple stays for old callers).
     """
     if not refs:
@@ -131,7 +133,7 @@ def load_observations(
                 f"{ds.ref} was recorded with robot {ds.robot.get('name')!r}, {first.ref} with "
                 f"{first.robot.get('name')!r}: only sessions of the same robot model can be pooled"
             )
-        if not np.allclose(ds.targets, first.targets, atol=1e-9):
+        if ds.targets.shape != first.targets.shape or not np.allclose(ds.targets, first.targets, atol=1e-9):
             raise UserError(f"{ds.ref} and {first.ref} have different targets: they cannot be pooled")
         if ds.frame != first.frame:
             raise UserError(f"{ds.ref} is in the {ds.frame} frame, {first.ref} in the {first.frame} frame")

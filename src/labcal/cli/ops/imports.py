@@ -31,7 +31,7 @@ def import_session(
     check is a :class:`~labcal.datasets.sanity.SanityError` naming the fix and the ``--allow`` flag that overrides
     it. The robot's full record (file text included) is stored with the session.
     """
-    from labcal.datasets import import_mapped, import_probe_csv, import_targets_csv, load_targets
+    from labcal.datasets import ImportOptions, import_mapped, import_probe_csv, import_targets_csv, load_targets
     from labcal.datasets.sanity import check_names
 
     path = Path(path)
@@ -42,6 +42,7 @@ def import_session(
         raise UserError(f"--form must be 'targets' or 'probe', got {form!r}")
     spec = load(robot)
     ident = (spec.name, spec.hash, spec.model.n)
+    recording = ImportOptions(robot=spec, allow=tuple(allow))
     if mapping is not None:
         # A mapping fixes units, frame and form itself; a flag that would be ignored is a user's misunderstanding.
         ignored = [
@@ -60,19 +61,16 @@ def import_session(
                 f"(keys [targets] unit / [probe] position_unit, joint_unit, frame, form); edit a copy of the mapping"
             )
         targets = load_targets(targets_file) if targets_file else None
-        return import_mapped(store, path, mapping, *ident, targets=targets, robot=spec, allow=allow)
+        return import_mapped(store, path, mapping, *ident, recording, targets=targets)
     if form == "targets":
         if targets_file is None:
             raise UserError("--targets TARGETS.toml is required for --form targets")
-        return import_targets_csv(
-            store, path, *ident, load_targets(targets_file), length_unit=length_unit, angle_unit=angle_unit,
-            frame=frame, robot=spec, allow=allow,
-        )  # fmt: skip
+        reading = recording.with_changes(length_unit=length_unit, angle_unit=angle_unit, frame=frame)
+        return import_targets_csv(store, path, *ident, load_targets(targets_file), reading)
     if targets_file is not None:
         raise UserError(
             "--targets is not used with --form probe: the probe's pose is measured and three virtual targets 100 mm "
             "apart in the probe frame become the session's targets (a --mapping with [probe] offsets can change them)"
         )
-    return import_probe_csv(
-        store, path, *ident, length_unit=length_unit, angle_unit=angle_unit, frame=frame, robot=spec, allow=allow
-    )
+    reading = recording.with_changes(length_unit=length_unit, angle_unit=angle_unit, frame=frame)
+    return import_probe_csv(store, path, *ident, reading)

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -66,80 +69,127 @@ def check_plan_size(poses: int, planner: str = "random", samples: int = 2000) ->
             raise UserError(f"--samples ({samples}) must be at least --poses ({poses}) for the optimal planner")
 
 
+def check_dropout(dropout: float) -> float:
+    """--sim-dropout: a probability in [0, 1)."""
+    if not (isinstance(dropout, int | float) and 0.0 <= float(dropout) < 1.0):
+        raise UserError(
+            f"--sim-dropout must be a probability in [0, 1) (each target lost independently), got {dropout}"
+        )
+    return float(dropout)
+
+
 def _sim_rig(spec: RobotSpec, targets, sim: dict):
     """The sim rig of a session's recorded ``sim`` metadata: the simulated robot's errors come from ``seed``, the
-    tracker noise from ``noise_seed`` (the same seed unless another session of the same robot was asked for)."""
+    tracker noise from ``noise_seed`` (the same seed unless another session of the same robot was asked for), the
+    per-target drop-out probability from ``dropout`` (absent: none)."""
     from labcal.drivers.sim import SimRig
 
     actual = sim_actual(spec, sim["errors"], int(sim["seed"]))
+    extra: dict[str, Any] = {}
+    if sim.get("dropout"):
+        extra["dropout"] = float(sim["dropout"])
     # The simulated controller speaks the robot file's controller joints, as the real one would.
-    return SimRig(actual, targets, seed=int(sim.get("noise_seed", sim["seed"])), joint_map=spec.joint_map)
+    try:
+        return SimRig(actual, targets, seed=int(sim.get("noise_seed", sim["seed"])), joint_map=spec.joint_map, **extra)
+    except TypeError as e:
+        if extra:
+            raise UserError(f"this labcal's sim rig has no per-target drop-out (--sim-dropout): {e}") from None
+        raise
+    except ValueError as e:  # e.g. a target count the sim rig does not support
+        raise UserError(f"the sim rig refused the session's targets: {e}") from None
 
 
-def _drivers(robot_driver, tracker_driver, spec, targets, *, profile, tracker_profile, sim_errors, seed, sim_seed):
-    """(robot, tracker, frame, metadata, closers) for the chosen drivers."""
-    if robot_driver not in ROBOT_DRIVERS:
-        raise UserError(f"--robot-driver must be one of {', '.join(ROBOT_DRIVERS)}, got {robot_driver!r}")
-    if tracker_driver not in TRACKER_DRIVERS:
-        raise UserError(f"--tracker-driver must be one of {', '.join(TRACKER_DRIVERS)}, got {tracker_driver!r}")
-    if (robot_driver == "sim") != (tracker_driver == "sim"):
-        raise UserError("the sim robot and the sim tracker go together: use --robot-driver sim --tracker-driver sim")
-    if robot_driver == "sim":
-        sim = {"errors": sim_errors, "seed": seed if sim_seed is None else sim_seed, "noise_seed": seed}
+@dataclass(frozen=True)
+class SessionRequest:
+    """What ``labcal session new`` asks for: the robot model and targets file, the plan, the drivers, the sim rig.
+
+    robot: built-in name or robot file; targets_file: targets TOML (1..k points, tool frame); poses / planner /
+    samples / seed: the plan (seed also seeds the sim rig's noise); robot_driver / tracker_driver ("sim" | "ur",
+    "sim" | "serial") with profile / tracker_profile for real hardware; sim_errors ("paper" | "default" | "none"),
+    sim_seed (another simulated robot's errors than seed's: the same robot as another session's seed) and
+    sim_dropout (probability that the sim tracker loses each target in a pose); allow: record-time sanity checks to
+    override (see :mod:`labcal.datasets.sanity`).
+    """
+
+    robot: str
+    targets_file: str | Path
+    poses: int
+    robot_driver: str = "sim"
+    tracker_driver: str = "sim"
+    profile: str | None = None
+    tracker_profile: str | None = None
+    planner: str = "random"
+    samples: int = 2000
+    seed: int = 0
+    sim_errors: str = "default"
+    sim_seed: int | None = None
+    sim_dropout: float = 0.0
+    allow: tuple[str, ...] = ()
+
+    def check(self) -> None:
+        """The checks that need nothing loaded: plan size, driver names, sim options, override names."""
+        check_plan_size(self.poses, self.planner, self.samples)
+        if self.robot_driver not in ROBOT_DRIVERS:
+            raise UserError(f"--robot-driver must be one of {', '.join(ROBOT_DRIVERS)}, got {self.robot_driver!r}")
+        if self.tracker_driver not in TRACKER_DRIVERS:
+            raise UserError(
+                f"--tracker-driver must be one of {', '.join(TRACKER_DRIVERS)}, got {self.tracker_driver!r}"
+            )
+        if (self.robot_driver == "sim") != (self.tracker_driver == "sim"):
+            raise UserError(
+                "the sim robot and the sim tracker go together: use --robot-driver sim --tracker-driver sim"
+            )
+        if self.sim_errors not in SIM_ERRORS:
+            raise UserError(f"--sim-errors must be one of {', '.join(SIM_ERRORS)}, got {self.sim_errors!r}")
+        check_dropout(self.sim_dropout)
+        if self.sim_dropout and self.robot_driver != "sim":
+            raise UserError("--sim-dropout is an option of the sim tracker (--tracker-driver sim)")
+        _allowed(self.allow)
+
+
+def _drivers(request: SessionRequest, spec: RobotSpec, targets):
+    """(robot, tracker, frame, metadata) for the chosen drivers."""
+    r = request
+    if r.robot_driver == "sim":
+        sim: dict[str, Any] = {"errors": r.sim_errors, "seed": r.seed if r.sim_seed is None else r.sim_seed}
+        sim["noise_seed"] = r.seed
+        if r.sim_dropout:
+            sim["dropout"] = r.sim_dropout
         rig = _sim_rig(spec, targets, sim)
         return rig.robot(), rig.tracker(), "base", {"sim": sim}
     from labcal.drivers.serial_tracker import open_tracker
     from labcal.drivers.ur import URRobot, load_ur_profile
 
-    if profile is None or tracker_profile is None:
+    if r.profile is None or r.tracker_profile is None:
         raise UserError("real drivers need --profile drivers/<robot>.toml and --tracker-profile drivers/<tracker>.toml")
-    robot = URRobot.connect(load_ur_profile(profile))
-    tracker = open_tracker(tracker_profile, targets)
-    return robot, tracker, "tracker", {"profiles": {"robot": str(profile), "tracker": str(tracker_profile)}}
+    robot = URRobot.connect(load_ur_profile(r.profile))
+    tracker = open_tracker(r.tracker_profile, targets)
+    return robot, tracker, "tracker", {"profiles": {"robot": str(r.profile), "tracker": str(r.tracker_profile)}}
 
 
-def new_session(
-    store: SessionStore,
-    *,
-    robot: str,
-    targets_file: str | Path,
-    poses: int,
-    robot_driver: str = "sim",
-    tracker_driver: str = "sim",
-    profile: str | None = None,
-    tracker_profile: str | None = None,
-    planner: str = "random",
-    samples: int = 2000,
-    seed: int = 0,
-    sim_errors: str = "default",
-    progress=None,
-    allow: tuple[str, ...] = (),
-    sim_seed: int | None = None,
-):
+def new_session(store: SessionStore, request: SessionRequest | None = None, *, progress=None, **fields: Any):
     """Plan and record a session; returns the runner's RunSummary (its .ref is the new SESSION@vNNN).
 
-    seed: the planner's and the sim rig's (robot errors and tracker noise); sim_seed: another simulated robot's
-    errors than seed's (the same robot as another session's seed, measured at other configurations).
-
-    allow: record-time sanity checks to override (see :mod:`labcal.datasets.sanity`), checked before planning."""
+    ``request``: a :class:`SessionRequest`, or its fields as keywords (``new_session(store, robot="ur10",
+    targets_file="t.toml", poses=40)``). ``progress``: the runner's progress callback. Every argument is checked
+    before anything is planned, connected or moved."""
     from labcal.datasets import load_targets
-    from labcal.sessions import make_plan, run
+    from labcal.sessions import RunOptions, make_plan, run
 
-    check_plan_size(poses, planner, samples)  # before anything is loaded, planned or allocated
-    allowed = _allowed(allow)
-    spec = load(robot)
-    targets = load_targets(targets_file)
-    if sim_errors not in SIM_ERRORS:
-        raise UserError(f"--sim-errors must be one of {', '.join(SIM_ERRORS)}, got {sim_errors!r}")
-    q = plan_configurations(spec, poses, planner, seed, targets, samples)
-    sim = robot_driver == "sim"
+    if request is None:
+        request = SessionRequest(**fields)
+    elif fields:
+        request = dataclasses.replace(request, **fields)
+    request.check()  # before anything is loaded, planned or allocated
+    spec = load(request.robot)
+    targets = load_targets(request.targets_file)
+    q = plan_configurations(spec, request.poses, request.planner, request.seed, targets, request.samples)
+    sim = request.robot_driver == "sim"
     plan = make_plan(q, samples=3 if sim else 5, settle=0.0 if sim else 0.5)
-    rob, trk, frame, meta = _drivers(
-        robot_driver, tracker_driver, spec, targets, profile=profile, tracker_profile=tracker_profile,
-        sim_errors=sim_errors, seed=seed, sim_seed=sim_seed,
-    )  # fmt: skip
+    rob, trk, frame, meta = _drivers(request, spec, targets)
+    options = RunOptions(frame=frame, progress=progress, metadata=meta, allow=_allowed(request.allow))
     with rob, trk:
-        return run(store, spec, targets, plan, rob, trk, frame=frame, progress=progress, metadata=meta, allow=allowed)
+        return run(store, spec, targets, plan, rob, trk, options)
 
 
 def _allowed(allow) -> tuple[str, ...]:
@@ -164,6 +214,6 @@ def resume_session(
             f"session {session_id} was not recorded on the sim rig; resume real-hardware sessions from Python with "
             "the same drivers (labcal.sessions.resume)"
         )
-    rig = _sim_rig(spec, np.asarray(meta["targets"], dtype=float), sim)
+    rig = _sim_rig(spec, np.asarray(meta["targets"], dtype=float).reshape(-1, 3), sim)
     with rig.robot() as rob, rig.tracker() as trk:
         return resume(store, session_id, rob, trk, spec=spec, progress=progress, allow=_allowed(allow))
