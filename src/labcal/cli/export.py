@@ -12,8 +12,31 @@ from labcal.cli.common import StoreOption, err, store_of, user_errors
 @user_errors
 def export(
     session: str = typer.Argument(..., help="SESSION or SESSION@vN the fit is stored under."),
-    fmt: str = typer.Option(..., "--format", help="json | npz | urscript | urdf"),
+    fmt: str = typer.Option(
+        ...,
+        "--format",
+        help="json | npz (the compensator) | urscript (function file for a Script node) | urscript-program (def "
+        "program for the script port 30002) | urdf | ur-kinematics (ur_description's calibration YAML).",
+    ),
     out: Path = typer.Option(..., "--out", help="Output file (.json / .npz for the compensator)."),
+    geometry_only: bool = typer.Option(
+        False,
+        "--geometry-only",
+        help="urdf / ur-kinematics of a hybrid or ann fit: write the identified frames alone (refused without "
+        "this flag, because the learned term is dropped; its size is printed).",
+    ),
+    ur_link_names: bool = typer.Option(
+        False, "--ur-link-names", help="urdf: ur_description's link and joint names (base_link turned by pi)."
+    ),
+    unknown_dynamics: str = typer.Option(
+        "zero",
+        "--unknown-dynamics",
+        help="urdf when the robot file gives no joint effort/velocity: zero (default: write 0, with a warning and a "
+        "note in the file) or refuse.",
+    ),
+    statements_per_sync: int = typer.Option(
+        1000, "--statements-per-sync", help="urscript: at most this many statements between two sync() calls."
+    ),
     fit_id: str | None = typer.Option(None, "--fit", help="Fit id (default: the newest fit of the version)."),
     force: bool = typer.Option(
         False, "--force", help="Replace an existing --out file, and export a fit that has warnings (recorded)."
@@ -24,7 +47,8 @@ def export(
 
     Refused before any work: an existing --out file (unless --force), a missing or read-only output folder, and
     a fit with warnings (unless --force; the export then records `forced: true` and the warnings in its
-    provenance). The file is written next to --out and moved into place atomically.
+    provenance). The file is written next to --out and moved into place atomically. A urdf or ur-kinematics
+    export of a fit with a learned term (hybrid, ann) is refused with the term's size unless --geometry-only.
 
     Examples:
 
@@ -33,6 +57,10 @@ def export(
       labcal export S --fit 20261122-0400-ab12 --format urscript --out labcal_correct.script
 
       labcal export S --format json --out ur10.json --force     # replace ur10.json / accept the fit's warnings
+
+      labcal export S --format ur-kinematics --out my_robot_calibration.yaml
+
+      labcal export S --format urdf --ur-link-names --geometry-only --out ur10.urdf
     """
     from labcal.cli.common import print_gates
     from labcal.cli.ops import export_fit, split_ref
@@ -40,7 +68,24 @@ def export(
     from labcal.cli.ops.fitting import load_stored_fit
 
     st = store_of(store)
-    path = export_fit(st, split_ref(session), fmt, out, fit_id, force=force)
+    if fmt in ("urdf", "ur-kinematics"):
+        options: dict = {"geometry_only": geometry_only}
+        if fmt == "urdf":
+            options.update(ur_names=ur_link_names, unknown_dynamics=unknown_dynamics)
+    elif fmt in ("urscript", "urscript-program"):
+        options = {"statements_per_sync": statements_per_sync}
+    else:
+        options = {}
+    path = export_fit(
+        st,
+        split_ref(session),
+        fmt,
+        out,
+        fit_id,
+        force=force,
+        options=options,
+        on_warning=lambda text: err.print(text, markup=False),
+    )
     if force:
         stored = load_stored_fit(st, split_ref(session), fit_id)
         warnings = stored_warnings(stored.meta)

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import os
 import tempfile
+import tomllib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +52,26 @@ def check_output(out: str | Path, *, force: bool = False) -> Path:
     return out
 
 
+GEOMETRY_FORMATS = ("urdf", "ur-kinematics")
+
+
+def joint_dynamics(spec) -> dict:
+    """velocity / effort per joint from the robot file's [[joints]] tables (None where a joint has none), and the
+    masses and centres of mass when the file gives any mass: the URDF export's inputs."""
+    rows: list = []
+    if spec.format == "toml" and spec.text:
+        try:
+            rows = tomllib.loads(spec.text).get("joints") or []
+        except tomllib.TOMLDecodeError:
+            rows = []
+    n = spec.model.n
+    rows = [r if isinstance(r, dict) else {} for r in rows] + [{}] * max(0, n - len(rows))
+    out = {key: [rows[j].get(key) for j in range(n)] for key in ("velocity", "effort")}
+    if np.any(np.asarray(spec.masses) > 0):
+        out.update(masses=spec.masses, coms=spec.coms)
+    return out
+
+
 def _map_arrays(joint_map, n: int) -> np.ndarray:
     jm = joint_map if joint_map is not None else JointMap.identity(n)  # None: controller joints are model joints
     return np.concatenate([jm.matrix.ravel(), jm.offsets])
@@ -74,11 +96,19 @@ def export_fit(
     fit_id: str | None = None,
     *,
     force: bool = False,
+    options: dict | None = None,
+    on_warning: Callable[[str], None] | None = None,
 ) -> Path:
-    """Write a stored fit as json | npz | urscript | urdf, with provenance (session, fit id, data hashes).
+    """Write a stored fit in one of labcal.export.FORMATS, with provenance (session, fit id, data hashes).
 
-    Raises UserError when the output exists (without force), its folder is missing or read-only, or the fit has
-    warnings (without force).
+    options: the format's options (urdf: geometry_only, ur_names, unknown_dynamics — default "zero" here, with a
+    warning; ur-kinematics: geometry_only;
+    urscript / urscript-program: statements_per_sync, iterations). For urdf the robot file's joint velocity,
+    effort, masses and centres of mass are added. on_warning receives what the user must know about the file
+    written (a learned term left out by --geometry-only, with its size).
+
+    Raises UserError when the output exists (without force), its folder is missing or read-only, the fit has
+    warnings (without force), or the format cannot hold this calibration (the message says why and what to use).
     """
     from labcal.export import FORMATS, SUFFIXES, export
 
@@ -118,11 +148,18 @@ def export_fit(
         else:
             provenance["warnings"] = _one_line(" | ".join(f"[{w.get('code')}] {w.get('message')}" for w in warnings))
     # Same folder ⇒ same file system ⇒ os.replace is atomic. The temporary name keeps the suffix the writers check.
+    options = dict(options or {})
+    if fmt == "urdf":
+        # Unknown effort/velocity: written as 0 with a note in the file and a warning, unless the caller refuses.
+        options = {"unknown_dynamics": "zero", **joint_dynamics(spec), **options}
     fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.parent)
     os.close(fd)
     tmp = Path(tmp_name)
     try:
-        export(stored.robot, fmt, tmp, provenance)
+        try:
+            export(stored.robot, fmt, tmp, provenance, **options)
+        except ValueError as e:
+            raise UserError(f"fit {stored.fit_id} cannot be exported as {fmt}: {e}") from None
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; an export gets the mode a plain write would
@@ -130,4 +167,16 @@ def export_fit(
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    if on_warning is not None and fmt in GEOMETRY_FORMATS and options.get("geometry_only"):
+        from labcal.export.learned import dropped_learned_term
+
+        dropped = dropped_learned_term(stored.robot)
+        if dropped is not None:
+            on_warning(f"--geometry-only: {out} leaves out the learned term: {dropped.describe()}")
+    dynamics = (options.get("velocity") or []) + (options.get("effort") or [])
+    if on_warning is not None and fmt == "urdf" and (not dynamics or None in dynamics):
+        on_warning(
+            f"{out}: the robot file gives no joint effort/velocity, written as 0 (add 'velocity' and 'effort' to its "
+            "[[joints]] tables, or pass --unknown-dynamics refuse to stop instead)"
+        )
     return out

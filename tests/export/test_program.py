@@ -1,0 +1,147 @@
+"""labcal filter (library): a program of TCP poses or nominal joints becomes joint targets that put the simulated
+TRUE robot where the program asked; branch jumps, singular paths, unreachable rows and rows outside the calibrated
+ranges are refused naming the row."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+import urscript_subset
+
+from labcal.calibration import Observations
+from labcal.calibration.fit import fit
+from labcal.compensator import CalibratedRobot
+from labcal.export.program import (
+    ProgramError,
+    filter_joints,
+    filter_poses,
+    joints_csv,
+    movej_program,
+    nominal_ik,
+    pose_matrix,
+    read_program,
+)
+from labcal.kinematics import se3
+from labcal.kinematics.metric import scaled_condition
+from labcal.robots import load
+from labcal.simulation.actual import ErrorSpec
+from labcal.simulation.scenarios import good, joint_box
+
+
+@pytest.fixture(scope="module")
+def calibrated():
+    """A simulated UR10 with known geometric errors, measured on 60 poses, fitted by local POE."""
+    scn = good("ur10", 60, errors=ErrorSpec.paper(tracker_noise=1e-5), seed=4)
+    result = fit(Observations(**scn.arrays()), load("ur10").model, "local-poe", seed=0)
+    return scn.actual, result.robot
+
+
+def program_poses(robot: CalibratedRobot, k: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth program on one configuration branch: k TCP poses (x, y, z, rotation vector) the nominal model
+    reaches along a joint path that stays well-conditioned (a program that really changes branch is refused)."""
+    lo, hi = joint_box(robot.nominal, 0.4)
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        a = rng.uniform(lo, hi)
+        b = a + rng.uniform(-0.5, 0.5, size=robot.n)
+        dense = a + (b - a) * np.linspace(0, 1, 50)[:, None]
+        J = robot.nominal.equivalent_jacobian(dense, length_scale=robot.length_scale)
+        if np.max(scaled_condition(J, robot.length_scale)) < 50:
+            break
+    q = a + (b - a) * np.linspace(0, 1, k)[:, None]
+    T = robot.nominal.fk(q)
+    return np.concatenate([T[:, :3, 3], se3.log_so3(T[:, :3, :3])], axis=1), q
+
+
+def test_filtered_poses_put_the_true_robot_where_the_program_asked(calibrated):
+    actual, robot = calibrated
+    poses, q_path = program_poses(robot, 12, seed=1)
+    result = filter_poses(robot, poses, seed=q_path[0] + 0.05)
+    np.testing.assert_allclose(result.q_nominal, q_path, atol=1e-8)  # the nominal solution on the program's branch
+    asked = pose_matrix(poses)
+    dp_filtered, dr_filtered = se3.pose_distance(actual.true_pose(result.q_command), asked)
+    dp_plain, _ = se3.pose_distance(actual.true_pose(result.q_nominal), asked)
+    assert dp_plain.max() > 1e-3  # the true robot misses the program by millimetres uncorrected …
+    assert dp_filtered.max() < 0.05e-3 and dr_filtered.max() < 0.05e-3  # … and by micrometres filtered
+    # the reported size is what the calibration predicts the filter removes
+    np.testing.assert_allclose(result.position_error, dp_plain, rtol=0.1, atol=20e-6)
+    assert "rows: joint correction" in result.summary()
+
+
+def test_joint_programs_are_filtered_in_one_batch(calibrated):
+    actual, robot = calibrated
+    _, q_path = program_poses(robot, 20, seed=2)
+    result = filter_joints(robot, q_path)
+    asked = robot.nominal.fk(q_path)
+    dp, _ = se3.pose_distance(actual.true_pose(result.q_command), asked)
+    assert dp.max() < 0.05e-3
+    np.testing.assert_array_equal(result.q_nominal, q_path)
+
+
+def test_a_tcp_offset_is_taken_off_before_the_ik(calibrated):
+    _, robot = calibrated
+    poses, q_path = program_poses(robot, 3, seed=3)
+    tcp = np.array([0.0, 0.0, 0.15, 0.0, 0.0, 0.3])
+    at_tcp = pose_matrix(poses) @ pose_matrix(tcp)[0]
+    tcp_poses = np.concatenate([at_tcp[:, :3, 3], se3.log_so3(at_tcp[:, :3, :3])], axis=1)
+    result = filter_poses(robot, tcp_poses, seed=q_path[0], tcp=tcp)
+    np.testing.assert_allclose(result.q_nominal, q_path, atol=1e-8)
+
+
+def test_the_branch_of_the_seed_is_kept_and_a_jump_is_refused():
+    nominal = load("ur10").model
+    robot = CalibratedRobot(nominal, nominal)
+    q_up = np.array([0.3, -1.2, 1.4, -1.6, -1.5, 0.4])
+    T = nominal.fk(q_up)
+    pose = np.concatenate([T[:3, 3], se3.log_so3(T[:3, :3])])[None]
+    # seeded on the elbow-up side it finds the elbow-up solution
+    np.testing.assert_allclose(nominal_ik(robot, pose_matrix(pose), q_up + 0.1), [q_up], atol=1e-8)
+    # seeded with the elbow on the other side, the path would have to pass the stretched-elbow singularity
+    q_down = q_up.copy()
+    q_down[2] = -1.4
+    with pytest.raises(ProgramError, match=r"row 1: .*(singular|branch)"):
+        nominal_ik(robot, pose_matrix(pose), q_down)
+
+
+def test_unreachable_and_out_of_range_rows_are_refused_by_row(calibrated):
+    _, robot = calibrated
+    poses, q_path = program_poses(robot, 3, seed=5)
+    far = poses.copy()
+    far[2, :3] = [3.0, 0.0, 0.5]  # 3 m away: beyond a UR10's reach
+    with pytest.raises(ProgramError, match="row 3: "):
+        filter_poses(robot, far, seed=q_path[0])
+    q = q_path.copy()
+    q[1, 4] = 7.0
+    with pytest.raises(ProgramError, match=r"row 2: joint 5 = 7 is outside the calibrated range"):
+        filter_joints(robot, q)
+
+
+def test_program_csv_units_and_outputs(calibrated, tmp_path):
+    _, robot = calibrated
+    poses, q_path = program_poses(robot, 4, seed=6)
+    mm = poses.copy()
+    mm[:, :3] *= 1000
+    text = "x,y,z,rx,ry,rz,speed\n" + "\n".join(",".join(repr(float(v)) for v in row) + ",0.1" for row in mm)
+    np.testing.assert_allclose(read_program(text, "poses", length_unit="mm"), poses, atol=1e-15)
+    deg = "q1,q2,q3,q4,q5,q6\n" + "\n".join(",".join(repr(float(v)) for v in np.degrees(row)) for row in q_path)
+    np.testing.assert_allclose(read_program(deg, "joints", angle_unit="deg"), q_path, atol=1e-14)
+    with pytest.raises(ValueError, match="missing: rz"):
+        read_program("x,y,z,rx,ry\n1,2,3,4,5\n", "poses")
+    with pytest.raises(ValueError, match="line 3: not a number"):
+        read_program("q1,q2\n1,2\n1,x\n", "joints")
+    result = filter_joints(robot, q_path)
+    rows = joints_csv(result).splitlines()
+    assert rows[0].startswith("row,q1,q2,q3,q4,q5,q6,nominal_q1") and len(rows) == 5
+    np.testing.assert_array_equal([float(v) for v in rows[1].split(",")[1:7]], result.q_command[0])
+    script = movej_program(result.q_command, a=0.5, v=0.2)
+    urscript_subset.check(script)
+    ns = urscript_subset.load(script)
+    ns["labcal_filtered"]()
+    moves = [m[1] for m in ns["stats"].messages if m[0] == "movej"]
+    np.testing.assert_array_equal(moves, result.q_command)
