@@ -8,7 +8,8 @@ from serial_fixtures import TARGETS, ascii_line, ascii_profile, tool_to_tracker
 
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
 from labcal.drivers.serial.ascii import DeviceError
-from labcal.drivers.serial_tracker import SerialTracker
+from labcal.drivers.serial.crc import xor8
+from labcal.drivers.serial_tracker import SerialTracker, load_profile
 from labcal.testing.fakes import ScriptedTransport
 
 SEEN = tool_to_tracker()
@@ -73,19 +74,98 @@ def test_device_error_reply_is_raised_with_its_code_without_retry():
     t.assert_done()
 
 
-def test_empty_or_missing_marked_coordinates_reject_the_frame():
+def test_empty_or_missing_marked_coordinates_are_targets_not_seen():
     line = ascii_line(SEEN).decode().split(" ")
     line[4:7] = ["", "", ""]  # t2 not seen
     tracker, t = open_ascii([(b"M\n", " ".join(line).encode())])
-    with pytest.raises(MeasurementRejected, match="t2 not seen"):
-        tracker.measure()
+    m = tracker.measure()
+    assert m.seen.tolist() == [True, False, True] and m.quality == ("missing:t2",)
+    np.testing.assert_allclose(m.points[[0, 2]], SEEN[[0, 2]], atol=1e-6)
     line = ascii_line(SEEN).decode().split(" ")
-    line[9] = "----\n"  # t3_z reported as dashes
+    line[7:10] = ["--", "-", "----\n"]  # t3 reported as dashes
     tracker2, t2 = open_ascii([(b"M\n", " ".join(line).encode())], missing="-+")
-    with pytest.raises(MeasurementRejected, match="t3 not seen"):
-        tracker2.measure()
+    assert tracker2.measure().seen.tolist() == [True, True, False]
     t.assert_done()
     t2.assert_done()
+
+
+def test_a_line_that_saw_no_target_is_rejected():
+    blank = ("P" + " " * 9 + "\n").encode()
+    tracker, t = open_ascii([(b"M\n", blank)])
+    with pytest.raises(MeasurementRejected, match="none of the 3 target"):
+        tracker.measure()
+    t.assert_done()
+
+
+def test_a_partly_given_point_is_garbled_not_unseen():
+    line = ascii_line(SEEN).decode().split(" ")
+    line[5] = ""  # t2_y alone is empty: the line is damaged, the target was not lost
+    tracker, t = open_ascii([(b"M\n", " ".join(line).encode())], retries=0)
+    with pytest.raises(ProtocolError, match="t2 is only partly given"):
+        tracker.measure()
+    t.assert_done()
+
+
+def test_each_target_is_averaged_over_the_frames_that_saw_it():
+    lost = ascii_line(SEEN).decode().split(" ")
+    lost[1:4] = ["", "", ""]  # t1 not seen in the second frame
+    shifted = SEEN + np.array([0.001, 0.0, 0.0])
+    script = [(b"M\n", ascii_line(SEEN)), (b"M\n", " ".join(lost).encode()), (b"M\n", ascii_line(shifted))]
+    tracker, t = open_ascii(script)
+    m = tracker.measure(samples=3)
+    t.assert_done()
+    # the line carries micrometres: compare at that resolution
+    np.testing.assert_allclose(m.points[0], SEEN[0] + [0.0005, 0.0, 0.0], atol=1e-6)  # frames 1 and 3 only
+    np.testing.assert_allclose(m.points[1], SEEN[1] + [0.001 / 3, 0.0, 0.0], atol=1e-6)
+    assert abs(m.points[0, 0] - SEEN[0, 0] - 0.0005) < abs(m.points[0, 0] - SEEN[0, 0] - 0.001 / 3) - 1e-4
+    assert m.quality == () and m.samples == 3  # t1 was seen in some frame: not missing
+
+
+def test_the_triangle_check_compares_only_targets_that_were_seen():
+    line = ascii_line(SEEN).decode().split(" ")
+    line[7:10] = ["", "", "\n"]
+    bent = SEEN.copy()
+    bent[1] += 0.003 * (SEEN[1] - SEEN[0]) / np.linalg.norm(SEEN[1] - SEEN[0])  # t1-t2 grows by 3 mm
+    tracker, t = open_ascii([(b"M\n", " ".join(line).encode()), (b"M\n", ascii_line(bent))], triangle_tolerance_mm=1.0)
+    assert tracker.measure().seen.tolist() == [True, True, False]
+    with pytest.raises(MeasurementRejected, match=r"disagrees with the targets by 3\.000 mm > 1\.000 mm"):
+        tracker.measure()
+    t.assert_done()
+
+
+# -- a tracker that follows one reflector (the built-in ascii-single-smr profile) -----------------------------
+
+
+def smr_line(point_mm: str) -> bytes:
+    body = f"PTS,{point_mm}"
+    return f"${body}*{xor8(body.encode()):02X}\r\n".encode()
+
+
+def test_single_reflector_profile_byte_exact():
+    smr = np.array([[0.0, 0.0, 0.045]])  # one target, 45 mm in front of the flange
+    script = [
+        (b"UNITS MM\r\n", b"OK\r\n"),
+        (b"MEAS?\r\n", smr_line("100.5,-20.25,1500")),
+        (b"MEAS?\r\n", smr_line("nan,nan,nan")),
+        (b"MEAS?\r\n", b"ERR,07\r\n"),
+    ]
+    t = ScriptedTransport(script)
+    tracker = SerialTracker(load_profile("ascii-single-smr"), smr, transport=t, clock=t.clock, sleep=t.sleep)
+    m = tracker.measure()
+    np.testing.assert_allclose(m.points, [[0.1005, -0.02025, 1.5]])
+    assert m.points.shape == (1, 3) and m.spread.tolist() == [0.0]
+    with pytest.raises(MeasurementRejected, match="none of the 1 target"):
+        tracker.measure()
+    with pytest.raises(DeviceError, match="ERR,07"):
+        tracker.measure()
+    tracker.close()
+    t.assert_done()
+
+
+def test_the_profile_must_name_as_many_targets_as_the_session_has():
+    t = ScriptedTransport([])
+    with pytest.raises(ValueError, match=r"the reply names 1 target\(s\) \(t1 … t1\), the session has 3"):
+        SerialTracker(load_profile("ascii-single-smr"), TARGETS, transport=t, clock=t.clock)
 
 
 def test_unparseable_coordinate_is_garbled():

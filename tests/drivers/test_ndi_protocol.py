@@ -79,7 +79,7 @@ def test_strays_in_any_order_with_an_extra_reflection_are_labelled_as_t1_t2_t3()
     ("strays", "reason"),
     [
         (SEEN[:2], "only 2 marker"),
-        (np.zeros((0, 3)), "only 0 marker"),
+        (np.zeros((0, 3)), "no marker visible"),
         (SEEN + np.array([[0, 0, 0], [0, 0, 0], [0.002, 0, 0]]), "mismatch"),  # t3 moved 2 mm: bent triangle
     ],
 )

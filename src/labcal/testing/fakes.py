@@ -2,8 +2,9 @@
 
 ``FakeNDIDevice`` and ``FakeASCIIDevice`` run on the master side of a pseudo-terminal in a background thread;
 pyserial (or the real ``ndicapy`` client) opens ``.port``, the slave path, exactly as it would open a real
-device. Both read target positions from ``points_provider() -> (3, 3)`` metres in the tracker frame, so a
-simulator can feed them the true target positions plus noise.
+device. Both read target positions from ``points_provider() -> (m, 3)`` metres in the tracker frame (any number
+of targets; a NaN row is a target the camera cannot see at the moment), so a simulator can feed them the true
+target positions plus noise, and hide targets.
 
 Limits of a pty: bytes flow whatever the baud rate, and a serial break does not reach the master side. The fake
 NDI device therefore keeps an *emulated* rate (9600 after reset, then what COMM set) and compares it with the
@@ -220,7 +221,8 @@ def encode_bx_reply(
 class FakeNDIDevice(_PtyDevice):
     """A Polaris-like NDI Combined API device reporting the targets as passive stray markers.
 
-    points_provider: () -> (3, 3) m, true target positions in the tracker frame (rows t1, t2, t3).
+    points_provider: () -> (m, 3) m, true target positions in the tracker frame (rows t1 … tm; a NaN row is not
+    seen: no marker for it).
     shuffle: report strays in a random order (as a real tracker does). extra_stray: always add one spurious
     reflection. noise: Gaussian noise per coordinate, m (on top of whatever the provider adds). seed: RNG seed.
     strict_baud: ignore commands while the client's pty rate differs from the emulated device rate.
@@ -388,14 +390,15 @@ class FakeNDIDevice(_PtyDevice):
 
     def _stray_scene(self, fault: str | None) -> tuple[np.ndarray, list[bool]]:
         """The markers the camera sees: (N, 3) m in report order and their out-of-volume flags."""
-        points = np.array(self.points_provider(), dtype=float).reshape(3, 3)
+        points = np.array(self.points_provider(), dtype=float).reshape(-1, 3)
         if self.noise:
             points = points + self.rng.normal(0.0, self.noise, size=points.shape)
-        oov = [False, False, False]
-        if fault == "drop_target":
-            keep = np.delete(np.arange(3), self.rng.integers(3))
-            points, oov = points[keep], [False, False]
-        if fault == "out_of_volume":
+        points = points[np.isfinite(points).all(axis=1)]  # hidden targets send no marker
+        oov = [False] * len(points)
+        if fault == "drop_target" and len(points):
+            keep = np.delete(np.arange(len(points)), self.rng.integers(len(points)))
+            points, oov = points[keep], oov[1:]
+        if fault == "out_of_volume" and oov:
             oov[int(self.rng.integers(len(oov)))] = True
         if self.extra_stray or fault == "extra_stray":
             spurious = points.mean(axis=0) + self.rng.uniform(0.15, 0.3, size=3) * self.rng.choice([-1, 1], 3)
@@ -425,9 +428,11 @@ class FakeNDIDevice(_PtyDevice):
 class FakeASCIIDevice(_PtyDevice):
     """The example ASCII tracker of ``drivers/ascii-example.toml`` (CR LF lines, mm, NMEA-style checksum).
 
-    Commands: ``*IDN?`` -> ``LABCAL,FAKE-3T,0,1.0``; ``UNITS MM`` -> ``OK``; ``MEAS?`` ->
-    ``$PTS,x1,y1,z1,...,z3*HH``; ``STREAM ON``/``STREAM OFF`` -> ``OK`` (while on, a measurement line every
-    1/stream_hz s); anything else -> ``ERR,01``. A target the device cannot see has empty fields.
+    Commands: ``*IDN?`` -> ``LABCAL,FAKE-3T,0,1.0`` (``FAKE-<m>T`` for m targets); ``UNITS MM`` -> ``OK``;
+    ``MEAS?`` -> ``$PTS,x1,y1,z1,...,zm*HH`` (m = the rows of ``points_provider()``: one for the built-in
+    ``ascii-single-smr`` profile); ``STREAM ON``/``STREAM OFF`` -> ``OK`` (while on, a measurement line every
+    1/stream_hz s); anything else -> ``ERR,01``. A target the device cannot see (a NaN row, or the
+    ``drop_target`` fault) has empty fields.
     """
 
     terminator = b"\r\n"
@@ -451,16 +456,16 @@ class FakeASCIIDevice(_PtyDevice):
         return text.encode("ascii") + b"\r\n"
 
     def measurement_line(self, fault: str | None = None) -> bytes | None:
-        points = np.array(self.points_provider(), dtype=float).reshape(3, 3)
+        points = np.array(self.points_provider(), dtype=float).reshape(-1, 3)
         if self.noise:
             points = points + self.rng.normal(0.0, self.noise, size=points.shape)
         if fault == "no_reply":
             return None
         if fault is not None and fault.startswith("error"):
             return self._line("ERR," + (fault.partition(":")[2] or "05"))
-        fields = [f"{v * 1e3:.4f}" for v in points.ravel()]
+        fields = ["" if not np.isfinite(v) else f"{v * 1e3:.4f}" for v in points.ravel()]
         if fault == "drop_target":
-            k = int(self.rng.integers(3))
+            k = int(self.rng.integers(len(points)))
             fields[3 * k : 3 * k + 3] = ["", "", ""]
         body = "PTS," + ",".join(fields)
         checksum = xor8(body.encode("ascii")) ^ (0x5A if fault == "bad_checksum" else 0)
@@ -472,7 +477,8 @@ class FakeASCIIDevice(_PtyDevice):
     def handle(self, line: str) -> bytes | None:
         command = line.strip().upper()
         if command == "*IDN?":
-            return self._line("LABCAL,FAKE-3T,0,1.0")
+            m = len(np.asarray(self.points_provider()).reshape(-1, 3))
+            return self._line(f"LABCAL,FAKE-{m}T,0,1.0")
         if command == "UNITS MM":
             return self._line("OK")
         if command == "MEAS?":

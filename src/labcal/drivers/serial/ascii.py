@@ -1,9 +1,11 @@
-"""A configurable ASCII line protocol: one request (or one streamed line) gives the three targets.
+"""A configurable ASCII line protocol: one request (or one streamed line) gives the k targets of the session.
 
-The reply regex names the nine coordinates ``t1_x ... t3_z`` in the *device's* axes and unit; the profile's
-``axes`` and ``length_unit`` map them to the tracker frame in metres. An empty coordinate, or one matching the
-profile's ``missing`` regex, means that target was not seen (MeasurementRejected). Optional checksums apply to
-measurement lines: ``nmea`` (``$body*HH``, XOR of the body bytes) or ``crc16-arc`` (body + 4 hex digits).
+The reply regex names the coordinates ``t1_x ... tk_z`` in the *device's* axes and unit (k = 1 for a tracker
+that follows one reflector); the profile's ``axes`` and ``length_unit`` map them to the tracker frame in metres.
+An empty coordinate, or one matching the profile's ``missing`` regex, means that target was not seen: its row
+comes back NaN with a ``missing:tK`` flag, and a line that saw no target at all is rejected (MeasurementRejected).
+Optional checksums apply to measurement lines: ``nmea`` (``$body*HH``, XOR of the body bytes) or ``crc16-arc``
+(body + 4 hex digits).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import numpy as np
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
 from labcal.drivers.serial.crc import crc16_arc, xor8
 from labcal.drivers.serial.link import SerialLink
-from labcal.drivers.serial.matching import side_lengths
+from labcal.drivers.serial.matching import pair_distances
 from labcal.drivers.serial.profiles import AXES, AsciiProfile
 
 
@@ -60,7 +62,8 @@ class AsciiProtocol:
     def __init__(self, profile: AsciiProfile, targets: np.ndarray, link: SerialLink):
         self.profile = profile
         self.link = link
-        self.nominal_sides = side_lengths(targets)
+        self.targets = np.asarray(targets, dtype=float)
+        self.nominal_distances = pair_distances(self.targets)
         self._index, self._sign = _axis_map(profile.axes)
 
     def _read_text(self) -> str:
@@ -92,7 +95,7 @@ class AsciiProtocol:
             self.link.read_line()
         return self._read_text()
 
-    def _parse(self, text: str) -> np.ndarray:
+    def _parse(self, text: str) -> tuple[np.ndarray, tuple[str, ...]]:
         p = self.profile
         if p.error_reply is not None:
             err = p.error_reply.fullmatch(text)
@@ -103,30 +106,39 @@ class AsciiProtocol:
         m = p.reply.fullmatch(body)
         if m is None:
             raise ProtocolError(f"garbled reply {text!r} does not match {p.reply.pattern!r}")
-        device = np.empty((3, 3))
+        k = len(self.targets)
+        device = np.full((k, 3), np.nan)
         missing = []
-        for t in range(3):
-            for a, axis in enumerate(AXES):
-                value = (m.group(f"t{t + 1}_{axis}") or "").strip()
-                if not value or (p.missing is not None and p.missing.fullmatch(value)):
-                    missing.append(f"t{t + 1}")
-                    continue
+        for t in range(k):
+            values = [(m.group(f"t{t + 1}_{axis}") or "").strip() for axis in AXES]
+            blank = [not v or (p.missing is not None and p.missing.fullmatch(v) is not None) for v in values]
+            if all(blank):
+                missing.append(t)
+                continue
+            if any(blank):
+                # Part of a point is no point: the device garbled it, it did not lose the target.
+                raise ProtocolError(f"target t{t + 1} is only partly given in {text!r}")
+            for a, (axis, value) in enumerate(zip(AXES, values, strict=True)):
                 try:
                     device[t, a] = float(value)
                 except ValueError as exc:
                     raise ProtocolError(f"t{t + 1}_{axis} = {value!r} is not a number in {text!r}") from exc
-        if missing:
-            raise MeasurementRejected(f"target(s) {', '.join(dict.fromkeys(missing))} not seen by the tracker")
-        if not np.all(np.isfinite(device)):
+        if len(missing) == k:
+            raise MeasurementRejected(f"none of the {k} target(s) seen by the tracker in {text!r}")
+        if not np.all(np.isfinite(np.delete(device, missing, axis=0))):
             raise MeasurementRejected(f"non-finite coordinate in {text!r}")
-        return device[:, self._index] * self._sign * p.length_scale
+        flags = tuple(f"missing:t{t + 1}" for t in missing)
+        return device[:, self._index] * self._sign * p.length_scale, flags
 
     def read_frame(self) -> tuple[np.ndarray, tuple[str, ...]]:
-        """One frame: (3, 3) target positions in the tracker frame, m; retries garbled lines and timeouts."""
+        """One frame: (k, 3) target positions in the tracker frame, m (NaN rows: not seen), and quality flags.
+
+        Retries garbled lines and timeouts.
+        """
         last: Exception | None = None
         for _ in range(self.profile.retries + 1):
             try:
-                points = self._parse(self._fetch_line())
+                points, flags = self._parse(self._fetch_line())
                 break
             except DeviceError:
                 raise
@@ -137,12 +149,14 @@ class AsciiProtocol:
             raise last
         tol = self.profile.triangle_tolerance
         if tol is not None:
-            error = np.abs(side_lengths(points) - self.nominal_sides)
-            if np.max(error) > tol:
+            # Only distances between two seen targets can be compared (NaN otherwise).
+            error = np.abs(pair_distances(points) - self.nominal_distances)
+            if np.any(error > tol):
                 raise MeasurementRejected(
-                    f"measured triangle disagrees with the targets by {np.max(error) * 1e3:.3f} mm > {tol * 1e3:.3f} mm"
+                    f"measured triangle disagrees with the targets by {np.nanmax(error) * 1e3:.3f} mm > "
+                    f"{tol * 1e3:.3f} mm"
                 )
-        return points, ()
+        return points, flags
 
     def stop(self) -> None:
         for command in self.profile.close_commands:

@@ -409,19 +409,31 @@ class NDIProtocol:
             self.recover(hard=True)
         return exchange()
 
-    def read_frame(self) -> tuple[np.ndarray, tuple[str, ...]]:
-        """One frame: (3, 3) target positions in the tracker frame, m, and quality flags."""
+    def read_strays(self) -> StrayFrame:
+        """One TX:1000 or BX:1000 exchange (with recovery): the unlabelled markers of one frame."""
         command = MEASURE_COMMANDS[self.profile.reply]
         if self.profile.reply == "bx":
-            frame = parse_bx_body(self._with_recovery(lambda: self.binary_command(command)))
-        else:
-            frame = parse_tx_strays(self._with_recovery(lambda: self.command(command)))
-        match = match_targets(frame.strays, self.targets, self.profile.match_tolerance)
-        out = [f"t{k + 1}" for k, i in enumerate(match.indices) if frame.out_of_volume[i]]
+            return parse_bx_body(self._with_recovery(lambda: self.binary_command(command)))
+        return parse_tx_strays(self._with_recovery(lambda: self.command(command)))
+
+    def label(self, frame: StrayFrame, reference: np.ndarray | None = None) -> tuple[np.ndarray, tuple[str, ...]]:
+        """Label a frame's markers as the targets: ((m, 3) m, NaN rows for targets not seen; quality flags).
+
+        reference: (m, 3) m, where the targets were in other frames of the same measurement (see
+        :func:`~labcal.drivers.serial.matching.match_targets`). Raises MeasurementRejected when no marker can be
+        labelled, or a labelled one is out of the characterised volume.
+        """
+        match = match_targets(frame.strays, self.targets, self.profile.match_tolerance, reference)
+        out = [f"t{k + 1}" for k, i in enumerate(match.indices) if i >= 0 and frame.out_of_volume[i]]
         if out:
             raise MeasurementRejected(f"target(s) {', '.join(out)} out of the characterised volume")
         quality = (f"system_status:0x{frame.system_status:04X}",) if frame.system_status else ()
+        quality += tuple(f"missing:t{k + 1}" for k, i in enumerate(match.indices) if i < 0)
         return match.points, quality
+
+    def read_frame(self) -> tuple[np.ndarray, tuple[str, ...]]:
+        """One frame on its own: (m, 3) target positions in the tracker frame, m (NaN rows: not seen), flags."""
+        return self.label(self.read_strays())
 
     def stop(self) -> None:
         """Stop tracking and put the device back to 9600 baud, where the next session's INIT expects it.

@@ -4,7 +4,10 @@ Example::
 
     targets = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.07, 0.0]])   # tool frame, m
     with open_tracker("drivers/ndi-polaris.toml", targets, url="/dev/ttyUSB0") as tracker:
-        m = tracker.measure(samples=5)   # m.points (3, 3) m in the tracker frame, m.spread (3,) m
+        m = tracker.measure(samples=5)   # m.points (3, 3) m in the tracker frame (NaN rows: unseen), m.spread (3,)
+
+    with open_tracker("ascii-single-smr", [[0.0, 0.0, 0.045]], url="/dev/ttyUSB0") as tracker:
+        m = tracker.measure()            # m.points (1, 3): the one reflector
 """
 
 from __future__ import annotations
@@ -16,19 +19,21 @@ from typing import Any
 
 import numpy as np
 
-from labcal.drivers.base import DriverError, Measurement, average_frames
+from labcal.drivers.base import DriverError, Measurement, MeasurementRejected, average_frames
 from labcal.drivers.serial.ascii import AsciiProtocol
 from labcal.drivers.serial.link import SerialLink, Transport, open_serial
-from labcal.drivers.serial.matching import check_scalene
+from labcal.drivers.serial.matching import check_targets
 from labcal.drivers.serial.ndi import NDIProtocol
 from labcal.drivers.serial.profiles import AsciiProfile, NDIProfile, Profile, load_profile
 
 
 class SerialTracker:
-    """A three-target tracker on a serial line, described by a profile (``load_profile``).
+    """A tracker of the session's m targets on a serial line, described by a profile (``load_profile``).
 
-    targets: (3, 3) nominal target points in the tool frame, m (rows t1, t2, t3); the NDI profile uses their
-    triangle to label unordered markers. transport: an open ``serial.Serial``-like object (tests pass a
+    targets: (m, 3) nominal target points in the tool frame, m (rows t1 … tm); an ASCII profile's reply must name
+    exactly m targets, and the NDI profile uses the distances between them to label unordered markers (one
+    target, or three or more; see :func:`~labcal.drivers.serial.matching.check_targets`). transport: an open
+    ``serial.Serial``-like object (tests pass a
     scripted one); otherwise ``url`` (or the profile's ``[port].url``) is opened with ``serial_for_url``.
     clock/sleep: time source and delay in s, injected so scripted tests run instantly.
     """
@@ -44,12 +49,17 @@ class SerialTracker:
         sleep: Callable[[float], None] = time.sleep,
     ):
         targets = np.asarray(targets, dtype=float)
-        if targets.shape != (3, 3) or not np.all(np.isfinite(targets)):
-            raise ValueError(f"targets must be a finite (3, 3) array in metres, got shape {targets.shape}")
+        if targets.ndim != 2 or targets.shape[1] != 3 or len(targets) == 0 or not np.all(np.isfinite(targets)):
+            raise ValueError(f"targets must be a finite (m, 3) array in metres (m >= 1), got shape {targets.shape}")
         if isinstance(profile, NDIProfile):
-            check_scalene(targets, profile.match_tolerance)
+            check_targets(targets, profile.match_tolerance)
         elif not isinstance(profile, AsciiProfile):
             raise TypeError(f"profile must be an AsciiProfile or NDIProfile, got {type(profile).__name__}")
+        elif profile.targets != len(targets):
+            raise ValueError(
+                f"{profile.source}: the reply names {profile.targets} target(s) (t1 … t{profile.targets}), the "
+                f"session has {len(targets)}: use a profile whose reply matches the targets file"
+            )
         self.profile = profile
         self.targets = targets
         self._clock = clock
@@ -92,22 +102,53 @@ class SerialTracker:
             raise
 
     def measure(self, samples: int = 1) -> Measurement:
-        """Average ``samples`` frames into one Measurement (points (3, 3) m, spread (3,) m, host timestamp s).
+        """Average ``samples`` frames into one Measurement (points (m, 3) m with NaN rows for targets not seen,
+        spread (m,) m, host timestamp s), each target over the frames that saw it.
 
-        Raises MeasurementRejected (a target missing, out of volume or mislabelled), DriverTimeout,
-        ProtocolError (after bounded retries), ConnectionFailed.
+        Raises MeasurementRejected (no target seen, a target out of volume, markers that cannot be labelled),
+        DriverTimeout, ProtocolError (after bounded retries), ConnectionFailed.
         """
         if self._closed:
             raise DriverError("measure() on a closed tracker")
         if isinstance(samples, bool) or not isinstance(samples, int | np.integer) or samples < 1:
             raise ValueError(f"samples must be a positive int, got {samples!r}")
-        frames = []
-        quality: list[str] = []
-        for _ in range(int(samples)):
-            points, flags = self.protocol.read_frame()
-            frames.append(points)
-            quality.extend(flags)
+        if isinstance(self.protocol, NDIProtocol):
+            labelled = self._label_ndi([self.protocol.read_strays() for _ in range(int(samples))])
+        else:
+            labelled = [self.protocol.read_frame() for _ in range(int(samples))]
+        frames = [points for points, _ in labelled]
+        # "missing" flags are the averaged measurement's to give: a target seen in some frame was not missing.
+        quality = [f for _, flags in labelled for f in flags if not f.startswith("missing:")]
         return average_frames(frames, timestamp=self._clock(), quality=tuple(dict.fromkeys(quality)))
+
+    def _label_ndi(self, raw: list) -> list[tuple[np.ndarray, tuple[str, ...]]]:
+        """Label each frame's markers; frames too sparse to label alone are labelled from where the others saw
+        the targets (the robot stands still during one measurement)."""
+        assert isinstance(self.protocol, NDIProtocol)
+        labelled: list = []
+        pending: list[int] = []
+        first: MeasurementRejected | None = None
+        for i, frame in enumerate(raw):
+            try:
+                labelled.append(self.protocol.label(frame))
+            except MeasurementRejected as exc:
+                labelled.append(None)
+                pending.append(i)
+                first = first or exc
+        if not pending:
+            return labelled
+        done = [points for item in labelled if item is not None for points in item[:1]]
+        if not done:
+            assert first is not None
+            raise first
+        stack = np.array(done)
+        seen = np.isfinite(stack).all(axis=2)
+        reference = np.full(stack.shape[1:], np.nan)
+        for t in np.flatnonzero(seen.any(axis=0)):
+            reference[t] = stack[seen[:, t], t].mean(axis=0)
+        for i in pending:
+            labelled[i] = self.protocol.label(raw[i], reference)
+        return labelled
 
     def close(self) -> None:
         """Stop the device (best effort) and close the port. Safe to call twice."""
@@ -131,7 +172,8 @@ class SerialTracker:
 def open_tracker(profile_path: str | Path, targets: Any, url: str | None = None, **kwargs: Any) -> SerialTracker:
     """Load the profile at ``profile_path`` and open the tracker; ``url`` overrides the profile's port.
 
-    targets: (3, 3) array in metres, or the path of a targets TOML file (``unit``, ``points``).
+    ``profile_path`` may also name a built-in profile (``ascii-single-smr``). targets: (m, 3) array in metres, or
+    the path of a targets TOML file (``unit``, ``points``).
     """
     profile = load_profile(profile_path)
     if isinstance(targets, str | Path):
