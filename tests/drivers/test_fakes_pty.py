@@ -239,3 +239,17 @@ def test_open_tracker_accepts_a_targets_file(tmp_path):
         with open_tracker(REPO / "drivers" / "ascii-example.toml", path, url=dev.port) as tracker:
             np.testing.assert_allclose(tracker.targets, TARGETS, atol=1e-12)
             np.testing.assert_allclose(tracker.measure().points, SEEN, atol=1e-7)
+
+
+def test_single_reflector_profile_end_to_end_over_pty():
+    smr = SEEN[:1]
+    visible = [True]
+    with FakeASCIIDevice(lambda: smr if visible[0] else np.full((1, 3), np.nan), seed=2) as dev:
+        with open_tracker("ascii-single-smr", TARGETS[:1], url=dev.port) as tracker:
+            m = tracker.measure(samples=2)
+            assert m.points.shape == (1, 3)
+            np.testing.assert_allclose(m.points, smr, atol=1e-7)
+            visible[0] = False  # the beam is broken: nothing to average
+            with pytest.raises(MeasurementRejected, match="none of the 1 target"):
+                tracker.measure()
+        assert dev.received[:2] == ["UNITS MM", "MEAS?"]
