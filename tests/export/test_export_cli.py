@@ -78,6 +78,7 @@ def test_urdf_of_a_hybrid_fit_is_refused_with_the_size_or_left_out_explicitly(fi
 def test_urdf_refuses_unknown_dynamics_when_asked(fits):
     r, out = export(fits, "local-poe", "urdf", "strict.urdf", "--unknown-dynamics", "refuse")
     assert r.exit_code != 0 and "no joint velocity" in r.stderr
+    assert not out.exists()
 
 
 def test_urscript_program_passes_the_checker_and_its_self_test(fits):
