@@ -195,3 +195,15 @@ def test_every_builtin_and_example_follows_the_schema():
 
     for name in BUILTINS + EXAMPLES:
         assert load(name).model.n >= 4
+
+
+def test_joint_velocity_and_effort_are_accepted_checked_and_not_part_of_the_model():
+    plain = loads(two())
+    text = two().replace("limits = [-3.0, 3.0]", "limits = [-3.0, 3.0]\nvelocity = 2.0\neffort = 150.0")
+    assert loads(text).hash == plain.hash
+    with pytest.raises(RobotFileError, match=r"joints\[1\]\.effort must be > 0, got -1.0"):
+        loads(text.replace("effort = 150.0", "effort = -1.0"))
+    import tomllib
+
+    ur10 = tomllib.loads(load("ur10").text)
+    assert [j["effort"] for j in ur10["joints"]] == [330.0, 330.0, 150.0, 56.0, 56.0, 56.0]

@@ -13,6 +13,8 @@ A robot file (DESIGN.md section 4)::
     # poe instead: xyz = [..], rpy = [..] (pose of K_j in K_{j-1} at q = 0), axis = [0, 0, 1]
     limits = [-6.283, 6.283]     # rad (m for prismatic)
     mass = 7.1                   # optional, kg: the link moved by this joint
+    velocity = 2.0944            # optional, rad/s (m/s): speed limit, for exports (not part of the model)
+    effort = 330.0               # optional, N·m (N): torque limit, for exports
     com = [0.0, 0.0, 0.06]       # optional, m, base frame with all joints at 0 (default: link midpoint)
     [tool]                       # optional: flange → tool
     xyz = [0, 0, 0]
@@ -191,6 +193,10 @@ def _non_negative(value: float) -> str | None:
     return f"must be >= 0, got {value}" if value < 0 else None
 
 
+def _positive(value: float) -> str | None:
+    return f"must be > 0, got {value}" if value <= 0 else None
+
+
 def _non_zero(axis: list[float]) -> str | None:
     return "must not be zero" if np.linalg.norm(axis) < 1e-12 else None
 
@@ -205,6 +211,9 @@ _JOINT = {
     "limits": Key("vector", shape=(2,), unit="rad, m for prismatic", expect="[lo, hi] numbers", check=_lo_below_hi),
     "mass": Key("number", unit="kg", check=_non_negative, doc="mass of the link this joint moves"),
     "com": Key("vector", shape=(3,), unit="m", doc="centre of mass, base frame, all joints at 0"),
+    # Not part of the kinematic model (nor of its hash): for exports that describe the joints (URDF).
+    "velocity": Key("number", unit="rad/s, m/s for prismatic", check=_positive, doc="joint speed limit"),
+    "effort": Key("number", unit="N·m, N for prismatic", check=_positive, doc="joint torque/force limit"),
 }
 _DH_JOINT = Table({**_JOINT, **{k: Key("number", required=True, unit=u) for k, u in _DH_KEYS.items()}})
 _POE_JOINT = Table(
