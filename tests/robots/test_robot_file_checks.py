@@ -186,7 +186,7 @@ def test_a_joint_key_of_the_other_kinematics_is_refused():
     # a dh file with a poe key is almost surely a mixed-up file: the key would be ignored without a word
     limits = "limits = [-3.0, 3.0]"
     text = two().replace(f"theta = 0.0\n{limits}", f"theta = 0.0\nxyz = [0.0, 0.0, 0.1]\n{limits}")
-    with pytest.raises(RobotFileError, match=r"joints\[1\]: unknown key 'xyz'; allowed: a, alpha, com, d, limits"):
+    with pytest.raises(RobotFileError, match=r"joints\[1\]: unknown key 'xyz'; allowed: a, alpha, com, d, effort"):
         loads(text, source="arm.toml")
 
 
