@@ -29,7 +29,6 @@ import math
 import socket
 import struct
 import time
-import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +48,7 @@ from labcal.drivers.base import (
     SafetyLimits,
     StaleData,
 )
+from labcal.tomlschema import Key, SchemaError, Table, read_toml, validate
 
 log = logging.getLogger(__name__)
 
@@ -107,81 +107,105 @@ class URProfile:
         return URProfile(**{**self.__dict__, "host": host})
 
 
-_PROFILE_KEYS = {
-    "": {"name", "driver", "model", "host", "ports", "motion", "joint_limits_deg", "timing"},
-    "ports": {"rtde", "dashboard", "script"},
-    "motion": {
-        "max_speed_rad_s",
-        "max_acceleration_rad_s2",
-        "stop_acceleration_rad_s2",
-        "settle_time_s",
-        "position_tolerance_rad",
-    },
-    "joint_limits_deg": {"lower", "upper"},
-    "timing": {"connect_timeout_s", "stale_timeout_s", "frequency_hz"},
-}
 _STANDARD_PORTS = {"rtde": RTDE_PORT, "dashboard": DASHBOARD_PORT, "script": SCRIPT_PORT}
 
 
+def _within(lo: float, hi: float) -> Callable[[float], str | None]:
+    return lambda v: None if lo <= v <= hi else f"must be within [{lo}, {hi}], got {v}"
+
+
+def _standard_port(standard: int) -> Callable[[int], str | None]:
+    return lambda v: (
+        None
+        if v == standard
+        else (
+            f"must be {standard}: ur-rtde 1.6.5 always connects to port {standard}, so another port cannot be honoured "
+            f"(got {v})"
+        )
+    )
+
+
+def _non_empty(text: str) -> str | None:
+    return None if text else "must not be empty"
+
+
+def _frequency_ok(value: float) -> str | None:
+    ok = value == -1 or 1 <= value <= 500
+    return None if ok else f"must be -1 (controller default) or in [1, 500], got {value}"
+
+
+_DEG6 = {"shape": (N_JOINTS,), "unit": "degrees", "required": True}
+UR_PROFILE_SCHEMA = Table(
+    {
+        "name": Key("str", required=True, check=_non_empty),
+        "driver": Key("str", default="ur", choices=("ur",), doc="this loader reads only UR profiles"),
+        "model": Key("str", default="", doc="labcal robot model whose joint limits bound the profile's"),
+        "host": Key("str", required=True, check=_non_empty, doc="controller IP"),
+        "ports": Key(
+            "table",
+            default={},
+            table=Table({k: Key("int", default=v, check=_standard_port(v)) for k, v in _STANDARD_PORTS.items()}),
+        ),
+        "motion": Key(
+            "table",
+            default={},
+            table=Table(
+                {
+                    "max_speed_rad_s": Key("number", default=0.5, unit="rad/s", check=_within(1e-6, UR_RTDE_MAX_SPEED)),
+                    "max_acceleration_rad_s2": Key(
+                        "number", default=1.0, unit="rad/s²", check=_within(1e-6, UR_RTDE_MAX_ACCELERATION)
+                    ),
+                    "stop_acceleration_rad_s2": Key(
+                        "number", default=2.0, unit="rad/s²", check=_within(0.1, UR_RTDE_MAX_ACCELERATION)
+                    ),
+                    "settle_time_s": Key("number", default=0.2, unit="s", check=_within(0.0, 10.0)),
+                    "position_tolerance_rad": Key("number", default=1e-3, unit="rad", check=_within(1e-6, 0.1)),
+                }
+            ),
+        ),
+        "joint_limits_deg": Key(
+            "table", table=Table({"lower": Key("vector", **_DEG6), "upper": Key("vector", **_DEG6)})
+        ),
+        "timing": Key(
+            "table",
+            default={},
+            table=Table(
+                {
+                    "connect_timeout_s": Key("number", default=2.0, unit="s", check=_within(0.01, 60.0)),
+                    "stale_timeout_s": Key("number", default=0.5, unit="s", check=_within(0.01, 10.0)),
+                    "frequency_hz": Key("number", default=-1.0, unit="Hz", check=_frequency_ok),
+                }
+            ),
+        ),
+    },
+    name="robot profile",
+)
+
+
+class URProfileError(SchemaError):
+    """A UR robot profile has a bad key or value; the message names the file and the key."""
+
+
 def load_ur_profile(path: str | Path) -> URProfile:
-    """Read a robot profile TOML (see drivers/ur10-lab.toml). Raises ValueError naming the bad key/value."""
-    path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: not valid TOML: {exc}") from exc
-    return parse_ur_profile(data, source=str(path))
+    """Read a robot profile TOML (see drivers/ur10-lab.toml). Raises URProfileError (a ValueError) naming the key."""
+    return parse_ur_profile(read_toml(path, URProfileError, "robot profile"), source=str(path))
 
 
 def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfile:
     """Build a URProfile from parsed TOML data (mm/deg named in keys, converted to SI here)."""
 
     def fail(message: str) -> ValueError:
-        return ValueError(f"{source}: {message}")
+        return URProfileError(f"{source}: {message}", source)
 
-    for section, allowed in _PROFILE_KEYS.items():
-        table = data if section == "" else data.get(section, {})
-        if not isinstance(table, dict):
-            raise fail(f"[{section}] must be a table")
-        unknown = set(table) - allowed
-        if unknown:
-            where = f"[{section}]" if section else "top level"
-            raise fail(f"unknown key(s) {sorted(unknown)} at {where}; allowed: {sorted(allowed)}")
-    if data.get("driver", "ur") != "ur":
-        raise fail(f"driver = {data['driver']!r}, this loader reads only driver = 'ur'")
-    for key in ("name", "host"):
-        if not isinstance(data.get(key), str) or not data[key]:
-            raise fail(f"'{key}' must be a non-empty string")
-
-    def number(section: str, key: str, default: float, lo: float, hi: float) -> float:
-        value = data.get(section, {}).get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-            raise fail(f"[{section}] {key} = {value!r} is not a finite number")
-        if not lo <= value <= hi:
-            raise fail(f"[{section}] {key} = {value} is outside [{lo}, {hi}]")
-        return float(value)
-
-    ports = data.get("ports", {})
-    for key, standard in _STANDARD_PORTS.items():
-        if ports.get(key, standard) != standard:
-            raise fail(
-                f"[ports] {key} = {ports[key]!r}: ur-rtde 1.6.5 always connects to port {standard}, "
-                "so another port cannot be honoured"
-            )
-
-    model_limits = _model_limits(data.get("model"), fail)
-    limits_table = data.get("joint_limits_deg", {})
+    doc = validate(data, UR_PROFILE_SCHEMA, source=source, error=URProfileError)
+    motion, timing = doc["motion"], doc["timing"]
+    model_limits = _model_limits(doc["model"], fail)
+    limits_table = doc.get("joint_limits_deg", {})
     if not limits_table and model_limits is None:
         raise fail("give [joint_limits_deg] or a 'model' whose robot file carries joint limits")
     bounds = []
     for key in ("lower", "upper") if limits_table else ():
-        values = limits_table.get(key)
-        if not isinstance(values, list) or len(values) != N_JOINTS:
-            raise fail(f"[joint_limits_deg] {key} must list {N_JOINTS} numbers (degrees), got {values!r}")
-        for j, value in enumerate(values):
-            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-                raise fail(f"[joint_limits_deg] {key}[{j}] = {value!r} is not a finite number")
-        bounds.append(np.radians(np.asarray(values, dtype=float)))
+        bounds.append(np.radians(np.asarray(limits_table[key], dtype=float)))
     joint_limits = np.stack(bounds, axis=1) if bounds else np.array(model_limits)
     if model_limits is not None:
         # The model's limits are the hard bound: a profile may only narrow them.
@@ -200,20 +224,20 @@ def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfi
 
     limits = SafetyLimits(
         joint_limits=joint_limits,
-        max_speed=number("motion", "max_speed_rad_s", 0.5, 1e-6, UR_RTDE_MAX_SPEED),
-        max_acceleration=number("motion", "max_acceleration_rad_s2", 1.0, 1e-6, UR_RTDE_MAX_ACCELERATION),
+        max_speed=motion["max_speed_rad_s"],
+        max_acceleration=motion["max_acceleration_rad_s2"],
     )
     return URProfile(
-        name=data["name"],
-        model=str(data.get("model", "")),
-        host=data["host"],
+        name=doc["name"],
+        model=doc["model"],
+        host=doc["host"],
         limits=limits,
-        settle_time=number("motion", "settle_time_s", 0.2, 0.0, 10.0),
-        position_tolerance=number("motion", "position_tolerance_rad", 1e-3, 1e-6, 0.1),
-        stop_acceleration=number("motion", "stop_acceleration_rad_s2", 2.0, 0.1, UR_RTDE_MAX_ACCELERATION),
-        connect_timeout=number("timing", "connect_timeout_s", 2.0, 0.01, 60.0),
-        stale_timeout=number("timing", "stale_timeout_s", 0.5, 0.01, 10.0),
-        frequency=_frequency(data.get("timing", {}).get("frequency_hz", -1), fail),
+        settle_time=motion["settle_time_s"],
+        position_tolerance=motion["position_tolerance_rad"],
+        stop_acceleration=motion["stop_acceleration_rad_s2"],
+        connect_timeout=timing["connect_timeout_s"],
+        stale_timeout=timing["stale_timeout_s"],
+        frequency=timing["frequency_hz"],
     )
 
 
@@ -233,14 +257,6 @@ def _model_limits(model: Any, fail: Callable[[str], ValueError]) -> np.ndarray |
     if limits.shape != (N_JOINTS, 2):
         raise fail(f"'model' = {model!r} has {limits.shape[0]} joints; a UR arm has {N_JOINTS}")
     return limits
-
-
-def _frequency(value: Any, fail: Callable[[str], ValueError]) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise fail(f"[timing] frequency_hz = {value!r} is not a number")
-    if value != -1 and not 1 <= value <= 500:
-        raise fail(f"[timing] frequency_hz = {value} must be -1 (controller default) or in [1, 500]")
-    return float(value)
 
 
 # --------------------------------------------------------------------------------------------------------------
