@@ -4,6 +4,7 @@ term refused with its size or left out with --geometry-only), and the URScript p
 from __future__ import annotations
 
 import sys
+import tomllib
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from test_ur_kinematics import parse_yaml, rotation_vector_pose, yaml_fk
 
 from labcal.compensator import Compensator
 from labcal.kinematics import se3
+from labcal.robots import load
 
 
 @pytest.fixture(scope="module")
@@ -75,10 +77,15 @@ def test_urdf_of_a_hybrid_fit_is_refused_with_the_size_or_left_out_explicitly(fi
     assert r.exit_code != 0 and "mm" in r.stderr
 
 
-def test_urdf_refuses_unknown_dynamics_when_asked(fits):
-    r, out = export(fits, "local-poe", "urdf", "strict.urdf", "--unknown-dynamics", "refuse")
-    assert r.exit_code != 0 and "no joint velocity" in r.stderr
-    assert not out.exists()
+def test_urdf_takes_effort_and_velocity_from_the_robot_file(fits):
+    r, out = export(fits, "local-poe", "urdf", "dyn.urdf", "--unknown-dynamics", "refuse")
+    assert r.exit_code == 0, r.stderr
+    assert "effort/velocity" not in r.stderr
+    limits = [j.find("limit") for j in ET.fromstring(out.read_text()).findall("joint") if j.get("type") == "revolute"]
+    rows = tomllib.loads(load("ur10").text)["joints"]
+    assert [float(e.get("effort")) for e in limits] == [row["effort"] for row in rows]
+    assert [float(e.get("velocity")) for e in limits] == [row["velocity"] for row in rows]
+    assert [float(e.get("upper")) for e in limits] == [row["limits"][1] for row in rows]
 
 
 def test_urscript_program_passes_the_checker_and_its_self_test(fits):
