@@ -1,8 +1,8 @@
-"""Serial three-target tracker driver: pyserial transport -> framer -> protocol profile -> ``Tracker`` port.
+"""Serial tracker driver (1..m targets): pyserial transport -> framer -> protocol profile -> ``Tracker`` port.
 
-Profiles (TOML, see the repository's ``drivers/`` folder): a configurable ASCII line protocol and the NDI
-Combined API (Polaris passive stray markers, ASCII ``TX`` or binary ``BX`` replies). Everything is in SI units
-(m, s) once it leaves this driver.
+Profiles (TOML, see the repository's ``drivers/`` folder, or the built-in ``ascii-single-smr``): a configurable
+ASCII line protocol and the NDI Combined API (Polaris passive stray markers, ASCII ``TX`` or binary ``BX``
+replies). Everything is in SI units (m, s) once it leaves this driver; targets a frame did not see are NaN rows.
 
     with open_tracker("drivers/ndi-polaris.toml", targets, url="/dev/ttyUSB0") as tracker:
         m = tracker.measure(samples=5)
