@@ -363,6 +363,8 @@ def _check_target_distances(points, targets, length_unit, hints, report, allow) 
     """Distances between targets seen together in a row against the targets file (pairs never seen together, and
     sessions with one target, have nothing to compare)."""
     pairs = _pairs(len(targets))
+    if not pairs:
+        return
     d_file = np.array([np.linalg.norm(targets[a] - targets[b]) for a, b in pairs])
     d = np.stack([np.linalg.norm(points[:, a] - points[:, b], axis=1) for a, b in pairs], axis=1)
     if np.isnan(d).any():  # targets not seen: compare the pairs that were seen together, where they were

@@ -18,16 +18,19 @@ Two planners:
     from the tracker through it), so the tracker sees three separate markers.
 
 - :func:`optimal_configurations` picks, from a large pool of such candidates, the subset that maximises the
-  observability of the frame errors δζ (paper eq. 8-11) from three-target measurements: greedy D-optimality
-  (maximise log det of the information matrix on the identifiable subspace) with rank-9 Woodbury updates,
+  observability of the frame errors δζ (paper eq. 8-11) from the measured target points (1..k targets): greedy
+  D-optimality (maximise log det of the information matrix on the identifiable subspace) with rank-3m Woodbury updates,
   followed by exchange passes. For a fixed number of configurations this also maximises the O1 index
   (Borm & Menq): ``O1 = (σ_1 ⋯ σ_L)^(1/L) / √m``. By default it then exchanges configurations to minimise the
   average prediction variance over the workspace (I-optimality, :func:`prediction_variance`): a large
   determinant alone did not lower the held-out error much; the prediction variance is what held-out error
   measures.
 
-The identification Jacobian of one configuration is the 9 × 6(n+1) matrix ``G = P · frame_jacobian(q)`` with
-``P`` stacking ``[I, −skew(p_i)]`` for the three targets p_i (base frame): δp_i = δv + δω × p_i. Its angular
+The identification Jacobian of one configuration is the 3m × 6(n+1) matrix ``G = P · frame_jacobian(q)`` with
+``P`` stacking ``[I, −skew(p_i)]`` for the m targets p_i (base frame): δp_i = δv + δω × p_i. The indices count
+the points actually measured: with ``seen`` (rows, m) only the rows of the targets seen enter (3 per seen target),
+and with a drop-out probability ``dropout`` (one for all targets, or one per target) each target's rows carry the
+expected information (1 − p) GᵢᵀGᵢ, so ``rows`` is the expected number of measured coordinates. Its angular
 parameter columns are divided by L, so every parameter is a length (m) and the indices do not depend on
 whether lengths are in metres or millimetres. Only about 4n + 6 of the 6(n+1) parameters are identifiable
 (4 per revolute, 2 per prismatic joint, plus 6); the indices are computed on that subspace
@@ -249,11 +252,41 @@ def random_configurations(
 # Observability
 
 
+def target_weights(m: int, dropout=None, seen=None, k: int | None = None) -> np.ndarray:
+    """(k, m) weight of each target's information in each configuration: 1 − p for a drop-out probability p
+    (scalar or (m,)), times 0 where ``seen`` (k, m) says the target was not measured. ``(1, m)`` ones by default.
+
+    >>> target_weights(2, dropout=[0.0, 0.5]).tolist()
+    [[1.0, 0.5]]
+    """
+    w = np.ones((1, m))
+    if dropout is not None:
+        p = np.broadcast_to(np.asarray(dropout, dtype=float), (m,))
+        if not np.all((p >= 0) & (p < 1)):
+            raise PlanningError(f"dropout must be probabilities in [0, 1) (one, or one per target), got {dropout!r}")
+        w = w * (1.0 - p)
+    if seen is not None:
+        mask = np.asarray(seen, dtype=bool)
+        if mask.ndim != 2 or mask.shape[1] != m or (k is not None and mask.shape[0] != k):
+            raise PlanningError(f"seen must be a ({k if k is not None else 'rows'}, {m}) bool array, got {mask.shape}")
+        w = w * mask
+    return w
+
+
+def _weighted(G: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(k, 3m, r) Jacobian rows scaled by √weight of their target, so GᵀG is the expected information."""
+    k, rows, r = G.shape
+    m = rows // 3
+    root = np.sqrt(np.broadcast_to(weights, (k, m)))
+    return (G.reshape(k, m, 3, r) * root[:, :, None, None]).reshape(k, rows, r)
+
+
 def identification_jacobian(model: LocalPOEModel, q, targets, length_scale: float | None = None) -> np.ndarray:
     """(k, 3m, 6(n+1)) d(target positions)/d(δζ) for targets (m, 3) m in the tool frame.
 
     Rows: t1 x,y,z, t2 x,y,z … (m). Columns: δζ_1 … δζ_{n+1} as (v, ω); the ω columns are divided by L
-    (``length_scale``, default reach) so all parameters are lengths.
+    (``length_scale``, default reach) so all parameters are lengths. (Rows of targets not seen are dropped by the
+    callers: :func:`observability` with ``seen``.)
     """
     q2 = np.atleast_2d(np.asarray(q, dtype=float))
     t = np.asarray(targets, dtype=float)
@@ -274,7 +307,8 @@ def identification_jacobian(model: LocalPOEModel, q, targets, length_scale: floa
 def identifiable_basis(
     model: LocalPOEModel, targets, *, seed: int = 0, count: int = 200, rtol: float = 1e-6
 ) -> np.ndarray:
-    """(6(n+1), r) orthonormal basis of the δζ directions that three-target measurements can identify.
+    """(6(n+1), r) orthonormal basis of the δζ directions that measurements of these targets can identify
+    (fewer for one or two targets: the rotation of the last frame about a single target's point is unobservable).
 
     The unidentifiable directions are structural (the same for almost every set of configurations), so they are
     found once from ``count`` uniform random configurations: eigenvectors of GᵀG whose singular value
@@ -295,7 +329,7 @@ class Observability:
 
     o1: (σ_1⋯σ_r)^(1/r)/√rows, m (Borm & Menq O1; 0 if rank-deficient); log_det: log det(GᵀG) on the
     identifiable subspace (−inf if singular); min_singular: σ_r, m; rank: numerical rank of the reduced G;
-    parameters: r; rows: 3·targets·configurations.
+    parameters: r; rows: the measured coordinates, 3 per target seen (expected, with a drop-out probability).
     """
 
     o1: float
@@ -303,16 +337,28 @@ class Observability:
     min_singular: float
     rank: int
     parameters: int
-    rows: int
+    rows: float
 
 
-def observability(model: LocalPOEModel, q, targets, *, basis: np.ndarray | None = None) -> Observability:
+def observability(
+    model: LocalPOEModel, q, targets, *, basis: np.ndarray | None = None, seen=None, dropout=None
+) -> Observability:
     """O1 and log-det indices of the configurations q (k, n) for targets (m, 3), on ``basis`` (default
-    :func:`identifiable_basis` with its default seed, so indices of different sets are comparable)."""
+    :func:`identifiable_basis` with its default seed, so indices of different sets are comparable).
+
+    ``seen``: (k, m) bool, the targets actually measured in each configuration (only their rows count);
+    ``dropout``: probability that a target is lost (scalar or (m,)): the expected information and row count."""
     basis = identifiable_basis(model, targets) if basis is None else np.asarray(basis, dtype=float)
     G = identification_jacobian(model, q, targets)
-    R = (G @ basis).reshape(-1, basis.shape[1])
-    s = np.linalg.svd(R, compute_uv=False)
+    rows: float = float(G.shape[0] * G.shape[1])
+    if seen is not None or dropout is not None:
+        w = np.broadcast_to(target_weights(G.shape[1] // 3, dropout, seen, G.shape[0]), (G.shape[0], G.shape[1] // 3))
+        rows = float(3 * w.sum())
+        keep = np.repeat(w > 0, 3, axis=1)
+        R = (_weighted(G, w) @ basis)[keep]
+    else:
+        R = (G @ basis).reshape(-1, basis.shape[1])
+    s = np.linalg.svd(R, compute_uv=False) if R.size else np.zeros(0)
     r = basis.shape[1]
     if s.size < r:
         s = np.concatenate([s, np.zeros(r - s.size)])
@@ -321,12 +367,12 @@ def observability(model: LocalPOEModel, q, targets, *, basis: np.ndarray | None 
         logs = np.log(s)
     full = rank == r
     return Observability(
-        o1=float(np.exp(logs.mean()) / np.sqrt(R.shape[0])) if full else 0.0,
+        o1=float(np.exp(logs.mean()) / np.sqrt(rows)) if full else 0.0,
         log_det=float(2 * logs.sum()) if full else float("-inf"),
         min_singular=float(s[-1]),
         rank=rank,
         parameters=r,
-        rows=int(R.shape[0]),
+        rows=int(rows) if rows == int(rows) else rows,
     )
 
 
@@ -457,6 +503,7 @@ def optimal_configurations(
     pool: np.ndarray | None = None,
     criterion: str = "i",
     exchange_passes: int = 2,
+    dropout=None,
     **sampling,
 ) -> np.ndarray:
     """(count, n) configurations chosen from a candidate pool to make the identification most accurate.
@@ -471,7 +518,8 @@ def optimal_configurations(
     The pool is ``pool`` (k, n) if given, else ``candidates`` configurations from :func:`random_configurations`
     (``seed`` and the ``sampling`` keyword arguments: limits, range_fraction, region, max_condition, tracker,
     min_target_distance, max_tries — so every chosen configuration passed the same checks). targets: (m, 3) m
-    in the tool frame.
+    in the tool frame. dropout: probability that the tracker loses a target (scalar or (m,)): the selection then
+    maximises the expected information of the points that will be measured.
     """
     if criterion not in CRITERIA:
         raise PlanningError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
@@ -486,7 +534,10 @@ def optimal_configurations(
     if count > len(pool):
         raise PlanningError(f"cannot choose {count} configurations from a pool of {len(pool)}")
     basis = identifiable_basis(model, t, seed=seed)
-    G = identification_jacobian(model, pool, t) @ basis
+    G = identification_jacobian(model, pool, t)
+    if dropout is not None:
+        G = _weighted(G, target_weights(len(t), dropout))
+    G = G @ basis
     idx = greedy_d_optimal(G, count, exchange_passes=exchange_passes)
     if criterion == "i":
         W = np.einsum("kmr,kms->rs", G, G) / len(pool)
@@ -510,4 +561,5 @@ __all__ = [
     "optimal_configurations",
     "prediction_variance",
     "random_configurations",
+    "target_weights",
 ]
