@@ -105,6 +105,7 @@ def test_same_seed_is_bit_identical_and_another_seed_differs(data, fitted):
         dict(trainer="gd", max_iter=300, patience=50),
         dict(loss="task", max_iter=20),
         dict(features=("sincos", "gravity"), hidden=(5, 4), weight_decay=1e-4, max_iter=20),
+        dict(features=("q", "harmonics:2"), max_iter=20),  # every name the feature registry (the runtime) knows
     ],
 )
 def test_every_trainer_and_option_lowers_the_validation_loss(data, options):

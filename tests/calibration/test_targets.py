@@ -187,3 +187,26 @@ def test_collinear_targets_report_the_line_and_claim_partial_orientation():
     assert "line through t1, t2, t3" in claim["unobservable"][0]
     _, info = fit_local_poe(obs, nominal)
     assert info["rank"] == info["expected_rank"] == expected_rank(nominal) - 1
+
+
+def test_a_single_point_on_the_last_joint_axis_holds_that_axis_instead_of_fitting_noise_into_it():
+    nominal, actual, q, _ = simulated(k=80, errors=ErrorSpec.paper())
+    A = nominal.frames[-1]  # tool frame in K_n: joint n turns about K_n's z axis
+    on_axis = np.linalg.solve(A, [0.0003, 0.0, 0.09, 1.0])[:3]  # 0.3 mm beside the axis, like a probe origin
+    pts = actual.measure(q, on_axis[None], np.random.default_rng(5))
+    result = fit(Observations(q, pts, on_axis[None]), nominal, "local-poe")
+    info = result.info
+    assert info["rank"] == info["expected_rank"] == expected_rank(nominal) - 5
+    assert any(f"tilt of joint {nominal.n}'s axis" in w for w in info["unobservable"])
+    assert not [w for w in result.warnings if w["code"] in ("large-correction", "rank-deficient")]
+    dq = result.robot.correct(q) - q
+    # milliradians (more only near a singular wrist), not the tenths of a radian noise fitted into the axis gave
+    assert np.median(np.abs(dq)) < 0.005 and np.mean(np.abs(dq) > 0.05) < 0.05
+    e = np.linalg.norm(
+        result.robot.predict_points(q, on_axis[None])[:, 0] - true_points(actual, q, on_axis[None])[:, 0], axis=1
+    )
+    assert np.mean(e) < np.mean(
+        np.linalg.norm(
+            nominal.target_points(q, on_axis[None])[:, 0] - true_points(actual, q, on_axis[None])[:, 0], axis=1
+        )
+    )

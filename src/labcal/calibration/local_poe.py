@@ -72,6 +72,12 @@ def expected_rank(model: LocalPOEModel) -> int:
 
 
 STRUCTURAL = {"point": 3, "line": 1, "plane": 0}  # tool rotations a target set cannot show (module docstring)
+# m: a single target closer than this to the last joint's axis leaves the tilt of that axis to a lever of a few
+# millimetres: a milliradian of tilt moves it by microns, under any tracker's noise, so the data would fit noise
+# there (measured on the real UR10 with the probe origin 0.3 mm off joint 6's axis: 50 mrad of tilt, and a
+# correction that turned the wrist by 0.4 rad). Holding the tilt at the nominal costs the point at most the true
+# tilt times this distance: microns.
+AXIS_TOL = 0.02
 
 
 def fitting_rows(obs: Observations, include_val: bool = False) -> np.ndarray:
@@ -156,13 +162,29 @@ def _gauss_newton(
     rank_rtol: float,
     damping: float,
     seen: np.ndarray | None = None,
+    fixed: np.ndarray | None = None,
 ) -> dict:
     """Iterated, rank-revealing Gauss-Newton / LM. Returns the final model, T_tb and diagnostics.
 
-    seen: (k, m) cells with a measured point, None when every point was seen."""
+    seen: (k, m) cells with a measured point, None when every point was seen. fixed: (p, f) parameter directions
+    (SI units) the targets cannot show (:func:`target_null`). The point motions they cause (exactly none for a
+    rotation about the targets, a lever of millimetres for a near-miss such as a point beside the last joint's
+    axis) are removed from the Jacobian's columns, so every parameter combination that acts only through them —
+    those directions and whatever the robot's redundant parameters turn them into — is a null direction of every
+    step and stays at the start."""
     n_params = 6 * len(frames) + (6 if estimate_base else 0)
     # Parameter scaling: angular parameters in units of length_scale metres (unit-consistent truncation).
     scale = metric.parameter_weights(n_params // 6, length_scale)
+    F = None if fixed is None or fixed.shape[1] == 0 else fixed / scale[:, None]
+
+    def scaled(J: np.ndarray) -> np.ndarray:
+        Js = J * scale
+        if F is None:
+            return Js
+        U, s, _ = np.linalg.svd(Js @ F, full_matrices=False)
+        U = U[:, s > 1e-12 * max(float(np.abs(Js).max()), 1e-300)]
+        return Js - U @ (U.T @ Js)
+
     r, J = _residual_and_jacobian(model, T_tb, q, targets, measured, frames, estimate_base, seen)
     cost = float(r @ r)
     history = [cost]
@@ -170,8 +192,8 @@ def _gauss_newton(
     converged = False
     iterations = 0
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is reported
-        lam_k, V, keep = _eig(J * scale, rank_rtol)
-        g = V[:, keep].T @ ((J * scale).T @ r)
+        lam_k, V, keep = _eig(scaled(J), rank_rtol)
+        g = V[:, keep].T @ (scaled(J).T @ r)
         step = scale * (V[:, keep] @ (g / (lam_k[keep] + lam * lam_k[-1])))
         cand_model, cand_T = _apply(model, T_tb, step, frames, estimate_base)
         r_c, J_c = _residual_and_jacobian(cand_model, cand_T, q, targets, measured, frames, estimate_base, seen)
@@ -189,7 +211,7 @@ def _gauss_newton(
             if lam > 1e6:
                 break
     # Final linearisation: rank, null space and parameter covariance at the solution.
-    lam_k, V, keep = _eig(J * scale, rank_rtol)
+    lam_k, V, keep = _eig(scaled(J), rank_rtol)
     rank = int(keep.sum())
     dof = max(r.size - rank, 1)
     sigma2 = cost / dof
@@ -275,12 +297,16 @@ def _seen_rows(obs: Observations, rows: np.ndarray) -> np.ndarray | None:
     return None if seen.all() else seen
 
 
-def target_null(obs: Observations, rows: np.ndarray, n_frames_before_tool: int, n_params: int) -> dict:
+def target_null(
+    obs: Observations, rows: np.ndarray, n_frames_before_tool: int, n_params: int, model: LocalPOEModel | None = None
+) -> dict:
     """The tool rotations the targets seen in the fitting rows cannot show (module docstring).
 
     Returns {"geometry": "point"|"line"|"plane", "count": directions, "words": [text], "basis": (n_params, count)
     parameter vectors (SI units) of those directions — the tool frame's parameters sit at
-    ``6 · n_frames_before_tool``}.
+    ``6 · n_frames_before_tool``, the last joint's frame A_n just before}. With ``model`` and a single point
+    within :data:`AXIS_TOL` of the last (revolute) joint's axis, the two tilts of that axis about the point are
+    added: the last joint then barely moves the point, so its axis is seen only through a lever of millimetres.
     """
     used = obs.seen[rows].any(axis=0) if rows.any() else np.ones(obs.m, bool)
     names = [f"t{i + 1}" for i in np.flatnonzero(used)]
@@ -308,7 +334,26 @@ def target_null(obs: Observations, rows: np.ndarray, n_frames_before_tool: int, 
         ]
     else:
         words = []
-    return {"geometry": kind, "count": STRUCTURAL[kind], "words": words, "basis": basis}
+    if kind == "point" and model is not None and n_frames_before_tool >= 1 and model.joint_types[-1] == REVOLUTE:
+        A = model.frames[-1]  # the tool frame in K_n: the last joint turns about K_n's z axis
+        p = A[:3, :3] @ where + A[:3, 3]
+        off = float(np.hypot(p[0], p[1]))
+        if off < AXIS_TOL:
+            # A_n right-perturbed by (δv, δω) with δv = −δω × p tilts joint n's axis about the point, which stays on
+            # it: no value of q_n moves the point then.
+            tilt = np.zeros((n_params, 2))
+            c = 6 * (n_frames_before_tool - 1)
+            for a in range(2):
+                w = np.eye(3)[a]
+                tilt[c : c + 3, a], tilt[c + 3 : c + 6, a] = -np.cross(w, p), w
+            basis = np.concatenate([basis, tilt], axis=1)
+            n = model.n
+            words.append(
+                f"the tilt of joint {n}'s axis about target {names[0]} (2 directions): the target sits "
+                f"{off * 1e3:.1f} mm from that axis, so turning joint {n} hardly moves it; the axis stays nominal "
+                f"(moving the target ≥ {AXIS_TOL * 1e3:g} mm off the axis of joint {n} lets the data see it)"
+            )
+    return {"geometry": kind, "count": basis.shape[1], "words": words, "basis": basis}
 
 
 def _without(null: np.ndarray, known: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -379,6 +424,7 @@ def register(
         rank_rtol=DEFAULT_RANK_RTOL,
         damping=0.0,
         seen=_seen_rows(obs, rows),
+        fixed=None if structural is None else structural["basis"],
     )
     robot = _robot(nominal, out["model"], out["T_tb"], obs, "nominal")
     info = {
@@ -433,7 +479,7 @@ def fit_local_poe(
     n = nominal.n
     frames = list(range(1 if estimate_base else 0, n + 1))
     labels = _param_labels(frames, estimate_base, n)
-    structural = target_null(obs, rows, len(frames) - 1, len(labels))
+    structural = target_null(obs, rows, len(frames) - 1, len(labels), nominal)
     needed = expected_rank(nominal) - structural["count"]
     _check(obs, nominal, rows, needed, f"local-POE identification of {nominal.name or 'the robot'}")
     L = float(length_scale or nominal.reach())
@@ -460,6 +506,7 @@ def fit_local_poe(
         rank_rtol=rank_rtol,
         damping=damping,
         seen=_seen_rows(obs, rows),
+        fixed=structural["basis"],
     )
     model = out["model"]
     delta = se3.log_se3(se3.inv(nominal.frames) @ model.frames)
