@@ -34,7 +34,7 @@ import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 MISSING: Any = object()
 KINDS = ("str", "int", "bool", "number", "vector", "vectors", "strings", "table", "tables", "any")
@@ -88,7 +88,10 @@ class Table:
     name: str = ""
 
 
-def fail(source: str, path: str, message: str, error: type[SchemaError] = SchemaError) -> SchemaError:
+E = TypeVar("E", bound=SchemaError)
+
+
+def fail(source: str, path: str, message: str, error: type[E] = SchemaError) -> E:  # type: ignore[assignment]
     """The error for ``path`` in ``source``: ``"arm.toml: joints[2].alpha must be …"`` (raise it)."""
     where = f"{source}: " if source else ""
     return error(f"{where}{path + ' ' if path else ''}{message}", source, path)

@@ -1,8 +1,10 @@
 """Device profiles (TOML): serial settings and the protocol of one tracker model.
 
 A profile file has a top-level ``protocol = "ascii" | "ndi"``, a ``[port]`` table and a table named after the
-protocol. The shipped examples in the repository's ``drivers/`` folder document every field. ``load_profile``
-checks every field and names the bad one (``drivers/x.toml: [ascii].reply: ...``).
+protocol. The shipped examples in the repository's ``drivers/`` folder document every field; the built-in
+profiles (:data:`BUILTIN_PROFILES`, loadable by name) are complete files too. ``load_profile`` checks every field
+against the schemas below (:mod:`labcal.tomlschema`) and names the bad one (``drivers/x.toml: ascii.reply ...``).
+An ASCII reply regex names the coordinates of the k targets it carries, ``t1_x`` … ``tk_z``.
 
 Lengths: profiles state device units at the edge (``length_unit``, ``*_mm`` fields); the loaded objects hold SI
 units (metres, seconds).
@@ -21,7 +23,6 @@ from labcal.tomlschema import Key, SchemaError, Table, fail, read_toml, validate
 
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6}
 AXES = ("x", "y", "z")
-COORD_GROUPS = tuple(f"t{i}_{a}" for i in (1, 2, 3) for a in AXES)  # the three-target example's groups
 _COORD_GROUP = re.compile(r"t([1-9][0-9]*)_[xyz]")
 CHECKSUMS = ("none", "nmea", "crc16-arc")
 PARITIES = ("N", "E", "O", "M", "S")
@@ -220,7 +221,7 @@ def _profile_schema(protocol: str) -> Table:
 
 
 def _fail(source: str, path: str, message: str) -> ProfileError:
-    return fail(source, path, message, ProfileError)  # type: ignore[return-value]
+    return fail(source, path, message, ProfileError)
 
 
 def reply_targets(reply: re.Pattern[str], source: str = "<profile>") -> int:
