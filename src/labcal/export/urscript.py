@@ -32,9 +32,12 @@ Rules the emitted script keeps (checked on every emitted script by ``tests/expor
   ``tanh`` (tanh is built from pow).
 - **Statement budget.** The manual asks for ``sync()`` next to computation-heavy code (a thread that uses its
   whole 2 ms frame without one risks "Lost communication with Controller" and a protective stop). Each heavy
-  phase (a chain, the twists, each network layer, the solve) starts with ``sync()`` and loops over joints,
-  outputs or pivots call ``sync()`` every few iterations, sized so that at most ``statements_per_sync``
-  statements run between two ``sync()`` calls; the manual gives no number, so the default
+  phase (a chain, the twists, the features, each network layer, the solve) starts with ``sync()``; loops over
+  joints or pivots call ``sync()`` every few iterations, and the network, written out straight (one feature
+  column or up to :data:`TERMS_PER_STATEMENT` multiply-adds per statement, the folded weights as literals with
+  exact zeros left out), calls it after each chunk of statements, so that at most ``statements_per_sync``
+  statements run between two ``sync()`` calls (``tests/export/measure_urscript.py`` prints statements and syncs
+  per call); the manual gives no number, so the default
   :data:`STATEMENTS_PER_SYNC` is a conservative choice: lower it if the controller reports a thread that used too
   much time, raise it for fewer frames per call. Each ``sync()`` costs one 2 ms frame, so a call takes at least
   2 ms × the number of syncs it executes.
@@ -408,54 +411,68 @@ def _feature_parts(name: str, robot: CalibratedRobot, kin: ZAxisForm) -> list[st
     return [_column_expression(col, kin) for col in columns]
 
 
-def _network_functions(robot: CalibratedRobot, kin: ZAxisForm, budget: _Budget) -> tuple[list[str], list[str]]:
-    """(constant lines, function lines) of the feature map and the network forward pass lc_rho(q, F)."""
+TERMS_PER_STATEMENT = 8  # multiply-adds written into one statement of a network layer
+_TANH_COST = 6  # statements of one lc_tanh call (the call, two tests, pow, return)
+
+
+class _Straight:
+    """Straight-line function body: a statement count since the last sync(), and a sync() before a statement
+    that would take it past one chunk of the budget (so a chunk plus what follows the function stays within it)."""
+
+    def __init__(self, budget: _Budget) -> None:
+        self.chunk = budget.chunk
+        self.lines: list[str] = []
+        self.count = 0
+
+    def add(self, line: str, cost: int = 1) -> None:
+        if self.count + cost > self.chunk:
+            self.lines.append("  sync()")
+            self.count = 0
+        self.lines.append("  " + line)
+        self.count += cost
+
+
+def _network_functions(robot: CalibratedRobot, kin: ZAxisForm, budget: _Budget) -> list[str]:
+    """Function lines of the feature map and the network forward pass lc_rho(q, F).
+
+    Both are written out straight (one feature column, or up to TERMS_PER_STATEMENT multiply-adds of a layer, per
+    statement; the folded weights as literals, exact zeros left out — a joint series' weights are mostly zeros),
+    so the statement count is known here and sync() is placed exactly where the budget needs it.
+    """
     net = robot.network
     Ws, bs = _folded(net)
-    consts, lines = [], []
     parts: list[str] = []
     for name in net.features:
         parts += _feature_parts(name, robot, kin)
     if len(parts) != Ws[0].shape[1]:
         raise ValueError(f"network expects {Ws[0].shape[1]} inputs, the features give {len(parts)}")
-    lines += ["# network inputs (normalisation is folded into lc_W0 / lc_b0)", "def lc_features(q, F):"]
-    lines += ["  return [" + ", ".join(parts) + "]", "end"]
+    body = _Straight(budget)
+    body.add("sync()", 0)
+    body.add(f"local x = {_zeros(len(parts))}")
+    for k, expr in enumerate(parts):
+        body.add(f"x[{k}] = {expr}")
+    body.add("return x")
+    lines = ["# network inputs (the normalisation is folded into the first layer's weights)", "def lc_features(q, F):"]
+    lines += [*body.lines, "end"]
     last = len(Ws) - 1
     for i, (W, b) in enumerate(zip(Ws, bs, strict=True)):
-        nout, nin = W.shape
-        consts.append(f"lc_W{i} = {_list(W)}")
-        consts.append(f"lc_b{i} = {_list(b)}")
-        inner = 3  # statements per input: the loop test, the multiply-add, the increment
-        out_cost = 12 + inner * nin
-        if out_cost <= budget.chunk:
-            k_sync: list[str] = []
-        else:  # one output's sum alone is more than a chunk: sync inside it too
-            k_sync = _counter("      ", "kc", budget.every(inner + 5), nin)
-            out_cost = 12 + budget.chunk
-        lines += [
-            f"def lc_layer{i}(x):",
-            "  sync()",
-            f"  local y = {_zeros(nout)}",
-            "  local o = 0",
-            "  local k = 0",
-            "  local cnt = 0",
-            "  local kc = 0",
-            "  local acc = 0.0",
-            f"  while o < {nout}:",
-            f"    acc = lc_b{i}[o]",
-            "    k = 0",
-            f"    while k < {nin}:",
-            f"      acc = acc + lc_W{i}[o * {nin} + k] * x[k]",
-            "      k = k + 1",
-            *k_sync,
-            "    end",
-            "    y[o] = " + ("acc" if i == last else "lc_tanh(acc)"),
-            "    o = o + 1",
-            *_counter("    ", "cnt", budget.every(out_cost), nout),
-            "  end",
-            "  return y",
-            "end",
-        ]
+        nout, _ = W.shape
+        body = _Straight(budget)
+        body.add("sync()", 0)
+        body.add(f"local y = {_zeros(nout)}")
+        body.add("local acc = 0.0")
+        for o in range(nout):
+            terms = [f"{_num(W[o, k])} * x[{k}]" for k in np.flatnonzero(W[o])]
+            chunks = [terms[c : c + TERMS_PER_STATEMENT] for c in range(0, len(terms), TERMS_PER_STATEMENT)]
+            body.add(f"acc = {' + '.join([_num(b[o]), *chunks[0]]) if chunks else _num(b[o])}")
+            for chunk in chunks[1:]:
+                body.add(f"acc = acc + {' + '.join(chunk)}")
+            if i == last:
+                body.add(f"y[{o}] = acc")
+            else:
+                body.add(f"y[{o}] = lc_tanh(acc)", 1 + _TANH_COST)
+        body.add("return y")
+        lines += [f"def lc_layer{i}(x):", *body.lines, "end"]
     call = "lc_features(q, F)"
     for i in range(len(Ws)):
         call = f"lc_layer{i}({call})"
@@ -475,7 +492,7 @@ def _network_functions(robot: CalibratedRobot, kin: ZAxisForm, budget: _Budget) 
         f"  return {call}",
         "end",
     ]
-    return consts, lines
+    return lines
 
 
 def _check_exportable(robot: CalibratedRobot, method: str, iterations: int, function_name: str) -> None:
@@ -534,9 +551,7 @@ def _definitions(
         + _solve_function(n, budget)
     )
     if net is not None:
-        net_consts, net_lines = _network_functions(robot, kin, budget)
-        consts += net_consts
-        funcs += net_lines
+        funcs += _network_functions(robot, kin, budget)
 
     check = [
         "  local j = 0",
