@@ -275,7 +275,8 @@ def test_load_targets(tmp_path):
         'unit = "m"\npoints = [[0, 0, 0], [0.1, 0, 0], [0.2, 0.0001, 0]]': "collinear",
         'unit = "m"\npoints = [[0, 0, 0], [0, 0, 0], [0, 0.1, 0]]': "collinear",
         'unit = "cm"\npoints = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]': "unit must be",
-        "points = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]": 'missing key "unit"',
+        "points = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]": "unit is missing",
+        'unit = "m"\npoint = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]': "unknown key 'point' \\(did you mean 'points'\\?\\)",
         'unit = "m"\npoints = [[0, 0, 0], [1, 0, 0], [0, 1]]': r"t3 must be \[x, y, z\]",
         'unit = "m"\npoints = [[0, 0, 0], [1, 0, 0], [0, 1, nan]]': "not a finite number",
         "unit = ": "not valid TOML",
@@ -294,12 +295,15 @@ def test_mapping_errors_are_clear(tmp_path):
     m = tmp_path / "m.toml"
     cases = {
         'form = "probe"\njoints = ["a"]\nseperator = ";"\n[probe]\n'
-        'position=["x","y","z"]\nrotation=["a","b","c"]': r"unknown key\(s\) \['seperator'\]",
+        'position=["x","y","z"]\nrotation=["a","b","c"]': r"unknown key 'seperator' \(did you mean 'separator'\?\)",
         'form = "probe"\njoints = ["a"]\n[probe]\nposition=["x","y","z"]\nrotation=["a","b","c"]\n'
         'convention="euler"\neuler_sequence="XyZ"': "Euler sequence",
         'form = "targets"\njoints = ["a"]': r"needs a \[targets\] table",
         'form = "probe"\njoints = ["a"]\n[probe]\nposition=["x","y"]\nrotation=["a","b","c"]': "position must be",
         'form = "pose"\njoints = ["a"]': "form must be",
+        'form = "targets"\njoints = ["a"]\n[targets]\ncolumns = [["x", "y"]]': r"entry 1 \(target t1\) must be three",
+        'form = "targets"\njoints = ["a"]\n[targets]\ncolumns = [["x", "y", "z"]]\nunit = "cm"': "unit must be one of",
+        'form = "targets"\njoints = []\n[targets]\ncolumns = [["x", "y", "z"]]': "joints must list",
     }
     for text, msg in cases.items():
         m.write_text(text)

@@ -24,6 +24,7 @@ from labcal.datasets import (
     StartDoc,
     StopDoc,
     TargetsError,
+    import_mapped,
     import_targets_csv,
     load_targets,
     read_journal,
@@ -260,3 +261,27 @@ def test_a_session_refuses_rows_of_another_target_count(tmp_path):
     meta = {**store.session_meta(sid), "targets": np.eye(3).tolist()}
     with pytest.raises(DatasetError, match="targets"):
         store.append_rows(sid, rows, meta, source="test", provenance={})
+
+
+def test_a_mapping_with_two_target_triples_imports_empty_cells_as_not_seen(tmp_path):
+    spec = load("ur10")
+    targets = np.array([[0.0, 0.0, 0.045], [0.0, 0.06, 0.045]])
+    q, pts = _robot_points(spec, targets, 24, seed=5)
+    pts[::3, 1] = np.nan
+    df = pd.DataFrame(np.degrees(q), columns=[f"J{j}" for j in range(1, 7)])
+    for i, a in enumerate("XYZ"):
+        df[f"A{a}"], df[f"B{a}"] = pts[:, 0, i] * 1e3, pts[:, 1, i] * 1e3
+    df.to_csv(tmp_path / "lab.csv", sep=";", index=False, float_format="%.17g", na_rep="")
+    mapping = tmp_path / "lab.toml"
+    mapping.write_text(
+        'form = "targets"\nseparator = ";"\njoint_unit = "deg"\nframe = "base"\n'
+        'joints = ["J1", "J2", "J3", "J4", "J5", "J6"]\n'
+        '[targets]\nunit = "mm"\ncolumns = [["AX", "AY", "AZ"], ["BX", "BY", "BZ"]]\n'
+    )
+    store = SessionStore(tmp_path / "s")
+    ref = import_mapped(store, tmp_path / "lab.csv", mapping, spec.name, spec.hash, N, targets=targets, robot=spec)
+    ds = store.load(ref)
+    assert ds.n_targets == 2 and ds.seen[:, 1].tolist() == [i % 3 != 0 for i in range(24)]
+    np.testing.assert_allclose(ds.points, pts, rtol=1e-12, equal_nan=True)
+    with pytest.raises(TargetsError, match="2 target column triple"):
+        import_mapped(store, tmp_path / "lab.csv", mapping, spec.name, spec.hash, N, targets=targets[:1])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from labcal.tomlschema import SchemaError
+
 
 class DatasetError(Exception):
     """Base class of every error raised by the session store and the importers."""
@@ -38,8 +40,10 @@ class JournalCorrupted(JournalError):
     """A journal line other than a torn (unfinished) last write cannot be parsed."""
 
 
-class TargetsError(DatasetError, ValueError):
-    """A targets file or targets array is invalid (count, numbers, unit, collinear points)."""
+class TargetsError(DatasetError, SchemaError):
+    """A targets file or targets array is invalid (count, numbers, unit, coincident or collinear points). A
+    :class:`~labcal.tomlschema.SchemaError` (so a ValueError) too: the targets file is checked by the one TOML
+    validator."""
 
 
 class ImportFormatError(DatasetError, ValueError):
@@ -69,5 +73,5 @@ class ImportFormatError(DatasetError, ValueError):
         self.column = column
 
 
-class MappingError(DatasetError, ValueError):
+class MappingError(DatasetError, SchemaError):
     """A column-mapping TOML file is invalid (unknown key, wrong type, inconsistent options)."""

@@ -37,7 +37,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
-import tomllib
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -46,6 +45,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
+
+from labcal.tomlschema import Key, Table, fail, read_toml, validate
 
 from ._util import sha256_bytes, sha256_file
 from .errors import DatasetError, ImportFormatError, MappingError, TargetsError
@@ -634,34 +635,72 @@ def import_probe_csv(
 # --------------------------------------------------------------------------------------------------------------
 # Mapping files
 
-_TOP_KEYS = {
-    "description",
-    "form",
-    "separator",
-    "decimal",
-    "frame",
-    "joints",
-    "joint_unit",
-    "split_column",
-    "timestamp_column",
-    "targets",
-    "probe",
-    "tracker",
-    "extra",
-    "source",
-}
-_TARGET_KEYS = {"columns", "unit"}
-_PROBE_KEYS = {
-    "position",
-    "position_unit",
-    "rotation",
-    "rotation_unit",
-    "convention",
-    "euler_sequence",
-    "offsets",
-    "offsets_unit",
-}
-_EXTRA_KEYS = {"column", "name", "unit", "type"}
+
+def _target_triples(value: object) -> str | None:
+    """Why ``[targets] columns`` is not a list of [x, y, z] column-name triples, one per target, or None."""
+    if not isinstance(value, list) or not value:
+        return f"must be one [x, y, z] column-name list per target, got {value!r}"
+    for i, triple in enumerate(value):
+        if not isinstance(triple, list) or len(triple) != 3 or not all(isinstance(c, str) and c for c in triple):
+            return f"entry {i + 1} (target t{i + 1}) must be three column names [x, y, z], got {triple!r}"
+    return None
+
+
+def _is_table(value: object) -> str | None:
+    return None if isinstance(value, dict) else f"must be a table, got {value!r}"
+
+
+def _named(value: list) -> str | None:
+    return None if value and all(value) else f"must list the joint column names in order q1..qn, got {value!r}"
+
+
+_MAPPING_TARGETS = Table(
+    {
+        "columns": Key("any", required=True, check=_target_triples, doc="[[x, y, z], …] column names, one per target"),
+        "unit": Key("str", default="m", choices=tuple(LENGTH_UNITS)),
+    }
+)
+_MAPPING_PROBE = Table(
+    {
+        "position": Key("strings", required=True, shape=(3,)),
+        "rotation": Key("strings", required=True, shape=(3,)),
+        "position_unit": Key("str", default="m", choices=tuple(LENGTH_UNITS)),
+        "rotation_unit": Key("str", default="rad", choices=tuple(ANGLE_UNITS)),
+        "convention": Key("str", default="rotvec", choices=("rotvec", "euler")),
+        "euler_sequence": Key("str"),
+        "offsets": Key("vectors", shape=(None, 3), unit="in offsets_unit"),
+        "offsets_unit": Key("str", default="m", choices=tuple(LENGTH_UNITS)),
+    }
+)
+_MAPPING_EXTRA = Table(
+    {
+        "column": Key("str", required=True),
+        "name": Key("str"),
+        "unit": Key("str", default=""),
+        "type": Key("str", default="float", choices=("float", "str")),
+    }
+)
+#: A column-mapping file, for the one TOML validator (:mod:`labcal.tomlschema`); ``mappings/ipa-ur10.toml`` shows
+#: every key with comments.
+MAPPING_SCHEMA = Table(
+    {
+        "description": Key("str", default=""),
+        "source": Key("any"),
+        "form": Key("str", required=True, choices=("targets", "probe")),
+        "separator": Key("str", default=","),
+        "decimal": Key("str", default="."),
+        "frame": Key("str", default="base", choices=FRAMES),
+        "joints": Key("strings", required=True, check=_named),
+        "joint_unit": Key("str", default="rad", choices=tuple(ANGLE_UNITS)),
+        "split_column": Key("str"),
+        "timestamp_column": Key("str"),
+        "targets": Key("table", table=_MAPPING_TARGETS),
+        "probe": Key("table", table=_MAPPING_PROBE),
+        "tracker": Key("any", default={}, check=_is_table),
+        "extra": Key("tables", table=_MAPPING_EXTRA, default=[]),
+    },
+    name="mapping",
+)
 
 
 def list_mappings() -> list[str]:
@@ -682,87 +721,49 @@ def _resolve_mapping(mapping: str | Path) -> Path:
     )
 
 
-def _strings(value: Any, n: int, key: str, src: str) -> tuple[str, ...]:
-    if not isinstance(value, list) or len(value) != n or not all(isinstance(v, str) and v for v in value):
-        raise MappingError(f"{src}: {key} must be a list of {n} column names, got {value!r}")
-    return tuple(value)
-
-
 def load_mapping(mapping: str | Path) -> tuple[ImportSpec, np.ndarray | None, dict]:
     """Read a mapping TOML (path or shipped name) → (spec, probe offsets in m or None, raw document).
 
-    See ``mappings/ipa-ur10.toml`` for a commented example of every key.
+    See ``mappings/ipa-ur10.toml`` for a commented example of every key. The file is checked by
+    :data:`MAPPING_SCHEMA` (unknown keys with a did-you-mean, types, allowed values), then for what one key alone
+    cannot say (the table its form needs, the Euler sequence, the offsets' geometry).
     """
     path = _resolve_mapping(mapping)
     src = f"mapping {path}"
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as e:
-        raise MappingError(f"{src}: not valid TOML: {e}") from None
-    unknown = sorted(set(doc) - _TOP_KEYS)
-    if unknown:
-        raise MappingError(f"{src}: unknown key(s) {unknown}; allowed: {sorted(_TOP_KEYS)}")
-    form = doc.get("form")
-    if form not in ("targets", "probe"):
-        raise MappingError(f'{src}: form must be "targets" or "probe", got {form!r}')
-    if "joints" not in doc or not isinstance(doc["joints"], list):
-        raise MappingError(f"{src}: joints must list the joint column names in order q1..qn")
-    joints = _strings(doc["joints"], len(doc["joints"]), "joints", src)
+    doc = read_toml(path, MappingError, "mapping")
+    d = validate(doc, MAPPING_SCHEMA, source=src, error=MappingError)
+    form = d["form"]
+    if form not in d:
+        raise fail(src, "", f'form = "{form}" needs a [{form}] table', MappingError)
     kw: dict[str, Any] = {
         "form": form,
-        "joints": joints,
-        "frame": doc.get("frame", "base"),
-        "joint_unit": doc.get("joint_unit", "rad"),
-        "separator": doc.get("separator", ","),
-        "decimal": doc.get("decimal", "."),
-        "split_column": doc.get("split_column", "split"),
-        "timestamp_column": doc.get("timestamp_column"),
-        "tracker": dict(doc.get("tracker", {})),
-        "description": str(doc.get("description", "")),
+        "joints": tuple(d["joints"]),
+        "frame": d["frame"],
+        "joint_unit": d["joint_unit"],
+        "separator": d["separator"],
+        "decimal": d["decimal"],
+        "split_column": d.get("split_column", "split"),
+        "split_required": "split_column" in d,
+        "timestamp_column": d.get("timestamp_column"),
+        "tracker": dict(d["tracker"]),
+        "description": d["description"],
     }
-    if "split_column" in doc:
-        kw["split_required"] = True
     offsets = None
     if form == "targets":
-        t = doc.get("targets")
-        if not isinstance(t, dict):
-            raise MappingError(f'{src}: form = "targets" needs a [targets] table')
-        if bad := sorted(set(t) - _TARGET_KEYS):
-            raise MappingError(f"{src}: unknown key(s) in [targets]: {bad}")
-        cols = t.get("columns")
-        if not isinstance(cols, list) or len(cols) < 1:
-            raise MappingError(f"{src}: [targets] columns must be one [x, y, z] column-name list per target")
-        kw["target_columns"] = tuple(_strings(c, 3, "[targets] columns", src) for c in cols)
-        kw["length_unit"] = t.get("unit", "m")
+        kw["target_columns"] = tuple(tuple(c) for c in d["targets"]["columns"])
+        kw["length_unit"] = d["targets"]["unit"]
     else:
-        p = doc.get("probe")
-        if not isinstance(p, dict):
-            raise MappingError(f'{src}: form = "probe" needs a [probe] table')
-        if bad := sorted(set(p) - _PROBE_KEYS):
-            raise MappingError(f"{src}: unknown key(s) in [probe]: {bad}")
-        kw["position"] = _strings(p.get("position"), 3, "[probe] position", src)
-        kw["rotation"] = _strings(p.get("rotation"), 3, "[probe] rotation", src)
-        kw["length_unit"] = p.get("position_unit", "m")
-        kw["rotation_unit"] = p.get("rotation_unit", "rad")
-        kw["convention"] = p.get("convention", "rotvec")
-        kw["euler_sequence"] = p.get("euler_sequence")
+        p = d["probe"]
+        kw["position"], kw["rotation"] = tuple(p["position"]), tuple(p["rotation"])
+        kw["length_unit"], kw["rotation_unit"] = p["position_unit"], p["rotation_unit"]
+        kw["convention"], kw["euler_sequence"] = p["convention"], p.get("euler_sequence")
         if "offsets" in p:
-            unit = p.get("offsets_unit", "m")
-            if unit not in LENGTH_UNITS:
-                raise MappingError(f'{src}: [probe] offsets_unit must be "m", "mm" or "in", got {unit!r}')
             try:
                 raw = validate_targets(p["offsets"], min_area=0, min_height=0, source=f"{src} [probe] offsets")
+                offsets = validate_targets(raw * LENGTH_UNITS[p["offsets_unit"]], source=f"{src} [probe] offsets")
             except TargetsError as e:
                 raise MappingError(str(e)) from None
-            offsets = validate_targets(raw * LENGTH_UNITS[unit], source=f"{src} [probe] offsets")
-    extras = []
-    for i, e in enumerate(doc.get("extra", [])):
-        if not isinstance(e, dict) or "column" not in e:
-            raise MappingError(f"{src}: [[extra]] entry {i + 1} needs a column")
-        if bad := sorted(set(e) - _EXTRA_KEYS):
-            raise MappingError(f"{src}: unknown key(s) in [[extra]] entry {i + 1}: {bad}")
-        extras.append(ExtraColumn(e["column"], e.get("name", e["column"]), e.get("unit", ""), e.get("type", "float")))
-    kw["extras"] = tuple(extras)
+    kw["extras"] = tuple(ExtraColumn(e["column"], e.get("name", e["column"]), e["unit"], e["type"]) for e in d["extra"])
     try:
         spec = ImportSpec(**kw)
         spec.check()

@@ -16,10 +16,11 @@ three targets cannot identify is the fit's to report.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 
 import numpy as np
+
+from labcal.tomlschema import Key, Table, is_number, read_toml, validate
 
 from .errors import TargetsError
 
@@ -81,38 +82,36 @@ def validate_targets(
     return out
 
 
+def _points_problem(points: object) -> str | None:
+    """Why ``points`` is not a list of [x, y, z] numbers (naming the target), or None."""
+    if not isinstance(points, list) or not points:
+        return f"must list the targets as [x, y, z] points (at least 1 point), got {points!r}"
+    for i, p in enumerate(points):
+        if not isinstance(p, list) or len(p) != 3:
+            return f"entry t{i + 1} must be [x, y, z], got {p!r}"
+        for j, v in enumerate(p):
+            if not is_number(v):
+                return f"entry t{i + 1} coordinate {'xyz'[j]} is not a finite number: {v!r}"
+    return None
+
+
+#: The targets file, for the one TOML validator (:mod:`labcal.tomlschema`). The unit has no default on purpose: a
+#: file of millimetres read as metres would pass every other check.
+TARGETS_SCHEMA = Table(
+    {
+        "unit": Key("str", required=True, choices=tuple(LENGTH_UNITS), doc='"m", "mm" or "in"'),
+        "points": Key("any", required=True, check=_points_problem, doc="one [x, y, z] per target, tool frame"),
+    },
+    name="targets file",
+)
+
+
 def load_targets(path: str | Path) -> np.ndarray:
     """Read a targets TOML file; return the (m, 3) targets in metres (row i = target t(i+1))."""
     path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            doc = tomllib.load(f)
-    except FileNotFoundError:
-        raise TargetsError(f"targets file {path} not found") from None
-    except tomllib.TOMLDecodeError as e:
-        raise TargetsError(f"targets file {path}: not valid TOML: {e}") from None
-    if "unit" not in doc:
-        raise TargetsError(f'targets file {path}: missing key "unit" (use unit = "m", "mm" or "in")')
-    unit = doc["unit"]
-    if unit not in LENGTH_UNITS:
-        raise TargetsError(f'targets file {path}: unit must be "m", "mm" or "in", got {unit!r}')
-    if "points" not in doc:
-        raise TargetsError(f'targets file {path}: missing key "points" (a list of [x, y, z] lists, one per target)')
-    pts = doc["points"]
-    # Check the numbers before scaling so that a message shows what the user wrote.
-    if not isinstance(pts, list) or len(pts) < 1:
-        n = len(pts) if isinstance(pts, list) else "no"
-        raise TargetsError(f"targets file {path}: expected at least 1 point ([x, y, z] each), got {n}")
-    scaled = []
-    for i, p in enumerate(pts):
-        if not isinstance(p, list) or len(p) != 3:
-            raise TargetsError(f"targets file {path}: point t{i + 1} must be [x, y, z], got {p!r}")
-        row = []
-        for j, v in enumerate(p):
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-                raise TargetsError(
-                    f"targets file {path}: point t{i + 1} coordinate {'xyz'[j]} is not a finite number: {v!r}"
-                )
-            row.append(float(v) * LENGTH_UNITS[unit])
-        scaled.append(row)
+    if not path.is_file():
+        raise TargetsError(f"targets file {path} not found", str(path))
+    doc = validate(read_toml(path, TargetsError, "targets file"), TARGETS_SCHEMA, source=str(path), error=TargetsError)
+    # The numbers were checked before scaling so that a message shows what the user wrote.
+    scaled = [[float(v) * LENGTH_UNITS[doc["unit"]] for v in p] for p in doc["points"]]
     return validate_targets(scaled, source=f"targets file {path}")
