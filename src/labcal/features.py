@@ -45,6 +45,7 @@ Example::
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -115,23 +116,35 @@ class Feature:
         frames: (k, n+1, 4, 4) link frames at q (or their (k, n+1, 6, 6) adjoints: only rotation rows are read),
         needed by ``gravity``.
         """
-        q = np.atleast_2d(np.asarray(q, dtype=float))
-        if self.kind == "harmonics":
-            return harmonics(q, self.order, joint_types, limits)
-        if self.kind == "gravity":
-            if frames is None:
-                raise ValueError(f"feature {self.name!r} needs the link frames at q (frames=model.link_frames(q))")
-            return -frames[:, 1:, 2, :3].reshape(frames.shape[0], -1)
-        if self.kind == "q":
-            return q
-        revolute = _revolute(joint_types, q.shape[1])
-        if self.kind == "sincos":
-            if revolute is None:
-                return np.concatenate([np.sin(q), np.cos(q)], axis=1)
-            return np.concatenate([np.where(revolute, np.sin(q), q), np.where(revolute, np.cos(q), 0.0)], axis=1)
-        if revolute is None:
-            revolute = np.ones(q.shape[1], dtype=bool)
-        return np.concatenate([np.where(revolute, np.sin(2 * q), 0.0), np.where(revolute, np.cos(2 * q), 0.0)], axis=1)
+        return self.prepare(joint_types, limits)(np.atleast_2d(np.asarray(q, dtype=float)), frames)
+
+    def prepare(self, joint_types=None, limits=None):
+        """:meth:`compute` for one robot, with its joint-type masks and constants worked out once: a function
+        ``(q (k, n) float array, frames or None) → (k, size)`` (what a runtime calls at every solver step)."""
+        kind = self.kind
+        if kind == "harmonics":
+            order = self.order
+            if joint_types is not None and _prismatic(tuple(joint_types)).any():
+                return lambda q, frames=None: harmonics(q, order, joint_types, limits)
+            return lambda q, frames=None: _harmonics_of_angles(q, order)
+        if kind == "gravity":
+            return functools.partial(_gravity, self.name)
+        if kind == "q":
+            return lambda q, frames=None: q
+        if kind == "sincos":
+            rev = None if joint_types is None else _revolute(joint_types, len(tuple(joint_types)))
+            if rev is None:
+                return lambda q, frames=None: np.concatenate([np.sin(q), np.cos(q)], axis=1)
+            return lambda q, frames=None: np.concatenate(
+                [np.where(rev, np.sin(q), q), np.where(rev, np.cos(q), 0.0)], axis=1
+            )
+        rev2 = None if joint_types is None else _revolute(joint_types, len(tuple(joint_types)))
+
+        def sincos2(q: np.ndarray, frames=None) -> np.ndarray:
+            mask = np.ones(q.shape[1], dtype=bool) if rev2 is None else rev2
+            return np.concatenate([np.where(mask, np.sin(2 * q), 0.0), np.where(mask, np.cos(2 * q), 0.0)], axis=1)
+
+        return sincos2
 
     def columns(self, joint_types, limits=None) -> tuple[Column, ...]:
         """One :class:`Column` recipe per column, in :meth:`compute`'s order (limits: for prismatic harmonics)."""
@@ -160,6 +173,7 @@ class Feature:
         return tuple(out)
 
 
+@functools.lru_cache(maxsize=256)
 def get(name: str) -> Feature:
     """The registered feature called ``name``; ValueError naming the known names otherwise."""
     if name in SIMPLE:
@@ -186,8 +200,38 @@ def size(name: str, n: int) -> int:
 
 def compute_all(q: np.ndarray, names, joint_types=None, limits=None, frames=None) -> np.ndarray:
     """(k, n) joint values → (k, f) network inputs: the features ``names`` side by side (see Feature.compute)."""
-    parts = [get(name).compute(q, joint_types, limits, frames) for name in names]
-    return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+    return evaluator(tuple(names), joint_types, limits)(np.atleast_2d(np.asarray(q, dtype=float)), frames)
+
+
+def evaluator(names: tuple[str, ...], joint_types=None, limits=None):
+    """The features ``names`` of one robot as one prepared function ``(q (k, n), frames or None) → (k, f)``
+    (:meth:`Feature.prepare`); ValueError for an unknown name. ``needs_frames`` tells whether frames are read."""
+    parts = [get(name).prepare(joint_types, limits) for name in names]
+    if not parts:
+        raise ValueError("no features given")
+
+    def run(q: np.ndarray, frames=None) -> np.ndarray:
+        if len(parts) == 1:
+            return parts[0](q, frames)
+        return np.concatenate([part(q, frames) for part in parts], axis=1)
+
+    run.needs_frames = any(get(name).needs_frames for name in names)
+    return run
+
+
+def _gravity(name: str, q: np.ndarray, frames) -> np.ndarray:
+    if frames is None:
+        raise ValueError(f"feature {name!r} needs the link frames at q (frames=model.link_frames(q))")
+    return -frames[:, 1:, 2, :3].reshape(frames.shape[0], -1)
+
+
+def _harmonics_of_angles(theta: np.ndarray, order: int) -> np.ndarray:
+    """(k, n) angles → (k, 2·n·order) sin(h θ_j), cos(h θ_j) (layout in the module docstring)."""
+    angle = theta[:, :, None] * _orders(order)  # (k, n, H)
+    out = np.empty((*angle.shape, 2))
+    np.sin(angle, out=out[..., 0])
+    np.cos(angle, out=out[..., 1])
+    return out.reshape(theta.shape[0], -1)
 
 
 def _revolute(joint_types, n: int) -> np.ndarray | None:
@@ -210,10 +254,9 @@ def joint_angles(q: np.ndarray, joint_types=None, limits=None) -> np.ndarray:
     n = q.shape[1]
     if joint_types is None:
         return q
-    types = tuple(joint_types)
-    if len(types) != n:
-        raise ValueError(f"joint_types has {len(types)} entries for {n} joint values")
-    prismatic = np.array([t == "prismatic" for t in types])
+    prismatic = _prismatic(tuple(joint_types))
+    if len(prismatic) != n:
+        raise ValueError(f"joint_types has {len(prismatic)} entries for {n} joint values")
     if not prismatic.any():
         return q
     if limits is None:
@@ -233,18 +276,27 @@ def harmonics(q: np.ndarray, order: int, joint_types=None, limits=None) -> np.nd
     order = int(order)
     if not 1 <= order <= MAX_HARMONICS:
         raise ValueError(f"order must be in 1 … {MAX_HARMONICS}, got {order}")
-    theta = joint_angles(q, joint_types, limits)
-    k, n = theta.shape
-    angle = theta[:, :, None] * np.arange(1, order + 1, dtype=float)  # (k, n, H)
-    out = np.empty((k, n, order, 2))
-    out[..., 0] = np.sin(angle)
-    out[..., 1] = np.cos(angle)
-    return out.reshape(k, 2 * n * order)
+    return _harmonics_of_angles(joint_angles(q, joint_types, limits), order)
 
 
 def compute(q: np.ndarray, name: str, joint_types=None, limits=None, frames=None) -> np.ndarray:
     """Evaluate the feature ``name`` (e.g. ``"harmonics:24"``) at (k, n) joint values → (k, f)."""
     return get(name).compute(q, joint_types, limits, frames)
+
+
+@functools.lru_cache(maxsize=64)
+def _orders(order: int) -> np.ndarray:
+    """(H,) 1.0 … H (cached: the runtime evaluates the harmonics at every solver step)."""
+    out = np.arange(1, order + 1, dtype=float)
+    out.setflags(write=False)
+    return out
+
+
+@functools.lru_cache(maxsize=64)
+def _prismatic(joint_types: tuple[str, ...]) -> np.ndarray:
+    out = np.array([t == "prismatic" for t in joint_types], dtype=bool)
+    out.setflags(write=False)
+    return out
 
 
 def harmonic_orders(order: int, n: int) -> np.ndarray:

@@ -28,6 +28,7 @@ Example::
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,12 +49,17 @@ def input_features(q: np.ndarray, names: tuple[str, ...], model: LocalPOEModel, 
     frames: the model's link frames at q when the caller has them (``gravity`` needs them; computed otherwise).
     """
     q = np.atleast_2d(np.asarray(q, dtype=float))
+    run = _feature_evaluator(tuple(names), model)
+    if frames is None and run.needs_frames:
+        frames = model.link_frames(q)
+    return run(q, frames)
+
+
+def _feature_evaluator(names: tuple[str, ...], model: LocalPOEModel):
     for name in names:
         if not feature_lib.is_feature(name):
             raise ValueError(f"unknown network input feature {name!r}; known: {', '.join(feature_lib.NAMES)}")
-    if frames is None and any(feature_lib.get(name).needs_frames for name in names):
-        frames = model.link_frames(q)
-    return feature_lib.compute_all(q, names, model.joint_types, model.limits, frames)
+    return feature_lib.evaluator(names, model.joint_types, model.limits)
 
 
 @dataclass(frozen=True, eq=False)
@@ -162,6 +168,61 @@ def _log_small(R: np.ndarray, p: np.ndarray) -> np.ndarray:
     return out
 
 
+# One configuration's pose error, in Python floats: at one pose a dozen numpy calls cost far more than the arithmetic
+# (benchmarks/compensator_speed.py prints both); tested against se3.log_se3 in tests/test_compensator.py.
+def _pose_lists(Ad: np.ndarray) -> tuple[list, list]:
+    """(6, 6) adjoint [[R, p̂R], [0, R]] → (rows of R, p) as Python floats; p from p̂ = (p̂R) Rᵀ."""
+    (r00, r01, r02, a00, a01, a02), (r10, r11, r12, a10, a11, a12), (r20, r21, r22, a20, a21, a22) = Ad[:3].tolist()
+    p = [a20 * r10 + a21 * r11 + a22 * r12, a00 * r20 + a01 * r21 + a02 * r22, a10 * r00 + a11 * r01 + a12 * r02]
+    return [[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]], p
+
+
+def _pose_error_one(target: tuple[list, list], Ad: np.ndarray) -> np.ndarray:
+    """log(T_target · T⁻¹) for one pose T given by its adjoint (6, 6), as a (6,) twist, in Python floats: a dozen
+    numpy calls cost more than the math.
+
+    target: (rows of R, p) of T_target as from _pose_lists. Series as in _log_small for rotations below _SMALL
+    (the case in every correction step), else the batched code.
+    """
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = target[0]
+    tx, ty, tz = target[1]
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = (pose := _pose_lists(Ad))[0]
+    bx, by, bz = pose[1]
+    # dR = R_target R_Tᵀ and dp = p_target − dR p_T
+    r00, r01, r02 = (
+        a00 * b00 + a01 * b01 + a02 * b02,
+        a00 * b10 + a01 * b11 + a02 * b12,
+        a00 * b20 + a01 * b21 + a02 * b22,
+    )
+    r10, r11, r12 = (
+        a10 * b00 + a11 * b01 + a12 * b02,
+        a10 * b10 + a11 * b11 + a12 * b12,
+        a10 * b20 + a11 * b21 + a12 * b22,
+    )
+    r20, r21, r22 = (
+        a20 * b00 + a21 * b01 + a22 * b02,
+        a20 * b10 + a21 * b11 + a22 * b12,
+        a20 * b20 + a21 * b21 + a22 * b22,
+    )
+    px = tx - (r00 * bx + r01 * by + r02 * bz)
+    py = ty - (r10 * bx + r11 * by + r12 * bz)
+    pz = tz - (r20 * bx + r21 * by + r22 * bz)
+    ax, ay, az = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
+    s2 = ax * ax + ay * ay + az * az
+    if not s2 < (0.5 * _SMALL) ** 2:
+        dR = np.array([[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]])
+        return _log_small(dR[None], np.array([[px, py, pz]]))[0]
+    theta = math.atan2(math.sqrt(s2), 0.5 * (r00 + r11 + r22 - 1.0))
+    t2 = theta * theta
+    a = 1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42))
+    wx, wy, wz = ax / a, ay / a, az / a
+    d = 1 / 12 + t2 / 720 + t2 * t2 / 30240
+    # V⁻¹ p = p − ½ w × p + d w × (w × p)
+    cx, cy, cz = wy * pz - wz * py, wz * px - wx * pz, wx * py - wy * px
+    ccx, ccy, ccz = wy * cz - wz * cy, wz * cx - wx * cz, wx * cy - wy * cx
+    return np.array([px - 0.5 * cx + d * ccx, py - 0.5 * cy + d * ccy, pz - 0.5 * cz + d * ccz, wx, wy, wz])
+
+
 @dataclass(frozen=True, eq=False)
 class CalibratedRobot:
     """A calibrated robot: what every fit returns and every export stores.
@@ -244,6 +305,16 @@ class CalibratedRobot:
         r = np.asarray(self.joint_ranges, dtype=float)
         return r[:, 0] - 1e-12, r[:, 1] + 1e-12
 
+    @functools.cached_property
+    def _twist_weights(self) -> np.ndarray:
+        """(6,) the length-scaled metric of pose errors (:func:`labcal.kinematics.metric.twist_weights`)."""
+        return metric.twist_weights(self.length_scale)
+
+    @functools.cached_property
+    def _inputs(self):
+        """The network's input features for this model (:func:`labcal.features.evaluator`), prepared once."""
+        return _feature_evaluator(tuple(self.network.features), self.model)
+
     # -- the calibrated forward model ----------------------------------------------------------------------------
     def _evaluate(self, q2: np.ndarray, need_twists: bool = True):
         """One walk of the identified chain: (link frames (k, n+1, 4, 4), actuated twists J (k, 6, n) or None,
@@ -255,7 +326,7 @@ class CalibratedRobot:
             frames, J = self.model.link_frames(q2), None
         dy = None
         if self.network is not None:
-            rho = self.network.forward_features(input_features(q2, self.network.features, self.model, frames))
+            rho = self.network.forward_features(self._inputs(q2, frames))
             J_rho = J if self.n >= 6 else self.model.equivalent_jacobian(q2, length_scale=self.length_scale)
             dy = (J_rho @ rho[:, :, None])[:, :, 0]
         return frames, J, dy
@@ -265,7 +336,8 @@ class CalibratedRobot:
         q2, _ = self._batch(q)
         if self.network is None or q2.shape[0] == 0:
             return np.zeros((q2.shape[0], 6))
-        return self.network.forward_features(input_features(q2, self.network.features, self.model))
+        frames = self.model.link_frames(q2) if self._inputs.needs_frames else None
+        return self.network.forward_features(self._inputs(q2, frames))
 
     def equivalent_jacobian(self, q) -> np.ndarray:
         """(k, 6, 6) J_ρ of the identified model (actuated + virtual joints, eq. 12-14)."""
@@ -358,14 +430,36 @@ class CalibratedRobot:
                 if done:
                     break
         else:
-            T_target = self.nominal.fk(q2)
+            if q2.shape[0] == 1 and n == 6:
+                residual = self._one_configuration_residual(q2[0])
+            else:
+                T_target = self.nominal.fk(q2)
 
-            def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-                return self.residual(qc, T_target[rows])
+                def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                    return self.residual(qc, T_target[rows])
 
-            weights = metric.twist_weights(self.length_scale)
-            out = solver.solve(residual, q2, iterations=iterations, tol=tol, weights=weights)
+            out = solver.solve(residual, q2, iterations=iterations, tol=tol, weights=self._twist_weights)
         return out[0] if single else out
+
+    def _one_configuration_residual(self, q: np.ndarray):
+        """:meth:`residual` for the solver at one configuration of a 6-joint arm (the control-loop call), equal to
+        it up to rounding: the chain is walked in the adjoint representation (:meth:`LocalPOEModel.runtime_walk`:
+        frames and joint twists from one scan) and the pose error is taken in Python floats (:func:`_pose_error_one`),
+        because at one configuration numpy's per-call cost, not the arithmetic, is the price.
+        """
+        target = _pose_lists(self.nominal.runtime_walk(q)[0][-1])
+        walk, network = self.model.runtime_walk, self.network
+        inputs = network and self._inputs
+
+        def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            adjoints, J, _, _ = walk(qc[0])
+            r = _pose_error_one(target, adjoints[-1])
+            if network is not None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
+                rho = network.forward_features(inputs(qc, adjoints[None]))
+                r -= J @ rho[0]
+            return r[None], J[None]
+
+        return residual
 
     def network_only_error(self, method: str = "paper") -> str | None:
         """Why ``method`` ("paper" / "fixed-point": q − δρ_a, the network alone) cannot correct this robot, or None.

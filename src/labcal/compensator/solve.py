@@ -36,6 +36,7 @@ import numpy as np
 GN_MAX_STEP = 0.3  # rad: a full Gauss-Newton step this large means a (near-)singular configuration
 DAMPED_MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so larger steps mean a singularity
 LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP = 1e-6, 1e-12, 1e6
+_ONES6 = np.ones(6)
 
 #: residual(q (m, n), rows (m,) indices into the batch) → (r (m, 6), J (m, 6, n)).
 Residual = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -49,6 +50,8 @@ def gauss_newton_step(r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) 
         r, J = r * weights, J * weights[:, None]
     try:
         if n == 6:
+            if len(J) == 1:  # numpy's stacked solve costs more per call than the 2-D one (a control loop's case)
+                return np.linalg.solve(J[0], r[0])[None]
             return np.linalg.solve(J, r[:, :, None])[:, :, 0]
         Jt = J.transpose(0, 2, 1)
         if n > 6:
@@ -83,29 +86,40 @@ def solve(
     Gauss-Newton steps per row (at least 1); damped_iterations: damped steps (default ``3 · max(iterations, 10)``).
     """
     k, n = q0.shape
-    w = np.ones(6) if weights is None else np.asarray(weights, dtype=float)
+    w = _ONES6 if weights is None else np.asarray(weights, dtype=float)
     out = q0.copy()
-    prev_step = np.full(k, np.inf)
-    failed = np.zeros(k, dtype=bool)
+    prev_step = np.empty(0)  # every row's last step size, set by the first pass (all rows take it)
+    failed = None  # (k,) bool once a row has failed
     active = np.arange(k)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a singular J gives a NaN step
-        for _ in range(max(iterations, 1)):
-            r, J = residual(out[active], active)
+        for it in range(max(iterations, 1)):
+            everyone = active.size == k  # the common case: no gathers and scatters
+            r, J = residual(out if everyone else out[active], active)
             step = gauss_newton_step(r, J, w if n < 6 else None)
             size = np.abs(step).max(axis=1)
-            prev = prev_step[active]
-            bad = ~(size <= np.minimum(GN_MAX_STEP, 0.5 * prev))
-            ratio = np.where(np.isfinite(prev), np.minimum(size / np.maximum(prev, 1e-300), 0.5), 0.5)
-            done = (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol)
-            step[bad] = 0.0
-            out[active] += step
-            failed[active[bad]] = True
-            prev_step[active] = size
+            if it == 0:  # no previous step: ρ = 1/2, so the estimated distance is the step itself
+                bad = ~(size <= GN_MAX_STEP)
+                done = size < tol
+            else:
+                prev = prev_step[active]
+                bad = ~(size <= np.minimum(GN_MAX_STEP, 0.5 * prev))
+                ratio = np.minimum(size / prev, 0.5)
+                done = (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol)
+            if bad.any():
+                step[bad] = 0.0
+                failed = np.zeros(k, dtype=bool) if failed is None else failed
+                failed[active[bad]] = True
+            if everyone:
+                out += step
+                prev_step = size
+            else:
+                out[active] += step
+                prev_step[active] = size
             active = active[~(bad | done)]
             if active.size == 0:
                 break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
-        if failed.any():
+        if failed is not None:
             rows = np.flatnonzero(failed)
             budget = max(iterations, 10) * 3 if damped_iterations is None else int(damped_iterations)
             out[rows] = _damped(residual, q0[rows], rows, w, budget, tol)
