@@ -47,6 +47,7 @@ import numpy as np
 from labcal.calibration import Observations, fit
 from labcal.calibration.metrics import reduction
 from labcal.kinematics import se3
+from labcal.kinematics.metric import scaled_condition, twist_weights
 from labcal.kinematics.poe import LocalPOEModel
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
@@ -71,17 +72,14 @@ Print = Callable[[str], None]
 # configurations
 def condition(model: LocalPOEModel, q: np.ndarray) -> np.ndarray:
     """(k,) cond of the length-scaled equivalent Jacobian (see module docstring)."""
-    L = model.reach()
-    D = np.array([1 / L] * 3 + [1.0] * 3)
-    return np.linalg.cond(model.equivalent_jacobian(q) * D[None, :, None])
+    return scaled_condition(model.equivalent_jacobian(q), model.reach())
 
 
 def _ik(model: LocalPOEModel, targets: np.ndarray, q0: np.ndarray, iterations: int = 60) -> tuple[np.ndarray, bool]:
     """Damped Newton IK for many target poses (k, 4, 4) from one seed; returns q (k, n) and converged (k,)."""
     k = targets.shape[0]
     q = np.broadcast_to(q0, (k, model.n)).copy()
-    L = model.reach()
-    D = np.array([1 / L] * 3 + [1.0] * 3)
+    D = twist_weights(model.reach())
     for _ in range(iterations):
         T, J = model.fk_and_twists(q)
         err = se3.log_se3(targets @ se3.inv(T)) * D

@@ -8,9 +8,11 @@ frames, twists and joint types) and fits a **global POE** model on every row it 
 
 ξ_j: the joint twists in the base frame (revolute: unit axis ω and moment v ⟂ ω; prismatic: unit direction),
 M: the tool pose at q = 0, T_tb: the base's pose in the tracker frame (identity and not fitted for base-frame data),
-t_i: the targets in the tool frame. Joint offsets need no parameter: exp(ξ̂_j δq_j) moves through the following
-twists into M. The residuals are the measured minus predicted target points (m) of every row, plus a 1e-6 ridge on
-the parameter changes so the directions the normalisation removes (axis length, moment along the axis) stay put.
+t_i: the m ≥ 1 targets in the tool frame. Joint offsets need no parameter: exp(ξ̂_j δq_j) moves through the following
+twists into M. The residuals are the measured minus predicted target points (m) of every row and every target
+that was seen (a NaN target row is not seen and gives no residual), plus a 1e-6 ridge on the parameter changes so
+the directions the normalisation removes (axis length, moment along the axis) and those the points cannot fix
+(with one target: the tool's rotation about it) stay put.
 Tracker-frame data start with T_tb from a rigid fit of the nominal points to the measured ones and a first fit of
 M and T_tb alone (the tool offset of a probe can be far from the nominal flange).
 
@@ -20,6 +22,11 @@ Example::
     >>> model = load("ur10").model
     >>> q = np.random.default_rng(0).uniform(-1, 1, (5, 6))
     >>> bool(np.allclose(GlobalPOE(model).fk(GlobalPOE(model).x0(), q), model.fk(q)))
+    True
+    >>> points = model.target_points(q, np.zeros((1, 3)))   # (5, 1, 3): the tool origin alone
+    >>> points[1] = np.nan                                  # not seen in pose 1
+    >>> fit = fit_plain(model, q, points, np.zeros((1, 3)))
+    >>> bool(np.allclose(fit.predict_points(q, np.zeros((1, 3))), model.target_points(q, np.zeros((1, 3)))))
     True
 """
 
@@ -146,19 +153,45 @@ def _points(poe: GlobalPOE, x: np.ndarray, T_tb: np.ndarray, q: np.ndarray, targ
     return np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
 
 
+def seen_points(points: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """(k, m) bool: the targets seen in each row of points (k, m, 3); raises for a partly NaN point."""
+    points, targets = np.asarray(points, float), np.asarray(targets, float)
+    if targets.ndim != 2 or targets.shape[1] != 3 or targets.shape[0] < 1:
+        raise ValueError(f"targets must have shape (m, 3) with m ≥ 1, got {targets.shape}")
+    if points.ndim != 3 or points.shape[1:] != targets.shape:
+        raise ValueError(f"points must have shape (k, {targets.shape[0]}, 3) for {targets.shape[0]} targets, got "
+                         f"{points.shape}")  # fmt: skip
+    finite = np.isfinite(points)
+    seen = finite.all(axis=-1)
+    partial = finite.any(axis=-1) & ~seen
+    if partial.any():
+        r, t = np.argwhere(partial)[0]
+        raise ValueError(
+            f"point of target t{t + 1} in row {r} is partly NaN: a target is either seen (3 numbers) or not (all NaN)"
+        )
+    return seen
+
+
 def fit_plain(model, q: np.ndarray, points: np.ndarray, targets: np.ndarray, frame: str = "base") -> PlainFit:
-    """Fit the global POE model (and T_tb for tracker-frame data) to every row by nonlinear least squares."""
+    """Fit the global POE model (and T_tb for tracker-frame data) to every row by nonlinear least squares.
+
+    points: (k, m, 3) in the data's frame, a NaN row where a target was not seen; targets: (m, 3), m ≥ 1.
+    """
     from scipy.optimize import least_squares  # only the benchmark needs scipy here
 
     poe = GlobalPOE(model)
     q, points, targets = np.asarray(q, float), np.asarray(points, float), np.asarray(targets, float)
+    seen = seen_points(points, targets)
+    if not seen.any():
+        raise ValueError("no target was seen in any row: nothing to fit")
+    measured = points[seen]
     tracker = frame == "tracker"
     x = poe.x0()
     p = len(x)
     T0 = np.eye(4)
     if tracker:
         nominal = _points(poe, x, np.eye(4), q, targets)
-        T0 = kabsch(nominal.reshape(-1, 3), points.reshape(-1, 3))
+        T0 = kabsch(nominal[seen], measured)
 
     def split(z):
         xx = z[:p]
@@ -169,7 +202,7 @@ def fit_plain(model, q: np.ndarray, points: np.ndarray, targets: np.ndarray, fra
 
     def residual(z):
         xx, T_tb = split(z)
-        r = (_points(poe, xx, T_tb, q, targets) - points).ravel()
+        r = (_points(poe, xx, T_tb, q, targets)[seen] - measured).ravel()
         return np.concatenate([r, RIDGE * z])
 
     z = np.zeros(p + (6 if tracker else 0))

@@ -4,6 +4,6 @@ Adversarial data sets built on them (few-pose sweeps, singular wrists, unit slip
 :mod:`labcal.simulation.scenarios`.
 """
 
-from labcal.simulation.actual import GRAVITY, ActualRobot, ErrorSpec, simulate
+from labcal.simulation.actual import GRAVITY, ActualRobot, ErrorSpec, drop_unseen, seen_mask, simulate
 
-__all__ = ["GRAVITY", "ActualRobot", "ErrorSpec", "simulate"]
+__all__ = ["GRAVITY", "ActualRobot", "ErrorSpec", "drop_unseen", "seen_mask", "simulate"]

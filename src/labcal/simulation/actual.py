@@ -12,12 +12,21 @@ Error sources (paper Section II, eq. 7, plus what real robots add):
 - repeatability: a random pose twist per motion (``repeatability`` m / m·rad⁻¹ scaled by reach);
 - measurement: Gaussian tracker noise per coordinate (``tracker_noise`` m) and an optional tracker-to-base pose.
 
+Any number m ≥ 1 of targets: ``targets`` is (m, 3) in the tool frame and measured points are (k, m, 3). A target
+the tracker did not see is a NaN row; :func:`seen_mask` draws which targets are lost (a seeded drop-out per cell)
+and :func:`drop_unseen` blanks them.
+
 Example::
 
     >>> from labcal.robots import load
     >>> actual = simulate(load("ur10"), ErrorSpec.paper(), seed=1)
     >>> actual.true_points(np.zeros(6), np.eye(3) * 0.1).shape
     (1, 3, 3)
+    >>> actual.true_points(np.zeros((4, 6)), np.zeros((1, 3))).shape  # one target: the tool origin
+    (4, 1, 3)
+    >>> seen = seen_mask(5, 3, 0.3, np.random.default_rng(0), exact=True)
+    >>> int((~seen).sum()), bool(seen.any(axis=1).all())  # round(0.3 · 15) cells lost, every row keeps one
+    (4, True)
 """
 
 from __future__ import annotations
@@ -27,6 +36,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from labcal.kinematics import se3
+from labcal.kinematics.metric import parameter_weights
 from labcal.kinematics.poe import REVOLUTE, LocalPOEModel
 from labcal.robots import RobotSpec
 
@@ -118,23 +128,70 @@ class ActualRobot:
         q = np.atleast_2d(np.asarray(q, dtype=float))
         T = self.geometric.fk(q + self.joint_errors(q))
         if rng is not None and self.errors.repeatability > 0:
-            scale = np.array([1.0] * 3 + [1.0 / self.nominal.reach()] * 3)
+            scale = parameter_weights(1, self.nominal.reach())
             T = se3.exp_se3(rng.normal(0.0, self.errors.repeatability, size=(q.shape[0], 6)) * scale) @ T
         return T
 
     def true_points(self, q, targets, rng: np.random.Generator | None = None) -> np.ndarray:
-        """(k, 3, 3) true target positions in the base frame (targets (3, 3) m in the tool frame)."""
+        """(k, m, 3) true target positions in the base frame (targets (m, 3) m in the tool frame, m ≥ 1)."""
         T = self.true_pose(q, rng)
         targets = np.asarray(targets, dtype=float)
         return np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
 
     def measure(self, q, targets, rng: np.random.Generator) -> np.ndarray:
-        """(k, 3, 3) what the tracker reports: true points in the tracker frame plus Gaussian noise."""
+        """(k, m, 3) what the tracker reports: true points in the tracker frame plus Gaussian noise (every target
+        seen; :func:`drop_unseen` blanks lost ones afterwards, so the noise stream does not depend on drop-outs)."""
         p = self.true_points(q, targets, rng)
         p = np.einsum("ab,kmb->kma", self.T_tracker_base[:3, :3], p) + self.T_tracker_base[:3, 3]
         if self.errors.tracker_noise > 0:
             p = p + rng.normal(0.0, self.errors.tracker_noise, size=p.shape)
         return p
+
+
+def seen_mask(k: int, m: int, dropout, rng: np.random.Generator, *, exact: bool = False) -> np.ndarray:
+    """(k, m) bool, True where the tracker saw target i in row r: a seeded drop-out per cell.
+
+    dropout: the probability (float, or (m,) one per target) that a target is lost in a row, independently per
+    cell; with ``exact`` (float only) exactly ``round(dropout · k · m)`` cells are lost, at random. Either way every
+    row keeps at least one target (a row with none seen is not a measurement: drivers reject it, importers report
+    it), so a row that would lose all of them keeps one drawn at random — ``exact`` needs dropout ≤ (m − 1) / m.
+
+    >>> seen_mask(3, 2, 0.0, np.random.default_rng(0)).all()
+    np.True_
+    """
+    p = np.broadcast_to(np.asarray(dropout, dtype=float), (m,))
+    if np.any(p < 0) or np.any(p > 1) or not np.all(np.isfinite(p)):
+        raise ValueError(f"dropout must be a probability in [0, 1], got {dropout!r}")
+    # One uniform score per cell decides which cells are lost; a separate draw names the cell each row keeps when
+    # it would lose them all (drawn for every row, so the stream does not depend on the outcome).
+    score = rng.random((k, m))
+    keep = np.zeros((k, m), bool)
+    keep[np.arange(k), rng.integers(0, m, size=k)] = True
+    if exact:
+        if np.ndim(dropout) != 0:
+            raise ValueError("exact drop-out takes one fraction for every target, not one per target")
+        lost = round(float(dropout) * k * m)
+        if lost > k * (m - 1):
+            raise ValueError(
+                f"cannot lose {lost} of {k * m} cells and keep one target per row: dropout ≤ {(m - 1) / m:.3f} for "
+                f"{m} target(s)"
+            )
+        free = np.where(keep, -np.inf, score).ravel()
+        seen = np.ones(k * m, bool)
+        if lost:
+            seen[np.argsort(-free, kind="stable")[:lost]] = False
+        return seen.reshape(k, m)
+    seen = score >= p
+    empty = ~seen.any(axis=1)
+    seen[empty] = keep[empty]
+    return seen
+
+
+def drop_unseen(points: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """A copy of points (k, m, 3) with the whole row of every unseen target (``seen`` (k, m) False) NaN."""
+    out = np.array(points, dtype=float, copy=True)
+    out[~np.asarray(seen, bool)] = np.nan
+    return out
 
 
 def simulate(spec: RobotSpec, errors: ErrorSpec | None = None, seed: int = 0) -> ActualRobot:

@@ -1,8 +1,9 @@
 """Adversarial data sets for tests and benchmarks: seeded, small, and each hard in one named way.
 
 Every generator returns a :class:`Scenario`: model joints ``q`` (k, n) in rad (m for prismatic joints), measured
-points ``points`` (k, 3, 3) in m — row i of ``points[r]`` is target t(i+1) — in the frame ``frame`` ("base", or
-"tracker" with the known ``T_tracker_base``), the tool-frame ``targets`` (3, 3) m, and optional ``group`` labels
+points ``points`` (k, m, 3) in m — row i of ``points[r]`` is target t(i+1), a NaN row where it was not seen — in
+the frame ``frame`` ("base", or "tracker" with the known ``T_tracker_base``), the tool-frame ``targets`` (m, 3) m
+(m ≥ 1; three by default), and optional ``group`` labels
 (k,) that keep rows which belong together (one sweep, one repeated pose) in one cross-validation fold. A scenario
 made in controller joints also carries ``q_controller`` and the ``joint_map`` matrix (q_model = M · q_controller).
 
@@ -12,6 +13,9 @@ Two kinds of generator:
   :func:`sweeps` (a few dozen poses in single-joint sweeps, most with the wrist singular, as a real lab records
   them), :func:`singular_wrist` (random poses, most with q5 ≈ 0), :func:`coupled_elbow` (controller joints whose
   elbow is measured from the horizontal: model elbow = J2 + J3), :func:`identical_poses`, :func:`few_poses`;
+- **fewer targets seen** than the set was measured with: :func:`with_targets` (keep some targets, e.g. t1 alone:
+  one reflector), :func:`probe_origin` (the tool origin alone, measured afresh), :func:`with_dropout` (a seeded
+  drop-out per cell: NaN target rows, every row keeps one);
 - **corruptions of a good set** that must be refused or flagged, not fitted: :func:`unit_slip` (points ×1000,
   ×0.001, ×25.4), :func:`degrees_as_radians`, :func:`swapped_targets`, :func:`wrong_targets`,
   :func:`pure_noise`, :func:`shuffled_rows`, :func:`in_tracker_frame` (points in a tracker frame; importing them
@@ -28,6 +32,9 @@ Example::
     ((30, 6), (30, 3, 3), (3, 3), (30,))
     >>> bool(np.mean(np.abs(scn.q[:, 4]) <= WRIST_TOL) > 0.5)
     True
+    >>> one = with_dropout(with_targets(good("ur10", 20, seed=0), [0, 1]), 0.25, seed=3)
+    >>> one.m, int(np.isnan(one.points[..., 0]).sum())   # 2 targets, 10 of 40 cells lost
+    (2, 10)
     >>> slipped = unit_slip(good("ur10", 20, seed=0), 1000.0)
     >>> bool(np.allclose(slipped.points, good("ur10", 20, seed=0).points * 1000.0))
     True
@@ -40,9 +47,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from labcal.kinematics import se3
+from labcal.kinematics.metric import scaled_condition
 from labcal.kinematics.poe import LocalPOEModel
 from labcal.robots import load
-from labcal.simulation.actual import ActualRobot, ErrorSpec, simulate
+from labcal.simulation.actual import ActualRobot, ErrorSpec, drop_unseen, seen_mask, simulate
 
 #: A scalene target triangle (m, tool frame) 50 mm in front of the flange: sides 224, 269, 335 mm (the paper
 #: benchmark's triangle, so a scenario and a paper run use the same tool).
@@ -70,7 +78,8 @@ INCH = 25.4
 
 @dataclass(frozen=True, eq=False)
 class Scenario:
-    """One data set. Shapes: q (k, n) model joints; points (k, 3, 3) m in ``frame``; targets (3, 3) m;
+    """One data set. Shapes: q (k, n) model joints; points (k, m, 3) m in ``frame`` (NaN rows: targets not seen);
+    targets (m, 3) m;
     group (k,) int or None; q_controller (k, n) or None; joint_map (n, n) or None; T_tracker_base (4, 4) or None
     (the pose of the base in the tracker frame when ``frame == "tracker"``); actual: the true robot (None for data
     that no robot produced, e.g. pure noise); description: what is hard about it, one line."""
@@ -97,6 +106,16 @@ class Scenario:
     def n(self) -> int:
         return int(self.q.shape[1])
 
+    @property
+    def m(self) -> int:
+        """The number of targets."""
+        return int(self.targets.shape[0])
+
+    @property
+    def seen(self) -> np.ndarray:
+        """(k, m) bool: True where the target was measured (its point is not NaN)."""
+        return np.isfinite(self.points).all(axis=-1)
+
     def arrays(self) -> dict:
         """``{"q", "points", "targets", "frame"}``: the keyword arguments of ``Observations``."""
         return {"q": self.q, "points": self.points, "targets": self.targets, "frame": self.frame}
@@ -120,8 +139,7 @@ class Scenario:
 # helpers
 def condition(model: LocalPOEModel, q: np.ndarray) -> np.ndarray:
     """(k,) cond of the equivalent Jacobian J_ρ with its translation rows scaled by 1/reach (unitless)."""
-    D = np.array([1 / model.reach()] * 3 + [1.0] * 3)
-    return np.linalg.cond(model.equivalent_jacobian(np.atleast_2d(q)) * D[None, :, None])
+    return scaled_condition(model.equivalent_jacobian(np.atleast_2d(q)), model.reach())
 
 
 def joint_box(model: LocalPOEModel, fraction: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
@@ -295,6 +313,57 @@ def identical_poses(
 
 
 # ----------------------------------------------------------------------------------------------------------------
+# fewer targets seen
+def with_targets(scn: Scenario, index) -> Scenario:
+    """The same rows with only the targets ``index`` (e.g. ``[0]``: t1 alone, one reflector per pose).
+
+    >>> with_targets(good("ur10", 5, seed=0), [0]).points.shape
+    (5, 1, 3)
+    """
+    idx = np.atleast_1d(np.asarray(index, dtype=int))
+    if idx.size == 0 or np.any(idx < 0) or np.any(idx >= scn.m) or len(set(idx.tolist())) != idx.size:
+        raise ValueError(f"target index must name distinct targets among 0 … {scn.m - 1}, got {index!r}")
+    names = "+".join(f"t{i + 1}" for i in idx)
+    return scn.changed(
+        f"{scn.name}-{names}", f"{scn.description}; only {names} measured", points=scn.points[:, idx],
+        targets=scn.targets[idx],
+    )  # fmt: skip
+
+
+def probe_origin(scn: Scenario) -> Scenario:
+    """The tool origin alone, measured afresh on the same true robot and poses (a single reflector at the tool
+    point, or a 6-DOF probe read as a point): ``targets`` = [[0, 0, 0]]. Keeps the scenario's frame.
+
+    Its noise comes from its own stream, so it is not the 3-target set's noise at the origin.
+    """
+    if scn.actual is None:
+        raise ValueError(f"{scn.name}: no robot produced these data, so the tool origin cannot be measured")
+    origin = np.zeros((1, 3))
+    points = scn.actual.measure(scn.q, origin, np.random.default_rng([scn.seed, 7919, 1]))
+    if scn.frame == "tracker" and scn.T_tracker_base is not None:
+        T = scn.T_tracker_base
+        points = np.einsum("ab,kmb->kma", T[:3, :3], points) + T[:3, 3]
+    return scn.changed(
+        f"{scn.name}-probe-origin", f"{scn.description}; the tool origin alone", points=points, targets=origin
+    )
+
+
+def with_dropout(scn: Scenario, dropout, *, seed: int = 0, exact: bool = True) -> Scenario:
+    """Targets lost at random (seeded): NaN rows in ``points``; every row keeps at least one target.
+
+    dropout: fraction of the cells lost (``exact``: exactly round(dropout · k · m) of them), or with ``exact=False``
+    the probability (float or (m,) per target) that each cell is lost, as the sim rig draws it
+    (:func:`labcal.simulation.actual.seen_mask`).
+    """
+    seen = scn.seen & seen_mask(scn.k, scn.m, dropout, np.random.default_rng([seed, 17]), exact=exact)
+    lost = int((~seen).sum())
+    return scn.changed(
+        f"{scn.name}-dropout", f"{scn.description}; {lost} of {scn.k * scn.m} target cells not seen",
+        points=drop_unseen(scn.points, seen),
+    )  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------------------------------
 # corruptions of a good set
 def unit_slip(scn: Scenario, factor: float) -> Scenario:
     """The points multiplied by ``factor``: 1000 = a mm file read as m; 0.001 = a m file read with
@@ -317,6 +386,8 @@ def degrees_as_radians(scn: Scenario) -> Scenario:
 
 def swapped_targets(scn: Scenario, i: int = 0, j: int = 1) -> Scenario:
     """Measured targets t(i+1) and t(j+1) exchanged in every row (a mislabelled reflector or targets file)."""
+    if max(i, j) >= scn.m or i == j:
+        raise ValueError(f"swapping needs two distinct targets among the {scn.m} measured, got t{i + 1} and t{j + 1}")
     p = scn.points.copy()
     p[:, [i, j]] = p[:, [j, i]]
     return scn.changed(
@@ -339,7 +410,7 @@ def pure_noise(scn: Scenario, *, rigid: bool = False, seed: int = 0) -> Scenario
     row looks like a valid measurement and only the fit can tell. ``actual`` is dropped (no robot made them).
     """
     rng = np.random.default_rng([seed, 11])
-    lo, hi = scn.points.reshape(-1, 3).min(axis=0), scn.points.reshape(-1, 3).max(axis=0)
+    lo, hi = np.nanmin(scn.points.reshape(-1, 3), axis=0), np.nanmax(scn.points.reshape(-1, 3), axis=0)
     if not rigid:
         points = rng.uniform(lo, hi, size=scn.points.shape)
     else:
