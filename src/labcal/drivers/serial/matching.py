@@ -145,6 +145,8 @@ def _by_distances(p: np.ndarray, targets: np.ndarray, tolerance: float) -> tuple
         best = min(best, float(score.min()))
         for k in np.flatnonzero(score <= tolerance):
             assignment = dict(zip(triple, (int(s) for s in perms[k]), strict=True))
+            if any(assignment.items() <= dict(key).items() for key in found):
+                continue  # a triangle of a labelling already grown: growing it again gives the same labelling
             worst = float(score[k])
             # Grow the triangle: a further target is the one unused marker at the right distance from all labelled.
             for target in range(m):
