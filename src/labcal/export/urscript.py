@@ -1,7 +1,8 @@
 """URScript export: the compensator as URScript a UR controller runs, in two deployable forms.
 
 - **function file** (``urscript_text``, ``--format urscript``): global ``lc_`` constants and functions, ending in
-  ``labcal_correct(q)``. Load it in a *Script* node (file mode) before the first call, then
+  ``labcal_correct(q)``. Load it with a *Script* node in file mode under BeforeStart (so it runs once, before the
+  first call), then
   ``q_cmd = labcal_correct(q)`` and ``movej(q_cmd, …)``.
 - **program** (``urscript_program_text``, ``--format urscript-program``): the same definitions inside one
   ``def labcal_program(): … end`` for the primary/secondary script port (30001/30002). On its own it runs a self
@@ -657,7 +658,7 @@ def urscript_text(
     _check_exportable(robot, method, iterations, function_name)
     consts, funcs = _definitions(robot, method, iterations, function_name, _Budget(statements_per_sync))
     usage = (
-        f"# usage (Script node, file mode, before the first call): q_cmd = {function_name}(q)   "
+        f"# usage: a Script node in file mode under BeforeStart loads this once; then q_cmd = {function_name}(q)   "
         f"(q: {robot.n} joint angles in rad, the pose you want the nominal model of)"
     )
     return "\n".join(_header(robot, method, provenance, usage) + consts + funcs) + "\n"
