@@ -172,3 +172,13 @@ def test_ndicapy_sees_the_bx_faults_the_driver_must_handle():
             assert ndicapy.ndiGetBXNumberOfPassiveStrays(device) == 3
         finally:
             ndicapy.ndiClose(device)
+
+
+def test_ndicapy_reads_a_frame_with_a_hidden_target_as_two_strays():
+    hidden = SEEN.copy()
+    hidden[2] = np.nan  # the simulator says t3 is out of sight
+    with FakeNDIDevice(lambda: hidden, seed=12) as dev:
+        reference, _ = ndicapy_strays(dev.port)
+    assert reference.shape == (2, 3)
+    for p in SEEN[:2]:
+        assert np.min(np.linalg.norm(reference - p, axis=1)) < 1e-8
