@@ -42,7 +42,10 @@ def world(tmp_path_factory):
 
 @pytest.mark.parametrize(
     "cmd",
-    [[], ["session"], ["session", "new"], ["session", "import"], ["fit"], ["export"], ["report"], ["demo"], ["bench"]],
+    [
+        *([], ["session"], ["session", "new"], ["session", "import"], ["fit"], ["export"], ["report"], ["demo"]),
+        *(["bench"], ["filter"], ["evaluate"]),
+    ],
 )
 def test_help_everywhere_with_examples(cmd):
     r = invoke(*cmd, "--help")

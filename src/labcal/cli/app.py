@@ -20,15 +20,17 @@ from labcal.cli.common import INTERRUPTED
 from labcal.cli.demo import demo
 from labcal.cli.evaluate import evaluate
 from labcal.cli.export import export
+from labcal.cli.filter import filter_program
 from labcal.cli.fit import fit
 from labcal.cli.report import report
 
 app = typer.Typer(
     name="labcal",
-    help="Calibrate serial robots from three-target tracker measurements.\n\n"
+    help="Calibrate serial robots from tracker measurements of one or more target points.\n\n"
     "Examples:\n\n  labcal demo\n\n  labcal session list\n\n  labcal fit SESSION --method hybrid\n\n"
     "  labcal export SESSION --format urscript --out labcal_correct.script\n\n"
     "  labcal evaluate FIT --data heldout.csv --targets t.toml --length-unit mm\n\n"
+    "  labcal filter poses.csv --calibration ur10.json --out corrected.csv\n\n"
     "  labcal report SESSION --out report/",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
@@ -38,6 +40,7 @@ app.add_typer(session.app, name="session")
 app.add_typer(bench.app, name="bench")
 app.command("fit")(fit)
 app.command("export")(export)
+app.command("filter")(filter_program)
 app.command("report")(report)
 app.command("evaluate")(evaluate)
 app.command("demo")(demo)
