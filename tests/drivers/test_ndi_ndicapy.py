@@ -181,4 +181,4 @@ def test_ndicapy_reads_a_frame_with_a_hidden_target_as_two_strays():
         reference, _ = ndicapy_strays(dev.port)
     assert reference.shape == (2, 3)
     for p in SEEN[:2]:
-        assert np.min(np.linalg.norm(reference - p, axis=1)) < 1e-8
+        assert np.min(np.linalg.norm(reference - p, axis=1)) < 1e-5  # TX carries 0.01 mm
