@@ -25,11 +25,13 @@ def _numbers(text: str | None, count: int, option: str) -> list[float] | None:
 
 @user_errors
 def filter_program(
-    program: Path = typer.Argument(..., help="Program CSV (header row; see the description for the columns)."),
+    program: Path = typer.Argument(
+        ..., help="Program CSV with a header row (columns: see --kind; other columns are ignored)."
+    ),
     calibration: str = typer.Option(
         ...,
         "--calibration",
-        help="A compensator export (.json / .npz from `labcal export`), or SESSION[@vN] to use a stored fit.",
+        help="A compensator export (.json / .npz from `labcal export`), or SESSION or SESSION@vN to use a stored fit.",
     ),
     kind: str = typer.Option(
         "poses",
@@ -69,8 +71,9 @@ def filter_program(
 
     Examples:
 
-      labcal filter prog.csv --calibration ur10.json --length-unit mm --seed-joints 0,-1.57,1.57,-1.57,-1.57,0
-      --out prog-corrected.csv --script prog-corrected.script
+      labcal filter prog.csv --calibration ur10.json --length-unit mm --seed-joints 0,-1.6,1.6,-1.6,-1.6,0 --out c.csv
+
+      labcal filter prog.csv --calibration ur10.json --seed-joints 0,-1.6,1.6,-1.6,-1.6,0 --out c.csv --script c.script
 
       labcal filter joints.csv --kind joints --angle-unit deg --calibration S@v1 --out corrected.csv
     """
