@@ -198,6 +198,7 @@ def test_a_single_point_on_the_last_joint_axis_holds_that_axis_instead_of_fittin
     info = result.info
     assert info["rank"] == info["expected_rank"] == expected_rank(nominal) - 5
     assert any(f"tilt of joint {nominal.n}'s axis" in w for w in info["unobservable"])
+    assert any(f"tilt of joint {nominal.n}'s axis" in w for w in result.observability["unobservable"])
     assert not [w for w in result.warnings if w["code"] in ("large-correction", "rank-deficient")]
     dq = result.robot.correct(q) - q
     # milliradians (more only near a singular wrist), not the tenths of a radian noise fitted into the axis gave

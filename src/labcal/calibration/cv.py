@@ -25,7 +25,8 @@ it never saw — which the exported compensator refuses anyway (its joint ranges
 use they are never put to.
 
 **Error.** The held-out error of a row is the mean distance (m) between its measured and predicted target points
-(in the observation frame), the quantity every fit minimises; a candidate's CV error is its mean over all rows.
+(in the observation frame; over the targets the row saw), the quantity every fit minimises; a candidate's CV error
+is its mean over all rows.
 
 **Choice** (:func:`choose`). Candidates are ordered from the simplest: nominal < local-poe < hybrid+series <
 hybrid+ann < ann. The simplest candidate whose CV error is within a near-tie of the best is chosen: its paired

@@ -323,7 +323,11 @@ def _result(method, chosen, robot, before, info, obs, counts, seed, seconds, war
     unseen = ", ".join(f"t{i + 1}" for i in np.flatnonzero(~seen.any(axis=0))) if seen.size else ""
     if unseen:
         notes.append(f"targets never seen in the fitting rows: {unseen} (they add nothing to this fit)")
-    claims = observability(obs)
+    # The identification's own words when it ran (they include a point beside the last joint's axis), else the
+    # target geometry's.
+    lp = next((d for d in (info, info.get("local-poe"), info.get("local_poe")) if isinstance(d, dict) and
+               "unobservable" in d), None)  # fmt: skip
+    claims = observability(obs, None if lp is None else lp["unobservable"])
     notes.extend(f"unobservable: {text}" for text in claims["unobservable"])
     return FitResult(
         method=method,
