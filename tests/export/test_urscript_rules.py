@@ -147,8 +147,8 @@ def test_program_self_test_passes_in_float32_and_halts_on_a_wrong_file():
     assert messages[-1][0] == "movej"  # the body runs after the self test
     # a file whose expected answers are wrong (another calibration's) stops the program
     other = urscript_program_text(hybrid("ur10", seed=7))
-    expected_line = next(line for line in other.splitlines() if "local lc_tx = " in line)
-    mine = next(line for line in text.splitlines() if "local lc_tx = " in line)
+    expected_line = next(line for line in other.splitlines() if "lc_tx = " in line)
+    mine = next(line for line in text.splitlines() if "lc_tx = " in line)
     broken = urscript_subset.load(text.replace(mine, expected_line), float32=True)
     with pytest.raises(urscript_subset.Halted):
         broken["labcal_program"]()

@@ -695,12 +695,12 @@ def urscript_program_text(
         n = robot.n
         lines += [
             "  # self test: the Python runtime's q_cmd at a few configurations, within the float32 bound",
-            f"  local lc_tq = {_list(q)}",
-            f"  local lc_tx = {_list(expected)}",
-            f"  local lc_tin = {_zeros(n)}",
-            f"  local lc_tout = {_zeros(n)}",
-            "  local lc_ti = 0",
-            "  local lc_tj = 0",
+            f"  lc_tq = {_list(q)}",
+            f"  lc_tx = {_list(expected)}",
+            f"  lc_tin = {_zeros(n)}",
+            f"  lc_tout = {_zeros(n)}",
+            "  lc_ti = 0",
+            "  lc_tj = 0",
             f"  while lc_ti < {len(q)}:",
             "    lc_tin = [" + ", ".join(f"lc_tq[lc_ti * {n} + {j}]" for j in range(n)) + "]",
             f"    lc_tout = {function_name}(lc_tin)",
