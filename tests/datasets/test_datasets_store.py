@@ -286,7 +286,7 @@ def test_a_failed_version_write_leaves_nothing(tmp_path, monkeypatch):
 
 def test_a_refused_session_leaves_no_folder(tmp_path):
     store = SessionStore(tmp_path)
-    with pytest.raises(Exception, match="collinear"):
+    with pytest.raises(Exception, match="coincide"):
         store.create_session(
             SessionHeader.of("r", ROBOT_HASH, 6, targets=np.zeros((3, 3)), frame="base", session_id="bad")
         )

@@ -29,6 +29,7 @@ from labcal.datasets import (
     load_targets,
     read_journal,
     target_columns,
+    target_layout,
 )
 from labcal.datasets.schema import normalize_table
 from labcal.robots import load
@@ -194,6 +195,23 @@ def test_targets_files_with_one_to_k_points(tmp_path):
     p.write_text('unit = "m"\npoints = [[0, 0, 0], [0.1, 0, 0], [0, 0, 0.0002], [0, 0.1, 0]]\n')
     with pytest.raises(TargetsError, match="t1 and t3 coincide"):
         load_targets(p)
+    # A bar of reflectors is a set-up, not a typo: accepted, and named for what it cannot measure.
+    p.write_text('unit = "mm"\npoints = [[0, 0, 0], [100, 0, 0], [200, 0.1, 0]]\n')
+    bar = load_targets(p)
+    assert [target_layout(t) for t in (bar[:1], bar[:2], bar, np.eye(3), np.vstack([np.eye(3), np.zeros(3)]))] == [
+        "point", "line", "line", "plane", "solid"
+    ]  # fmt: skip
+
+
+def test_the_import_notes_what_one_target_or_a_line_of_targets_cannot_measure(tmp_path):
+    spec = load("ur10")
+    for targets, note in ((np.array([[0.0, 0.0, 0.045]]), "one target"), (np.array([[0.0, 0.0, 0.0],
+                          [0.1, 0.0, 0.0], [0.2, 0.0, 0.0]]), "lie on one line")):  # fmt: skip
+        q, pts = _robot_points(spec, targets, 20, seed=6)
+        path = _points_csv(tmp_path / f"{len(targets)}.csv", q, pts)
+        ref = import_targets_csv(tmp_path / "s", path, spec.name, spec.hash, N, targets, robot=spec)
+        notes = SessionStore(tmp_path / "s").manifest(ref)["provenance"]["import"]["checks"]["notes"]
+        assert any(note in n for n in notes), notes
 
 
 # ------------------------------------------------------------------------------------------------- the table

@@ -110,7 +110,7 @@ from .store import (
     load_version,
     verify,
 )
-from .targets import MIN_TARGET_AREA, MIN_TARGET_HEIGHT, load_targets, validate_targets
+from .targets import MIN_TARGET_AREA, MIN_TARGET_HEIGHT, load_targets, target_layout, validate_targets
 
 __all__ = [
     "DEFAULT_PROBE_OFFSETS",
@@ -163,6 +163,7 @@ __all__ = [
     "read_journal",
     "spread_columns",
     "target_columns",
+    "target_layout",
     "validate_id",
     "validate_targets",
     "verify",

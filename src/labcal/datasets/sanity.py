@@ -52,6 +52,7 @@ from labcal.robots import RobotSpec
 
 from .errors import DatasetError
 from .targets import LENGTH_UNITS as LENGTH_FACTORS
+from .targets import target_layout
 
 #: Every check, with what it guards against (shown by ``labcal session import --help``).
 CHECKS: dict[str, str] = {
@@ -604,7 +605,7 @@ def _hypotheses(
         out.append(_Hypothesis(f"once the length units agree (the data scaled by 1/{unit_ratio:.4g}, see "
                                f"target-distances)", 1, jm.to_model(q_ctrl), points / unit_ratio, targets,
                                frame))  # fmt: skip
-    complete = points.shape[1] == 3 and np.isfinite(points).all()
+    complete = points.shape[1] == 3 and np.isfinite(points).all() and target_layout(targets) != "line"
     if form == "targets" and complete:  # re-registering the targets' mount needs three seen targets per row
         out.append(_Hypothesis("if the targets file's points were given in another frame than the robot file's tool "
                                "frame (check its [tool] and the targets file)", 1, jm.to_model(q_ctrl), points, targets,
@@ -848,6 +849,13 @@ def check_measurements(
                       lambda i: base_row(int(keep[i])) if base_row else f"row {int(keep[i]) + 1}")  # fmt: skip
         report.hints = hints
     report.stats["rows"] = len(q)
+    layout = target_layout(targets) if form == "targets" else "plane"
+    if layout in ("point", "line"):
+        report.notes.append(
+            "one target: the points do not measure the tool's orientation"
+            if layout == "point"
+            else "the targets lie on one line: the points do not measure the tool's rotation about it"
+        )
     if len(q) == 0:
         return report
     if robot is not None and q.shape[1] != robot.model.n:

@@ -7,10 +7,11 @@ File format (DESIGN.md section 4)::
 
     points = [[0, 0, 45]]  # a single reflector (SMR) 45 mm in front of the flange: one target
 
-Inside labcal targets are an (m, 3) float array in metres, row i = target t(i+1). Three targets must span a
-triangle (three in a row would leave the rotation about their line unmeasured, so the file is most likely wrong);
-one or two targets, or more than three, are accepted as long as no two of them coincide. What a set of fewer than
-three targets cannot identify is the fit's to report.
+Inside labcal targets are an (m, 3) float array in metres, row i = target t(i+1). Any number of targets is
+accepted as long as no two coincide (the same point listed twice is a typo). Targets on one line (two of them, or
+a bar of reflectors) cannot show the rotation about that line, and a single target no rotation at all: that is
+not an error but a limit of the set-up, which :func:`target_layout` names, the import checks note and the fit
+reports.
 """
 
 from __future__ import annotations
@@ -24,10 +25,10 @@ from labcal.tomlschema import Key, Table, is_number, read_toml, validate
 
 from .errors import TargetsError
 
-#: The three targets must span a triangle at least this large (m²) …
+#: Before 1..k targets three targets had to span a triangle this large (m²); kept for callers that pass it.
 MIN_TARGET_AREA = 1e-6
-#: … and each target must be at least this far (m) from the line through the other two, otherwise the
-#: orientation about that line is unobservable and the fit ill-conditioned.
+#: Two targets closer than this (m) are the same point listed twice; targets within this of one line (or point)
+#: are reported as lying on it by :func:`target_layout`.
 MIN_TARGET_HEIGHT = 1e-3
 
 #: Length units of targets files and imported measurements, to metres (inches for US-made tools and fixtures).
@@ -43,9 +44,9 @@ def validate_targets(
 ) -> np.ndarray:
     """Return the targets as an (m, 3) float64 array in metres (m >= 1), or raise :class:`TargetsError`.
 
-    ``points`` must already be in metres. Rejects no points, non-numeric or non-finite values, two targets closer
-    than ``min_height`` m (the same point twice) and, for exactly three targets, (nearly) collinear ones: triangle
-    area < ``min_area`` m² or a triangle height < ``min_height`` m.
+    ``points`` must already be in metres. Rejects no points, non-numeric or non-finite values and two targets
+    closer than ``min_height`` m (the same point twice). Collinear targets are accepted (see :func:`target_layout`);
+    ``min_area`` is no longer used and only kept so that older callers still work.
     """
     rows = points.tolist() if isinstance(points, np.ndarray) else points
     if not isinstance(rows, list | tuple) or len(rows) < 1:
@@ -59,27 +60,34 @@ def validate_targets(
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
                 raise TargetsError(f"{source}: target t{i + 1} coordinate {'xyz'[j]} is not a finite number: {v!r}")
             out[i, j] = float(v)
-    if len(out) != 3:
-        for i in range(len(out)):
-            for j in range(i):
-                gap = float(np.linalg.norm(out[i] - out[j]))
-                if gap < min_height:
-                    raise TargetsError(
-                        f"{source}: targets t{j + 1} and t{i + 1} coincide ({gap * 1e3:.3g} mm apart, minimum "
-                        f"{min_height * 1e3:g} mm): list each target once"
-                    )
-        return out
-    a, b, c = out
-    area = 0.5 * float(np.linalg.norm(np.cross(b - a, c - a)))
-    sides = [np.linalg.norm(c - b), np.linalg.norm(a - c), np.linalg.norm(b - a)]
-    longest = max(sides)
-    height = 2 * area / longest if longest > 0 else 0.0
-    if area < min_area or height < min_height:
-        raise TargetsError(
-            f"{source}: the three targets are (nearly) collinear or coincident: triangle area {area:.3g} m² "
-            f"(minimum {min_area:g}), smallest height {height * 1e3:.3g} mm (minimum {min_height * 1e3:g} mm)"
-        )
+    for i in range(len(out)):
+        for j in range(i):
+            gap = float(np.linalg.norm(out[i] - out[j]))
+            if gap < min_height:
+                raise TargetsError(
+                    f"{source}: targets t{j + 1} and t{i + 1} coincide ({gap * 1e3:.3g} mm apart, minimum "
+                    f"{min_height * 1e3:g} mm): list each target once"
+                )
     return out
+
+
+def target_layout(targets: np.ndarray, tol: float = MIN_TARGET_HEIGHT) -> str:
+    """ "point" (one target), "line" (all within ``tol`` m of one line), "plane" or "solid": what the targets span.
+
+    A point measures no rotation of the tool; a line no rotation about itself; a plane or solid every rotation.
+
+    >>> target_layout(np.array([[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0]]))
+    'line'
+    """
+    t = np.asarray(targets, dtype=float).reshape(-1, 3)
+    if len(t) == 1:
+        return "point"
+    s = np.linalg.svd(t - t.mean(axis=0), compute_uv=False)
+    # The spread of the targets off their best line (plane) is the second (third) singular value over √m.
+    spread = s / math.sqrt(len(t))
+    if spread[1] < tol:
+        return "line"
+    return "plane" if len(s) < 3 or spread[2] < tol else "solid"
 
 
 def _points_problem(points: object) -> str | None:
