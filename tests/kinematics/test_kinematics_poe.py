@@ -19,7 +19,7 @@ from kin_testutil import (
 
 from labcal.kinematics import se3
 from labcal.kinematics.conversions import dh_fk, from_dh, from_mdh
-from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel, StackedChains
+from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel, poe_fk, poe_joint_twists, poe_link_frames
 from labcal.robots import BUILTINS, load
 
 # UR5e DH (Universal Robots' table) and the same arm written by hand as a modified-DH (Craig) table: regrouping
@@ -272,36 +272,44 @@ def test_replace_keeps_other_fields_and_validates():
         model.replace(limits=np.zeros((5, 2)))
 
 
-def test_small_and_large_batches_take_different_paths_and_agree():
-    # Below poe._SMALL_BATCH configurations the chain is walked with 4×4 matmuls, from it on batch-last; every
-    # public result must agree to rounding (the finite-difference tests run on small batches).
-    from labcal.kinematics import poe
+def test_the_definition_is_the_textbook_product_of_matrix_exponentials():
+    for model in [load("ur10").model, general_model(), general_model(seed=3, n=4)]:
+        for q in random_q(model, 5, seed=13):
+            assert_poses_close(poe_fk(model.frames, model.twists, q), poe_product(model.frames, model.twists, q))
 
-    k = 2 * poe._SMALL_BATCH
-    targets = np.array([[0.1, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.3]])
+
+@pytest.mark.parametrize("k", [5, 300], ids=["few configurations", "a batch"])
+def test_every_kernel_result_equals_the_product_of_exponentials(k):
+    # Few configurations walk the chain with 4×4 matmuls, large batches batch-last (poe._SMALL_BATCH): both are
+    # compared with the definition, not with each other.
+    targets = np.array([[0.1, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.3], [0.1, 0.1, 0.1]])
     for model in [load(r).model for r in BUILTINS] + [general_model(), general_model(seed=3, n=4)]:
         q = random_q(model, k, seed=12)
-        small = q[:5]
-        pairs = [
-            (model.fk(q)[:5], model.fk(small)),
-            (model.link_frames(q)[:5], model.link_frames(small)),
-            (model.fk_and_twists(q)[1][:5], model.fk_and_twists(small)[1]),
-            (model.joint_twists(q)[:5], model.joint_twists(small)),
-            (model.frame_jacobian(q)[:5], model.frame_jacobian(small)),
-            (model.equivalent_jacobian(q)[:5], model.equivalent_jacobian(small)),
-            (model.target_points(q, targets)[:5], model.target_points(small, targets)),
-            (model.frames_and_twists(q)[0][:5], model.frames_and_twists(small)[0]),
-            (model.frames_and_twists(q)[1][:5], model.frames_and_twists(small)[1]),
-            # one walk gives what link_frames and joint_twists give separately
-            (model.frames_and_twists(small)[0], model.link_frames(small)),
-            (model.frames_and_twists(small)[1], model.joint_twists(small)),
-        ]
-        for i, (large, few) in enumerate(pairs):
-            np.testing.assert_allclose(large, few, rtol=0, atol=1e-14, err_msg=f"{model.name} output {i}")
+        frames = poe_link_frames(model.frames, model.twists, q)
+        twists = poe_joint_twists(model.frames, model.twists, q)
+        T = frames[:, -1]
+        points = np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
+        expected = {
+            "fk": (model.fk(q), T),
+            "link_frames": (model.link_frames(q), frames),
+            "fk_and_twists": (model.fk_and_twists(q), (T, twists)),
+            "frames_and_twists": (model.frames_and_twists(q), (frames, twists)),
+            "joint_twists": (model.joint_twists(q), twists),
+            "frame_jacobian": (
+                model.frame_jacobian(q),
+                se3.adjoint(frames).transpose(0, 2, 1, 3).reshape(k, 6, -1),
+            ),
+            "target_points": (model.target_points(q, targets), points),
+            "twists_from_frames": (model.twists_from_frames(frames), twists),
+        }
+        for name, (got, want) in expected.items():
+            for g, w in zip(*((got, want) if isinstance(got, tuple) else ((got,), (want,))), strict=True):
+                np.testing.assert_allclose(g, w, rtol=0, atol=1e-12, err_msg=f"{model.name} {name}")
+        np.testing.assert_allclose(model.fk(q[0]), T[0], rtol=0, atol=1e-12)
 
 
 # --------------------------------------------------------------------------------------------------------------
-# the runtime's one-configuration walk (adjoint representation) and stacked chains
+# the runtime's one-configuration walk (adjoint representation)
 
 
 def _models_for_runtime():
@@ -314,10 +322,10 @@ def _models_for_runtime():
 def test_runtime_walk_equals_adjoints_of_link_frames_and_joint_twists(model):
     for q in random_q(model, 20, seed=21):
         adjoints, twists, c, s = model.runtime_walk(q)
-        frames = model.link_frames(q)[0]
-        np.testing.assert_allclose(adjoints, se3.adjoint(frames), rtol=0, atol=2e-15)
-        np.testing.assert_allclose(se3.pose_from_adjoint(adjoints[-1]), model.fk(q), rtol=0, atol=1e-14)
-        np.testing.assert_allclose(twists, model.joint_twists(q)[0], rtol=0, atol=2e-15)
+        frames = poe_link_frames(model.frames, model.twists, q)[0]
+        np.testing.assert_allclose(adjoints, se3.adjoint(frames), rtol=0, atol=1e-13)
+        np.testing.assert_allclose(se3.pose_from_adjoint(adjoints[-1]), frames[-1], rtol=0, atol=1e-13)
+        np.testing.assert_allclose(twists, poe_joint_twists(model.frames, model.twists, q)[0], rtol=0, atol=1e-13)
         np.testing.assert_array_equal(c, np.cos(q))
         np.testing.assert_array_equal(s, np.sin(q))
 
@@ -331,8 +339,9 @@ def test_runtime_walk_scan_matches_a_left_to_right_walk_for_any_chain_length(n):
     assert model._all_revolute_z
     for q in random_q(model, 5, seed=2):
         adjoints, twists, _, _ = model.runtime_walk(q)
-        np.testing.assert_allclose(adjoints, se3.adjoint(model.link_frames(q)[0]), rtol=0, atol=5e-15)
-        np.testing.assert_allclose(twists, model.joint_twists(q)[0], rtol=0, atol=5e-15)
+        frames = poe_link_frames(model.frames, model.twists, q)[0]
+        np.testing.assert_allclose(adjoints, se3.adjoint(frames), rtol=0, atol=1e-13)
+        np.testing.assert_allclose(twists, poe_joint_twists(model.frames, model.twists, q)[0], rtol=0, atol=1e-13)
 
 
 def test_twists_from_frames_single_and_batched():
@@ -343,20 +352,3 @@ def test_twists_from_frames_single_and_batched():
         np.testing.assert_array_equal(model.twists_from_frames(frames[2]), model.joint_twists(q)[2])
         with pytest.raises(ValueError, match="frames must have shape"):
             model.twists_from_frames(frames[:, :-1])
-
-
-def test_stacked_chains_walk_each_model_and_fall_back_for_general_joints():
-    ur10 = load("ur10").model
-    calibrated = ur10.perturbed(np.random.default_rng(1).normal(size=(7, 6)) * 1e-3)
-    for models in [(ur10, calibrated), (ur10, calibrated, ur10), (general_model(n=6), ur10)]:
-        stacked = StackedChains(models)
-        assert stacked._stacked == all(m._all_revolute_z for m in models)
-        for q in random_q(ur10, 10, seed=9):
-            both = stacked.adjoints(q)
-            assert both.shape == (len(models), 7, 6, 6)
-            for model, adjoints in zip(models, both, strict=True):
-                np.testing.assert_allclose(adjoints, se3.adjoint(model.link_frames(q)[0]), rtol=0, atol=2e-15)
-    with pytest.raises(ValueError, match="same number of joints"):
-        StackedChains((ur10, load("scara4").model))
-    with pytest.raises(ValueError, match=r"q must have shape \(6,\)"):
-        StackedChains((ur10,)).adjoints(np.zeros(5))

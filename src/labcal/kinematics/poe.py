@@ -42,6 +42,51 @@ def default_twist(joint_type: str) -> np.ndarray:
     raise ValueError(f"joint type must be 'revolute' or 'prismatic', got {joint_type!r}")
 
 
+def poe_link_frames(frames, twists, q) -> np.ndarray:
+    """The local product of exponentials by definition (eq. 1; Modern Robotics' ``FKinSpace`` written with local
+    frames): the poses in K0 of K_1 … K_{n+1}, each before its own joint moves it.
+
+    frames: (n+1, 4, 4) initial relative frames A_1(0) … A_{n+1}(0); twists: (n, 6) unit joint twists (v, ω) in the
+    local frames; q: (n,) or (k, n). Returns (k, n+1, 4, 4) with::
+
+        out[:, 0] = A_1(0)
+        out[:, j] = out[:, j-1] · exp(ξ̂_j q_j) · A_{j+1}(0)          j = 1 … n
+
+    so ``out[:, n]`` is the tool pose T_base_tool(q) (:func:`poe_fk`). This is the definition the fast kernels of
+    :class:`LocalPOEModel` are tested against; it builds every exponential with :func:`se3.exp_se3`.
+
+    Example (a planar 2R arm with 1 m links, elbow at 90°)::
+
+        >>> from labcal.kinematics.se3 import pose
+        >>> frames = np.array([pose([0, 0, 0]), pose([1, 0, 0]), pose([1, 0, 0])])
+        >>> z = np.array([[0, 0, 0, 0, 0, 1.0]] * 2)
+        >>> np.round(poe_link_frames(frames, z, [0.0, np.pi / 2])[0, :, :2, 3], 12) + 0.0
+        array([[0., 0.],
+               [1., 0.],
+               [1., 1.]])
+    """
+    frames, twists = np.asarray(frames, dtype=float), np.asarray(twists, dtype=float)
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    k, n = q.shape
+    out = np.empty((k, n + 1, 4, 4))
+    out[:, 0] = frames[0]
+    for j in range(n):
+        out[:, j + 1] = out[:, j] @ se3.exp_se3(twists[j] * q[:, j, None]) @ frames[j + 1]
+    return out
+
+
+def poe_fk(frames, twists, q) -> np.ndarray:
+    """Tool pose by the product of exponentials (:func:`poe_link_frames`): q (n,) → (4, 4), (k, n) → (k, 4, 4)."""
+    T = poe_link_frames(frames, twists, q)[:, -1]
+    return T[0] if np.ndim(q) == 1 else T
+
+
+def poe_joint_twists(frames, twists, q) -> np.ndarray:
+    """Joint twists in K0 by definition, ``Ad(K_j) ξ_j``: (k, 6, n), the spatial Jacobian (q as in poe_link_frames)."""
+    K = poe_link_frames(frames, twists, q)[:, :-1]  # (k, n, 4, 4)
+    return np.einsum("kjab,jb->kaj", se3.adjoint(K), np.asarray(twists, dtype=float))
+
+
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Cross product over axis 1 of (m, 3, ...) arrays (batch last); np.cross wants the vector axis last."""
     return np.stack(
@@ -63,9 +108,9 @@ def _cos_sin_one(q1: np.ndarray) -> np.ndarray:
 
 
 def _chain_one(first: np.ndarray, cs1: np.ndarray, parts: np.ndarray) -> np.ndarray:
-    """Link frames of z-revolute chains at one configuration: (n+1, 4, 4), or (n+1, m, 4, 4) for m stacked chains.
+    """Link frames (or their adjoints) of a z-revolute chain at one configuration: (n+1, d, d).
 
-    first: (4, 4) or (m, 4, 4) base frames A_1(0); cs1: (n, 1, 3) from _cos_sin_one; parts: (n, 3, 16m) step parts,
+    first: (d, d) base frame A_1(0) (or its adjoint); cs1: (n, 1, 3) from _cos_sin_one; parts: (n, 3, d²) step parts,
     so that ``cs1 @ parts`` is every step ``Rz(q_j) · A_{j+1}(0)`` at once. The running products come from a
     Hillis-Steele scan: ⌈log2(n+1)⌉ stacked matmuls instead of n single ones (3 instead of 6 for a 6-axis arm),
     associated differently from a left-to-right walk, which changes them only by rounding.
@@ -354,7 +399,11 @@ class LocalPOEModel:
 
     # ----------------------------------------------------------------------------------------------------------
     def fk(self, q) -> np.ndarray:
-        """Tool pose T_base_tool: q (n,) → (4, 4); q (k, n) → (k, 4, 4)."""
+        """Tool pose T_base_tool: q (n,) → (4, 4); q (k, n) → (k, 4, 4).
+
+        By definition :func:`poe_fk` (the product of exponentials); computed by the chain walk kernels, which agree
+        with it to rounding (tests/kinematics) and are what fits have always used (their rounding is kept).
+        """
         q2, single = self._as_batch(q)
         if q2.shape[0] < _SMALL_BATCH:
             T = self._walk_small(q2)[:, self.n]
@@ -523,44 +572,3 @@ class LocalPOEModel:
         """(k,) bool: every joint inside [lo + margin, hi − margin]."""
         q2, _ = self._as_batch(q)
         return np.all((q2 >= self.limits[:, 0] + margin) & (q2 <= self.limits[:, 1] - margin), axis=1)
-
-
-class StackedChains:
-    """Several models of the same arm walked side by side at one configuration, e.g. a nominal model and its
-    calibrated copy, in the adjoint representation of :meth:`LocalPOEModel.runtime_walk`. Immutable.
-
-    When every model is a chain of n revolute z-axis joints (the usual case) the walks share one stacked 6×6 matmul
-    per scan step and cost about what one walk does; otherwise each model is walked on its own.
-
-    Example::
-
-        >>> from labcal.robots import load
-        >>> nominal = load("ur10").model
-        >>> both = StackedChains((nominal, nominal.perturbed(np.full(42, 1e-4))))
-        >>> both.adjoints(np.zeros(6)).shape          # (models, n + 1, 6, 6)
-        (2, 7, 6, 6)
-    """
-
-    def __init__(self, models) -> None:
-        self.models = tuple(models)
-        if not self.models or any(model.n != self.models[0].n for model in self.models):
-            raise ValueError("StackedChains needs one or more models with the same number of joints")
-        self.n = self.models[0].n
-        self._stacked = all(model._all_revolute_z for model in self.models)
-        if self._stacked:
-            self._parts = _readonly(np.concatenate([model._adjoint_parts for model in self.models], axis=2))
-            self._base = _readonly(np.stack([model._adjoint_base for model in self.models]))
-
-    def adjoints(self, q) -> np.ndarray:
-        """(m, n+1, 6, 6) adjoints of every model's link frames at q (n,): ``se3.adjoint(models[i].link_frames(q))``."""
-        q1 = np.asarray(q, dtype=float)
-        if q1.shape != (self.n,):
-            raise ValueError(f"q must have shape ({self.n},), got {q1.shape}")
-        return self.runtime_walk(q1)[0]
-
-    def runtime_walk(self, q1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(m, n+1, 6, 6) adjoints, cos q (n,) and sin q (n,); q1 a float (n,) array, not validated."""
-        if not self._stacked:
-            return np.stack([model.runtime_walk(q1)[0] for model in self.models]), np.cos(q1), np.sin(q1)
-        cs1 = _cos_sin_one(q1)
-        return _chain_one(self._base, cs1, self._parts).transpose(1, 0, 2, 3), cs1[:, 0, 0], cs1[:, 0, 1]
