@@ -69,6 +69,28 @@ def test_session_new_creates_a_missing_store(tmp_path, targets):
     assert SessionStore(tmp_path / "a" / "b").session_ids()
 
 
+def test_session_new_records_a_single_reflector_with_sim_dropout(tmp_path):
+    one = tmp_path / "smr.toml"
+    one.write_text('unit = "mm"\npoints = [[0, 0, 45], [0, 80, 45], [60, 0, 45]]\n')
+    store = tmp_path / "s"
+    r = invoke("session", "new", "--robot", "ur10", "--targets", one, "--poses", 12, "--sim-dropout", 0.4,
+               store=store)  # fmt: skip
+    assert r.exit_code == 0, r.stdout + r.stderr
+    ds = SessionStore(store).load(r.stdout.strip().splitlines()[-1])
+    assert ds.points.shape == (12, 3, 3) and not ds.seen.all() and ds.seen.any(axis=1).all()
+    assert "3 targets" in invoke("session", "show", ds.ref.split("@")[0], store=store).stdout
+    one.write_text('unit = "mm"\npoints = [[0, 0, 45]]\n')
+    r = invoke("session", "new", "--robot", "ur10", "--targets", one, "--poses", 8, store=store)
+    assert r.exit_code == 0, r.stdout + r.stderr
+    single = SessionStore(store).load(r.stdout.strip().splitlines()[-1])
+    assert single.points.shape == (8, 1, 3) and single.seen.all()
+    assert "1 target," in invoke("session", "show", single.ref.split("@")[0], store=store).stdout
+    bad = invoke("session", "new", "--robot", "ur10", "--targets", one, "--poses", 8, "--sim-dropout", 1.5,
+                 store=tmp_path / "never")  # fmt: skip
+    one_line_error(bad, "--sim-dropout must be a probability")
+    assert not (tmp_path / "never").exists()
+
+
 @pytest.mark.parametrize("where", ["file", "file/sub"])
 def test_an_unusable_store_fails_session_new_in_one_line_before_planning(tmp_path, targets, where):
     (tmp_path / "file").write_text("not a folder")

@@ -185,8 +185,13 @@ def show(session: str = typer.Argument(..., help="Session id."), store: Path | N
     st = _store(store)
     info = st.show(session)
     stored = "robot file stored" if info.robot.get("text") else "robot file NOT stored (needs the built-in or --robot)"
+    try:
+        n_targets = len(st.session_meta(session)["targets"])
+        targets = f", {n_targets} target{'s' if n_targets != 1 else ''}"
+    except (OSError, ValueError, KeyError, TypeError):  # show what it can of a damaged session; verify says why
+        targets = ""
     out.print(f"session {info.session_id}: robot {info.robot.get('name')} ({info.robot.get('hash', '')[:12]}…, "
-              f"{stored}), frame {info.frame}, status {info.status}", markup=False)  # fmt: skip
+              f"{stored}), frame {info.frame}{targets}, status {info.status}", markup=False)  # fmt: skip
     t = Table()
     for col in ("version", "rows", "created", "source", "parent", "fits"):
         t.add_column(col)

@@ -78,7 +78,7 @@ class Settle:
 
 @dataclass(frozen=True)
 class Measure:
-    """Measure the three targets, averaging ``samples`` (>= 1) tracker frames."""
+    """Measure the session's targets, averaging ``samples`` (>= 1) tracker frames."""
 
     samples: int
 
