@@ -143,58 +143,33 @@ def _mul_function() -> list[str]:
     return ["def lc_mul(a, b):", "  return [" + ", ".join(terms) + "]", "end"]
 
 
-_CHAIN_JOINT_COST = 50  # statements of one joint's step in lc_chain (upper bound; the tests measure it)
-
-
-def _chain_function(n: int, budget: _Budget) -> list[str]:
-    m = 12 * (n + 1)
-    g = []
-    for k in range(4):
-        g.append(f"c * A[o + {k}] - s * A[o + {4 + k}]")
-    for k in range(4):
-        g.append(f"s * A[o + {k}] + c * A[o + {4 + k}]")
-    g += ["A[o + 8]", "A[o + 9]", "A[o + 10]", "A[o + 11] + lin[j] * q[j]"]
-    every = budget.every(_CHAIN_JOINT_COST)
+def _chain_function(revolute, budget: _Budget) -> list[str]:
+    """lc_chain(A, lin, q): the frames T'_0 … T'_n, written out joint by joint (the joint types are the same for
+    the nominal and the identified model, so they are known here)."""
+    n = len(revolute)
+    body = _Straight(budget)
+    body.add("sync()", 0)
+    body.add("local c = 1.0")
+    body.add("local s = 0.0")
+    body.add(f"local G = {_zeros(12)}")
+    body.add("local T0 = [" + ", ".join(f"A[{k}]" for k in range(12)) + "]")
+    for j in range(n):
+        o = 12 * (j + 1)
+        if revolute[j]:
+            body.add(f"c = cos(q[{j}])")
+            body.add(f"s = sin(q[{j}])")
+            g = [f"c * A[{o + k}] - s * A[{o + 4 + k}]" for k in range(4)]
+            g += [f"s * A[{o + k}] + c * A[{o + 4 + k}]" for k in range(4)]
+        else:
+            g = [f"A[{o + k}]" for k in range(8)]
+        g += [f"A[{o + 8}]", f"A[{o + 9}]", f"A[{o + 10}]", f"A[{o + 11}] + lin[{j}] * q[{j}]"]
+        body.add("G = [" + ", ".join(g) + "]")
+        body.add(f"local T{j + 1} = lc_mul(T{j}, G)", 2)
+    body.add("return [" + ", ".join(f"T{j}[{k}]" for j in range(n + 1) for k in range(12)) + "]")
     return [
         "# frames T'_0 … T'_n of a chain (3×4 row-major blocks); the last block is the tool pose",
-        "def lc_chain(A, lin, rev, q):",
-        "  sync()",
-        f"  local F = {_zeros(m)}",
-        "  local i = 0",
-        "  local j = 0",
-        "  local c = 1.0",
-        "  local s = 0.0",
-        "  local o = 0",
-        "  local b = 0",
-        "  local cnt = 0",
-        f"  local G = {_zeros(12)}",
-        f"  local P = {_zeros(12)}",
-        f"  local R = {_zeros(12)}",
-        "  while i < 12:",
-        "    F[i] = A[i]",
-        "    i = i + 1",
-        "  end",
-        f"  while j < {n}:",
-        "    c = 1.0",
-        "    s = 0.0",
-        "    if rev[j]:",
-        "      c = cos(q[j])",
-        "      s = sin(q[j])",
-        "    end",
-        "    o = 12 * (j + 1)",
-        "    b = 12 * j",
-        "    G = [" + ", ".join(g) + "]",
-        "    P = [" + ", ".join(f"F[b + {k}]" for k in range(12)) + "]",
-        "    R = lc_mul(P, G)",
-        "    i = 0",
-        "    while i < 12:",
-        "      F[o + i] = R[i]",
-        "      i = i + 1",
-        "    end",
-        "    j = j + 1",
-        *_counter("    ", "cnt", every, n),
-        "  end",
-        "  return F",
+        "def lc_chain(A, lin, q):",
+        *body.lines,
         "end",
     ]
 
@@ -294,17 +269,8 @@ def _solve_function(n: int, budget: _Budget) -> list[str]:
         "  local best = 0.0",
         "  local t = 0.0",
         "  local f = 0.0",
-        f"  while i < {n * n}:",
-        "    A[i] = M[i]",
-        "    i = i + 1",
-        "  end",
-        "  i = 0",
-        f"  while i < {n}:",
-        "    x[i] = y[i]",
-        "    i = i + 1",
-        "  end",
-        "  sync()",
-        "  i = 0",
+        "  A = [" + ", ".join(f"M[{k}]" for k in range(n * n)) + "]",
+        "  x = [" + ", ".join(f"y[{k}]" for k in range(n)) + "]",
         f"  while i < {n}:",
         "    p = i",
         f"    best = lc_abs(A[i * {n} + i])",
@@ -532,6 +498,8 @@ def _definitions(
     """(constant lines, function lines) of the compensator, ending with ``function_name(q)``."""
     n, net = robot.n, robot.network
     kin, nom = ZAxisForm(robot.model), ZAxisForm(robot.nominal)
+    if not np.array_equal(kin.revolute, nom.revolute):
+        raise ValueError("the identified model's joint types differ from the nominal robot's")
     lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
     consts = [
         f"lc_lo = {_list(lo)}",
@@ -542,11 +510,10 @@ def _definitions(
         f"lc_rev = {_bools(kin.revolute)}",
         f"lc_nA = {_list(_frames12(nom))}",
         f"lc_nlin = {_list(nom.lin)}",
-        f"lc_nrev = {_bools(nom.revolute)}",
     ]
     funcs = (
         _mul_function()
-        + _chain_function(n, budget)
+        + _chain_function(kin.revolute, budget)
         + _twists_function(n)
         + _log_function()
         + _solve_function(n, budget)
@@ -567,7 +534,7 @@ def _definitions(
     main = [f"def {function_name}(q):", *check]
     m = 12 * (n + 1)
     if method == "paper":
-        F = "lc_chain(lc_A, lc_lin, lc_rev, q)" if "gravity" in net.features else _zeros(m)
+        F = "lc_chain(lc_A, lc_lin, q)" if "gravity" in net.features else _zeros(m)
         main += [
             f"  local rho = lc_rho(q, {F})",
             "  return [" + ", ".join(f"q[{j}] - rho[{j}]" for j in range(n)) + "]",
@@ -577,7 +544,7 @@ def _definitions(
 
     last = 12 * n
     main += [
-        "  local T = lc_chain(lc_nA, lc_nlin, lc_nrev, q)",
+        "  local T = lc_chain(lc_nA, lc_nlin, q)",
         "  local Rt = [" + ", ".join(f"T[{last + 4 * a + b}]" for a in range(3) for b in range(3)) + "]",
         "  local pt = [" + ", ".join(f"T[{last + 4 * a + 3}]" for a in range(3)) + "]",
         f"  local qc = [{', '.join(f'q[{j}]' for j in range(n))}]",
@@ -590,7 +557,7 @@ def _definitions(
         f"  local st = {_zeros(n)}",
         "  local it = 0",
         f"  while it < {int(iterations)}:",
-        "    F = lc_chain(lc_A, lc_lin, lc_rev, qc)",
+        "    F = lc_chain(lc_A, lc_lin, qc)",
         "    J = lc_twists(F, lc_rev, lc_pitch)",
     ]
     # dR = Rt Rmᵀ, dp = pt − dR pm
