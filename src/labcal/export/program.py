@@ -48,7 +48,7 @@ from labcal.kinematics.metric import scaled_condition
 STEPS = 8  # pose interpolation steps from the seed to each target (path following)
 MAX_CONDITION = 1e4  # length-scaled cond(J) above this on the way: a singularity, the branch is not defined
 TOL = 1e-10  # pose error (m; rad) a nominal IK solution must reach
-MAX_CORRECTION = 0.05  # rad: a calibration correction larger than this is a different solution, not a correction
+MAX_CORRECTION = 0.2  # rad: a calibration correction larger than this is a different solution, not a correction
 
 
 class ProgramError(ValueError):
