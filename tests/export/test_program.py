@@ -145,3 +145,11 @@ def test_program_csv_units_and_outputs(calibrated, tmp_path):
     ns["labcal_filtered"]()
     moves = [m[1] for m in ns["stats"].messages if m[0] == "movej"]
     np.testing.assert_array_equal(moves, result.q_command)
+
+
+def test_a_correction_larger_than_allowed_is_refused_by_row(calibrated):
+    _, robot = calibrated
+    _, q_path = program_poses(robot, 3, seed=7)
+    dq = np.max(np.abs(filter_joints(robot, q_path).correction), axis=1)
+    with pytest.raises(ProgramError, match=r"row 1: the calibrated solution moves a joint by"):
+        filter_joints(robot, q_path, max_correction=0.5 * dq.min())
