@@ -248,6 +248,22 @@ def test_near_singular_configurations_take_damped_steps_that_never_make_the_pose
     assert len(calls) >= 5  # the damped steps really ran
 
 
+def test_a_bounded_damped_budget_limits_the_residual_evaluations_and_stays_no_worse(monkeypatch):
+    robot = hybrid("ur10", features=("sincos", "gravity"))
+    q = np.array([0.3, -1.2, 1.1, -1.3, 0.0, 0.4])  # wrist singular: the damped steps run
+    calls = []
+    real = CalibratedRobot._one_configuration_residual
+
+    def counted(self, q1):
+        residual = real(self, q1)
+        return lambda *a: calls.append(1) or residual(*a)
+
+    monkeypatch.setattr(CalibratedRobot, "_one_configuration_residual", counted)
+    q_cmd = robot.correct(q, damped_iterations=2)
+    assert len(calls) <= 10 + 1 + 2  # Gauss-Newton budget, the damped start, two damped steps
+    assert _pose_error(robot, q, q_cmd) <= _pose_error(robot, q, q)
+
+
 def test_single_configuration_input_checks():
     nominal = load("ur10").model
     robot = CalibratedRobot(

@@ -397,6 +397,7 @@ class CalibratedRobot:
         iterations: int = 10,
         tol: float = 1e-11,
         extrapolate: bool = False,
+        damped_iterations: int | None = None,
     ) -> np.ndarray:
         """Joint commands that make the real robot reach the nominal pose of q. (n,) or (k, n), like q.
 
@@ -408,6 +409,9 @@ class CalibratedRobot:
         ``"paper"`` is eq. (24), q − δρ_a(q); ``"fixed-point"`` iterates q_cmd = q − δρ_a(q_cmd). Both apply the
         network alone, so they are refused (a ValueError saying why) unless the identified frames are the nominal
         ones and there is a network: the paper's ANN method. An empty (0, n) q gives an empty (0, n) answer.
+        damped_iterations: the damped iteration's step budget (default 3 · max(iterations, 10)); a control loop
+        that must bound its worst-case time lowers it (near-singular configurations then stop earlier, no worse
+        than at q).
         """
         q2, single = self._batch(q)
         if method not in ("newton", "paper", "fixed-point"):
@@ -438,7 +442,14 @@ class CalibratedRobot:
                 def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                     return self.residual(qc, T_target[rows])
 
-            out = solver.solve(residual, q2, iterations=iterations, tol=tol, weights=self._twist_weights)
+            out = solver.solve(
+                residual,
+                q2,
+                iterations=iterations,
+                tol=tol,
+                weights=self._twist_weights,
+                damped_iterations=damped_iterations,
+            )
         return out[0] if single else out
 
     def _one_configuration_residual(self, q: np.ndarray):
