@@ -38,14 +38,20 @@ def sim_actual(spec: RobotSpec, errors: str, seed: int):
     return simulate(spec, spec_errors, seed=seed)
 
 
-def plan_configurations(spec: RobotSpec, poses: int, planner: str, seed: int, targets, samples: int = 2000):
+def plan_configurations(
+    spec: RobotSpec, poses: int, planner: str, seed: int, targets, samples: int = 2000, dropout: float | None = None
+):
+    """(poses, n) model joints. ``dropout``: the tracker's chance of losing a target, which the optimal planner
+    weighs in (it maximises the information of the points expected to be measured)."""
     from labcal.sessions import optimal_configurations, random_configurations
 
     check_plan_size(poses, planner, samples)
     if planner == "random":
         return random_configurations(spec.model, poses, seed=seed, targets=targets)
     if planner == "optimal":
-        return optimal_configurations(spec.model, poses, seed=seed, targets=targets, candidates=samples)
+        return optimal_configurations(
+            spec.model, poses, seed=seed, targets=targets, candidates=samples, dropout=dropout or None
+        )
     raise UserError(f"--planner must be one of {', '.join(PLANNERS)}, got {planner!r}")
 
 
@@ -183,7 +189,9 @@ def new_session(store: SessionStore, request: SessionRequest | None = None, *, p
     request.check()  # before anything is loaded, planned or allocated
     spec = load(request.robot)
     targets = load_targets(request.targets_file)
-    q = plan_configurations(spec, request.poses, request.planner, request.seed, targets, request.samples)
+    q = plan_configurations(
+        spec, request.poses, request.planner, request.seed, targets, request.samples, request.sim_dropout
+    )
     sim = request.robot_driver == "sim"
     plan = make_plan(q, samples=3 if sim else 5, settle=0.0 if sim else 0.5)
     rob, trk, frame, meta = _drivers(request, spec, targets)
