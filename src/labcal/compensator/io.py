@@ -184,6 +184,29 @@ def from_payload(data: dict, source: str = "<payload>", *, stored: bool = False)
     file may still be schema 1 (fits stored before joint maps and field checksums): it is read without a joint
     map, so old sessions' fits can still be reported and exported. An export file on its own must be schema 2.
     """
+    legacy = _check_schema(data, source, stored)
+    if not legacy:
+        _check_checksums(data, source)
+    try:
+        robot = _robot_from(data, source, legacy)
+        golden = data["golden"]
+        if np.size(golden["q"]) == 0:
+            raise CompensatorFileError(f"{source}: no golden vectors to verify the file against")
+        q = np.asarray(golden["q"], dtype=float).reshape(-1, robot.n)
+        q_cmd = np.asarray(golden["q_cmd"], dtype=float).reshape(q.shape)
+        pose = np.asarray(golden["pose"], dtype=float).reshape(q.shape[0], 4, 4)
+    except CompensatorFileError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError) as err:
+        raise CompensatorFileError(f"{source}: missing or malformed field: {err!r}") from err
+    if q.shape[0] == 0:
+        raise CompensatorFileError(f"{source}: no golden vectors to verify the file against")
+    _check_golden(robot, q, q_cmd, pose, golden.get("correct_method", "newton"), source)
+    return robot, data
+
+
+def _check_schema(data: dict, source: str, stored: bool) -> bool:
+    """Raise unless ``data`` is a compensator payload this labcal reads; True for a stored schema-1 (legacy) fit."""
     if not isinstance(data, dict) or data.get("format") != SCHEMA:
         raise CompensatorFileError(f"{source}: not a labcal compensator export (format field is not {SCHEMA!r})")
     version = data.get("schema_version")
@@ -193,65 +216,57 @@ def from_payload(data: dict, source: str = "<payload>", *, stored: bool = False)
         raise CompensatorFileError(
             f"{source}: schema_version {version!r} is not supported (this labcal reads {SCHEMA_VERSION}){hint}"
         )
-    if not legacy:
-        _check_checksums(data, source)
+    return legacy
+
+
+def _robot_from(data: dict, source: str, legacy: bool) -> CalibratedRobot:
+    """The CalibratedRobot a payload describes (models, joint map checked against the stored hash, network)."""
+    nominal = _model_from(data["robot"], f"{source}: robot")
+    model = _model_from(data["model"], f"{source}: model")
+    jd = None if legacy else data["joint_map"]
     try:
-        nominal = _model_from(data["robot"], f"{source}: robot")
-        model = _model_from(data["model"], f"{source}: model")
-        jd = None if legacy else data["joint_map"]
-        try:
-            joint_map = None if jd is None else JointMap(np.asarray(jd["matrix"]), np.asarray(jd["offsets"]))
-        except (KeyError, TypeError, ValueError) as err:
-            raise CompensatorFileError(f"{source}: joint_map is not a valid joint map: {err}") from err
-        if joint_map is not None and joint_map.n != nominal.n:
-            raise CompensatorFileError(
-                f"{source}: joint_map is not a valid joint map: it maps {joint_map.n} joints, the robot has {nominal.n}"
-            )
-        if model_hash(nominal, joint_map) != data["robot"].get("hash"):
-            raise CompensatorFileError(f"{source}: robot model does not match its hash (file edited or damaged)")
-        net = None
-        nd = data.get("network")
-        if nd is not None:
-            net = Network(
-                features=tuple(nd["features"]),
-                weights=tuple(np.asarray(W, dtype=float) for W in nd["weights"]),
-                biases=tuple(np.asarray(b, dtype=float) for b in nd["biases"]),
-                in_mean=np.asarray(nd["in_mean"], dtype=float),
-                in_scale=np.asarray(nd["in_scale"], dtype=float),
-                out_mean=np.asarray(nd["out_mean"], dtype=float),
-                out_scale=np.asarray(nd["out_scale"], dtype=float),
-            )
-        robot = CalibratedRobot(
-            nominal=nominal,
-            model=model,
-            network=net,
-            T_tracker_base=np.asarray(data["T_tracker_base"], dtype=float).reshape(4, 4),
-            joint_ranges=np.asarray(data["joint_ranges"], dtype=float).reshape(nominal.n, 2),
-            length_scale=float(data["length_scale"]),
-            method=str(data.get("method", "")),
-            joint_map=joint_map,
+        joint_map = None if jd is None else JointMap(np.asarray(jd["matrix"]), np.asarray(jd["offsets"]))
+    except (KeyError, TypeError, ValueError) as err:
+        raise CompensatorFileError(f"{source}: joint_map is not a valid joint map: {err}") from err
+    if joint_map is not None and joint_map.n != nominal.n:
+        raise CompensatorFileError(
+            f"{source}: joint_map is not a valid joint map: it maps {joint_map.n} joints, the robot has {nominal.n}"
         )
-        golden = data["golden"]
-        if np.size(golden["q"]) == 0:
-            raise CompensatorFileError(f"{source}: no golden vectors to verify the file against")
-        q = np.asarray(golden["q"], dtype=float).reshape(-1, nominal.n)
-        q_cmd = np.asarray(golden["q_cmd"], dtype=float).reshape(q.shape)
-        pose = np.asarray(golden["pose"], dtype=float).reshape(q.shape[0], 4, 4)
-    except CompensatorFileError:
-        raise
-    except (KeyError, TypeError, ValueError, IndexError) as err:
-        raise CompensatorFileError(f"{source}: missing or malformed field: {err!r}") from err
-    if q.shape[0] == 0:
-        raise CompensatorFileError(f"{source}: no golden vectors to verify the file against")
+    if model_hash(nominal, joint_map) != data["robot"].get("hash"):
+        raise CompensatorFileError(f"{source}: robot model does not match its hash (file edited or damaged)")
+    nd = data.get("network")
+    net = None
+    if nd is not None:
+        arrays = {key: np.asarray(nd[key], dtype=float) for key in ("in_mean", "in_scale", "out_mean", "out_scale")}
+        net = Network(
+            features=tuple(nd["features"]),
+            weights=tuple(np.asarray(W, dtype=float) for W in nd["weights"]),
+            biases=tuple(np.asarray(b, dtype=float) for b in nd["biases"]),
+            **arrays,
+        )
+    return CalibratedRobot(
+        nominal=nominal,
+        model=model,
+        network=net,
+        T_tracker_base=np.asarray(data["T_tracker_base"], dtype=float).reshape(4, 4),
+        joint_ranges=np.asarray(data["joint_ranges"], dtype=float).reshape(nominal.n, 2),
+        length_scale=float(data["length_scale"]),
+        method=str(data.get("method", "")),
+        joint_map=joint_map,
+    )
+
+
+def _check_golden(robot: CalibratedRobot, q, q_cmd, pose, method: str, source: str) -> None:
+    """Raise unless the rebuilt robot reproduces its golden vectors (q_cmd and predicted poses)."""
     try:
         got_pose = robot.predict_pose(q)
-        if nominal.n > 6:
+        if robot.n > 6:
             # A redundant arm reaches a pose along a whole self-motion, so which q_cmd the solver lands on depends on
             # its details: check that the stored commands still reach the nominal poses instead of re-finding them.
-            miss = se3.log_se3(se3.inv(robot.predict_pose(q_cmd)) @ nominal.fk(q))
+            miss = se3.log_se3(se3.inv(robot.predict_pose(q_cmd)) @ robot.nominal.fk(q))
             dq, what = float(np.max(np.abs(miss))), "pose error at the stored q_cmd (m, rad)"
         else:
-            got_q = robot.correct(q, method=golden.get("correct_method", "newton"), extrapolate=True)
+            got_q = robot.correct(q, method=method, extrapolate=True)
             dq, what = float(np.max(np.abs(got_q - q_cmd))), "|Δq_cmd| (rad)"
     except (ValueError, np.linalg.LinAlgError) as err:
         raise CompensatorFileError(f"{source}: cannot evaluate the golden vectors: {err}") from err
@@ -261,7 +276,6 @@ def from_payload(data: dict, source: str = "<payload>", *, stored: bool = False)
             f"{source}: golden vectors disagree with the stored model (max {what} = {dq:.3g}, "
             f"max |Δpose| = {dT:.3g}); the file was edited or damaged — refusing to load it"
         )
-    return robot, data
 
 
 def save(robot: CalibratedRobot, path, provenance: dict | None = None) -> Path:
