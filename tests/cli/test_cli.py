@@ -86,7 +86,11 @@ def test_fit_pools_two_sessions_of_the_same_robot(world):
 
 
 @pytest.mark.parametrize(
-    "fmt,name", [("json", "c.json"), ("npz", "c.npz"), ("urscript", "c.script"), ("urdf", "c.urdf")]
+    "fmt,name",
+    [
+        *(("json", "c.json"), ("npz", "c.npz"), ("urscript", "c.script"), ("urdf", "c.urdf")),
+        *(("urscript-program", "p.script"), ("ur-kinematics", "c.yaml")),
+    ],
 )
 def test_export_every_format_round_trips(world, tmp_path, fmt, name):
     out = tmp_path / name
@@ -104,6 +108,11 @@ def test_export_every_format_round_trips(world, tmp_path, fmt, name):
         model = from_urdf(out.read_text())
         q = np.asarray(payload["golden"]["q"])
         np.testing.assert_allclose(model.fk(q)[:, :3, 3], np.asarray(payload["golden"]["pose"])[:, :3, 3], atol=1e-12)
+    elif fmt == "ur-kinematics":
+        text = out.read_text()
+        assert all(f"{seg}:" in text for seg in ("shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3"))
+    elif fmt == "urscript-program":
+        assert "def labcal_program():" in out.read_text()
     else:
         assert "def labcal_correct(q):" in out.read_text()
 
