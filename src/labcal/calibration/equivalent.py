@@ -209,7 +209,7 @@ def joint_error_observations(
             raise ValueError(f"soft_condition {soft_condition} exceeds max_condition {max_condition}")
     q = obs.q
     k = obs.k
-    if not obs.complete or target_geometry(obs.targets)[0] != "plane":
+    if not obs.complete or obs.m != 3 or target_geometry(obs.targets)[0] != "plane":
         return _partial_observations(obs, base, max_condition, soft_condition)
     predicted = base.predict_points(q, obs.targets) if k else np.zeros((0, 3, 3))  # (k, 3, 3) base frame
     R, t = base.T_tracker_base[:3, :3], base.T_tracker_base[:3, 3]
@@ -238,7 +238,7 @@ def joint_error_observations(
 
 
 def _partial_observations(obs, base, max_condition, soft_condition) -> JointErrorObservations:
-    """:func:`joint_error_observations` when a row misses targets or the targets do not span a plane (module
+    """:func:`joint_error_observations` unless every row sees the same three non-collinear targets (module
     docstring): zero rows for unseen targets, each row's rank, the condition of what it can see, min-norm δρ."""
     q, k, m = obs.q, obs.k, obs.m
     seen = obs.seen
