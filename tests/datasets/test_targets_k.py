@@ -303,3 +303,17 @@ def test_a_mapping_with_two_target_triples_imports_empty_cells_as_not_seen(tmp_p
     np.testing.assert_allclose(ds.points, pts, rtol=1e-12, equal_nan=True)
     with pytest.raises(TargetsError, match="2 target column triple"):
         import_mapped(store, tmp_path / "lab.csv", mapping, spec.name, spec.hash, N, targets=targets[:1])
+
+
+def test_a_journal_line_with_another_target_count_stops_sealing_with_its_seq(tmp_path):
+    store = SessionStore(tmp_path)
+    with new_journal(store) as j:
+        j.append_measurement(pose_index=0, **fake_measurement(np.random.default_rng(1)))
+        j.stop("success")
+    path = Path(j.path)
+    lines = path.read_text().splitlines()
+    doc = json.loads(lines[1])
+    doc["points"] = doc["points"][:2]  # edited by hand: two targets in a three-target session
+    path.write_text("\n".join([lines[0], json.dumps(doc), *lines[2:]]) + "\n")
+    with pytest.raises(DatasetError, match="seq 1 is valid but has 2 target"):
+        store.seal(j.session_id)

@@ -1017,8 +1017,11 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
         q = m.q
         rec: dict[str, Any] = {"pose": m.pose_index}
         rec.update({f"q{j + 1}": float(q[j]) for j in range(n_joints)})
+        if m.points is None or len(m.points) != n_targets:
+            have = "no points" if m.points is None else f"{len(m.points)} target(s)"
+            raise JournalCorrupted(f"measurement seq {m.seq} is valid but has {have}; the session has {n_targets}")
         for i in range(n_targets):
-            point = m.points[i]  # type: ignore[index]
+            point = m.points[i]
             for a, axis in enumerate("xyz"):
                 rec[f"t{i + 1}_{axis}"] = np.nan if point is None else float(point[a])
         rec["split"] = m.split or ""

@@ -79,6 +79,8 @@ from labcal.robots import RobotSpec, loads
 from labcal.robots.joint_map import JointMap
 from labcal.sessions.plans import Plan, PoseStep
 
+# triangle_error: the largest distance error between targets seen together (None with fewer than two seen); the name
+# is older than 1..k targets and stays, as it is a column (x_triangle_error) of every recorded version.
 EXTRA_UNITS = {"attempts": "1", "triangle_error": "m", "quality": ""}
 # The record-time sanity check (labcal.datasets.sanity) runs once the session has max(this, 2 n) valid poses.
 SANITY_MIN_ROWS = 3
