@@ -360,27 +360,30 @@ def _unit_slip(ratio: float, used: str, hints: Hints, what: str) -> str | None:
     return None
 
 
+def _seen_pair_distances(points, targets):
+    """(pairs, file distances, (rows, pairs) measured distances, rows used) for the target pairs seen together in
+    at least one row; rows seeing no pair are left out. NaN marks a pair not seen together in a row."""
+    pairs = _pairs(len(targets))
+    d_file = np.array([np.linalg.norm(targets[a] - targets[b]) for a, b in pairs])
+    d = np.stack([np.linalg.norm(points[:, a] - points[:, b], axis=1) for a, b in pairs], axis=1) if pairs else None
+    if d is None or not np.isnan(d).any():
+        return pairs, d_file, d, np.ones(len(points), bool)
+    together = ~np.isnan(d).all(axis=0)
+    rows = ~np.isnan(d).all(axis=1)
+    pairs = tuple(p for p, ok in zip(pairs, together, strict=True) if ok)
+    return pairs, d_file[together], d[rows][:, together], rows
+
+
 def _check_target_distances(points, targets, length_unit, hints, report, allow) -> None:
     """Distances between targets seen together in a row against the targets file (pairs never seen together, and
     sessions with one target, have nothing to compare)."""
-    pairs = _pairs(len(targets))
+    pairs, d_file, d, rows = _seen_pair_distances(points, targets)
     if not pairs:
         return
-    d_file = np.array([np.linalg.norm(targets[a] - targets[b]) for a, b in pairs])
-    d = np.stack([np.linalg.norm(points[:, a] - points[:, b], axis=1) for a, b in pairs], axis=1)
-    if np.isnan(d).any():  # targets not seen: compare the pairs that were seen together, where they were
-        together = ~np.isnan(d).all(axis=0)
-        pairs = tuple(p for p, ok in zip(pairs, together, strict=True) if ok)
-        d_file, d = d_file[together], d[:, together]
-        rows = ~np.isnan(d).all(axis=1)
-        points, d = points[rows], d[rows]
-        if not len(pairs):
-            return
-        med = np.nanmedian(d, axis=0)
-        ratio = float(np.nanmedian(d / d_file))
-    else:
-        med = np.median(d, axis=0)
-        ratio = float(np.median(d / d_file))
+    points = points[rows]
+    partial = np.isnan(d).any()  # the complete three-target data take the plain median, as they always did
+    med = np.nanmedian(d, axis=0) if partial else np.median(d, axis=0)
+    ratio = float(np.nanmedian(d / d_file) if partial else np.median(d / d_file))
     report.stats["target_distances"] = {
         "file_mm": (d_file * 1e3).round(3).tolist(),
         "measured_median_mm": (med * 1e3).round(3).tolist(),
