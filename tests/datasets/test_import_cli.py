@@ -135,3 +135,37 @@ def test_unit_flags_with_a_mapping_are_refused_not_ignored(files, tmp_path):
     r = invoke("session", "import", root / "data.csv", "--robot", "ur10", "--mapping", "ipa-ur10", "--length-unit",
                "mm", "--store", tmp_path / "s")  # fmt: skip
     assert r.exit_code == 2 and "--length-unit mm cannot be combined with --mapping" in r.stderr
+
+
+def test_empty_cells_and_a_single_target_through_the_cli(files, tmp_path):
+    root, scn = files
+    df = pd.read_csv(root / "data.csv")
+    holes = df.astype(object)
+    for i, row in ((2, 1), (5, 0), (5, 2), (9, 2)):  # whole targets not seen
+        for a in "xyz":
+            holes.loc[i, f"t{row + 1}_{a}"] = ""
+    holes.to_csv(tmp_path / "holes.csv", index=False)
+    r = invoke("session", "import", tmp_path / "holes.csv", "--robot", "ur10", "--targets", root / "targets.toml",
+               "--length-unit", "mm", "--angle-unit", "deg", "--store", tmp_path / "s")  # fmt: skip
+    assert r.exit_code == 0, r.stderr
+    ds = load_version(SessionStore(tmp_path / "s"), r.stdout.strip().splitlines()[-1])
+    assert (~ds.seen).sum() == 4 and not ds.seen[5, 0] and not ds.seen[5, 2] and ds.seen[5, 1]
+    # One target: the t1 columns and a targets file with its point only.
+    one = df[[f"q{j + 1}" for j in range(6)] + ["t1_x", "t1_y", "t1_z"]]
+    one.to_csv(tmp_path / "one.csv", index=False, float_format="%.17g")
+    x, y, z = scn.targets[0] * 1e3
+    (tmp_path / "one.toml").write_text(f'unit = "mm"\npoints = [[{x:.17g}, {y:.17g}, {z:.17g}]]\n')
+    r = invoke("session", "import", tmp_path / "one.csv", "--robot", "ur10", "--targets", tmp_path / "one.toml",
+               "--length-unit", "mm", "--angle-unit", "deg", "--store", tmp_path / "s")  # fmt: skip
+    assert r.exit_code == 0, r.stderr
+    assert "note: one target: the points do not measure the tool's orientation" in r.stderr
+    ds = load_version(SessionStore(tmp_path / "s"), r.stdout.strip().splitlines()[-1])
+    np.testing.assert_allclose(ds.points[:, 0], scn.points[:, 0], rtol=1e-13, atol=1e-15)
+    # A partly empty target is one error line naming row, line and column; nothing is written.
+    holes.loc[3, "t2_z"] = ""
+    holes.loc[3, "t2_x"] = 1.0
+    holes.to_csv(tmp_path / "partly.csv", index=False)
+    r = invoke("session", "import", tmp_path / "partly.csv", "--robot", "ur10", "--targets", root / "targets.toml",
+               "--length-unit", "mm", "--angle-unit", "deg", "--store", tmp_path / "p")  # fmt: skip
+    assert r.exit_code == 2 and "Traceback" not in r.stdout + r.stderr
+    assert "data row 4 (line 5 of the file), column 't2_z': target t2 is partly empty" in r.stderr
