@@ -10,8 +10,8 @@ Two planners:
     near-singular J_ρ turns millimetres of pose error into radians of "joint error". The metric is the 2-norm
     condition number σ_max/σ_min of ``D · J_ρ`` with ``D = diag(1/L, 1/L, 1/L, 1, 1, 1)``: the linear rows (m)
     are divided by the robot's reach L (``model.reach()``, m) so that both halves of the twist are
-    dimensionless. Default threshold :data:`DEFAULT_MAX_CONDITION` = 100: with it about a quarter of uniformly
-    drawn 6R configurations (e.g. wrist near q5 = 0) are rejected, and the median configuration (≈ 30) passes;
+    dimensionless. Default threshold :data:`DEFAULT_MAX_CONDITION` = 100: it rejects configurations near a
+    singularity (e.g. a 6R wrist near q5 = 0) and keeps the typical ones (``benchmarks/planning.py`` counts them);
   * **task-space region** — the tool origin (base frame, m) inside an axis-aligned box;
   * **tracker line of sight** — every target inside the tracker's viewing cone (:class:`LineOfSight`), and,
     optionally, no target closer than ``min_target_distance`` (m) to another target's line of sight (the ray
@@ -511,9 +511,8 @@ def optimal_configurations(
     criterion ``"d"``: D-optimal (greedy + exchange on log det, i.e. the O1 index). ``"i"`` (default):
     start from the D-optimal set, then exchange to minimise the average prediction variance over the pool
     (:func:`prediction_variance`, the pool standing for the workspace), which is what held-out accuracy
-    measures. On the paper's Scenario A (fanuc-m1000ia, local POE, 24 simulated robots) 25 configurations
-    chosen with "i" gave a held-out max position error 19 % below 25 random ones (11 % with "d"), still above
-    50 random ones; the spread between robots was less than half that of random sets.
+    measures. ``benchmarks/planning.py`` compares both with random sets on the paper's Scenario A (held-out error
+    and its spread between simulated robots); the numbers live there and in the README.
 
     The pool is ``pool`` (k, n) if given, else ``candidates`` configurations from :func:`random_configurations`
     (``seed`` and the ``sampling`` keyword arguments: limits, range_fraction, region, max_condition, tracker,
