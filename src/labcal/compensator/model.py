@@ -299,6 +299,22 @@ class CalibratedRobot:
             "anyway"
         )
 
+    def _valid_single(self, q, extrapolate: bool) -> bool:
+        """True for a finite float (n,) array inside the calibrated ranges (or extrapolate): nothing to report.
+        Anything else goes through _batch / _check_range, which name what is wrong."""
+        if not (isinstance(q, np.ndarray) and q.shape == (self.n,) and q.dtype == np.float64):
+            return False
+        values = q.tolist()
+        if not math.isfinite(sum(values)):
+            return False
+        lo, hi = self._range_lists
+        return extrapolate or all(a <= v <= b for v, a, b in zip(values, lo, hi, strict=True))
+
+    @functools.cached_property
+    def _range_lists(self) -> tuple[list, list]:
+        lo, hi = self._ranges
+        return lo.tolist(), hi.tolist()
+
     # the dataclass is frozen; cached_property writes __dict__ directly
     @functools.cached_property
     def _ranges(self) -> tuple[np.ndarray, np.ndarray]:
@@ -413,13 +429,16 @@ class CalibratedRobot:
         that must bound its worst-case time lowers it (near-singular configurations then stop earlier, no worse
         than at q).
         """
-        q2, single = self._batch(q)
         if method not in ("newton", "paper", "fixed-point"):
             raise ValueError(f"method must be 'newton', 'paper' or 'fixed-point', got {method!r}")
         if method != "newton" and (why := self.network_only_error(method)):
             raise ValueError(why)
-        if not extrapolate:
-            self._check_range(q2)
+        if self._valid_single(q, extrapolate):
+            q2, single = q[None], True  # a control loop's call, checked in Python floats (no array round trips)
+        else:
+            q2, single = self._batch(q)
+            if not extrapolate:
+                self._check_range(q2)
         if q2.shape[0] == 0:
             return q2.copy()  # nothing to correct: an empty (0, n) answer, like the input
         n = self.n

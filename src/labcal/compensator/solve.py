@@ -101,7 +101,7 @@ def solve(
                 bad = ~(size <= GN_MAX_STEP)
                 done = size < tol
             else:
-                prev = prev_step[active]
+                prev = prev_step if everyone else prev_step[active]
                 bad = ~(size <= np.minimum(GN_MAX_STEP, 0.5 * prev))
                 ratio = np.minimum(size / prev, 0.5)
                 done = (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol)
@@ -115,9 +115,11 @@ def solve(
             else:
                 out[active] += step
                 prev_step[active] = size
-            active = active[~(bad | done)]
-            if active.size == 0:
-                break
+            stop = bad | done
+            if stop.any():
+                active = active[~stop]
+                if active.size == 0:
+                    break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
         if failed is not None:
             rows = np.flatnonzero(failed)
