@@ -131,6 +131,7 @@ def test_equivalent_observation_uses_only_the_rows_of_the_targets_a_pose_saw():
     assert np.allclose(np.einsum("ka,ka->k", null, two.delta_rho), 0.0, atol=1e-12)
     one = joint_error_observations(Observations(q, pts[:, :1], TARGETS[:1]), base, max_condition=None)
     assert one.rank.tolist() == [3] * 12 and np.all(np.isfinite(one.condition))
+    assert one.summary()["rank_below_6"] == 12 and "rank_below_6" not in full.summary()
 
 
 @pytest.mark.parametrize("method", ["nominal", "local-poe", "ann", "hybrid", "auto"])

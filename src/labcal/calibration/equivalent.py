@@ -104,7 +104,8 @@ class JointErrorObservations:
         return dropped_causes(self, base)
 
     def summary(self) -> dict:
-        """Counts of dropped rows by reason and condition statistics of all rows (JSON-friendly)."""
+        """Counts of dropped rows by reason and condition statistics of all rows (JSON-friendly); with fewer than
+        three targets in some row also ``rank_below_6``, the rows whose δρ is a minimum-norm solution."""
         reasons: dict[str, int] = {}
         for r in self.reason[~self.kept]:
             reasons[str(r)] = reasons.get(str(r), 0) + 1
@@ -119,13 +120,16 @@ class JointErrorObservations:
             if finite.size
             else {}
         )
-        return {
+        out = {
             "count": len(self.q),
             "dropped": int(np.sum(~self.kept)),
             "dropped_reasons": reasons,
             "downweighted": int(np.sum(self.kept & (self.weight < 1.0))),
             "condition": stats,
         }
+        if self.rank is not None:  # rows whose δρ is a minimum-norm solution (module docstring)
+            out["rank_below_6"] = int(np.sum(self.rank < 6))
+        return out
 
 
 def point_matrix(points: np.ndarray) -> np.ndarray:
