@@ -5,6 +5,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from labcal.cli.ops import load_observations
@@ -136,3 +137,31 @@ def test_the_optimal_planner_weighs_targets_that_are_often_lost():
     # The same drop-out for every target scales all information alike: the same choice as without drop-outs.
     uniform = optimal_configurations(model, 10, seed=3, targets=FOUR[:3], pool=pool, criterion="d", dropout=0.3)
     assert np.array_equal(uniform, plain)
+
+
+def test_a_session_recorded_before_1_to_k_targets_resumes_and_keeps_its_rows(tmp_path):
+    """The journal of a three-target session written by 65c384c, cut after 9 of its 14 poses (as a crash would):
+    today's runner resumes it, validates as it was recorded, and the old rows come out of the seal bit for bit."""
+    import json
+    from pathlib import Path
+
+    old = Path(__file__).parents[1] / "datasets" / "data" / "old-three-targets"
+    lines = (old / "journal.jsonl").read_text().splitlines()
+    measured = [i for i, line in enumerate(lines) if json.loads(line)["type"] == "measurement"]
+    (tmp_path / old.name).mkdir()
+    (tmp_path / old.name / "journal.jsonl").write_text("\n".join(lines[: measured[8] + 1]) + "\n")
+    store = SessionStore(tmp_path)
+    spec = load("ur10")
+    targets = np.asarray(json.loads(lines[0])["targets"])
+    rig = SimRig(simulate(spec, ErrorSpec.default(), seed=3), targets, seed=3)
+    from labcal.sessions import resume
+
+    with rig.robot() as robot, rig.tracker() as tracker:
+        summary = resume(store, old.name, robot, tracker, sleep=lambda t: None)
+    assert summary.exit_status == "success" and summary.measured == 5 and summary.remaining == 0
+    new = store.load(summary.ref).table
+    before = SessionStore(old.parent).load(f"{old.name}@v1").table
+    assert list(new.columns) == list(before.columns) and len(new) == 14
+    pd.testing.assert_frame_equal(new.iloc[:9], before.iloc[:9], check_exact=True)
+    floats = [c for c in before.columns if before[c].dtype == np.float64]
+    assert new[floats].iloc[:9].to_numpy().tobytes() == before[floats].iloc[:9].to_numpy().tobytes()
