@@ -39,7 +39,10 @@ and targets on a line show no rotation about that line, 1 direction. These direc
 lack of data: the identifiable count is reduced by them (``expected_rank`` in the info), the truncated SVD leaves
 them at the starting value (the minimum-norm step), and the info names them in words (``unobservable``). Which
 targets count is the set seen in at least one fitting row: the tool frame is the same in every row, so three
-targets seen in different rows fix it too.
+targets seen in different rows fix it too. One point on (within :data:`AXIS_TOL` of) the last joint's axis — a
+reflector or probe origin on the flange axis — also leaves that axis's two tilts about the point unseen: they are
+held too, and named. Held directions are taken out of the Jacobian's image (:func:`_gauss_newton`), so the
+robot's redundant parameters cannot carry them back in.
 
 Rows used: ``train`` and unassigned rows; ``include_val=True`` adds the validation rows. "val" rows are a
 hold-out a caller chose (:func:`labcal.calibration.fit.fit` makes none by default, so every row is fitted there).
