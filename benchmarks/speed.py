@@ -9,6 +9,9 @@ the median over ``--singles`` calls, best of the repeats. The compensator is a `
 model is the nominal one with 0.5 mm / 0.5 mrad frame errors (local-POE calibration, no network), so ``correct``
 runs its Newton iteration on a model that really differs from the nominal.
 
+Rows marked "definition" evaluate :func:`labcal.kinematics.poe.poe_link_frames` (the plain product of exponentials);
+set beside the kernels' rows they show what each fast kernel earns.
+
 The issue's goal: FK + joint twists ≥ 200,000 configurations/s for a 6R robot on one core.
 """
 
@@ -57,7 +60,20 @@ def sections(robot_name: str, seed: int = 0) -> tuple[list[Section], int]:
     rng = np.random.default_rng(seed)
     identified = model.perturbed(rng.normal(size=(model.n + 1, 6)) * 0.5e-3)
     compensator = CalibratedRobot(nominal=model, model=identified, method="local-poe")
+    definition = []
+    try:  # the readable product of exponentials the kernels are tested against: what the kernels earn
+        from labcal.kinematics.poe import poe_joint_twists, poe_link_frames
+    except ImportError:  # a labcal without it
+        pass
+    else:
+        definition = [
+            Section("FK, definition", lambda q: poe_link_frames(model.frames, model.twists, q)[:, -1]),
+            Section("FK + twists, definition", lambda q: poe_joint_twists(model.frames, model.twists, q)),
+            Section("one walk, runtime_walk", model.runtime_walk, mode="single"),
+            Section("one walk, definition", lambda q: poe_joint_twists(model.frames, model.twists, q), mode="single"),
+        ]
     return [
+        *definition,
         Section("FK", model.fk),
         Section("FK + joint twists", model.fk_and_twists),
         Section("frame_jacobian", model.frame_jacobian),
