@@ -30,6 +30,13 @@ measured points — for isotropic tracker noise, the maximum-likelihood fit — 
 scenario measured. Example (fanuc-m1000ia, ``ErrorSpec.default()``, base = the local-POE fit, 200 train / 200
 val, held-out mean position error 0.21 mm before the network): joint loss 0.33 mm (worse), task loss 0.12 mm.
 
+**Fewer than three targets.** A row that sees one target, or two, or a line of them, fixes only 3 or 5 of the six
+joint-error directions: its eq. (21) "observation" is the minimum-norm solution, the part of δρ the points see
+(:mod:`labcal.calibration.equivalent`). A joint-space fit would learn that projection as if it were δρ, so when any
+row is such a row the network is trained on eq. (20) — the points themselves — whatever ``loss`` says, and
+``info["loss_note"]`` says so (measured on one-target UR10 data, the point loss was clearly better than the joint
+loss on the minimum-norm observations; numbers in the issue-15 report).
+
 Default size: one hidden layer of round(√(6 f)) tanh nodes for f network inputs — the paper's √(6n) rule of
 thumb (the geometric mean of inputs and outputs), identical to it for the paper's ``features=("q",)``.
 

@@ -16,9 +16,11 @@ With purely geometric errors, or too few configurations, stage 2 can only fit no
 only when K-fold cross-validation over the fitting rows says it lowers the held-out error by more than a
 near-tie (:mod:`labcal.calibration.cv`: every stage, local POE included, refitted inside each fold; the network's
 early stopping on an inner split of the fold's training rows). The kept variant is then refitted on all fitting
-rows. "val" rows, when a caller labels some, are only measured, never used to choose. When the condition filter
-leaves too few rows for the network (most poses at a singular wrist) the network is skipped and the series still
-competes; torch is imported only when the ANN candidate runs.
+rows. "val" rows, when a caller labels some, are only measured, never used to choose. Both stages fit point
+residuals, so sessions with one or two targets, or targets missing in some rows, fit the same way (the learned
+terms see only the joint-error directions the points show; the rest stays at the identified robot's). When the
+condition filter leaves too few rows for the network (most poses at a singular wrist) the network is skipped and
+the series still competes; torch is imported only when the ANN candidate runs.
 """
 
 from __future__ import annotations
