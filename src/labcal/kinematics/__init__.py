@@ -1,7 +1,8 @@
-"""Pure numpy kinematics: SE(3) tools, the local POE model, DH/MDH/URDF conversions."""
+"""Pure numpy kinematics: SE(3) tools, the local POE model and its definition, DH/MDH/URDF conversions, and the
+length-scaled metric (:mod:`labcal.kinematics.metric`)."""
 
 from labcal.kinematics.conversions import dh_fk, from_dh, from_mdh, from_urdf, to_urdf
-from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
+from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel, poe_fk, poe_joint_twists, poe_link_frames
 from labcal.kinematics.se3 import (
     adjoint,
     exp_se3,
@@ -35,6 +36,9 @@ __all__ = [
     "log_se3",
     "log_so3",
     "matrix_to_rpy",
+    "poe_fk",
+    "poe_joint_twists",
+    "poe_link_frames",
     "pose",
     "pose_distance",
     "rpy_to_matrix",

@@ -7,6 +7,19 @@ Each link j carries a frame K_j on joint j's axis. At joint value q_j the relati
 
 Pose errors are spatial twists δy in the base frame K0, defined by ``T_actual = exp(δŷ) · T_nominal``.
 
+The definition is :func:`poe_link_frames` (with :func:`poe_fk` and :func:`poe_joint_twists`): the product above,
+one :func:`se3.exp_se3` per joint. :class:`LocalPOEModel` computes the same numbers with three kernels, each kept
+because ``benchmarks/speed.py`` shows what it earns against the definition, each tested against the definition
+(tests/kinematics/test_kinematics_poe.py):
+
+- ``_walk``: a batch, batch axis last (whole-array multiply-adds: throughput), below ``_SMALL_BATCH``
+  configurations handing over to
+- ``_walk_small``: a few configurations, one 4×4 matmul per joint (few numpy calls);
+- :meth:`LocalPOEModel.runtime_walk`: one configuration in the adjoint representation, with a scan
+  (``_chain_one``): what a compensator's solver step needs, from one walk.
+
+Fits have always run on these kernels, so their rounding is what the fits' bit-for-bit reproducibility rests on.
+
 Worked example (a planar 2R arm, 1 m links)::
 
     >>> from labcal.kinematics.se3 import pose
@@ -26,8 +39,7 @@ import numpy as np
 from labcal.kinematics import metric, se3
 
 REVOLUTE, PRISMATIC = "revolute", "prismatic"
-# Below this many configurations the chain is walked with 4×4 matmuls (few numpy calls: single-configuration
-# latency); from it on, batch-last multiply-adds (no per-matrix overhead: throughput). Both agree to rounding.
+# Below this many configurations the chain is walked with 4×4 matmuls (few numpy calls), from it on batch-last.
 _SMALL_BATCH = 128
 _Z_REVOLUTE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 _Z_PRISMATIC = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
