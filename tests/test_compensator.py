@@ -21,7 +21,7 @@ from labcal.compensator import (
     solve,
 )
 from labcal.kinematics import se3
-from labcal.kinematics.poe import REVOLUTE, LocalPOEModel
+from labcal.kinematics.poe import REVOLUTE, LocalPOEModel, poe_joint_twists, poe_link_frames
 from labcal.robots import load
 
 
@@ -83,8 +83,22 @@ def test_fast_kernels_match_the_kinematics_reference(name, odd):
     np.testing.assert_allclose(robot.predict_pose(q), reference_predict(robot, q), atol=1e-13)
     np.testing.assert_allclose(robot.joint_motion_errors(q), robot.network(q, robot.model), atol=1e-15)
     initial, J, _ = robot._evaluate(q)
-    np.testing.assert_allclose(J, robot.model.joint_twists(q), atol=1e-13)
-    np.testing.assert_allclose(initial[:, -1], robot.model.fk(q), atol=1e-13)
+    np.testing.assert_allclose(J, poe_joint_twists(robot.model.frames, robot.model.twists, q), atol=1e-13)
+    np.testing.assert_allclose(initial, poe_link_frames(robot.model.frames, robot.model.twists, q), atol=1e-13)
+
+
+@pytest.mark.parametrize("angle", [1e-7, 3e-3, 0.2, 2.5])
+def test_the_one_pose_error_kernel_is_the_logarithm_of_the_pose_difference(angle):
+    from labcal.compensator.model import _pose_error_one, _pose_lists
+
+    rng = np.random.default_rng(int(angle * 1e7) % 1000)
+    for _ in range(20):
+        T = se3.exp_se3(rng.normal(size=6))
+        xi = rng.normal(size=6)
+        xi[3:] *= angle / np.linalg.norm(xi[3:])
+        T_target = se3.exp_se3(xi * np.r_[1e-3, 1e-3, 1e-3, 1, 1, 1]) @ T
+        got = _pose_error_one(_pose_lists(se3.adjoint(T_target)), se3.adjoint(T))
+        np.testing.assert_allclose(got, se3.log_se3(T_target @ se3.inv(T)), rtol=0, atol=1e-13)
 
 
 @pytest.mark.parametrize("name", ["ur10", "fanuc-m1000ia"])
