@@ -319,8 +319,11 @@ def _read_parquet(data: bytes) -> pd.DataFrame:
     return pq.read_table(io.BytesIO(data)).to_pandas()
 
 
-def _plan_summary(plan: Sequence[Any]) -> dict:
-    return {"length": len(plan), "sha256": sha256_bytes(canonical_json(jsonable(list(plan))).encode("utf-8"))}
+def _plan_summary(plan: Sequence[Any], *, plain: bool = False) -> dict:
+    """Length and sha256 of a plan. ``plain``: the plan was parsed from JSON, so it holds JSON types already and
+    the conversion (slow for a long plan, and the identity on such data) is skipped."""
+    doc = list(plan) if plain else jsonable(list(plan))
+    return {"length": len(plan), "sha256": sha256_bytes(canonical_json(doc).encode("utf-8"))}
 
 
 def with_robot_record(meta: dict) -> dict:
@@ -357,7 +360,7 @@ def session_meta_from_start(start: StartDoc) -> dict:
         "frame": start.frame,
         "tracker": start.tracker,
         "robot_driver": start.robot_driver,
-        "plan": _plan_summary(start.plan),
+        "plan": _plan_summary(start.plan, plain=True),  # read from the journal: JSON types only
         "extra_units": dict(start.extra_units),
         "metadata": start.metadata,
     }
