@@ -262,6 +262,19 @@ def test_near_singular_configurations_take_damped_steps_that_never_make_the_pose
     assert len(calls) >= 5  # the damped steps really ran
 
 
+def test_the_batched_gauss_newton_verdicts_follow_the_one_row_rule():
+    rng = np.random.default_rng(9)
+    size = np.concatenate([10.0 ** rng.uniform(-16, 0, 300), [0.0, np.nan, 0.3, 0.31, 1e-11, 1e-14]])
+    prev = np.concatenate([10.0 ** rng.uniform(-16, 0, 300), [1e-3, 1e-3, 1.0, 1.0, 1e-9, 0.0]])
+    for first in (True, False):
+        bad, done = solve._verdicts(size, None if first else prev, 1e-11)
+        for i in range(len(size)):
+            expected = solve.verdict(float(size[i]), None if first else float(prev[i]), 1e-11)
+            assert (bool(bad[i]), bool(done[i])) == expected, (i, first)
+            one = solve._verdicts(size[i : i + 1], None if first else prev[i : i + 1], 1e-11)
+            assert (bool(one[0][0]), bool(one[1][0])) == expected
+
+
 def test_a_bounded_damped_budget_limits_the_residual_evaluations_and_stays_no_worse(monkeypatch):
     robot = hybrid("ur10", features=("sincos", "gravity"))
     q = np.array([0.3, -1.2, 1.1, -1.3, 0.0, 0.4])  # wrist singular: the damped steps run

@@ -97,14 +97,8 @@ def solve(
             r, J = residual(out if everyone else out[active], active)
             step = gauss_newton_step(r, J, w if n < 6 else None)
             size = np.abs(step).max(axis=1)
-            if it == 0:  # no previous step: ρ = 1/2, so the estimated distance is the step itself
-                bad = ~(size <= GN_MAX_STEP)
-                done = size < tol
-            else:
-                prev = prev_step if everyone else prev_step[active]
-                bad = ~(size <= np.minimum(GN_MAX_STEP, 0.5 * prev))
-                ratio = np.minimum(size / prev, 0.5)
-                done = (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol)
+            prev = None if it == 0 else (prev_step if everyone else prev_step[active])
+            bad, done = _verdicts(size, prev, tol)
             if bad.any():
                 step[bad] = 0.0
                 failed = np.zeros(k, dtype=bool) if failed is None else failed
@@ -126,6 +120,27 @@ def solve(
             budget = max(iterations, 10) * 3 if damped_iterations is None else int(damped_iterations)
             out[rows] = _damped(residual, q0[rows], rows, w, budget, tol)
     return out
+
+
+def verdict(size: float, prev: float | None, tol: float) -> tuple[bool, bool]:
+    """The Gauss-Newton rule for one row: (failed, converged) after a step of max-norm ``size`` that followed one of
+    max-norm ``prev`` (None: the first step). See the module docstring."""
+    if prev is None:  # no previous step: ρ = 1/2, so the estimated distance is the step itself
+        return not size <= GN_MAX_STEP, size < tol
+    ratio = min(size / max(prev, 1e-300), 0.5)
+    return not size <= min(GN_MAX_STEP, 0.5 * prev), size * ratio / (1 - ratio) < tol or size < 1e-3 * tol
+
+
+def _verdicts(size: np.ndarray, prev: np.ndarray | None, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`verdict` of every row, as (m,) bool arrays: array arithmetic for a batch, and for one row (a control
+    loop's call, where numpy's per-call cost is the price) the rule itself in Python floats."""
+    if size.shape[0] == 1:
+        failed, converged = verdict(float(size[0]), None if prev is None else float(prev[0]), tol)
+        return np.array([failed]), np.array([converged])
+    if prev is None:
+        return ~(size <= GN_MAX_STEP), size < tol
+    ratio = np.minimum(size / np.maximum(prev, 1e-300), 0.5)
+    return ~(size <= np.minimum(GN_MAX_STEP, 0.5 * prev)), (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol)
 
 
 def _damped(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray, budget: int, tol: float):
