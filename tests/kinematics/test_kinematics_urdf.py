@@ -165,3 +165,14 @@ def test_robots_load_reads_urdf_files(tmp_path):
     spec = load(path)
     assert spec.name == "ur10"
     np.testing.assert_allclose(spec.model.frames, load("ur10").model.frames, atol=1e-12)
+
+
+def test_to_urdf_escapes_names_and_comments():
+    import xml.etree.ElementTree as ET
+
+    model = load("ur10").model
+    text = to_urdf(model, robot_name='arm "A" & <B>', comment="fit -- 3 < 4 & done")
+    root = ET.fromstring(text.split("\n", 1)[1])
+    assert root.get("name") == 'arm "A" & <B>'
+    back = from_urdf(text)
+    np.testing.assert_array_equal(back.frames, from_urdf(to_urdf(model)).frames)

@@ -215,43 +215,34 @@ def _reaches(joint_el, tip: str, children) -> bool:
 
 
 def to_urdf(model: LocalPOEModel, robot_name: str | None = None, comment: str = "") -> str:
-    """Write the model as a URDF chain (base_link → link_1 … → tool0), exact to printed precision (17 digits)."""
+    """Write the model as a URDF chain (base_link → link_1 … → tool0), exact to printed precision (17 digits).
+
+    Built with xml.etree, so names and the comment are escaped as XML requires.
+    """
 
     def fmt(v) -> str:
         return " ".join(repr(float(x)) for x in v)
 
-    name = robot_name or model.name or "robot"
-    lines = ['<?xml version="1.0"?>']
+    robot = ET.Element("robot", name=robot_name or model.name or "robot")
     if comment:
-        lines.append(f"<!-- {comment.replace('--', '- -')} -->")
-    lines.append(f'<robot name="{name}">')
+        robot.append(ET.Comment(f" {comment.replace('--', '- -')} "))
     links = ["base_link", *[f"link_{j + 1}" for j in range(model.n)], "tool0"]
     for link in links:
-        lines.append(f'  <link name="{link}"/>')
+        ET.SubElement(robot, "link", name=link)
     for j in range(model.n + 1):
         T = model.frames[j]
-        xyz, rpy = T[:3, 3], se3.matrix_to_rpy(T[:3, :3])
         if j < model.n:
             kind = "prismatic" if model.joint_types[j] == PRISMATIC else "revolute"
-            axis = model.twists[j, :3] if kind == "prismatic" else model.twists[j, 3:]
-            jname = model.joint_names[j]
-            lo, hi = model.limits[j]
-            lines += [
-                f'  <joint name="{jname}" type="{kind}">',
-                f'    <parent link="{links[j]}"/>',
-                f'    <child link="{links[j + 1]}"/>',
-                f'    <origin xyz="{fmt(xyz)}" rpy="{fmt(rpy)}"/>',
-                f'    <axis xyz="{fmt(axis)}"/>',
-                f'    <limit lower="{float(lo)!r}" upper="{float(hi)!r}" effort="0" velocity="0"/>',
-                "  </joint>",
-            ]
+            joint = ET.SubElement(robot, "joint", name=model.joint_names[j], type=kind)
         else:
-            lines += [
-                '  <joint name="tool_fixed" type="fixed">',
-                f'    <parent link="{links[j]}"/>',
-                f'    <child link="{links[j + 1]}"/>',
-                f'    <origin xyz="{fmt(xyz)}" rpy="{fmt(rpy)}"/>',
-                "  </joint>",
-            ]
-    lines.append("</robot>")
-    return "\n".join(lines) + "\n"
+            joint = ET.SubElement(robot, "joint", name="tool_fixed", type="fixed")
+        ET.SubElement(joint, "parent", link=links[j])
+        ET.SubElement(joint, "child", link=links[j + 1])
+        ET.SubElement(joint, "origin", xyz=fmt(T[:3, 3]), rpy=fmt(se3.matrix_to_rpy(T[:3, :3])))
+        if j < model.n:
+            axis = model.twists[j, :3] if kind == "prismatic" else model.twists[j, 3:]
+            ET.SubElement(joint, "axis", xyz=fmt(axis))
+            lo, hi = model.limits[j]
+            ET.SubElement(joint, "limit", lower=repr(float(lo)), upper=repr(float(hi)), effort="0", velocity="0")
+    ET.indent(robot, space="  ")
+    return '<?xml version="1.0"?>\n' + ET.tostring(robot, encoding="unicode") + "\n"
