@@ -14,6 +14,7 @@ from pathlib import Path
 import cloudpickle
 import pytest
 import typer
+from distributed import LocalCluster
 from typer.testing import CliRunner
 
 from labcal.cli.fit import fit
@@ -137,9 +138,9 @@ def test_refit_stores_what_labcal_fit_stores_serially_and_on_a_local_cluster(fle
     assert intact(store, a1) and intact(store, a3) and no_temp_folders(store)
 
 
-def test_a_failed_session_is_reported_and_the_others_are_fitted(tmp_path):
+def test_a_failed_session_is_reported_and_the_others_are_fitted_warnings_and_all(tmp_path):
     store = open_store(tmp_path / "store", create=True)
-    good, bad = sim(store, 5), sim(store, 6)
+    good, bad, warned = sim(store, 5), sim(store, 6), sim(store, 10, poses=5)
     data = store.version_dir(bad) / "measurements.parquet"
     data.chmod(0o644)
     data.write_bytes(data.read_bytes() + b"x")  # damaged after it was sealed: the fit must refuse it
@@ -147,6 +148,10 @@ def test_a_failed_session_is_reported_and_the_others_are_fitted(tmp_path):
     assert result.exit_code == 1
     assert "1 failed" in result.stderr and "DatasetCorrupted" in result.stdout
     assert len(fit_ids(store, good)) == 1 and intact(store, good)
+    # A fit with warnings is stored as `labcal fit` stores it (export refuses it), listed with its warning codes.
+    (stored,) = store.list_fits(warned)
+    assert "few-poses" in {w["code"] for w in stored.metadata["warnings"]}
+    assert "few-poses" in result.stdout and intact(store, warned)
     assert not (store.version_dir(bad) / "fits").exists() or fit_ids(store, bad) == []
 
 
@@ -211,7 +216,11 @@ def test_a_worker_killed_mid_run_loses_no_fit_and_leaves_no_partial_one(tmp_path
     markers.mkdir()
     hook = functools.partial(_die_by_ref, str(markers), {mid_write: "mid-write", published: "published"})
 
-    report = run_refit(store, [mid_write, published, calm], METHOD, seed=1, jobs=2, hook=hook)
+    # A cluster of its own, reached by address like `--scheduler`, so that path is covered too (--jobs is above).
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        report = run_refit(store, [mid_write, published, calm], METHOD, seed=1, scheduler=cluster.scheduler_address,
+                           hook=hook)  # fmt: skip
+    assert report.executor.startswith("dask scheduler tcp://")
 
     # Both faults happened (each worker process was killed once) and Dask ran the tasks again elsewhere.
     assert sorted(p.name for p in markers.iterdir()) == sorted([f"{mid_write}.mid-write", f"{published}.published"])

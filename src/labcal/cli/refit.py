@@ -12,7 +12,9 @@ from labcal.cli.common import INTERRUPTED, StoreOption, err, mm, out, user_error
 
 @user_errors
 def refit(
-    sessions: list[str] = typer.Argument(None, help="SESSION or SESSION@vN … to refit (besides or instead of --all)."),
+    sessions: list[str] = typer.Argument(
+        None, help="Only these SESSION or SESSION@vN … (the options narrow them further)."
+    ),
     everything: bool = typer.Option(False, "--all", help="Every session in the store (other options narrow it)."),
     robot: str | None = typer.Option(None, "--robot", help="Only sessions of this robot (the name stored with them)."),
     unit: str | None = typer.Option(None, "--unit", help="Only sessions of this unit (session metadata 'unit')."),
