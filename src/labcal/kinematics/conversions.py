@@ -131,6 +131,39 @@ def from_urdf(text: str, tip_link: str | None = None, name: str | None = None) -
         raise ValueError(f"URDF is not valid XML: {err}") from err
     if root.tag != "robot":
         raise ValueError(f"URDF root element must be <robot>, got <{root.tag}>")
+    frames, types, twists, limits, names = [], [], [], [], []
+    pending = np.eye(4)
+    for el in _urdf_chain(root, tip_link):
+        jname, jtype = el.get("name"), el.get("type")
+        origin = el.find("origin")
+        xyz = _floats(origin.get("xyz") if origin is not None else None, [0, 0, 0], f"joint {jname} origin xyz")
+        rpy = _floats(origin.get("rpy") if origin is not None else None, [0, 0, 0], f"joint {jname} origin rpy")
+        T = pending @ se3.pose(xyz, rpy)
+        if jtype == "fixed":
+            pending = T
+            continue
+        kind, twist, limit = _urdf_joint(el, jname, jtype)
+        frames.append(T)
+        types.append(kind)
+        twists.append(twist)
+        limits.append(limit)
+        names.append(jname)
+        pending = np.eye(4)
+    if not types:
+        raise ValueError("URDF chain has no movable joints")
+    frames.append(pending)
+    return LocalPOEModel(
+        np.array(frames),
+        tuple(types),
+        np.array(twists),
+        np.array(limits),
+        name or root.get("name", ""),
+        tuple(names),
+    )
+
+
+def _urdf_chain(root, tip_link: str | None) -> list:
+    """The <joint> elements from the root link down to ``tip_link`` (or the end of an unbranched chain)."""
     joints = {}
     for el in root.findall("joint"):
         jname = el.get("name")
@@ -145,7 +178,6 @@ def from_urdf(text: str, tip_link: str | None = None, name: str | None = None) -
     roots = [lk for lk in children if lk not in child_links]
     if len(roots) != 1:
         raise ValueError(f"URDF must have exactly one root link, found {roots}")
-
     chain, link = [], roots[0]
     while link in children:
         options = children[link]
@@ -162,49 +194,27 @@ def from_urdf(text: str, tip_link: str | None = None, name: str | None = None) -
             break
     if tip_link is not None and link != tip_link:
         raise ValueError(f"tip link {tip_link!r} not found in the URDF chain")
+    return chain
 
-    frames, types, twists, limits, names = [], [], [], [], []
-    pending = np.eye(4)
-    for el in chain:
-        jname, jtype = el.get("name"), el.get("type")
-        origin = el.find("origin")
-        xyz = _floats(origin.get("xyz") if origin is not None else None, [0, 0, 0], f"joint {jname} origin xyz")
-        rpy = _floats(origin.get("rpy") if origin is not None else None, [0, 0, 0], f"joint {jname} origin rpy")
-        T = pending @ se3.pose(xyz, rpy)
-        if jtype == "fixed":
-            pending = T
-            continue
-        if jtype not in ("revolute", "continuous", "prismatic"):
-            raise ValueError(f"joint {jname}: unsupported URDF joint type {jtype!r}")
-        axis_el = el.find("axis")
-        axis = _floats(axis_el.get("xyz") if axis_el is not None else None, [1, 0, 0], f"joint {jname} axis")
-        norm = np.linalg.norm(axis)
-        if norm < 1e-12:
-            raise ValueError(f"joint {jname}: zero axis")
-        axis = axis / norm
-        kind = PRISMATIC if jtype == "prismatic" else REVOLUTE
-        limit = el.find("limit")
-        if jtype == "continuous" or limit is None or limit.get("lower") is None:
-            lo, hi = (-np.pi, np.pi) if kind == REVOLUTE else (-1.0, 1.0)
-        else:
-            lo, hi = float(limit.get("lower")), float(limit.get("upper"))
-        frames.append(T)
-        types.append(kind)
-        twists.append(np.concatenate([np.zeros(3), axis]) if kind == REVOLUTE else np.concatenate([axis, np.zeros(3)]))
-        limits.append([lo, hi])
-        names.append(jname)
-        pending = np.eye(4)
-    if not types:
-        raise ValueError("URDF chain has no movable joints")
-    frames.append(pending)
-    return LocalPOEModel(
-        np.array(frames),
-        tuple(types),
-        np.array(twists),
-        np.array(limits),
-        name or root.get("name", ""),
-        tuple(names),
-    )
+
+def _urdf_joint(el, jname: str, jtype: str) -> tuple[str, np.ndarray, list[float]]:
+    """A movable URDF joint's (type, unit twist (6,), [lo, hi])."""
+    if jtype not in ("revolute", "continuous", "prismatic"):
+        raise ValueError(f"joint {jname}: unsupported URDF joint type {jtype!r}")
+    axis_el = el.find("axis")
+    axis = _floats(axis_el.get("xyz") if axis_el is not None else None, [1, 0, 0], f"joint {jname} axis")
+    norm = np.linalg.norm(axis)
+    if norm < 1e-12:
+        raise ValueError(f"joint {jname}: zero axis")
+    axis = axis / norm
+    kind = PRISMATIC if jtype == "prismatic" else REVOLUTE
+    limit = el.find("limit")
+    if jtype == "continuous" or limit is None or limit.get("lower") is None:
+        lo, hi = (-np.pi, np.pi) if kind == REVOLUTE else (-1.0, 1.0)
+    else:
+        lo, hi = float(limit.get("lower")), float(limit.get("upper"))
+    twist = np.concatenate([np.zeros(3), axis]) if kind == REVOLUTE else np.concatenate([axis, np.zeros(3)])
+    return kind, twist, [lo, hi]
 
 
 def _reaches(joint_el, tip: str, children) -> bool:
