@@ -441,35 +441,39 @@ class CalibratedRobot:
                 self._check_range(q2)
         if q2.shape[0] == 0:
             return q2.copy()  # nothing to correct: an empty (0, n) answer, like the input
+        if method == "newton":
+            out = self._newton(q2, iterations, tol, damped_iterations)
+        else:
+            out = self._network_only(q2, method, iterations, tol)
+        return out[0] if single else out
+
+    def _newton(self, q2: np.ndarray, iterations: int, tol: float, damped_iterations: int | None) -> np.ndarray:
+        """method="newton": the solver over :meth:`residual`, or over its one-configuration form for one command
+        of a 6-joint arm."""
+        if q2.shape[0] == 1 and self.n == 6:
+            residual = self._one_configuration_residual(q2[0])
+        else:
+            T_target = self.nominal.fk(q2)
+
+            def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                return self.residual(qc, T_target[rows])
+
+        weights, budget = self._twist_weights, damped_iterations
+        return solver.solve(residual, q2, iterations=iterations, tol=tol, weights=weights, damped_iterations=budget)
+
+    def _network_only(self, q2: np.ndarray, method: str, iterations: int, tol: float) -> np.ndarray:
+        """method="paper": eq. (24), q − δρ_a(q); "fixed-point": q_cmd = q − δρ_a(q_cmd), iterated."""
         n = self.n
         if method == "paper":
-            out = q2 - self.joint_motion_errors(q2)[:, :n]
-        elif method == "fixed-point":
-            out = q2.copy()
-            for _ in range(iterations):
-                nxt = q2 - self.joint_motion_errors(out)[:, :n]
-                done = np.max(np.abs(nxt - out)) < tol
-                out = nxt
-                if done:
-                    break
-        else:
-            if q2.shape[0] == 1 and n == 6:
-                residual = self._one_configuration_residual(q2[0])
-            else:
-                T_target = self.nominal.fk(q2)
-
-                def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-                    return self.residual(qc, T_target[rows])
-
-            out = solver.solve(
-                residual,
-                q2,
-                iterations=iterations,
-                tol=tol,
-                weights=self._twist_weights,
-                damped_iterations=damped_iterations,
-            )
-        return out[0] if single else out
+            return q2 - self.joint_motion_errors(q2)[:, :n]
+        out = q2.copy()
+        for _ in range(iterations):
+            nxt = q2 - self.joint_motion_errors(out)[:, :n]
+            done = np.max(np.abs(nxt - out)) < tol
+            out = nxt
+            if done:
+                break
+        return out
 
     def _one_configuration_residual(self, q: np.ndarray):
         """:meth:`residual` for the solver at one configuration of a 6-joint arm (the control-loop call), equal to

@@ -29,6 +29,7 @@ Example (six "joints" whose twists are the unit twists, so r = target − q)::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -87,39 +88,85 @@ def solve(
     """
     k, n = q0.shape
     w = _ONES6 if weights is None else np.asarray(weights, dtype=float)
-    out = q0.copy()
-    prev_step = np.empty(0)  # every row's last step size, set by the first pass (all rows take it)
-    failed = None  # (k,) bool once a row has failed
-    active = np.arange(k)
+    rows = _OneRow(q0, tol) if k == 1 else _Rows(q0, tol)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a singular J gives a NaN step
-        for it in range(max(iterations, 1)):
-            everyone = active.size == k  # the common case: no gathers and scatters
-            r, J = residual(out if everyone else out[active], active)
-            step = gauss_newton_step(r, J, w if n < 6 else None)
-            size = np.abs(step).max(axis=1)
-            prev = None if it == 0 else (prev_step if everyone else prev_step[active])
-            bad, done = _verdicts(size, prev, tol)
-            if bad.any():
-                step[bad] = 0.0
-                failed = np.zeros(k, dtype=bool) if failed is None else failed
-                failed[active[bad]] = True
-            if everyone:
-                out += step
-                prev_step = size
-            else:
-                out[active] += step
-                prev_step[active] = size
-            stop = bad | done
-            if stop.any():
-                active = active[~stop]
-                if active.size == 0:
-                    break
+        for _ in range(max(iterations, 1)):
+            r, J = residual(*rows.active())
+            if not rows.advance(gauss_newton_step(r, J, w if n < 6 else None)):
+                break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
-        if failed is not None:
-            rows = np.flatnonzero(failed)
+        out, failed = rows.out, rows.failed()
+        if failed.size:
             budget = max(iterations, 10) * 3 if damped_iterations is None else int(damped_iterations)
-            out[rows] = _damped(residual, q0[rows], rows, w, budget, tol)
+            out[failed] = _damped(residual, q0[failed], failed, w, budget, tol)
     return out
+
+
+class _Rows:
+    """The Gauss-Newton state of a batch: every row's q, last step size and fate, advanced by :func:`verdict`'s
+    rule in array arithmetic (:func:`_verdicts`)."""
+
+    def __init__(self, q0: np.ndarray, tol: float) -> None:
+        self.out, self.tol = q0.copy(), tol
+        self.prev: np.ndarray | None = None  # (k,) last step sizes, after the first step
+        self.bad = np.zeros(len(q0), dtype=bool)
+        self.rows = np.arange(len(q0))  # rows still iterating
+
+    def active(self) -> tuple[np.ndarray, np.ndarray]:
+        """(q of the rows still iterating, their indices)."""
+        everyone = self.rows.size == len(self.out)  # the common case: no gathers and scatters
+        return (self.out if everyone else self.out[self.rows]), self.rows
+
+    def advance(self, step: np.ndarray) -> bool:
+        """Judge and apply one step of the rows still iterating; False when none is left."""
+        rows, everyone = self.rows, self.rows.size == len(self.out)
+        size = np.abs(step).max(axis=1)
+        prev = None if self.prev is None else (self.prev if everyone else self.prev[rows])
+        bad, done = _verdicts(size, prev, self.tol)
+        if bad.any():
+            step[bad] = 0.0
+            self.bad[rows[bad]] = True
+        if everyone:
+            self.out += step
+            self.prev = size
+        else:
+            self.out[rows] += step
+            self.prev[rows] = size
+        stop = bad | done
+        if stop.any():
+            self.rows = rows[~stop]
+        return self.rows.size > 0
+
+    def failed(self) -> np.ndarray:
+        return np.flatnonzero(self.bad)
+
+
+class _OneRow:
+    """:class:`_Rows` for one configuration (a control loop's call): the same rule, :func:`verdict` itself, on
+    Python floats, because at one row numpy's per-call cost is the price of every bookkeeping step."""
+
+    _ROWS = np.zeros(1, dtype=int)
+
+    def __init__(self, q0: np.ndarray, tol: float) -> None:
+        self.out, self.tol = q0.copy(), tol
+        self.prev: float | None = None
+        self.bad = False
+
+    def active(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.out, self._ROWS
+
+    def advance(self, step: np.ndarray) -> bool:
+        values = step[0].tolist()
+        size = max(map(abs, values)) if math.isfinite(sum(values)) else math.nan  # a singular J: a NaN step
+        self.bad, done = verdict(size, self.prev, self.tol)
+        if self.bad:
+            return False
+        self.out += step
+        self.prev = size
+        return not done
+
+    def failed(self) -> np.ndarray:
+        return self._ROWS if self.bad else self._ROWS[:0]
 
 
 def verdict(size: float, prev: float | None, tol: float) -> tuple[bool, bool]:
@@ -132,11 +179,7 @@ def verdict(size: float, prev: float | None, tol: float) -> tuple[bool, bool]:
 
 
 def _verdicts(size: np.ndarray, prev: np.ndarray | None, tol: float) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`verdict` of every row, as (m,) bool arrays: array arithmetic for a batch, and for one row (a control
-    loop's call, where numpy's per-call cost is the price) the rule itself in Python floats."""
-    if size.shape[0] == 1:
-        failed, converged = verdict(float(size[0]), None if prev is None else float(prev[0]), tol)
-        return np.array([failed]), np.array([converged])
+    """:func:`verdict` of every row, as (m,) bool arrays, in array arithmetic."""
     if prev is None:
         return ~(size <= GN_MAX_STEP), size < tol
     ratio = np.minimum(size / np.maximum(prev, 1e-300), 0.5)
