@@ -44,7 +44,7 @@ def world(tmp_path_factory):
     "cmd",
     [
         *([], ["session"], ["session", "new"], ["session", "import"], ["fit"], ["export"], ["report"], ["demo"]),
-        *(["bench"], ["filter"], ["evaluate"]),
+        *(["bench"], ["filter"], ["evaluate"], ["refit"]),
     ],
 )
 def test_help_everywhere_with_examples(cmd):

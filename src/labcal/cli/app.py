@@ -7,6 +7,13 @@ Quick start::
     labcal fit SESSION --method auto
     labcal export SESSION --format json --out ur10.json
     labcal evaluate FIT --data HELDOUT_SESSION       # score held-out data with a stored fit
+
+Exit codes (every command): 0 ok; 1 a verification failure (``session verify`` found damage, a recording ended
+failed or paused, a refit failed); 2 a usage or input error (one ``error: …`` line on stderr); 130 interrupted.
+
+Importing this module must stay light (no pandas, pyarrow, torch, scipy, matplotlib): ``labcal --help``, shell
+completion and ``labcal session list`` run on it alone. Command modules import their heavy machinery inside the
+command functions; ``tests/cli/test_scripting.py`` checks it.
 """
 
 from __future__ import annotations
@@ -14,6 +21,8 @@ from __future__ import annotations
 import sys
 
 import typer
+from typer._click import exceptions as click_exceptions  # typer vendors click; its exceptions live here
+from typer.core import TyperGroup
 
 from labcal.cli import bench, session
 from labcal.cli.common import INTERRUPTED
@@ -22,23 +31,88 @@ from labcal.cli.evaluate import evaluate
 from labcal.cli.export import export
 from labcal.cli.filter import filter_program
 from labcal.cli.fit import fit
+from labcal.cli.refit import refit
 from labcal.cli.report import report
+
+USAGE_ERROR = 2
+
+
+class _LabcalGroup(TyperGroup):
+    """The root command: a usage error (bad option value, unknown option, missing argument) is ONE line on stderr,
+    `error: …`, exit 2 — the same shape as the commands' own input errors, so scripts and people read one format.
+    Typer would print a framed multi-line panel instead."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click_exceptions.NoArgsIsHelpError as e:
+            e.show()  # `labcal session` alone: the help, exit 2 as before
+            sys.exit(e.exit_code)
+        except click_exceptions.ClickException as e:
+            sys.stderr.write(f"error: {_one_line(e)}\n")
+            sys.exit(e.exit_code)
+        except typer.Abort:
+            sys.stderr.write("aborted\n")
+            sys.exit(1)
+        # Non-standalone mode hands back a typer.Exit's code (or the command's return value, None for all ours).
+        sys.exit(rv if isinstance(rv, int) and not isinstance(rv, bool) else 0)
+
+
+def _one_line(e: click_exceptions.ClickException) -> str:
+    """`Invalid value for '--method': 'x' is not one of 'local-poe', … (see labcal fit --help)` on one line."""
+    msg = " ".join(e.format_message().replace("Value error, ", "").split())
+    ctx = getattr(e, "ctx", None)
+    if isinstance(e, click_exceptions.UsageError) and ctx is not None:
+        msg += f" (see {ctx.command_path} --help)"
+    return msg
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            v = version("labcal")
+        except PackageNotFoundError:  # run from a source tree that is not installed
+            from labcal import __version__ as v
+        print(f"labcal {v}")
+        raise typer.Exit(0)
+
 
 app = typer.Typer(
     name="labcal",
+    cls=_LabcalGroup,
     help="Calibrate serial robots from tracker measurements of one or more target points.\n\n"
     "Examples:\n\n  labcal demo\n\n  labcal session list\n\n  labcal fit SESSION --method hybrid\n\n"
     "  labcal export SESSION --format urscript --out labcal_correct.script\n\n"
     "  labcal evaluate FIT --data heldout.csv --targets t.toml --length-unit mm\n\n"
     "  labcal filter poses.csv --calibration ur10.json --out corrected.csv\n\n"
-    "  labcal report SESSION --out report/",
+    "  labcal refit --robot ur10 --since 2026-11-01 --method auto --jobs 4\n\n"
+    "  labcal report SESSION --out report/\n\n"
+    "  labcal session list --json | jq '.sessions[].session'\n\n"
+    "Exit codes: 0 ok, 1 verification failure (damaged data, a failed or paused recording), 2 usage or input "
+    "error, 130 interrupted.",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
-    add_completion=False,
+    add_completion=True,
 )
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(
+        False, "--version", is_eager=True, callback=_version, help="Print labcal's version and exit."
+    ),
+) -> None:
+    """Calibrate serial robots from tracker measurements of one or more target points."""
+
+
 app.add_typer(session.app, name="session")
 app.add_typer(bench.app, name="bench")
 app.command("fit")(fit)
+app.command("refit")(refit)
 app.command("export")(export)
 app.command("filter")(filter_program)
 app.command("report")(report)
