@@ -179,16 +179,17 @@ def test_ctrl_c_keeps_the_finished_fits_and_half_writes_nothing(tmp_path, monkey
     assert no_temp_folders(store) and all(intact(store, r) for r in (first, second, third))
 
 
-def _die_once(markers: str, when: str, task) -> None:
-    """In the worker: kill this worker process (SIGKILL, no clean-up) once per marker file, at ``when``:
-    "mid-write" (the fit's files are in its temporary folder, fit.json not yet written) or "published" (the fit
-    was renamed into place, the task has not returned)."""
+def _die_once(markers: str | None, when: str, task) -> None:
+    """In the worker: kill this worker process (SIGKILL, no clean-up) once per marker file (every time without
+    ``markers``), at ``when``: "mid-write" (the fit's files are in its temporary folder, fit.json not yet written)
+    or "published" (the fit was renamed into place, the task has not returned)."""
     import labcal.datasets.store as store_module
 
-    marker = Path(markers) / f"{task.ref}.{when}"
-    if marker.exists():
-        return
-    marker.touch()
+    if markers is not None:
+        marker = Path(markers) / f"{task.ref}.{when}"
+        if marker.exists():
+            return
+        marker.touch()
     original = store_module.write_file_durable if when == "mid-write" else store_module.publish_dir
 
     def die(*args, **kwargs):
@@ -249,3 +250,25 @@ def test_not_run_rows_after_an_interrupt_name_every_selected_version(tmp_path, m
     assert report.interrupted and report.exit_code == 130
     assert [(r.ref, r.status) for r in report.rows] == [(refs[0], NOT_RUN), (refs[1], NOT_RUN)]
     assert FAILED not in {r.status for r in report.rows}
+
+
+def test_a_task_whose_worker_keeps_dying_is_failed_unless_its_fit_was_published(tmp_path):
+    import dask
+
+    store = open_store(tmp_path / "store", create=True)
+    never, published = sim(store, 16), sim(store, 17)
+    die_writing, die_published = (functools.partial(_die_once, None, when) for when in ("mid-write", "published"))
+    # Dask gives a task up (KilledWorker) after its worker died more often than allowed: here at the first death.
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+            address = cluster.scheduler_address
+            lost = run_refit(store, [never], METHOD, scheduler=address, hook=die_writing)
+            kept = run_refit(store, [published], METHOD, scheduler=address, hook=die_published)
+    (row,) = lost.rows
+    assert row.status == FAILED and "KilledWorker" in row.message and lost.exit_code == 1
+    assert fit_ids(store, never) == []
+    # The attempt that died after publishing had stored a complete fit: it is reported, not lost.
+    (row,) = kept.rows
+    assert row.status == FITTED and "gave up" in row.message and kept.exit_code == 0
+    assert fit_ids(store, published) == [row.after.fit_id]
+    assert intact(store, never) and intact(store, published) and no_temp_folders(store)

@@ -96,7 +96,8 @@ def session_created(store: SessionStore, session_id: str) -> _dt.datetime | None
 
 
 def select_versions(store: SessionStore, selection: Selection) -> tuple[list[str], list[tuple[str, str]]]:
-    """(refs to refit, [(session or ref, why it was left out)]) for a selection, sessions oldest first.
+    """(refs to refit, [(session or ref, why it was left out)]) for a selection, sessions in the order they were
+    started (versions in order within a session).
 
     Sessions that fail a criterion are simply not selected; those that pass but cannot be fitted (no version
     sealed yet, unreadable metadata) are listed as left out, with the reason.
@@ -104,8 +105,8 @@ def select_versions(store: SessionStore, selection: Selection) -> tuple[list[str
     selection.check()
     store.require_root()
     skipped: list[tuple[str, str]] = []
-    refs: list[str] = []
-    explicit = {}
+    found: list[tuple[tuple, str]] = []
+    explicit: dict[str, list[str]] = {}
     for text in selection.refs:
         r = store.resolve(text)  # an unknown session or version is a usage error, named by the store
         explicit.setdefault(r.session_id, []).append(str(r))
@@ -121,21 +122,23 @@ def select_versions(store: SessionStore, selection: Selection) -> tuple[list[str
         unit = (meta.get("metadata") or {}).get("unit")
         if selection.unit and (unit is None or str(unit) != selection.unit):
             continue
-        if selection.since is not None:
-            created = session_created(store, sid)
-            if created is None or created < selection.since:
-                continue
+        created = session_created(store, sid)
+        if selection.since is not None and (created is None or created < selection.since):
+            continue
         versions = store.versions(sid)
         if not versions:
             skipped.append((sid, "no version sealed yet (`labcal session seal` it first)"))
             continue
         if sid in explicit:
-            refs += [r for r in explicit[sid] if r not in refs]
+            chosen = list(dict.fromkeys(explicit[sid]))
         elif selection.every_version:
-            refs += [f"{sid}@v{v:03d}" for v in versions]
+            chosen = [f"{sid}@v{v:03d}" for v in versions]
         else:
-            refs.append(f"{sid}@v{versions[-1]:03d}")
-    return refs, skipped
+            chosen = [f"{sid}@v{versions[-1]:03d}"]
+        # Ids sort by the second a session was started; the start time itself orders sessions of the same second.
+        order = created.timestamp() if created is not None else float("inf")
+        found += [((order, sid, i), r) for i, r in enumerate(chosen)]
+    return [r for _, r in sorted(found)], skipped
 
 
 # ------------------------------------------------------------------------------------------------- one task
@@ -303,8 +306,13 @@ def plan_tasks(
     from labcal.calibration.fit import METHODS
     from labcal.datasets.ids import new_fit_id
 
+    # The checks run_fit makes, made once here: a bad option is a usage error, not a failure of every task.
     if method not in METHODS:
         raise UserError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+    if not 0.0 <= val_fraction < 1.0:
+        raise UserError(f"--val-fraction must be in [0, 1), got {val_fraction}")
+    if hidden is not None and hidden < 1:
+        raise UserError(f"--hidden must be a positive number of nodes, got {hidden}")
     root = str(Path(store.root).resolve())
     tasks = []
     for ref in refs:
@@ -400,7 +408,7 @@ def _run_dask(tasks: list[RefitTask], jobs: int, scheduler: str | None, done) ->
             try:
                 row = fut.result()
             except Exception as e:  # KilledWorker, a lost worker, a deserialisation error
-                row = RefitRow(tasks[i].ref, FAILED, tasks[i].before, message=f"{type(e).__name__}: {e}")
+                row = _given_up(tasks[i], e)
             done(i, row)
         return False
     except KeyboardInterrupt:
@@ -410,6 +418,16 @@ def _run_dask(tasks: list[RefitTask], jobs: int, scheduler: str | None, done) ->
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _given_up(task: RefitTask, error: Exception) -> RefitRow:
+    """The row of a task Dask gave up on: failed, unless an attempt published its fit before its worker died."""
+    why = f"{type(error).__name__}: {error}"
+    earlier = _stored(SessionStore(task.store_root), task)
+    if earlier is not None:
+        return RefitRow(task.ref, FITTED, task.before, FitSummary.of(task.fit_id, earlier.metadata),
+                        f"stored before its worker died; Dask then gave up ({why})")  # fmt: skip
+    return RefitRow(task.ref, FAILED, task.before, message=why)
 
 
 def _remove_temp_folders(store: SessionStore, task: RefitTask) -> None:
