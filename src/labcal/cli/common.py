@@ -1,11 +1,20 @@
 """Shared CLI pieces: the --store option, user-error handling (stderr, exit 2, no traceback; Ctrl-C exit 130),
-tables, and the fit warnings every command shows the same way."""
+the option choices (typing.Literal: typer checks them and completes them in the shell), JSON output, tables, and the
+fit warnings every command shows the same way.
+
+Light on purpose: every command module imports this one, and `labcal --help` imports every command module.
+"""
 
 from __future__ import annotations
 
 import functools
+import json
+import math
+import os
 import sys
+import uuid
 from pathlib import Path
+from typing import Literal
 
 import typer
 from rich.console import Console
@@ -14,6 +23,25 @@ from rich.table import Table
 STORE_HELP = "Session store folder (default: $LABCAL_STORE, else ./sessions)."
 StoreOption = typer.Option(None, "--store", help=STORE_HELP, show_default=False)
 INTERRUPTED = 130  # exit code after Ctrl-C
+VERIFY_FAILED = 1  # verification found damage, a recording failed or paused
+USAGE_ERROR = 2  # bad option, bad input file, missing store …
+
+# Option choices. typer turns a Literal annotation into a checked choice (a bad value: one line naming the allowed
+# ones, exit 2) and into shell-completion candidates. They repeat tuples of the library (calibration.fit.METHODS,
+# export.FORMATS, cli.ops.sessions.ROBOT_DRIVERS …) so that `labcal --help` need not import it;
+# tests/cli/test_scripting.py fails when the two drift apart.
+Method = Literal["nominal", "local-poe", "ann", "hybrid", "auto"]
+ExportFormat = Literal["json", "npz", "urscript", "urscript-program", "urdf", "ur-kinematics"]
+UnknownDynamics = Literal["zero", "refuse"]
+RobotDriver = Literal["sim", "ur"]
+TrackerDriver = Literal["sim", "serial"]
+Planner = Literal["random", "optimal"]
+SimErrors = Literal["paper", "default", "none"]
+ProgramKind = Literal["poses", "joints"]
+LengthUnit = Literal["m", "mm"]
+AngleUnit = Literal["rad", "deg"]
+Frame = Literal["base", "tracker"]
+Form = Literal["targets", "probe"]
 
 # Piped output (files, CI logs, tests) gets room for the full metrics table instead of 80 columns.
 out = Console(soft_wrap=True, highlight=False, width=None if sys.stdout.isatty() else 200)
@@ -53,10 +81,110 @@ def user_errors(fn):
     return wrapper
 
 
-def store_of(store: Path | None):
-    from labcal.cli.ops import open_store
+class InputError(ValueError):
+    """An input the user can fix (user_errors prints it as one `error: …` line, exit 2)."""
 
-    return open_store(store)
+
+STORE_HINT = "set --store or LABCAL_STORE; `labcal session new` or `labcal session import` creates a store"
+
+
+def store_root(store: Path | str | None) -> Path:
+    """--store, else $LABCAL_STORE, else ./sessions (as :func:`labcal.datasets.default_root`)."""
+    return Path(store) if store is not None else Path(os.environ.get("LABCAL_STORE") or "sessions")
+
+
+def store_of(store: Path | str | None, *, write: bool = False):
+    """The existing session store (a :class:`labcal.datasets.SessionStore`), checked before any work.
+
+    Only `session new` and `session import` create a store: every other command refuses a missing one with one
+    line naming the path (exit 2), instead of reporting "no session X" in a store that is not there, or writing a
+    fit into a folder a typo created. ``write``: the command adds files (a fit, an export record), so a read-only
+    store fails here rather than after minutes of fitting.
+    """
+    from labcal.datasets.store import SessionStore  # no pandas: tables are read only when a version is loaded
+
+    root = store_root(store)
+    if not root.exists():
+        raise InputError(f"no session store at {root} ({STORE_HINT})")
+    if not root.is_dir():
+        raise InputError(f"the session store {root} is not a folder ({STORE_HINT})")
+    if write:
+        probe = root / f".labcal-write-probe-{uuid.uuid4().hex[:12]}"
+        try:
+            os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+            probe.unlink()
+        except OSError as e:
+            raise InputError(f"the session store {root} is not writable: {e.strerror or e}") from None
+    return SessionStore(root)
+
+
+def plain(obj, depth: int = 0):
+    """JSON types only: mappings → dicts (str keys), sequences and arrays → lists, numpy scalars → Python numbers,
+    NaN / ±inf → None (JSON has no NaN), anything else → its str. numpy is never imported here."""
+    if depth > 32:
+        return None
+    if obj is None or isinstance(obj, bool | str):
+        return obj
+    if isinstance(obj, int):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): plain(v, depth + 1) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [plain(v, depth + 1) for v in obj]
+    if hasattr(obj, "tolist"):  # numpy arrays and scalars
+        return plain(obj.tolist(), depth + 1)
+    if isinstance(obj, Path):
+        return str(obj)
+    return str(obj)
+
+
+def print_json(schema: str, doc: dict) -> None:
+    """Write ONE JSON document to stdout: ``{"schema": "labcal.<command>/1", …}``, keys sorted (a stable order to
+    diff), numbers in SI units (the key names say which), NaN as null. Everything else a command says goes to
+    stderr when --json is given, so `labcal … --json | jq` always parses. See docs/cli-json.md."""
+    body = plain({**doc, "schema": schema})
+    sys.stdout.write(json.dumps(body, indent=1, sort_keys=True, allow_nan=False, ensure_ascii=False) + "\n")
+    sys.stdout.flush()
+
+
+def metrics_doc(metrics: dict | None) -> dict | None:
+    """A split table (``labcal.calibration.metrics.split_table``) for JSON, with the unit in every key: pose stats
+    ``pos_mean`` → ``pos_mean_m``, ``ori_mean`` → ``ori_mean_rad``; point stats ``mean`` → ``mean_m`` (per target
+    too); ``count`` and ``primary`` unchanged. The stored fit.json keeps the old keys; this is the CLI's view."""
+    if metrics is None:
+        return None
+
+    def stats(d: dict, unit_of) -> dict:
+        out: dict = {}
+        for k, v in (d or {}).items():
+            if k == "per_target":
+                out[k] = [stats(p, unit_of) for p in v or []]
+            elif k == "count":
+                out[k] = None if v is None else int(v)
+            else:
+                out[f"{k}_{unit_of(k)}"] = v
+        return out
+
+    def pose_unit(k: str) -> str:
+        return "rad" if k.startswith("ori_") else "m"
+
+    doc: dict = {}
+    for split, block in metrics.items():
+        if not isinstance(block, dict):
+            doc[split] = block
+            continue
+        entry: dict = {}
+        for key, value in block.items():
+            if key in ("before", "after"):
+                entry[key] = stats(value, pose_unit)
+            elif key == "points":
+                entry[key] = {w: stats(v, lambda k: "m") for w, v in (value or {}).items()}
+            else:
+                entry[key] = value
+        doc[split] = entry
+    return doc
 
 
 def mm(x) -> str:

@@ -7,8 +7,22 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
-from labcal.cli.common import StoreOption, err, out, user_errors
+from labcal.cli.common import (
+    VERIFY_FAILED,
+    Planner,
+    RobotDriver,
+    SimErrors,
+    StoreOption,
+    TrackerDriver,
+    err,
+    out,
+    print_json,
+    store_of,
+    user_errors,
+)
 from labcal.cli.session_import import import_
+
+JsonOption = typer.Option(False, "--json", help="Print one JSON document on stdout (schema: docs/cli-json.md).")
 
 # Exit codes of a recording run: success 0; failed / paused (nothing or not everything recorded) 1; Ctrl-C 130,
 # as a shell reports a command ended by SIGINT. User errors stay 2 (user_errors).
@@ -98,14 +112,16 @@ def new(
         ..., "--targets", help="Targets TOML: unit and the points in the tool frame (1 or more; one for a single SMR)."
     ),
     poses: int = typer.Option(..., "--poses", help="Number of configurations to measure."),
-    robot_driver: str = typer.Option("sim", "--robot-driver", help="sim | ur"),
-    tracker_driver: str = typer.Option("sim", "--tracker-driver", help="sim | serial"),
+    robot_driver: RobotDriver = typer.Option("sim", "--robot-driver", help="sim | ur", case_sensitive=False),
+    tracker_driver: TrackerDriver = typer.Option("sim", "--tracker-driver", help="sim | serial", case_sensitive=False),
     profile: str | None = typer.Option(None, "--profile", help="Robot driver profile, e.g. drivers/ur10-lab.toml."),
     tracker_profile: str | None = typer.Option(None, "--tracker-profile", help="Tracker profile TOML (serial)."),
-    planner: str = typer.Option("random", "--planner", help="random | optimal"),
+    planner: Planner = typer.Option("random", "--planner", help="random | optimal", case_sensitive=False),
     samples: int = typer.Option(2000, "--samples", help="Candidate pool size of the optimal planner."),
     seed: int = typer.Option(0, "--seed", help="Seed of the planner and the simulator."),
-    sim_errors: str = typer.Option("default", "--sim-errors", help="Sim robot errors: paper | default | none."),
+    sim_errors: SimErrors = typer.Option(
+        "default", "--sim-errors", help="Sim robot errors: paper | default | none.", case_sensitive=False
+    ),
     sim_seed: int | None = typer.Option(
         None, "--sim-seed", help="Seed of the simulated robot's errors (default --seed): measure the same robot again."
     ),
@@ -158,16 +174,37 @@ def new(
 
 @app.command("list")
 @user_errors
-def list_(store: Path | None = StoreOption) -> None:
-    """List the sessions of the store.
+def list_(
+    unit: str | None = typer.Option(
+        None, "--unit", help="Only the sessions of this robot unit (the unit id recorded with the session)."
+    ),
+    as_json: bool = JsonOption,
+    store: Path | None = StoreOption,
+) -> None:
+    """List the sessions of the store (oldest first).
 
-    Example: labcal session list --store sessions/
+    A store that does not exist is an error (exit 2): only `session new` and `session import` create one.
+
+    Examples:
+
+      labcal session list --store sessions/
+
+      labcal session list --unit UR10-2019-0417 --json
     """
-    st = _store(store)
+    st = store_of(store)
+    rows = []
+    for info in st.list_sessions():
+        meta = _meta(st, info.session_id)
+        if unit is not None and _unit(meta) != unit:
+            continue
+        rows.append((info, meta))
+    if as_json:
+        print_json("labcal.session-list/1", {"store": str(st.root), "sessions": [_session_doc(i, m) for i, m in rows]})
+        return
     t = Table(title=f"sessions in {st.root}", title_justify="left")
     for col in ("session", "robot", "frame", "status", "versions", "rows"):
         t.add_column(col)
-    for info in st.list_sessions():
+    for info, _ in rows:
         t.add_row(
             info.session_id, str(info.robot.get("name")), info.frame, info.status,
             ", ".join(v.name for v in info.versions) or "—", str(info.rows),
@@ -175,21 +212,71 @@ def list_(store: Path | None = StoreOption) -> None:
     out.print(t)
 
 
+def _meta(st, session_id: str) -> dict:
+    """The session's metadata block, or {} for a damaged session (list and show say what they can; verify says why)."""
+    try:
+        return st.session_meta(session_id)
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
+def _unit(meta: dict) -> str | None:
+    """The robot unit's id recorded with the session (``metadata["unit"]``), None for sessions recorded without."""
+    unit = (meta.get("metadata") or {}).get("unit")
+    return None if unit is None else str(unit)
+
+
+def _session_doc(info, meta: dict) -> dict:
+    """A session as JSON (labcal.session-list/1 and labcal.session-show/1; docs/cli-json.md)."""
+    targets = meta.get("targets")
+    return {
+        "session": info.session_id,
+        "robot": {
+            "name": info.robot.get("name"),
+            "hash": info.robot.get("hash"),
+            "n_joints": info.robot.get("n_joints"),
+            "file_stored": bool(info.robot.get("text")),
+        },
+        "unit": _unit(meta),
+        "frame": info.frame,
+        "n_targets": len(targets) if isinstance(targets, list) else None,
+        "status": info.status,
+        "measurements": info.measurements,
+        "rows": info.rows,
+        "versions": [_version_doc(v) for v in info.versions],
+        "warnings": list(info.warnings),
+    }
+
+
+def _version_doc(v) -> dict:
+    return {"version": v.name, "rows": v.rows, "created": v.created, "source": v.source, "parent": v.parent,
+            "fits": v.fits}  # fmt: skip
+
+
 @app.command("show")
 @user_errors
-def show(session: str = typer.Argument(..., help="Session id."), store: Path | None = StoreOption) -> None:
+def show(
+    session: str = typer.Argument(..., help="Session id."), as_json: bool = JsonOption, store: Path | None = StoreOption
+) -> None:
     """Show a session: robot, frame, status, versions and their fits.
 
-    Example: labcal session show 20261122-031500-ur10-3f9a
+    Examples:
+
+      labcal session show 20261122-031500-ur10-3f9a
+
+      labcal session show 20261122-031500-ur10-3f9a --json
     """
-    st = _store(store)
+    st = store_of(store)
     info = st.show(session)
+    meta = _meta(st, session)
+    if as_json:
+        print_json("labcal.session-show/1", {"store": str(st.root), **_session_doc(info, meta)})
+        return
     stored = "robot file stored" if info.robot.get("text") else "robot file NOT stored (needs the built-in or --robot)"
-    try:
-        n_targets = len(st.session_meta(session)["targets"])
+    targets = ""
+    if isinstance(meta.get("targets"), list):
+        n_targets = len(meta["targets"])
         targets = f", {n_targets} target{'s' if n_targets != 1 else ''}"
-    except (OSError, ValueError, KeyError, TypeError):  # show what it can of a damaged session; verify says why
-        targets = ""
     out.print(f"session {info.session_id}: robot {info.robot.get('name')} ({info.robot.get('hash', '')[:12]}…, "
               f"{stored}), frame {info.frame}{targets}, status {info.status}", markup=False)  # fmt: skip
     t = Table()
@@ -262,27 +349,42 @@ def seal(
 
 @app.command("verify")
 @user_errors
-def verify(session: str = typer.Argument(..., help="SESSION or SESSION@vN."), store: Path | None = StoreOption) -> None:
+def verify(
+    session: str = typer.Argument(..., help="SESSION or SESSION@vN."),
+    as_json: bool = JsonOption,
+    store: Path | None = StoreOption,
+) -> None:
     """Check the file hashes of a version and of the fits stored under it (SESSION alone: every version).
 
-    Exit 1 with one line per problem if anything is wrong.
+    Exit 1 with one line per problem if anything is wrong (with --json: the same problems in the document, and
+    exit 1 too).
 
-    Example: labcal session verify 20261122-031500-ur10-3f9a@v1
+    Examples:
+
+      labcal session verify 20261122-031500-ur10-3f9a@v1
+
+      labcal session verify 20261122-031500-ur10-3f9a --json
     """
     from labcal.datasets import Ref, parse_ref
 
-    st = _store(store)
     r = parse_ref(session)
+    st = store_of(store)
     refs = [st.resolve(r)] if r.version is not None else [Ref(r.session_id, v) for v in st.versions(r.session_id)]
     if not refs:
         st.resolve(r)  # raises: the session has no version yet
-    bad = False
+    docs = []
     for ref in refs:
         report = st.verify(ref)
         fits = st.verify_fits(ref)
         problems = [*report.problems, *fits.problems]
+        n_fits = len({c.split("/")[1] for c in fits.checked})
+        docs.append({
+            "ref": str(report.ref), "ok": not problems, "files_checked": len(report.checked), "fits_checked": n_fits,
+            "fit_files_checked": len(fits.checked), "problems": problems,
+        })  # fmt: skip
+        if as_json:
+            continue
         if not problems:
-            n_fits = len({c.split("/")[1] for c in fits.checked})
             out.print(
                 f"{report.ref}: ok ({len(report.checked)} files checked, {n_fits} fit(s) with "
                 f"{len(fits.checked)} files checked)",
@@ -290,9 +392,11 @@ def verify(session: str = typer.Argument(..., help="SESSION or SESSION@vN."), st
             )
         for p in problems:
             out.print(f"{report.ref}: {p}", markup=False)
-        bad = bad or bool(problems)
+    bad = any(not d["ok"] for d in docs)
+    if as_json:
+        print_json("labcal.session-verify/1", {"session": r.session_id, "ok": not bad, "versions": docs})
     if bad:
-        raise typer.Exit(1)
+        raise typer.Exit(VERIFY_FAILED)
 
 
 app.command("import")(import_)

@@ -70,47 +70,110 @@ Versions are never rewritten: sealing again, appending to a journal, or importin
 (``session_id=...``) makes ``vNNN+1`` with ``parent = vNNN`` holding the old rows plus the new ones.
 """
 
-from .documents import MeasurementDoc, SessionHeader, StartDoc, StopDoc
-from .errors import (
-    DatasetCorrupted,
-    DatasetError,
-    ImportFormatError,
-    InvalidId,
-    JournalCorrupted,
-    JournalError,
-    MappingError,
-    TargetsError,
-    UnknownSession,
-    UnknownVersion,
-)
-from .ids import Ref, new_fit_id, new_session_id, parse_ref, validate_id, version_name
-from .importers import (
-    DEFAULT_PROBE_OFFSETS,
-    ImportOptions,
-    ImportSpec,
-    import_mapped,
-    import_probe_csv,
-    import_targets_csv,
-    list_mappings,
-    load_mapping,
-    probe_points,
-)
-from .journal import EXIT_STATUSES, Journal, JournalContents, read_journal
-from .schema import SCHEMA_VERSION, SPLITS, core_columns, joint_columns, spread_columns, target_columns
-from .store import (
-    Dataset,
-    FitRecord,
-    SealResult,
-    SessionInfo,
-    SessionStore,
-    StoreWriteError,
-    VerifyReport,
-    VersionInfo,
-    default_root,
-    load_version,
-    verify,
-)
-from .targets import MIN_TARGET_AREA, MIN_TARGET_HEIGHT, load_targets, target_layout, validate_targets
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .documents import MeasurementDoc, SessionHeader, StartDoc, StopDoc
+    from .errors import (
+        DatasetCorrupted,
+        DatasetError,
+        ImportFormatError,
+        InvalidId,
+        JournalCorrupted,
+        JournalError,
+        MappingError,
+        TargetsError,
+        UnknownSession,
+        UnknownVersion,
+    )
+    from .ids import Ref, new_fit_id, new_session_id, parse_ref, validate_id, version_name
+    from .importers import (
+        DEFAULT_PROBE_OFFSETS,
+        ImportOptions,
+        ImportSpec,
+        import_mapped,
+        import_probe_csv,
+        import_targets_csv,
+        list_mappings,
+        load_mapping,
+        probe_points,
+    )
+    from .journal import EXIT_STATUSES, Journal, JournalContents, read_journal
+    from .schema import SCHEMA_VERSION, SPLITS, core_columns, joint_columns, spread_columns, target_columns
+    from .store import (
+        Dataset,
+        FitRecord,
+        SealResult,
+        SessionInfo,
+        SessionStore,
+        StoreWriteError,
+        VerifyReport,
+        VersionInfo,
+        default_root,
+        load_version,
+        verify,
+    )
+    from .targets import MIN_TARGET_AREA, MIN_TARGET_HEIGHT, load_targets, target_layout, validate_targets
+
+# Each name is imported from its module on first use (PEP 562): `labcal session list` and `labcal --help` read
+# manifests and journals without the table machinery (pandas, pyarrow) the importers and loaders need.
+_LAZY: dict[str, str] = {
+    "MeasurementDoc": "documents",
+    "SessionHeader": "documents",
+    "StartDoc": "documents",
+    "StopDoc": "documents",
+    "DatasetCorrupted": "errors",
+    "DatasetError": "errors",
+    "ImportFormatError": "errors",
+    "InvalidId": "errors",
+    "JournalCorrupted": "errors",
+    "JournalError": "errors",
+    "MappingError": "errors",
+    "TargetsError": "errors",
+    "UnknownSession": "errors",
+    "UnknownVersion": "errors",
+    "Ref": "ids",
+    "new_fit_id": "ids",
+    "new_session_id": "ids",
+    "parse_ref": "ids",
+    "validate_id": "ids",
+    "version_name": "ids",
+    "DEFAULT_PROBE_OFFSETS": "importers",
+    "ImportOptions": "importers",
+    "ImportSpec": "importers",
+    "import_mapped": "importers",
+    "import_probe_csv": "importers",
+    "import_targets_csv": "importers",
+    "list_mappings": "importers",
+    "load_mapping": "importers",
+    "probe_points": "importers",
+    "EXIT_STATUSES": "journal",
+    "Journal": "journal",
+    "JournalContents": "journal",
+    "read_journal": "journal",
+    "SCHEMA_VERSION": "schema",
+    "SPLITS": "schema",
+    "core_columns": "schema",
+    "joint_columns": "schema",
+    "spread_columns": "schema",
+    "target_columns": "schema",
+    "Dataset": "store",
+    "FitRecord": "store",
+    "SealResult": "store",
+    "SessionInfo": "store",
+    "SessionStore": "store",
+    "StoreWriteError": "store",
+    "VerifyReport": "store",
+    "VersionInfo": "store",
+    "default_root": "store",
+    "load_version": "store",
+    "verify": "store",
+    "MIN_TARGET_AREA": "targets",
+    "MIN_TARGET_HEIGHT": "targets",
+    "load_targets": "targets",
+    "target_layout": "targets",
+    "validate_targets": "targets",
+}
 
 __all__ = [
     "DEFAULT_PROBE_OFFSETS",
@@ -169,3 +232,18 @@ __all__ = [
     "verify",
     "version_name",
 ]
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value  # the next access skips this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -31,10 +31,9 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from ._util import (
     canonical_json,
@@ -64,6 +63,17 @@ FIT_JSON = "fit.json"
 # folder never changes after save_fit), each a self-hashed JSON document like fit.json.
 EVALUATIONS = ".evaluations"
 _VERSION_DIR = re.compile(r"^v(\d{3,6})$")
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+
+def _pandas():
+    """pandas, imported when a table is built or read: listing and showing sessions (manifests and journals) never
+    needs it, and importing it costs more than the rest of `labcal session list`."""
+    import pandas
+
+    return pandas
 
 
 class StoreWriteError(DatasetError, OSError):
@@ -726,7 +736,7 @@ class SessionStore:
         if versions:
             parent_ds = self.load(Ref(session_id, versions[-1]))
             through = int(parent_ds.manifest.get("journal_seq_through", 0))
-            table = pd.concat([parent_ds.table, rows], ignore_index=True)
+            table = _pandas().concat([parent_ds.table, rows], ignore_index=True)
         else:
             through = 0
             table = rows
@@ -824,7 +834,7 @@ class SessionStore:
             return SealResult(latest, False, 0, f"nothing new to seal {where} (no new valid measurements)")
         meta = session_meta_from_start(start)
         rows = journal_rows(new, start.n_joints, start.n_targets)
-        table = pd.concat([parent_ds.table, rows], ignore_index=True) if parent_ds is not None else rows
+        table = _pandas().concat([parent_ds.table, rows], ignore_index=True) if parent_ds is not None else rows
         table = normalize_table(table, start.n_joints, start.n_targets)
         seq_through = max(m.seq for m in measurements)
         provenance = {
@@ -1035,7 +1045,7 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
         for k, v in m.extra.items():
             rec[f"x_{k}"] = np.nan if v is None else v
         recs.append(rec)
-    table = pd.DataFrame.from_records(recs)
+    table = _pandas().DataFrame.from_records(recs)
     table["pose"] = table["pose"].astype(np.int64)
     return table
 
