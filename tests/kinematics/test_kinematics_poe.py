@@ -19,7 +19,15 @@ from kin_testutil import (
 
 from labcal.kinematics import se3
 from labcal.kinematics.conversions import dh_fk, from_dh, from_mdh
-from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel, poe_fk, poe_joint_twists, poe_link_frames
+from labcal.kinematics.poe import (
+    PRISMATIC,
+    REVOLUTE,
+    LocalPOEModel,
+    poe_fk,
+    poe_joint_twists,
+    poe_link_frames,
+    runtime_walk_pair,
+)
 from labcal.robots import BUILTINS, load
 
 # UR5e DH (Universal Robots' table) and the same arm written by hand as a modified-DH (Craig) table: regrouping
@@ -352,3 +360,17 @@ def test_twists_from_frames_single_and_batched():
         np.testing.assert_array_equal(model.twists_from_frames(frames[2]), model.joint_twists(q)[2])
         with pytest.raises(ValueError, match="frames must have shape"):
             model.twists_from_frames(frames[:, :-1])
+
+
+def test_runtime_walk_pair_walks_both_models_as_their_definitions():
+    ur10 = load("ur10").model
+    calibrated = ur10.perturbed(np.random.default_rng(1).normal(size=(7, 6)) * 1e-3)
+    for first, second in [(ur10, calibrated), (general_model(n=6), ur10), (calibrated, general_model(n=6))]:
+        for q in random_q(ur10, 6, seed=9):
+            adjoints_first, (adjoints, twists, c, s) = runtime_walk_pair(first, second, q)
+            for model, got in ((first, adjoints_first), (second, adjoints)):
+                want = se3.adjoint(poe_link_frames(model.frames, model.twists, q)[0])
+                np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
+            np.testing.assert_allclose(twists, poe_joint_twists(second.frames, second.twists, q)[0], atol=1e-13)
+            np.testing.assert_array_equal(c, np.cos(q))
+            np.testing.assert_array_equal(s, np.sin(q))

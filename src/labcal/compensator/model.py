@@ -37,7 +37,7 @@ import numpy as np
 from labcal import features as feature_lib
 from labcal.compensator import solve as solver
 from labcal.kinematics import metric, se3
-from labcal.kinematics.poe import LocalPOEModel
+from labcal.kinematics.poe import LocalPOEModel, runtime_walk_pair
 from labcal.robots.joint_map import JointMap
 
 FEATURES = feature_lib.SIMPLE  # the parameter-free feature names (every registry name is accepted)
@@ -481,12 +481,14 @@ class CalibratedRobot:
         frames and joint twists from one scan) and the pose error is taken in Python floats (:func:`_pose_error_one`),
         because at one configuration numpy's per-call cost, not the arithmetic, is the price.
         """
-        target = _pose_lists(self.nominal.runtime_walk(q)[0][-1])
+        nominal_adjoints, first_walk = runtime_walk_pair(self.nominal, self.model, q)
+        target = _pose_lists(nominal_adjoints[-1])
         walk, network = self.model.runtime_walk, self.network
         inputs = network and self._inputs
+        pending = [first_walk]  # the solver's first evaluation is at q itself: that walk is done already
 
         def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            adjoints, J, _, _ = walk(qc[0])
+            adjoints, J, _, _ = pending.pop() if pending else walk(qc[0])
             r = _pose_error_one(target, adjoints[-1])
             if network is not None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
                 rho = network.forward_features(inputs(qc, adjoints[None]))

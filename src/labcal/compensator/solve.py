@@ -39,7 +39,8 @@ DAMPED_MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so 
 LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP = 1e-6, 1e-12, 1e6
 _ONES6 = np.ones(6)
 
-#: residual(q (m, n), rows (m,) indices into the batch) → (r (m, 6), J (m, 6, n)).
+#: residual(q (m, n), rows (m,) indices into the batch) → (r (m, 6), J (m, 6, n)). The first evaluation is always at
+#: q0 for every row (a residual may have prepared that one).
 Residual = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 

@@ -32,6 +32,7 @@ Worked example (a planar 2R arm, 1 m links)::
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -120,9 +121,11 @@ def _cos_sin_one(q1: np.ndarray) -> np.ndarray:
 
 
 def _chain_one(first: np.ndarray, cs1: np.ndarray, parts: np.ndarray) -> np.ndarray:
-    """Link frames (or their adjoints) of a z-revolute chain at one configuration: (n+1, d, d).
+    """Link frames (or their adjoints) of a z-revolute chain at one configuration: (n+1, d, d), or (n+1, m, d, d)
+    for m chains side by side.
 
-    first: (d, d) base frame A_1(0) (or its adjoint); cs1: (n, 1, 3) from _cos_sin_one; parts: (n, 3, d²) step parts,
+    first: (d, d) or (m, d, d) base frames A_1(0) (or adjoints); cs1: (n, 1, 3) from _cos_sin_one; parts:
+    (n, 3, m·d²) step parts,
     so that ``cs1 @ parts`` is every step ``Rz(q_j) · A_{j+1}(0)`` at once. The running products come from a
     Hillis-Steele scan: ⌈log2(n+1)⌉ stacked matmuls instead of n single ones (3 instead of 6 for a 6-axis arm),
     associated differently from a left-to-right walk, which changes them only by rounding.
@@ -584,3 +587,24 @@ class LocalPOEModel:
         """(k,) bool: every joint inside [lo + margin, hi − margin]."""
         q2, _ = self._as_batch(q)
         return np.all((q2 >= self.limits[:, 0] + margin) & (q2 <= self.limits[:, 1] - margin), axis=1)
+
+
+def runtime_walk_pair(first: LocalPOEModel, second: LocalPOEModel, q1: np.ndarray):
+    """At one configuration: the adjoints (n+1, 6, 6) of ``first``'s link frames and ``second.runtime_walk(q1)``,
+    from one stacked scan when both are z-revolute chains of the same length (a compensator's nominal target and
+    calibrated model: the two walks cost about one), else from two walks. q1: a float (n,) array, not validated.
+    """
+    if not (first._all_revolute_z and second._all_revolute_z and first.n == second.n):
+        return first.runtime_walk(q1)[0], second.runtime_walk(q1)
+    base, parts = _stacked_adjoint_parts(first, second)
+    cs1 = _cos_sin_one(q1)
+    X = _chain_one(base, cs1, parts)  # (n+1, 2, 6, 6)
+    adjoints = X[:, 1]
+    return X[:, 0], (adjoints, adjoints[: second.n, :, 5].T, cs1[:, 0, 0], cs1[:, 0, 1])
+
+
+@functools.lru_cache(maxsize=16)
+def _stacked_adjoint_parts(first: LocalPOEModel, second: LocalPOEModel) -> tuple[np.ndarray, np.ndarray]:
+    """(2, 6, 6) base adjoints and (n, 3, 72) step parts of two chains side by side (models hash by identity)."""
+    base = np.stack([first._adjoint_base, second._adjoint_base])
+    return _readonly(base), _readonly(np.concatenate([first._adjoint_parts, second._adjoint_parts], axis=2))
