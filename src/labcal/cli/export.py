@@ -6,15 +6,16 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import StoreOption, err, store_of, user_errors
+from labcal.cli.common import ExportFormat, StoreOption, UnknownDynamics, err, store_of, user_errors
 
 
 @user_errors
 def export(
     session: str = typer.Argument(..., help="SESSION or SESSION@vN the fit is stored under."),
-    fmt: str = typer.Option(
+    fmt: ExportFormat = typer.Option(
         ...,
         "--format",
+        case_sensitive=False,
         help="json | npz (the compensator) | urscript (function file for a Script node) | urscript-program (def "
         "program for the script port 30002) | urdf | ur-kinematics (ur_description's calibration YAML).",
     ),
@@ -28,9 +29,10 @@ def export(
     ur_link_names: bool = typer.Option(
         False, "--ur-link-names", help="urdf: ur_description's link and joint names (base_link turned by pi)."
     ),
-    unknown_dynamics: str = typer.Option(
+    unknown_dynamics: UnknownDynamics = typer.Option(
         "zero",
         "--unknown-dynamics",
+        case_sensitive=False,
         help="urdf when the robot file gives no joint effort/velocity: zero (default: write 0, with a warning and a "
         "note in the file) or refuse.",
     ),

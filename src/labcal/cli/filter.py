@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import StoreOption, err, store_of, user_errors
+from labcal.cli.common import AngleUnit, LengthUnit, ProgramKind, StoreOption, err, store_of, user_errors
 
 
 def _numbers(text: str | None, count: int, option: str) -> list[float] | None:
@@ -33,16 +33,21 @@ def filter_program(
         "--calibration",
         help="A compensator export (.json / .npz from `labcal export`), or SESSION or SESSION@vN to use a stored fit.",
     ),
-    kind: str = typer.Option(
+    kind: ProgramKind = typer.Option(
         "poses",
         "--kind",
+        case_sensitive=False,
         help="poses: columns x,y,z,rx,ry,rz (TCP in the robot base frame; x,y,z in --length-unit, rx,ry,rz a "
         "rotation vector in rad, as URScript poses) | joints: columns q1..qn (nominal joint targets, --angle-unit).",
     ),
     out: Path = typer.Option(..., "--out", help="Corrected joint targets (CSV: row, q1..qn in rad, sizes)."),
     script: Path | None = typer.Option(None, "--script", help="Also write a URScript movej program here."),
-    length_unit: str = typer.Option("m", "--length-unit", help="x,y,z (and --tcp) unit: m | mm."),
-    angle_unit: str = typer.Option("rad", "--angle-unit", help="q1..qn (and --seed-joints) unit: rad | deg."),
+    length_unit: LengthUnit = typer.Option(
+        "m", "--length-unit", help="x,y,z (and --tcp) unit: m | mm.", case_sensitive=False
+    ),
+    angle_unit: AngleUnit = typer.Option(
+        "rad", "--angle-unit", help="q1..qn (and --seed-joints) unit: rad | deg.", case_sensitive=False
+    ),
     seed_joints: str | None = typer.Option(
         None,
         "--seed-joints",

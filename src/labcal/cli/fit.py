@@ -6,7 +6,19 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import StoreOption, metrics_table, out, print_gates, store_of, targets_table, user_errors
+from labcal.cli.common import (
+    Method,
+    StoreOption,
+    err,
+    metrics_doc,
+    metrics_table,
+    out,
+    print_gates,
+    print_json,
+    store_of,
+    targets_table,
+    user_errors,
+)
 
 
 @user_errors
@@ -14,7 +26,9 @@ def fit(
     sessions: list[str] = typer.Argument(
         ..., help="SESSION or SESSION@vN …; several sessions of the same robot are pooled."
     ),
-    method: str = typer.Option("auto", "--method", help="local-poe | ann | hybrid | auto | nominal"),
+    method: Method = typer.Option(
+        "auto", "--method", help="local-poe | ann | hybrid | auto | nominal", case_sensitive=False
+    ),
     seed: int = typer.Option(0, "--seed", help="Seed of the split and the network initialisation."),
     hidden: int | None = typer.Option(None, "--hidden", help="Hidden nodes of the network (default √(6·inputs))."),
     val_fraction: float = typer.Option(
@@ -24,6 +38,12 @@ def fit(
         "row is fitted; learned stages are chosen by K-fold cross-validation).",
     ),
     robot: str | None = typer.Option(None, "--robot", help="Robot model file when the session's is not built in."),
+    as_json: bool = typer.Option(
+        False,
+        "--json",
+        help="Print the fit as one JSON document on stdout (schema: docs/cli-json.md); progress "
+        "and warnings go to stderr.",
+    ),
     store: Path | None = StoreOption,
 ) -> None:
     """Fit a calibration, print its metrics table (mm, degrees) and store it; prints the fit id last.
@@ -41,15 +61,22 @@ def fit(
       labcal fit S1@v2 S2 --method hybrid --seed 3 --hidden 12
 
       labcal fit S --method auto --val-fraction 0.3     # also score a fixed 30 % hold-out
+
+      labcal fit S --method hybrid --json | jq .metrics.all.after.pos_mean_m
     """
     from labcal.cli.ops import run_fit, split_ref
 
     refs = [split_ref(s) for s in sessions]
+    say = err if as_json else out  # with --json stdout holds the document alone
     outcome = run_fit(
-        store_of(store), refs, method, seed=seed, hidden=hidden, val_fraction=val_fraction, robot=robot,
-        progress=lambda msg: out.print(f"  {msg}", markup=False),
+        store_of(store, write=True), refs, method, seed=seed, hidden=hidden, val_fraction=val_fraction, robot=robot,
+        progress=lambda msg: say.print(f"  {msg}", markup=False),
     )  # fmt: skip
     r = outcome.result
+    if as_json:
+        print_gates(outcome.gates, what=f"fit {outcome.fit_id}")
+        print_json("labcal.fit/1", fit_doc(outcome, val_fraction=val_fraction, hidden=hidden))
+        return
     title = (
         f"{r.chosen} on {', '.join(outcome.refs)} (seed {seed}; rows train {r.n_train}, val {r.n_val}, test {r.n_test})"
     )
@@ -74,3 +101,32 @@ def fit(
     print_gates(outcome.gates, what=f"fit {outcome.fit_id}")
     out.print(f"stored under {outcome.ref}", markup=False)
     print(outcome.fit_id)
+
+
+_CV_KEYS = {"errors": "fold_errors_m", "mean": "mean_m", "std": "std_m"}  # per method, metres
+
+
+def fit_doc(outcome, *, val_fraction: float, hidden: int | None) -> dict:
+    """`labcal fit --json` (labcal.fit/1, docs/cli-json.md): what run_fit returned, units in the key names."""
+    r = outcome.result
+    gates = outcome.gates or {}
+    cv = gates.get("cv") if isinstance(gates.get("cv"), dict) else r.cv
+    if isinstance(cv, dict):
+        cv = {_CV_KEYS.get(k, k): v for k, v in cv.items()}
+    return {
+        "fit_id": outcome.fit_id,
+        "stored_under": outcome.ref,
+        "inputs": list(outcome.refs),
+        "method": r.method,
+        "chosen": r.chosen,
+        "seed": r.seed,
+        "val_fraction": val_fraction,
+        "hidden": hidden,
+        "rows": {"train": r.n_train, "val": r.n_val, "test": r.n_test},
+        "metrics": metrics_doc(outcome.metrics or r.metrics),
+        "warnings": [{"code": w.get("code"), "message": w.get("message")} for w in gates.get("warnings") or []],
+        "notes": [str(n) for n in gates.get("notes") or []],
+        "cv": cv,
+        "observability": dict(r.observability or {}),
+        "fit_time_s": dict(r.fit_seconds or {}),
+    }
