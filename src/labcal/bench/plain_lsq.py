@@ -12,7 +12,8 @@ t_i: the m ≥ 1 targets in the tool frame. Joint offsets need no parameter: exp
 twists into M. The residuals are the measured minus predicted target points (m) of every row and every target
 that was seen (a NaN target row is not seen and gives no residual), plus a 1e-6 ridge on the parameter changes so
 the directions the normalisation removes (axis length, moment along the axis) and those the points cannot fix
-(with one target: the tool's rotation about it) stay put.
+(with two targets: the tool's rotation about their line) stay put. With a single target point the tool's rotation
+(the rotation part of M) is held at the nominal: it would only move that point as a translation does.
 Tracker-frame data start with T_tb from a rigid fit of the nominal points to the measured ones and a first fit of
 M and T_tb alone (the tool offset of a probe can be far from the nominal flange).
 
@@ -142,6 +143,7 @@ class PlainFit:
     T_tb: np.ndarray
     cost: float
     nfev: int
+    converged: bool = True
 
     def predict_points(self, q: np.ndarray, targets: np.ndarray) -> np.ndarray:
         T = self.T_tb @ self.poe.fk(self.x, q)
@@ -172,10 +174,16 @@ def seen_points(points: np.ndarray, targets: np.ndarray) -> np.ndarray:
     return seen
 
 
-def fit_plain(model, q: np.ndarray, points: np.ndarray, targets: np.ndarray, frame: str = "base") -> PlainFit:
+def fit_plain(
+    model, q: np.ndarray, points: np.ndarray, targets: np.ndarray, frame: str = "base", max_nfev: int | None = None
+) -> PlainFit:
     """Fit the global POE model (and T_tb for tracker-frame data) to every row by nonlinear least squares.
 
     points: (k, m, 3) in the data's frame, a NaN row where a target was not seen; targets: (m, 3), m ≥ 1.
+    max_nfev: cap on each stage's residual evaluations, finite-difference Jacobians included (default: 200 per
+    parameter in the final stage, scipy's in the tool-and-tracker stage); ``PlainFit.converged`` says whether the
+    final stage met a tolerance before it (a point near the last joint's axis leaves that axis barely
+    observable and least squares crawls along it).
     """
     from scipy.optimize import least_squares  # only the benchmark needs scipy here
 
@@ -206,16 +214,32 @@ def fit_plain(model, q: np.ndarray, points: np.ndarray, targets: np.ndarray, fra
         return np.concatenate([r, RIDGE * z])
 
     z = np.zeros(p + (6 if tracker else 0))
-    if tracker:
-        # Tool and tracker pose first, with the joints nominal: a probe can sit far from the nominal flange.
-        free = np.r_[np.arange(6 * poe.n, p), np.arange(p, p + 6)]
+    # With one target point the tool's rotation moves that point exactly as a translation does: it is held at the
+    # nominal. Left free, it drifts along a valley that only the 1e-6 ridge curves, and the fit crawls.
+    seen_targets = targets[seen.any(axis=0)]
+    one_point = np.ptp(seen_targets, axis=0).max() < 1e-9
+    held = np.arange(6 * poe.n + 3, p) if one_point else np.zeros(0, int)
 
-        def partial(y):
+    def solve(fun, free, **options):
+        free = np.setdiff1d(free, held)
+
+        def restricted(y):
             zz = z.copy()
             zz[free] = y
-            return residual(zz)
+            return fun(zz)
 
-        z[free] = least_squares(partial, z[free], method="lm", xtol=1e-12, ftol=1e-12).x
-    sol = least_squares(residual, z, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=200 * len(z))
+        return free, least_squares(restricted, z[free], method="lm", xtol=1e-12, ftol=1e-12, **options)
+
+    if tracker:
+        # Tool and tracker pose first, with the joints nominal: a probe can sit far from the nominal flange.
+        first_options = {"max_nfev": max_nfev} if max_nfev else {}
+        free, first = solve(residual, np.r_[np.arange(6 * poe.n, p), np.arange(p, p + 6)], **first_options)
+        z[free] = first.x
+    if held.size:
+        free, sol = solve(residual, np.arange(len(z)), max_nfev=max_nfev or 200 * (len(z) - held.size))
+        z[free] = sol.x
+        sol.x = z
+    else:
+        sol = least_squares(residual, z, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=max_nfev or 200 * len(z))
     xx, T_tb = split(sol.x)
-    return PlainFit(poe, xx, T_tb, float(sol.cost), int(sol.nfev))
+    return PlainFit(poe, xx, T_tb, float(sol.cost), int(sol.nfev), bool(sol.status > 0))

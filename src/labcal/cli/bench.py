@@ -11,7 +11,7 @@ from labcal.cli.common import err
 app = typer.Typer(
     help=(
         "Run the benchmarks. Examples:\n\n  labcal bench paper -- --quick\n\n  labcal bench speed\n\n"
-        "  labcal bench robustness --quick"
+        "  labcal bench robustness --quick\n\n  labcal bench targets --quick"
     ),
     no_args_is_help=True,
 )
@@ -52,6 +52,12 @@ def speed(ctx: typer.Context) -> None:
 def robustness(ctx: typer.Context) -> None:
     """Every method with default options on sweeps, paper A/B and real UR10 vs a plain LSQ (--quick, --splits N)."""
     _run("labcal.bench.robustness", ctx.args)
+
+
+@app.command("targets", context_settings=PASS)
+def targets(ctx: typer.Context) -> None:
+    """Held-out point error vs targets per pose (1, 2, 3, 3 with 30 % missing) on paper A/B and real UR10 (--quick)."""
+    _run("labcal.bench.targets", ctx.args)
 
 
 @app.command("fit-time", context_settings=PASS)
