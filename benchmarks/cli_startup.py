@@ -1,0 +1,108 @@
+"""Wall time of the light CLI paths (issue 17.2): `labcal --help`, `session --help`, `fit --help`, `session list`.
+
+Each command runs in a fresh interpreter exactly as the console script runs it (``from labcal.cli.app import main;
+main()``), N times, with the "before" and "after" source trees interleaved run by run so that the machine's load
+(2 cores shared with other jobs) falls on both alike; the table gives the median and the spread (min … max).
+
+    git worktree add /tmp/before65 65c384c
+    .venv/bin/python benchmarks/cli_startup.py --before /tmp/before65/src --runs 15
+
+"before" runs with ``PYTHONPATH=<before>``, "after" with this checkout's ``src``. The stores are made once by the
+after code: an empty folder, and one with three small sim sessions (imported by both trees). Where the time goes:
+``python -X importtime -c "import labcal.cli.app"``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+AFTER_SRC = HERE.parent / "src"
+RUNNER = "import sys; sys.argv[0] = 'labcal'; from labcal.cli.app import main; main()"
+TARGETS = 'unit = "mm"\npoints = [[120.0, 0.0, 60.0], [-60.0, 100.0, 60.0], [-60.0, -100.0, 90.0]]\n'
+
+
+def labcal(src: Path, args: list[str], *, check: bool = True) -> tuple[float, subprocess.CompletedProcess]:
+    env = {**os.environ, "PYTHONPATH": str(src), "COLUMNS": "100"}
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-c", RUNNER, *args], env=env, capture_output=True, text=True)
+    dt = time.perf_counter() - t0
+    if check and r.returncode != 0:
+        raise SystemExit(f"{src}: labcal {' '.join(args)} exited {r.returncode}:\n{r.stderr[-2000:]}")
+    return dt, r
+
+
+def make_stores(root: Path, sessions: int) -> tuple[Path, Path]:
+    empty = root / "empty"
+    empty.mkdir()
+    full = root / "store"
+    (root / "targets.toml").write_text(TARGETS)
+    for seed in range(sessions):
+        labcal(AFTER_SRC, ["session", "new", "--robot", "ur10", "--targets", str(root / "targets.toml"),
+                           "--poses", "14", "--seed", str(seed), "--store", str(full)])  # fmt: skip
+    return empty, full
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--before", type=Path, default=Path("/tmp/before65/src"), help="src/ of the before tree")
+    p.add_argument("--runs", type=int, default=15)
+    p.add_argument("--sessions", type=int, default=3, help="sessions in the non-empty store")
+    a = p.parse_args()
+    if not (a.before / "labcal" / "cli" / "app.py").is_file():
+        raise SystemExit(f"{a.before}: not a labcal src/ folder (git worktree add /tmp/before65 65c384c)")
+
+    root = Path(tempfile.mkdtemp(prefix="labcal-cli-startup-"))
+    try:
+        empty, full = make_stores(root, a.sessions)
+        commands = {
+            "labcal --help": ["--help"],
+            "labcal session --help": ["session", "--help"],
+            "labcal fit --help": ["fit", "--help"],
+            "labcal session list (empty store)": ["session", "list", "--store", str(empty)],
+            f"labcal session list ({a.sessions} sessions)": ["session", "list", "--store", str(full)],
+            f"labcal session list --json ({a.sessions} sessions)": ["session", "list", "--json", "--store", str(full)],
+        }
+        trees = {"before": a.before, "after": AFTER_SRC}
+        times: dict[tuple[str, str], list[float]] = {}
+        for name, args in commands.items():
+            for tree, src in trees.items():
+                _, r = labcal(src, args, check=False)  # warm the file cache; before may lack an option
+                times[(name, tree)] = [] if r.returncode == 0 else [float("nan")]
+            for _ in range(a.runs):
+                for tree, src in trees.items():
+                    if times[(name, tree)] and times[(name, tree)][0] != times[(name, tree)][0]:
+                        continue  # NaN: this tree does not have the command
+                    times[(name, tree)].append(labcal(src, args)[0])
+        load = os.getloadavg()
+        print(f"CLI wall time, s: median (min … max) of {a.runs} runs, fresh interpreter each; before = {a.before}, "
+              f"after = {AFTER_SRC}; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} "
+              f"cores; python {sys.version.split()[0]}")  # fmt: skip
+        print()
+        width = max(len(n) for n in commands)
+        print(f"{'command':<{width}}  {'before':>22}  {'after':>22}  {'after/before':>12}")
+        for name in commands:
+            cells, med = [], {}
+            for tree in trees:
+                t = times[(name, tree)]
+                if not t or t[0] != t[0]:
+                    cells.append(f"{'n/a':>22}")
+                    continue
+                med[tree] = statistics.median(t)
+                cells.append(f"{med[tree]:6.3f} ({min(t):.3f} … {max(t):.3f})")
+            ratio = f"{med['after'] / med['before']:.2f}" if len(med) == 2 else "—"
+            print(f"{name:<{width}}  {cells[0]:>22}  {cells[1]:>22}  {ratio:>12}")
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
