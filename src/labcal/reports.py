@@ -1,13 +1,19 @@
 """Markdown reports with PNG plots (matplotlib, headless Agg backend) of the fits stored under a version.
 
 At the top: every fit's blocking warnings (the ones `labcal export` refuses without --force) and notes. For every
-fit: its warnings again, its metrics table (train / val / test, before / after: mean, RMS, p95, max in mm and
-degrees, and the per-target point error beside the pose error), the per-target point residuals (table and plot),
+fit: its warnings again, what its targets let it claim about orientation (one target point: none; targets on a
+line: not the rotation about it; three targets in some poses only: on those poses), its metrics table (train /
+val / test, before / after: mean, RMS, p95, max in mm and degrees, and the per-target point error beside the pose
+error), the per-target point residuals (table and plot),
 the position and orientation error of every configuration before and after (the paper's Fig. 5), the training
 curve with the validation-stopping point when the fit trained a network (Fig. 4), the identified local-POE frame
 parameters — with ± one standard deviation only where a parameter is identifiable on its own, "—" where it is
 not, and the identifiable combinations of the others with their standard deviations — and the evaluations stored
 for the fit (``labcal evaluate``). Across fits: histograms of the position error after calibration per method.
+
+When fewer than three non-collinear targets are seen in some pose (split table ``"primary": "points"``), the
+per-target point errors are the primary figures: their table comes first and the pose columns are marked as
+covering only the poses that fix a pose.
 
 Example::
 
@@ -94,8 +100,7 @@ def _md_metrics(metrics: dict) -> list[str]:
             s = metrics[split][when]
 
             def f(key, scale, s=s):
-                v = s.get(key)
-                return "—" if v is None else f"{v * scale:.4f}"
+                return _mm(s.get(key), scale)  # NaN: no pose in these rows (fewer than three targets seen)
 
             vals = [f(f"pos_{k}", 1e3) for k in ("mean", "rms", "p95", "max")]
             vals += [f(f"ori_{k}", 180 / np.pi) for k in ("mean", "rms", "p95", "max")]
@@ -156,11 +161,13 @@ def _plot_histograms(plt, fits: list[dict], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4))
     first = fits[0]
     before = prediction_errors(first["before"], first["obs"])[0] * 1e3
+    before = before[np.isfinite(before)]  # poses that saw fewer than three targets have no pose error
     hi = float(np.max(before)) if before.size else 1.0
     bins = np.linspace(0, max(hi, 1e-6), 30)
     ax.hist(before, bins=bins, histtype="step", lw=1.5, label="before (registered nominal)")
     for data in fits:
         e = prediction_errors(data["robot"], data["obs"])[0] * 1e3
+        e = e[np.isfinite(e)]
         ax.hist(e, bins=bins, histtype="step", lw=1.2, label=f"{data['robot'].method} ({data['fit_id']})")
     ax.set_xlabel("position error (mm), every configuration")
     ax.set_ylabel("configurations")
@@ -217,6 +224,36 @@ def _plot_targets(plt, data: dict, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def observability_lines(obs_info: dict | None, data=None) -> list[str]:
+    """What orientation accuracy the fit can and cannot claim, from the fit's stored ``observability`` (15.3), or
+    from the data when the fit was stored before it existed (``data``: Observations, or None)."""
+    if not obs_info and data is not None:
+        try:
+            from labcal.calibration.metrics import observability
+        except ImportError:
+            return []
+        obs_info = observability(data)
+    if not obs_info:
+        return []
+    level = obs_info.get("orientation")
+    head = {"measured": "measured", "partial": "partly measured", "none": "not measured"}.get(level, str(level))
+    lines = [
+        f"**Orientation accuracy: {head}.** {obs_info.get('claim', '')} ({obs_info.get('targets')} target(s), "
+        f"{obs_info.get('geometry')}; {obs_info.get('rows_with_pose')} of {obs_info.get('rows')} poses fix a full "
+        "pose.)",
+    ]
+    words = obs_info.get("unobservable") or []
+    if words:
+        lines += ["", "Not determined by these data (no accuracy can be claimed for them):", ""]
+        lines += [f"- {w}" for w in words]
+    return lines
+
+
+def _primary(metrics: dict) -> str:
+    """ "points" when any split says the per-target point errors are the figures to quote, else "pose"."""
+    return "points" if any(isinstance(m, dict) and m.get("primary") == "points" for m in metrics.values()) else "pose"
 
 
 def _warning_lines(meta: dict, fit_id: str, *, heading: bool = True) -> list[str]:
@@ -481,11 +518,11 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
         f"# labcal calibration report — {r}",
         "",
         f"Robot model **{ds.robot.get('name')}** (sha256 `{ds.robot.get('hash', '')[:16]}…`), "
-        f"{len(ds)} configurations, points in the {ds.frame} frame. Errors are the distance between the "
-        "calibrated model's predicted tool pose and the pose fitted to the three measured targets "
-        "(position, mm) and the angle between the "
-        "orientations (degrees), and the distance between each measured target point and its prediction "
-        "(point, mm); *before* is the nominal model registered to the data.",
+        f"{len(ds)} configurations, points in the {ds.frame} frame. Errors are the distance between each "
+        "measured target point and its prediction (point, mm), and — in poses where at least three "
+        "non-collinear targets were seen — the distance between the calibrated model's predicted tool pose and "
+        "the pose fitted to the measured targets (position, mm) and the angle between the orientations "
+        "(degrees); *before* is the nominal model registered to the data.",
         "",
     ]
     summary = [line for data in fits for line in _warning_lines(data["meta"], data["fit_id"])]
@@ -521,12 +558,25 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
             + ", ".join(f"{k} {v}" for k, v in (meta.get("rows") or {}).items())
             + ".",
             "",
-            *_md_metrics(metrics),
-            "",
-            *_md_targets(metrics),
-            "",
-            *_cv_lines(meta.get("cv")),
         ]
+        claim = observability_lines(meta.get("observability"), data["obs"])
+        if claim:
+            lines += [*claim, ""]
+        if _primary(metrics) == "points":
+            # Fewer than three targets seen somewhere: the points are what was measured, so they lead (15.3).
+            lines += [
+                "Primary figures: the per-target point errors (fewer than three non-collinear targets were seen in "
+                "some poses). The pose columns of the table after them cover only the poses that fix a full pose "
+                "(n = their count; — when none does).",
+                "",
+                *_md_targets(metrics),
+                "",
+                *_md_metrics(metrics),
+                "",
+            ]
+        else:
+            lines += [*_md_metrics(metrics), "", *_md_targets(metrics), ""]
+        lines += [*_cv_lines(meta.get("cv"))]
         png = f"errors-{fid}.png"
         _plot_per_configuration(plt, data, out / png)
         lines += [f"![error per configuration]({png})", ""]

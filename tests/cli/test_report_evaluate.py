@@ -228,3 +228,57 @@ def test_session_verify_checks_stored_evaluations(world, tmp_path):
     bad = invoke("session", "verify", ref.split("@")[0], store=s)
     assert bad.exit_code == 1 and path.name in bad.stdout, bad.stdout
     assert next(d for d in store.list_evaluations(ref, fit) if d["evaluation_id"] == path.stem)["corrupt"]
+
+
+# -- fewer than three targets (issue 15.3) ---------------------------------------------------------------------------
+
+ONE_TARGET = 'unit = "mm"\npoints = [[120.0, 0.0, 60.0]]\n'
+
+
+@pytest.fixture(scope="module")
+def one_target(tmp_path_factory):
+    """A simulated one-reflector session, fitted with local POE, its report, and an evaluation of it."""
+    root = tmp_path_factory.mktemp("onetarget")
+    (root / "one.toml").write_text(ONE_TARGET)
+    store = root / "store"
+    r = invoke("session", "new", "--robot", "ur10", "--targets", root / "one.toml", "--poses", 30, "--seed", SEED,
+               store=store)  # fmt: skip
+    assert r.exit_code == 0, r.stdout + r.stderr
+    ref = last_line(r)
+    f = invoke("fit", ref, "--method", "local-poe", store=store)
+    assert f.exit_code == 0, f.stderr
+    rep = invoke("report", ref, "--out", root / "report", store=store)
+    assert rep.exit_code == 0, rep.stderr
+    ev = invoke("evaluate", last_line(f), "--data", ref, store=store)
+    assert ev.exit_code == 0, ev.stderr
+    return {"store": store, "ref": ref, "fit": last_line(f), "report": Path(last_line(rep)).read_text(), "eval": ev}
+
+
+def test_fit_stores_what_orientation_accuracy_it_can_claim(one_target, world):
+    one = SessionStore(one_target["store"]).load_fit(one_target["ref"], one_target["fit"]).metadata["observability"]
+    assert one["targets"] == 1 and one["orientation"] == "none" and one["rows_with_pose"] == 0
+    three = SessionStore(world["store"]).load_fit(world["refs"]["good"], world["fits"]["good"]).metadata
+    assert three["observability"]["orientation"] == "measured"
+
+
+def test_one_target_report_leads_with_point_errors_and_claims_no_orientation(one_target, reports):
+    text = one_target["report"]
+    fit = text.index("## Fit ")
+    claim = text.index("**Orientation accuracy: not measured.**", fit)
+    points, pose = text.index("| split | | t1 mean (mm)", fit), text.index("| split | n | | pos mean (mm)", fit)
+    assert claim < points < pose  # the claim first, then the point errors, then the (empty) pose table
+    assert "Primary figures: the per-target point errors" in text
+    assert "Not determined by these data" in text and "orientation of the tool" in text
+    pose_rows = [line for line in text[pose:].splitlines()[2:6]]
+    assert all("| — | — |" in line for line in pose_rows)  # no pose is measured: no pose error is claimed
+    good = reports["good"][0]
+    assert "**Orientation accuracy: measured.**" in good and "Primary figures" not in good
+    assert good.index("| split | n | | pos mean (mm)") < good.index("| split | | t1 mean (mm)")
+
+
+def test_one_target_evaluation_says_points_are_primary_and_what_is_not_determined(one_target):
+    out = one_target["eval"].stdout
+    assert out.index("primary figures: the per-target point errors") < out.index("pos mean mm")
+    assert "orientation: Only target point t1 was measured" in out and "not determined by these data" in out
+    doc = SessionStore(one_target["store"]).list_evaluations(one_target["ref"], one_target["fit"])[-1]
+    assert doc["primary"] == "points" and doc["observability"]["orientation"] == "none"

@@ -28,7 +28,8 @@ def evaluate(
     store: Path | None = StoreOption,
 ) -> None:
     """Score held-out data with a stored fit: per-target point and pose errors before (registered nominal) and
-    after; the evaluation is stored under the fit. Prints the evaluation id last (or JSON with --json).
+    after, and what the data let it claim about orientation (the point errors lead when fewer than three targets
+    are seen in some rows); the evaluation is stored under the fit. Prints the evaluation id last (or JSON with --json).
 
     A FILE goes through `labcal session import` first (same options, same sanity checks and --allow overrides) and
     becomes a new session, so the evaluated data are stored and traceable. Nothing of the calibration is refitted
@@ -61,10 +62,21 @@ def evaluate(
         f"fit {ev['fit_id']} ({ev['method']}, fitted on {', '.join(ev['fit_inputs'])}) on {d['ref']}: "
         f"{d['rows']} rows, {d['frame']} frame"
     )
-    out.print(metrics_table(ev["metrics"], title))
     per_target = targets_table(ev["metrics"])
-    if per_target is not None:
+    if ev.get("primary") == "points" and per_target is not None:
+        # Fewer than three targets seen in some rows: the point errors are what was measured, so they lead.
+        out.print("primary figures: the per-target point errors (pose errors only over rows that fix a pose)")
         out.print(per_target)
+        out.print(metrics_table(ev["metrics"], title))
+    else:
+        out.print(metrics_table(ev["metrics"], title))
+        if per_target is not None:
+            out.print(per_target)
+    claim = (ev.get("observability") or {}).get("claim")
+    if claim:
+        out.print(f"orientation: {claim}", markup=False)
+        for words in (ev.get("observability") or {}).get("unobservable") or []:
+            out.print(f"  not determined by these data: {words}", markup=False)
     out.print(f"fitted on the evaluation data: {ev['registration']['fitted']}", markup=False)
     if ev["overlap_with_fit"]:
         out.print(f"note: {d['ref']} is one of the fit's own inputs: this is not a held-out score", markup=False)

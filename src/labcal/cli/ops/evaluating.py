@@ -9,6 +9,11 @@ What is fitted on the evaluation data, and what is not:
   for the calibrated robot and, separately, for the nominal ("before"). Six parameters against 9 numbers per
   pose; the evaluation says so (``registration``). Base-frame data are scored as they are: nothing is fitted.
 
+What the evaluation data let it claim about orientation (one target point: positions only; targets on a line: not
+the rotation about it) is stored beside the errors as ``observability`` (:func:`labcal.calibration.metrics.
+observability`), and ``primary`` says which errors to quote: the per-target point errors whenever some row sees
+fewer than three non-collinear targets, else the pose errors.
+
 A FILE is imported as a new session first (same options and sanity checks as ``labcal session import``), so the
 evaluated data are stored and traceable by their version; a SESSION[@vN] is read from the store. The evaluation
 (per-target point errors and pose errors, before/after, rows outside the fit's calibrated joint ranges) is written
@@ -161,6 +166,9 @@ def evaluate_fit(
         before = dataclasses.replace(stored.before, T_tracker_base=np.eye(4))
         registration.update(fitted="nothing (base-frame data are scored as they are)", parameters=0)
     table = split_table(before, after, obs)
+    from labcal.calibration.metrics import observability
+
+    claims = observability(obs)
     # Not a gate here (nothing is exported), but the same reading of the numbers: points far off while the pose
     # fits mean the evaluation file's targets or units do not match the data.
     warnings = metric_warnings({"test": table["all"], "all": table["all"]}) if "all" in table else []
@@ -190,6 +198,8 @@ def evaluate_fit(
         "overlap_with_fit": ref in stored.inputs,
         "registration": registration,
         "metrics": {"all": table["all"]} if "all" in table else {},
+        "primary": (table.get("all") or {}).get("primary", "pose"),
+        "observability": claims,
         "outside_calibrated_ranges": int(outside.sum()),
         "warnings": warnings,
     }

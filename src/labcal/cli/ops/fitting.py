@@ -77,6 +77,8 @@ def run_fit(
         "split": list(map(str, result.obs.split)) if result.obs is not None else None,
         "fit_seconds": result.fit_seconds,
         "info": slim_info(result.info),
+        # What the targets let this fit claim about orientation (15.3): the report and evaluate print its claim.
+        "observability": getattr(result, "observability", None),
     }
     # The fit works in model joints; its compensator takes controller joints through the robot file's map.
     fitted = dataclasses.replace(result.robot, joint_map=spec.joint_map)
