@@ -390,7 +390,8 @@ def _run_dask(tasks: list[RefitTask], jobs: int, scheduler: str | None, done) ->
                 raise UserError(f"--scheduler {scheduler}: cannot connect ({e})") from None
         else:
             cluster = LocalCluster(
-                n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
+                # No fixed port (8787 may be another cluster's): a free one, on this machine only.
+                n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0",
                 silence_logs=logging.ERROR,
             )  # fmt: skip
             client = Client(cluster)
