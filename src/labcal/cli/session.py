@@ -194,7 +194,8 @@ def list_(
     st = store_of(store)
     rows = []
     for info in st.list_sessions():
-        meta = _meta(st, info.session_id)
+        # The table needs no metadata; reading it again costs a second pass over each journal.
+        meta = _meta(st, info.session_id) if unit is not None or as_json else {}
         if unit is not None and _unit(meta) != unit:
             continue
         rows.append((info, meta))
