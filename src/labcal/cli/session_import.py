@@ -37,6 +37,11 @@ Examples:
   labcal session import repeats.csv --robot ur10 --targets targets.toml --allow duplicates --allow nominal
 
   labcal session import data.csv --robot ur10 --targets targets.toml --store /data/sessions
+
+  labcal session import data.csv --robot ur10 --targets targets.toml --unit 2018550001
+
+--unit records which arm the data come from (its serial number, or your own id): `session list --unit` finds the
+sessions of one arm, and `fit` refuses to pool sessions of different units unless given --pool-units.
 """
 
 
@@ -57,6 +62,9 @@ def import_(
     allow: list[str] = typer.Option(
         [], "--allow", help=f"Let data through a failed check (repeatable): {', '.join(CHECKS)}.", show_default=False
     ),
+    unit: str | None = typer.Option(
+        None, "--unit", help="Id of the robot unit the data come from (e.g. the controller's serial number)."
+    ),
     store: Path | None = StoreOption,
 ) -> None:
     from labcal.cli.ops import import_session
@@ -66,7 +74,7 @@ def import_(
     st = open_store(store, create=True)
     ref = import_session(
         st, file, robot=robot, targets_file=targets, mapping=mapping, length_unit=length_unit,
-        angle_unit=angle_unit, frame=frame, form=form, allow=allow,
+        angle_unit=angle_unit, frame=frame, form=form, allow=allow, unit=unit,
     )  # fmt: skip
     checks = load_version(st, ref).manifest.get("provenance", {}).get("import", {}).get("checks", {})
     for note in checks.get("notes", []):

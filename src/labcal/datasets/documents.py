@@ -11,6 +11,16 @@ A :class:`SessionHeader` is the part of the start document a caller chooses (rob
 and robot identity, plan, units of the extra fields, metadata); it travels as one object from the CLI through the
 runner to :meth:`SessionStore.create_session` instead of a dozen keyword arguments.
 
+Unit identity: which physical arm (and tracker) the data come from, as opposed to the robot *model*. The header's
+``unit`` (the robot's serial number when the controller tells it, else the id the operator gives with ``--unit``)
+is written to ``metadata["unit"]``, so every manifest carries it and ``session list --unit`` / ``refit --unit`` /
+``fit`` read it from one place; what the devices told about themselves (serial, model, firmware …) goes to
+``robot_driver["identity"]`` and ``tracker["identity"]``. Sessions recorded before have neither and read as
+"unit unknown"::
+
+    {"type": "start", ..., "robot_driver": {"class": "...URRobot", "identity": {"serial": "20185500001",
+     "model": "UR10", "software": "5.11.0.108249"}}, "metadata": {"unit": "20185500001", ...}}
+
 Targets not seen: a measurement's ``points`` is a list of m entries, each ``[x, y, z]`` (m) or ``null`` for a
 target the tracker did not see in that pose; ``spread`` likewise has ``null`` for it. Example (m = 2, t2 lost)::
 
@@ -37,6 +47,9 @@ from .schema import FRAMES, SCHEMA_VERSION
 from .targets import validate_targets
 
 EXIT_STATUSES = ("success", "aborted", "paused", "failed")
+# A unit id is typed on command lines and matched exactly: printable, no blanks at the ends, and bounded so a
+# confused device's whole reply cannot become one.
+MAX_UNIT_LENGTH = 64
 STATUSES = ("valid", "rejected")
 MEASUREMENT_UNITS = {"q_commanded": "rad", "q_actual": "rad", "points": "m", "spread": "m", "time": "s"}
 
@@ -53,7 +66,10 @@ class SessionHeader:
     file's ``text`` and ``format``, which makes the session refittable without the file); targets: (m, 3) m in the
     tool frame; frame: "base" | "tracker", the frame of the measured points; tracker / robot_driver: identity
     dicts of the drivers; plan: one JSON-able entry per pose; extra_units: unit of each ``extra`` measurement
-    field; metadata: the caller's (runner settings, sim seeds …); session_id: None = a new id from the robot name.
+    field; metadata: the caller's (runner settings, sim seeds …); session_id: None = a new id from the robot name;
+    unit: the robot unit's id (serial number, or the operator's id), None = unknown; robot_identity /
+    tracker_identity: what the devices reported about themselves (``serial``, ``model``, ``firmware`` …, plus
+    ``notes`` for what could not be read), stored under ``robot_driver["identity"]`` / ``tracker["identity"]``.
     """
 
     robot: Mapping[str, Any]
@@ -65,6 +81,9 @@ class SessionHeader:
     extra_units: Mapping[str, str] = field(default_factory=dict)
     metadata: Mapping[str, Any] = field(default_factory=dict)
     session_id: str | None = None
+    unit: str | None = None
+    robot_identity: Mapping[str, Any] = field(default_factory=dict)
+    tracker_identity: Mapping[str, Any] = field(default_factory=dict)
 
     @classmethod
     def of(
@@ -92,19 +111,46 @@ class SessionHeader:
         for k in self.extra_units:
             if not _extra_key(k):
                 raise JournalError(f"extra field name {k!r} must match [A-Za-z0-9_]+")
+        metadata = dict(self.metadata)
+        if self.unit is not None:
+            metadata["unit"] = check_unit(self.unit)
+        elif "unit" in metadata:
+            metadata["unit"] = check_unit(metadata["unit"])
+        # Only sessions whose devices said something carry the key: the others' documents read as before.
+        tracker, robot_driver = dict(self.tracker), dict(self.robot_driver)
+        if self.tracker_identity:
+            tracker["identity"] = dict(self.tracker_identity)
+        if self.robot_identity:
+            robot_driver["identity"] = dict(self.robot_identity)
         return StartDoc(
             session_id=session_id,
             robot=robot_document(self.robot["name"], self.robot["hash"], n, self.robot),
             targets=validate_targets(self.targets).tolist(),
             frame=self.frame,
-            tracker=jsonable(dict(self.tracker)),
-            robot_driver=jsonable(dict(self.robot_driver)),
+            tracker=jsonable(tracker),
+            robot_driver=jsonable(robot_driver),
             plan=jsonable(list(self.plan)),
             extra_units=dict(self.extra_units),
-            metadata=jsonable(dict(self.metadata)),
+            metadata=jsonable(metadata),
             software=software_versions(),
             time=float(_time.time() if time is None else time),
         )
+
+
+def check_unit(value: object, what: str = "unit") -> str:
+    """A robot unit id as stored: a non-empty printable string of at most 64 characters, no blanks at the ends.
+
+    >>> check_unit("UR10-2019-0417")
+    'UR10-2019-0417'
+    """
+    if not isinstance(value, str):
+        raise JournalError(f"{what} must be a string (the robot unit's id, e.g. its serial number), got {value!r}")
+    if not value or value != value.strip() or not value.isprintable() or len(value) > MAX_UNIT_LENGTH:
+        raise JournalError(
+            f"{what} {value!r} is not a unit id: give 1 to {MAX_UNIT_LENGTH} printable characters without leading or "
+            "trailing blanks (e.g. the serial number on the controller's label)"
+        )
+    return value
 
 
 def _extra_key(k: object) -> bool:
@@ -143,6 +189,22 @@ class StartDoc:
     @property
     def n_targets(self) -> int:
         return len(self.targets)
+
+    @property
+    def unit(self) -> str | None:
+        """The robot unit's id (``metadata["unit"]``), None for sessions recorded without one."""
+        unit = self.metadata.get("unit")
+        return None if unit is None else str(unit)
+
+    @property
+    def robot_identity(self) -> dict:
+        """What the robot controller reported about itself (serial, model, software …); {} if nothing."""
+        return dict(self.robot_driver.get("identity") or {})
+
+    @property
+    def tracker_identity(self) -> dict:
+        """What the tracker reported about itself (serial, model, firmware …); {} if nothing."""
+        return dict(self.tracker.get("identity") or {})
 
     def targets_array(self) -> np.ndarray:
         """(m, 3) m."""
@@ -367,6 +429,7 @@ __all__ = [
     "SessionHeader",
     "StartDoc",
     "StopDoc",
+    "check_unit",
     "measured_points",
     "measured_spread",
     "robot_document",

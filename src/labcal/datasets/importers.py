@@ -49,6 +49,7 @@ import pandas as pd
 from labcal.tomlschema import Key, Table, fail, read_toml, validate
 
 from ._util import sha256_bytes, sha256_file
+from .documents import check_unit
 from .errors import DatasetError, ImportFormatError, MappingError, TargetsError
 from .ids import validate_id
 from .sanity import Hints, SanityReport, check_measurements, check_names
@@ -423,7 +424,8 @@ class ImportOptions:
     sets the reading options itself.) Recording: ``session_id`` (an existing session gets a new version),
     ``metadata`` (the user's), ``robot`` (a :class:`~labcal.robots.RobotSpec` matching name, hash and n: enables
     the model checks and stores the robot file with the data), ``allow`` (sanity checks to override, recorded in
-    the provenance), ``hints`` (how the fixes are phrased; default: the CLI's flags).
+    the provenance), ``hints`` (how the fixes are phrased; default: the CLI's flags), ``unit`` (the robot unit's
+    id, e.g. its serial number: stored as the session metadata's ``"unit"``; None = unknown).
     """
 
     length_unit: str = "m"
@@ -441,6 +443,7 @@ class ImportOptions:
     robot: RobotSpec | None = None
     allow: Sequence[str] = ()
     hints: Hints | None = None
+    unit: str | None = None
 
     def with_changes(self, **changes: Any) -> ImportOptions:
         """These options with some fields replaced (an unknown name is a :class:`DatasetError` listing the fields)."""
@@ -509,7 +512,7 @@ def _run_import(
         "robot_driver": {},
         "plan": _plan_summary([]),
         "extra_units": {e.name: _TO_SI.get(e.unit, (e.unit, 1.0))[0] for e in spec.extras},
-        "metadata": dict(opts.metadata or {}),
+        "metadata": _metadata_with_unit(opts),
     }
     provenance = {
         "import": {
@@ -528,8 +531,31 @@ def _run_import(
             latest = store.load(session_id)
             rows["pose"] += int(latest.pose.max()) + 1 if len(latest) else 0
         meta["session_id"] = session_id
+        _check_unit_of_existing(store, session_id, meta["metadata"].get("unit"))
         return store.append_rows(session_id, rows, meta, source=source, provenance=provenance)
     return store.create_imported_session(rows, meta, source=source, provenance=provenance, session_id=session_id)
+
+
+def _metadata_with_unit(opts: ImportOptions) -> dict:
+    """The user's metadata plus ``"unit"`` (``opts.unit`` wins over a ``unit`` key in the metadata; both checked)."""
+    metadata = dict(opts.metadata or {})
+    if opts.unit is not None:
+        metadata["unit"] = check_unit(opts.unit, "--unit")
+    elif "unit" in metadata:
+        metadata["unit"] = check_unit(metadata["unit"], "metadata unit")
+    return metadata
+
+
+def _check_unit_of_existing(store: SessionStore, session_id: str, unit: str | None) -> None:
+    """Rows added to a session must come from its unit: the session keeps its recorded unit, so a different one
+    given now would label the new rows wrongly without a trace."""
+    recorded = (store.session_meta(session_id).get("metadata") or {}).get("unit")
+    if unit is not None and unit != recorded:
+        had = f"unit {recorded!r}" if recorded is not None else "no unit"
+        raise DatasetError(
+            f"session {session_id} was recorded with {had}, the rows to add are of unit {unit!r}: import them into a "
+            "new session (rows of one session come from one robot)"
+        )
 
 
 def import_targets_csv(

@@ -180,6 +180,35 @@ def describe(device: object) -> dict:
     return info
 
 
+def device_identity(device: object) -> dict:
+    """What a device reported about itself: its ``device_identity()`` dict (``serial``, ``model``, ``firmware`` …,
+    ``notes`` for what it would not tell), {} for a driver without one. A driver that fails to answer is recorded
+    as a note, never a failed session: knowing the unit is worth having, not worth losing a measurement run for.
+    """
+    ask = getattr(device, "device_identity", None)
+    if not callable(ask):
+        return {}
+    try:
+        return {str(k): v for k, v in dict(ask() or {}).items()}
+    except Exception as e:  # a driver's bug or a device's silence must not stop the run here
+        return {"notes": [f"{type(device).__name__} did not report its identity: {e}"]}
+
+
+def session_unit(unit: str | None, robot_identity: Mapping[str, Any]) -> tuple[str | None, list[str]]:
+    """(the session's unit id, notes): the operator's ``unit`` when given, else the robot's serial number, else None.
+
+    A given unit that differs from the serial the controller reports is kept (the operator names the unit) with a
+    note, so the disagreement is on record in the start document.
+    """
+    serial = robot_identity.get("serial")
+    serial = str(serial) if serial not in (None, "") else None
+    if unit is None:
+        return serial, []
+    if serial is not None and serial != unit:
+        return unit, [f"unit {unit!r} was given, the controller reports serial number {serial!r}"]
+    return unit, []
+
+
 # --------------------------------------------------------------------------------------------------------------
 
 
@@ -268,7 +297,8 @@ class RunOptions:
     :data:`labcal.datasets.sanity.CHECKS`); progress: callable taking :class:`Progress`; session_id: None = a new
     id; tracker_info / robot_info: identity of the drivers for the start document (default :func:`describe`);
     metadata: the caller's (sim seeds, profiles …); sleep: how to wait for settling (tests pass a no-op); seal:
-    make a version at the end.
+    make a version at the end; unit: the robot unit's id (default: the serial number the robot driver reports in
+    ``device_identity()``, see :func:`session_unit`).
     """
 
     frame: str = "tracker"
@@ -282,6 +312,7 @@ class RunOptions:
     metadata: Mapping[str, Any] | None = None
     sleep: Callable[[float], None] = time.sleep
     seal: bool = True
+    unit: str | None = None
 
     def with_changes(self, **changes: Any) -> RunOptions:
         """These options with some fields replaced (None for validation/retry keeps the default)."""
@@ -596,6 +627,10 @@ def run(
     }
     if opts.validation.min_targets == 1:  # sessions before 1..k targets have no such key: keep their documents
         del runner_settings["validation"]["min_targets"]
+    robot_identity, tracker_identity = device_identity(robot), device_identity(tracker)
+    unit, notes = session_unit(opts.unit, robot_identity)
+    if notes:
+        robot_identity["notes"] = [*robot_identity.get("notes", []), *notes]
     header = SessionHeader(
         robot=spec.record(),
         targets=targets,
@@ -606,6 +641,9 @@ def run(
         extra_units=EXTRA_UNITS,
         metadata={"runner": runner_settings, "robot_source": spec.source, **dict(opts.metadata or {})},
         session_id=opts.session_id,
+        unit=unit,
+        robot_identity=robot_identity,
+        tracker_identity=tracker_identity,
     )
     journal = store.create_session(header)
     state = _Run(journal, plan, robot, tracker, opts.with_changes(allow=tuple(sorted(allowed))), spec)
@@ -665,6 +703,7 @@ def resume(
             )
         if robot.n_joints != journal.n_joints:
             raise SessionError(f"session {session_id} has {journal.n_joints} joints, the robot {robot.n_joints}")
+        _check_same_unit(session_id, start, robot)
         plan = Plan.from_pose_documents(start.plan)
         settings = start.metadata.get("runner") or {}
         recorded = opts.with_changes(
@@ -693,6 +732,17 @@ def resume(
     return _finish(store, journal, status, why, state.measured, plan, opts.seal)
 
 
+def _check_same_unit(session_id: str, start: StartDoc, robot: Robot) -> None:
+    """Refuse to resume a session on another arm: both serial numbers known and different (nothing moved yet)."""
+    recorded = start.robot_identity.get("serial")
+    now = device_identity(robot).get("serial")
+    if recorded not in (None, "") and now not in (None, "") and str(recorded) != str(now):
+        raise SessionError(
+            f"session {session_id} was recorded on the robot with serial number {recorded!r}, this controller "
+            f"reports {now!r}: resume it on the same arm, or record a new session for this one"
+        )
+
+
 __all__ = [
     "EXTRA_UNITS",
     "Progress",
@@ -704,8 +754,10 @@ __all__ = [
     "Validation",
     "check_measurement",
     "describe",
+    "device_identity",
     "resume",
     "run",
+    "session_unit",
     "target_distances",
     "triangle_sides",
 ]

@@ -110,8 +110,54 @@ def robot_for(dataset_robot: dict, robot: str | None = None) -> RobotSpec:
     return spec
 
 
+def check_unit_option(unit: str | None) -> str | None:
+    """--unit: None, or an id as the session stores it (printable, at most 64 characters)."""
+    from labcal.datasets.documents import check_unit
+    from labcal.datasets.errors import JournalError
+
+    if unit is None:
+        return None
+    try:
+        return check_unit(unit, "--unit")
+    except JournalError as e:
+        raise UserError(str(e)) from None
+
+
+def session_unit(dataset: Dataset) -> str | None:
+    """The robot unit a version's data come from (``metadata["unit"]``), None for data recorded without one."""
+    unit = (dataset.manifest["session"].get("metadata") or {}).get("unit")
+    return None if unit in (None, "") else str(unit)
+
+
+def check_units(datasets: list[Dataset], pool_units: bool = False) -> list[str]:
+    """The distinct robot units of the versions to pool, in order of first appearance; UserError if there are two
+    or more and ``pool_units`` is False.
+
+    A calibration belongs to one arm: two arms of one model differ by their own geometric errors, so a fit of both
+    is a compromise that fits neither (``--pool-units`` asks for exactly that, e.g. a model-wide nominal). Versions
+    without a unit (recorded before units, or imported without ``--unit``) pool with anything, as they always did.
+    """
+    units: dict[str, list[str]] = {}
+    for ds in datasets:
+        unit = session_unit(ds)
+        if unit is not None:
+            units.setdefault(unit, []).append(ds.ref)
+    if len(units) > 1 and not pool_units:
+        which = "; ".join(f"{unit}: {', '.join(refs)}" for unit, refs in units.items())
+        raise UserError(
+            f"the sessions are of {len(units)} different robot units ({which}): fit one unit at a time, or pass "
+            "--pool-units to fit them as one"
+        )
+    return list(units)
+
+
 def load_observations(
-    store: SessionStore, refs: list[str], robot: str | None = None, *, with_spec: bool = False
+    store: SessionStore,
+    refs: list[str],
+    robot: str | None = None,
+    *,
+    with_spec: bool = False,
+    pool_units: bool = False,
 ) -> tuple[Observations, list[Dataset]] | tuple[Observations, list[Dataset], RobotSpec]:
     """Load (and verify) one or more versions of the same robot and pool them into one Observations.
 
@@ -122,6 +168,8 @@ def load_observations(
     the sessions (m from their manifests), with a NaN row where a target was not seen; three-target sessions recorded
     before 1..k targets load exactly as they always did.
     ``with_spec=True`` also returns the RobotSpec (callers that fit need it; the 2-tuple stays for old callers).
+    Sessions of different robot units (``metadata["unit"]``) are refused unless ``pool_units`` (see
+    :func:`check_units`).
     """
     if not refs:
         raise UserError("name at least one SESSION[@vN]")
@@ -137,6 +185,7 @@ def load_observations(
             raise UserError(f"{ds.ref} and {first.ref} have different targets: they cannot be pooled")
         if ds.frame != first.frame:
             raise UserError(f"{ds.ref} is in the {ds.frame} frame, {first.ref} in the {first.frame} frame")
+    check_units(datasets, pool_units)
     try:
         spec = robot_for(first.robot, robot)
     except UserError:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from labcal.cli.ops.common import UserError
+from labcal.cli.ops.common import UserError, check_unit_option
 from labcal.datasets import SessionStore
 from labcal.robots import load
 
@@ -24,12 +24,14 @@ def import_session(
     frame: str = "base",
     form: str = "targets",
     allow: Sequence[str] = (),
+    unit: str | None = None,
 ) -> str:
     """Import a CSV into a new session; returns SESSION@vNNN.
 
     The rows pass :mod:`labcal.datasets.sanity` first (against the robot model, including its joint map); a failed
     check is a :class:`~labcal.datasets.sanity.SanityError` naming the fix and the ``--allow`` flag that overrides
-    it. The robot's full record (file text included) is stored with the session.
+    it. The robot's full record (file text included) is stored with the session; ``unit`` (the robot unit's id,
+    e.g. the serial number on the controller) as the session metadata's ``"unit"``.
     """
     from labcal.datasets import ImportOptions, import_mapped, import_probe_csv, import_targets_csv, load_targets
     from labcal.datasets.sanity import check_names
@@ -40,9 +42,10 @@ def import_session(
     check_names(allow)  # an unknown --allow name is an error before any reading
     if form not in FORMS:
         raise UserError(f"--form must be 'targets' or 'probe', got {form!r}")
+    unit = check_unit_option(unit)
     spec = load(robot)
     ident = (spec.name, spec.hash, spec.model.n)
-    recording = ImportOptions(robot=spec, allow=tuple(allow))
+    recording = ImportOptions(robot=spec, allow=tuple(allow), unit=unit)
     if mapping is not None:
         # A mapping fixes units, frame and form itself; a flag that would be ignored is a user's misunderstanding.
         ignored = [

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from labcal.cli.ops.common import UserError, robot_for
+from labcal.cli.ops.common import UserError, check_unit_option, robot_for
 from labcal.datasets import SessionStore
 from labcal.robots import RobotSpec, load
 
@@ -114,7 +114,9 @@ class SessionRequest:
     "sim" | "serial") with profile / tracker_profile for real hardware; sim_errors ("paper" | "default" | "none"),
     sim_seed (another simulated robot's errors than seed's: the same robot as another session's seed) and
     sim_dropout (probability that the sim tracker loses each target in a pose); allow: record-time sanity checks to
-    override (see :mod:`labcal.datasets.sanity`).
+    override (see :mod:`labcal.datasets.sanity`); unit: the robot unit's id to record (default: the serial number
+    the controller reports; on the sim rig ``sim-<seed of the simulated robot>``, so sessions of one simulated
+    robot are one unit).
     """
 
     robot: str
@@ -131,6 +133,7 @@ class SessionRequest:
     sim_seed: int | None = None
     sim_dropout: float = 0.0
     allow: tuple[str, ...] = ()
+    unit: str | None = None
 
     def check(self) -> None:
         """The checks that need nothing loaded: plan size, driver names, sim options, override names."""
@@ -151,6 +154,12 @@ class SessionRequest:
         if self.sim_dropout and self.robot_driver != "sim":
             raise UserError("--sim-dropout is an option of the sim tracker (--tracker-driver sim)")
         _allowed(self.allow)
+        check_unit_option(self.unit)
+
+
+def sim_unit(sim: dict) -> str:
+    """The unit id of a simulated robot: its errors' seed names it (``sim_seed`` pools sessions of one robot)."""
+    return f"sim-{int(sim['seed'])}"
 
 
 def _drivers(request: SessionRequest, spec: RobotSpec, targets):
@@ -195,7 +204,8 @@ def new_session(store: SessionStore, request: SessionRequest | None = None, *, p
     sim = request.robot_driver == "sim"
     plan = make_plan(q, samples=3 if sim else 5, settle=0.0 if sim else 0.5)
     rob, trk, frame, meta = _drivers(request, spec, targets)
-    options = RunOptions(frame=frame, progress=progress, metadata=meta, allow=_allowed(request.allow))
+    unit = request.unit if request.unit is not None or "sim" not in meta else sim_unit(meta["sim"])
+    options = RunOptions(frame=frame, progress=progress, metadata=meta, allow=_allowed(request.allow), unit=unit)
     with rob, trk:
         return run(store, spec, targets, plan, rob, trk, options)
 
