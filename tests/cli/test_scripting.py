@@ -190,6 +190,8 @@ def test_a_missing_store_is_an_error_naming_it(tmp_path, args):
 
 
 def test_session_list_json(world):
+    from labcal.datasets import SessionStore
+
     r = invoke("session", "list", "--json", store=world["store"])
     assert r.exit_code == 0, r.stderr
     doc = document(r, "labcal.session-list/1")
@@ -199,7 +201,10 @@ def test_session_list_json(world):
     assert s["robot"]["name"] == "ur10" and s["robot"]["n_joints"] == 6 and s["robot"]["file_stored"] is True
     assert len(s["robot"]["hash"]) == 64
     assert s["frame"] == "base" and s["status"] == "success" and s["n_targets"] == 3
-    assert s["rows"] == 14 and s["measurements"] >= 14 and s["unit"] is None
+    assert s["rows"] == 14 and s["measurements"] >= 14
+    recorded = SessionStore(world["store"]).session_meta(world["session"]).get("metadata", {}).get("unit")
+    assert s["unit"] == recorded  # the sim rig records one (sim-<seed>); older sessions have none (null)
+    assert set(s["identity"]) == {"robot", "tracker"}
     (v,) = s["versions"]
     assert v["version"] == "v001" and v["rows"] == 14 and v["fits"] >= 1 and v["parent"] is None
     assert isinstance(v["created"], str) and v["source"] == "journal"
@@ -234,6 +239,17 @@ def test_session_list_unit_selects_the_sessions_of_one_unit(tmp_path):
     human = invoke("session", "list", "--unit", "UR10-B", store=st.root)
     assert made["UR10-B"] in human.stdout and made["UR10-A"] not in human.stdout
     assert len(document(invoke("session", "list", "--json", store=st.root), "labcal.session-list/1")["sessions"]) == 3
+
+
+def test_session_new_unit_is_what_list_unit_selects(world):
+    r = invoke("session", "new", "--robot", "ur10", "--targets", world["root"] / "targets.toml", "--poses", 14,
+               "--seed", 8, "--unit", "CELL-7", store=world["root"] / "units-cli")  # fmt: skip
+    assert r.exit_code == 0, r.stderr
+    doc = document(invoke("session", "list", "--unit", "CELL-7", "--json", store=world["root"] / "units-cli"),
+                   "labcal.session-list/1")  # fmt: skip
+    assert [s["session"] for s in doc["sessions"]] == [last_line(r).split("@")[0]]
+    shown = invoke("session", "show", last_line(r).split("@")[0], store=world["root"] / "units-cli")
+    assert "unit CELL-7" in shown.stdout
 
 
 def test_session_show_json(world):

@@ -129,6 +129,12 @@ def new(
         0.0, "--sim-dropout", help="Sim tracker: probability (0 to <1) that a target is not seen in a pose."
     ),
     allow: list[str] = typer.Option([], "--allow", help=ALLOW_HELP),
+    unit: str | None = typer.Option(
+        None,
+        "--unit",
+        help="Id of the robot unit (recorded as the session's unit; default: the controller's serial number, "
+        "sim-<seed> on the sim rig).",
+    ),
     store: Path | None = StoreOption,
 ) -> None:
     """Plan and record a new session; prints the new SESSION@vNNN last.
@@ -158,7 +164,7 @@ def new(
     request = SessionRequest(
         robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver, tracker_driver=tracker_driver,
         profile=profile, tracker_profile=tracker_profile, planner=planner, samples=samples, seed=seed,
-        sim_errors=sim_errors, sim_seed=sim_seed, sim_dropout=sim_dropout, allow=tuple(allow),
+        sim_errors=sim_errors, sim_seed=sim_seed, sim_dropout=sim_dropout, allow=tuple(allow), unit=unit,
     )  # fmt: skip
     request.check()
     load(robot)  # a typo in the robot or targets fails here, before the store is created
@@ -239,6 +245,10 @@ def _session_doc(info, meta: dict) -> dict:
             "file_stored": bool(info.robot.get("text")),
         },
         "unit": _unit(meta),
+        "identity": {
+            "robot": (meta.get("robot_driver") or {}).get("identity"),
+            "tracker": (meta.get("tracker") or {}).get("identity"),
+        },
         "frame": info.frame,
         "n_targets": len(targets) if isinstance(targets, list) else None,
         "status": info.status,
@@ -278,8 +288,9 @@ def show(
     if isinstance(meta.get("targets"), list):
         n_targets = len(meta["targets"])
         targets = f", {n_targets} target{'s' if n_targets != 1 else ''}"
+    unit = "" if _unit(meta) is None else f", unit {_unit(meta)}"
     out.print(f"session {info.session_id}: robot {info.robot.get('name')} ({info.robot.get('hash', '')[:12]}…, "
-              f"{stored}), frame {info.frame}{targets}, status {info.status}", markup=False)  # fmt: skip
+              f"{stored}){unit}, frame {info.frame}{targets}, status {info.status}", markup=False)  # fmt: skip
     t = Table()
     for col in ("version", "rows", "created", "source", "parent", "fits"):
         t.add_column(col)
