@@ -48,7 +48,9 @@ class _LabcalGroup(TyperGroup):
         try:
             rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
         except click_exceptions.NoArgsIsHelpError as e:
-            e.show()  # `labcal session` alone: the help, exit 2 as before
+            # `labcal session` alone: the help (rich has already printed it; plain click hands it over), exit 2
+            if e.format_message().strip():
+                sys.stdout.write(e.format_message() + "\n")
             sys.exit(e.exit_code)
         except click_exceptions.ClickException as e:
             sys.stderr.write(f"error: {_one_line(e)}\n")
