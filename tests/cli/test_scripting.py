@@ -117,6 +117,7 @@ def test_completion_options_exist():
         ("labcal session new --robot-driver ", {"sim", "ur"}),
         ("labcal filter p.csv --kind ", {"poses", "joints"}),
         ("labcal ses", {"session"}),
+        ("labcal session new --robot ur1", {"ur10", "ur10e"}),
     ],
 )
 def test_bash_completion_lists_the_choices(words, expected):

@@ -81,6 +81,14 @@ def user_errors(fn):
     return wrapper
 
 
+def complete_robot(incomplete: str) -> list[str]:
+    """Shell completion of --robot: the built-in models starting with what was typed (none: the shell completes a
+    file name, for a robot TOML/URDF)."""
+    from labcal.robots import BUILTINS
+
+    return [name for name in BUILTINS if name.startswith(incomplete)]
+
+
 class InputError(ValueError):
     """An input the user can fix (user_errors prints it as one `error: …` line, exit 2)."""
 

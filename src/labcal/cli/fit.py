@@ -9,6 +9,7 @@ import typer
 from labcal.cli.common import (
     Method,
     StoreOption,
+    complete_robot,
     err,
     metrics_doc,
     metrics_table,
@@ -37,7 +38,9 @@ def fit(
         help="Fraction of unlabelled rows held out as a fixed validation split that is only scored (default 0: every "
         "row is fitted; learned stages are chosen by K-fold cross-validation).",
     ),
-    robot: str | None = typer.Option(None, "--robot", help="Robot model file when the session's is not built in."),
+    robot: str | None = typer.Option(
+        None, "--robot", help="Robot model file when the session's is not built in.", autocompletion=complete_robot
+    ),
     as_json: bool = typer.Option(
         False,
         "--json",

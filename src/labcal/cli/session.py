@@ -14,6 +14,7 @@ from labcal.cli.common import (
     SimErrors,
     StoreOption,
     TrackerDriver,
+    complete_robot,
     err,
     out,
     print_json,
@@ -107,7 +108,9 @@ class _RunProgress:
 @app.command("new")
 @user_errors
 def new(
-    robot: str = typer.Option(..., "--robot", help="Robot model: built-in name or TOML/URDF path."),
+    robot: str = typer.Option(
+        ..., "--robot", help="Robot model: built-in name or TOML/URDF path.", autocompletion=complete_robot
+    ),
     targets: Path = typer.Option(
         ..., "--targets", help="Targets TOML: unit and the points in the tool frame (1 or more; one for a single SMR)."
     ),
