@@ -17,7 +17,9 @@ def refit(
     ),
     everything: bool = typer.Option(False, "--all", help="Every session in the store (other options narrow it)."),
     robot: str | None = typer.Option(None, "--robot", help="Only sessions of this robot (the name stored with them)."),
-    unit: str | None = typer.Option(None, "--unit", help="Only sessions of this unit (session metadata 'unit')."),
+    unit: str | None = typer.Option(
+        None, "--unit", help="Only sessions of this unit (session metadata 'unit'; sessions without one never match)."
+    ),
     since: str | None = typer.Option(None, "--since", help="Only sessions started at or after DATE (UTC)."),
     every_version: bool = typer.Option(
         False, "--every-version", help="Refit every version of a session, not only its latest."
@@ -41,6 +43,9 @@ def refit(
     same bytes but for the fit id and times). "before" is the version's latest earlier fit, "after" the new one;
     the error is the held-out mean point error (a test/val split's, else cross-validation). A session whose fit
     fails is reported and the others go on. A fit with warnings is stored and listed with its warning codes.
+    --jobs N runs N worker processes on this machine (a Dask LocalCluster); with --scheduler the cluster's workers
+    need labcal installed and the store at the same path (a shared file system). Exit 0 all fitted, 1 any failed,
+    2 bad options, 130 Ctrl-C (every stored fit complete).
 
     Examples:
 
