@@ -13,23 +13,17 @@ from pathlib import Path
 
 import cloudpickle
 import pytest
-import typer
 from distributed import LocalCluster
 from typer.testing import CliRunner
 
-from labcal.cli.fit import fit
+from labcal.cli.app import app
 from labcal.cli.ops import new_session, open_store
 from labcal.cli.ops.refit import FAILED, FITTED, NOT_RUN, Selection, run_refit, select_versions, session_created
-from labcal.cli.refit import refit
 from labcal.datasets import SessionStore
 
 TARGETS = "drivers/targets-example.toml"
 METHOD = "local-poe"  # the quickest method that goes through every step of run_fit (CV, gates, store)
 
-# The lead registers the command in labcal.cli.app; until then the tests build the two commands they need.
-app = typer.Typer()
-app.command("fit")(fit)
-app.command("refit")(refit)
 runner = CliRunner()
 
 # Dask workers cannot import this test module: the fault-injecting hooks below travel by value.
@@ -41,9 +35,12 @@ def invoke(*args, store: Path):
 
 
 def sim(store: SessionStore, seed: int, *, robot: str = "ur10", unit: str | None = None, poses: int = 16) -> str:
-    """A small simulated session (its own simulated robot per seed); ``unit`` goes into the session metadata."""
-    if unit is None:
-        return new_session(store, robot=robot, targets_file=TARGETS, poses=poses, seed=seed).ref
+    """A small simulated session (its own simulated robot per seed) of unit ``unit`` (default: sim-<seed>)."""
+    return new_session(store, robot=robot, targets_file=TARGETS, poses=poses, seed=seed, unit=unit).ref
+
+
+def sim_without_unit(store: SessionStore, seed: int, *, robot: str = "ur10", poses: int = 16) -> str:
+    """A session like those recorded before units were stored: no "unit" in its metadata."""
     from labcal.cli.ops.sessions import sim_actual
     from labcal.datasets import load_targets
     from labcal.drivers.sim import SimRig
@@ -54,9 +51,11 @@ def sim(store: SessionStore, seed: int, *, robot: str = "ur10", unit: str | None
     targets = load_targets(TARGETS)
     plan = make_plan(random_configurations(spec.model, poses, seed=seed, targets=targets), samples=3, settle=0.0)
     rig = SimRig(sim_actual(spec, "default", seed), targets, seed=seed)
-    meta = {"sim": {"errors": "default", "seed": seed, "noise_seed": seed}, "unit": unit}
+    meta = {"sim": {"errors": "default", "seed": seed, "noise_seed": seed}}
     with rig.robot() as rob, rig.tracker() as trk:
-        return run(store, spec, targets, plan, rob, trk, frame="base", metadata=meta).ref
+        ref = run(store, spec, targets, plan, rob, trk, frame="base", metadata=meta).ref
+    assert "unit" not in store.session_meta(ref.split("@")[0])["metadata"]
+    return ref
 
 
 def fit_ids(store: SessionStore, ref: str) -> list[str]:
@@ -83,23 +82,25 @@ def intact(store: SessionStore, ref: str) -> bool:
 
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
-    """Three ur10 sessions (two of unit arm-1, one of arm-2) and one ur5e session without a unit."""
+    """Three ur10 sessions (two of unit arm-1, one of arm-2), one ur5e session without a unit, one of unit sim-5."""
     store = open_store(tmp_path_factory.mktemp("refit") / "store", create=True)
     refs = [sim(store, 1, unit="arm-1"), sim(store, 2, unit="arm-2"), sim(store, 3, unit="arm-1")]
-    refs.append(sim(store, 4, robot="ur5e"))
+    refs.append(sim_without_unit(store, 4, robot="ur5e"))
+    refs.append(sim(store, 5, robot="ur5e"))
     return store, refs
 
 
 def test_selection_by_robot_unit_and_start_time(fleet):
-    store, (a1, a2, a3, other) = fleet
-    assert select_versions(store, Selection(everything=True))[0] == [a1, a2, a3, other]
+    store, (a1, a2, a3, other, sim5) = fleet
+    assert select_versions(store, Selection(everything=True))[0] == [a1, a2, a3, other, sim5]
     assert select_versions(store, Selection(robot="UR10"))[0] == [a1, a2, a3]
-    assert select_versions(store, Selection(robot="ur5e"))[0] == [other]
-    # The unit identity is the session metadata's "unit"; a session without one never matches.
+    assert select_versions(store, Selection(robot="ur5e"))[0] == [other, sim5]
+    # The unit identity is the session metadata's "unit" (`session new` records sim-<seed> on the sim rig).
     assert select_versions(store, Selection(unit="arm-1"))[0] == [a1, a3]
+    assert select_versions(store, Selection(unit="sim-5"))[0] == [sim5]
     assert select_versions(store, Selection(unit="arm-1", robot="ur5e"))[0] == []
     since = session_created(store, a2.split("@")[0])
-    assert select_versions(store, Selection(since=since))[0] == [a2, a3, other]
+    assert select_versions(store, Selection(since=since))[0] == [a2, a3, other, sim5]
     assert select_versions(store, Selection(refs=(a3.split("@")[0],)))[0] == [a3]
 
 
@@ -113,7 +114,7 @@ def test_no_selection_is_a_usage_error(fleet):
 
 
 def test_refit_stores_what_labcal_fit_stores_serially_and_on_a_local_cluster(fleet):
-    store, (a1, a2, a3, _) = fleet
+    store, (a1, a2, a3, *_) = fleet
     result = invoke("fit", a1, "--method", METHOD, "--seed", "3", store=store.root)
     assert result.exit_code == 0, result.stderr
     by_fit = result.stdout.strip().splitlines()[-1]
