@@ -115,7 +115,9 @@ class SimRig:
     per move (float), or ``"realistic"`` for a trapezoidal-profile time of the slowest joint from its distance,
     the move's speed and acceleration; q0: (n,) initial joint values, controller joints (default: the model's
     zeros clipped into the limits); max_speed (rad/s) and max_acceleration (rad/s²): the robot's motion caps;
-    joint_map: controller → model joints (None: the same), e.g. ``spec.joint_map`` of the robot file.
+    joint_map: controller → model joints (None: the same), e.g. ``spec.joint_map`` of the robot file; serial: the
+    simulated arm's serial number (what :meth:`SimRobot.device_identity` reports, hence the session's unit; the CLI
+    gives ``sim-<seed of the simulated robot>``); None: the rig reports none.
     """
 
     def __init__(
@@ -131,6 +133,7 @@ class SimRig:
         max_acceleration: float = 1.4,
         joint_map: JointMap | None = None,
         dropout=0.0,
+        serial: str | None = None,
     ) -> None:
         targets = np.asarray(targets, dtype=float)
         if targets.ndim != 2 or targets.shape[1] != 3 or targets.shape[0] == 0 or not np.all(np.isfinite(targets)):
@@ -149,6 +152,7 @@ class SimRig:
         if not (motion_time == "realistic" or (isinstance(motion_time, int | float) and motion_time >= 0)):
             raise ValueError(f"motion_time must be seconds >= 0 or 'realistic', got {motion_time!r}")
         self.actual = actual
+        self.serial = serial
         self.targets = targets
         self.dropout = dropout
         self.seed = int(seed)
@@ -236,6 +240,13 @@ class SimRobot:
     def identity(self) -> dict:
         """Who this robot is, for a session's start document."""
         return {"driver": "sim", "model": self.rig.actual.nominal.name, "seed": self.rig.seed}
+
+    def device_identity(self) -> dict:
+        """What the simulated controller tells about the arm: its model and (if the rig has one) serial number."""
+        identity = {"model": self.rig.actual.nominal.name}
+        if self.rig.serial is not None:
+            identity["serial"] = self.rig.serial
+        return identity
 
     def move_joints(self, q, speed: float, acceleration: float) -> None:
         """Move to q (n,) rad. Raises MotionRejected (limits/caps), ProtectiveStop, DriverError (closed)."""

@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import re
 import socket
 import struct
 import time
@@ -337,6 +338,79 @@ def probe_dashboard(host: str, port: int = DASHBOARD_PORT, timeout: float = 2.0)
         return line.decode("utf-8", "replace").strip()
 
 
+# What labcal asks the dashboard server about the arm, and the identity key each answer goes to.
+IDENTITY_COMMANDS = (("get serial number", "serial"), ("get robot model", "model"), ("PolyscopeVersion", "software"))
+# The dashboard answers a command it does not know (older PolyScope) with a sentence, not an error code.
+_DASHBOARD_REFUSALS = ("could not understand", "failed", "error", "unknown")
+_SOFTWARE_VERSION = re.compile(r"(\d+\.\d+\.\d+(?:\.\d+)?)")
+_IDENTITY_TOKEN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}")
+
+
+def parse_dashboard_identity(answers: dict[str, str]) -> dict[str, Any]:
+    """The identity in the dashboard's answers ({command: answer line}): serial, model, software (+ notes).
+
+    >>> parse_dashboard_identity({"get serial number": "20185500001", "get robot model": "UR10",
+    ...                           "PolyscopeVersion": "URSoftware 5.11.0.108249 (Sep 15 2021)"})
+    {'serial': '20185500001', 'model': 'UR10', 'software': '5.11.0.108249'}
+
+    An answer that is missing, a refusal ("could not understand: …") or not an identifier becomes a note instead.
+    """
+    identity: dict[str, Any] = {}
+    notes = []
+    for command, key in IDENTITY_COMMANDS:
+        answer = answers.get(command)
+        if answer is None:
+            notes.append(f"the dashboard server did not answer {command!r}")
+            continue
+        text = answer.strip()
+        if key == "software":
+            found = _SOFTWARE_VERSION.search(text)
+            value = found.group(1) if found and not text.lower().startswith(_DASHBOARD_REFUSALS) else None
+        else:
+            ok = _IDENTITY_TOKEN.fullmatch(text) and not text.lower().startswith(_DASHBOARD_REFUSALS)
+            value = text if ok else None
+        if value is None:
+            notes.append(f"the dashboard server answered {command!r} with {text[:80]!r}")
+        else:
+            identity[key] = value
+    if notes:
+        identity["notes"] = notes
+    return identity
+
+
+def read_dashboard_identity(host: str, port: int = DASHBOARD_PORT, timeout: float = 2.0) -> dict[str, Any]:
+    """Ask the dashboard server who the arm is (:data:`IDENTITY_COMMANDS`); never raises.
+
+    A controller that cannot be reached or stops answering gives what it told so far plus a note: a session can
+    be recorded without the serial number (the operator then names the unit with ``--unit``).
+    """
+    what = f"dashboard identity query of {host}:{port}"
+    answers: dict[str, str] = {}
+    deadline = time.monotonic() + timeout
+    try:
+        with contextlib.closing(_open(host, port, timeout)) as sock:
+            _read_line(sock, deadline, what)  # the greeting
+            for command, _ in IDENTITY_COMMANDS:
+                sock.sendall(command.encode("ascii") + b"\n")
+                answers[command] = _read_line(sock, deadline, what)
+    except (ConnectionFailed, ProtocolError, OSError) as exc:
+        identity = parse_dashboard_identity(answers)
+        asked = [c for c, _ in IDENTITY_COMMANDS if c not in answers]
+        notes = [n for n in identity.pop("notes", []) if not any(repr(c) in n for c in asked)]
+        identity["notes"] = [*notes, f"{what} failed ({exc}); not known: {', '.join(asked)}"]
+        return identity
+    return parse_dashboard_identity(answers)
+
+
+def _read_line(sock: socket.socket, deadline: float, what: str) -> str:
+    line = b""
+    while not line.endswith(b"\n"):
+        line += _recv_exact(sock, 1, deadline, what)
+        if len(line) > 4096:
+            raise ProtocolError(f"{what}: a line longer than 4096 bytes without a newline")
+    return line.decode("utf-8", "replace").strip()
+
+
 def probe_script_port(host: str, port: int = SCRIPT_PORT, timeout: float = 2.0) -> None:
     """Check that the script/real-time port streams bytes after connecting (it does so at 125-500 Hz)."""
     deadline = time.monotonic() + timeout
@@ -366,6 +440,7 @@ class URRobot:
     receive: an ``rtde_receive.RTDEReceiveInterface`` (or a stand-in with the same methods).
     control: an ``rtde_control.RTDEControlInterface``, or None for a read-only robot (move_joints refuses).
     Use :meth:`connect` to probe and build the real interfaces; pass stand-ins directly in tests.
+    identity: what the controller told about itself (:func:`read_dashboard_identity`), None if it was not asked.
     """
 
     n_joints = N_JOINTS
@@ -378,8 +453,10 @@ class URRobot:
         *,
         sleep: Callable[[float], None] = time.sleep,
         clock: Callable[[], float] = time.monotonic,
+        identity: dict[str, Any] | None = None,
     ):
         self.profile = profile
+        self.identity_read = None if identity is None else dict(identity)
         self.limits = profile.limits
         self._receive = receive
         self._control = control
@@ -397,8 +474,12 @@ class URRobot:
         probe: bool = True,
         receive_factory: Callable[[str, float], Any] = _real_receive,
         control_factory: Callable[[str, float], Any] = _real_control,
+        identify: bool | None = None,
     ) -> URRobot:
         """Probe the controller's ports, then build the interfaces (control only unless ``read_only``).
+
+        ``identify`` (default: as ``probe``): ask the dashboard server for the arm's serial number, model and
+        software version (:meth:`device_identity`); a controller that does not tell leaves a note, never an error.
 
         Raises ConnectionFailed (ProbeTimeout for a silent peer) or ProtocolError; never hangs on a peer that
         fails the probe. A peer that answers the probe and then stops answering can still hang ur-rtde: that
@@ -411,6 +492,10 @@ class URRobot:
             if not read_only:
                 probe_dashboard(host, profile.dashboard_port, timeout)
                 probe_script_port(host, profile.script_port, timeout)
+        identity = None
+        if probe if identify is None else identify:
+            identity = read_dashboard_identity(host, profile.dashboard_port, timeout)
+            log.info("UR controller at %s: %s", host, identity)
         receive = _construct(receive_factory, host, profile.frequency, "RTDE receive interface")
         control = None
         if not read_only:
@@ -420,7 +505,12 @@ class URRobot:
                 with contextlib.suppress(Exception):
                     receive.disconnect()
                 raise
-        return cls(profile, receive, control)
+        return cls(profile, receive, control, identity=identity)
+
+    def device_identity(self) -> dict[str, Any]:
+        """What the controller told about itself: ``serial``, ``model``, ``software`` (PolyScope version), and
+        ``notes`` for what it did not tell; {} if it was not asked (built from stand-ins without ``identity``)."""
+        return dict(self.identity_read or {})
 
     # -- context manager -------------------------------------------------------------------------------------
 
@@ -585,6 +675,10 @@ class URRobot:
         if self._control is None:
             raise MotionRejected("this UR robot was opened read-only (no control interface)")
         state = self.state()
+        # The sample in hand may predate the operator's clearing of the stop (see STREAM_SKEW_WINDOW).
+        deadline = self._clock() + STREAM_SKEW_WINDOW
+        while (state.protective_stop or state.emergency_stop) and self._clock() < deadline:
+            state = self.state()
         self._raise_if_stopped(state, "— clear it on the teach pendant first")
         mode = self.robot_mode()
         if mode != ROBOT_MODE_RUNNING:

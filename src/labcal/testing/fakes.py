@@ -229,7 +229,8 @@ class FakeNDIDevice(_PtyDevice):
 
     State: ``state`` is "reset" (after power-up/reset), "setup" (after INIT) or "tracking"; ``baudrate`` is the
     emulated rate set by COMM. Replies follow the API: body + CRC16 + CR; ERRORxx for bad commands; ``BX``
-    answers in binary (``encode_bx_reply``) from the same simulated markers as ``TX``.
+    answers in binary (``encode_bx_reply``) from the same simulated markers as ``TX``; ``VER`` answers
+    ``version_text`` (serial P9-00384) and ``APIREV`` ``api_revision``, in any state.
 
     Faults on a BX reply: "bad_crc" spoils the body CRC, "garbled" the start sequence, "truncated" drops the
     last bytes (a TX reply loses its CR and CRC); the others act as on TX.
@@ -266,6 +267,9 @@ class FakeNDIDevice(_PtyDevice):
         self.state = "reset"
         self.baudrate = 9600
         self.system_status = 0
+        # What VER answers (lines separated by LF, as a Polaris does) and APIREV; tests may change either.
+        self.version_text = "Polaris Vega Control Firmware\nNDI S/N: P9-00384\nFreeze Tag: Polaris Vega 001.004"
+        self.api_revision = "G.001.005"
 
     # -- reset emulation -----------------------------------------------------------------------------------
 
@@ -334,6 +338,14 @@ class FakeNDIDevice(_PtyDevice):
 
     def _cmd_beep(self, params: str) -> bytes:
         return _ndi_frame("1")
+
+    def _cmd_ver(self, params: str) -> bytes:
+        if params not in ("0", "3", "4", "5"):
+            return _ndi_frame("ERROR07")
+        return _ndi_frame(self.version_text)
+
+    def _cmd_apirev(self, params: str) -> bytes:
+        return _ndi_frame(self.api_revision)
 
     def _frame_request(self, params: str) -> tuple[int | None, str | None, bytes | None]:
         """Checks shared by TX and BX: (reply option, fault to apply, or an ASCII reply that ends the request)."""

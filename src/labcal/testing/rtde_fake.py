@@ -200,6 +200,8 @@ class SimController:
         self.frozen_at: float | None = None
         self.registers: dict[str, Any] = {}
         self.log: list[tuple[str, Any]] = []  # control-side events (script uploads, commands) for tests
+        self.serial: str | None = "20185500001"  # None: a controller too old to know "get serial number"
+        self.robot_model = "UR10"
 
     def timestamp(self) -> float:
         """Controller time, s since the fake started (stops advancing while frozen)."""
@@ -490,10 +492,10 @@ class ControlEmulator:
         major, minor, bugfix, build = sim.controller_version
         if line == "PolyscopeVersion":
             return f"URSoftware {major}.{minor}.{bugfix}.{build} (fake)"
-        if line == "get serial number":
-            return "20185500001"
+        if line == "get serial number" and sim.serial is not None:
+            return sim.serial
         if line == "get robot model":
-            return "UR10"
+            return sim.robot_model
         if line == "is in remote control":
             return "true"
         if line == "robotmode":
@@ -583,6 +585,7 @@ def _child_main(options: dict[str, Any], commands: Any, replies: Any) -> None:
         replies.flush()
 
     sim = SimController(options["q0"], options["controller_version"])
+    sim.serial, sim.robot_model = options.get("serial", sim.serial), options.get("robot_model", sim.robot_model)
     ports = [RTDE_PORT] + ([DASHBOARD_PORT, SCRIPT_PORT] if options["control"] else [])
     listeners: dict[int, socket.socket] = {}
     host = None
@@ -685,7 +688,9 @@ class FakeRTDEServer:
     q0: (6,) initial joint positions, rad. control: also serve dashboard/script ports and emulate ur-rtde's
     control registers. controller_version: answered to ``v`` (major, minor, bugfix, build).
     unknown_variables: output names to answer NOT_FOUND (an older controller). first_host: index into
-    :func:`candidate_hosts` to start the address search at (default: derived from the pid).
+    :func:`candidate_hosts` to start the address search at (default: derived from the pid). serial / robot_model:
+    the dashboard's answers to ``get serial number`` / ``get robot model`` (serial None: the controller does not
+    understand the command, as PolyScope before 3.10/5.4).
     A plain subprocess (not multiprocessing) so scripts using the fake need no ``if __name__ == "__main__"``.
     """
 
@@ -699,6 +704,8 @@ class FakeRTDEServer:
         reply_timeout: float = 5.0,
         first_host: int | None = None,
         unknown_variables: Sequence[str] = (),
+        serial: str | None = "20185500001",
+        robot_model: str = "UR10",
     ):
         if len(q0) != 6:
             raise ValueError(f"q0 needs 6 joint values, got {len(q0)}")
@@ -707,6 +714,8 @@ class FakeRTDEServer:
             "control": control,
             "controller_version": [int(v) for v in controller_version],
             "unknown_variables": list(unknown_variables),
+            "serial": serial,
+            "robot_model": robot_model,
             # Spread start addresses by pid so parallel test runs rarely try the same address first.
             "hosts": candidate_hosts(first_host if first_host is not None else (os.getpid() * 37) % 60000),
         }

@@ -96,7 +96,14 @@ def _sim_rig(spec: RobotSpec, targets, sim: dict):
         extra["dropout"] = float(sim["dropout"])
     # The simulated controller speaks the robot file's controller joints, as the real one would.
     try:
-        return SimRig(actual, targets, seed=int(sim.get("noise_seed", sim["seed"])), joint_map=spec.joint_map, **extra)
+        return SimRig(
+            actual,
+            targets,
+            seed=int(sim.get("noise_seed", sim["seed"])),
+            joint_map=spec.joint_map,
+            serial=sim_unit(sim),
+            **extra,
+        )
     except TypeError as e:
         if extra:
             raise UserError(f"this labcal's sim rig has no per-target drop-out (--sim-dropout): {e}") from None
@@ -204,8 +211,10 @@ def new_session(store: SessionStore, request: SessionRequest | None = None, *, p
     sim = request.robot_driver == "sim"
     plan = make_plan(q, samples=3 if sim else 5, settle=0.0 if sim else 0.5)
     rob, trk, frame, meta = _drivers(request, spec, targets)
-    unit = request.unit if request.unit is not None or "sim" not in meta else sim_unit(meta["sim"])
-    options = RunOptions(frame=frame, progress=progress, metadata=meta, allow=_allowed(request.allow), unit=unit)
+    # The unit: --unit, else the serial the robot driver reports (the sim rig's is sim-<seed>; see sim_unit).
+    options = RunOptions(
+        frame=frame, progress=progress, metadata=meta, allow=_allowed(request.allow), unit=request.unit
+    )
     with rob, trk:
         return run(store, spec, targets, plan, rob, trk, options)
 

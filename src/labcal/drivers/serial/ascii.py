@@ -74,6 +74,7 @@ class AsciiProtocol:
             raise ProtocolError(f"non-ASCII reply {line!r}") from exc
 
     def start(self) -> None:
+        self.identity = self._ask_identity()
         for step in self.profile.init:
             self.link.flush_input()
             self.link.send_line(step.command)
@@ -84,6 +85,31 @@ class AsciiProtocol:
                 raise ProtocolError(
                     f"init command {step.command!r}: reply {text!r} does not match {step.expect.pattern!r}"
                 )
+
+    def _ask_identity(self) -> dict[str, object]:
+        """The profile's static identity fields, completed by the device's answer to its identity command (the
+        device's word wins); an unanswered or unmatched query is a note, not an error."""
+        p = self.profile
+        identity: dict[str, object] = dict(p.identity)
+        if p.identity_command is None or p.identity_reply is None:
+            return identity
+        try:
+            self.link.flush_input()
+            self.link.send_line(p.identity_command)
+            text = self._read_text()
+        except (DriverTimeout, ProtocolError) as exc:
+            identity["notes"] = [f"identity command {p.identity_command!r} not answered: {exc}"]
+            return identity
+        m = p.identity_reply.fullmatch(text)
+        if m is None:
+            identity["notes"] = [f"identity reply {text[:120]!r} does not match {p.identity_reply.pattern!r}"]
+            return identity
+        identity.update({k: v.strip() for k, v in m.groupdict().items() if v and v.strip()})
+        return identity
+
+    def identify(self) -> dict[str, object]:
+        """What :meth:`start` learnt about the device (see :meth:`_ask_identity`)."""
+        return dict(getattr(self, "identity", {}))
 
     def _fetch_line(self) -> str:
         self.link.flush_input()

@@ -36,6 +36,7 @@ Errors (``ERRORxx``) and ``RESETBE6F`` stay ASCII lines in binary mode.
 from __future__ import annotations
 
 import math
+import re
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -265,6 +266,41 @@ def parse_bx_strays(reply: bytes, command: str = "BX:1000") -> StrayFrame:
     return parse_bx_body(split_bx_reply(reply, command))
 
 
+# What labcal asks an NDI device about itself: its combined firmware description and its API revision.
+IDENTITY_COMMANDS = ("VER:4", "APIREV:")
+_VERSION_NUMBER = re.compile(r"(\d+(?:\.\d+)+)\s*$")
+
+
+def parse_ver(text: str) -> dict[str, str]:
+    """Serial number, model and firmware from a ``VER:4`` reply body (lines separated by LF).
+
+    The reply is text: a first line naming the device, then ``Key: value`` lines, e.g.::
+
+        Polaris Vega Control Firmware
+        NDI S/N: P9-00384
+        Freeze Tag: Polaris Vega 001.004
+
+    gives {"model": "Polaris Vega", "serial": "P9-00384", "firmware": "001.004"}. A line labcal does not know is
+    ignored; a field not found is simply absent.
+    """
+    lines = [line.strip() for line in text.replace("\r", "\n").split("\n") if line.strip()]
+    identity: dict[str, str] = {}
+    for line in lines:
+        key, sep, value = line.partition(":")
+        key, value = key.strip().lower(), value.strip()
+        if not sep:
+            if "model" not in identity and line == lines[0]:
+                model = re.sub(r"\s+(control\s+)?firmware$", "", line, flags=re.IGNORECASE).strip()
+                if model:
+                    identity["model"] = model
+        elif value and ("s/n" in key or "serial" in key):
+            identity.setdefault("serial", value)
+        elif value and ("freeze tag" in key or "firmware revision" in key):
+            found = _VERSION_NUMBER.search(value)
+            identity.setdefault("firmware", found.group(1) if found else value)
+    return identity
+
+
 class NDIProtocol:
     """The NDI session on a SerialLink: start (INIT, COMM, TSTART), read_frame (TX:1000 or BX:1000), stop (TSTOP)."""
 
@@ -434,6 +470,28 @@ class NDIProtocol:
     def read_frame(self) -> tuple[np.ndarray, tuple[str, ...]]:
         """One frame on its own: (m, 3) target positions in the tracker frame, m (NaN rows: not seen), flags."""
         return self.label(self.read_strays())
+
+    def identify(self) -> dict[str, object]:
+        """Ask the device who it is (``VER:4``, ``APIREV:``): serial, model, firmware, api_revision, and ``notes``
+        for what it would not tell. Never raises a protocol error: a session can be recorded without them."""
+        identity: dict[str, object] = {}
+        notes = []
+        for command in IDENTITY_COMMANDS:
+            try:
+                body = self.command(command, retries=0)
+            except (DriverTimeout, ProtocolError) as exc:  # NDIError (ERRORxx) included
+                notes.append(f"{command} not answered: {exc}")
+                continue
+            if command.startswith("VER"):
+                found = parse_ver(body)
+                identity.update(found)
+                if "serial" not in found:
+                    notes.append(f"no serial number in the VER:4 reply {body[:120]!r}")
+            else:
+                identity["api_revision"] = body.strip()
+        if notes:
+            identity["notes"] = notes
+        return identity
 
     def stop(self) -> None:
         """Stop tracking and put the device back to 9600 baud, where the next session's INIT expects it.

@@ -59,6 +59,9 @@ class AsciiProfile:
     axes: for tracker-frame x, y, z, which device axis (with optional '-') holds it, e.g. ("x", "-z", "y").
     length_scale: device length unit in metres. triangle_tolerance: m, or None to skip the check of the distances
     between the targets seen (it needs two of them). targets: k, the number of targets a reply names.
+    identity_command / identity_reply: a query sent once when the session starts (before ``init``) and the regex
+    whose named groups (``serial``, ``model``, ``firmware`` …) become the tracker's identity; identity: static
+    (field, value) pairs the profile states for a device that cannot tell (``[ascii.identity] serial = "…"``).
     """
 
     name: str
@@ -79,6 +82,9 @@ class AsciiProfile:
     triangle_tolerance: float | None = None
     source: str = "<profile>"
     protocol: str = "ascii"
+    identity_command: str | None = None
+    identity_reply: re.Pattern[str] | None = None
+    identity: tuple[tuple[str, str], ...] = ()
 
     @property
     def targets(self) -> int:
@@ -172,6 +178,15 @@ PORT_SCHEMA = Table(
     }
 )
 INIT_SCHEMA = Table({"command": Key("str", required=True), "expect": Key("str", check=_regex)})
+IDENTITY_SCHEMA = Table(
+    {
+        "command": Key("str", doc="query sent once when the session starts, e.g. '*IDN?'"),
+        "reply": Key("str", check=_regex, doc="full-match regex; named groups (serial, model, firmware) are kept"),
+        "serial": Key("str", doc="stated serial number, for a device that cannot tell"),
+        "model": Key("str"),
+        "firmware": Key("str"),
+    }
+)
 ASCII_SCHEMA = Table(
     {
         "mode": Key("str", default="poll", choices=("poll", "stream")),
@@ -190,6 +205,7 @@ ASCII_SCHEMA = Table(
         "close_commands": Key("strings", default=[]),
         "retries": Key("int", default=2, check=_non_negative),
         "triangle_tolerance_mm": Key("number", unit="mm", check=_positive, doc="pairwise-distance check"),
+        "identity": Key("table", table=IDENTITY_SCHEMA, default={}, doc="who the tracker is (serial, model …)"),
     }
 )
 NDI_SCHEMA = Table(
@@ -247,6 +263,10 @@ def _ascii(t: dict, port: PortSettings, name: str, source: str) -> AsciiProfile:
     if tol_mm is not None and targets < 2:
         raise _fail(source, "ascii.triangle_tolerance_mm", "needs at least two targets in the reply to compare")
     optional = {key: re.compile(t[key]) if key in t else None for key in ("error_reply", "missing")}
+    ident = t["identity"]
+    if ("command" in ident) != ("reply" in ident):
+        given, other = ("command", "reply") if "command" in ident else ("reply", "command")
+        raise _fail(source, f"ascii.identity.{other}", f"is required with ascii.identity.{given}")
     return AsciiProfile(
         name=name,
         port=port,
@@ -265,6 +285,9 @@ def _ascii(t: dict, port: PortSettings, name: str, source: str) -> AsciiProfile:
         retries=t["retries"],
         triangle_tolerance=None if tol_mm is None else tol_mm * 1e-3,
         source=source,
+        identity_command=ident.get("command"),
+        identity_reply=re.compile(ident["reply"]) if "reply" in ident else None,
+        identity=tuple((k, ident[k]) for k in ("serial", "model", "firmware") if k in ident),
     )
 
 

@@ -64,6 +64,7 @@ class SerialTracker:
         self.targets = targets
         self._clock = clock
         self._closed = False
+        self._identity: dict[str, Any] | None = None
         if transport is None:
             target_url = url or profile.port.url
             if not target_url:
@@ -100,6 +101,17 @@ class SerialTracker:
             self.link.close()
             self._closed = True
             raise
+
+    def device_identity(self) -> dict[str, Any]:
+        """What the tracker told about itself (serial, model, firmware …, ``notes`` for what it did not tell).
+
+        NDI: asked once, here (``VER:4``, ``APIREV:``); ASCII: what the profile's ``[ascii.identity]`` gave when
+        the session started (its command's reply, and the static fields). Never raises for a silent device."""
+        if self._identity is None:
+            if self._closed:
+                raise DriverError("device_identity() on a closed tracker")
+            self._identity = self.protocol.identify()
+        return dict(self._identity)
 
     def measure(self, samples: int = 1) -> Measurement:
         """Average ``samples`` frames into one Measurement (points (m, 3) m with NaN rows for targets not seen,

@@ -45,6 +45,7 @@ def test_a_sim_session_is_the_unit_of_its_simulated_robot(store, targets_file):
     other = _sim(store, targets_file, seed=2)
     assert [_unit(store, s.ref) for s in (a, again, other)] == ["sim-1", "sim-1", "sim-2"]
     assert store.session_meta(a.session_id)["metadata"]["unit"] == "sim-1"  # what session list / refit read
+    assert store.session_meta(a.session_id)["robot_driver"]["identity"] == {"model": "ur10", "serial": "sim-1"}
     assert len(load_observations(store, [a.ref, again.ref])[0].q) == 24  # one unit: pooled as always
     with pytest.raises(UserError, match=r"2 different robot units \(sim-1: .*; sim-2: .*\).*--pool-units"):
         load_observations(store, [a.ref, other.ref])
