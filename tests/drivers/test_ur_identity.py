@@ -83,3 +83,31 @@ def test_stand_in_interfaces_have_no_identity():
 )
 def test_dashboard_answers_are_parsed_or_noted(answers, expected):
     assert parse_dashboard_identity(answers) == expected
+
+
+def test_a_session_on_the_fake_controller_is_recorded_as_the_unit_of_its_serial(tmp_path):
+    """The whole path: real ur-rtde moves the fake's joints, the runner records the serial the dashboard told."""
+    pytest.importorskip("rtde_control")
+    import numpy as np
+
+    from labcal.datasets import SessionStore
+    from labcal.drivers.sim import SimRig
+    from labcal.robots import load
+    from labcal.sessions import make_plan, run
+    from labcal.simulation import ErrorSpec, simulate
+
+    q0 = [0.0, -1.5, 1.5, 0.0, 1.5, 0.0]
+    plan = make_plan(np.array([q0, [0.05, -1.45, 1.45, 0.05, 1.55, 0.0]]), samples=1, settle=0.0, speed=0.5)
+    spec = load("ur10")
+    targets = np.array([[0.08, 0.0, 0.03], [-0.04, 0.07, 0.03], [-0.04, -0.07, 0.03]])
+    # The tracker is simulated (its points come from its own arm, which stands still): this test is about the unit.
+    rig = SimRig(simulate(spec, ErrorSpec.none(), seed=0), targets, seed=0)
+    store = SessionStore(tmp_path / "store")
+    with FakeRTDEServer(q0=q0, control=True, serial="20185500777") as fake:
+        robot = URRobot.connect(make_profile(fake.host, connect_timeout=2.0))
+        with robot, rig.tracker() as tracker:
+            summary = run(store, spec, targets, plan, robot, tracker, frame="tracker")
+    assert summary.exit_status == "success" and summary.valid == 2
+    meta = store.session_meta(summary.session_id)
+    assert meta["metadata"]["unit"] == "20185500777"
+    assert meta["robot_driver"]["identity"] == {"serial": "20185500777", "model": "UR10", "software": "5.11.0.0"}
