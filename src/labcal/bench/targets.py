@@ -399,7 +399,8 @@ def report(results: dict, methods: tuple[str, ...], seeds: list[int], poses: dic
         for (name, n, m), c in sorted(cells.items(), key=lambda kv: (VARIANTS.index(kv[0][0]), kv[0][1], kv[0][2])):
             if c.notes and ((m in ("auto", "hybrid") and n == poses[fam]) or m == "plain-lsq"):
                 counts = {x: c.notes.count(x) for x in sorted(set(c.notes))}
-                notes.append(f"  {fam} / {LABELS[name]} / {m}: " + ", ".join(f"{k} ×{v}" for k, v in counts.items()))
+                notes.append(f"  {fam} / {LABELS[name]} @ {n} / {m}: " + ", ".join(f"{k} ×{v}" for k, v in
+                                                                                 counts.items()))  # fmt: skip
             for s, msg in sorted(c.failures.items()):
                 notes.append(f"  {fam} / {LABELS[name]} @ {n} / {m} / seed {s}: FAILED {msg}")
             for s, codes in sorted(c.warnings.items()):
