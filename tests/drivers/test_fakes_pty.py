@@ -182,6 +182,8 @@ def test_device_going_away_gives_a_driver_error_not_a_pyserial_one():
 def test_ascii_example_profile_end_to_end_with_faults():
     with FakeASCIIDevice(lambda: SEEN, seed=4) as dev:
         with open_tracker(REPO / "drivers" / "ascii-example.toml", TARGETS, url=dev.port) as tracker:
+            identity = {"maker": "LABCAL", "model": "FAKE-3T", "serial": "FK-0001", "firmware": "1.0"}
+            assert tracker.device_identity() == identity  # the profile's [ascii.identity] query, asked at start
             np.testing.assert_allclose(tracker.measure(samples=2).points, SEEN, atol=1e-7)
             for fault in ("bad_checksum", "garbled"):
                 dev.inject(fault)
@@ -193,7 +195,7 @@ def test_ascii_example_profile_end_to_end_with_faults():
             dev.inject("error:07")
             with pytest.raises(DeviceError, match="ERR,07"):
                 tracker.measure()
-        assert dev.received[:2] == ["*IDN?", "UNITS MM"]
+        assert dev.received[:3] == ["*IDN?", "*IDN?", "UNITS MM"]  # the identity query, then the init steps
         assert dev.received.count("MEAS?") == 2 + 2 * 2 + 1 + 1
 
 

@@ -440,7 +440,8 @@ class FakeNDIDevice(_PtyDevice):
 class FakeASCIIDevice(_PtyDevice):
     """The example ASCII tracker of ``drivers/ascii-example.toml`` (CR LF lines, mm, NMEA-style checksum).
 
-    Commands: ``*IDN?`` -> ``LABCAL,FAKE-3T,0,1.0`` (``FAKE-<m>T`` for m targets); ``UNITS MM`` -> ``OK``;
+    Commands: ``*IDN?`` -> ``LABCAL,FAKE-3T,FK-0001,1.0`` (maker, model ``FAKE-<m>T`` for m targets, ``serial``,
+    firmware); ``UNITS MM`` -> ``OK``;
     ``MEAS?`` -> ``$PTS,x1,y1,z1,...,zm*HH`` (m = the rows of ``points_provider()``: one for the built-in
     ``ascii-single-smr`` profile); ``STREAM ON``/``STREAM OFF`` -> ``OK`` (while on, a measurement line every
     1/stream_hz s); anything else -> ``ERR,01``. A target the device cannot see (a NaN row, or the
@@ -459,6 +460,7 @@ class FakeASCIIDevice(_PtyDevice):
         stream_hz: float = 100.0,
     ):
         super().__init__(points_provider, seed)
+        self.serial = "FK-0001"
         self.noise = float(noise)
         self.stream_hz = float(stream_hz)
         self.streaming = False
@@ -490,7 +492,7 @@ class FakeASCIIDevice(_PtyDevice):
         command = line.strip().upper()
         if command == "*IDN?":
             m = len(np.asarray(self.points_provider()).reshape(-1, 3))
-            return self._line(f"LABCAL,FAKE-{m}T,0,1.0")
+            return self._line(f"LABCAL,FAKE-{m}T,{self.serial},1.0")
         if command == "UNITS MM":
             return self._line("OK")
         if command == "MEAS?":
