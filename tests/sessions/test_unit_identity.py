@@ -171,3 +171,20 @@ def test_check_units_names_each_unit_with_its_sessions():
     assert check_units(versions, pool_units=True) == ["U1", "U2"]
     assert check_units(versions[:2]) == ["U1"]  # a session without a unit pools with any unit
     assert check_units([_Version("B@v001", None)]) == []
+
+
+def test_an_interrupted_sim_session_resumes_on_its_own_simulated_arm(store):
+    from sessions_testutil import CountingRobot
+
+    from labcal.cli.ops.sessions import _sim_rig, resume_session
+
+    spec, sim = load("ur10"), {"errors": "default", "seed": 3, "noise_seed": 3}
+    rig = _sim_rig(spec, TARGETS, sim)  # the rig `session new` builds: serial sim-3
+    plan = make_plan(random_configurations(spec.model, 8, seed=3, targets=TARGETS), samples=1, settle=0.0)
+    robot = CountingRobot(rig.robot(), interrupt_at=5)  # Ctrl-C at the fifth move
+    with robot, rig.tracker() as tracker:
+        first = run(store, spec, TARGETS, plan, robot, tracker, frame="base", metadata={"sim": sim})
+    assert first.exit_status == "aborted" and _unit(store, first.ref) == "sim-3"
+    resumed = resume_session(store, first.session_id)  # the same simulated arm: its serial check passes
+    assert (resumed.exit_status, resumed.valid) == ("success", 8)
+    assert _unit(store, resumed.ref) == "sim-3"
