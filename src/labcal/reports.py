@@ -32,6 +32,7 @@ from labcal.calibration.metrics import point_errors, prediction_errors
 from labcal.calibration.observations import Observations
 from labcal.compensator import from_payload
 from labcal.datasets.errors import DatasetError
+from labcal.kinematics.metric import parameter_weights
 
 ROBOT_FILE, BEFORE_FILE = "robot.json", "before.json"
 
@@ -309,7 +310,7 @@ def _covariance(lp: dict, data: dict) -> np.ndarray | None:
             robot.model, robot.T_tracker_base, obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base
         )
         L = float(lp.get("length_scale") or robot.length_scale)
-        scale = np.tile([1.0] * 3 + [1.0 / L] * 3, J.shape[1] // 6)
+        scale = parameter_weights(J.shape[1] // 6, L)
         lam, V = np.linalg.eigh((J * scale).T @ (J * scale))
         rank = int(lp["rank"])
         Vk, lk = V[:, -rank:], lam[-rank:]
@@ -334,7 +335,7 @@ def _parameter_lines(info: dict, data: dict | None = None) -> list[str]:
     leverage = None
     if labels and null.ndim == 2 and null.shape[0] == len(labels):
         L = float(lp.get("length_scale") or 1.0)
-        scale = np.tile([1.0] * 3 + [1.0 / L] * 3, len(labels) // 6)
+        scale = parameter_weights(len(labels) // 6, L)
         Vn = null / scale[:, None]  # back to the orthonormal basis of the scaled problem
         leverage = np.sum(Vn * Vn, axis=1)
         for k, j in enumerate(frames):
@@ -388,7 +389,7 @@ def _combination_lines(lp, data, dz, frames, labels, leverage) -> list[str]:
     if S.size == 0:
         return ["Every parameter is identifiable on its own."]
     L = float(lp.get("length_scale") or 1.0)
-    scale = np.tile([1.0] * 3 + [1.0 / L] * 3, len(labels) // 6)
+    scale = parameter_weights(len(labels) // 6, L)
     null = np.asarray(lp["null_space"], dtype=float) / scale[:, None]
     U, sv, _ = np.linalg.svd(null[S], full_matrices=True)
     d = int(np.sum(sv > 1e-9))

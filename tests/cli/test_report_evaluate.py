@@ -153,6 +153,7 @@ def test_evaluate_a_held_out_file(world, tmp_path):
     j = invoke("evaluate", fit, "--data", doc["data"]["ref"], "--json", store=s)
     assert j.exit_code == 0, j.stderr
     out = json.loads(j.stdout)
+    assert out["schema"] == "labcal.evaluate/1"
     assert out["metrics"]["all"]["after"]["pos_mean"] == pytest.approx(m["after"]["pos_mean"], rel=1e-12)
     assert Path(out["stored_at"]).is_file()
 
@@ -259,6 +260,7 @@ def test_fit_stores_what_orientation_accuracy_it_can_claim(one_target, world):
     assert one["targets"] == 1 and one["orientation"] == "none" and one["rows_with_pose"] == 0
     three = SessionStore(world["store"]).load_fit(world["refs"]["good"], world["fits"]["good"]).metadata
     assert three["observability"]["orientation"] == "measured"
+    assert three["pool_units"] is False  # one session: nothing pooled across units
 
 
 def test_one_target_report_leads_with_point_errors_and_claims_no_orientation(one_target, reports):

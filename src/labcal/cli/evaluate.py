@@ -53,7 +53,8 @@ def evaluate(
     outcome = evaluate_fit(store_of(store), fit_id, data, robot=robot, import_options=options)
     ev = outcome.evaluation
     if as_json:
-        print(json.dumps({**ev, "stored_at": str(outcome.path)}, indent=1, sort_keys=True))
+        doc = {**ev, "schema": "labcal.evaluate/1", "stored_at": str(outcome.path)}
+        print(json.dumps(doc, indent=1, sort_keys=True))
         return
     d = ev["data"]
     if outcome.imported:

@@ -36,8 +36,9 @@ def report(
 
     st = store_of(store)
     ref = split_ref(session)
+    # A stored fit already decided whether to pool sessions of different units: the report reads what it fitted.
     path = write_session_report(
-        st, ref, out, fit_ids=fit_id or None, load_obs=lambda refs: load_observations(st, refs)[0]
+        st, ref, out, fit_ids=fit_id or None, load_obs=lambda refs: load_observations(st, refs, pool_units=True)[0]
     )
     for record in st.list_fits(ref):
         if fit_id and record.fit_id not in fit_id:

@@ -40,8 +40,12 @@ def run_fit(
     robot: str | None = None,
     features: tuple[str, ...] | None = None,
     progress=None,
+    pool_units: bool = False,
 ) -> FitOutcome:
-    """Fit one method on the pooled versions and store it under the first version it read."""
+    """Fit one method on the pooled versions and store it under the first version it read.
+
+    pool_units: fit sessions of different robot units as one (by default load_observations refuses them: one
+    unit, one calibration); recorded in the fit's metadata."""
     from labcal.calibration.fit import METHODS, fit
 
     if method not in METHODS:
@@ -50,7 +54,7 @@ def run_fit(
         raise UserError(f"--val-fraction must be in [0, 1), got {val_fraction}")
     if hidden is not None and hidden < 1:
         raise UserError(f"--hidden must be a positive number of nodes, got {hidden}")
-    obs, datasets, spec = load_observations(store, refs, robot, with_spec=True)
+    obs, datasets, spec = load_observations(store, refs, robot, with_spec=True, pool_units=pool_units)
     options = {}
     if hidden is not None:
         options["hidden"] = hidden
@@ -68,6 +72,7 @@ def run_fit(
         "seed": seed,
         "val_fraction": val_fraction,
         "hidden": hidden,
+        "pool_units": pool_units,
         "robot": {"name": spec.name, "hash": spec.hash},
         "metrics": metrics,
         "warnings": gates["warnings"],
