@@ -26,7 +26,10 @@ never fitted, against its measured points. Two scores, each a mean distance in m
 
 - **t1** (the primary one): the point every variant measures — t1 in simulation, the probe origin on the real data;
 - **all 3**: all three targets of the held-out poses; a model fitted on one point has not seen the tool's
-  orientation, so this shows what it does *not* know.
+  orientation, so this shows what it does *not* know. labcal keeps the directions the points cannot fix at the
+  nominal (the tool's rotation about one target or about the line through two); the plain LSQ only holds a single
+  point's tool rotation and otherwise has nothing but its 1e-6 ridge, so its "all 3" score with two targets is
+  arbitrary.
 
 Beside labcal's methods (``local-poe``, ``hybrid``, ``auto``) the independent plain least-squares fit
 (:mod:`labcal.bench.plain_lsq`, no labcal calibration code) on the same rows. Real data: labcal's methods start from
