@@ -372,8 +372,17 @@ def run_refit(
     if not interrupted or scheduler is None:  # a remote attempt may still be running after a Ctrl-C
         for task in tasks:
             _remove_temp_folders(store, task)
-    ordered = [rows.get(i) or RefitRow(t.ref, NOT_RUN, t.before, message="interrupted") for i, t in enumerate(tasks)]
+    ordered = [rows.get(i) or _unfinished(t) for i, t in enumerate(tasks)]
     return RefitReport(ordered, list(skipped), interrupted, executor)
+
+
+def _unfinished(task: RefitTask) -> RefitRow:
+    """The row of a task the interrupt caught: not run, unless its fit was published before the workers stopped."""
+    earlier = _stored(SessionStore(task.store_root), task)
+    if earlier is not None:
+        return RefitRow(task.ref, FITTED, task.before, FitSummary.of(task.fit_id, earlier.metadata),
+                        "stored just before the interrupt")  # fmt: skip
+    return RefitRow(task.ref, NOT_RUN, task.before, message="interrupted")
 
 
 def _run_dask(tasks: list[RefitTask], jobs: int, scheduler: str | None, done) -> bool:
