@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -23,6 +24,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 HERE = Path(__file__).resolve().parent
 AFTER_SRC = HERE.parent / "src"
@@ -30,14 +32,19 @@ RUNNER = "import sys; sys.argv[0] = 'labcal'; from labcal.cli.app import main; m
 TARGETS = 'unit = "mm"\npoints = [[120.0, 0.0, 60.0], [-60.0, 100.0, 60.0], [-60.0, -100.0, 90.0]]\n'
 
 
-def labcal(src: Path, args: list[str], *, check: bool = True) -> tuple[float, subprocess.CompletedProcess]:
+def labcal(src: Path, args: list[str], *, check: bool = True) -> tuple[tuple[float, float], Any]:
+    """((wall s, CPU s), result): CPU = the child's user + system time, which a busy machine inflates far less than
+    the wall time (waiting for a core counts in wall time only)."""
     env = {**os.environ, "PYTHONPATH": str(src), "COLUMNS": "100"}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     r = subprocess.run([sys.executable, "-c", RUNNER, *args], env=env, capture_output=True, text=True)
-    dt = time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     if check and r.returncode != 0:
         raise SystemExit(f"{src}: labcal {' '.join(args)} exited {r.returncode}:\n{r.stderr[-2000:]}")
-    return dt, r
+    return (wall, cpu), r
 
 
 def make_stores(root: Path, sessions: int) -> tuple[Path, Path]:
@@ -72,34 +79,36 @@ def main() -> None:
             f"labcal session list --json ({a.sessions} sessions)": ["session", "list", "--json", "--store", str(full)],
         }
         trees = {"before": a.before, "after": AFTER_SRC}
-        times: dict[tuple[str, str], list[float]] = {}
+        times: dict[tuple[str, str], list[tuple[float, float]]] = {}
         for name, args in commands.items():
             for tree, src in trees.items():
                 _, r = labcal(src, args, check=False)  # warm the file cache; before may lack an option
-                times[(name, tree)] = [] if r.returncode == 0 else [float("nan")]
+                times[(name, tree)] = [] if r.returncode == 0 else None  # None: this tree lacks the command
             for _ in range(a.runs):
                 for tree, src in trees.items():
-                    if times[(name, tree)] and times[(name, tree)][0] != times[(name, tree)][0]:
-                        continue  # NaN: this tree does not have the command
-                    times[(name, tree)].append(labcal(src, args)[0])
+                    if times[(name, tree)] is not None:
+                        times[(name, tree)].append(labcal(src, args)[0])
         load = os.getloadavg()
-        print(f"CLI wall time, s: median (min … max) of {a.runs} runs, fresh interpreter each; before = {a.before}, "
-              f"after = {AFTER_SRC}; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} "
-              f"cores; python {sys.version.split()[0]}")  # fmt: skip
-        print()
+        print(f"CLI time, s: median (min … max) of {a.runs} runs, fresh interpreter each, before/after interleaved; "
+              f"before = {a.before}, after = {AFTER_SRC}; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} "
+              f"on {os.cpu_count()} cores; python {sys.version.split()[0]}")  # fmt: skip
+        print("wall: elapsed time; CPU: the process's user + system time (less sensitive to other jobs' load)")
         width = max(len(n) for n in commands)
-        print(f"{'command':<{width}}  {'before':>22}  {'after':>22}  {'after/before':>12}")
-        for name in commands:
-            cells, med = [], {}
-            for tree in trees:
-                t = times[(name, tree)]
-                if not t or t[0] != t[0]:
-                    cells.append(f"{'n/a':>22}")
-                    continue
-                med[tree] = statistics.median(t)
-                cells.append(f"{med[tree]:6.3f} ({min(t):.3f} … {max(t):.3f})")
-            ratio = f"{med['after'] / med['before']:.2f}" if len(med) == 2 else "—"
-            print(f"{name:<{width}}  {cells[0]:>22}  {cells[1]:>22}  {ratio:>12}")
+        for k, what in ((0, "wall"), (1, "CPU")):
+            print()
+            print(f"{what + ' s':<{width}}  {'before':>22}  {'after':>22}  {'after/before':>12}")
+            for name in commands:
+                cells, med = [], {}
+                for tree in trees:
+                    t = times[(name, tree)]
+                    if t is None:
+                        cells.append("n/a")
+                        continue
+                    v = [x[k] for x in t]
+                    med[tree] = statistics.median(v)
+                    cells.append(f"{med[tree]:6.3f} ({min(v):.3f} … {max(v):.3f})")
+                ratio = f"{med['after'] / med['before']:.2f}" if len(med) == 2 else "—"
+                print(f"{name:<{width}}  {cells[0]:>22}  {cells[1]:>22}  {ratio:>12}")
     finally:
         shutil.rmtree(root, ignore_errors=True)
 
