@@ -65,6 +65,7 @@ class AsciiProtocol:
         self.targets = np.asarray(targets, dtype=float)
         self.nominal_distances = pair_distances(self.targets)
         self._index, self._sign = _axis_map(profile.axes)
+        self.identity: dict[str, object] = {}  # filled by start()
 
     def _read_text(self) -> str:
         line = self.link.read_line()
@@ -109,7 +110,7 @@ class AsciiProtocol:
 
     def identify(self) -> dict[str, object]:
         """What :meth:`start` learnt about the device (see :meth:`_ask_identity`)."""
-        return dict(getattr(self, "identity", {}))
+        return dict(self.identity)
 
     def _fetch_line(self) -> str:
         self.link.flush_input()
