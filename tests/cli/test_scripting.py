@@ -311,3 +311,28 @@ def test_fit_json_id_is_the_stored_fit(world):
     doc = document(world["fit"], "labcal.fit/1")
     fits = SessionStore(world["store"]).list_fits(world["ref"])
     assert doc["fit_id"] in {f.fit_id for f in fits}
+
+
+def test_evaluate_json(world):
+    fit_id = document(world["fit"], "labcal.fit/1")["fit_id"]
+    r = invoke("evaluate", fit_id, "--data", world["ref"], "--json", store=world["store"])
+    assert r.exit_code == 0, r.stderr
+    doc = document(r, "labcal.evaluate/1")
+    assert doc["fit_id"] == fit_id and doc["data"]["ref"] == world["ref"] and doc["data"]["rows"] == 14
+    assert doc["overlap_with_fit"] is True  # scored on its own data, and it says so
+    assert isinstance(doc["metrics"]["all"]["after"]["pos_mean"], float) and doc["stored_at"]
+
+
+def test_fit_pools_two_units_only_when_asked(world):
+    store = world["root"] / "two-units"
+    refs = []
+    for seed, unit in ((11, "ARM-1"), (12, "ARM-2")):
+        r = invoke("session", "new", "--robot", "ur10", "--targets", world["root"] / "targets.toml", "--poses", 14,
+                   "--seed", seed, "--unit", unit, store=store)  # fmt: skip
+        assert r.exit_code == 0, r.stderr
+        refs.append(last_line(r))
+    refused = invoke("fit", *refs, "--method", "local-poe", store=store)
+    assert refused.exit_code == 2 and refused.stderr.startswith("error: ") and "ARM-1" in refused.stderr
+    pooled = invoke("fit", *refs, "--method", "local-poe", "--pool-units", "--json", store=store)
+    assert pooled.exit_code == 0, pooled.stderr
+    assert document(pooled, "labcal.fit/1")["inputs"] == refs

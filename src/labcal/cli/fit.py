@@ -41,6 +41,11 @@ def fit(
     robot: str | None = typer.Option(
         None, "--robot", help="Robot model file when the session's is not built in.", autocompletion=complete_robot
     ),
+    pool_units: bool = typer.Option(
+        False,
+        "--pool-units",
+        help="Fit sessions of different robot units as one (by default fit refuses: one unit, one calibration).",
+    ),
     as_json: bool = typer.Option(
         False,
         "--json",
@@ -73,7 +78,7 @@ def fit(
     say = err if as_json else out  # with --json stdout holds the document alone
     outcome = run_fit(
         store_of(store, write=True), refs, method, seed=seed, hidden=hidden, val_fraction=val_fraction, robot=robot,
-        progress=lambda msg: say.print(f"  {msg}", markup=False),
+        pool_units=pool_units, progress=lambda msg: say.print(f"  {msg}", markup=False),
     )  # fmt: skip
     r = outcome.result
     if as_json:
