@@ -61,13 +61,12 @@ def test_a_session_without_unit_pools_with_a_unit(world):
 
 
 def test_pool_units_accepts_different_units(world):
-    if "--pool-units" not in invoke("fit", "--help").stdout:
-        pytest.skip("labcal fit has no --pool-units yet (cli/fit.py, requested from CLI17)")
     a, b = world["refs"]["UR-A"], world["refs"]["UR-B"]
     r = invoke("fit", a, b, "--method", "nominal", "--pool-units", store=world["store"])
     assert r.exit_code == 0, r.stderr
     rec = SessionStore(world["store"]).load_fit(a, last_line(r))
     assert [i["ref"] for i in rec.inputs] == [a, b]
+    assert rec.metadata["pool_units"] is True  # the fit says it pooled units on purpose
 
 
 def test_a_bad_unit_is_refused_before_anything_is_written(world, tmp_path):
