@@ -76,6 +76,26 @@ def test_session_list_on_a_store_imports_no_table_library(world):
     assert r.stdout.strip().splitlines()[-1] == "[]"
 
 
+def test_session_list_of_an_empty_store_imports_no_table_library(tmp_path):
+    (tmp_path / "empty").mkdir()
+    code = (
+        "import sys; from labcal.cli.app import main\n"
+        f"sys.argv = ['labcal', 'session', 'list', '--json', '--store', {str(tmp_path / 'empty')!r}]\n"
+        "try:\n    main()\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
+        f"print(sorted(m for m in {HEAVY!r} if m in sys.modules))"
+    )
+    r = run(code)
+    assert r.returncode == 0, r.stderr
+    assert '"sessions": []' in r.stdout
+    assert r.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_the_store_names_the_journal_file_as_the_journal_does():
+    from labcal.datasets import journal, store
+
+    assert store.JOURNAL_NAME == journal.JOURNAL_NAME
+
+
 def test_the_option_choices_are_the_librarys():
     from labcal.calibration.fit import METHODS
     from labcal.cli import common

@@ -49,11 +49,8 @@ from ._util import (
     utc_now,
     write_file_durable,
 )
-from .documents import MeasurementDoc, SessionHeader, StartDoc
 from .errors import DatasetCorrupted, DatasetError, JournalCorrupted, UnknownSession, UnknownVersion
 from .ids import Ref, new_fit_id, new_session_id, parse_ref, validate_id, version_name
-from .journal import JOURNAL_NAME, Journal, JournalContents, read_journal
-from .schema import SCHEMA_VERSION, column_units, joint_columns, normalize_table, spread_columns, target_columns
 
 MEASUREMENTS = "measurements.parquet"
 MANIFEST = "manifest.json"
@@ -64,8 +61,22 @@ FIT_JSON = "fit.json"
 EVALUATIONS = ".evaluations"
 _VERSION_DIR = re.compile(r"^v(\d{3,6})$")
 
+# journal, documents and schema are imported where they are used: an empty store, a listing of imported sessions
+# and `labcal --help` need none of them (schema imports pandas). The journal's file name is all a listing needs;
+# tests/cli/test_scripting.py checks it is journal.JOURNAL_NAME.
+JOURNAL_NAME = "journal.jsonl"
+
 if TYPE_CHECKING:
     import pandas as pd
+
+    from .documents import MeasurementDoc, SessionHeader, StartDoc
+    from .journal import Journal, JournalContents
+
+
+def _schema_version() -> int:
+    from .schema import SCHEMA_VERSION
+
+    return SCHEMA_VERSION
 
 
 def _pandas():
@@ -179,11 +190,15 @@ class Dataset:
     def q(self) -> np.ndarray:
         """(k, n) rad: joint positions as the controller reported them (controller joints; the robot file's joint
         map converts them to model joints: ``labcal.cli.ops.load_observations``)."""
+        from .schema import joint_columns
+
         return self.table[joint_columns(self.n_joints)].to_numpy(dtype=np.float64)
 
     @property
     def points(self) -> np.ndarray:
         """(k, m, 3) m: measured targets; ``points[:, i]`` is target t(i+1), all NaN where it was not seen."""
+        from .schema import target_columns
+
         m = self.n_targets
         return self.table[list(target_columns(m))].to_numpy(dtype=np.float64).reshape(-1, m, 3)
 
@@ -205,6 +220,8 @@ class Dataset:
     @property
     def spread(self) -> np.ndarray | None:
         """(k, m) m tracker spread per target (NaN where not seen or unknown), or None if the version has none."""
+        from .schema import spread_columns
+
         cols = list(spread_columns(self.n_targets))
         if not all(c in self.table.columns for c in cols):
             return None
@@ -454,6 +471,8 @@ class SessionStore:
         document and so in every version sealed from it, which makes the session refittable without the file.
         ``header.session_id``: None = a new id from the robot name and the time.
         """
+        from .journal import Journal
+
         session_id = validate_id(header.session_id) if header.session_id else new_session_id(header.robot_name)
         self.root.mkdir(parents=True, exist_ok=True)
         d = self.root / session_id
@@ -475,13 +494,19 @@ class SessionStore:
 
     def open_journal(self, session_id: str) -> Journal:
         """Open a session's journal for appending (resume); repairs a torn last line."""
+        from .journal import Journal
+
         return Journal.open(self._require_session(session_id) / JOURNAL_NAME)
 
     def read_journal(self, session_id: str) -> JournalContents:
+        from .journal import read_journal
+
         return read_journal(self._require_session(session_id) / JOURNAL_NAME)
 
     def session_meta(self, session_id: str) -> dict:
         """The session's metadata block (robot, targets, frame, tracker …) from its journal or latest version."""
+        from .journal import read_journal
+
         d = self._require_session(session_id)
         if (d / JOURNAL_NAME).exists():
             start = read_journal(d / JOURNAL_NAME).start
@@ -494,6 +519,8 @@ class SessionStore:
 
     def show(self, session_id: str) -> SessionInfo:
         """Summary of one session: robot, frame, status, versions (rows, source, parent, fits)."""
+        from .journal import read_journal
+
         d = self._require_session(session_id)
         warnings: list[str] = []
         status, n_meas = "imported", None
@@ -688,6 +715,8 @@ class SessionStore:
         provenance: dict,
         journal_seq_through: int,
     ) -> dict:
+        from .schema import SCHEMA_VERSION, column_units
+
         extra_units = {f"x_{k}": u for k, u in (meta.get("extra_units") or {}).items()}
         return {
             "kind": "labcal.dataset.version",
@@ -727,6 +756,8 @@ class SessionStore:
         ``meta`` describes the new rows (same robot hash, n_joints, frame and targets as the session).
         Returns the new ref ``SESSION@vNNN``.
         """
+        from .schema import normalize_table
+
         d = self._require_session(session_id)
         versions = self.versions(session_id)
         session = self.session_meta(session_id)
@@ -761,6 +792,8 @@ class SessionStore:
         self, rows: pd.DataFrame, meta: dict, *, source: str, provenance: dict, session_id: str | None = None
     ) -> str:
         """Create a session holding only ``v001`` (no journal), atomically: it appears complete or not at all."""
+        from .schema import normalize_table
+
         session_id = validate_id(session_id) if session_id else new_session_id(meta["robot"]["name"])
         meta = with_robot_record({**meta, "session_id": session_id})
         self.root.mkdir(parents=True, exist_ok=True)
@@ -789,6 +822,10 @@ class SessionStore:
         ``valid_prefix``: then only the documents before the first corrupt line are sealed, and the version's
         provenance lists every line left out (line number and why). The journal itself is never changed.
         """
+        from .documents import MeasurementDoc
+        from .journal import read_journal
+        from .schema import normalize_table
+
         d = self._require_session(session_id)
         contents = read_journal(d / JOURNAL_NAME)
         skipped: list[dict] = []
@@ -922,7 +959,7 @@ class SessionStore:
                 recorded[name] = {"sha256": sha256_bytes(data), "bytes": len(data)}
             meta = {
                 "kind": "labcal.fit",
-                "schema_version": SCHEMA_VERSION,
+                "schema_version": _schema_version(),
                 "fit_id": fit_id,
                 "created": iso(utc_now()),
                 "stored_under": str(resolved[0]),
@@ -1025,6 +1062,8 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
 
     A target written as ``null`` (not seen) becomes NaN in its three columns and its spread.
     """
+    from .schema import spread_columns
+
     recs = []
     for m in measurements:
         q = m.q
