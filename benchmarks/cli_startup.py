@@ -32,18 +32,19 @@ RUNNER = "import sys; sys.argv[0] = 'labcal'; from labcal.cli.app import main; m
 TARGETS = 'unit = "mm"\npoints = [[120.0, 0.0, 60.0], [-60.0, 100.0, 60.0], [-60.0, -100.0, 90.0]]\n'
 
 
-def labcal(src: Path, args: list[str], *, check: bool = True) -> tuple[tuple[float, float], Any]:
+def labcal(src: Path, args: list[str] | None, *, check: bool = True) -> tuple[tuple[float, float], Any]:
     """((wall s, CPU s), result): CPU = the child's user + system time, which a busy machine inflates far less than
-    the wall time (waiting for a core counts in wall time only)."""
+    the wall time (waiting for a core counts in wall time only). ``args`` None: a bare interpreter (the floor)."""
     env = {**os.environ, "PYTHONPATH": str(src), "COLUMNS": "100"}
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    r = subprocess.run([sys.executable, "-c", RUNNER, *args], env=env, capture_output=True, text=True)
+    argv = [sys.executable, "-c", "pass"] if args is None else [sys.executable, "-c", RUNNER, *args]
+    r = subprocess.run(argv, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     if check and r.returncode != 0:
-        raise SystemExit(f"{src}: labcal {' '.join(args)} exited {r.returncode}:\n{r.stderr[-2000:]}")
+        raise SystemExit(f"{src}: labcal {' '.join(args or [])} exited {r.returncode}:\n{r.stderr[-2000:]}")
     return (wall, cpu), r
 
 
@@ -71,6 +72,7 @@ def main() -> None:
     try:
         empty, full = make_stores(root, a.sessions)
         commands = {
+            "python -c pass (the floor)": None,
             "labcal --help": ["--help"],
             "labcal session --help": ["session", "--help"],
             "labcal fit --help": ["fit", "--help"],
