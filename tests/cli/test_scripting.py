@@ -196,6 +196,9 @@ def test_an_unknown_option_is_a_usage_error_exit_2():
         ["export", "20261122-031500-ur10-3f9a", "--format", "json", "--out", "OUT/x.json"],
         ["report", "20261122-031500-ur10-3f9a", "--out", "OUT/report"],
         ["filter", "p.csv", "--calibration", "20261122-031500-ur10-3f9a", "--out", "OUT/c.csv"],
+        ["evaluate", "20261122-040000-123456-ab12cd", "--data", "20261122-031500-ur10-3f9a"],
+        ["session", "resume", "20261122-031500-ur10-3f9a"],
+        ["refit", "--all"],
     ],
 )
 def test_a_missing_store_is_an_error_naming_it(tmp_path, args):
