@@ -39,6 +39,24 @@ def make_network(model, features, hidden=8, seed=0, out=0.5e-3) -> Network:
     )
 
 
+def make_series(model, features, seed=0, out=0.5e-3) -> Network:
+    """A network without hidden layer (the joint series' and the hybrid's learned term), zero weights on the
+    first feature's first column so the runtime's skipping of exact zeros is exercised too."""
+    rng = np.random.default_rng(seed)
+    f = input_features(np.zeros((1, model.n)), features, model).shape[1]
+    W = rng.normal(size=(6, f)) / np.sqrt(f)
+    W[:, 0] = 0.0
+    return Network(
+        features=tuple(features),
+        weights=(W,),
+        biases=(rng.normal(size=6) * 0.1,),
+        in_mean=rng.normal(size=f) * 0.1,
+        in_scale=rng.uniform(0.5, 2.0, size=f),
+        out_mean=rng.normal(size=6) * 1e-4,
+        out_scale=np.full(6, out),
+    )
+
+
 def hybrid(robot="ur10", features=("q", "sincos", "sincos2", "gravity"), seed=0, odd_twists=False, pitch=False):
     nominal = load(robot).model
     rng = np.random.default_rng(seed)
@@ -195,6 +213,7 @@ def test_singular_configuration_is_no_worse_than_uncorrected():
 # -- single configurations (a control loop's call) ----------------------------------------------------------------
 
 SINGLE_CASES = [
+    ("ur10", ("gravity", "harmonics:4", "q"), "series"),  # linear learned term: Newton steps (_linear_series)
     ("ur10", ("sincos", "gravity"), False),
     ("ur5e", ("q", "sincos", "gravity"), False),
     ("fanuc-m1000ia", ("gravity", "q"), False),
@@ -205,7 +224,9 @@ SINGLE_CASES = [
 
 
 def _single_robot(name, features, odd):
-    robot = hybrid(name, features=features, odd_twists=odd)
+    robot = hybrid(name, features=features, odd_twists=odd is True)
+    if odd == "series":
+        robot = dataclasses.replace(robot, network=make_series(robot.model, features))
     variants = {
         "hybrid": robot,
         "ann": CalibratedRobot(robot.nominal, robot.nominal, robot.network, method="ann"),
@@ -260,6 +281,48 @@ def test_near_singular_configurations_take_damped_steps_that_never_make_the_pose
             q_cmd = robot.correct(row, extrapolate=True)
             assert np.all(np.isfinite(q_cmd)) and _pose_error(robot, row, q_cmd) <= _pose_error(robot, row, row)
     assert len(calls) >= 5  # the damped steps really ran
+
+
+@pytest.mark.parametrize("features", [("gravity", "harmonics:4", "q"), ("harmonics:3",), ("gravity",)])
+def test_a_linear_learned_term_gives_the_network_and_its_slope_and_newton_jacobian(features):
+    robot = hybrid("ur10", features=features)
+    robot = dataclasses.replace(robot, network=make_series(robot.model, features, seed=2, out=2e-3))
+    h = 1e-6
+    for q in sample(robot, 4, seed=8):
+        adjoints, J, _, _ = robot.model.runtime_walk(q)
+        rho, slope = robot._linear_series(q, adjoints, J)
+        np.testing.assert_allclose(rho, robot.network(q[None], robot.model)[0], rtol=0, atol=1e-14)
+        steps = np.eye(6) * h
+        numeric = (robot.network(q + steps, robot.model) - robot.network(q - steps, robot.model)).T / (2 * h)
+        np.testing.assert_allclose(slope, numeric, rtol=0, atol=1e-8)
+        # the residual's Jacobian is −(the returned J) up to O(|r|, |e|²): compare at a point off the solution
+        residual = robot._one_configuration_residual(q)
+        residual(q[None], None)  # the solver's first call is at q (its walk is prepared)
+        q1 = robot.correct(q) + 1e-5
+        _, J1 = residual(q1[None], None)
+        numeric = np.stack([residual((q1 + s)[None], None)[0][0] - residual((q1 - s)[None], None)[0][0] for s in steps])
+        np.testing.assert_allclose(-J1[0], numeric.T / (2 * h), rtol=0, atol=2e-5)
+        assert np.abs(-J - numeric.T / (2 * h)).max() > 2e-4  # the twists alone are not the Jacobian
+
+
+def test_a_stalled_damped_row_stops_early_and_keeps_its_best_point():
+    calls = []
+
+    def residual(q, rows):  # |r| ≥ 1 whatever q: no exact solution, the damped steps can only crawl towards q = 0
+        calls.append(1)
+        r = np.zeros((len(rows), 6))
+        r[:, 0] = 1.0 + q[:, 0] ** 2
+        J = np.broadcast_to(np.eye(6), (len(rows), 6, 6)).copy()
+        J[:, 0, 0] = -2 * q[:, 0]  # the solver's convention: dr/dq = −J
+        return r, J
+
+    q0 = np.full((1, 6), 0.005)
+    for exact, most in ((True, 12), (False, 51)):
+        calls.clear()
+        out = solve._damped(residual, q0, np.zeros(1, dtype=int), np.ones(6), 50, 1e-11, exact=exact)
+        assert len(calls) <= most, exact  # six joints: it stops as it stalls; otherwise it may use the budget
+        assert abs(out[0, 0]) < abs(q0[0, 0])  # never worse than the start, and better
+    assert len(calls) > 12  # without the stall rule the same row keeps crawling
 
 
 def test_the_batched_gauss_newton_verdicts_follow_the_one_row_rule():

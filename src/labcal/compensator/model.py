@@ -223,6 +223,23 @@ def _pose_error_one(target: tuple[list, list], Ad: np.ndarray) -> np.ndarray:
     return np.array([px - 0.5 * cx + d * ccx, py - 0.5 * cy + d * ccy, pz - 0.5 * cz + d * ccz, wx, wy, wz])
 
 
+# ad(ξ) of a twist ξ = (v, ω), [[ω̂, v̂], [0, ω̂]], as a linear map: ξ @ _AD = ad(ξ).ravel()
+_AD = np.zeros((6, 6, 6))
+for _a, (_i, _j) in enumerate(((2, 1), (0, 2), (1, 0))):  # ŵ[i, j] = +w_a, ŵ[j, i] = −w_a
+    for _row, _col, _src in ((0, 0, 3), (3, 3, 3), (0, 3, 0)):
+        _AD[_src + _a, _row + _i, _col + _j], _AD[_src + _a, _row + _j, _col + _i] = 1.0, -1.0
+_AD = _AD.reshape(6, 36)
+
+
+def _bracket(J: np.ndarray, dy: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """(6, n) columns ad(ξ_i) (Σ_{j>i} δρ_j ξ_j − e/2): the change of ``J δρ`` with q_i at fixed δρ (joint i turns
+    the twists after it) plus the first-order term of d log(E)/dq at the pose error e = log(E), for joint twists
+    J = (ξ_i) and dy = (δρ_j ξ_j), both (6, n)."""
+    n = J.shape[1]
+    z = np.cumsum(dy[:, ::-1], axis=1)[:, ::-1] - dy - 0.5 * e[:, None]  # (6, n) Σ_{j>i} δρ_j ξ_j − e/2
+    return (((J.T @ _AD).reshape(n, 6, 6)) @ z.T[:, :, None])[:, :, 0].T
+
+
 @dataclass(frozen=True, eq=False)
 class CalibratedRobot:
     """A calibrated robot: what every fit returns and every export stores.
@@ -331,6 +348,71 @@ class CalibratedRobot:
         """The network's input features for this model (:func:`labcal.features.evaluator`), prepared once."""
         return _feature_evaluator(tuple(self.network.features), self.model)
 
+    @functools.cached_property
+    def _linear_series(self):
+        """δρ and its slope dδρ/dq at one configuration of a 6-joint z-revolute arm whose network is linear in
+        ``harmonics:H``, ``gravity`` and ``q`` features (the joint series and the hybrid's learned term): a function
+        ``(q (n,), link-frame adjoints (n+1, 6, 6), joint twists J (6, n)) → (δρ (6,), dδρ/dq (6, n))``, equal to
+        the network on the registry's features (:mod:`labcal.features`) up to rounding; None for any other network.
+
+        Features whose weights are all exactly zero are skipped. harmonics: sin(h q_j) and cos(h q_j) =
+        sin(h q_j + π/2) come from one np.sin over the stacked angles, and one stacked product gives both δρ and its
+        slope (d sin(h q)/dq = h cos(h q), d cos(h q)/dq = −h sin(h q)). gravity (−e_zᵀ R_j for the frames K_2 …
+        K_{n+1}): joint i turns K_{j+1} for i ≤ j, d(e_zᵀ R_j)/dq_i = (e_z × ω_i)ᵀ R_j.
+        """
+        network, model, n = self.network, self.model, self.n
+        if len(network.weights) != 1 or n != 6 or not model._all_revolute_z:
+            return None
+        (Wt,), (bias,) = network._folded  # δρ = x @ Wt + bias
+        orders, values, slopes, gravity, linear, start = [], [], [], [], [], 0
+        for name in network.features:
+            feature = feature_lib.get(name)
+            width = feature.size(n)
+            block, start = Wt[start : start + width], start + width
+            if not block.any():
+                continue  # exact-zero weights: this feature cannot move δρ
+            if feature.kind == "harmonics":
+                W4 = block.reshape(n, feature.order, 2, 6)  # (joint, h − 1, sin/cos, output)
+                h = np.arange(1.0, feature.order + 1)
+                orders.append(h)
+                values += [W4[:, :, 0], W4[:, :, 1]]
+                slopes += [-h[:, None] * W4[:, :, 1], h[:, None] * W4[:, :, 0]]
+            elif feature.kind == "gravity":
+                gravity.append(block.reshape(n, 3, 6))
+            elif feature.kind == "q":
+                linear.append(block)
+            else:
+                return None
+        if orders:
+            H = np.concatenate(orders)
+            angle_scale = np.concatenate([H, H])  # sin(h q), then cos(h q) = sin(h q + π/2)
+            phase = np.concatenate([np.zeros(H.size), np.full(H.size, np.pi / 2)])
+            sin_part, cos_part = np.concatenate(values[0::2], axis=1), np.concatenate(values[1::2], axis=1)
+            dsin, dcos = np.concatenate(slopes[0::2], axis=1), np.concatenate(slopes[1::2], axis=1)
+            # (n, 2·ΣH, 12): columns 0-5 give δρ, 6-11 its slope along the joint
+            K = np.concatenate(
+                [np.concatenate([sin_part, cos_part], axis=1), np.concatenate([dsin, dcos], axis=1)], axis=2
+            )
+        Wg = sum(gravity[1:], gravity[0]) if gravity else None
+        Wq = sum(linear[1:], linear[0]) if linear else None
+
+        def series(q: np.ndarray, adjoints: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            rho, D = bias, np.zeros((6, n))
+            if orders:
+                out = (np.sin(q[:, None] * angle_scale + phase)[:, None] @ K)[:, 0]  # (n, 12)
+                rho, D = rho + out[:, :6].sum(axis=0), out[:, 6:].T
+            if Wq is not None:
+                rho, D = rho + q @ Wq, D + Wq.T
+            if Wg is not None:
+                R = adjoints[1:, :3, :3]
+                rho = rho - np.einsum("jb,jbk->k", R[:, 2], Wg)
+                # Σ_{j ≥ i} (R_j Wg_j)ᵀ u_i with u_i = −(e_z × ω_i) = (ω_y, −ω_x, 0)
+                Q = np.cumsum(R[::-1] @ Wg[::-1], axis=0)[::-1]  # (n, 3, 6)
+                D = D + (Q[:, 0] * J[4][:, None] - Q[:, 1] * J[3][:, None]).T
+            return rho, D
+
+        return series
+
     # -- the calibrated forward model ----------------------------------------------------------------------------
     def _evaluate(self, q2: np.ndarray, need_twists: bool = True):
         """One walk of the identified chain: (link frames (k, n+1, 4, 4), actuated twists J (k, 6, n) or None,
@@ -425,7 +507,7 @@ class CalibratedRobot:
         ``"paper"`` is eq. (24), q − δρ_a(q); ``"fixed-point"`` iterates q_cmd = q − δρ_a(q_cmd). Both apply the
         network alone, so they are refused (a ValueError saying why) unless the identified frames are the nominal
         ones and there is a network: the paper's ANN method. An empty (0, n) q gives an empty (0, n) answer.
-        damped_iterations: the damped iteration's step budget (default 3 · max(iterations, 10)); a control loop
+        damped_iterations: the damped iteration's step budget (default solve.DAMPED_BUDGET); a control loop
         that must bound its worst-case time lowers it (near-singular configurations then stop earlier, no worse
         than at q).
         """
@@ -485,15 +567,22 @@ class CalibratedRobot:
         target = _pose_lists(nominal_adjoints[-1])
         walk, network = self.model.runtime_walk, self.network
         inputs = network and self._inputs
+        series = network and self._linear_series
         pending = [first_walk]  # the solver's first evaluation is at q itself: that walk is done already
 
         def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             adjoints, J, _, _ = pending.pop() if pending else walk(qc[0])
-            r = _pose_error_one(target, adjoints[-1])
-            if network is not None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
+            e = _pose_error_one(target, adjoints[-1])
+            if network is None:
+                return e[None], J[None]
+            if series is None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
                 rho = network.forward_features(inputs(qc, adjoints[None]))
-                r -= J @ rho[0]
-            return r[None], J[None]
+                return (e - J @ rho[0])[None], J[None]
+            rho, slope = series(qc[0], adjoints, J)
+            dy = J * rho  # (6, n): column j is δρ_j ξ_j
+            # dr/dq = −(J + J dδρ/dq + the twists' turn under δρ + the log's first-order term) up to O(|r|, |e|²):
+            # Newton's step, quadratic, where −J alone converges at the rate |dδρ/dq| + |e|
+            return (e - dy.sum(axis=1))[None], (J + J @ slope + _bracket(J, dy, e))[None]
 
         return residual
 

@@ -10,9 +10,12 @@ once, given a function that returns the residual r (m, 6) and the joint twists J
   (near-)singular configuration.
 - The failed rows then start over from q0 in **damped** mode: steps ``(JᵀJ + λ μ I)⁻¹ Jᵀ r`` in the length-scaled
   metric W (μ the mean of JᵀJ's diagonal), clipped to :data:`DAMPED_MAX_STEP`, kept only where they lower
-  ``|W r|``; λ falls tenfold after a kept step and rises tenfold after a refused one. They stop together when every
-  row's last step (kept or refused) was below ``tol`` or λ passed 1e6 (no step helps), or after
-  ``damped_iterations`` steps. So near a singularity the answer is never worse than q0.
+  ``|W r|``; λ falls tenfold after a kept step and rises tenfold after a refused one. A row stops when its last
+  step (kept or refused) was below ``tol``, when (six joints) two full kept steps in a row lowered ``|W r|`` by less
+  than a tenth, the second less than the first (it stalls: near a singularity where no q reaches the target), or
+  when λ passed 1e6 (no step helps); all stop
+  after ``damped_iterations`` steps. So near a singularity the answer is never worse than q0, and a call's worst
+  case is bounded.
 
 Both modes are one loop each over the same residual function, so a single configuration (k = 1) takes exactly the
 path a batch takes; only the residual function may be specialised for it (:mod:`labcal.compensator.model`).
@@ -37,6 +40,8 @@ import numpy as np
 GN_MAX_STEP = 0.3  # rad: a full Gauss-Newton step this large means a (near-)singular configuration
 DAMPED_MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so larger steps mean a singularity
 LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP = 1e-6, 1e-12, 1e6
+STALL = 0.9  # a kept damped step that leaves |W r| above this fraction of its previous value ends the row
+DAMPED_BUDGET = 30  # damped steps per call by default (a row that stalls stops long before)
 _ONES6 = np.ones(6)
 
 #: residual(q (m, n), rows (m,) indices into the batch) → (r (m, 6), J (m, 6, n)). The first evaluation is always at
@@ -85,7 +90,7 @@ def solve(
     """(k, n) start q0 → (k, n) solutions of ``residual(q) = 0`` (module docstring: the two modes).
 
     weights: (6,) the metric W of the damped mode, and of Gauss-Newton's least squares for n < 6. iterations:
-    Gauss-Newton steps per row (at least 1); damped_iterations: damped steps (default ``3 · max(iterations, 10)``).
+    Gauss-Newton steps per row (at least 1); damped_iterations: damped steps (default :data:`DAMPED_BUDGET`).
     """
     k, n = q0.shape
     w = _ONES6 if weights is None else np.asarray(weights, dtype=float)
@@ -98,8 +103,8 @@ def solve(
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
         out, failed = rows.out, rows.failed()
         if failed.size:
-            budget = max(iterations, 10) * 3 if damped_iterations is None else int(damped_iterations)
-            out[failed] = _damped(residual, q0[failed], failed, w, budget, tol)
+            budget = DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
+            out[failed] = _damped(residual, q0[failed], failed, w, budget, tol, exact=n == 6)
     return out
 
 
@@ -187,27 +192,41 @@ def _verdicts(size: np.ndarray, prev: np.ndarray | None, tol: float) -> tuple[np
     return ~(size <= np.minimum(GN_MAX_STEP, 0.5 * prev)), (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol)
 
 
-def _damped(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray, budget: int, tol: float):
+def _damped(
+    residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray, budget: int, tol: float, exact: bool = False
+):
     """The damped mode from q0 (m, n) for the batch rows ``rows``: steps kept only where they lower |W r|.
 
-    The rows iterate together until every one has stopped (a kept step below tol, or a refused step below tol:
-    the cost cannot fall further in floating point, or λ past LAMBDA_GIVE_UP), or the budget is spent.
+    A row stops when its last step (kept or refused) was below tol (the cost cannot fall further in floating
+    point), when λ passed LAMBDA_GIVE_UP, or (``exact``: six joints, where a reachable target has r = 0) when a
+    kept full (unclipped) step left |W r| above :data:`STALL` of its previous value twice in a row, the second
+    helping no more than the first: it crawls, slower and slower, near a singularity where no q reaches the
+    target, and more steps buy nanometres; all stop after the budget. A stopped row keeps its best q.
     """
     out = q0.copy()
     r, J = residual(out, rows)
     err, jac = r * w, J * w[:, None]
     cost = np.sum(err * err, axis=1)
     lam = np.full(len(out), LAMBDA_START)
+    going = np.ones(len(out), dtype=bool)
+    last = np.zeros(len(out))  # |W r| ratio of each row's last full kept step (none yet: 0, never stalled)
     for _ in range(budget):
         step = damped_step(err, jac, lam)
+        step[~going] = 0.0
         cand = out + step
         r, J = residual(cand, rows)
         err_c, jac_c = r * w, J * w[:, None]
         cost_c = np.sum(err_c * err_c, axis=1)
-        ok = cost_c <= cost
+        ok = (cost_c <= cost) & going
+        # full (unclipped) kept steps that barely help, and less each time: no exact solution nearby (checked only
+        # where one exists, n = 6). A valley the iteration is still speeding through keeps going.
+        full = ok & (np.abs(step).max(axis=1) < DAMPED_MAX_STEP) & exact
+        ratio = np.sqrt(cost_c / np.where(cost > 0, cost, 1.0))
+        stalled = full & (last > STALL) & (ratio >= last)
+        last = np.where(full, ratio, last)
         out[ok], err[ok], jac[ok], cost[ok] = cand[ok], err_c[ok], jac_c[ok], cost_c[ok]
         lam = np.where(ok, np.maximum(lam / 10, LAMBDA_MIN), lam * 10)
-        small = np.abs(step).max(axis=1) < tol
-        if np.all(small | (~ok & (lam > LAMBDA_GIVE_UP))):
+        going &= ~(stalled | (np.abs(step).max(axis=1) < tol) | (lam > LAMBDA_GIVE_UP))
+        if not going.any():
             break
     return out
