@@ -325,6 +325,23 @@ def test_a_stalled_damped_row_stops_early_and_keeps_its_best_point():
     assert len(calls) > 12  # without the stall rule the same row keeps crawling
 
 
+def test_one_damped_row_follows_the_batched_rule():
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(6, 6))
+
+    def residual(q, rows):  # a smooth map with a fold: r = A (q + q³) − target, J = −dr/dq
+        r = (q + q**3) @ A.T - 0.2
+        J = -A[None] * (1 + 3 * q**2)[:, None, :]
+        return r, J
+
+    q0 = rng.normal(size=(3, 6)) * 0.5
+    for exact in (True, False):
+        batch = solve._damped(residual, q0, np.arange(3), np.ones(6), 30, 1e-11, exact=exact)
+        for i in range(3):
+            one = solve._damped(residual, q0[i : i + 1], np.arange(1), np.ones(6), 30, 1e-11, exact=exact)
+            np.testing.assert_allclose(one, batch[i : i + 1], rtol=0, atol=1e-10)  # both stop at steps < tol
+
+
 def test_the_batched_gauss_newton_verdicts_follow_the_one_row_rule():
     rng = np.random.default_rng(9)
     size = np.concatenate([10.0 ** rng.uniform(-16, 0, 300), [0.0, np.nan, 0.3, 0.31, 1e-11, 1e-14]])

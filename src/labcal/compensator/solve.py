@@ -69,8 +69,14 @@ def gauss_newton_step(r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) 
 
 
 def damped_step(r: np.ndarray, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """(m, 6) weighted residuals, (m, 6, n) weighted Jacobians, (m,) λ → (m, n) clipped Levenberg-Marquardt steps."""
+    """(m, 6) weighted residuals, (m, 6, n) weighted Jacobians, (m,) λ (a float for m = 1) → (m, n) clipped
+    Levenberg-Marquardt steps."""
     n = J.shape[2]
+    if len(J) == 1:  # one row (a control loop's call): the 2-D products and solve cost less per call
+        J1 = J[0]
+        JtJ = J1.T @ J1
+        mu = float(np.ravel(lam)[0]) * (JtJ.trace() / n)
+        return np.clip(np.linalg.solve(JtJ + mu * np.eye(n), J1.T @ r[0]), -DAMPED_MAX_STEP, DAMPED_MAX_STEP)[None]
     JtJ = np.einsum("kai,kaj->kij", J, J)
     mean_diag = (np.trace(JtJ, axis1=1, axis2=2) / n)[:, None, None]
     rhs = np.einsum("kai,ka->ki", J, r)[..., None]
@@ -203,6 +209,8 @@ def _damped(
     helping no more than the first: it crawls, slower and slower, near a singularity where no q reaches the
     target, and more steps buy nanometres; all stop after the budget. A stopped row keeps its best q.
     """
+    if len(q0) == 1:
+        return _damped_one(residual, q0, rows, w, budget, tol, exact)
     out = q0.copy()
     r, J = residual(out, rows)
     err, jac = r * w, J * w[:, None]
@@ -230,3 +238,33 @@ def _damped(
         if not going.any():
             break
     return out
+
+
+def _damped_one(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray, budget: int, tol: float, exact):
+    """:func:`_damped` for one row (a control loop's call): the same steps and stopping rule, with the bookkeeping
+    in Python floats and the 2-D solve, because at one row numpy's per-call cost is the price of every step."""
+    n = q0.shape[1]
+    out = q0.copy()
+    r, J = residual(out, rows)
+    err, jac = r[0] * w, J[0] * w[:, None]
+    cost, lam, last = float(err @ err), LAMBDA_START, 0.0
+    for _ in range(budget):
+        step = damped_step(err[None], jac[None], lam)[0]
+        size = max(map(abs, step.tolist()))
+        cand = out + step
+        r, J = residual(cand, rows)
+        err_c = r[0] * w
+        cost_c = float(err_c @ err_c)
+        stalled = False
+        if cost_c <= cost:
+            full = exact and size < DAMPED_MAX_STEP
+            ratio = math.sqrt(cost_c / cost) if cost > 0 else 1.0
+            stalled = full and last > STALL and ratio >= last
+            last = ratio if full else last
+            out, err, jac, cost = cand, err_c, J[0] * w[:, None], cost_c
+            lam = max(lam / 10, LAMBDA_MIN)
+        else:
+            lam *= 10
+        if stalled or size < tol or lam > LAMBDA_GIVE_UP:
+            break
+    return out.reshape(1, n)
