@@ -236,8 +236,16 @@ def _bracket(J: np.ndarray, dy: np.ndarray, e: np.ndarray) -> np.ndarray:
     the twists after it) plus the first-order term of d log(E)/dq at the pose error e = log(E), for joint twists
     J = (ξ_i) and dy = (δρ_j ξ_j), both (6, n)."""
     n = J.shape[1]
-    z = np.cumsum(dy[:, ::-1], axis=1)[:, ::-1] - dy - 0.5 * e[:, None]  # (6, n) Σ_{j>i} δρ_j ξ_j − e/2
-    return (((J.T @ _AD).reshape(n, 6, 6)) @ z.T[:, :, None])[:, :, 0].T
+    z = dy @ _after(n) - 0.5 * e[:, None]  # (6, n) Σ_{j>i} δρ_j ξ_j − e/2
+    return ((J.T @ _AD).reshape(n, 6, 6) @ z.T[:, :, None])[:, :, 0].T
+
+
+@functools.lru_cache(maxsize=8)
+def _after(n: int) -> np.ndarray:
+    """(n, n) U with U[j, i] = 1 for j > i: ``a @ U`` sums each row's later columns."""
+    out = np.tril(np.ones((n, n)), -1)
+    out.setflags(write=False)
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -350,66 +358,55 @@ class CalibratedRobot:
 
     @functools.cached_property
     def _linear_series(self):
-        """δρ and its slope dδρ/dq at one configuration of a 6-joint z-revolute arm whose network is linear in
-        ``harmonics:H``, ``gravity`` and ``q`` features (the joint series and the hybrid's learned term): a function
-        ``(q (n,), link-frame adjoints (n+1, 6, 6), joint twists J (6, n)) → (δρ (6,), dδρ/dq (6, n))``, equal to
-        the network on the registry's features (:mod:`labcal.features`) up to rounding; None for any other network.
+        """δρ and its slope at one configuration of a 6-joint z-revolute arm whose network is linear in one
+        ``harmonics:H`` and optionally ``gravity`` and ``q`` (the joint series and the hybrid's learned term): a
+        function ``(q (n,), cos q (n,), sin q (n,), link-frame adjoints (n+1, 6, 6)) → (δρ (6,), S (6, n))``; None
+        for any other network. δρ equals the network on the registry's features (:mod:`labcal.features`) up to
+        rounding; S is dδρ/dq without the gravity terms' part (gravity features turn slowly with q: their slope
+        saved a tenth of a Gauss-Newton step per call and cost more, benchmarks/compensator_tail.py).
 
-        Features whose weights are all exactly zero are skipped. harmonics: sin(h q_j) and cos(h q_j) =
-        sin(h q_j + π/2) come from one np.sin over the stacked angles, and one stacked product gives both δρ and its
-        slope (d sin(h q)/dq = h cos(h q), d cos(h q)/dq = −h sin(h q)). gravity (−e_zᵀ R_j for the frames K_2 …
-        K_{n+1}): joint i turns K_{j+1} for i ≤ j, d(e_zᵀ R_j)/dq_i = (e_z × ω_i)ᵀ R_j.
+        Per joint j one row of features x_j = (cos h q_j, sin h q_j for h = 1 … H: the running product of
+        e^{i q_j}, from the walk's cos q and sin q; then link j+1's gravity direction), and one stacked product
+        x_j K_j gives both δρ's terms and their slope (d sin(h q)/dq = h cos(h q), d cos(h q)/dq = −h sin(h q)).
         """
         network, model, n = self.network, self.model, self.n
         if len(network.weights) != 1 or n != 6 or not model._all_revolute_z:
             return None
         (Wt,), (bias,) = network._folded  # δρ = x @ Wt + bias
-        orders, values, slopes, gravity, linear, start = [], [], [], [], [], 0
+        H, harmonic, gravity, linear, start = 0, None, None, None, 0
         for name in network.features:
             feature = feature_lib.get(name)
             width = feature.size(n)
             block, start = Wt[start : start + width], start + width
-            if not block.any():
-                continue  # exact-zero weights: this feature cannot move δρ
-            if feature.kind == "harmonics":
-                W4 = block.reshape(n, feature.order, 2, 6)  # (joint, h − 1, sin/cos, output)
-                h = np.arange(1.0, feature.order + 1)
-                orders.append(h)
-                values += [W4[:, :, 0], W4[:, :, 1]]
-                slopes += [-h[:, None] * W4[:, :, 1], h[:, None] * W4[:, :, 0]]
-            elif feature.kind == "gravity":
-                gravity.append(block.reshape(n, 3, 6))
-            elif feature.kind == "q":
-                linear.append(block)
+            if feature.kind == "harmonics" and harmonic is None:
+                H, harmonic = feature.order, block.reshape(n, feature.order, 2, 6)  # (joint, h − 1, sin/cos, out)
+            elif feature.kind == "gravity" and gravity is None:
+                gravity = block.reshape(n, 3, 6)
+            elif feature.kind == "q" and linear is None:
+                linear = block
             else:
                 return None
-        if orders:
-            H = np.concatenate(orders)
-            angle_scale = np.concatenate([H, H])  # sin(h q), then cos(h q) = sin(h q + π/2)
-            phase = np.concatenate([np.zeros(H.size), np.full(H.size, np.pi / 2)])
-            sin_part, cos_part = np.concatenate(values[0::2], axis=1), np.concatenate(values[1::2], axis=1)
-            dsin, dcos = np.concatenate(slopes[0::2], axis=1), np.concatenate(slopes[1::2], axis=1)
-            # (n, 2·ΣH, 12): columns 0-5 give δρ, 6-11 its slope along the joint
-            K = np.concatenate(
-                [np.concatenate([sin_part, cos_part], axis=1), np.concatenate([dsin, dcos], axis=1)], axis=2
-            )
-        Wg = sum(gravity[1:], gravity[0]) if gravity else None
-        Wq = sum(linear[1:], linear[0]) if linear else None
+        if harmonic is None:
+            return None
+        h = np.arange(1.0, H + 1)[:, None]
+        K = np.zeros((n, 2 * H + 3, 12))  # rows: cos h q, sin h q interleaved, then −gravity; columns: δρ, slope
+        K[:, 0 : 2 * H : 2, :6], K[:, 1 : 2 * H : 2, :6] = harmonic[:, :, 1], harmonic[:, :, 0]
+        K[:, 0 : 2 * H : 2, 6:], K[:, 1 : 2 * H : 2, 6:] = h * harmonic[:, :, 0], -h * harmonic[:, :, 1]
+        if gravity is not None:
+            K[:, 2 * H :, :6] = -gravity
+        K.setflags(write=False)
 
-        def series(q: np.ndarray, adjoints: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            rho, D = bias, np.zeros((6, n))
-            if orders:
-                out = (np.sin(q[:, None] * angle_scale + phase)[:, None] @ K)[:, 0]  # (n, 12)
-                rho, D = rho + out[:, :6].sum(axis=0), out[:, 6:].T
-            if Wq is not None:
-                rho, D = rho + q @ Wq, D + Wq.T
-            if Wg is not None:
-                R = adjoints[1:, :3, :3]
-                rho = rho - np.einsum("jb,jbk->k", R[:, 2], Wg)
-                # Σ_{j ≥ i} (R_j Wg_j)ᵀ u_i with u_i = −(e_z × ω_i) = (ω_y, −ω_x, 0)
-                Q = np.cumsum(R[::-1] @ Wg[::-1], axis=0)[::-1]  # (n, 3, 6)
-                D = D + (Q[:, 0] * J[4][:, None] - Q[:, 1] * J[3][:, None]).T
-            return rho, D
+        def series(q, cos_q, sin_q, adjoints) -> tuple[np.ndarray, np.ndarray]:
+            x = np.empty((n, 2 * H + 3))
+            x[:, 0 : 2 * H : 2], x[:, 1 : 2 * H : 2] = cos_q[:, None], sin_q[:, None]
+            x[:, 2 * H :] = adjoints[1:, 2, :3]  # the rotation rows of the link frames K_2 … K_{n+1}
+            powers = x[:, : 2 * H].view(complex)
+            np.multiply.accumulate(powers, axis=1, out=powers)  # e^{i h q_j}
+            out = (x[:, None] @ K)[:, 0]  # (n, 12)
+            rho, slope = bias + out[:, :6].sum(axis=0), out[:, 6:].T
+            if linear is not None:
+                rho, slope = rho + q @ linear, slope + linear.T
+            return rho, slope
 
         return series
 
@@ -571,17 +568,17 @@ class CalibratedRobot:
         pending = [first_walk]  # the solver's first evaluation is at q itself: that walk is done already
 
         def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            adjoints, J, _, _ = pending.pop() if pending else walk(qc[0])
+            adjoints, J, cos_q, sin_q = pending.pop() if pending else walk(qc[0])
             e = _pose_error_one(target, adjoints[-1])
             if network is None:
                 return e[None], J[None]
             if series is None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
                 rho = network.forward_features(inputs(qc, adjoints[None]))
                 return (e - J @ rho[0])[None], J[None]
-            rho, slope = series(qc[0], adjoints, J)
+            rho, slope = series(qc[0], cos_q, sin_q, adjoints)
             dy = J * rho  # (6, n): column j is δρ_j ξ_j
-            # dr/dq = −(J + J dδρ/dq + the twists' turn under δρ + the log's first-order term) up to O(|r|, |e|²):
-            # Newton's step, quadratic, where −J alone converges at the rate |dδρ/dq| + |e|
+            # dr/dq = −(J + J dδρ/dq + the twists' turn under δρ + the log's first-order term) up to O(|r|, |e|²)
+            # (and gravity's slope): close to Newton's step, where −J alone converges at the rate |dδρ/dq| + |e|
             return (e - dy.sum(axis=1))[None], (J + J @ slope + _bracket(J, dy, e))[None]
 
         return residual
