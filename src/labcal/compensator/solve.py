@@ -10,7 +10,8 @@ once, given a function that returns the residual r (m, 6) and the joint twists J
   (near-)singular configuration.
 - The failed rows then start over from q0 in **damped** mode: steps ``(JᵀJ + λ μ I)⁻¹ Jᵀ r`` in the length-scaled
   metric W (μ the mean of JᵀJ's diagonal), clipped to :data:`DAMPED_MAX_STEP`, kept only where they lower
-  ``|W r|``; λ falls tenfold after a kept step and rises tenfold after a refused one. A row stops when its last
+  ``|W r|``; λ starts at 1e-6 (1e-4 for six joints), falls tenfold after a kept step and rises tenfold after a
+  refused one. A row stops when its last
   step (kept or refused) was below ``tol``, when (six joints) two full kept steps in a row lowered ``|W r|`` by less
   than a tenth, the second less than the first (it stalls: near a singularity where no q reaches the target), or
   when λ passed 1e6 (no step helps); all stop
@@ -40,6 +41,9 @@ import numpy as np
 GN_MAX_STEP = 0.3  # rad: a full Gauss-Newton step this large means a (near-)singular configuration
 DAMPED_MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so larger steps mean a singularity
 LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP = 1e-6, 1e-12, 1e6
+# six joints (an exact solution or none): a start damped enough that the first steps are not refused overshoots;
+# it halves the damped residual evaluations of the real UR10 export's fallback calls (benchmarks/compensator_tail.py)
+LAMBDA_START_EXACT = 1e-4
 STALL = 0.9  # a kept damped step that leaves |W r| above this fraction of its previous value ends the row
 DAMPED_BUDGET = 30  # damped steps per call by default (a row that stalls stops long before)
 _ONES6 = np.ones(6)
@@ -215,7 +219,7 @@ def _damped(
     r, J = residual(out, rows)
     err, jac = r * w, J * w[:, None]
     cost = np.sum(err * err, axis=1)
-    lam = np.full(len(out), LAMBDA_START)
+    lam = np.full(len(out), LAMBDA_START_EXACT if exact else LAMBDA_START)
     going = np.ones(len(out), dtype=bool)
     last = np.zeros(len(out))  # |W r| ratio of each row's last full kept step (none yet: 0, never stalled)
     for _ in range(budget):
@@ -247,7 +251,7 @@ def _damped_one(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndar
     out = q0.copy()
     r, J = residual(out, rows)
     err, jac = r[0] * w, J[0] * w[:, None]
-    cost, lam, last = float(err @ err), LAMBDA_START, 0.0
+    cost, lam, last = float(err @ err), LAMBDA_START_EXACT if exact else LAMBDA_START, 0.0
     for _ in range(budget):
         step = damped_step(err[None], jac[None], lam)[0]
         size = max(map(abs, step.tolist()))
