@@ -60,9 +60,6 @@ def test_importing_the_app_imports_no_heavy_library():
     assert r.stdout.strip() == "[]"
 
 
-@pytest.mark.xfail(
-    strict=True, reason="datasets/schema.py (imported by every journal read) imports pandas at module level; requested"
-)
 def test_session_list_on_a_store_imports_no_table_library(world):
     code = (
         "import sys; from labcal.cli.app import main\n"

@@ -26,11 +26,17 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from .errors import DatasetError
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+# pandas is imported by the two functions that build tables: journals and documents import this module for its
+# constants, and listing or showing sessions (reading journals and manifests) must not pay for pandas and pyarrow.
 
 SCHEMA_VERSION = 1
 SPLITS = ("train", "val", "test", "")
@@ -155,6 +161,8 @@ def normalize_table(table: pd.DataFrame, n_joints: int, n_targets: int | None = 
     bad = [c for c in extras if not _EXTRA_RE.match(c)]
     if bad:
         raise DatasetError(f"unknown column(s) {bad}; passthrough columns must be named x_<name>")
+    import pandas as pd
+
     out = pd.DataFrame(index=pd.RangeIndex(len(table)))
     pose = table["pose"].to_numpy()
     if len(pose) and (not np.issubdtype(pose.dtype, np.integer) or pose.min() < 0):
@@ -185,6 +193,8 @@ def _extra_column(s: pd.Series) -> pd.Series:
 
     One fixed rule keeps a column's dtype stable when later versions add rows that lack the value.
     """
+    import pandas as pd
+
     values = s.tolist()
     present = [v for v in values if v is not None and not (isinstance(v, float) and np.isnan(v))]
     if all(isinstance(v, int | float | np.integer | np.floating) for v in present):
