@@ -308,7 +308,7 @@ def test_a_linear_learned_term_gives_the_network_and_its_slope_and_newton_jacobi
         assert np.abs(-J - numeric.T / (2 * h)).max() > 2e-4  # the twists alone are not the Jacobian
 
 
-def test_a_stalled_damped_row_stops_early_and_keeps_its_best_point():
+def test_a_damped_row_without_a_solution_spends_its_budget_and_ends_better_than_it_started():
     calls = []
 
     def residual(q, rows):  # |r| ≥ 1 whatever q: no exact solution, the damped steps can only crawl towards q = 0
@@ -319,13 +319,13 @@ def test_a_stalled_damped_row_stops_early_and_keeps_its_best_point():
         J[:, 0, 0] = -2 * q[:, 0]  # the solver's convention: dr/dq = −J
         return r, J
 
-    q0 = np.full((1, 6), 0.005)
-    for exact, most in ((True, 12), (False, 51)):
+    # Near a singularity every step still counts (stopping a crawling row early left near-singular corrections
+    # worse on the paper benchmark), so the row takes the whole budget, and the answer is never worse than q0.
+    for q0 in (np.full((1, 6), 0.005), np.full((2, 6), 0.005)):
         calls.clear()
-        out = solve._damped(residual, q0, np.zeros(1, dtype=int), np.ones(6), 50, 1e-11, exact=exact)
-        assert len(calls) <= most, exact  # six joints: it stops as it stalls; otherwise it may use the budget
-        assert abs(out[0, 0]) < abs(q0[0, 0])  # never worse than the start, and better
-    assert len(calls) > 12  # without the stall rule the same row keeps crawling
+        out = solve._damped(residual, q0, np.arange(len(q0)), np.ones(6), 50, 1e-11)
+        assert len(calls) == 51
+        assert np.all(np.abs(out[:, 0]) < np.abs(q0[:, 0]))
 
 
 def test_one_damped_row_follows_the_batched_rule():
@@ -338,11 +338,10 @@ def test_one_damped_row_follows_the_batched_rule():
         return r, J
 
     q0 = rng.normal(size=(3, 6)) * 0.5
-    for exact in (True, False):
-        batch = solve._damped(residual, q0, np.arange(3), np.ones(6), 30, 1e-11, exact=exact)
-        for i in range(3):
-            one = solve._damped(residual, q0[i : i + 1], np.arange(1), np.ones(6), 30, 1e-11, exact=exact)
-            np.testing.assert_allclose(one, batch[i : i + 1], rtol=0, atol=1e-10)  # both stop at steps < tol
+    batch = solve._damped(residual, q0, np.arange(3), np.ones(6), 30, 1e-11)
+    for i in range(3):
+        one = solve._damped(residual, q0[i : i + 1], np.arange(1), np.ones(6), 30, 1e-11)
+        np.testing.assert_allclose(one, batch[i : i + 1], rtol=0, atol=1e-10)  # both stop at steps < tol
 
 
 def test_the_batched_gauss_newton_verdicts_follow_the_one_row_rule():
