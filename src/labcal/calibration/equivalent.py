@@ -223,9 +223,20 @@ def joint_error_observations(
     J = base.equivalent_jacobian(q) if k else np.zeros((0, 6, 6))
     PJ = np.einsum("kab,kbc->kac", point_matrix(predicted), J)
     condition = condition_numbers(PJ, metric_scale(base)) if k else np.zeros(0)
-    reason = np.full(k, "", dtype=object)
-    weight = np.ones(k)
+    reason, weight, ok = _screen(condition, max_condition, soft_condition)
     delta_rho = np.full((k, 6), np.nan)
+    if np.any(ok):
+        delta_rho[ok] = np.einsum("kab,kb->ka", np.linalg.pinv(PJ[ok]), delta_p[ok])
+    return JointErrorObservations(q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split, obs.targets)
+
+
+def _screen(condition: np.ndarray, max_condition, soft_condition) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row, from the condition of P·J_ρ: (reason it is dropped or "", weight, finite and not singular).
+
+    A singular row is dropped; above ``max_condition`` it is dropped with that reason; above ``soft_condition`` its
+    weight falls as (soft / condition)², so near-singular observations count less instead of wrecking the fit."""
+    reason = np.full(len(condition), "", dtype=object)
+    weight = np.ones(len(condition))
     singular = ~np.isfinite(condition) | (condition > 1e12)
     reason[singular] = "singular P·J_rho (rank deficient)"
     if max_condition is not None:
@@ -235,10 +246,7 @@ def joint_error_observations(
     if soft_condition is not None:
         band = (weight > 0) & (condition > soft_condition)
         weight[band] = (soft_condition / condition[band]) ** 2
-    ok = ~singular
-    if np.any(ok):
-        delta_rho[ok] = np.einsum("kab,kb->ka", np.linalg.pinv(PJ[ok]), delta_p[ok])
-    return JointErrorObservations(q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split, obs.targets)
+    return reason, weight, ~singular
 
 
 def _partial_observations(obs, base, max_condition, soft_condition) -> JointErrorObservations:
@@ -254,19 +262,8 @@ def _partial_observations(obs, base, max_condition, soft_condition) -> JointErro
     delta_p = np.einsum("ba,kmb->kma", R, diff).reshape(k, 3 * m)
     scale = metric_scale(base)
     condition = condition_numbers(PJ, scale, rank) if k else np.zeros(0)
-    reason = np.full(k, "", dtype=object)
-    weight = np.ones(k)
+    reason, weight, ok = _screen(condition, max_condition, soft_condition)
     delta_rho = np.full((k, 6), np.nan)
-    singular = ~np.isfinite(condition) | (condition > 1e12)
-    reason[singular] = "singular P·J_rho (rank deficient)"
-    if max_condition is not None:
-        high = ~singular & (condition > max_condition)
-        reason[high] = f"condition > {max_condition:g}"
-    weight[reason != ""] = 0.0
-    if soft_condition is not None:
-        band = (weight > 0) & (condition > soft_condition)
-        weight[band] = (soft_condition / condition[band]) ** 2
-    ok = ~singular
     if np.any(ok):
         delta_rho[ok] = _min_norm(PJ[ok], delta_p[ok], rank[ok], scale)
     return JointErrorObservations(
