@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from labcal.cli.common import StoreOption, err, user_errors
-from labcal.datasets.sanity import CHECKS
+from labcal.datasets.checks import CHECKS
 
 _CHECK_LIST = "\n\n".join(f"  {name}: {what}" for name, what in CHECKS.items())
 

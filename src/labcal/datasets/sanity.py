@@ -50,21 +50,12 @@ import numpy as np
 from labcal.kinematics import se3
 from labcal.robots import RobotSpec
 
+from .checks import CHECKS
 from .errors import DatasetError
 from .targets import LENGTH_UNITS as LENGTH_FACTORS
 from .targets import target_layout
 
 #: Every check, with what it guards against (shown by ``labcal session import --help``).
-CHECKS: dict[str, str] = {
-    "target-distances": "target distances match the targets file (unit slips, wrong or permuted targets file)",
-    "target-outliers": "no single row's target distances are off the other rows' by more than 2 mm",
-    "joint-limits": "joint values inside the robot file's limits (after its joint map)",
-    "joint-span": "with --angle-unit deg, some joint moves more than 12.6° (catches radians read as degrees)",
-    "nominal": "points within 25 mm (mean) of the nominal model's prediction (after frame registration)",
-    "reach": "base-frame points within the robot's reach (catches tracker-frame data imported as base)",
-    "duplicates": "at most half of the rows repeat an earlier pose (identical joints; every repeat is reported)",
-    "few-poses": "at least 2 distinct poses per joint, the least a calibration can work with",
-}
 
 #: A measured/file distance ratio within this factor of a unit ratio is called a unit slip.
 UNIT_RATIO_TOL = 1.05

@@ -33,8 +33,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from ._util import (
     canonical_json,
     fsync_dir,
@@ -67,6 +65,7 @@ _VERSION_DIR = re.compile(r"^v(\d{3,6})$")
 JOURNAL_NAME = "journal.jsonl"
 
 if TYPE_CHECKING:
+    import numpy as np
     import pandas as pd
 
     from .documents import MeasurementDoc, SessionHeader, StartDoc
@@ -179,6 +178,8 @@ class Dataset:
     @property
     def targets(self) -> np.ndarray:
         """(m, 3) m: the target points in the tool frame, row i = target t(i+1)."""
+        import numpy as np
+
         return np.asarray(self.manifest["session"]["targets"], dtype=np.float64).reshape(-1, 3)
 
     @property
@@ -190,6 +191,8 @@ class Dataset:
     def q(self) -> np.ndarray:
         """(k, n) rad: joint positions as the controller reported them (controller joints; the robot file's joint
         map converts them to model joints: ``labcal.cli.ops.load_observations``)."""
+        import numpy as np
+
         from .schema import joint_columns
 
         return self.table[joint_columns(self.n_joints)].to_numpy(dtype=np.float64)
@@ -197,6 +200,8 @@ class Dataset:
     @property
     def points(self) -> np.ndarray:
         """(k, m, 3) m: measured targets; ``points[:, i]`` is target t(i+1), all NaN where it was not seen."""
+        import numpy as np
+
         from .schema import target_columns
 
         m = self.n_targets
@@ -205,6 +210,8 @@ class Dataset:
     @property
     def seen(self) -> np.ndarray:
         """(k, m) bool: target t(i+1) was seen in the row (``points[r, i]`` is finite)."""
+        import numpy as np
+
         return ~np.isnan(self.points).all(axis=2)
 
     @property
@@ -215,11 +222,15 @@ class Dataset:
     @property
     def pose(self) -> np.ndarray:
         """(k,) int: plan index (or import row) of each measurement."""
+        import numpy as np
+
         return self.table["pose"].to_numpy(dtype=np.int64)
 
     @property
     def spread(self) -> np.ndarray | None:
         """(k, m) m tracker spread per target (NaN where not seen or unknown), or None if the version has none."""
+        import numpy as np
+
         from .schema import spread_columns
 
         cols = list(spread_columns(self.n_targets))
@@ -738,6 +749,8 @@ class SessionStore:
 
     def _check_compatible(self, session_id: str, meta: dict, new: dict) -> None:
         """Refuse to mix data of another robot, target set or frame into a session."""
+        import numpy as np
+
         a, b = meta, new
         if a["robot"]["n_joints"] != b["robot"]["n_joints"] or a["robot"]["hash"] != b["robot"]["hash"]:
             raise DatasetError(
@@ -1062,6 +1075,8 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
 
     A target written as ``null`` (not seen) becomes NaN in its three columns and its spread.
     """
+    import numpy as np
+
     from .schema import spread_columns
 
     recs = []
