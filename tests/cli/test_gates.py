@@ -228,6 +228,9 @@ def test_ctrl_c_during_a_fit_exits_130_in_a_real_process(world):
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        # a child inherits an ignored SIGINT (and Python then installs no KeyboardInterrupt handler): whatever the
+        # test process's own disposition, the CLI must start as a shell would start it
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     for line in p.stdout:
         if "fitting" in line:
