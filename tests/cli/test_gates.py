@@ -211,6 +211,13 @@ def test_swapped_targets_show_in_the_point_error_and_block_export(world, tmp_pat
     assert not np.any([p.name == "c.json" for p in tmp_path.iterdir()])
 
 
+def _default_sigint() -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def test_ctrl_c_during_a_fit_exits_130_in_a_real_process(world):
     """SIGINT to a running `labcal fit` (sent once it reports fitting): exit 130, one line, no traceback, no fit."""
     import os
@@ -228,9 +235,9 @@ def test_ctrl_c_during_a_fit_exits_130_in_a_real_process(world):
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        # a child inherits an ignored SIGINT (and Python then installs no KeyboardInterrupt handler): whatever the
-        # test process's own disposition, the CLI must start as a shell would start it
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        # a child inherits an ignored or blocked SIGINT (and Python then installs no KeyboardInterrupt handler):
+        # whatever the test process's own disposition and mask, the CLI must start as a shell would start it
+        preexec_fn=_default_sigint,
     )
     for line in p.stdout:
         if "fitting" in line:
