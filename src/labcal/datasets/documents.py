@@ -37,14 +37,16 @@ import time as _time
 import uuid
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
-
-import numpy as np
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from ._util import jsonable, software_versions
 from .errors import JournalError
 from .schema import FRAMES, SCHEMA_VERSION
 from .targets import validate_targets
+
+# numpy is imported by the functions that check measurements: reading a journal (listing a store) needs none of them.
+if TYPE_CHECKING:
+    import numpy as np
 
 EXIT_STATUSES = ("success", "aborted", "paused", "failed")
 # A unit id is typed on command lines and matched exactly: printable, no blanks at the ends, and bounded so a
@@ -208,6 +210,8 @@ class StartDoc:
 
     def targets_array(self) -> np.ndarray:
         """(m, 3) m."""
+        import numpy as np
+
         return np.asarray(self.targets, dtype=np.float64).reshape(-1, 3)
 
     def to_json(self) -> dict:
@@ -284,6 +288,8 @@ class MeasurementDoc:
         """(m, 3) m with NaN rows for targets not seen, or None if the document has no points."""
         if self.points is None:
             return None
+        import numpy as np
+
         rows = [[math.nan] * 3 if p is None else p for p in self.points]
         out = np.asarray(rows, dtype=np.float64).reshape(-1, 3)
         if m is not None and out.shape[0] != m:
@@ -385,6 +391,8 @@ def measured_points(value: Any, m: int, *, allow_none: bool) -> list | None:
         if allow_none:
             return None
         raise JournalError("points are required for a valid measurement")
+    import numpy as np
+
     a = np.asarray(value, dtype=np.float64)
     if a.shape != (m, 3):
         raise JournalError(f"points must have shape ({m}, 3) (targets × xyz, m), got {a.shape}")
@@ -409,6 +417,8 @@ def measured_spread(value: Any, points: list | None, m: int) -> list | None:
     """Spread per target (m,) m as stored: None for a target not seen or a non-finite value."""
     if value is None:
         return None
+    import numpy as np
+
     a = np.asarray(value, dtype=np.float64)
     if a.shape != (m,):
         raise JournalError(f"spread must have shape ({m},), got {a.shape}")

@@ -46,8 +46,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ._util import canonical_json, fsync_dir, jsonable
 from .documents import (
     EXIT_STATUSES,
@@ -64,6 +62,9 @@ from .documents import (
 from .errors import JournalCorrupted, JournalError
 from .ids import validate_id
 from .schema import SPLITS
+
+# numpy is imported where measurements are checked before an append: reading a journal (listing a store) needs
+# none of it.
 
 try:  # POSIX only; without it we simply do not lock.
     import fcntl
@@ -252,6 +253,8 @@ def _vector(value: Any, n: int, name: str, *, allow_none: bool) -> list[float] |
         if allow_none:
             return None
         raise JournalError(f"{name} is required")
+    import numpy as np
+
     a = np.asarray(value, dtype=np.float64)
     if a.shape != (n,):
         raise JournalError(f"{name} must have shape ({n},), got {a.shape}")
@@ -405,6 +408,8 @@ class Journal:
         ``spread``: (m,) m, one per target. A rejected measurement needs a ``reason`` and may have
         ``points=None`` (or non-finite points, stored as null).
         """
+        import numpy as np
+
         if self._state != "running":
             raise JournalError(f"cannot record a measurement while the run is {self._state}; call resume() first")
         if isinstance(pose_index, bool) or not isinstance(pose_index, int | np.integer) or pose_index < 0:

@@ -28,15 +28,14 @@ import re
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from .errors import DatasetError
 
 if TYPE_CHECKING:
+    import numpy as np
     import pandas as pd
 
-# pandas is imported by the two functions that build tables: journals and documents import this module for its
-# constants, and listing or showing sessions (reading journals and manifests) must not pay for pandas and pyarrow.
+# numpy and pandas are imported by the functions that check and build tables: journals and documents import this
+# module for its constants, and listing or showing sessions (reading journals and manifests) must not pay for them.
 
 SCHEMA_VERSION = 1
 SPLITS = ("train", "val", "test", "")
@@ -110,6 +109,8 @@ def seen_mask(points: np.ndarray, *, row_names=None) -> np.ndarray:
     empty coordinate and the fix), for a row with no target seen, and for ±inf anywhere. ``row_names(i)`` phrases
     row i in the messages (default ``"row i"``, 0-based as the table's index).
     """
+    import numpy as np
+
     p = np.asarray(points, dtype=np.float64)
     name = row_names or (lambda i: f"row {i}")
     if np.isinf(p).any():
@@ -161,6 +162,7 @@ def normalize_table(table: pd.DataFrame, n_joints: int, n_targets: int | None = 
     bad = [c for c in extras if not _EXTRA_RE.match(c)]
     if bad:
         raise DatasetError(f"unknown column(s) {bad}; passthrough columns must be named x_<name>")
+    import numpy as np
     import pandas as pd
 
     out = pd.DataFrame(index=pd.RangeIndex(len(table)))
@@ -193,6 +195,7 @@ def _extra_column(s: pd.Series) -> pd.Series:
 
     One fixed rule keeps a column's dtype stable when later versions add rows that lack the value.
     """
+    import numpy as np
     import pandas as pd
 
     values = s.tolist()

@@ -18,12 +18,17 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from labcal.tomlschema import Key, Table, is_number, read_toml, validate
 
 from .errors import TargetsError
+
+if TYPE_CHECKING:
+    import numpy as np
+
+# numpy is imported where targets are checked or measured: reading a session's journal (listing a store) imports
+# this module without needing it.
 
 #: Before 1..k targets three targets had to span a triangle this large (m²); kept for callers that pass it.
 MIN_TARGET_AREA = 1e-6
@@ -48,6 +53,8 @@ def validate_targets(
     closer than ``min_height`` m (the same point twice). Collinear targets are accepted (see :func:`target_layout`);
     ``min_area`` is no longer used and only kept so that older callers still work.
     """
+    import numpy as np
+
     rows = points.tolist() if isinstance(points, np.ndarray) else points
     if not isinstance(rows, list | tuple) or len(rows) < 1:
         n = len(rows) if isinstance(rows, list | tuple) else "no"
@@ -76,9 +83,12 @@ def target_layout(targets: np.ndarray, tol: float = MIN_TARGET_HEIGHT) -> str:
 
     A point measures no rotation of the tool; a line no rotation about itself; a plane or solid every rotation.
 
+    >>> import numpy as np
     >>> target_layout(np.array([[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0]]))
     'line'
     """
+    import numpy as np
+
     t = np.asarray(targets, dtype=float).reshape(-1, 3)
     if len(t) == 1:
         return "point"
