@@ -24,7 +24,7 @@ import typer
 from typer._click import exceptions as click_exceptions  # typer vendors click; its exceptions live here
 from typer.core import TyperGroup
 
-from labcal.cli import bench, coercion, session
+from labcal.cli import bench, coercion, helprender, session
 from labcal.cli.common import INTERRUPTED
 from labcal.cli.demo import demo
 from labcal.cli.evaluate import evaluate
@@ -45,6 +45,9 @@ class _LabcalGroup(TyperGroup):
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         # Before any value is checked: typer's own checks import pydantic, which the light paths must not need.
         coercion.install(self)
+        argv = sys.argv[1:] if args is None else list(args)
+        if not argv or "--help" in argv:
+            helprender.import_help_renderer()
         if not standalone_mode:
             return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
         try:
