@@ -2,7 +2,9 @@
 the option choices (typing.Literal: typer checks them and completes them in the shell), JSON output, tables, and the
 fit warnings every command shows the same way.
 
-Light on purpose: every command module imports this one, and `labcal --help` imports every command module.
+Light on purpose: every command module imports this one, and `labcal --help` imports every command module. rich is
+imported when the first line is printed through ``out`` / ``err`` or a table is built, so printing JSON needs none
+of it.
 """
 
 from __future__ import annotations
@@ -14,11 +16,13 @@ import os
 import sys
 import uuid
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import typer
-from rich.console import Console
-from rich.table import Table
+
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.table import Table
 
 STORE_HELP = "Session store folder (default: $LABCAL_STORE, else ./sessions)."
 StoreOption = typer.Option(None, "--store", help=STORE_HELP, show_default=False)
@@ -43,9 +47,36 @@ AngleUnit = Literal["rad", "deg"]
 Frame = Literal["base", "tracker"]
 Form = Literal["targets", "probe"]
 
-# Piped output (files, CI logs, tests) gets room for the full metrics table instead of 80 columns.
-out = Console(soft_wrap=True, highlight=False, width=None if sys.stdout.isatty() else 200)
-err = Console(stderr=True, soft_wrap=True, highlight=False)
+
+class _FirstUseConsole:
+    """A rich Console made when it first prints (or is asked anything): the commands that print JSON only, and the
+    help, never import rich.console through it."""
+
+    def __init__(self, make) -> None:
+        self._make = make
+        self._console: Console | None = None
+
+    def __getattr__(self, name: str):
+        if self._console is None:
+            self._console = self._make()
+        return getattr(self._console, name)
+
+
+def _stdout_console() -> Console:
+    from rich.console import Console
+
+    # Piped output (files, CI logs, tests) gets room for the full metrics table instead of 80 columns.
+    return Console(soft_wrap=True, highlight=False, width=None if sys.stdout.isatty() else 200)
+
+
+def _stderr_console() -> Console:
+    from rich.console import Console
+
+    return Console(stderr=True, soft_wrap=True, highlight=False)
+
+
+out = _FirstUseConsole(_stdout_console)
+err = _FirstUseConsole(_stderr_console)
 
 
 def user_errors(fn):
@@ -206,6 +237,8 @@ def deg(x) -> str:
 def metrics_table(metrics: dict, title: str) -> Table:
     """Rich table: split × (before, after) with mean / RMS / p95 / max position (mm) and orientation (deg) of the
     tool pose, and mean / p95 / max of the per-target point error (mm) beside it."""
+    from rich.table import Table
+
     t = Table(title=title, title_justify="left")
     t.add_column("split")
     t.add_column("n", justify="right")
@@ -239,6 +272,8 @@ def targets_table(metrics: dict, title: str = "per-target point error (mm): mean
     if not splits:
         return None
     m = len(metrics[splits[0]]["points"]["after"].get("per_target") or [])
+    from rich.table import Table
+
     t = Table(title=title, title_justify="left")
     t.add_column("split")
     t.add_column("")

@@ -6,7 +6,6 @@ import tempfile
 from pathlib import Path
 
 import typer
-from rich.table import Table
 
 from labcal.cli.common import deg, mm, out, user_errors
 
@@ -27,6 +26,8 @@ def demo(
 
     Example: labcal demo --out /tmp/labcal-demo
     """
+    from rich.table import Table
+
     from labcal.cli.ops import export_fit, new_session, open_store, run_fit
     from labcal.cli.ops.evaluating import evaluate_fit
     from labcal.reports import write_session_report

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
-from rich.table import Table
 
 from labcal.cli.common import INTERRUPTED, StoreOption, err, mm, out, user_errors
+
+if TYPE_CHECKING:
+    from rich.table import Table
 
 
 @user_errors
@@ -93,6 +96,8 @@ def refit(
 
 def summary_table(report, title: str) -> Table:
     """One row per task: the version, before (fit, method, error) and after, the warning codes or the failure."""
+    from rich.table import Table
+
     t = Table(title=title, title_justify="left")
     for name, justify in (
         ("version", "left"), ("before fit", "left"), ("method", "left"), ("error mm", "right"),

@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.table import Table
 
 from labcal.cli.common import (
     VERIFY_FAILED,
@@ -211,6 +210,8 @@ def list_(
     if as_json:
         print_json("labcal.session-list/1", {"store": str(st.root), "sessions": [_session_doc(i, m) for i, m in rows]})
         return
+    from rich.table import Table
+
     t = Table(title=f"sessions in {st.root}", title_justify="left")
     for col in ("session", "robot", "frame", "status", "versions", "rows"):
         t.add_column(col)
@@ -294,6 +295,8 @@ def show(
     unit = "" if _unit(meta) is None else f", unit {_unit(meta)}"
     out.print(f"session {info.session_id}: robot {info.robot.get('name')} ({info.robot.get('hash', '')[:12]}…, "
               f"{stored}){unit}, frame {info.frame}{targets}, status {info.status}", markup=False)  # fmt: skip
+    from rich.table import Table
+
     t = Table()
     for col in ("version", "rows", "created", "source", "parent", "fits"):
         t.add_column(col)
