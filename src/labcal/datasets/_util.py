@@ -8,10 +8,8 @@ finished temporary directory, so a reader never sees a half-written version, ses
 from __future__ import annotations
 
 import datetime as _dt
-import hashlib
 import json
 import os
-import secrets
 import shutil
 import sys
 from collections.abc import Mapping
@@ -20,13 +18,20 @@ from typing import Any
 
 READ_ONLY = 0o444
 
+# hashlib (it loads OpenSSL) and secrets are imported by the helpers that hash and make ids, which listing an empty
+# store never calls.
+
 
 def sha256_bytes(data: bytes) -> str:
+    import hashlib
+
     return hashlib.sha256(data).hexdigest()
 
 
 def sha256_file(path: Path, limit: int | None = None) -> str:
     """sha256 of a file (or of its first ``limit`` bytes), read in chunks."""
+    import hashlib
+
     h = hashlib.sha256()
     remaining = limit
     with open(path, "rb") as f:
@@ -59,6 +64,8 @@ def iso(t: _dt.datetime) -> str:
 
 
 def random_hex(n: int) -> str:
+    import secrets
+
     return secrets.token_hex((n + 1) // 2)[:n]
 
 
