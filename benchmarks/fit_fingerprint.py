@@ -6,10 +6,11 @@ parameters (the export payload without its golden vectors and checksums, which d
 and the corrected joints of 200 fixed configurations. ``--save`` writes the corrections to an ``.npz`` beside the
 text; ``--compare FILE`` re-runs and prints, per case, whether the parameters are bit-identical and the largest
 difference of ``correct()`` from the saved run, and exits 1 when a hash changed or a correction moved by more than
-``--tol`` rad. The correction rule binds the configurations where the saved run had converged (the saved command
-reaches the nominal pose within 1e-9, in m and rad); a configuration near a singularity where it had not (a
-six-joint robot only: with fewer joints the correction is a least-squares fit, never exact) is shown but may
-change.
+``--tol`` rad. The correction rule binds the configurations where the saved run had converged; a configuration
+near a singularity where it had not is shown but may change. Converged means: the saved command reaches the nominal
+pose within 1e-9 (m and rad) on a robot with six or more joints; with fewer joints, where a correction is a
+least-squares fit and never exact, that one Gauss-Newton step of the fit from the saved command is below 1e-9 rad
+(the saved command is the solver's fixed point).
 
     python benchmarks/fit_fingerprint.py --save benchmarks/results/fit_fingerprint_before.txt
     python benchmarks/fit_fingerprint.py --compare benchmarks/results/fit_fingerprint_before.txt
@@ -31,7 +32,7 @@ from labcal.calibration.fit import fit
 from labcal.calibration.local_poe import register
 from labcal.calibration.observations import Observations
 from labcal.compensator import to_payload
-from labcal.kinematics import se3
+from labcal.kinematics import metric, se3
 from labcal.robots import load
 from labcal.simulation import scenarios
 
@@ -86,10 +87,15 @@ def _configurations(robot, count: int = 200) -> np.ndarray:
 
 
 def converged(robot, q: np.ndarray, q_cmd: np.ndarray, tol: float = 1e-9) -> np.ndarray:
-    """(k,) bool: q_cmd puts the calibrated robot at q's nominal pose within ``tol`` (m and rad). Always True for a
-    robot with fewer than six joints, whose correction is a least-squares fit and never exact."""
+    """(k,) bool: q_cmd puts the calibrated robot at q's nominal pose within ``tol`` (m and rad); for a robot with
+    fewer than six joints, whose correction is a least-squares fit and never exact: one Gauss-Newton step of that
+    fit (in the length-scaled metric) from q_cmd is below ``tol``."""
     if robot.n < 6:
-        return np.ones(len(q), dtype=bool)
+        w = metric.twist_weights(robot.length_scale)
+        r, J = robot.residual(q_cmd, robot.nominal.fk(q))
+        Jw = J * w[:, None]
+        steps = np.stack([np.linalg.lstsq(Jw[i], r[i] * w, rcond=None)[0] for i in range(len(q))])
+        return np.abs(steps).max(axis=1) < tol
     gap = se3.log_se3(se3.inv(robot.nominal.fk(q)) @ robot.predict_pose(q_cmd))
     return np.abs(gap).max(axis=1) < tol
 

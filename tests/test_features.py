@@ -113,3 +113,17 @@ def test_module_imports_numpy_only():
     code = "import sys, labcal.features; bad = {'torch', 'scipy', 'pandas'} & set(sys.modules); print(sorted(bad))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("order", [1, 2, 32, 128])
+def test_the_one_configuration_recurrence_is_the_registry_harmonics(order):
+    rng = np.random.default_rng(order)
+    for theta in (rng.uniform(-np.pi, np.pi, 6), np.array([0.0, np.pi / 2, -np.pi, 1e-9, 3.0, -2.9])):
+        expected = features.harmonics(theta[None], order).reshape(len(theta), 2 * order)
+        got = features.harmonics_by_recurrence(np.cos(theta), np.sin(theta), order)
+        # both round about linearly in h: a running product of unit complex numbers, and sin of h θ (|θ| ≤ π)
+        np.testing.assert_allclose(got, expected, rtol=0, atol=order * np.pi * 2.3e-16 + 1e-15)
+        buffer = np.full((len(theta), 2 * order + 3), 7.0)  # writing into a strided block leaves the rest alone
+        features.harmonics_by_recurrence(np.cos(theta), np.sin(theta), order, out=buffer[:, : 2 * order])
+        np.testing.assert_array_equal(buffer[:, : 2 * order], got)
+        assert (buffer[:, 2 * order :] == 7.0).all()

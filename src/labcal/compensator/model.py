@@ -360,14 +360,15 @@ class CalibratedRobot:
     def _linear_series(self):
         """δρ and its slope at one configuration of a 6-joint z-revolute arm whose network is linear in one
         ``harmonics:H`` and optionally ``gravity`` and ``q`` (the joint series and the hybrid's learned term): a
-        function ``(q (n,), cos q (n,), sin q (n,), link-frame adjoints (n+1, 6, 6)) → (δρ (6,), S (6, n))``; None
-        for any other network. δρ equals the network on the registry's features (:mod:`labcal.features`) up to
-        rounding; S is dδρ/dq without the gravity terms' part (gravity features turn slowly with q: their slope
-        saved a tenth of a Gauss-Newton step per call and cost more, benchmarks/compensator_tail.py).
+        function ``(q, cos q, sin q (n,), link-frame adjoints (n+1, 6, 6)) → (δρ (6,), S (6, n))``; None for any
+        other network. The features are the registry's (:mod:`labcal.features`; the harmonics by its
+        one-configuration recurrence from the walk's cos q and sin q), so δρ equals the network up to rounding. S is
+        dδρ/dq without the gravity terms' part (gravity features turn slowly with q: their slope saved a tenth of a
+        Gauss-Newton step per call and cost more, benchmarks/compensator_tail.py).
 
-        Per joint j one row of features x_j = (cos h q_j, sin h q_j for h = 1 … H: the running product of
-        e^{i q_j}, from the walk's cos q and sin q; then link j+1's gravity direction), and one stacked product
-        x_j K_j gives both δρ's terms and their slope (d sin(h q)/dq = h cos(h q), d cos(h q)/dq = −h sin(h q)).
+        Per joint j one row of features x_j = (sin h q_j, cos h q_j for h = 1 … H, then link j+1's gravity
+        direction), and one stacked product x_j K_j gives both δρ's terms and their slope (d sin(h q)/dq =
+        h cos(h q), d cos(h q)/dq = −h sin(h q)).
         """
         network, model, n = self.network, self.model, self.n
         if len(network.weights) != 1 or n != 6 or not model._all_revolute_z:
@@ -381,27 +382,28 @@ class CalibratedRobot:
             if feature.kind == "harmonics" and harmonic is None:
                 H, harmonic = feature.order, block.reshape(n, feature.order, 2, 6)  # (joint, h − 1, sin/cos, out)
             elif feature.kind == "gravity" and gravity is None:
-                gravity = block.reshape(n, 3, 6)
+                gravity = (block.reshape(n, 3, 6), feature.prepare())
             elif feature.kind == "q" and linear is None:
                 linear = block
             else:
                 return None
         if harmonic is None:
             return None
-        h = np.arange(1.0, H + 1)[:, None]
-        K = np.zeros((n, 2 * H + 3, 12))  # rows: cos h q, sin h q interleaved, then −gravity; columns: δρ, slope
-        K[:, 0 : 2 * H : 2, :6], K[:, 1 : 2 * H : 2, :6] = harmonic[:, :, 1], harmonic[:, :, 0]
-        K[:, 0 : 2 * H : 2, 6:], K[:, 1 : 2 * H : 2, 6:] = h * harmonic[:, :, 0], -h * harmonic[:, :, 1]
+        weights, h = harmonic, np.arange(1.0, H + 1)[:, None]
+        G = 0 if gravity is None else 3
+        K = np.zeros((n, 2 * H + G, 12))  # rows: sin h q, cos h q interleaved, then gravity; columns: δρ, slope
+        K[:, 0 : 2 * H : 2, :6], K[:, 1 : 2 * H : 2, :6] = weights[:, :, 0], weights[:, :, 1]
+        K[:, 0 : 2 * H : 2, 6:], K[:, 1 : 2 * H : 2, 6:] = -h * weights[:, :, 1], h * weights[:, :, 0]
+        gravity_of = None
         if gravity is not None:
-            K[:, 2 * H :, :6] = -gravity
+            K[:, 2 * H :, :6], gravity_of = gravity
         K.setflags(write=False)
 
         def series(q, cos_q, sin_q, adjoints) -> tuple[np.ndarray, np.ndarray]:
-            x = np.empty((n, 2 * H + 3))
-            x[:, 0 : 2 * H : 2], x[:, 1 : 2 * H : 2] = cos_q[:, None], sin_q[:, None]
-            x[:, 2 * H :] = adjoints[1:, 2, :3]  # the rotation rows of the link frames K_2 … K_{n+1}
-            powers = x[:, : 2 * H].view(complex)
-            np.multiply.accumulate(powers, axis=1, out=powers)  # e^{i h q_j}
+            x = np.empty((n, 2 * H + G))
+            feature_lib.harmonics_by_recurrence(cos_q, sin_q, H, out=x[:, : 2 * H])
+            if gravity_of is not None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
+                x[:, 2 * H :] = gravity_of(q[None], adjoints[None]).reshape(n, 3)
             out = (x[:, None] @ K)[:, 0]  # (n, 12)
             rho, slope = bias + out[:, :6].sum(axis=0), out[:, 6:].T
             if linear is not None:
@@ -534,8 +536,8 @@ class CalibratedRobot:
         else:
             T_target = self.nominal.fk(q2)
 
-            def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-                return self.residual(qc, T_target[rows])
+            def residual(qc: np.ndarray, rows: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                return self.residual(qc, T_target[rows])  # J comes with the walk: returned whether needed or not
 
         weights, budget = self._twist_weights, damped_iterations
         return solver.solve(residual, q2, iterations=iterations, tol=tol, weights=weights, damped_iterations=budget)
@@ -567,7 +569,7 @@ class CalibratedRobot:
         series = network and self._linear_series
         pending = [first_walk]  # the solver's first evaluation is at q itself: that walk is done already
 
-        def residual(qc: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def residual(qc: np.ndarray, rows: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
             adjoints, J, cos_q, sin_q = pending.pop() if pending else walk(qc[0])
             e = _pose_error_one(target, adjoints[-1])
             if network is None:
@@ -576,6 +578,8 @@ class CalibratedRobot:
                 rho = network.forward_features(inputs(qc, adjoints[None]))
                 return (e - J @ rho[0])[None], J[None]
             rho, slope = series(qc[0], cos_q, sin_q, adjoints)
+            if not jacobian:
+                return (e - J @ rho)[None], None
             dy = J * rho  # (6, n): column j is δρ_j ξ_j
             # dr/dq = −(J + J dδρ/dq + the twists' turn under δρ + the log's first-order term) up to O(|r|, |e|²)
             # (and gravity's slope): close to Newton's step, where −J alone converges at the rate |dδρ/dq| + |e|

@@ -3,19 +3,20 @@
 :func:`solve` finds q with ``r(q) = 0`` (or ``|W r(q)|`` least, for fewer than six joints) for a batch of rows at
 once, given a function that returns the residual r (m, 6) and the joint twists J (m, 6, n) at m configurations:
 
-- **Gauss-Newton** first, from q0, with the full step ``J⁻¹ r`` (least squares in the metric W for n < 6,
+- **Gauss-Newton** first, from q0, with the full step ``M r``, M = J⁻¹ (least squares in the metric W for n < 6,
   minimum norm for n > 6). A row stops when its estimated distance to the solution, ``|step| ρ / (1 − ρ)`` with ρ
   the ratio of its last two steps (linear convergence), is below ``tol``. A row *fails* when its steps stop
   contracting (a step more than half the previous one), are not finite, or exceed :data:`GN_MAX_STEP`: a
-  (near-)singular configuration.
+  (near-)singular configuration. For n ≥ 6, after a step below :data:`REUSE_BELOW` the next one reuses M and asks
+  the residual for r alone: J moved by less than its own approximation error, and J is much of a residual's cost
+  (the simplified Newton method; its zero is still r = 0, whereas a least-squares step's zero moves with J).
 - The failed rows then start over from q0 in **damped** mode: steps ``(JᵀJ + λ μ I)⁻¹ Jᵀ r`` in the length-scaled
-  metric W (μ the mean of JᵀJ's diagonal), clipped to :data:`DAMPED_MAX_STEP`, kept only where they lower
-  ``|W r|``; λ starts at 1e-6, falls tenfold after a kept step and rises tenfold after a refused one. A row stops
-  when its last step (kept or refused) was below ``tol`` or λ passed 1e6 (no step helps); all stop after
-  ``damped_iterations`` steps. So near a singularity the answer is never worse than q0, and a call's worst case is
-  bounded. (Stopping a row early when its steps stall was tried: it left near-singular corrections up to 0.7 mm
-  worse on the paper benchmark's held-out poses, so every row gets the whole budget; a control loop that prefers a
-  tighter worst case passes a smaller ``damped_iterations``.)
+  metric W (μ the mean of JᵀJ's diagonal), clipped to :data:`DAMPED_MAX_STEP`, kept only where they do not raise
+  ``|W r|``. λ follows the gain ratio ϱ of a kept step (actual over predicted fall of ``|W r|²``): it is multiplied
+  by ``max(1/3, 1 − (2ϱ − 1)³)``, and by 2, 4, 8 … after refused steps in a row (Nielsen's rule, which wastes
+  fewer evaluations than tenfold jumps). A row stops when its last step (kept or refused) was below ``tol`` or λ
+  passed 1e6 (no step helps); all stop after ``damped_iterations`` steps. So near a singularity the answer is
+  never worse than q0, and a call's worst case is bounded.
 
 Both modes are one loop each over the same residual function, so a single configuration (k = 1) takes exactly the
 path a batch takes; only the residual function may be specialised for it (:mod:`labcal.compensator.model`).
@@ -23,7 +24,7 @@ path a batch takes; only the residual function may be specialised for it (:mod:`
 Example (six "joints" whose twists are the unit twists, so r = target − q)::
 
     >>> target = np.array([[0.1, -0.2, 0.3, 0.0, 0.0, 0.0]])
-    >>> def residual(q, rows):
+    >>> def residual(q, rows, jacobian=True):
     ...     J = np.broadcast_to(np.eye(6), (len(rows), 6, 6)).copy()
     ...     return target[rows] - q, J
     >>> solve(residual, np.zeros((1, 6))).round(12) + 0.0
@@ -32,39 +33,46 @@ Example (six "joints" whose twists are the unit twists, so r = target − q)::
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
 import numpy as np
 
 GN_MAX_STEP = 0.3  # rad: a full Gauss-Newton step this large means a (near-)singular configuration
+REUSE_BELOW = 1e-4  # rad: after a step this small J has moved by less than its approximation error
 DAMPED_MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so larger steps mean a singularity
 LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP = 1e-6, 1e-12, 1e6
-DAMPED_BUDGET = 30  # damped steps per call by default
+DAMPED_BUDGET = 20  # damped steps per call by default
 _ONES6 = np.ones(6)
 
-#: residual(q (m, n), rows (m,) indices into the batch) → (r (m, 6), J (m, 6, n)). The first evaluation is always at
-#: q0 for every row (a residual may have prepared that one).
-Residual = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+#: residual(q (m, n), rows (m,) indices into the batch, jacobian=True) → (r (m, 6), J (m, 6, n)); with
+#: ``jacobian=False`` J may be None (the solver does not need it). The first evaluation is always at q0 for every
+#: row, with J (a residual may have prepared that one).
+Residual = Callable[..., tuple[np.ndarray, np.ndarray | None]]
 
 
-def gauss_newton_step(r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
-    """(m, 6) residuals, (m, 6, n) Jacobians → (m, n) full steps: J⁻¹ r (n = 6), least squares in diag(weights)
-    (n < 6), or the minimum-norm step Jᵀ (J Jᵀ)⁻¹ r (n > 6). NaN rows where J is singular."""
-    n = J.shape[2]
-    if weights is not None:
-        r, J = r * weights, J * weights[:, None]
+def step_matrices(J: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+    """(m, 6, n) Jacobians → (m, n, 6) matrices M whose full step is ``M r``: J⁻¹ (n = 6), the least-squares
+    inverse in diag(weights) (n < 6), or the minimum-norm Jᵀ (J Jᵀ)⁻¹ (n > 6). NaN where J is singular."""
+    m, _, n = J.shape
     try:
         if n == 6:
-            if len(J) == 1:  # numpy's stacked solve costs more per call than the 2-D one (a control loop's case)
-                return np.linalg.solve(J[0], r[0])[None]
-            return np.linalg.solve(J, r[:, :, None])[:, :, 0]
+            return np.linalg.inv(J)
         Jt = J.transpose(0, 2, 1)
         if n > 6:
-            return (Jt @ np.linalg.solve(J @ Jt, r[:, :, None]))[:, :, 0]
-        return np.linalg.solve(Jt @ J, Jt @ r[:, :, None])[:, :, 0]
+            return Jt @ np.linalg.inv(J @ Jt)
+        Jwt = Jt * weights  # (m, n, 6): Jᵀ W
+        return np.linalg.solve(Jwt @ (J * weights[:, None]), Jwt * weights)
     except np.linalg.LinAlgError:
-        return np.full((r.shape[0], n), np.nan)
+        return np.full((m, n, 6), np.nan)
+
+
+@functools.lru_cache(maxsize=8)
+def _eye(n: int) -> np.ndarray:
+    out = np.eye(n)
+    out.setflags(write=False)
+    return out
 
 
 def damped_step(r: np.ndarray, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
@@ -75,12 +83,13 @@ def damped_step(r: np.ndarray, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
         J1 = J[0]
         JtJ = J1.T @ J1
         mu = float(np.ravel(lam)[0]) * (JtJ.trace() / n)
-        return np.clip(np.linalg.solve(JtJ + mu * np.eye(n), J1.T @ r[0]), -DAMPED_MAX_STEP, DAMPED_MAX_STEP)[None]
+        step = np.linalg.solve(JtJ + mu * _eye(n), J1.T @ r[0])
+        return np.minimum(np.maximum(step, -DAMPED_MAX_STEP), DAMPED_MAX_STEP)[None]
     JtJ = np.einsum("kai,kaj->kij", J, J)
     mean_diag = (np.trace(JtJ, axis1=1, axis2=2) / n)[:, None, None]
     rhs = np.einsum("kai,ka->ki", J, r)[..., None]
-    step = np.linalg.solve(JtJ + (lam[:, None, None] * mean_diag) * np.eye(n), rhs)[..., 0]
-    return np.clip(step, -DAMPED_MAX_STEP, DAMPED_MAX_STEP)
+    step = np.linalg.solve(JtJ + (lam[:, None, None] * mean_diag) * _eye(n), rhs)[..., 0]
+    return np.minimum(np.maximum(step, -DAMPED_MAX_STEP), DAMPED_MAX_STEP)
 
 
 def solve(
@@ -100,10 +109,17 @@ def solve(
     k, n = q0.shape
     w = _ONES6 if weights is None else np.asarray(weights, dtype=float)
     rows = _OneRow(q0, tol) if k == 1 else _Rows(q0, tol)
+    reuse = n >= 6  # with M r = 0 only where r = 0; a least-squares M's zero moves with J (n < 6)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a singular J gives a NaN step
         for _ in range(max(iterations, 1)):
-            r, J = residual(*rows.active())
-            if not rows.advance(gauss_newton_step(r, J, w if n < 6 else None)):
+            q, active = rows.active()
+            if reuse and rows.settled():
+                r, _ = residual(q, active, False)
+                M = rows.matrices()
+            else:
+                r, J = residual(q, active)
+                M = rows.matrices(step_matrices(J, w if n < 6 else None))
+            if not rows.advance((M @ r[:, :, None])[:, :, 0]):
                 break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
         out, failed = rows.out, rows.failed()
@@ -114,23 +130,41 @@ def solve(
 
 
 class _Rows:
-    """The Gauss-Newton state of a batch: every row's q, last step size and fate, advanced by :func:`verdict`'s
-    rule in array arithmetic (:func:`_verdicts`)."""
+    """The Gauss-Newton state of a batch: every row's q, last step size, step matrix and fate, advanced by
+    :func:`verdict`'s rule in array arithmetic (:func:`_verdicts`)."""
 
     def __init__(self, q0: np.ndarray, tol: float) -> None:
         self.out, self.tol = q0.copy(), tol
         self.prev: np.ndarray | None = None  # (k,) last step sizes, after the first step
+        self.M: np.ndarray | None = None  # (k, n, 6) step matrices, after the first step
         self.bad = np.zeros(len(q0), dtype=bool)
         self.rows = np.arange(len(q0))  # rows still iterating
 
+    def _everyone(self) -> bool:
+        return self.rows.size == len(self.out)  # the common case: no gathers and scatters
+
     def active(self) -> tuple[np.ndarray, np.ndarray]:
         """(q of the rows still iterating, their indices)."""
-        everyone = self.rows.size == len(self.out)  # the common case: no gathers and scatters
-        return (self.out if everyone else self.out[self.rows]), self.rows
+        return (self.out if self._everyone() else self.out[self.rows]), self.rows
+
+    def settled(self) -> bool:
+        """True when every row still iterating took a last step below REUSE_BELOW (its M can be reused)."""
+        return self.prev is not None and bool((self.prev[self.rows] < REUSE_BELOW).all())
+
+    def matrices(self, new: np.ndarray | None = None) -> np.ndarray:
+        """Store the step matrices ``new`` of the rows still iterating and return them; without ``new``, return
+        the ones stored."""
+        if new is None:
+            return self.M if self._everyone() else self.M[self.rows]
+        if self._everyone():
+            self.M = new
+        else:
+            self.M[self.rows] = new
+        return new
 
     def advance(self, step: np.ndarray) -> bool:
         """Judge and apply one step of the rows still iterating; False when none is left."""
-        rows, everyone = self.rows, self.rows.size == len(self.out)
+        rows, everyone = self.rows, self._everyone()
         size = np.abs(step).max(axis=1)
         prev = None if self.prev is None else (self.prev if everyone else self.prev[rows])
         bad, done = _verdicts(size, prev, self.tol)
@@ -161,10 +195,19 @@ class _OneRow:
     def __init__(self, q0: np.ndarray, tol: float) -> None:
         self.out, self.tol = q0.copy(), tol
         self.prev: float | None = None
+        self.M: np.ndarray | None = None
         self.bad = False
 
     def active(self) -> tuple[np.ndarray, np.ndarray]:
         return self.out, self._ROWS
+
+    def settled(self) -> bool:
+        return self.prev is not None and self.prev < REUSE_BELOW
+
+    def matrices(self, new: np.ndarray | None = None) -> np.ndarray:
+        if new is not None:
+            self.M = new
+        return self.M
 
     def advance(self, step: np.ndarray) -> bool:
         values = step[0].tolist()
@@ -197,8 +240,16 @@ def _verdicts(size: np.ndarray, prev: np.ndarray | None, tol: float) -> tuple[np
     return ~(size <= np.minimum(GN_MAX_STEP, 0.5 * prev)), (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol)
 
 
+def lambda_after(kept: bool, gain: float, lam: float, grow: float) -> tuple[float, float]:
+    """Nielsen's damping rule for one row: (λ, its growth factor) after a kept step of gain ratio ``gain`` (actual
+    over predicted fall of the cost) or after a refused one."""
+    if kept:
+        return max(lam * max(1 / 3, 1 - (2 * gain - 1) ** 3), LAMBDA_MIN), 2.0
+    return lam * grow, 2 * grow
+
+
 def _damped(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray, budget: int, tol: float):
-    """The damped mode from q0 (m, n) for the batch rows ``rows``: steps kept only where they lower |W r|.
+    """The damped mode from q0 (m, n) for the batch rows ``rows``: steps kept only where they do not raise |W r|.
 
     A row stops when its last step (kept or refused) was below tol (the cost cannot fall further in floating
     point) or when λ passed LAMBDA_GIVE_UP; all stop after the budget. A row keeps its best q.
@@ -209,18 +260,24 @@ def _damped(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray,
     r, J = residual(out, rows)
     err, jac = r * w, J * w[:, None]
     cost = np.sum(err * err, axis=1)
-    lam = np.full(len(out), LAMBDA_START)
+    lam, grow = np.full(len(out), LAMBDA_START), np.full(len(out), 2.0)
     going = np.ones(len(out), dtype=bool)
     for _ in range(budget):
         step = damped_step(err, jac, lam)
         step[~going] = 0.0
+        model = err - np.einsum("kai,ki->ka", jac, step)  # the linear model's residual after the step
+        predicted = cost - np.sum(model * model, axis=1)
         cand = out + step
         r, J = residual(cand, rows)
         err_c, jac_c = r * w, J * w[:, None]
         cost_c = np.sum(err_c * err_c, axis=1)
         ok = (cost_c <= cost) & going
+        gain = np.where(predicted > 0, (cost - cost_c) / np.where(predicted > 0, predicted, 1.0), 0.0)
         out[ok], err[ok], jac[ok], cost[ok] = cand[ok], err_c[ok], jac_c[ok], cost_c[ok]
-        lam = np.where(ok, np.maximum(lam / 10, LAMBDA_MIN), lam * 10)
+        lam, grow = (
+            np.where(ok, np.maximum(lam * np.maximum(1 / 3, 1 - (2 * gain - 1) ** 3), LAMBDA_MIN), lam * grow),
+            np.where(ok, 2.0, 2 * grow),
+        )
         going &= ~((np.abs(step).max(axis=1) < tol) | (lam > LAMBDA_GIVE_UP))
         if not going.any():
             break
@@ -234,19 +291,21 @@ def _damped_one(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndar
     out = q0.copy()
     r, J = residual(out, rows)
     err, jac = r[0] * w, J[0] * w[:, None]
-    cost, lam = float(err @ err), LAMBDA_START
+    cost, lam, grow = float(err @ err), LAMBDA_START, 2.0
     for _ in range(budget):
         step = damped_step(err[None], jac[None], lam)[0]
         size = max(map(abs, step.tolist()))
+        model = err - jac @ step
+        predicted = cost - float(model @ model)
         cand = out + step
         r, J = residual(cand, rows)
         err_c = r[0] * w
         cost_c = float(err_c @ err_c)
-        if cost_c <= cost:
+        kept = cost_c <= cost
+        gain = (cost - cost_c) / predicted if predicted > 0 else 0.0
+        if kept:
             out, err, jac, cost = cand, err_c, J[0] * w[:, None], cost_c
-            lam = max(lam / 10, LAMBDA_MIN)
-        else:
-            lam *= 10
+        lam, grow = lambda_after(kept, gain, lam, grow)
         if size < tol or lam > LAMBDA_GIVE_UP:
             break
     return out.reshape(1, n)
