@@ -45,8 +45,7 @@ class _LabcalGroup(TyperGroup):
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         # Before any value is checked: typer's own checks import pydantic, which the light paths must not need.
         coercion.install(self)
-        argv = sys.argv[1:] if args is None else list(args)
-        if not argv or "--help" in argv:
+        if _shows_help(self, sys.argv[1:] if args is None else list(args)):
             helprender.import_help_renderer()
         if not standalone_mode:
             return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
@@ -65,6 +64,19 @@ class _LabcalGroup(TyperGroup):
             sys.exit(1)
         # Non-standalone mode hands back a typer.Exit's code (or the command's return value, None for all ours).
         sys.exit(rv if isinstance(rv, int) and not isinstance(rv, bool) else 0)
+
+
+def _shows_help(group, argv: list[str]) -> bool:
+    """Whether these arguments print a help: --help anywhere, or nothing after a command group (`labcal session`).
+    Only decides whether to import the help renderer early (the lighter way); a wrong guess costs time, not output."""
+    if not argv or "--help" in argv:
+        return True
+    command = group
+    for word in argv:
+        command = None if word.startswith("-") else (getattr(command, "commands", None) or {}).get(word)
+        if command is None:
+            return False
+    return hasattr(command, "commands")
 
 
 def _one_line(e: click_exceptions.ClickException) -> str:
