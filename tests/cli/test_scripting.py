@@ -59,7 +59,9 @@ def document(result, schema: str) -> dict:
 NOT_ON_LIGHT_PATHS = (*HEAVY, "numpy", "pydantic", "markdown_it", "pygments")
 
 
-def light_path(*argv: str, unwanted: tuple[str, ...] = NOT_ON_LIGHT_PATHS) -> tuple[str, list[str]]:
+def light_path(
+    *argv: str, unwanted: tuple[str, ...] = NOT_ON_LIGHT_PATHS, env: dict | None = None
+) -> tuple[str, list[str]]:
     """Run `labcal ARGV` in a fresh interpreter: (its stdout, the ``unwanted`` modules it imported)."""
     code = (
         "import sys; from labcal.cli.app import main\n"
@@ -67,7 +69,7 @@ def light_path(*argv: str, unwanted: tuple[str, ...] = NOT_ON_LIGHT_PATHS) -> tu
         "try:\n    main()\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
         f"import json; print(json.dumps(sorted(m for m in {unwanted!r} if m in sys.modules)))"
     )
-    r = run(code, env={"COLUMNS": "100"})
+    r = run(code, env={"COLUMNS": "100", **(env or {})})
     assert r.returncode == 0, r.stderr
     *lines, loaded = r.stdout.strip().splitlines()
     return "\n".join(lines), json.loads(loaded)
@@ -84,6 +86,13 @@ def test_importing_the_app_imports_no_heavy_library():
 def test_help_imports_no_heavy_library(argv):
     out, loaded = light_path(*argv)
     assert "Usage: labcal" in out
+    assert loaded == []
+
+
+def test_completing_a_choice_imports_no_heavy_library():
+    env = {"_LABCAL_COMPLETE": "complete_bash", "COMP_WORDS": "labcal fit S --method a", "COMP_CWORD": "4"}
+    out, loaded = light_path(env=env)
+    assert set(out.split()) == {"ann", "auto"}
     assert loaded == []
 
 
