@@ -105,7 +105,7 @@ def test_fast_kernels_match_the_kinematics_reference(name, odd):
     np.testing.assert_allclose(initial, poe_link_frames(robot.model.frames, robot.model.twists, q), atol=1e-13)
 
 
-@pytest.mark.parametrize("angle", [1e-7, 3e-3, 0.2, 2.5])
+@pytest.mark.parametrize("angle", [1e-7, 3e-3, 5.01e-3, 0.02, 0.2, 0.52, 2.5, np.pi - 1e-4])
 def test_the_one_pose_error_kernel_is_the_logarithm_of_the_pose_difference(angle):
     from labcal.compensator.model import _pose_error_one, _pose_lists
 

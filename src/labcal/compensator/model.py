@@ -126,6 +126,7 @@ _ANTI9 = np.zeros((9, 4))  # R.ravel() @ _ANTI9 = (2 · unskew(R), trace(R))
 _ANTI9[7, 0], _ANTI9[5, 0], _ANTI9[2, 1], _ANTI9[6, 1], _ANTI9[3, 2], _ANTI9[1, 2] = 1, -1, 1, -1, 1, -1
 _ANTI9[0, 3] = _ANTI9[4, 3] = _ANTI9[8, 3] = 1.0
 _SMALL = 1e-2  # rad: below this the series are exact to rounding (as in kinematics.se3)
+_SIN_LARGE = 0.5  # sin θ from which _pose_error_one hands over to kinematics.se3 (θ > 30°: never a correction)
 
 
 def _exp_small(xi: np.ndarray) -> np.ndarray:
@@ -153,7 +154,7 @@ def _log_small(R: np.ndarray, p: np.ndarray) -> np.ndarray:
     at = R.reshape(k, 9) @ _ANTI9  # (2 · unskew(R), trace(R))
     anti = 0.5 * at[:, :3]
     s2 = (anti * anti).sum(axis=1)
-    if s2.max() >= (0.5 * _SMALL) ** 2:
+    if s2.max() >= (0.5 * _SMALL) ** 2 or at[:, 3].min() <= 1.0:  # a large angle, or one near π (cos θ ≤ 0)
         T = np.zeros((k, 4, 4))
         T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, p, 1.0
         return se3.log_se3(T)
@@ -182,7 +183,8 @@ def _pose_error_one(target: tuple[list, list], Ad: np.ndarray) -> np.ndarray:
     numpy calls cost more than the math.
 
     target: (rows of R, p) of T_target as from _pose_lists. Series as in _log_small for rotations below _SMALL
-    (the case in every correction step), else the batched code.
+    (the case in every Gauss-Newton step), the closed forms up to 30° (a damped step's candidates near a
+    singularity), else the batched code.
     """
     (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = target[0]
     tx, ty, tz = target[1]
@@ -207,16 +209,21 @@ def _pose_error_one(target: tuple[list, list], Ad: np.ndarray) -> np.ndarray:
     px = tx - (r00 * bx + r01 * by + r02 * bz)
     py = ty - (r10 * bx + r11 * by + r12 * bz)
     pz = tz - (r20 * bx + r21 * by + r22 * bz)
-    ax, ay, az = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
+    ax, ay, az = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)  # sin θ times the rotation axis
     s2 = ax * ax + ay * ay + az * az
-    if not s2 < (0.5 * _SMALL) ** 2:
+    cos_theta = 0.5 * (r00 + r11 + r22 - 1.0)
+    if not (s2 < _SIN_LARGE**2 and cos_theta > 0):  # towards θ = π the axis is lost in sin θ: the general logarithm
         dR = np.array([[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]])
         return _log_small(dR[None], np.array([[px, py, pz]]))[0]
-    theta = math.atan2(math.sqrt(s2), 0.5 * (r00 + r11 + r22 - 1.0))
+    theta = math.atan2(math.sqrt(s2), cos_theta)
     t2 = theta * theta
-    a = 1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42))
+    if s2 < (0.5 * _SMALL) ** 2:  # the series, exact to rounding here (as in _log_small)
+        a = 1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42))
+        d = 1 / 12 + t2 / 720 + t2 * t2 / 30240
+    else:  # a damped step's candidate far from the target: the closed forms, well conditioned at these angles
+        a = math.sin(theta) / theta
+        d = (1 - theta * math.sin(theta) / (2 * (1 - math.cos(theta)))) / t2
     wx, wy, wz = ax / a, ay / a, az / a
-    d = 1 / 12 + t2 / 720 + t2 * t2 / 30240
     # V⁻¹ p = p − ½ w × p + d w × (w × p)
     cx, cy, cz = wy * pz - wz * py, wz * px - wx * pz, wx * py - wy * px
     ccx, ccy, ccz = wy * cz - wz * cy, wz * cx - wx * cz, wx * cy - wy * cx

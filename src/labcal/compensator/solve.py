@@ -3,13 +3,14 @@
 :func:`solve` finds q with ``r(q) = 0`` (or ``|W r(q)|`` least, for fewer than six joints) for a batch of rows at
 once, given a function that returns the residual r (m, 6) and the joint twists J (m, 6, n) at m configurations:
 
-- **Gauss-Newton** first, from q0, with the full step ``M r``, M = J⁻¹ (least squares in the metric W for n < 6,
+- **Gauss-Newton** first, from q0, with the full step ``J⁻¹ r`` (least squares in the metric W for n < 6,
   minimum norm for n > 6). A row stops when its estimated distance to the solution, ``|step| ρ / (1 − ρ)`` with ρ
   the ratio of its last two steps (linear convergence), is below ``tol``. A row *fails* when its steps stop
   contracting (a step more than half the previous one), are not finite, or exceed :data:`GN_MAX_STEP`: a
-  (near-)singular configuration. For n ≥ 6, after a step below :data:`REUSE_BELOW` the next one reuses M and asks
-  the residual for r alone: J moved by less than its own approximation error, and J is much of a residual's cost
-  (the simplified Newton method; its zero is still r = 0, whereas a least-squares step's zero moves with J).
+  (near-)singular configuration. For n ≥ 6, after a step below :data:`REUSE_BELOW` the next one may reuse J: the
+  residual is asked for r alone (``jacobian=False``) and may skip J, which moved by less than its own
+  approximation error and is much of a residual's cost (the simplified Newton method; its zero is still r = 0,
+  whereas a least-squares step's zero moves with J). A residual that returns J anyway has it used.
 - The failed rows then start over from q0 in **damped** mode: steps ``(JᵀJ + λ μ I)⁻¹ Jᵀ r`` in the length-scaled
   metric W (μ the mean of JᵀJ's diagonal), clipped to :data:`DAMPED_MAX_STEP`, kept only where they do not raise
   ``|W r|``. λ follows the gain ratio ϱ of a kept step (actual over predicted fall of ``|W r|²``): it is multiplied
@@ -47,25 +48,28 @@ DAMPED_BUDGET = 20  # damped steps per call by default
 _ONES6 = np.ones(6)
 
 #: residual(q (m, n), rows (m,) indices into the batch, jacobian=True) → (r (m, 6), J (m, 6, n)); with
-#: ``jacobian=False`` J may be None (the solver does not need it). The first evaluation is always at q0 for every
+#: ``jacobian=False`` J may be None (the solver reuses its last). The first evaluation is always at q0 for every
 #: row, with J (a residual may have prepared that one).
 Residual = Callable[..., tuple[np.ndarray, np.ndarray | None]]
 
 
-def step_matrices(J: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
-    """(m, 6, n) Jacobians → (m, n, 6) matrices M whose full step is ``M r``: J⁻¹ (n = 6), the least-squares
-    inverse in diag(weights) (n < 6), or the minimum-norm Jᵀ (J Jᵀ)⁻¹ (n > 6). NaN where J is singular."""
-    m, _, n = J.shape
+def gauss_newton_step(r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+    """(m, 6) residuals, (m, 6, n) Jacobians → (m, n) full steps: J⁻¹ r (n = 6), least squares in diag(weights)
+    (n < 6), or the minimum-norm step Jᵀ (J Jᵀ)⁻¹ r (n > 6). NaN rows where J is singular."""
+    n = J.shape[2]
+    if weights is not None:
+        r, J = r * weights, J * weights[:, None]
     try:
         if n == 6:
-            return np.linalg.inv(J)
+            if len(J) == 1:  # numpy's stacked solve costs more per call than the 2-D one (a control loop's case)
+                return np.linalg.solve(J[0], r[0])[None]
+            return np.linalg.solve(J, r[:, :, None])[:, :, 0]
         Jt = J.transpose(0, 2, 1)
         if n > 6:
-            return Jt @ np.linalg.inv(J @ Jt)
-        Jwt = Jt * weights  # (m, n, 6): Jᵀ W
-        return np.linalg.solve(Jwt @ (J * weights[:, None]), Jwt * weights)
+            return (Jt @ np.linalg.solve(J @ Jt, r[:, :, None]))[:, :, 0]
+        return np.linalg.solve(Jt @ J, Jt @ r[:, :, None])[:, :, 0]
     except np.linalg.LinAlgError:
-        return np.full((m, n, 6), np.nan)
+        return np.full((r.shape[0], n), np.nan)
 
 
 @functools.lru_cache(maxsize=8)
@@ -113,13 +117,9 @@ def solve(
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a singular J gives a NaN step
         for _ in range(max(iterations, 1)):
             q, active = rows.active()
-            if reuse and rows.settled():
-                r, _ = residual(q, active, False)
-                M = rows.matrices()
-            else:
-                r, J = residual(q, active)
-                M = rows.matrices(step_matrices(J, w if n < 6 else None))
-            if not rows.advance((M @ r[:, :, None])[:, :, 0]):
+            r, J = residual(q, active, not (reuse and rows.settled()))
+            J = rows.jacobians(J)  # the last one kept when the residual skipped it
+            if not rows.advance(gauss_newton_step(r, J, w if n < 6 else None)):
                 break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
         out, failed = rows.out, rows.failed()
@@ -136,7 +136,7 @@ class _Rows:
     def __init__(self, q0: np.ndarray, tol: float) -> None:
         self.out, self.tol = q0.copy(), tol
         self.prev: np.ndarray | None = None  # (k,) last step sizes, after the first step
-        self.M: np.ndarray | None = None  # (k, n, 6) step matrices, after the first step
+        self.J: np.ndarray | None = None  # (k, 6, n) the Jacobians of the last full steps
         self.bad = np.zeros(len(q0), dtype=bool)
         self.rows = np.arange(len(q0))  # rows still iterating
 
@@ -148,18 +148,17 @@ class _Rows:
         return (self.out if self._everyone() else self.out[self.rows]), self.rows
 
     def settled(self) -> bool:
-        """True when every row still iterating took a last step below REUSE_BELOW (its M can be reused)."""
+        """True when every row still iterating took a last step below REUSE_BELOW (its J can be reused)."""
         return self.prev is not None and bool((self.prev[self.rows] < REUSE_BELOW).all())
 
-    def matrices(self, new: np.ndarray | None = None) -> np.ndarray:
-        """Store the step matrices ``new`` of the rows still iterating and return them; without ``new``, return
-        the ones stored."""
+    def jacobians(self, new: np.ndarray | None) -> np.ndarray:
+        """Keep the Jacobians ``new`` of the rows still iterating and return them; for None, the ones kept."""
         if new is None:
-            return self.M if self._everyone() else self.M[self.rows]
+            return self.J if self._everyone() else self.J[self.rows]
         if self._everyone():
-            self.M = new
+            self.J = new
         else:
-            self.M[self.rows] = new
+            self.J[self.rows] = new
         return new
 
     def advance(self, step: np.ndarray) -> bool:
@@ -195,7 +194,7 @@ class _OneRow:
     def __init__(self, q0: np.ndarray, tol: float) -> None:
         self.out, self.tol = q0.copy(), tol
         self.prev: float | None = None
-        self.M: np.ndarray | None = None
+        self.J: np.ndarray | None = None
         self.bad = False
 
     def active(self) -> tuple[np.ndarray, np.ndarray]:
@@ -204,10 +203,10 @@ class _OneRow:
     def settled(self) -> bool:
         return self.prev is not None and self.prev < REUSE_BELOW
 
-    def matrices(self, new: np.ndarray | None = None) -> np.ndarray:
+    def jacobians(self, new: np.ndarray | None) -> np.ndarray:
         if new is not None:
-            self.M = new
-        return self.M
+            self.J = new
+        return self.J
 
     def advance(self, step: np.ndarray) -> bool:
         values = step[0].tolist()
