@@ -22,6 +22,7 @@ from typing import Any
 _INT = re.compile(r"-?[0-9]{1,18}\Z")
 _FLOAT = re.compile(r"-?[0-9]{1,15}(\.[0-9]{1,15})?([eE]-?[0-9]{1,2})?\Z")
 _DEFER = object()  # "not one of the plain cases": typer's own check decides
+_UNSET = object()
 
 
 class PlainCoercion:
@@ -32,12 +33,14 @@ class PlainCoercion:
     def __init__(self, descriptor: Any) -> None:
         self._descriptor = descriptor
         self._typer = None
-        self._plain = _plain_check(descriptor)
+        self._plain = _UNSET  # made for the parameters that get a value: most of the tree's never do
 
     def coerce(self, value: Any, param: Any, ctx: Any) -> Any:
         multi = param.multiple or param.nargs == -1
         if value is None:  # as typer's RuntimeParam.coerce, before it builds an adapter
             return () if multi else None
+        if self._plain is _UNSET:
+            self._plain = _plain_check(self._descriptor)
         if self._plain is not None and not (multi and isinstance(value, str)):
             try:
                 out = self._plain(value, param, ctx)
