@@ -282,7 +282,8 @@ def test_a_good_fit_of_singular_wrist_sweeps_is_not_a_large_correction():
     scn = scenarios.sweeps("ur10", 36, 4, singular_wrist=True, seed=4)
     obs = Observations(scn.q, scn.points, scn.targets)
     r = fit(obs, UR10.model, "local-poe")
-    dq = np.abs(r.robot.correct(obs.q, extrapolate=True) - obs.q)
+    # with the damped budget the large-correction check uses (a default call stops near-singular rows sooner)
+    dq = np.abs(r.robot.correct(obs.q, extrapolate=True, damped_iterations=30) - obs.q)
     assert dq.max() > 0.1  # the wrist joints do move by tenths of a radian on these data…
     assert "large-correction" not in codes(r), r.warnings  # …and the fit is still good
 

@@ -541,7 +541,9 @@ def _large_correction(robot, q_data: np.ndarray, seed: int) -> str | None:
     rng = np.random.default_rng([seed, 49979687])
     q = np.concatenate([q_data, rng.uniform(lo, hi, size=(_CORRECTION_SAMPLES, q_data.shape[1]))])
     with np.errstate(all="ignore"):
-        q_cmd = robot.correct(q, extrapolate=True)
+        # An offline check, not a control loop: a damped row may travel as far as 30 clipped steps take it, so a
+        # slipped joint shows as the largest correction even where its rows leave Gauss-Newton's range.
+        q_cmd = robot.correct(q, extrapolate=True, damped_iterations=30)
         dq = np.abs(q_cmd - q)
         moved, turned = se3.pose_distance(robot.nominal.fk(q), robot.nominal.fk(np.nan_to_num(q_cmd)))
     bound = np.array([MAX_CORRECTION.get(t, MAX_CORRECTION["revolute"]) for t in robot.model.joint_types])

@@ -398,21 +398,25 @@ class CalibratedRobot:
             return None
         weights, h = harmonic, np.arange(1.0, H + 1)[:, None]
         G = 0 if gravity is None else 3
-        K = np.zeros((n, 2 * H + G, 12))  # rows: sin h q, cos h q interleaved, then gravity; columns: δρ, slope
+        F = 2 * H + G  # features per joint: sin h q, cos h q interleaved, then link j+1's gravity direction
+        K = np.zeros((n, F, 6 + 6 * n))  # columns: δρ (summed over joints), then joint j's slope in 6 + 6j …
         K[:, 0 : 2 * H : 2, :6], K[:, 1 : 2 * H : 2, :6] = weights[:, :, 0], weights[:, :, 1]
-        K[:, 0 : 2 * H : 2, 6:], K[:, 1 : 2 * H : 2, 6:] = -h * weights[:, :, 1], h * weights[:, :, 0]
+        for j in range(n):
+            slope = K[j, :, 6 + 6 * j : 12 + 6 * j]
+            slope[0 : 2 * H : 2], slope[1 : 2 * H : 2] = -h * weights[j, :, 1], h * weights[j, :, 0]
         gravity_of = None
         if gravity is not None:
             K[:, 2 * H :, :6], gravity_of = gravity
+        K = K.reshape(n * F, 6 + 6 * n)  # one product of the joints' feature rows side by side gives all
         K.setflags(write=False)
 
         def series(q, cos_q, sin_q, adjoints) -> tuple[np.ndarray, np.ndarray]:
-            x = np.empty((n, 2 * H + G))
+            x = np.empty((n, F))
             feature_lib.harmonics_by_recurrence(cos_q, sin_q, H, out=x[:, : 2 * H])
             if gravity_of is not None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
                 x[:, 2 * H :] = gravity_of(q[None], adjoints[None]).reshape(n, 3)
-            out = (x[:, None] @ K)[:, 0]  # (n, 12)
-            rho, slope = bias + out[:, :6].sum(axis=0), out[:, 6:].T
+            out = x.reshape(-1) @ K
+            rho, slope = bias + out[:6], out[6:].reshape(n, 6).T
             if linear is not None:
                 rho, slope = rho + q @ linear, slope + linear.T
             return rho, slope

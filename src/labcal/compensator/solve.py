@@ -44,7 +44,7 @@ GN_MAX_STEP = 0.3  # rad: a full Gauss-Newton step this large means a (near-)sin
 REUSE_BELOW = 1e-4  # rad: after a step this small J has moved by less than its approximation error
 DAMPED_MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so larger steps mean a singularity
 LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP = 1e-6, 1e-12, 1e6
-DAMPED_BUDGET = 20  # damped steps per call by default
+DAMPED_BUDGET = 15  # damped steps per call by default
 _ONES6 = np.ones(6)
 
 #: residual(q (m, n), rows (m,) indices into the batch, jacobian=True) → (r (m, 6), J (m, 6, n)); with
