@@ -16,8 +16,11 @@ once, given a function that returns the residual r (m, 6) and the joint twists J
   ``|W r|``. λ follows the gain ratio ϱ of a kept step (actual over predicted fall of ``|W r|²``): it is multiplied
   by ``max(1/3, 1 − (2ϱ − 1)³)``, and by 2, 4, 8 … after refused steps in a row (Nielsen's rule, which wastes
   fewer evaluations than tenfold jumps). A row stops when its last step (kept or refused) was below ``tol`` or λ
-  passed 1e6 (no step helps); all stop after ``damped_iterations`` steps. So near a singularity the answer is
-  never worse than q0, and a call's worst case is bounded.
+  passed 1e6 (no step helps), and, once it has taken half of ``damped_iterations``, when its last 4 steps did not
+  halve its cost: a row on its way to an exact solution (whose cost falls by orders of magnitude per step near
+  the end) finishes, while one settling into a least-squares minimum with a residual left, where the cost hardly
+  moves any more, stops. All stop after ``damped_iterations`` steps. So near a singularity the answer is never
+  worse than q0, and a call's worst case is bounded.
 
 Both modes are one loop each over the same residual function, so a single configuration (k = 1) takes exactly the
 path a batch takes; only the residual function may be specialised for it (:mod:`labcal.compensator.model`).
@@ -44,7 +47,8 @@ GN_MAX_STEP = 0.3  # rad: a full Gauss-Newton step this large means a (near-)sin
 REUSE_BELOW = 1e-4  # rad: after a step this small J has moved by less than its approximation error
 DAMPED_MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so larger steps mean a singularity
 LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP = 1e-6, 1e-12, 1e6
-DAMPED_BUDGET = 15  # damped steps per call by default
+DAMPED_BUDGET = 24  # damped steps per call at most, by default
+STALL_WINDOW, STALL_FALL = 4, 0.5  # after half its budget a row stops when 4 steps did not halve its cost
 _ONES6 = np.ones(6)
 
 #: residual(q (m, n), rows (m,) indices into the batch, jacobian=True) → (r (m, 6), J (m, 6, n)); with
@@ -85,9 +89,9 @@ def damped_step(r: np.ndarray, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
     n = J.shape[2]
     if len(J) == 1:  # one row (a control loop's call): the 2-D products and solve cost less per call
         J1 = J[0]
-        JtJ = J1.T @ J1
-        mu = float(np.ravel(lam)[0]) * (JtJ.trace() / n)
-        step = np.linalg.solve(JtJ + mu * _eye(n), J1.T @ r[0])
+        lam = lam if isinstance(lam, float) else float(np.ravel(lam)[0])
+        # mean of JᵀJ's diagonal: trace(JᵀJ) is the sum of J's squares
+        step = np.linalg.solve(J1.T @ J1 + (lam * float(np.vdot(J1, J1)) / n) * _eye(n), J1.T @ r[0])
         return np.minimum(np.maximum(step, -DAMPED_MAX_STEP), DAMPED_MAX_STEP)[None]
     JtJ = np.einsum("kai,kaj->kij", J, J)
     mean_diag = (np.trace(JtJ, axis1=1, axis2=2) / n)[:, None, None]
@@ -115,17 +119,20 @@ def solve(
     rows = _OneRow(q0, tol) if k == 1 else _Rows(q0, tol)
     reuse = n >= 6  # with M r = 0 only where r = 0; a least-squares M's zero moves with J (n < 6)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a singular J gives a NaN step
-        for _ in range(max(iterations, 1)):
+        for i in range(max(iterations, 1)):
             q, active = rows.active()
             r, J = residual(q, active, not (reuse and rows.settled()))
             J = rows.jacobians(J)  # the last one kept when the residual skipped it
+            if i == 0:  # every row's, at q0: where a failed row's damped mode starts (_Rows writes into its J later)
+                at_q0 = r, (J if k == 1 else J.copy())
             if not rows.advance(gauss_newton_step(r, J, w if n < 6 else None)):
                 break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
         out, failed = rows.out, rows.failed()
         if failed.size:
             budget = DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
-            out[failed] = _damped(residual, q0[failed], failed, w, budget, tol)
+            start = (at_q0[0][failed], at_q0[1][failed])
+            out[failed] = _damped(residual, q0[failed], failed, w, budget, tol, start)
     return out
 
 
@@ -247,21 +254,25 @@ def lambda_after(kept: bool, gain: float, lam: float, grow: float) -> tuple[floa
     return lam * grow, 2 * grow
 
 
-def _damped(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray, budget: int, tol: float):
+def _damped(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray, budget: int, tol: float, start=None):
     """The damped mode from q0 (m, n) for the batch rows ``rows``: steps kept only where they do not raise |W r|.
 
     A row stops when its last step (kept or refused) was below tol (the cost cannot fall further in floating
-    point) or when λ passed LAMBDA_GIVE_UP; all stop after the budget. A row keeps its best q.
+    point), when λ passed LAMBDA_GIVE_UP, or, from half its budget on, when its last STALL_WINDOW steps did not
+    lower its cost by STALL_FALL; all stop after the budget. A row keeps its best q. start: (r, J) at q0 when the
+    caller has them (the Gauss-Newton mode's first evaluation), else evaluated here.
     """
     if len(q0) == 1:
-        return _damped_one(residual, q0, rows, w, budget, tol)
+        return _damped_one(residual, q0, rows, w, budget, tol, start)
     out = q0.copy()
-    r, J = residual(out, rows)
+    r, J = residual(out, rows) if start is None else start
     err, jac = r * w, J * w[:, None]
     cost = np.sum(err * err, axis=1)
     lam, grow = np.full(len(out), LAMBDA_START), np.full(len(out), 2.0)
     going = np.ones(len(out), dtype=bool)
-    for _ in range(budget):
+    history = np.empty((budget + 1, len(out)))  # every row's best cost after each step
+    history[0] = cost
+    for i in range(1, budget + 1):
         step = damped_step(err, jac, lam)
         step[~going] = 0.0
         model = err - np.einsum("kai,ki->ka", jac, step)  # the linear model's residual after the step
@@ -277,21 +288,26 @@ def _damped(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray,
             np.where(ok, np.maximum(lam * np.maximum(1 / 3, 1 - (2 * gain - 1) ** 3), LAMBDA_MIN), lam * grow),
             np.where(ok, 2.0, 2 * grow),
         )
+        history[i] = cost
         going &= ~((np.abs(step).max(axis=1) < tol) | (lam > LAMBDA_GIVE_UP))
+        if 2 * i >= budget:
+            going &= ~(cost > STALL_FALL * history[max(i - STALL_WINDOW, 0)])
         if not going.any():
             break
     return out
 
 
-def _damped_one(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray, budget: int, tol: float):
+def _damped_one(residual: Residual, q0, rows, w: np.ndarray, budget: int, tol: float, start=None):
     """:func:`_damped` for one row (a control loop's call): the same steps and stopping rule, with the bookkeeping
     in Python floats and the 2-D solve, because at one row numpy's per-call cost is the price of every step."""
     n = q0.shape[1]
     out = q0.copy()
-    r, J = residual(out, rows)
-    err, jac = r[0] * w, J[0] * w[:, None]
+    r, J = residual(out, rows) if start is None else start
+    w_col = w[:, None]
+    err, jac = r[0] * w, J[0] * w_col
     cost, lam, grow = float(err @ err), LAMBDA_START, 2.0
-    for _ in range(budget):
+    history = [cost]  # the best cost after each step
+    for i in range(1, budget + 1):
         step = damped_step(err[None], jac[None], lam)[0]
         size = max(map(abs, step.tolist()))
         model = err - jac @ step
@@ -303,8 +319,11 @@ def _damped_one(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndar
         kept = cost_c <= cost
         gain = (cost - cost_c) / predicted if predicted > 0 else 0.0
         if kept:
-            out, err, jac, cost = cand, err_c, J[0] * w[:, None], cost_c
+            out, err, jac, cost = cand, err_c, J[0] * w_col, cost_c
         lam, grow = lambda_after(kept, gain, lam, grow)
+        history.append(cost)
         if size < tol or lam > LAMBDA_GIVE_UP:
+            break
+        if 2 * i >= budget and cost > STALL_FALL * history[max(i - STALL_WINDOW, 0)]:
             break
     return out.reshape(1, n)
