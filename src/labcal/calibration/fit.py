@@ -553,8 +553,10 @@ def _large_correction(robot, q_data: np.ndarray, seed: int) -> str | None:
     share = float(np.mean(large))
     if share < _CORRECTION_SHARE:
         return None
-    over = np.where(large[:, None], over, 0.0)
-    i, j = np.unravel_index(int(np.argmax(over)), over.shape)
+    # Name the joint the large corrections typically move most (a slipped joint moves in nearly all of them), not
+    # the single largest entry, which a near-singular configuration's wrist can supply; then its worst case.
+    j = int(np.argmax(np.median(np.nan_to_num(over[large], posinf=1e300), axis=0)))
+    i = int(np.argmax(np.where(large, np.nan_to_num(over[:, j], posinf=1e300), -1.0)))
     unit, factor = ("rad", 1.0) if robot.model.joint_types[j] != "prismatic" else ("mm", 1e3)
     return (
         f"the compensator would move joint {j + 1} by {dq[i, j] * factor:.3g} {unit} and the tool by "
