@@ -329,6 +329,32 @@ def test_a_damped_row_without_a_solution_reaches_the_least_squares_minimum_and_s
         np.testing.assert_array_equal(out[:, 1:], q0[:, 1:])  # the other joints have nothing to gain
 
 
+def test_a_damped_row_that_stalls_stops_at_half_its_budget_and_one_still_converging_finishes():
+    calls = []
+
+    def crawl(q, rows, jacobian=True):  # cost (1 + 1e-4 q0)²: every clipped step is kept, none lowers it much
+        calls.append(1)
+        r = np.zeros((len(rows), 6))
+        r[:, 0] = 1.0 + 1e-4 * q[:, 0]
+        J = np.broadcast_to(np.eye(6), (len(rows), 6, 6)).copy()
+        J[:, 0, 0] = -1e-4
+        return r, J
+
+    def travel(q, rows, jacobian=True):  # an exact solution 0.3 rad away: 15 clipped steps, the cost falling fast
+        calls.append(1)
+        return 0.3 - q, np.broadcast_to(np.eye(6), (len(rows), 6, 6)).copy()
+
+    for q0 in (np.zeros((1, 6)), np.zeros((3, 6))):
+        calls.clear()
+        out = solve._damped(crawl, q0, np.arange(len(q0)), np.ones(6), 24, 1e-11)
+        assert len(calls) == 1 + 12  # the start, then half the budget: 4 steps never halved the cost
+        assert np.all(out[:, 0] < -0.2)  # it did crawl the whole way it was allowed
+        calls.clear()
+        out = solve._damped(travel, q0, np.arange(len(q0)), np.ones(6), 24, 1e-11)
+        assert 12 < len(calls) < 1 + 24  # past half the budget, and done before the end of it
+        np.testing.assert_allclose(out, 0.3, rtol=0, atol=1e-12)
+
+
 def test_one_damped_row_follows_the_batched_rule():
     rng = np.random.default_rng(3)
     A = rng.normal(size=(6, 6))
