@@ -138,13 +138,14 @@ def test_correct_reaches_the_nominal_pose_and_matches_the_converged_solution(nam
 def test_correct_lower_mobility_robot_is_least_squares_on_actuated_joints():
     robot = hybrid("scara4")
     q = sample(robot, 40, seed=3, max_cond=1e4)
-    q_cmd = robot.correct(q)
-    # At the least-squares solution the scaled residual is orthogonal to the actuated joint twists.
-    scale = np.array([1 / robot.length_scale] * 3 + [1.0] * 3)
-    r = se3.log_se3(robot.nominal.fk(q) @ se3.inv(robot.predict_pose(q_cmd))) * scale
-    J = robot.model.joint_twists(q_cmd) * scale[:, None]
-    assert np.max(np.abs(np.einsum("kai,ka->ki", J, r))) < 1e-9
-    assert np.max(np.abs(q_cmd - q)) > 1e-5
+    # batched, and one at a time (where a step's Jacobian must not be reused: a least-squares zero moves with J)
+    for q_cmd in (robot.correct(q), np.array([robot.correct(qi) for qi in q])):
+        # At the least-squares solution the scaled residual is orthogonal to the actuated joint twists.
+        scale = np.array([1 / robot.length_scale] * 3 + [1.0] * 3)
+        r = se3.log_se3(robot.nominal.fk(q) @ se3.inv(robot.predict_pose(q_cmd))) * scale
+        J = robot.model.joint_twists(q_cmd) * scale[:, None]
+        assert np.max(np.abs(np.einsum("kai,ka->ki", J, r))) < 1e-9
+        assert np.max(np.abs(q_cmd - q)) > 1e-5
 
 
 def redundant_robot(seed=3) -> CalibratedRobot:
@@ -353,6 +354,30 @@ def test_a_damped_row_that_stalls_stops_at_half_its_budget_and_one_still_converg
         out = solve._damped(travel, q0, np.arange(len(q0)), np.ones(6), 24, 1e-11)
         assert 12 < len(calls) < 1 + 24  # past half the budget, and done before the end of it
         np.testing.assert_allclose(out, 0.3, rtol=0, atol=1e-12)
+
+
+def test_a_least_squares_solve_asks_for_the_jacobian_at_every_step():
+    """With fewer joints than six the solution is where Jᵀ W² r = 0, a point that moves with J: a step that reused
+    an older J would converge to another point, so a residual that skips J when allowed is never allowed to."""
+    rng = np.random.default_rng(4)
+    A, B = rng.normal(size=(6, 2)), rng.normal(size=(6, 2)) * 0.3
+    target = rng.normal(size=6) * 0.05  # not reachable with two joints: a residual is left
+    asked = []
+
+    def residual(q, rows, jacobian=True):  # r = target − (A q + B sin q); the solver's J is −dr/dq
+        asked.append(jacobian)
+        r = target - q @ A.T - np.sin(q) @ B.T
+        J = (A[None] + B[None] * np.cos(q)[:, None, :]) if jacobian else None
+        return r, J
+
+    w = np.array([2.0, 2.0, 2.0, 1.0, 1.0, 1.0])
+    for q0 in (np.zeros((1, 2)), np.zeros((3, 2))):
+        asked.clear()
+        q = solve.solve(residual, q0, weights=w)
+        r, J = residual(q, np.arange(len(q)))
+        gradient = np.einsum("kai,ka->ki", J * (w**2)[:, None], r)
+        assert np.abs(gradient).max() < 1e-9
+        assert all(asked)
 
 
 def test_one_damped_row_follows_the_batched_rule():
