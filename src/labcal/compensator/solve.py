@@ -117,7 +117,7 @@ def solve(
     k, n = q0.shape
     w = _ONES6 if weights is None else np.asarray(weights, dtype=float)
     rows = _OneRow(q0, tol) if k == 1 else _Rows(q0, tol)
-    reuse = n >= 6  # with M r = 0 only where r = 0; a least-squares M's zero moves with J (n < 6)
+    reuse = n >= 6  # a step with an older J still heads for r = 0; a least-squares step's zero moves with J
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a singular J gives a NaN step
         for i in range(max(iterations, 1)):
             q, active = rows.active()
@@ -137,7 +137,7 @@ def solve(
 
 
 class _Rows:
-    """The Gauss-Newton state of a batch: every row's q, last step size, step matrix and fate, advanced by
+    """The Gauss-Newton state of a batch: every row's q, last step size, last Jacobian and fate, advanced by
     :func:`verdict`'s rule in array arithmetic (:func:`_verdicts`)."""
 
     def __init__(self, q0: np.ndarray, tol: float) -> None:
