@@ -380,6 +380,26 @@ def test_a_least_squares_solve_asks_for_the_jacobian_at_every_step():
         assert all(asked)
 
 
+def test_once_settled_the_steps_reuse_the_kept_jacobian_even_when_the_residual_returns_one():
+    """After a step below REUSE_BELOW the solver asks for r alone and steps with the J it kept (for one row, with the
+    inverse it kept): a J the residual returns anyway is not used. Here that J is ten times too large, so steps made
+    with it would crawl (contraction 0.9) and stop far from the root within the iteration budget."""
+    target = np.array([0.02, -0.01, 0.015, 0.0, 0.01, -0.02])
+    asked = []
+
+    def residual(q, rows, jacobian=True):  # r = target − (q + q³/3), J = −dr/dq = I + diag(q²)
+        asked.append(jacobian)
+        r = target - (q + q**3 / 3)
+        J = np.eye(6)[None] * (1 + q**2)[:, None, :]
+        return r, (J if jacobian else 10 * J)
+
+    for q0 in (np.zeros((1, 6)), np.zeros((3, 6))):
+        asked.clear()
+        q = solve.solve(residual, q0)
+        assert not all(asked)  # it did settle and ask for r alone
+        np.testing.assert_allclose(q + q**3 / 3, np.broadcast_to(target, q.shape), rtol=0, atol=1e-14)
+
+
 def test_one_damped_row_follows_the_batched_rule():
     rng = np.random.default_rng(3)
     A = rng.normal(size=(6, 6))
@@ -436,6 +456,9 @@ def test_single_configuration_input_checks():
     np.testing.assert_array_equal(robot.correct(list(q)), expected)  # lists take the general path, same answer
     np.testing.assert_allclose(robot.correct(q[None])[0], expected, rtol=0, atol=1e-15)
     assert robot.correct(np.array([0, -1, 1, -1, -1, 0])).shape == (6,)  # integers are converted
+    np.testing.assert_array_equal(robot.correct(q.astype(">f8")), expected)  # other float64 layouts: same answer
+    with pytest.raises(ValueError, match=r"shape \(6,\) or \(k, 6\)"):
+        robot.correct(q[:5])
     bad = q.copy()
     bad[3] = 2.5
     with pytest.raises(ValueError, match=r"configuration 0: joint 4 = 2\.500000 is outside"):

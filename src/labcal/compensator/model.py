@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import functools
 import math
+import operator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,6 +41,7 @@ from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import LocalPOEModel, runtime_walk_pair
 from labcal.robots.joint_map import JointMap
 
+_FLOAT64 = np.dtype(np.float64)  # numpy's one float64 descriptor: an identity test is the cheapest dtype check
 FEATURES = feature_lib.SIMPLE  # the parameter-free feature names (every registry name is accepted)
 
 
@@ -334,13 +336,13 @@ class CalibratedRobot:
     def _valid_single(self, q, extrapolate: bool) -> bool:
         """True for a finite float (n,) array inside the calibrated ranges (or extrapolate): nothing to report.
         Anything else goes through _batch / _check_range, which name what is wrong."""
-        if not (isinstance(q, np.ndarray) and q.shape == (self.n,) and q.dtype == np.float64):
+        if not (type(q) is np.ndarray and q.dtype is _FLOAT64 and q.ndim == 1):
             return False
         values = q.tolist()
-        if not math.isfinite(sum(values)):
-            return False
         lo, hi = self._range_lists
-        return extrapolate or all(a <= v <= b for v, a, b in zip(values, lo, hi, strict=True))
+        if len(values) != len(lo) or not math.isfinite(sum(values)):
+            return False
+        return extrapolate or (all(map(operator.le, lo, values)) and all(map(operator.le, values, hi)))
 
     @functools.cached_property
     def _range_lists(self) -> tuple[list, list]:
@@ -362,6 +364,13 @@ class CalibratedRobot:
     def _inputs(self):
         """The network's input features for this model (:func:`labcal.features.evaluator`), prepared once."""
         return _feature_evaluator(tuple(self.network.features), self.model)
+
+    @functools.cached_property
+    def _one_configuration_inputs(self):
+        """The network's input features at one configuration of a walk (:func:`labcal.features.one_configuration`)."""
+        names = tuple(self.network.features)
+        _feature_evaluator(names, self.model)  # a ValueError naming an unknown feature
+        return feature_lib.one_configuration(names, self.model.joint_types, self.model.limits)
 
     @functools.cached_property
     def _linear_series(self):
@@ -576,7 +585,7 @@ class CalibratedRobot:
         nominal_adjoints, first_walk = runtime_walk_pair(self.nominal, self.model, q)
         target = _pose_lists(nominal_adjoints[-1])
         walk, network = self.model.runtime_walk, self.network
-        inputs = network and self._inputs
+        inputs = network and self._one_configuration_inputs
         series = network and self._linear_series
         pending = [first_walk]  # the solver's first evaluation is at q itself: that walk is done already
 
@@ -586,8 +595,8 @@ class CalibratedRobot:
             if network is None:
                 return e[None], J[None]
             if series is None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
-                rho = network.forward_features(inputs(qc, adjoints[None]))
-                return (e - J @ rho[0])[None], J[None]
+                rho = network.forward_features(inputs(qc[0], cos_q, sin_q, adjoints))
+                return (e - J @ rho)[None], J[None]
             rho, slope = series(qc[0], cos_q, sin_q, adjoints)
             if not jacobian:
                 return (e - J @ rho)[None], None

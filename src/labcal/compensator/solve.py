@@ -7,10 +7,12 @@ once, given a function that returns the residual r (m, 6) and the joint twists J
   minimum norm for n > 6). A row stops when its estimated distance to the solution, ``|step| ρ / (1 − ρ)`` with ρ
   the ratio of its last two steps (linear convergence), is below ``tol``. A row *fails* when its steps stop
   contracting (a step more than half the previous one), are not finite, or exceed :data:`GN_MAX_STEP`: a
-  (near-)singular configuration. For n ≥ 6, after a step below :data:`REUSE_BELOW` the next one may reuse J: the
+  (near-)singular configuration. For n ≥ 6, after a step below :data:`REUSE_BELOW` the next one reuses J: the
   residual is asked for r alone (``jacobian=False``) and may skip J, which moved by less than its own
   approximation error and is much of a residual's cost (the simplified Newton method; its zero is still r = 0,
-  whereas a least-squares step's zero moves with J). A residual that returns J anyway has it used.
+  whereas a least-squares step's zero moves with J). A J the residual returns anyway is not used, so that one
+  configuration steps with the inverse of J it kept: a product, where a solve costs numpy's wrapper around one
+  small LAPACK call.
 - The failed rows then start over from q0 in **damped** mode: steps ``(JᵀJ + λ μ I)⁻¹ Jᵀ r`` in the length-scaled
   metric W (μ the mean of JᵀJ's diagonal), clipped to :data:`DAMPED_MAX_STEP`, kept only where they do not raise
   ``|W r|``. λ follows the gain ratio ϱ of a kept step (actual over predicted fall of ``|W r|²``): it is multiplied
@@ -121,11 +123,12 @@ def solve(
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a singular J gives a NaN step
         for i in range(max(iterations, 1)):
             q, active = rows.active()
-            r, J = residual(q, active, not (reuse and rows.settled()))
-            J = rows.jacobians(J)  # the last one kept when the residual skipped it
+            fresh = not (reuse and rows.settled())
+            r, J = residual(q, active, fresh)
+            J = rows.jacobians(J if fresh else None)  # the last one kept once settled, even if the residual has one
             if i == 0:  # every row's, at q0: where a failed row's damped mode starts (_Rows writes into its J later)
                 at_q0 = r, (J if k == 1 else J.copy())
-            if not rows.advance(gauss_newton_step(r, J, w if n < 6 else None)):
+            if not rows.advance(rows.step(r, J, w if n < 6 else None)):
                 break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
         out, failed = rows.out, rows.failed()
@@ -168,6 +171,8 @@ class _Rows:
             self.J[self.rows] = new
         return new
 
+    step = staticmethod(gauss_newton_step)  # the steps of the rows still iterating, from r and the kept J
+
     def advance(self, step: np.ndarray) -> bool:
         """Judge and apply one step of the rows still iterating; False when none is left."""
         rows, everyone = self.rows, self._everyone()
@@ -202,6 +207,7 @@ class _OneRow:
         self.out, self.tol = q0.copy(), tol
         self.prev: float | None = None
         self.J: np.ndarray | None = None
+        self.J_inv: np.ndarray | None = None  # of the kept J when it is square, once a step needed it
         self.bad = False
 
     def active(self) -> tuple[np.ndarray, np.ndarray]:
@@ -212,8 +218,20 @@ class _OneRow:
 
     def jacobians(self, new: np.ndarray | None) -> np.ndarray:
         if new is not None:
-            self.J = new
+            self.J, self.J_inv = new, None
         return self.J
+
+    def step(self, r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+        """:func:`gauss_newton_step` with the kept J; a square one is inverted instead, so that the steps which
+        reuse it cost a product: numpy's wrapper around one 6×6 LAPACK call, not the maths, is a solve's price."""
+        if weights is not None or J.shape[1] != J.shape[2]:
+            return gauss_newton_step(r, J, weights)
+        if self.J_inv is None:
+            try:
+                self.J_inv = np.linalg.inv(J[0])
+            except np.linalg.LinAlgError:
+                return np.full(r.shape, np.nan)
+        return (self.J_inv @ r[0])[None]
 
     def advance(self, step: np.ndarray) -> bool:
         values = step[0].tolist()
