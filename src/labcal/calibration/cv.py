@@ -35,10 +35,10 @@ difference)``. So a learned stage is kept only for a gain the data support, not 
 
 **Time.** The joint series' order (and gravity terms) is chosen once on all rows; each fold refits the
 series at that order and re-chooses its ridge λ (see :func:`cross_validate`). A network candidate is trained
-inside the folds with one restart, at most 40 Levenberg-Marquardt iterations and at most 1,000 (seeded) rows —
-measured ~50 ms per iteration at 1,000 rows, so a fold's network costs at most ~2 s — and is dropped from the
-remaining folds once, after at least two folds, it is more than 10 % worse than the best other candidate on the
-rows evaluated so far (``pruned_after`` in the result); its CV error is then the mean over the folds it ran.
+inside the folds with one restart, at most 40 Levenberg-Marquardt iterations and at most 1,000 (seeded) rows
+(which bound a fold's network time; ``benchmarks/fit_time.py`` measures it) and is dropped from the remaining
+folds once, after at least two folds, it is more than 10 % worse than the best other candidate on the rows
+evaluated so far (``pruned_after`` in the result); its CV error is then the mean over the folds it ran.
 """
 
 from __future__ import annotations
