@@ -330,12 +330,7 @@ def probe_dashboard(host: str, port: int = DASHBOARD_PORT, timeout: float = 2.0)
     what = f"dashboard probe of {host}:{port}"
     deadline = time.monotonic() + timeout
     with contextlib.closing(_open(host, port, timeout)) as sock:
-        line = b""
-        while not line.endswith(b"\n"):
-            line += _recv_exact(sock, 1, deadline, what)
-            if len(line) > 4096:
-                raise ProtocolError(f"{what}: greeting longer than 4096 bytes without a newline")
-        return line.decode("utf-8", "replace").strip()
+        return _read_line(sock, deadline, what)
 
 
 # What labcal asks the dashboard server about the arm, and the identity key each answer goes to.
