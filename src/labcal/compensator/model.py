@@ -367,10 +367,9 @@ class CalibratedRobot:
 
     @functools.cached_property
     def _one_configuration_inputs(self):
-        """The network's input features at one configuration of a walk (:func:`labcal.features.one_configuration`)."""
-        names = tuple(self.network.features)
-        _feature_evaluator(names, self.model)  # a ValueError naming an unknown feature
-        return feature_lib.one_configuration(names, self.model.joint_types, self.model.limits)
+        """The network's input features at one configuration of a walk (:func:`labcal.features.one_configuration`;
+        a ValueError names an unknown feature)."""
+        return feature_lib.one_configuration(tuple(self.network.features), self.model.joint_types, self.model.limits)
 
     @functools.cached_property
     def _linear_series(self):
@@ -585,8 +584,8 @@ class CalibratedRobot:
         nominal_adjoints, first_walk = runtime_walk_pair(self.nominal, self.model, q)
         target = _pose_lists(nominal_adjoints[-1])
         walk, network = self.model.runtime_walk, self.network
-        inputs = network and self._one_configuration_inputs
         series = network and self._linear_series
+        inputs = network and series is None and self._one_configuration_inputs  # the series has its own features
         pending = [first_walk]  # the solver's first evaluation is at q itself: that walk is done already
 
         def residual(qc: np.ndarray, rows: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
