@@ -128,8 +128,12 @@ STORE_HINT = "set --store or LABCAL_STORE; `labcal session new` or `labcal sessi
 
 
 def store_root(store: Path | str | None) -> Path:
-    """--store, else $LABCAL_STORE, else ./sessions (as :func:`labcal.datasets.default_root`)."""
-    return Path(store) if store is not None else Path(os.environ.get("LABCAL_STORE") or "sessions")
+    """--store, else :func:`labcal.datasets.store.default_root` ($LABCAL_STORE, else ./sessions)."""
+    if store is not None:
+        return Path(store)
+    from labcal.datasets.store import default_root  # no pandas, as store_of's import
+
+    return default_root()
 
 
 def store_of(store: Path | str | None, *, write: bool = False):
