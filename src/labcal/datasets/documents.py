@@ -113,11 +113,7 @@ class SessionHeader:
         for k in self.extra_units:
             if not _extra_key(k):
                 raise JournalError(f"extra field name {k!r} must match [A-Za-z0-9_]+")
-        metadata = dict(self.metadata)
-        if self.unit is not None:
-            metadata["unit"] = check_unit(self.unit)
-        elif "unit" in metadata:
-            metadata["unit"] = check_unit(metadata["unit"])
+        metadata = metadata_with_unit(self.metadata, self.unit)
         # Only sessions whose devices said something carry the key: the others' documents read as before.
         tracker, robot_driver = dict(self.tracker), dict(self.robot_driver)
         if self.tracker_identity:
@@ -153,6 +149,17 @@ def check_unit(value: object, what: str = "unit") -> str:
             "trailing blanks (e.g. the serial number on the controller's label)"
         )
     return value
+
+
+def metadata_with_unit(metadata: Mapping[str, Any] | None, unit: str | None, what: str = "unit") -> dict:
+    """The caller's metadata with ``"unit"`` set: ``unit`` wins over a ``unit`` key of the metadata, and either is
+    checked (:func:`check_unit`; ``what`` names the given one in the error)."""
+    out = dict(metadata or {})
+    if unit is not None:
+        out["unit"] = check_unit(unit, what)
+    elif "unit" in out:
+        out["unit"] = check_unit(out["unit"], "metadata unit")
+    return out
 
 
 def _extra_key(k: object) -> bool:
@@ -442,5 +449,6 @@ __all__ = [
     "check_unit",
     "measured_points",
     "measured_spread",
+    "metadata_with_unit",
     "robot_document",
 ]

@@ -49,7 +49,7 @@ import pandas as pd
 from labcal.tomlschema import Key, Table, fail, read_toml, validate
 
 from ._util import sha256_bytes, sha256_file
-from .documents import check_unit
+from .documents import metadata_with_unit
 from .errors import DatasetError, ImportFormatError, MappingError, TargetsError
 from .ids import validate_id
 from .sanity import Hints, SanityReport, check_measurements, check_names
@@ -512,7 +512,7 @@ def _run_import(
         "robot_driver": {},
         "plan": _plan_summary([]),
         "extra_units": {e.name: _TO_SI.get(e.unit, (e.unit, 1.0))[0] for e in spec.extras},
-        "metadata": _metadata_with_unit(opts),
+        "metadata": metadata_with_unit(opts.metadata, opts.unit, "--unit"),
     }
     provenance = {
         "import": {
@@ -534,16 +534,6 @@ def _run_import(
         _check_unit_of_existing(store, session_id, meta["metadata"].get("unit"))
         return store.append_rows(session_id, rows, meta, source=source, provenance=provenance)
     return store.create_imported_session(rows, meta, source=source, provenance=provenance, session_id=session_id)
-
-
-def _metadata_with_unit(opts: ImportOptions) -> dict:
-    """The user's metadata plus ``"unit"`` (``opts.unit`` wins over a ``unit`` key in the metadata; both checked)."""
-    metadata = dict(opts.metadata or {})
-    if opts.unit is not None:
-        metadata["unit"] = check_unit(opts.unit, "--unit")
-    elif "unit" in metadata:
-        metadata["unit"] = check_unit(metadata["unit"], "metadata unit")
-    return metadata
 
 
 def _check_unit_of_existing(store: SessionStore, session_id: str, unit: str | None) -> None:
