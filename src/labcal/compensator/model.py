@@ -245,8 +245,8 @@ def _bracket(J: np.ndarray, dy: np.ndarray, e: np.ndarray) -> np.ndarray:
     the twists after it) plus the first-order term of d log(E)/dq at the pose error e = log(E), for joint twists
     J = (ξ_i) and dy = (δρ_j ξ_j), both (6, n)."""
     n = J.shape[1]
-    z = dy @ _after(n) - 0.5 * e[:, None]  # (6, n) Σ_{j>i} δρ_j ξ_j − e/2
-    return ((J.T @ _AD).reshape(n, 6, 6) @ z.T[:, :, None])[:, :, 0].T
+    z = dy.dot(_after(n)) - 0.5 * e[:, None]  # (6, n) Σ_{j>i} δρ_j ξ_j − e/2
+    return (J.T.dot(_AD).reshape(n, 6, 6) @ z.T[:, :, None])[:, :, 0].T
 
 
 @functools.lru_cache(maxsize=8)
@@ -423,10 +423,10 @@ class CalibratedRobot:
             feature_lib.harmonics_by_recurrence(cos_q, sin_q, H, out=x[:, : 2 * H])
             if gravity_of is not None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
                 x[:, 2 * H :] = gravity_of(q[None], adjoints[None]).reshape(n, 3)
-            out = x.reshape(-1) @ K
+            out = x.reshape(-1).dot(K)
             rho, slope = bias + out[:6], out[6:].reshape(n, 6).T
             if linear is not None:
-                rho, slope = rho + q @ linear, slope + linear.T
+                rho, slope = rho + q.dot(linear), slope + linear.T
             return rho, slope
 
         return series
@@ -595,14 +595,14 @@ class CalibratedRobot:
                 return e[None], J[None]
             if series is None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
                 rho = network.forward_features(inputs(qc[0], cos_q, sin_q, adjoints))
-                return (e - J @ rho)[None], J[None]
+                return (e - J.dot(rho))[None], J[None]
             rho, slope = series(qc[0], cos_q, sin_q, adjoints)
             if not jacobian:
-                return (e - J @ rho)[None], None
+                return (e - J.dot(rho))[None], None
             dy = J * rho  # (6, n): column j is δρ_j ξ_j
             # dr/dq = −(J + J dδρ/dq + the twists' turn under δρ + the log's first-order term) up to O(|r|, |e|²)
             # (and gravity's slope): close to Newton's step, where −J alone converges at the rate |dδρ/dq| + |e|
-            return (e - dy.sum(axis=1))[None], (J + J @ slope + _bracket(J, dy, e))[None]
+            return (e - dy.sum(axis=1))[None], (J + J.dot(slope) + _bracket(J, dy, e))[None]
 
         return residual
 

@@ -231,7 +231,7 @@ class _OneRow:
                 self.J_inv = np.linalg.inv(J[0])
             except np.linalg.LinAlgError:
                 return np.full(r.shape, np.nan)
-        return (self.J_inv @ r[0])[None]
+        return self.J_inv.dot(r[0])[None]
 
     def advance(self, step: np.ndarray) -> bool:
         values = step[0].tolist()
