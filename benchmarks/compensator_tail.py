@@ -1,6 +1,6 @@
 """Compensator tail latency on the export a real fit produces: consecutive single ``correct()`` calls.
 
-Run: ``.venv/bin/python benchmarks/compensator_tail.py [--calls 20000] [--size 150] [--export PATH]``
+Run: ``.venv/bin/python benchmarks/compensator_tail.py [--calls 20000] [--size 150] [--export PATH] [--tols 1e-9,1e-7]``
 
 The export: the real UR10 tracker data (:mod:`labcal.bench.real_ur10`: imported through the shipped mapping),
 ``--size`` random poses (seed 0) registered and fitted with ``method="hybrid"`` (local POE, then the learned term
@@ -12,7 +12,8 @@ equivalent Jacobian is well conditioned (length-scaled condition < 1000: away fr
 step is expected), corrected one at a time as a control loop does (garbage collector on, no warm-up between
 calls). Printed: median, p99, p99.9 and max latency, the calls over a 500 Hz cycle (2 ms), and how many calls
 took the damped fallback (counted in a second, untimed pass through whichever fallback function the installed
-labcal has). Whatever else runs on the machine shows in the tail: run it on an idle machine.
+labcal has). Rows with a looser solver tolerance (``--tols``) show what it buys, and how far their answers move from
+the defaults'. Whatever else runs on the machine shows in the tail: run it on an idle machine.
 """
 
 from __future__ import annotations
@@ -131,6 +132,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--size", type=int, default=150, help="poses of the real UR10 data the hybrid is fitted on")
     ap.add_argument("--export", type=Path, help="export to reuse (written first when missing)")
     ap.add_argument("--bounded", type=int, default=5, help="damped step budget of the bounded row (when supported)")
+    ap.add_argument(
+        "--tols",
+        default="1e-9,1e-7",
+        help="comma-separated solver tolerances (rad), a row each: what a looser tolerance buys ('' for none)",
+    )
     args = ap.parse_args(argv)
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -144,6 +150,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if "damped_iterations" in inspect.signature(comp.robot.correct).parameters:
         bounded = functools.partial(comp.robot.correct, damped_iterations=args.bounded)
         settings.append((f"correct(q, damped_iterations={args.bounded})", bounded))
+    if "tol" in inspect.signature(comp.robot.correct).parameters:
+        for tol in filter(None, args.tols.split(",")):
+            settings.append((f"correct(q, tol={float(tol):g})", functools.partial(comp.robot.correct, tol=float(tol))))
     rows = []
     for label, correct in settings:
         ts = timed_calls(correct, q)
@@ -172,6 +181,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
             f"{r['over_2ms']} |"
         )
     print("goal: median ≤ 200 µs, p99.9 ≤ 2,000 µs")
+    # a looser tolerance's price in the answers: its distance from the defaults' over the first calls (untimed)
+    sample = q[:2000]
+    reference = np.array([comp.robot.correct(row) for row in sample])
+    for label, correct in settings[1:]:
+        gap = np.abs(np.array([correct(row) for row in sample]) - reference).max(axis=1)
+        p99, worst = np.percentile(gap, 99), gap.max()
+        print(f"{label}: |q_cmd − defaults'| over {len(sample):,} calls: p99 {p99:.1e} rad, max {worst:.1e} rad")
     if fallbacks:
         # what the fallback's answers are worth, not only what they cost: the pose a correction leaves there
         hard = q[fallback_rows]
