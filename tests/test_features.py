@@ -162,3 +162,24 @@ def test_one_configuration_gravity_without_frames_is_a_clear_error():
     q = np.zeros(2)
     with pytest.raises(ValueError, match=r"gravity.*link frames"):
         features.one_configuration(("gravity",))(q, np.cos(q), np.sin(q), None)
+
+
+def test_a_kind_without_a_computation_fails_loudly_instead_of_computing_another(monkeypatch):
+    # a newcomer who adds a name to the registry but no branch must get an error, never sincos2 or empty columns
+    monkeypatch.setattr(features, "SIMPLE", (*features.SIMPLE, "made_up"))
+    features.get.cache_clear()
+    try:
+        made_up = features.get("made_up")
+        q = np.zeros((1, 2))
+        for call in (
+            lambda: made_up.size(2),
+            lambda: made_up.prepare(),
+            lambda: made_up.columns(("revolute", "revolute")),
+            lambda: features.one_configuration(("made_up",)),
+        ):
+            with pytest.raises(ValueError, match="'made_up' has no computation"):
+                call()
+        with pytest.raises(ValueError, match="'made_up' has no computation"):
+            features.compute_all(q, ("made_up",))
+    finally:
+        features.get.cache_clear()

@@ -107,7 +107,12 @@ class Feature:
 
     def size(self, n: int) -> int:
         """Number of columns for a robot with n joints."""
-        return {"q": n, "sincos": 2 * n, "sincos2": 2 * n, "gravity": 3 * n}.get(self.kind, 2 * n * self.order)
+        if self.kind == HARMONICS:
+            return 2 * n * self.order
+        per_joint = {"q": 1, "sincos": 2, "sincos2": 2, "gravity": 3}
+        if self.kind not in per_joint:
+            raise ValueError(_unknown_kind(self.kind, "Feature.size"))
+        return per_joint[self.kind] * n
 
     def compute(self, q: np.ndarray, joint_types=None, limits=None, frames=None) -> np.ndarray:
         """(k, n) joint values → (k, size) columns.
@@ -138,6 +143,8 @@ class Feature:
             return lambda q, frames=None: np.concatenate(
                 [np.where(rev, np.sin(q), q), np.where(rev, np.cos(q), 0.0)], axis=1
             )
+        if kind != "sincos2":
+            raise ValueError(_unknown_kind(kind, "Feature.prepare"))
         rev2 = None if joint_types is None else _revolute(joint_types, len(tuple(joint_types)))
 
         def sincos2(q: np.ndarray, frames=None) -> np.ndarray:
@@ -160,6 +167,8 @@ class Feature:
             other = "q" if h == 1 else "zero"
             sines = [Column("sin", j, h) if rev[j] else Column(other, j) for j in range(n)]
             return tuple(sines + [Column("cos", j, h) if rev[j] else Column("zero", j) for j in range(n)])
+        if self.kind != HARMONICS:
+            raise ValueError(_unknown_kind(self.kind, "Feature.columns"))
         lim = None if limits is None else np.asarray(limits, dtype=float).reshape(n, 2)
         out = []
         for j in range(n):
@@ -171,6 +180,11 @@ class Feature:
             for h in range(1, self.order + 1):
                 out += [Column("sin", j, h, stroke), Column("cos", j, h, stroke)]
         return tuple(out)
+
+
+def _unknown_kind(kind: str, where: str) -> str:
+    # a kind added to the registry's names without its computation must fail loudly, not compute another kind
+    return f"feature kind {kind!r} has no computation in {where}: a new kind needs a branch there"
 
 
 @functools.lru_cache(maxsize=256)
@@ -240,6 +254,9 @@ def one_configuration(names: tuple[str, ...], joint_types=None, limits=None):
     if joint_types is not None and _prismatic(tuple(joint_types)).any():
         return lambda q, cos_q, sin_q, frames: run(q[None], None if frames is None else frames[None])[0]
     kinds = [(get(name).kind, get(name).order) for name in names]
+    for kind, _ in kinds:
+        if kind not in (*SIMPLE, HARMONICS):
+            raise ValueError(_unknown_kind(kind, "one_configuration"))
 
     def one(q: np.ndarray, cos_q: np.ndarray, sin_q: np.ndarray, frames: np.ndarray | None) -> np.ndarray:
         parts = []
@@ -254,7 +271,7 @@ def one_configuration(names: tuple[str, ...], joint_types=None, limits=None):
                 parts.append(harmonics_by_recurrence(cos_q, sin_q, order))
             elif kind == "q":
                 parts.append(q)
-            else:  # sincos2: sin 2q = 2 sin q cos q, cos 2q = cos² q − sin² q
+            else:  # sincos2 (checked below): sin 2q = 2 sin q cos q, cos 2q = cos² q − sin² q
                 parts += (2 * sin_q * cos_q, cos_q * cos_q - sin_q * sin_q)
         return np.concatenate(parts, axis=None)
 

@@ -118,3 +118,13 @@ def test_export_dispatch_rejects_bad_format_and_suffix(tmp_path):
         export(robot, "xml", tmp_path / "a.xml")
     with pytest.raises(ValueError, match=r"ending in \.npz"):
         export(robot, "npz", tmp_path / "a.json")
+
+
+def test_a_listed_format_without_a_writer_is_an_error_not_a_urdf(tmp_path, monkeypatch):
+    import labcal.export as export_module
+
+    monkeypatch.setattr(export_module, "FORMATS", (*export_module.FORMATS, "new-format"))
+    target = tmp_path / "out.new"
+    with pytest.raises(NotImplementedError, match=r"'new-format'.*no writer"):
+        export(hybrid("ur10"), "new-format", target)
+    assert not target.exists()

@@ -57,9 +57,12 @@ def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = Non
         from labcal.export.ros import write_ur_kinematics
 
         return write_ur_kinematics(robot, path, provenance, **options)
-    from labcal.export.urdf import write_urdf
+    if fmt == "urdf":
+        from labcal.export.urdf import write_urdf
 
-    return write_urdf(robot, path, provenance, **options)
+        return write_urdf(robot, path, provenance, **options)
+    # a name added to FORMATS without its branch here must not fall through to another format's writer
+    raise NotImplementedError(f"export format {fmt!r} is listed in FORMATS but has no writer in export.export()")
 
 
 __all__ = ["FORMATS", "SUFFIXES", "export"]
