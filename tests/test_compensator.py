@@ -810,3 +810,24 @@ def test_every_payload_field_is_checksummed():
     payload = to_payload(hybrid("ur10"))
     unchecked = set(payload) - set(CHECKED_FIELDS) - {"format", "schema_version", "checksums"}
     assert not unchecked, f"export fields without a checksum: {sorted(unchecked)}"
+
+
+@pytest.mark.parametrize("mapped", [False, True])
+def test_the_runtime_passes_the_solver_settings_through(tmp_path, mapped):
+    # a controller-side process bounds its worst case through Compensator, not only through CalibratedRobot
+    spec = load("coupled-elbow-6r")
+    base = hybrid("fanuc-m1000ia")
+    robot = dataclasses.replace(base, joint_map=spec.joint_map) if mapped else base
+    comp = Compensator.load(robot.save(tmp_path / "c.json"))
+    q_model = sample(base, 40, seed=5)
+    q_model[:20, 4] = 0.0  # wrist singular: these take the damped fallback, whose budget is then visible
+    q = spec.joints.to_controller(q_model) if mapped else q_model
+    to_controller = spec.joints.to_controller if mapped else (lambda x: x)
+    for options in ({"damped_iterations": 0}, {"tol": 1e-6}, {"damped_iterations": 3, "tol": 1e-9}):
+        # compared away from the singularity, where the joint map's rounding is not amplified
+        want = to_controller(base.correct(q_model[20:], **options))
+        np.testing.assert_allclose(comp.correct(q[20:], **options), want, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(comp.correct(q[20], **options), want[0], rtol=0, atol=1e-12)
+    default = comp.correct(q)
+    assert np.max(np.abs(comp.correct(q, damped_iterations=0) - default)) > 1e-3  # the budget reaches the solver
+    assert np.max(np.abs(comp.correct(q, tol=1e-3) - default)) > 0  # and so does the tolerance

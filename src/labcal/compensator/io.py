@@ -444,15 +444,25 @@ class Compensator:
                 f"{err} (model joints: the robot file's joint map turns the controller joints into these)"
             ) from None
 
-    def correct(self, q, *, extrapolate: bool = False, method: str = "newton") -> np.ndarray:
+    def correct(
+        self,
+        q,
+        *,
+        extrapolate: bool = False,
+        method: str = "newton",
+        tol: float = 1e-11,
+        damped_iterations: int | None = None,
+    ) -> np.ndarray:
         """Commanded controller joints (n,) or (k, n) that make the real robot reach the nominal pose of the
-        controller joints q (an empty (0, n) q gives an empty answer)."""
+        controller joints q (an empty (0, n) q gives an empty answer). method, tol and damped_iterations: as
+        :meth:`CalibratedRobot.correct` (a control loop that must bound its worst case lowers damped_iterations)."""
+        options = {"method": method, "tol": tol, "damped_iterations": damped_iterations}
         if self._map is None:
-            return self.robot.correct(q, extrapolate=extrapolate, method=method)
+            return self.robot.correct(q, extrapolate=extrapolate, **options)
         q_model = self.to_model(q)
         if not extrapolate:
             self._check_model_range(q_model)
-        return self._map.to_controller(self.robot.correct(q_model, extrapolate=True, method=method))
+        return self._map.to_controller(self.robot.correct(q_model, extrapolate=True, **options))
 
     def predict_pose(self, q, *, extrapolate: bool = False) -> np.ndarray:
         """Pose (4, 4) or (k, 4, 4) in the base frame that the real robot reaches when commanded the controller
