@@ -831,3 +831,32 @@ def test_the_runtime_passes_the_solver_settings_through(tmp_path, mapped):
     default = comp.correct(q)
     assert np.max(np.abs(comp.correct(q, damped_iterations=0) - default)) > 1e-3  # the budget reaches the solver
     assert np.max(np.abs(comp.correct(q, tol=1e-3) - default)) > 0  # and so does the tolerance
+
+
+def test_a_tolerance_below_rounding_converges_instead_of_restarting_damped():
+    # steps at the rounding floor no longer halve; they must end the row as converged, not send it back to q
+    nominal = load("ur10").model
+    model = nominal.perturbed(np.random.default_rng(0).normal(size=(7, 6)) * 0.5e-3)
+    robot = CalibratedRobot(nominal, model, make_network(model, ("q", "sincos", "sincos2", "gravity")), "hybrid")
+    found = [-0.4068558256761041, 0.10899587185075932, -2.005165476675237, 1.254102195428393]  # by a review
+    found += [0.022819643934576916, -2.1450457229083737]
+    q = np.vstack([found, sample(robot, 150, seed=21, max_cond=1e3)])
+
+    def pose_error(q_cmd):
+        gap = se3.log_se3(se3.inv(nominal.fk(q)) @ robot.predict_pose(q_cmd))
+        return np.abs(gap).max(axis=1)
+
+    default = pose_error(robot.correct(q))
+    for tight in (robot.correct(q, tol=1e-16, iterations=60), [robot.correct(row, tol=1e-16) for row in q]):
+        # (a row the default leaves at a least-squares floor, near a singularity, may end there too, up to rounding)
+        assert np.all(pose_error(np.asarray(tight)) <= np.maximum(default * (1 + 1e-9), 1e-13))
+
+
+def test_one_exactly_singular_row_does_not_change_the_others():
+    # numpy's stacked solve refuses a whole stack for one singular J; only that row may take the damped mode
+    robot = ann(features=("sincos", "gravity"))
+    good = sample(robot, 200, seed=1, max_cond=1e3)
+    alone = robot.correct(good)
+    mixed = robot.correct(np.vstack([good[:100], np.zeros(6), good[100:]]))  # q = 0: J exactly singular
+    np.testing.assert_array_equal(np.delete(mixed, 100, axis=0), alone)
+    assert np.isfinite(mixed[100]).all()

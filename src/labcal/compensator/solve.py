@@ -5,7 +5,8 @@ once, given a function that returns the residual r (m, 6) and the joint twists J
 
 - **Gauss-Newton** first, from q0, with the full step ``J⁻¹ r`` (least squares in the metric W for n < 6,
   minimum norm for n > 6). A row stops when its estimated distance to the solution, ``|step| ρ / (1 − ρ)`` with ρ
-  the ratio of its last two steps (linear convergence), is below ``tol``. A row *fails* when its steps stop
+  the ratio of its last two steps (linear convergence), is below ``tol``, or when a step is below
+  :data:`NOISE_FLOOR` (rounding: a tol below it cannot be reached). A row *fails* when its steps stop
   contracting (a step more than half the previous one), are not finite, or exceed :data:`GN_MAX_STEP`: a
   (near-)singular configuration. For n ≥ 6, after a step below :data:`REUSE_BELOW` the next one reuses J: the
   residual is asked for r alone (``jacobian=False``) and may skip J, which moved by less than its own
@@ -47,6 +48,9 @@ import numpy as np
 
 GN_MAX_STEP = 0.3  # rad: a full Gauss-Newton step this large means a (near-)singular configuration
 REUSE_BELOW = 1e-4  # rad: after a step this small J has moved by less than its approximation error
+# rad: a step this small that does not contract is rounding (J⁻¹ amplifies the residual's last bits), not a
+# singularity: the row has converged as far as floating point allows, whatever tol asked for
+NOISE_FLOOR = 1e-12
 DAMPED_MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so larger steps mean a singularity
 LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP = 1e-6, 1e-12, 1e6
 DAMPED_BUDGET = 24  # damped steps per call at most, by default
@@ -75,7 +79,10 @@ def gauss_newton_step(r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) 
             return (Jt @ np.linalg.solve(J @ Jt, r[:, :, None]))[:, :, 0]
         return np.linalg.solve(Jt @ J, Jt @ r[:, :, None])[:, :, 0]
     except np.linalg.LinAlgError:
-        return np.full((r.shape[0], n), np.nan)
+        if len(J) == 1:
+            return np.full((1, n), np.nan)
+    # numpy's stacked solve refuses the whole stack for one singular matrix: row by row, only those rows fail
+    return np.concatenate([gauss_newton_step(r[i : i + 1], J[i : i + 1], None) for i in range(len(J))])
 
 
 @functools.lru_cache(maxsize=8)
@@ -252,6 +259,8 @@ def verdict(size: float, prev: float | None, tol: float) -> tuple[bool, bool]:
     max-norm ``prev`` (None: the first step). See the module docstring."""
     if prev is None:  # no previous step: ρ = 1/2, so the estimated distance is the step itself
         return not size <= GN_MAX_STEP, size < tol
+    if size < NOISE_FLOOR:
+        return False, True
     ratio = min(size / max(prev, 1e-300), 0.5)
     return not size <= min(GN_MAX_STEP, 0.5 * prev), size * ratio / (1 - ratio) < tol or size < 1e-3 * tol
 
@@ -261,7 +270,9 @@ def _verdicts(size: np.ndarray, prev: np.ndarray | None, tol: float) -> tuple[np
     if prev is None:
         return ~(size <= GN_MAX_STEP), size < tol
     ratio = np.minimum(size / np.maximum(prev, 1e-300), 0.5)
-    return ~(size <= np.minimum(GN_MAX_STEP, 0.5 * prev)), (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol)
+    floor = size < NOISE_FLOOR
+    bad = ~(size <= np.minimum(GN_MAX_STEP, 0.5 * prev)) & ~floor
+    return bad, (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol) | floor
 
 
 def lambda_after(kept: bool, gain: float, lam: float, grow: float) -> tuple[float, float]:
