@@ -127,6 +127,10 @@ def test_the_one_configuration_recurrence_is_the_registry_harmonics(order):
         features.harmonics_by_recurrence(np.cos(theta), np.sin(theta), order, out=buffer[:, : 2 * order])
         np.testing.assert_array_equal(buffer[:, : 2 * order], got)
         assert (buffer[:, 2 * order :] == 7.0).all()
+    batch = rng.uniform(-np.pi, np.pi, (5, 6))  # leading batch axes: each row is its own one-configuration call
+    stacked = features.harmonics_by_recurrence(np.cos(batch), np.sin(batch), order)
+    for row, theta in zip(stacked, batch, strict=True):
+        np.testing.assert_array_equal(row, features.harmonics_by_recurrence(np.cos(theta), np.sin(theta), order))
 
 
 @pytest.mark.parametrize(

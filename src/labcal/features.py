@@ -296,7 +296,8 @@ def _harmonics_of_angles(theta: np.ndarray, order: int) -> np.ndarray:
 
 def harmonics_by_recurrence(cos_theta: np.ndarray, sin_theta: np.ndarray, order: int, out=None) -> np.ndarray:
     """:func:`harmonics` of one configuration from cos θ and sin θ (n,) → (n, 2·order): row j is joint j's block
-    of the layout above (sin h θ_j, cos h θ_j for h = 1 … order), equal to it within a few ulps per order.
+    of the layout above (sin h θ_j, cos h θ_j for h = 1 … order), equal to it within a few ulps per order. Leading
+    batch axes pass through: (k, n) → (k, n, 2·order).
 
     The running product ``i e^{−i h θ} = i e^{−i (h−1) θ} · e^{−iθ}``, whose real and imaginary parts are
     sin h θ and cos h θ, replaces 2·n·order sines and cosines by one complex product per column: the runtime's
@@ -310,12 +311,11 @@ def harmonics_by_recurrence(cos_theta: np.ndarray, sin_theta: np.ndarray, order:
         >>> bool(np.allclose(x.reshape(1, -1), harmonics(theta[None], 3), rtol=0, atol=1e-15))
         True
     """
-    n = cos_theta.shape[0]
-    x = np.empty((n, 2 * order)) if out is None else out
-    x[:, 0], x[:, 1] = sin_theta, cos_theta  # i e^{−iθ} = sin θ + i cos θ
-    x[:, 2::2], x[:, 3::2] = cos_theta[:, None], -sin_theta[:, None]  # the factor e^{−iθ}
+    x = np.empty((*cos_theta.shape, 2 * order)) if out is None else out
+    x[..., 0], x[..., 1] = sin_theta, cos_theta  # i e^{−iθ} = sin θ + i cos θ
+    x[..., 2::2], x[..., 3::2] = cos_theta[..., None], -sin_theta[..., None]  # the factor e^{−iθ}
     powers = x.view(complex)
-    np.multiply.accumulate(powers, axis=1, out=powers)
+    np.multiply.accumulate(powers, axis=-1, out=powers)
     return x
 
 

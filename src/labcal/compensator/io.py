@@ -456,13 +456,14 @@ class Compensator:
         """Commanded controller joints (n,) or (k, n) that make the real robot reach the nominal pose of the
         controller joints q (an empty (0, n) q gives an empty answer). method, tol and damped_iterations: as
         :meth:`CalibratedRobot.correct` (a control loop that must bound its worst case lowers damped_iterations)."""
-        options = {"method": method, "tol": tol, "damped_iterations": damped_iterations}
-        if self._map is None:
-            return self.robot.correct(q, extrapolate=extrapolate, **options)
+        correct = self.robot.correct
+        if self._map is None:  # a control loop's call: keywords, not a dict unpacked, cost least
+            return correct(q, extrapolate=extrapolate, method=method, tol=tol, damped_iterations=damped_iterations)
         q_model = self.to_model(q)
         if not extrapolate:
             self._check_model_range(q_model)
-        return self._map.to_controller(self.robot.correct(q_model, extrapolate=True, **options))
+        q_cmd = correct(q_model, extrapolate=True, method=method, tol=tol, damped_iterations=damped_iterations)
+        return self._map.to_controller(q_cmd)
 
     def predict_pose(self, q, *, extrapolate: bool = False) -> np.ndarray:
         """Pose (4, 4) or (k, 4, 4) in the base frame that the real robot reaches when commanded the controller

@@ -171,6 +171,13 @@ def _log_small(R: np.ndarray, p: np.ndarray) -> np.ndarray:
     return out
 
 
+def _pose_log(T_target: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """(k, 4, 4) targets and poses → (k, 6) twists log(T_target T⁻¹) (series for small rotations, as _log_small)."""
+    Rm, pm = T[:, :3, :3], T[:, :3, 3]
+    dR = T_target[:, :3, :3] @ Rm.transpose(0, 2, 1)
+    return _log_small(dR, T_target[:, :3, 3] - (dR @ pm[:, :, None])[:, :, 0])
+
+
 # One configuration's pose error, in Python floats: at one pose a dozen numpy calls cost far more than the arithmetic
 # (benchmarks/compensator_speed.py prints both); tested against se3.log_se3 in tests/test_compensator.py.
 def _pose_lists(Ad: np.ndarray) -> tuple[list, list]:
@@ -243,10 +250,11 @@ _AD = _AD.reshape(6, 36)
 def _bracket(J: np.ndarray, dy: np.ndarray, e: np.ndarray) -> np.ndarray:
     """(6, n) columns ad(ξ_i) (Σ_{j>i} δρ_j ξ_j − e/2): the change of ``J δρ`` with q_i at fixed δρ (joint i turns
     the twists after it) plus the first-order term of d log(E)/dq at the pose error e = log(E), for joint twists
-    J = (ξ_i) and dy = (δρ_j ξ_j), both (6, n)."""
-    n = J.shape[1]
-    z = dy.dot(_after(n)) - 0.5 * e[:, None]  # (6, n) Σ_{j>i} δρ_j ξ_j − e/2
-    return (J.T.dot(_AD).reshape(n, 6, 6) @ z.T[:, :, None])[:, :, 0].T
+    J = (ξ_i) and dy = (δρ_j ξ_j), both (6, n), and e (6,); leading batch axes pass through ((k, 6, n), (k, 6))."""
+    n = J.shape[-1]
+    z = dy.dot(_after(n)) - 0.5 * e[..., None]  # (…, 6, n) Σ_{j>i} δρ_j ξ_j − e/2
+    ad = J.swapaxes(-1, -2).dot(_AD).reshape(*J.shape[:-2], n, 6, 6)  # ad(ξ_i) of every joint
+    return (ad @ z.swapaxes(-1, -2)[..., None])[..., 0].swapaxes(-1, -2)
 
 
 @functools.lru_cache(maxsize=8)
@@ -373,11 +381,12 @@ class CalibratedRobot:
 
     @functools.cached_property
     def _linear_series(self):
-        """δρ and its slope at one configuration of a 6-joint z-revolute arm whose network is linear in one
-        ``harmonics:H`` and optionally ``gravity`` and ``q`` (the joint series and the hybrid's learned term): a
-        function ``(q, cos q, sin q (n,), link-frame adjoints (n+1, 6, 6)) → (δρ (6,), S (6, n))``; None for any
-        other network. The features are the registry's (:mod:`labcal.features`; the harmonics by its
-        one-configuration recurrence from the walk's cos q and sin q), so δρ equals the network up to rounding. S is
+        """δρ and its slope of a 6-joint z-revolute arm whose network is linear in one ``harmonics:H`` and
+        optionally ``gravity`` and ``q`` (the joint series and the hybrid's learned term): a function ``(q, cos q,
+        sin q (n,), link-frame adjoints (n+1, 6, 6)) → (δρ (6,), S (6, n))``, whose ``batch(q (k, n), link frames
+        (k, n+1, 4, 4)) → (δρ (k, 6), S (k, 6, n))`` gives the same terms for a batch; None for any other network.
+        The features are the registry's (:mod:`labcal.features`; the harmonics by its recurrence, at one
+        configuration from the walk's cos q and sin q), so δρ equals the network up to rounding. S is
         dδρ/dq without the gravity terms' part (gravity features turn slowly with q: their slope saved a tenth of a
         Gauss-Newton step per call and cost more, benchmarks/compensator_tail.py).
 
@@ -429,6 +438,19 @@ class CalibratedRobot:
                 rho, slope = rho + q.dot(linear), slope + linear.T
             return rho, slope
 
+        def batch(q, frames) -> tuple[np.ndarray, np.ndarray]:  # the same terms for (k, n) q and their link frames
+            k = q.shape[0]
+            x = np.empty((k, n, F))
+            feature_lib.harmonics_by_recurrence(np.cos(q), np.sin(q), H, out=x[:, :, : 2 * H])
+            if gravity_of is not None:
+                x[:, :, 2 * H :] = gravity_of(q, frames).reshape(k, n, 3)
+            out = x.reshape(k, n * F) @ K
+            rho, slope = bias + out[:, :6], out[:, 6:].reshape(k, n, 6).transpose(0, 2, 1)
+            if linear is not None:
+                rho, slope = rho + q @ linear, slope + linear.T
+            return rho, slope
+
+        series.batch = batch
         return series
 
     # -- the calibrated forward model ----------------------------------------------------------------------------
@@ -482,24 +504,27 @@ class CalibratedRobot:
         return np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
 
     def residual(self, qc: np.ndarray, T_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pose residual r (k, 6) and the model's joint twists J (k, 6, n) at q_cmd (k, n), targets (k, 4, 4).
+        """Pose residual r (k, 6) and the steps' Jacobian J (k, 6, n) at q_cmd (k, n), targets (k, 4, 4).
 
         r = log(T_target T_model⁻¹) − J_ρ δρ: zero exactly when exp(J_ρ δρ) T_model = T_target, and it needs no
-        exponential of the network's correction. Its Jacobian is −J up to O(|r| + |dδρ/dq|), so Gauss-Newton
-        gains a few digits per step. For n < 6 (a least-squares problem) r is the exact log(T_target T_real⁻¹),
-        whose minimiser is what the length-scaled metric defines (the difference form has the same zero but not
-        the same minimum).
+        exponential of the network's correction. J is the model's joint twists, −dr/dq up to O(|r| + |dδρ/dq|), so
+        Gauss-Newton gains a few digits per step; for the joint series (:attr:`_linear_series`) it is the Newton
+        Jacobian that the one-configuration form returns (see there), so one configuration and a batch take the
+        same steps. For n < 6 (a least-squares problem) r is the exact log(T_target T_real⁻¹), whose minimiser is
+        what the length-scaled metric defines (the difference form has the same zero but not the same minimum).
         """
+        series = None if self.network is None else self._linear_series
+        if series is not None:
+            frames, J = self.model.frames_and_twists(qc)
+            rho, slope = series.batch(qc, frames)
+            e = _pose_log(T_target, frames[:, -1])
+            dy = J * rho[:, None, :]  # (k, 6, n): column j is δρ_j ξ_j
+            return e - dy.sum(axis=2), J + J @ slope + _bracket(J, dy, e)
         frames, J, dy = self._evaluate(qc)
         T = frames[:, -1]
         if dy is not None and self.n < 6:
-            T = _exp_small(dy) @ T
-            dy = None
-        Rm, pm = T[:, :3, :3], T[:, :3, 3]
-        Rt, pt = T_target[:, :3, :3], T_target[:, :3, 3]
-        dR = Rt @ Rm.transpose(0, 2, 1)
-        dp = pt - (dR @ pm[:, :, None])[:, :, 0]
-        r = _log_small(dR, dp)
+            return _pose_log(T_target, _exp_small(dy) @ T), J
+        r = _pose_log(T_target, T)
         if dy is not None:
             r -= dy
         return r, J
