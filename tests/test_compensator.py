@@ -732,7 +732,11 @@ def test_empty_input_gives_an_empty_answer(tmp_path):
         (np.zeros((3, 7)), r"got \(3, 7\)"),
         (np.zeros((2, 3, 6)), r"got \(2, 3, 6\)"),
         (np.zeros((0,)), r"got \(0,\)"),
-        (["a"] * 6, "must be numbers"),
+        (["a"] * 6, "must be real numbers.*got text"),
+        (["0.1"] * 6, "must be real numbers.*got text"),  # parsed silently before
+        (np.full(6, 0.1 + 0.5j), "got complex numbers"),  # its imaginary part was dropped with a warning
+        (np.ma.masked_array(np.zeros(6), mask=[0, 0, 1, 0, 0, 0]), "masked values"),  # the mask was ignored
+        ([object()] * 6, "must be numbers"),
         (np.array([[0.0] * 6, [0.0, 0.0, np.nan, 0.0, 0.0, 0.0]]), "configuration 1, joint 3 is nan"),
         (np.array([0.0, np.inf, 0.0, 0.0, 0.0, 0.0]), "configuration 0, joint 2 is inf"),
     ],
@@ -878,3 +882,28 @@ def test_one_exactly_singular_row_does_not_change_the_others():
     mixed = robot.correct(np.vstack([good[:100], np.zeros(6), good[100:]]))  # q = 0: J exactly singular
     np.testing.assert_array_equal(np.delete(mixed, 100, axis=0), alone)
     assert np.isfinite(mixed[100]).all()
+
+
+def test_a_length_scale_that_is_not_a_positive_number_is_refused():
+    # NaN or inf made correct() return q uncorrected without a word, 0 a ZeroDivisionError
+    nominal = load("ur10").model
+    for bad in (np.nan, np.inf, 0.0, -1.0):
+        with pytest.raises(ValueError, match="length_scale must be a positive number"):
+            CalibratedRobot(nominal, nominal, length_scale=bad)
+
+
+def test_fixed_point_takes_at_least_one_step_like_newton():
+    robot, q = ann(), sample(ann(), 4, seed=2)
+    np.testing.assert_array_equal(
+        robot.correct(q, method="fixed-point", iterations=0), robot.correct(q, method="fixed-point", iterations=1)
+    )
+    assert np.abs(robot.correct(q, method="fixed-point", iterations=0) - q).max() > 1e-5
+
+
+def test_to_model_never_returns_the_callers_array(tmp_path):
+    comp = Compensator.load(hybrid("ur10").save(tmp_path / "c.json"))
+    q = sample(comp.robot, 3, seed=1)
+    for given in (q, q[0]):
+        out = comp.to_model(given)
+        np.testing.assert_array_equal(out, given)
+        assert not np.shares_memory(out, given)

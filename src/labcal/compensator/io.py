@@ -423,7 +423,7 @@ class Compensator:
     def to_model(self, q) -> np.ndarray:
         """Controller joints (n,) or (k, n) → model joints, checked for shape and finite values first."""
         q2, single = self.robot._batch(q)
-        out = q2 if self._map is None else self._map.to_model(q2)
+        out = q2.copy() if self._map is None else self._map.to_model(q2)  # never the caller's own array
         return out[0] if single else out
 
     def check_range(self, q, extrapolate: bool = False) -> None:

@@ -296,6 +296,8 @@ class CalibratedRobot:
             object.__setattr__(self, "joint_ranges", self.nominal.limits.copy())
         if self.length_scale is None:
             object.__setattr__(self, "length_scale", self.nominal.reach())
+        if not (math.isfinite(self.length_scale) and self.length_scale > 0):
+            raise ValueError(f"length_scale must be a positive number of metres per radian, got {self.length_scale!r}")
         if self.network is not None and self.n > 6:
             raise ValueError(
                 f"a joint-motion-error network needs a robot with at most 6 joints (the equivalent robot has six, "
@@ -307,6 +309,12 @@ class CalibratedRobot:
         return self.nominal.n
 
     def _batch(self, q) -> tuple[np.ndarray, bool]:
+        if np.ma.isMaskedArray(q) and np.ma.getmaskarray(q).any():
+            raise ValueError("q has masked values: fill or drop them first (a masked joint has no value to correct)")
+        kind = np.asarray(q).dtype.kind
+        if kind in "cUSV":  # complex would lose its imaginary part, text would be parsed: both hide a caller's bug
+            what = "complex numbers" if kind == "c" else "text"
+            raise ValueError(f"q must be real numbers of shape ({self.n},) or (k, {self.n}), got {what}")
         try:
             q = np.asarray(q, dtype=float)
         except (TypeError, ValueError) as err:
@@ -592,7 +600,7 @@ class CalibratedRobot:
         if method == "paper":
             return q2 - self.joint_motion_errors(q2)[:, :n]
         out = q2.copy()
-        for _ in range(iterations):
+        for _ in range(max(iterations, 1)):  # as the Newton solver: at least one step
             nxt = q2 - self.joint_motion_errors(out)[:, :n]
             done = np.max(np.abs(nxt - out)) < tol
             out = nxt
