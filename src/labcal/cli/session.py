@@ -315,20 +315,41 @@ def resume(
         None, "--robot", help="Override the robot model stored with the session (must have the same hash)."
     ),
     allow: list[str] = typer.Option([], "--allow", help=ALLOW_HELP),
+    profile: str | None = typer.Option(
+        None, "--profile", help="Robot driver profile (hardware sessions; default: the one the session recorded)."
+    ),
+    tracker_profile: str | None = typer.Option(
+        None, "--tracker-profile", help="Tracker profile (hardware sessions; default: the one the session recorded)."
+    ),
     store: Path | None = StoreOption,
 ) -> None:
-    """Continue an interrupted session at its first unmeasured pose (sim sessions); prints the new version last.
+    """Continue an interrupted or paused session at its first unmeasured pose; prints the new version last.
 
-    The journal is checked before anything moves: a corrupt line stops here (seal the valid prefix with
-    `labcal session seal SESSION --valid-prefix`). The robot model is the one stored with the session.
+    A sim session resumes on its simulated robot; a hardware session (paused by a protective stop, say) on the UR
+    and tracker of the profiles it recorded, after the stop is cleared on the pendant. Before anything moves: the
+    journal is checked (a corrupt line stops here: seal the valid prefix with `labcal session seal SESSION
+    --valid-prefix`), and the arm must be the one recorded (serial number) and out of its protective stop. The
+    robot model is the one stored with the session.
 
-    Example: labcal session resume 20261122-031500-ur10-3f9a
+    Examples:
+
+      labcal session resume 20261122-031500-ur10-3f9a
+
+      labcal session resume S --profile drivers/ur10-lab.toml --tracker-profile drivers/ndi-polaris.toml   # files moved
     """
     from labcal.cli.ops import resume_session
 
     st = _store(store, write=True)
     with _RunProgress() as progress:
-        summary = resume_session(st, session, robot=robot, progress=progress, allow=tuple(allow))
+        summary = resume_session(
+            st,
+            session,
+            robot=robot,
+            progress=progress,
+            allow=tuple(allow),
+            profile=profile,
+            tracker_profile=tracker_profile,
+        )
     _end_run(summary, f"{summary.exit_status}: {summary.reason or 'done'}")
 
 

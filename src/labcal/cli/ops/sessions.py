@@ -179,14 +179,23 @@ def _drivers(request: SessionRequest, spec: RobotSpec, targets):
             sim["dropout"] = r.sim_dropout
         rig = _sim_rig(spec, targets, sim)
         return rig.robot(), rig.tracker(), "base", {"sim": sim}
+    if r.profile is None or r.tracker_profile is None:
+        raise UserError("real drivers need --profile drivers/<robot>.toml and --tracker-profile drivers/<tracker>.toml")
+    robot, tracker = _real_drivers(r.profile, r.tracker_profile, targets)
+    return robot, tracker, "tracker", {"profiles": {"robot": str(r.profile), "tracker": str(r.tracker_profile)}}
+
+
+def _real_drivers(profile, tracker_profile, targets):
+    """(UR robot, serial tracker) opened from their profile files: what `session new` and `session resume` use."""
     from labcal.drivers.serial_tracker import open_tracker
     from labcal.drivers.ur import URRobot, load_ur_profile
 
-    if r.profile is None or r.tracker_profile is None:
-        raise UserError("real drivers need --profile drivers/<robot>.toml and --tracker-profile drivers/<tracker>.toml")
-    robot = URRobot.connect(load_ur_profile(r.profile))
-    tracker = open_tracker(r.tracker_profile, targets)
-    return robot, tracker, "tracker", {"profiles": {"robot": str(r.profile), "tracker": str(r.tracker_profile)}}
+    robot = URRobot.connect(load_ur_profile(profile))
+    try:
+        return robot, open_tracker(tracker_profile, targets)
+    except BaseException:
+        robot.close()  # nothing moved: release the controller before reporting the tracker's error
+        raise
 
 
 def new_session(store: SessionStore, request: SessionRequest | None = None, *, progress=None, **fields: Any):
@@ -226,21 +235,41 @@ def _allowed(allow) -> tuple[str, ...]:
 
 
 def resume_session(
-    store: SessionStore, session_id: str, *, robot: str | None = None, progress=None, allow: tuple[str, ...] = ()
+    store: SessionStore,
+    session_id: str,
+    *,
+    robot: str | None = None,
+    progress=None,
+    allow: tuple[str, ...] = (),
+    profile=None,
+    tracker_profile=None,
 ):
-    """Resume a session; a sim session re-creates its simulated robot from the recorded errors and seed.
+    """Resume a session on the drivers it was recorded with: a sim session re-creates its simulated robot from the
+    recorded errors and seed; a hardware session reopens the UR and the tracker from the profile files it recorded
+    (``profile`` / ``tracker_profile`` replace them, e.g. when the files moved). The runner then refuses, before
+    anything moves, another arm (serial number), another robot model (hash) or a robot still in a protective stop.
 
     allow: record-time sanity checks to override, added to those the session was started with."""
     from labcal.sessions import resume
 
     meta = store.session_meta(session_id)
     spec = robot_for(meta["robot"], robot)
-    sim = (meta.get("metadata") or {}).get("sim")
-    if not sim:
-        raise UserError(
-            f"session {session_id} was not recorded on the sim rig; resume real-hardware sessions from Python with "
-            "the same drivers (labcal.sessions.resume)"
-        )
-    rig = _sim_rig(spec, np.asarray(meta["targets"], dtype=float).reshape(-1, 3), sim)
-    with rig.robot() as rob, rig.tracker() as trk:
-        return resume(store, session_id, rob, trk, spec=spec, progress=progress, allow=_allowed(allow))
+    metadata = meta.get("metadata") or {}
+    targets = np.asarray(meta["targets"], dtype=float).reshape(-1, 3)
+    allowed = _allowed(allow)
+    if metadata.get("sim"):
+        if profile is not None or tracker_profile is not None:
+            raise UserError(f"session {session_id} was recorded on the sim rig: it resumes there, without profiles")
+        rig = _sim_rig(spec, targets, metadata["sim"])
+        rob, trk = rig.robot(), rig.tracker()
+    else:
+        recorded = metadata.get("profiles") or {}
+        profile, tracker_profile = profile or recorded.get("robot"), tracker_profile or recorded.get("tracker")
+        if profile is None or tracker_profile is None:
+            missing = " and ".join(
+                flag for flag, value in (("--profile", profile), ("--tracker-profile", tracker_profile)) if not value
+            )
+            raise UserError(f"session {session_id} did not record its driver profiles: pass {missing}")
+        rob, trk = _real_drivers(profile, tracker_profile, targets)
+    with rob, trk:
+        return resume(store, session_id, rob, trk, spec=spec, progress=progress, allow=allowed)
