@@ -203,6 +203,25 @@ def test_evaluate_on_the_fits_own_data_says_it_is_not_held_out(world):
     assert "not a held-out score" in r.stdout
 
 
+def test_evaluate_on_a_reimport_of_the_fits_data_says_it_is_not_held_out(world, tmp_path):
+    # a re-import (or a later version) of the fit's rows has another ref: the rows themselves give it away
+    from labcal.cli.ops import load_observations
+
+    s, fit = world["store"], world["fits"]["good"]
+    obs = load_observations(SessionStore(s), [world["refs"]["good"]])[0]
+    held_out_csv(world["root"], tmp_path / "held.csv", k=10)
+    lines = (tmp_path / "held.csv").read_text().splitlines()
+    for q, pts in zip(obs.q[:7], obs.points[:7], strict=True):  # 7 of the fit's own poses among 10 new ones
+        lines.append(",".join(repr(float(v)) for v in (*q, *pts.ravel())))
+    (tmp_path / "mixed.csv").write_text("\n".join(lines) + "\n")
+    t = world["root"] / "targets.toml"
+    doc = json.loads(invoke("evaluate", fit, "--data", tmp_path / "held.csv", "--targets", t, "--json", store=s).stdout)
+    assert (doc["overlap_with_fit"], doc["overlap_rows"]) == (False, 0)
+    r = invoke("evaluate", fit, "--data", tmp_path / "mixed.csv", "--targets", t, store=s)
+    assert r.exit_code == 0, r.stderr
+    assert "7 of 17 rows are configurations the fit was fitted on" in r.stdout and "not a held-out score" in r.stdout
+
+
 def test_report_lists_the_stored_evaluations(world, tmp_path):
     invoke("evaluate", world["fits"]["good"], "--data", world["refs"]["good"], store=world["store"])
     r = invoke("report", world["refs"]["good"], "--out", tmp_path / "rep", store=world["store"])

@@ -79,8 +79,14 @@ def evaluate(
         for words in (ev.get("observability") or {}).get("unobservable") or []:
             out.print(f"  not determined by these data: {words}", markup=False)
     out.print(f"fitted on the evaluation data: {ev['registration']['fitted']}", markup=False)
-    if ev["overlap_with_fit"]:
+    if ev["overlap_with_fit"] and d["ref"] in ev["fit_inputs"]:
         out.print(f"note: {d['ref']} is one of the fit's own inputs: this is not a held-out score", markup=False)
+    elif ev["overlap_with_fit"]:
+        out.print(
+            f"note: {ev['overlap_rows']} of {d['rows']} rows are configurations the fit was fitted on (a later version "
+            "or a re-import of its data?): this is not a held-out score",
+            markup=False,
+        )
     if ev["outside_calibrated_ranges"]:
         out.print(
             f"note: {ev['outside_calibrated_ranges']} of {d['rows']} rows are outside the fit's calibrated joint "

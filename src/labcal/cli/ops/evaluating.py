@@ -97,6 +97,23 @@ def import_for_evaluation(store: SessionStore, stored, path: Path, robot: str | 
         return import_session(store, path, robot=robot_arg, **options)
 
 
+SAME_CONFIGURATION = 1e-6  # rad (or m): closer than a controller reports joints apart, so the same configuration
+
+
+def rows_the_fit_saw(store: SessionStore, stored, robot: str | None, q: np.ndarray) -> int:
+    """How many of the configurations q (k, n model joints) the fit was fitted or validated on: within
+    SAME_CONFIGURATION of a row of its inputs outside their test split. A later version of the fit's session (a
+    superset of its rows) or a re-import of its data is not held out, though its ref is not one of the fit's."""
+    from scipy.spatial import cKDTree
+
+    fit_obs = load_observations(store, list(stored.inputs), robot, pool_units=True)[0]  # only their joints are read
+    used = fit_obs.q[np.asarray(fit_obs.split) != "test"]
+    if not len(used) or not len(q):
+        return 0
+    distance, _ = cKDTree(used).query(q, k=1, p=np.inf, distance_upper_bound=SAME_CONFIGURATION)
+    return int(np.isfinite(distance).sum())
+
+
 def _is_file_argument(data: str) -> bool:
     p = Path(data)
     return p.is_file() or p.suffix.lower() in (".csv", ".txt", ".tsv")
@@ -175,6 +192,7 @@ def evaluate_fit(
     lo, hi = np.asarray(after.joint_ranges, dtype=float).T
     outside = ~np.all((obs.q >= lo - 1e-12) & (obs.q <= hi + 1e-12), axis=1)
     manifest = store.manifest(ref)
+    seen = 0 if ref in stored.inputs else rows_the_fit_saw(store, stored, robot, obs.q)
     evaluation = {
         "kind": "labcal.evaluation",
         "evaluation_id": None,
@@ -195,7 +213,8 @@ def evaluate_fit(
             "rows": int(obs.k),
             "frame": obs.frame,
         },
-        "overlap_with_fit": ref in stored.inputs,
+        "overlap_with_fit": ref in stored.inputs or seen > 0,
+        "overlap_rows": int(obs.k if ref in stored.inputs else seen),
         "registration": registration,
         "metrics": {"all": table["all"]} if "all" in table else {},
         "primary": (table.get("all") or {}).get("primary", "pose"),
