@@ -224,3 +224,46 @@ def test_demo_end_to_end(tmp_path):
     assert (root / "exports" / "ur10-hybrid.script").read_text().count("def labcal_correct") == 1
     from_urdf((root / "exports" / "ur10-local-poe.urdf").read_text())
     assert (root / "report" / "report.md").is_file()
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (("--poses", 3), "--poses must be at least 12"),
+        (("--held-out", 0), "--held-out must be at least 1"),
+        (("--seed", -1), "--seed must be a non-negative integer"),
+    ],
+)
+def test_demo_checks_its_options_before_recording(tmp_path, args, message):
+    # found late, these wasted a recording and the fits, and named another command's flag
+    r = invoke("demo", "--out", tmp_path / "demo", *args)
+    assert r.exit_code == 2 and r.stderr.startswith(f"error: {message}"), r.stdout + r.stderr
+    assert "recording" not in r.stdout and not (tmp_path / "demo").exists()
+
+
+def test_demo_refuses_an_out_folder_it_cannot_own(tmp_path):
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "exports").mkdir()
+    (tmp_path / "a-file").write_text("x")
+    for out, what in (("used", "is not empty"), ("a-file", "is not a folder")):
+        r = invoke("demo", "--out", tmp_path / out)
+        assert r.exit_code == 2 and what in r.stderr and "recording" not in r.stdout, r.stdout + r.stderr
+
+
+@pytest.mark.parametrize("command", [("fit", "S"), ("refit", "S", "--method", "local-poe")])
+def test_a_negative_seed_is_a_usage_error_naming_the_flag(tmp_path, command):
+    store = tmp_path / "store"
+    r = invoke("session", "new", "--robot", "ur10", "--targets", _targets(tmp_path), "--poses", 12, store=store)
+    assert r.exit_code == 0, r.stderr
+    args = [last_line(r) if a == "S" else a for a in command]
+    r = invoke(*args, "--seed", -1, store=store)
+    assert r.exit_code == 2 and "--seed must be a non-negative integer, got -1" in r.stderr, r.stdout + r.stderr
+    r = invoke("session", "new", "--robot", "ur10", "--targets", _targets(tmp_path), "--poses", 12, "--sim-seed", -2,
+               store=store)  # fmt: skip
+    assert r.exit_code == 2 and "--sim-seed must be a non-negative integer, got -2" in r.stderr
+
+
+def _targets(tmp_path: Path) -> Path:
+    path = tmp_path / "targets.toml"
+    path.write_text(TARGETS)
+    return path

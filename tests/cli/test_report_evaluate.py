@@ -222,6 +222,15 @@ def test_evaluate_on_a_reimport_of_the_fits_data_says_it_is_not_held_out(world, 
     assert "7 of 17 rows are configurations the fit was fitted on" in r.stdout and "not a held-out score" in r.stdout
 
 
+def test_fit_refuses_a_session_named_twice(world):
+    # pooled twice, its poses weighed double and the cross-validation scored poses it was fitted on, without a word
+    s, ref = world["store"], world["refs"]["good"]
+    session = ref.split("@")[0]
+    for refs in ((ref, ref), (session, ref)):
+        r = invoke("fit", *refs, "--method", "local-poe", store=s)
+        one_line_error(r, "are the same version", "name each session once")
+
+
 def test_report_lists_the_stored_evaluations(world, tmp_path):
     invoke("evaluate", world["fits"]["good"], "--data", world["refs"]["good"], store=world["store"])
     r = invoke("report", world["refs"]["good"], "--out", tmp_path / "rep", store=world["store"])

@@ -264,3 +264,18 @@ def test_a_bad_argument_to_session_new_creates_no_store(tmp_path, targets):
                store=tmp_path / "s")  # fmt: skip
     assert r.exit_code == 2 and "Traceback" not in r.stderr
     assert not (tmp_path / "s").exists()
+
+
+def test_fit_refuses_two_versions_of_one_session(tmp_path):
+    # a resumed session's v002 holds v001's rows: pooling both would count those poses twice
+    from sessions_testutil import record_interrupted
+
+    from labcal.cli.ops import resume_session
+    from labcal.robots import load
+
+    st = SessionStore(tmp_path / "store")
+    first = record_interrupted(st, load("ur10"), n_poses=40, interrupt_at=30)
+    second = resume_session(st, first.session_id).ref
+    r = invoke("fit", first.ref, second, "--method", "local-poe", store=st.root)
+    assert r.exit_code == 2 and r.stderr.startswith("error: ")
+    assert f"{first.ref} and {second} are two versions of one session, which share rows" in r.stderr

@@ -11,6 +11,7 @@ from labcal.cli.common import deg, mm, out, user_errors
 
 DEMO_TARGETS = 'unit = "mm"\npoints = [[120.0, 0.0, 60.0], [-60.0, 100.0, 60.0], [-60.0, -100.0, 90.0]]\n'
 METHODS = ("local-poe", "ann", "hybrid")
+MIN_POSES = 12  # 2 per joint: the least the import checks accept and the exports take without --force
 
 
 @user_errors
@@ -29,9 +30,19 @@ def demo(
     from rich.table import Table
 
     from labcal.cli.ops import export_fit, new_session, open_store, run_fit
+    from labcal.cli.ops.common import UserError, check_seed
     from labcal.cli.ops.evaluating import evaluate_fit
     from labcal.reports import write_session_report
 
+    # Everything the demo needs is checked before it records: a bad option found after minutes of work wastes them.
+    if poses < MIN_POSES:
+        raise UserError(f"--poses must be at least {MIN_POSES} (2 per joint, or no fit is exported), got {poses}")
+    if held_out < 1:
+        raise UserError(f"--held-out must be at least 1, got {held_out}")
+    check_seed(seed)
+    if out_dir is not None and out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        what = "is not a folder" if not out_dir.is_dir() else "is not empty (a demo writes a new store there)"
+        raise UserError(f"--out {out_dir} {what}: name a new or empty folder")
     root = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="labcal-demo-"))
     root.mkdir(parents=True, exist_ok=True)
     store = open_store(root / "sessions", create=True)

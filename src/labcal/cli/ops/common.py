@@ -110,6 +110,12 @@ def robot_for(dataset_robot: dict, robot: str | None = None) -> RobotSpec:
     return spec
 
 
+def check_seed(seed: int | None, flag: str = "--seed") -> None:
+    """A seed is a non-negative integer (numpy's generators refuse others with a message naming no flag)."""
+    if seed is not None and not (isinstance(seed, int) and seed >= 0):
+        raise UserError(f"{flag} must be a non-negative integer, got {seed!r}")
+
+
 def check_unit_option(unit: str | None) -> str | None:
     """--unit: None, or an id as the session stores it (printable, at most 64 characters)."""
     from labcal.datasets.documents import check_unit

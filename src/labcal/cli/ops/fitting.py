@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from labcal.calibration.metrics import point_residual_warning
-from labcal.cli.ops.common import UserError, jsonable, load_observations
+from labcal.cli.ops.common import UserError, check_seed, jsonable, load_observations
 from labcal.compensator import CalibratedRobot, from_payload, to_payload
 from labcal.datasets import SessionStore
 
@@ -27,6 +27,20 @@ class FitOutcome:
     refs: list[str]
     metrics: dict | None = None  # the stored split table (with per-target point errors)
     gates: dict | None = None  # {"warnings", "notes", "cv"} as stored
+
+
+def _check_one_version_per_session(store: SessionStore, refs: list[str]) -> None:
+    """Refuse a session named twice: the same version twice counts its rows twice, and two versions of one session
+    share their rows (a later version holds the earlier one's), so either would weigh those poses double and make
+    the cross-validation score poses it was fitted on."""
+    seen: dict[str, str] = {}
+    for ref in refs:
+        resolved = store.resolve(ref)
+        if resolved.session_id in seen:
+            first = seen[resolved.session_id]
+            what = "the same version" if first == str(resolved) else "two versions of one session, which share rows"
+            raise UserError(f"{first} and {resolved} are {what}: name each session once (its latest version holds all)")
+        seen[resolved.session_id] = str(resolved)
 
 
 def run_fit(
@@ -50,10 +64,12 @@ def run_fit(
 
     if method not in METHODS:
         raise UserError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+    check_seed(seed)
     if not 0.0 <= val_fraction < 1.0:
         raise UserError(f"--val-fraction must be in [0, 1), got {val_fraction}")
     if hidden is not None and hidden < 1:
         raise UserError(f"--hidden must be a positive number of nodes, got {hidden}")
+    _check_one_version_per_session(store, refs)
     obs, datasets, spec = load_observations(store, refs, robot, with_spec=True, pool_units=pool_units)
     options = {}
     if hidden is not None:

@@ -35,7 +35,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from labcal.cli.ops.common import UserError
+from labcal.cli.ops.common import UserError, check_seed
 from labcal.datasets import DatasetError, SessionStore
 
 FITTED, FAILED, NOT_RUN = "fitted", "failed", "not run"
@@ -345,6 +345,7 @@ def run_refit(
     """
     if jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {jobs}")
+    check_seed(seed)
     if scheduler and jobs > 1:
         raise UserError("--jobs sets the size of the local cluster; with --scheduler the cluster's workers decide")
     tasks = plan_tasks(store, refs, method, seed=seed, hidden=hidden, val_fraction=val_fraction,

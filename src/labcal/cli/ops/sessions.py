@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from labcal.cli.ops.common import UserError, check_unit_option, robot_for
+from labcal.cli.ops.common import UserError, check_seed, check_unit_option, robot_for
 from labcal.datasets import SessionStore
 from labcal.robots import RobotSpec, load
 
@@ -157,6 +157,8 @@ class SessionRequest:
             )
         if self.sim_errors not in SIM_ERRORS:
             raise UserError(f"--sim-errors must be one of {', '.join(SIM_ERRORS)}, got {self.sim_errors!r}")
+        check_seed(self.seed)
+        check_seed(self.sim_seed, "--sim-seed")
         check_dropout(self.sim_dropout)
         if self.sim_dropout and self.robot_driver != "sim":
             raise UserError("--sim-dropout is an option of the sim tracker (--tracker-driver sim)")
