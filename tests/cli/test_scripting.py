@@ -381,6 +381,8 @@ def test_evaluate_json(world):
     doc = document(r, "labcal.evaluate/1")
     assert doc["fit_id"] == fit_id and doc["data"]["ref"] == world["ref"] and doc["data"]["rows"] == 14
     assert doc["overlap_with_fit"] is True  # scored on its own data, and it says so
+    counts = doc["metrics"]["all"]["after"]["count"], doc["metrics"]["all"]["points"]["after"]["count"]
+    assert all(type(c) is int for c in counts)  # docs/cli-json.md: counts are integers
     assert isinstance(doc["metrics"]["all"]["after"]["pos_mean"], float) and doc["stored_at"]
 
 

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import typer
 
-from labcal.cli.common import StoreOption, err, metrics_table, out, store_of, targets_table, user_errors
+from labcal.cli.common import StoreOption, err, metrics_table, out, print_json, store_of, targets_table, user_errors
 
 
 @user_errors
@@ -53,8 +52,7 @@ def evaluate(
     outcome = evaluate_fit(store_of(store), fit_id, data, robot=robot, import_options=options)
     ev = outcome.evaluation
     if as_json:
-        doc = {**ev, "schema": "labcal.evaluate/1", "stored_at": str(outcome.path)}
-        print(json.dumps(doc, indent=1, sort_keys=True))
+        print_json("labcal.evaluate/1", _counts_as_integers({**ev, "stored_at": str(outcome.path)}))
         return
     d = ev["data"]
     if outcome.imported:
@@ -97,3 +95,12 @@ def evaluate(
         err.print(f"WARNING [{w['code']}] {w['message']}", markup=False, style="bold yellow")
     out.print(f"stored at {outcome.path}", markup=False)
     print(ev["evaluation_id"])
+
+
+def _counts_as_integers(doc):
+    """The stored metrics keep their counts as floats (the stats are one float table); JSON says integers."""
+    if isinstance(doc, dict):
+        return {k: int(v) if k == "count" and v is not None else _counts_as_integers(v) for k, v in doc.items()}
+    if isinstance(doc, list):
+        return [_counts_as_integers(v) for v in doc]
+    return doc
