@@ -99,6 +99,18 @@ def test_units_join_repeated_poses_and_groups():
         Observations(q, _obs(6).points, TARGETS, group=group[:3])
 
 
+def test_units_chain_the_fine_steps_of_a_sweep():
+    # a fold that fits one step and scores the next measured interpolation (0.1 mm) where new poses were off by mm
+    step = np.deg2rad(0.25)
+    sweep = np.zeros((8, 6))
+    sweep[:, 1] = np.arange(8) * step  # one joint, 0.25° apart: one unit however long the chain
+    apart = np.zeros((3, 6))
+    apart[:, 2] = 0.5 + np.arange(3) * np.deg2rad(1.5)  # 1.5° apart: separate poses
+    q = np.vstack([sweep, apart])
+    units = Observations(q, _obs(len(q)).points, TARGETS).units()
+    assert units.tolist() == [0] * 8 + [1, 2, 3]
+
+
 def test_repeated_poses_are_never_split_across_train_and_validation():
     rng = np.random.default_rng(0)
     q = np.repeat(rng.normal(size=(8, 6)), 5, axis=0)  # eight poses measured five times each

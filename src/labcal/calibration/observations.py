@@ -29,6 +29,8 @@ import numpy as np
 
 from labcal.kinematics.se3 import rigid_fit
 
+SAME_NEIGHBOURHOOD = np.deg2rad(1.0)  # rad (or m): rows closer than this in every joint share a validation unit
+
 SPLITS = ("train", "val", "test", "")
 MIN_TRIANGLE_AREA = 1e-6  # m²: 1 mm × 2 mm; below this three targets cannot fix an orientation
 MIN_SPREAD = 1e-3  # m: targets closer than this to each other are one point (they cannot show a rotation)
@@ -131,10 +133,11 @@ class Observations:
         return Observations(self.q, self.points, self.targets, self.frame, np.asarray(split, dtype=object), self.group)
 
     def units(self) -> np.ndarray:
-        """(k,) integer unit of every row: rows of one ``group`` label, and rows with identical joint values
-        (repeated measurements of one pose), share a unit. Splits and cross-validation folds never cut a unit,
-        so a held-out error is never measured on a pose (or a session) that was also fitted. Numbered by first
-        appearance, so the result depends only on the data."""
+        """(k,) integer unit of every row: rows of one ``group`` label, and rows with joint values within
+        :data:`SAME_NEIGHBOURHOOD` of each other in every joint (repeated measurements of one pose, the fine steps
+        of a sweep: chained, so a whole fine sweep is one unit), share a unit. Splits and cross-validation folds
+        never cut a unit, so a held-out error is never measured on a pose (or a session, or a pose a step away
+        from one) that was also fitted. Numbered by first appearance, so the result depends only on the data."""
         k = self.k
         parent = np.arange(k)
 
@@ -153,6 +156,12 @@ class Observations:
                     root = min(other, root)
 
         if k:
+            from scipy.spatial import cKDTree
+
+            # A learned term interpolates between neighbours this close: a fold that fits one and scores the other
+            # measures that interpolation, not the error at a new pose (fine sweeps, points paired a row late).
+            for pair in cKDTree(self.q).query_pairs(SAME_NEIGHBOURHOOD, p=np.inf, output_type="ndarray"):
+                join(pair)
             _, inverse = np.unique(self.q, axis=0, return_inverse=True)
             for label in (inverse.reshape(-1), None if self.group is None else self.group):
                 if label is None:
