@@ -34,6 +34,8 @@ forced) and **notes** (``FitResult.notes``, information). Codes:
   :data:`POOR_FIT` (wrong units, a wrong or swapped targets file, pure noise: no calibration explains such data);
 - ``point-residuals``: the target points are far off (> 10× the pose error, > 2 mm) while the pose fits: the
   targets file does not match the data (:func:`labcal.calibration.metrics.point_residual_warning`);
+- ``frame-jump``: the fitted model's point residuals step between two blocks of a session's rows (recorded
+  order) by more than :data:`FRAME_JUMP` and 4× their spread: the tracker moved during the session; names the row;
 - ``large-correction``: ``robot.correct`` moves a joint by more than :data:`MAX_CORRECTION` (0.05 rad revolute,
   10 mm prismatic) and the nominal tool by more than :data:`MAX_TOOL_CORRECTION` (10 mm or 0.02 rad) at 10 % or
   more of the checked configurations — the data's own and 256 random ones within the data's joint ranges (near a
@@ -104,6 +106,8 @@ OVERFIT_NOTE_RATIO = 2.0  # above this a note: CV error ≫ fit error, the in-sa
 POOR_FIT = 5e-3  # m: mean target-point error on the fitting rows above which no model explains the data
 MAX_CORRECTION = {"revolute": 0.05, "prismatic": 0.01}  # rad, m: largest joint correction accepted silently
 MIN_POSES_PER_JOINT = 2  # as labcal.datasets.sanity's few-poses check: below it a fit is a warning
+FRAME_JUMP = 1e-3  # m: a step this large (and 4× the spread) in the residuals between two blocks of rows: blocking
+FRAME_JUMP_BLOCK = 10  # rows: the shortest block on either side of a step
 DROPPED_SHARE = 0.10  # share of rows a kept network may miss before it is a warning
 _CORRECTION_SAMPLES = 256  # random configurations within the data's joint ranges for the correction check
 # m, rad: a correction that moves the nominal tool less than this is the size of real robot errors (mm, < 1°)
@@ -523,8 +527,55 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
     big = _large_correction(robot, fit_obs.q, seed)
     if big:
         warnings.append(_warn("large-correction", big))
+    jump = _frame_jump(robot, obs)
+    if jump:
+        warnings.append(_warn("frame-jump", jump))
     _dropped(robot, before, fit_obs, stage1, cv, chosen_key, net, warnings, notes)
     return warnings
+
+
+def _frame_jump(robot, obs) -> str | None:
+    """A message when the fitted model's point residuals step, in recorded order, between two blocks of rows of one
+    session by more than FRAME_JUMP and 4× their spread within the blocks, else None.
+
+    A tracker bumped or re-registered (or a part re-clamped) half-way through a session moves every later point by
+    the same offset, which no robot calibration explains: the fit spreads it over its parameters, cross-validates
+    better than the nominal, and makes the robot worse. Robot errors depend on the configuration, not on when it
+    was measured, so in a session of spread poses they leave no such step.
+    """
+    if obs.k < 2 * FRAME_JUMP_BLOCK:
+        return None
+    pred = robot.predict_points(obs.q, obs.targets)
+    pred = np.einsum("ab,kmb->kma", robot.T_tracker_base[:3, :3], pred) + robot.T_tracker_base[:3, 3]
+    seen = obs.seen[:, :, None]
+    residual = np.sum(np.where(seen, obs.points - pred, 0.0), axis=1) / np.maximum(seen.sum(axis=1), 1)  # (k, 3)
+    groups = np.zeros(obs.k, dtype=int) if obs.group is None else np.unique(obs.group, return_inverse=True)[1]
+    worst = None
+    for g in np.unique(groups):
+        rows = np.flatnonzero(groups == g)
+        k = len(rows)
+        if k < 2 * FRAME_JUMP_BLOCK:
+            continue
+        r = residual[rows]
+        total = np.cumsum(r, axis=0)
+        split = np.arange(FRAME_JUMP_BLOCK, k - FRAME_JUMP_BLOCK + 1)  # the later block starts at row `split`
+        before = total[split - 1] / split[:, None]
+        after = (total[-1] - total[split - 1]) / (k - split)[:, None]
+        step = np.linalg.norm(before - after, axis=1)
+        best = int(np.argmax(step * np.sqrt(split * (k - split) / k)))  # the best-supported step, not an end effect
+        at, size = int(split[best]), float(step[best])
+        spread = float(np.sqrt(np.mean(np.concatenate([r[:at] - before[best], r[at:] - after[best]]) ** 2) * 3))
+        if size > FRAME_JUMP and size > 4 * spread and (worst is None or size > worst[1]):
+            worst = (int(rows[at]), size, spread)
+    if worst is None:
+        return None
+    row, size, spread = worst
+    return (
+        f"the calibrated model's point residuals step by {size * 1e3:.3g} mm from row {row + 1} on (spread within "
+        f"the two blocks {spread * 1e3:.2g} mm): the tracker, or what it measures, moved during the session. No "
+        "robot calibration explains that, and a fit across it makes the robot worse: fit the rows before and after "
+        "the step as separate sessions, or re-measure"
+    )
 
 
 def _large_correction(robot, q_data: np.ndarray, seed: int) -> str | None:
