@@ -34,6 +34,8 @@ forced) and **notes** (``FitResult.notes``, information). Codes:
   :data:`POOR_FIT` (wrong units, a wrong or swapped targets file, pure noise: no calibration explains such data);
 - ``point-residuals``: the target points are far off (> 10× the pose error, > 2 mm) while the pose fits: the
   targets file does not match the data (:func:`labcal.calibration.metrics.point_residual_warning`);
+- ``narrow-joint``: the data moved a joint less than :data:`NARROW_JOINT` (5°, 10 mm) while the calibration
+  claims a wider range for it (a geometric model: the robot's limits), so its axis is extrapolated; names it;
 - ``frame-jump``: the fitted model's point residuals step between two blocks of a session's rows (recorded
   order) by more than :data:`FRAME_JUMP` and 4× their spread: the tracker moved during the session; names the row;
 - ``large-correction``: ``robot.correct`` moves a joint by more than :data:`MAX_CORRECTION` (0.05 rad revolute,
@@ -106,6 +108,7 @@ OVERFIT_NOTE_RATIO = 2.0  # above this a note: CV error ≫ fit error, the in-sa
 POOR_FIT = 5e-3  # m: mean target-point error on the fitting rows above which no model explains the data
 MAX_CORRECTION = {"revolute": 0.05, "prismatic": 0.01}  # rad, m: largest joint correction accepted silently
 MIN_POSES_PER_JOINT = 2  # as labcal.datasets.sanity's few-poses check: below it a fit is a warning
+NARROW_JOINT = {"revolute": np.deg2rad(5.0), "prismatic": 0.01}  # rad, m: a joint that moved less is not calibrated
 FRAME_JUMP = 1e-3  # m: a step this large (and 4× the spread) in the residuals between two blocks of rows: blocking
 FRAME_JUMP_BLOCK = 10  # rows: the shortest block on either side of a step
 DROPPED_SHARE = 0.10  # share of rows a kept network may miss before it is a warning
@@ -527,11 +530,38 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
     big = _large_correction(robot, fit_obs.q, seed)
     if big:
         warnings.append(_warn("large-correction", big))
+    narrow = _narrow_joints(robot, fit_obs.q)
+    if narrow:
+        warnings.append(_warn("narrow-joint", narrow))
     jump = _frame_jump(robot, obs)
     if jump:
         warnings.append(_warn("frame-jump", jump))
     _dropped(robot, before, fit_obs, stage1, cv, chosen_key, net, warnings, notes)
     return warnings
+
+
+def _narrow_joints(robot, q: np.ndarray) -> str | None:
+    """A message naming the joints the data moved less than NARROW_JOINT while the calibration claims a wider range
+    (robot.joint_ranges: the robot's limits for a geometric model), else None. Such a joint's axis is fitted on a
+    sliver of its travel, and the correction it extrapolates across the range can make the robot worse than none,
+    while the cross-validation, whose folds hold the same sliver, cannot see it."""
+    span = q.max(axis=0) - q.min(axis=0)
+    claimed = np.asarray(robot.joint_ranges, dtype=float)
+    names = []
+    for j, kind in enumerate(robot.model.joint_types):
+        least = NARROW_JOINT.get(kind, NARROW_JOINT["revolute"])
+        if span[j] < least and claimed[j, 1] - claimed[j, 0] > span[j] + least:
+            unit, factor = ("°", 180 / np.pi) if kind != "prismatic" else (" mm", 1e3)
+            names.append(
+                f"joint {j + 1} moved over {span[j] * factor:.3g}{unit} where the calibration claims "
+                f"[{claimed[j, 0] * factor:.4g}, {claimed[j, 1] * factor:.4g}]{unit}"
+            )
+    if not names:
+        return None
+    return (
+        "; ".join(names) + ": a joint's axis fitted on a sliver of its travel is extrapolated over the rest, where "
+        "the correction can make the robot worse. Measure with every joint moved over its working range"
+    )
 
 
 def _frame_jump(robot, obs) -> str | None:
