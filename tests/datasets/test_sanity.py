@@ -227,6 +227,17 @@ def test_too_few_poses(tmp_path, good):
     _refused(tmp_path, few.q, few.points, few.targets, "few-poses", "only 8 distinct pose(s)", "at least 12")
 
 
+@pytest.mark.parametrize("share", [0.05, 0.2, 0.4])
+def test_a_minority_of_rows_far_off_is_named(tmp_path, good, share):
+    # a block measured with the tracker knocked 40 mm: above a tenth of the rows it passed unnamed (a plain mean)
+    bad = good.points.copy()
+    rows = np.arange(len(bad) - round(share * len(bad)), len(bad))
+    bad[rows] += np.array([0.04, 0.0, 0.0])
+    e = _refused(tmp_path, good.q, bad, good.targets, "nominal", f"{len(rows)} of {len(bad)} rows are far from")
+    named = next(f for f in e.report.failures if f.check == "nominal").rows
+    assert set(named) <= set(rows.tolist()) and len(named) == min(len(rows), 20)
+
+
 # -- nonsense -----------------------------------------------------------------------------------------------------
 
 
