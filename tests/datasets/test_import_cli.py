@@ -104,8 +104,12 @@ def test_unknown_allow_name(files, tmp_path):
         ("q1,q2,q3,q4,q5,q6,t1_x,t1_y,t1_z,t2_x,t2_y,t2_z,t3_x,t3_y,t3_z\n" + "0," * 14 + "nan\n", "non-finite"),
         ("q1,q2,q3,q4,q5,q6,t1_x,t1_y,t1_z\n" + "0," * 8 + "0\n", "missing target column"),
         (
+            "q1;q2;q3;q4;q5;q6;t1_x;t1_y;t1_z\n" + "0;" * 8 + "0\n",
+            "looks ';'-separated: describe the file with a --mapping",
+        ),
+        (
             "q1,q2,q3,q4,q5,q6,t1_x,t1_y,t1_z,t2_x,t2_y,t2_z,t3_x,t3_y,t3_z\n" + "0," * 15 + "0\n",
-            "more fields than the 15 columns",
+            "line 2: a row has more fields than the 15 columns",  # the line the importer found, not dropped
         ),
     ],
 )

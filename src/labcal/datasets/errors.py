@@ -64,6 +64,8 @@ class ImportFormatError(DatasetError, ValueError):
             where.append(str(path))
         if row is not None:
             where.append(f"data row {row}" + (f" (line {line} of the file)" if line is not None else ""))
+        elif line is not None:
+            where.append(f"line {line}")
         if column is not None:
             where.append(f"column {column!r}")
         super().__init__(f"{', '.join(where)}: {message}" if where else message)

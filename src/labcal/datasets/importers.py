@@ -215,8 +215,15 @@ class _Csv:
     def require(self, columns: Sequence[str], what: str) -> None:
         missing = [c for c in columns if c not in self.columns]
         if missing:
+            hint = ""
+            joined = next((sep for sep in (";", "\t", "|") if len(self.columns) == 1 and sep in self.columns[0]), None)
+            if joined is not None:  # one column whose name holds the others: the file is not comma-separated
+                hint = (
+                    f" (the header looks {joined!r}-separated: describe the file with a --mapping TOML whose "
+                    f"separator is {joined!r}, and its decimal mark if it is a comma)"
+                )
             raise ImportFormatError(
-                f"missing {what} column(s) {missing}; the file has columns {self.columns}", path=str(self.path)
+                f"missing {what} column(s) {missing}; the file has columns {self.columns}{hint}", path=str(self.path)
             )
 
     def error(self, message: str, index: int, column: str) -> ImportFormatError:
