@@ -267,3 +267,30 @@ def _targets(tmp_path: Path) -> Path:
     path = tmp_path / "targets.toml"
     path.write_text(TARGETS)
     return path
+
+
+def test_the_allow_help_names_every_check():
+    from labcal.cli.session import ALLOW_HELP
+    from labcal.datasets.checks import CHECKS
+
+    assert all(name in ALLOW_HELP for name in CHECKS)
+
+
+def test_a_folder_given_as_the_csv_is_named_as_a_folder(tmp_path):
+    (tmp_path / "data.csv").mkdir()
+    (tmp_path / "targets.toml").write_text(TARGETS)
+    r = invoke("session", "import", tmp_path / "data.csv", "--robot", "ur10", "--targets", tmp_path / "targets.toml",
+               store=tmp_path / "store")  # fmt: skip
+    assert_user_error(r, "is a folder, not a CSV file")
+
+
+def test_a_mistyped_session_or_fit_id_gets_a_suggestion(world):
+    store, ref = world["store"], world["ref"]
+    session = ref.split("@")[0]
+    typo = session[:-1] + ("0" if session[-1] != "0" else "1")
+    assert_user_error(invoke("session", "show", typo, store=store), f"did you mean {session!r}?")
+    fit_id = last_line(invoke("fit", ref, "--method", "local-poe", store=store))
+    typo = fit_id[:-1] + ("0" if fit_id[-1] != "0" else "1")
+    assert_user_error(invoke("evaluate", typo, "--data", ref, store=store), f"did you mean {fit_id!r}?")
+    assert_user_error(invoke("export", ref, "--fit", typo, "--format", "json", "--out", "x.json", store=store),
+                      f"did you mean {fit_id!r}?")  # fmt: skip

@@ -18,7 +18,7 @@ def evaluate(
     robot: str | None = typer.Option(None, "--robot", help="Robot model for a file (default: the fit's model)."),
     targets: Path | None = typer.Option(None, "--targets", help="Targets TOML of a file (--form targets)."),
     mapping: str | None = typer.Option(None, "--mapping", help="Column mapping TOML or shipped name of a file."),
-    length_unit: str = typer.Option("m", "--length-unit", help="m | mm (a file)"),
+    length_unit: str = typer.Option("m", "--length-unit", help="Unit of the file's lengths: m | mm | in (a file)."),
     angle_unit: str = typer.Option("rad", "--angle-unit", help="rad | deg (a file)"),
     frame: str = typer.Option("base", "--frame", help="base | tracker: frame of a file's points."),
     form: str = typer.Option("targets", "--form", help="targets | probe (a file)"),

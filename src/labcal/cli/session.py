@@ -29,7 +29,7 @@ JsonOption = typer.Option(False, "--json", help="Print one JSON document on stdo
 _EXIT = {"success": 0, "failed": 1, "paused": 1, "aborted": 130}
 ALLOW_HELP = (
     "Override a record-time sanity check by name (repeatable): "
-    "target-distances, target-outliers, joint-limits, joint-span, nominal, reach, duplicates. "
+    "target-distances, target-outliers, joint-limits, joint-span, nominal, reach, duplicates, few-poses. "
     "Recorded with the session."
 )
 

@@ -441,7 +441,9 @@ class SessionStore:
             self.require_root()
             known = self.session_ids()
             hint = f"; known sessions: {', '.join(known[-20:])}" if known else "; the store is empty"
-            raise UnknownSession(f"no session {session_id!r} in store {self.root}{hint}")
+            raise UnknownSession(
+                f"no session {session_id!r} in store {self.root}{_did_you_mean(session_id, known)}{hint}"
+            )
         return d
 
     def versions(self, session_id: str) -> list[int]:
@@ -1046,7 +1048,9 @@ class SessionStore:
                 if path.parent.is_dir()
                 else []
             )
-            raise UnknownVersion(f"{r} has no fit {fit_id!r}; available: {', '.join(known) or 'none'}")
+            raise UnknownVersion(
+                f"{r} has no fit {fit_id!r}{_did_you_mean(fit_id, known)}; available: {', '.join(known) or 'none'}"
+            )
         meta, problems = _load_sealed((path / FIT_JSON).read_bytes(), "fit_sha256", f"fit {fit_id}/{FIT_JSON}")
         if meta is not None and check_files:
             for name, info in meta.get("files", {}).items():
@@ -1067,7 +1071,16 @@ class SessionStore:
             for v in self.versions(s):
                 if (self.session_dir(s) / version_name(v) / FITS / fit_id / FIT_JSON).is_file():
                     return self.load_fit(Ref(s, v), fit_id)
-        raise UnknownVersion(f"no fit {fit_id!r} in store {self.root}")
+        known = [p.parent.name for s in self.session_ids() for p in self.session_dir(s).glob(f"v*/{FITS}/*/{FIT_JSON}")]
+        raise UnknownVersion(f"no fit {fit_id!r} in store {self.root}{_did_you_mean(fit_id, known)}")
+
+
+def _did_you_mean(name: str, known: Sequence[str]) -> str:
+    """``"; did you mean X?"`` for the closest known id (a typo in a long id), else ""."""
+    import difflib
+
+    close = difflib.get_close_matches(name, known, n=1, cutoff=0.8)
+    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_targets: int = 3) -> pd.DataFrame:

@@ -141,7 +141,7 @@ def evaluate_fit(
     if imported:
         path = Path(data)
         if not path.is_file():
-            raise UserError(f"no such file: {path}")
+            raise UserError(f"{path} is a folder, not a CSV file" if path.is_dir() else f"no such file: {path}")
         ref = import_for_evaluation(store, stored, path, robot, dict(import_options or {}))
     else:
         ref = str(store.resolve(split_ref(data)))

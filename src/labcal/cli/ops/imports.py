@@ -38,7 +38,7 @@ def import_session(
 
     path = Path(path)
     if not path.is_file():
-        raise UserError(f"no such file: {path}")
+        raise UserError(f"{path} is a folder, not a CSV file" if path.is_dir() else f"no such file: {path}")
     check_names(allow)  # an unknown --allow name is an error before any reading
     if form not in FORMS:
         raise UserError(f"--form must be 'targets' or 'probe', got {form!r}")
