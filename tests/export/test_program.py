@@ -114,8 +114,16 @@ def test_unreachable_and_out_of_range_rows_are_refused_by_row(calibrated):
     poses, q_path = program_poses(robot, 3, seed=5)
     far = poses.copy()
     far[2, :3] = [3.0, 0.0, 0.5]  # 3 m away: beyond a UR10's reach
-    with pytest.raises(ProgramError, match="row 3: "):
+    with pytest.raises(
+        ProgramError, match=r"row 3: unreachable: the pose is 3.041 m from the base, beyond the robot's reach of 1.9 m$"
+    ):
         filter_poses(robot, far, seed=q_path[0])
+    in_mm = poses.copy()
+    in_mm[:, :3] *= 1000  # a program in millimetres read as metres: named as such, not as a branch change
+    with pytest.raises(
+        ProgramError, match=r"row 1: unreachable: .* \(millimetres read as metres\? pass --length-unit mm\)"
+    ):
+        filter_poses(robot, in_mm, seed=q_path[0])
     q = q_path.copy()
     q[1, 4] = 7.0
     with pytest.raises(ProgramError, match=r"row 2: joint 5 = 7 is outside the calibrated range"):

@@ -187,6 +187,14 @@ def _follow(robot: CalibratedRobot, q0: np.ndarray, T_target: np.ndarray, row: i
     """Nominal IK of one target by path following from q0; ProgramError naming the row on a branch change,
     a singularity on the way, or a target it cannot reach."""
     model = robot.nominal
+    distance, reach = float(np.linalg.norm(T_target[:3, 3])), 1.1 * model.reach() + 0.05  # generous, as the import's
+    if distance > reach:  # before path following, whose failure there would blame a branch or a singularity
+        in_mm = 10 * reach < distance <= 1000 * reach  # hundreds of "metres": a program in millimetres
+        unit = " (millimetres read as metres? pass --length-unit mm)" if in_mm else ""
+        raise ProgramError(
+            f"row {row}: unreachable: the pose is {distance:.4g} m from the base, beyond the robot's reach of "
+            f"{reach:.3g} m{unit}"
+        )
     q = q0.copy()
     T0 = model.fk(q)
     step = se3.log_se3(se3.inv(T0) @ T_target)
