@@ -142,6 +142,20 @@ def test_degrees_imported_as_radians(tmp_path, good):
     assert nominal and "with --angle-unit deg" in nominal[0].message
 
 
+def test_a_joint_a_whole_turn_off_is_named_as_a_turn_not_as_degrees(tmp_path, good):
+    # "look like degrees" sent the user round in circles: following it, the check advised --angle-unit rad again
+    q = good.q.copy()
+    q[:, 5] += 2 * np.pi
+    _refused(tmp_path, q, good.points, good.targets, "joint-limits", "whole turns off: joint 6", "+1 turn(s) (+360°)")
+
+
+def test_wrist_joints_in_degrees_are_named_with_the_joints_in_radians(tmp_path, good):
+    q = good.q.copy()
+    q[:, 3:] = np.degrees(q[:, 3:])  # a file whose wrist columns are degrees, the others radians
+    _refused(tmp_path, q, good.points, good.targets, "joint-limits",
+             "joint(s) 4, 5, 6 look like degrees while joint(s) 1, 2, 3 look like radians")  # fmt: skip
+
+
 def test_radians_imported_with_angle_unit_deg(tmp_path, good):
     _refused(tmp_path, good.q, good.points, good.targets, "joint-span", "radians imported as degrees",
              "pass --angle-unit rad", angle_unit="deg")  # fmt: skip

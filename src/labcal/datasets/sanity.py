@@ -488,10 +488,7 @@ def _check_joint_limits(q, robot, angle_unit, hints, report, allow) -> None:
     mapped = "" if jm.is_identity else " (model joints, after the robot file's [joint_map])"
     fix = "check the joint columns and the robot file's limits"
     if angle_unit == "rad" and rev.any():
-        scaled = q.copy()
-        scaled[:, rev] = np.radians(q[:, rev])
-        if robot.model.within_limits(jm.to_model(scaled)).all() and np.abs(q[:, rev]).max() > 2 * math.pi:
-            fix = f"the values look like degrees — pass {hints.angle.format(unit='deg')}"
+        fix = _limits_fix(q, qm, robot, rev, bad_joints, hints) or fix
     rows = np.flatnonzero(bad.any(axis=1))
     _add(
         report,
@@ -502,6 +499,42 @@ def _check_joint_limits(q, robot, angle_unit, hints, report, allow) -> None:
         ),
         allow,
     )
+
+
+def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
+    """The reading that explains revolute joint values outside the limits, or None: whole turns off on some joints
+    (a homing or turn-count offset), some joints in degrees and the others in radians (no option converts one
+    column), or every joint in degrees (--angle-unit deg)."""
+    jm = robot.joints
+    lim = robot.model.limits
+    cannot_be_radians = rev & (np.abs(q).max(axis=0) > 2 * math.pi)
+    # A joint that moves over half a radian within ±2π reads as radians (in degrees it would hardly move).
+    radians = rev & ~cannot_be_radians & (np.ptp(q, axis=0) > 0.5)
+    if jm.is_identity and all(rev[j] for j in bad_joints):
+        turns = {}
+        for j in bad_joints:
+            k = round(float(np.median(qm[:, j]) - lim[j].mean()) / (2 * math.pi))
+            shifted = qm[:, j] - 2 * math.pi * k
+            if k and np.all((shifted >= lim[j, 0] - 1e-9) & (shifted <= lim[j, 1] + 1e-9)):
+                turns[j] = k
+        if len(turns) == len(bad_joints):
+            named = ", ".join(f"{_joint_name(robot, j)} by {k:+d} turn(s) ({360 * k:+d}°)" for j, k in turns.items())
+            return (
+                f"whole turns off: {named} — a homing or turn-count offset; subtract it in the file (2π rad per "
+                "turn), since the calibration would otherwise learn it as an error"
+            )
+    if cannot_be_radians.any() and radians.any():
+        as_deg = ", ".join(str(j + 1) for j in np.flatnonzero(cannot_be_radians))
+        as_rad = ", ".join(str(j + 1) for j in np.flatnonzero(radians))
+        return (
+            f"joint(s) {as_deg} look like degrees while joint(s) {as_rad} look like radians; no option converts one "
+            "column: convert those columns in the file (× π/180)"
+        )
+    scaled = q.copy()
+    scaled[:, rev] = np.radians(q[:, rev])
+    if robot.model.within_limits(jm.to_model(scaled)).all() and cannot_be_radians.any():
+        return f"the values look like degrees — pass {hints.angle.format(unit='deg')}"
+    return None
 
 
 def _check_joint_span(q, robot, angle_unit, hints, report, allow) -> None:
