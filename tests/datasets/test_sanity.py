@@ -156,6 +156,11 @@ def test_wrist_joints_in_degrees_are_named_with_the_joints_in_radians(tmp_path, 
              "joint(s) 4, 5, 6 look like degrees while joint(s) 1, 2, 3 look like radians")  # fmt: skip
 
 
+def test_two_joint_columns_swapped_are_named(tmp_path, good):
+    q = good.q[:, [0, 2, 1, 3, 4, 5]]  # q2 and q3 swapped in the file: "no single fix found" before
+    _refused(tmp_path, q, good.points, good.targets, "nominal", "with the columns of joints 2 and 3 swapped")
+
+
 def test_radians_imported_with_angle_unit_deg(tmp_path, good):
     _refused(tmp_path, good.q, good.points, good.targets, "joint-span", "radians imported as degrees",
              "pass --angle-unit rad", angle_unit="deg")  # fmt: skip

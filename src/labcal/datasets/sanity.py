@@ -625,6 +625,12 @@ def _hypotheses(
         M[j, j] = -1.0
         out.append(_Hypothesis(f"if joint {j + 1} counts the other way (declare the sign in the robot file's "
                                f"[joint_map])", 1, jm.to_model(q_ctrl @ M.T), points, targets, frame))  # fmt: skip
+    for i, j in itertools.combinations(range(n), 2):  # two joint columns swapped in the file
+        swapped = q_ctrl.copy()
+        swapped[:, [i, j]] = q_ctrl[:, [j, i]]
+        out.append(_Hypothesis(f"with the columns of joints {i + 1} and {j + 1} swapped (q{i + 1} holds joint "
+                               f"{j + 1}, q{j + 1} joint {i + 1}): fix the file's header", 1, jm.to_model(swapped),
+                               points, targets, frame))  # fmt: skip
     for j in np.flatnonzero(rev):
         for offset in (math.pi / 2, -math.pi / 2, math.pi):
             shifted = jm.to_model(q_ctrl)
