@@ -454,7 +454,8 @@ class _Run:
             return "paused", reason
         except KeyboardInterrupt:
             _safe_stop(robot)
-            reason = f"interrupted by the operator (Ctrl-C) at pose {pose}"
+            # counted, not the plan index: "at pose 92" read as 92 recorded or as the 92nd, depending on the moment
+            reason = f"interrupted by the operator (Ctrl-C) with {len(self.done)} of {self.plan.n_poses} poses measured"
             journal.stop("aborted", reason)
             return "aborted", reason
         except JournalError:
