@@ -10,7 +10,7 @@ from labcal.cli.common import err
 
 app = typer.Typer(
     help=(
-        "Run the benchmarks. Examples:\n\n  labcal bench paper -- --quick\n\n  labcal bench speed\n\n"
+        "Run the benchmarks; each prints its tables.\n\nExamples:\n\n  labcal bench paper -- --quick\n\n  labcal bench speed\n\n"
         "  labcal bench robustness --quick\n\n  labcal bench targets --quick"
     ),
     no_args_is_help=True,
