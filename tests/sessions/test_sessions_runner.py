@@ -261,7 +261,7 @@ def test_ctrl_c_stops_the_robot_and_closes_the_session_as_aborted(spec, actual, 
     with rig.robot() as robot, rig.tracker() as sim_tracker:
         summary = run(store, spec, TARGETS, plan, robot, InterruptingTracker(sim_tracker, at=3))
         assert summary.exit_status == "aborted" and "Ctrl-C" in summary.reason
-        assert summary.reason.endswith("with 2 of 5 poses measured")  # what is recorded, not a plan index
+        assert summary.reason.endswith("with 2 of 5 poses recorded valid")  # what is recorded, not a plan index
         assert rig.stop_calls == 1
         stop = journal_docs(store, summary.session_id)[-1]
         assert stop["type"] == "stop" and stop["exit_status"] == "aborted"

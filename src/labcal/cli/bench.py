@@ -10,8 +10,8 @@ from labcal.cli.common import err
 
 app = typer.Typer(
     help=(
-        "Run the benchmarks; each prints its tables.\n\nExamples:\n\n  labcal bench paper -- --quick\n\n  labcal bench speed\n\n"
-        "  labcal bench robustness --quick\n\n  labcal bench targets --quick"
+        "Run the benchmarks; each prints its tables.\n\nExamples:\n\n  labcal bench paper -- --quick\n\n"
+        "  labcal bench speed\n\n  labcal bench robustness --quick\n\n  labcal bench targets --quick"
     ),
     no_args_is_help=True,
 )

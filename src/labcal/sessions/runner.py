@@ -454,8 +454,10 @@ class _Run:
             return "paused", reason
         except KeyboardInterrupt:
             _safe_stop(robot)
-            # counted, not the plan index: "at pose 92" read as 92 recorded or as the 92nd, depending on the moment
-            reason = f"interrupted by the operator (Ctrl-C) with {len(self.done)} of {self.plan.n_poses} poses measured"
+            # counted in the journal, not a plan index: "at pose 92" read as 92 recorded or as the 92nd, depending on
+            # the moment, and a count kept here can miss the pose journaled just before the interrupt
+            valid = len(journal.valid_pose_indices())
+            reason = f"interrupted by the operator (Ctrl-C) with {valid} of {self.plan.n_poses} poses recorded valid"
             journal.stop("aborted", reason)
             return "aborted", reason
         except JournalError:
