@@ -95,6 +95,13 @@ def _limit_memory() -> None:
     resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT, MEMORY_LIMIT))
 
 
+def _interruptible() -> None:
+    """_limit_memory, and SIGINT back to its default: a benchmark started in the background (`nohup … &`) ignores
+    SIGINT, the child would inherit that, and Python then never raises KeyboardInterrupt (the Ctrl-C case hung)."""
+    _limit_memory()
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def run(args: list[str], *, cwd: Path, timeout: float = TIMEOUT, env: dict | None = None) -> Run:
     """Run one labcal command (bounded in time and memory); never raises."""
     try:
@@ -396,7 +403,7 @@ def _interrupted_session(tmp: Path, poses: int = 40) -> tuple[Run, Path]:
     cmd = [*labcal_command(), "session", "new", "--robot", "ur10", "--targets", str(tgt), "--poses", str(poses),
            "--store", str(store)]  # fmt: skip
     p = subprocess.Popen(cmd, cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         env={**os.environ, "COLUMNS": "200"}, preexec_fn=_limit_memory)  # fmt: skip
+                         env={**os.environ, "COLUMNS": "200"}, preexec_fn=_interruptible)  # fmt: skip
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and p.poll() is None:
         j = _journal_path(store)

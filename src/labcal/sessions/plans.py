@@ -22,6 +22,7 @@ Example::
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections.abc import Iterator, Sequence
@@ -196,8 +197,9 @@ class Plan(Sequence):
                 samples = c.samples
         return out
 
-    @property
+    @functools.cached_property
     def n_poses(self) -> int:
+        # counted once: the runner asks at every pose, and a count per call made long sessions quadratic
         return sum(isinstance(c, Move) for c in self.commands)
 
     @property
