@@ -545,6 +545,8 @@ def _narrow_joints(robot, q: np.ndarray) -> str | None:
     (robot.joint_ranges: the robot's limits for a geometric model), else None. Such a joint's axis is fitted on a
     sliver of its travel, and the correction it extrapolates across the range can make the robot worse than none,
     while the cross-validation, whose folds hold the same sliver, cannot see it."""
+    if robot.network is None and robot.model is robot.nominal:
+        return None  # no correction to extrapolate
     span = q.max(axis=0) - q.min(axis=0)
     claimed = np.asarray(robot.joint_ranges, dtype=float)
     names = []
