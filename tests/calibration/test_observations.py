@@ -103,12 +103,25 @@ def test_units_chain_the_fine_steps_of_a_sweep():
     # a fold that fits one step and scores the next measured interpolation (0.1 mm) where new poses were off by mm
     step = np.deg2rad(0.25)
     sweep = np.zeros((8, 6))
-    sweep[:, 1] = np.arange(8) * step  # one joint, 0.25° apart: one unit however long the chain
-    apart = np.zeros((3, 6))
-    apart[:, 2] = 0.5 + np.arange(3) * np.deg2rad(1.5)  # 1.5° apart: separate poses
+    sweep[:, 1] = np.arange(8) * step  # one joint, 0.25° apart: one unit
+    apart = np.zeros((82, 6))
+    apart[:, 2] = 0.5 + np.arange(82) * np.deg2rad(1.5)  # 1.5° apart: separate poses
     q = np.vstack([sweep, apart])
     units = Observations(q, _obs(len(q)).points, TARGETS).units()
-    assert units.tolist() == [0] * 8 + [1, 2, 3]
+    assert units.tolist() == [0] * 8 + list(range(1, 83))
+
+
+def test_sweeps_through_one_home_pose_stay_several_units():
+    # chained without a bound, 0.5° sweeps of every joint from one home pose became one unit: no folds at all, and a
+    # validation split put every row in val
+    step, home = np.deg2rad(0.5), np.array([0.0, -1.2, 1.0, -1.4, -1.5, 0.2])
+    rows = [home + np.eye(6)[j] * step * i for j in range(6) for i in range(40)]  # each sweep starts at home
+    obs = Observations(np.array(rows), _obs(len(rows)).points, TARGETS)
+    units = obs.units()
+    assert np.bincount(units).max() <= len(rows) // 10 and len(np.unique(units)) >= 10
+    split = obs.with_splits(0.2, seed=0).split
+    assert 0 < (split == "val").sum() < len(rows) // 2
+
 
 
 def test_repeated_poses_are_never_split_across_train_and_validation():

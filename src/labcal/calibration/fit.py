@@ -468,7 +468,7 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
             warnings.append(_warn(
                 "rank-deficient",
                 f"local POE identified numerical rank {lp['rank']} of {lp['expected_rank']} identifiable parameters "
-                f"from {lp['rows']} rows ({len(np.unique(fit_obs.units()))} distinct poses): "
+                f"from {lp['rows']} rows ({distinct} distinct poses): "
                 f"{lp['expected_rank'] - lp['rank']} identifiable direction(s) are not excited by the data and "
                 f"were left at the nominal. Unidentifiable parameter combinations (largest components): {shown}. "
                 "Measure more, better spread configurations (every joint moved, not only single-joint sweeps)",

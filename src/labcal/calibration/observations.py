@@ -29,7 +29,8 @@ import numpy as np
 
 from labcal.kinematics.se3 import rigid_fit
 
-SAME_NEIGHBOURHOOD = np.deg2rad(1.0)  # rad (or m): rows closer than this in every joint share a validation unit
+SAME_NEIGHBOURHOOD = np.deg2rad(1.0)  # rad (17 mm of a prismatic joint): closer in every joint, one validation unit
+NEIGHBOURHOOD_FOLDS = 10  # neighbours chain into units of at most a tenth of the rows
 
 SPLITS = ("train", "val", "test", "")
 MIN_TRIANGLE_AREA = 1e-6  # m²: 1 mm × 2 mm; below this three targets cannot fix an orientation
@@ -133,13 +134,16 @@ class Observations:
         return Observations(self.q, self.points, self.targets, self.frame, np.asarray(split, dtype=object), self.group)
 
     def units(self) -> np.ndarray:
-        """(k,) integer unit of every row: rows of one ``group`` label, and rows with joint values within
-        :data:`SAME_NEIGHBOURHOOD` of each other in every joint (repeated measurements of one pose, the fine steps
-        of a sweep: chained, so a whole fine sweep is one unit), share a unit. Splits and cross-validation folds
-        never cut a unit, so a held-out error is never measured on a pose (or a session, or a pose a step away
-        from one) that was also fitted. Numbered by first appearance, so the result depends only on the data."""
+        """(k,) integer unit of every row: rows of one ``group`` label, and rows with identical joint values
+        (repeated measurements of one pose), share a unit; so do poses within :data:`SAME_NEIGHBOURHOOD` of each
+        other in every joint (the fine steps of a sweep), chained up to a unit of one :data:`NEIGHBOURHOOD_FOLDS`-th
+        of the rows, so that sweeps through one home pose stay several units and the folds still exist. Splits and
+        cross-validation folds never cut a unit, so a held-out error is never measured on a pose (or a session, or
+        a pose a step away from one) that was also fitted. Numbered by first appearance, so the result depends only
+        on the data."""
         k = self.k
         parent = np.arange(k)
+        size = np.ones(k, dtype=int)
 
         def find(i: int) -> int:
             while parent[i] != i:
@@ -147,31 +151,32 @@ class Observations:
                 i = parent[i]
             return i
 
-        def join(rows: np.ndarray) -> None:
-            root = find(int(rows[0]))
-            for r in rows[1:]:
-                other = find(int(r))
-                if other != root:
-                    parent[max(other, root)] = min(other, root)
-                    root = min(other, root)
+        def union(a: int, b: int, cap: int | None = None) -> None:
+            ra, rb = find(a), find(b)
+            if ra == rb or (cap is not None and size[ra] + size[rb] > cap):
+                return
+            low, high = min(ra, rb), max(ra, rb)
+            parent[high] = low
+            size[low] += size[high]
 
         if k:
-            from scipy.spatial import cKDTree
-
-            # A learned term interpolates between neighbours this close: a fold that fits one and scores the other
-            # measures that interpolation, not the error at a new pose (fine sweeps, points paired a row late).
-            for pair in cKDTree(self.q).query_pairs(SAME_NEIGHBOURHOOD, p=np.inf, output_type="ndarray"):
-                join(pair)
-            _, inverse = np.unique(self.q, axis=0, return_inverse=True)
-            for label in (inverse.reshape(-1), None if self.group is None else self.group):
+            poses, first_row, inverse = np.unique(self.q, axis=0, return_index=True, return_inverse=True)
+            for label in (inverse.reshape(-1), self.group):
                 if label is None:
                     continue
                 first: dict = {}
                 for i, g in enumerate(label.tolist()):
-                    first.setdefault(g, []).append(i)
-                for rows in first.values():
-                    if len(rows) > 1:
-                        join(np.array(rows))
+                    if (j := first.setdefault(g, i)) != i:
+                        union(j, i)
+            from scipy.spatial import cKDTree
+
+            # A learned term interpolates between neighbours this close: a fold that fits one and scores the other
+            # measures that interpolation, not the error at a new pose (fine sweeps, points paired a row late).
+            # Among distinct poses (repeats are joined above), in a fixed order, so the units depend only on the data.
+            pairs = cKDTree(poses).query_pairs(SAME_NEIGHBOURHOOD, p=np.inf, output_type="ndarray")
+            cap = max(2, k // NEIGHBOURHOOD_FOLDS)
+            for a, b in first_row[pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]].tolist():
+                union(a, b, cap)
         roots = np.array([find(i) for i in range(k)], dtype=int)
         _, first_index, inverse = np.unique(roots, return_index=True, return_inverse=True)
         order = np.argsort(np.argsort(first_index, kind="stable"), kind="stable")
