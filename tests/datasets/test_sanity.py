@@ -146,7 +146,19 @@ def test_a_joint_a_whole_turn_off_is_named_as_a_turn_not_as_degrees(tmp_path, go
     # "look like degrees" sent the user round in circles: following it, the check advised --angle-unit rad again
     q = good.q.copy()
     q[:, 5] += 2 * np.pi
-    _refused(tmp_path, q, good.points, good.targets, "joint-limits", "whole turns off: joint 6", "+1 turn(s) (+360°)")
+    _refused(tmp_path, q, good.points, good.targets, "joint-limits", "whole turns off: q6 by +1 turn(s) (+360°)")
+
+
+def test_a_turn_off_behind_a_joint_map_is_named_as_a_turn(tmp_path):
+    # the turn is in the file's (controller) column; the limits are the model's, after the map
+    coupled = load("coupled-elbow-6r")
+    scn = sc.good("coupled-elbow-6r", 40, seed=5)
+    q_ctrl = coupled.joints.to_controller(scn.q)
+    q_ctrl[:, 5] += 2 * np.pi
+    with pytest.raises(SanityError) as e:
+        _import(tmp_path, q_ctrl, scn.points, scn.targets, robot=coupled)
+    message = next(f.message for f in e.value.report.failures if f.check == "joint-limits")
+    assert "whole turns off: q6 by +1 turn(s)" in message and "degrees" not in message
 
 
 def test_wrist_joints_in_degrees_are_named_with_the_joints_in_radians(tmp_path, good):

@@ -502,28 +502,36 @@ def _check_joint_limits(q, robot, angle_unit, hints, report, allow) -> None:
 
 
 def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
-    """The reading that explains revolute joint values outside the limits, or None: whole turns off on some joints
-    (a homing or turn-count offset), some joints in degrees and the others in radians (no option converts one
-    column), or every joint in degrees (--angle-unit deg)."""
+    """The reading that explains revolute joint values outside the limits, or None; each is offered only when it
+    brings every row inside the limits: whole turns off on some columns (a homing or turn-count offset), some
+    columns in degrees and the others in radians (no option converts one column), or every joint in degrees
+    (--angle-unit deg). q: the file's (controller) joints; the limits apply to the model joints (the joint map)."""
     jm = robot.joints
-    lim = robot.model.limits
+
+    def fits(candidate: np.ndarray) -> bool:
+        return bool(robot.model.within_limits(jm.to_model(candidate)).all())
+
+    def outside(candidate: np.ndarray) -> int:
+        return int((~robot.model.within_limits(jm.to_model(candidate))).sum())
+
+    turned, turns = q.copy(), {}
+    for c in np.flatnonzero(rev):  # greedy, column by column: a turn that puts more rows inside is kept
+        best = min((1, -1, 2, -2), key=lambda k: outside(turned - np.eye(q.shape[1])[c] * 2 * math.pi * k))
+        shifted = turned - np.eye(q.shape[1])[c] * 2 * math.pi * best
+        if outside(shifted) < outside(turned):
+            turned, turns[c] = shifted, best
+    if turns and fits(turned):
+        named = ", ".join(f"q{c + 1} by {k:+d} turn(s) ({360 * k:+d}°)" for c, k in turns.items())
+        return (
+            f"whole turns off: {named} — a homing or turn-count offset; subtract it in the file (2π rad per turn), "
+            "since the calibration would otherwise learn it as an error"
+        )
     cannot_be_radians = rev & (np.abs(q).max(axis=0) > 2 * math.pi)
     # A joint that moves over half a radian within ±2π reads as radians (in degrees it would hardly move).
     radians = rev & ~cannot_be_radians & (np.ptp(q, axis=0) > 0.5)
-    if jm.is_identity and all(rev[j] for j in bad_joints):
-        turns = {}
-        for j in bad_joints:
-            k = round(float(np.median(qm[:, j]) - lim[j].mean()) / (2 * math.pi))
-            shifted = qm[:, j] - 2 * math.pi * k
-            if k and np.all((shifted >= lim[j, 0] - 1e-9) & (shifted <= lim[j, 1] + 1e-9)):
-                turns[j] = k
-        if len(turns) == len(bad_joints):
-            named = ", ".join(f"{_joint_name(robot, j)} by {k:+d} turn(s) ({360 * k:+d}°)" for j, k in turns.items())
-            return (
-                f"whole turns off: {named} — a homing or turn-count offset; subtract it in the file (2π rad per "
-                "turn), since the calibration would otherwise learn it as an error"
-            )
-    if cannot_be_radians.any() and radians.any():
+    converted = q.copy()
+    converted[:, cannot_be_radians] = np.radians(q[:, cannot_be_radians])
+    if cannot_be_radians.any() and radians.any() and fits(converted):
         as_deg = ", ".join(str(j + 1) for j in np.flatnonzero(cannot_be_radians))
         as_rad = ", ".join(str(j + 1) for j in np.flatnonzero(radians))
         return (
@@ -532,7 +540,7 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
         )
     scaled = q.copy()
     scaled[:, rev] = np.radians(q[:, rev])
-    if robot.model.within_limits(jm.to_model(scaled)).all() and cannot_be_radians.any():
+    if cannot_be_radians.any() and fits(scaled):
         return f"the values look like degrees — pass {hints.angle.format(unit='deg')}"
     return None
 
