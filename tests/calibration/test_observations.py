@@ -123,7 +123,6 @@ def test_sweeps_through_one_home_pose_stay_several_units():
     assert 0 < (split == "val").sum() < len(rows) // 2
 
 
-
 def test_repeated_poses_are_never_split_across_train_and_validation():
     rng = np.random.default_rng(0)
     q = np.repeat(rng.normal(size=(8, 6)), 5, axis=0)  # eight poses measured five times each
