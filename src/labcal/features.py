@@ -250,13 +250,13 @@ def one_configuration(names: tuple[str, ...], joint_types=None, limits=None):
         >>> bool(np.allclose(x, compute_all(q, names, frames=frames[None])))
         True
     """
+    kinds = [(get(name).kind, get(name).order) for name in names]
+    for kind, _ in kinds:  # the kinds `one` computes below: a kind added to the registry alone must not pass
+        if kind not in ("sincos", "gravity", HARMONICS, "q", "sincos2"):
+            raise ValueError(_unknown_kind(kind, "one_configuration"))
     run = evaluator(tuple(names), joint_types, limits)
     if joint_types is not None and _prismatic(tuple(joint_types)).any():
         return lambda q, cos_q, sin_q, frames: run(q[None], None if frames is None else frames[None])[0]
-    kinds = [(get(name).kind, get(name).order) for name in names]
-    for kind, _ in kinds:
-        if kind not in (*SIMPLE, HARMONICS):
-            raise ValueError(_unknown_kind(kind, "one_configuration"))
 
     def one(q: np.ndarray, cos_q: np.ndarray, sin_q: np.ndarray, frames: np.ndarray | None) -> np.ndarray:
         parts = []
@@ -271,7 +271,7 @@ def one_configuration(names: tuple[str, ...], joint_types=None, limits=None):
                 parts.append(harmonics_by_recurrence(cos_q, sin_q, order))
             elif kind == "q":
                 parts.append(q)
-            else:  # sincos2 (checked below): sin 2q = 2 sin q cos q, cos 2q = cos² q − sin² q
+            else:  # sincos2 (checked above): sin 2q = 2 sin q cos q, cos 2q = cos² q − sin² q
                 parts += (2 * sin_q * cos_q, cos_q * cos_q - sin_q * sin_q)
         return np.concatenate(parts, axis=None)
 
