@@ -295,6 +295,10 @@ def test_a_linear_learned_term_gives_the_network_and_its_slope_and_newton_jacobi
         adjoints, J, cos_q, sin_q = robot.model.runtime_walk(q)
         rho, slope = robot._linear_series(q, cos_q, sin_q, adjoints)
         np.testing.assert_allclose(rho, robot.network(q[None], robot.model)[0], rtol=0, atol=1e-14)
+        # the batch terms are the same function (gravity included)
+        rho_b, slope_b = robot._linear_series.batch(np.stack([q, q]), robot.model.link_frames(np.stack([q, q])))
+        np.testing.assert_allclose(rho_b[1], rho, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(slope_b[1], slope, rtol=0, atol=1e-12)
         if "gravity" in features:
             continue  # the slope leaves gravity's part out (see _linear_series)
         numeric = (robot.network(q + steps, robot.model) - robot.network(q - steps, robot.model)).T / (2 * h)

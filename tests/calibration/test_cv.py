@@ -223,6 +223,10 @@ def test_a_tracker_moved_during_the_session_is_a_frame_jump_warning_naming_the_r
     group = np.array(["a"] * 50 + ["b"] * 30, dtype=object)
     pooled = fit(Observations(q, bumped, TARGETS, group=group), UR10.model, "local-poe")
     assert "frame-jump" not in codes(pooled)
+    inside = points.copy()
+    inside[65:] += np.array([0.004, -0.002, 0.001])  # within session b, at its 16th row: named in that session
+    pooled = fit(Observations(q, inside, TARGETS, group=group), UR10.model, "local-poe")
+    assert "from row 16 of b on" in next(w["message"] for w in pooled.warnings if w["code"] == "frame-jump")
 
 
 def test_a_joint_the_data_hardly_moved_is_a_narrow_joint_warning_for_a_geometric_model():

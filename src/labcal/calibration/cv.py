@@ -94,15 +94,19 @@ def fold_plan(obs: Observations, seed: int = 0) -> tuple[list[np.ndarray], str]:
     return [np.flatnonzero(fold_of_row == f) for f in range(k)], scheme
 
 
+def point_residuals(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
+    """(k, m, 3) measured minus predicted target points (m), observation frame; NaN where a target was not seen."""
+    pred = robot.predict_points(obs.q, obs.targets)
+    R, t = robot.T_tracker_base[:3, :3], robot.T_tracker_base[:3, 3]
+    return obs.points - (np.einsum("ab,kmb->kma", R, pred) + t)
+
+
 def point_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
     """(k,) mean distance (m) between measured and predicted target points of each row (over the targets the row
     saw), observation frame."""
     if obs.k == 0:
         return np.zeros(0)
-    pred = robot.predict_points(obs.q, obs.targets)
-    R, t = robot.T_tracker_base[:3, :3], robot.T_tracker_base[:3, 3]
-    pred = np.einsum("ab,kmb->kma", R, pred) + t
-    d = np.linalg.norm(obs.points - pred, axis=2)
+    d = np.linalg.norm(point_residuals(robot, obs), axis=2)
     if obs.complete:
         return np.mean(d, axis=1)
     return np.sum(np.where(obs.seen, d, 0.0), axis=1) / obs.seen.sum(axis=1)

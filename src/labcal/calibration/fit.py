@@ -575,12 +575,12 @@ def _frame_jump(robot, obs) -> str | None:
     better than the nominal, and makes the robot worse. Robot errors depend on the configuration, not on when it
     was measured, so in a session of spread poses they leave no such step.
     """
+    from labcal.calibration.cv import point_residuals
+
     if obs.k < 2 * FRAME_JUMP_BLOCK:
         return None
-    pred = robot.predict_points(obs.q, obs.targets)
-    pred = np.einsum("ab,kmb->kma", robot.T_tracker_base[:3, :3], pred) + robot.T_tracker_base[:3, 3]
-    seen = obs.seen[:, :, None]
-    residual = np.sum(np.where(seen, obs.points - pred, 0.0), axis=1) / np.maximum(seen.sum(axis=1), 1)  # (k, 3)
+    seen = obs.seen[:, :, None]  # every row saw a target (Observations refuses rows that saw none)
+    residual = np.sum(np.where(seen, point_residuals(robot, obs), 0.0), axis=1) / seen.sum(axis=1)  # (k, 3)
     groups = np.zeros(obs.k, dtype=int) if obs.group is None else np.unique(obs.group, return_inverse=True)[1]
     worst = None
     for g in np.unique(groups):
@@ -598,12 +598,13 @@ def _frame_jump(robot, obs) -> str | None:
         at, size = int(split[best]), float(step[best])
         spread = float(np.sqrt(np.mean(np.concatenate([r[:at] - before[best], r[at:] - after[best]]) ** 2) * 3))
         if size > FRAME_JUMP and size > 4 * spread and (worst is None or size > worst[1]):
-            worst = (int(rows[at]), size, spread)
+            where = f"row {at + 1}" + ("" if obs.group is None else f" of {obs.group[rows[at]]}")
+            worst = (where, size, spread)
     if worst is None:
         return None
-    row, size, spread = worst
+    where, size, spread = worst
     return (
-        f"the calibrated model's point residuals step by {size * 1e3:.3g} mm from row {row + 1} on (spread within "
+        f"the calibrated model's point residuals step by {size * 1e3:.3g} mm from {where} on (spread within "
         f"the two blocks {spread * 1e3:.2g} mm): the tracker, or what it measures, moved during the session. No "
         "robot calibration explains that, and a fit across it makes the robot worse: fit the rows before and after "
         "the step as separate sessions, or re-measure"

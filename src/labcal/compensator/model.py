@@ -511,15 +511,18 @@ class CalibratedRobot:
         targets = np.asarray(targets, dtype=float)
         return np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
 
-    def residual(self, qc: np.ndarray, T_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def residual(
+        self, qc: np.ndarray, T_target: np.ndarray, jacobian: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """Pose residual r (k, 6) and the steps' Jacobian J (k, 6, n) at q_cmd (k, n), targets (k, 4, 4).
 
         r = log(T_target T_model⁻¹) − J_ρ δρ: zero exactly when exp(J_ρ δρ) T_model = T_target, and it needs no
         exponential of the network's correction. J is the model's joint twists, −dr/dq up to O(|r| + |dδρ/dq|), so
         Gauss-Newton gains a few digits per step; for the joint series (:attr:`_linear_series`) it is the Newton
         Jacobian that the one-configuration form returns (see there), so one configuration and a batch take the
-        same steps. For n < 6 (a least-squares problem) r is the exact log(T_target T_real⁻¹), whose minimiser is
-        what the length-scaled metric defines (the difference form has the same zero but not the same minimum).
+        same steps (``jacobian=False``, a settled step that reuses the last J: its Newton terms are skipped and J is
+        None). For n < 6 (a least-squares problem) r is the exact log(T_target T_real⁻¹), whose minimiser is what
+        the length-scaled metric defines (the difference form has the same zero but not the same minimum).
         """
         series = None if self.network is None else self._linear_series
         if series is not None:
@@ -527,6 +530,8 @@ class CalibratedRobot:
             rho, slope = series.batch(qc, frames)
             e = _pose_log(T_target, frames[:, -1])
             dy = J * rho[:, None, :]  # (k, 6, n): column j is δρ_j ξ_j
+            if not jacobian:
+                return e - dy.sum(axis=2), None
             return e - dy.sum(axis=2), J + J @ slope + _bracket(J, dy, e)
         frames, J, dy = self._evaluate(qc)
         T = frames[:, -1]
@@ -588,8 +593,8 @@ class CalibratedRobot:
         else:
             T_target = self.nominal.fk(q2)
 
-            def residual(qc: np.ndarray, rows: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray]:
-                return self.residual(qc, T_target[rows])  # J comes with the walk: returned whether needed or not
+            def residual(qc: np.ndarray, rows: np.ndarray, jacobian: bool = True):
+                return self.residual(qc, T_target[rows], jacobian)
 
         weights, budget = self._twist_weights, damped_iterations
         return solver.solve(residual, q2, iterations=iterations, tol=tol, weights=weights, damped_iterations=budget)
