@@ -104,3 +104,17 @@ def test_opening_the_drivers_releases_the_robot_when_the_tracker_fails(monkeypat
     with pytest.raises(OSError, match="no such serial port"):
         session_ops._real_drivers("ur.toml", "tracker.toml", TARGETS)
     assert closed == [True]
+
+
+def test_the_profiles_are_recorded_as_absolute_paths(tmp_path, monkeypatch, rig, opened):
+    # a relative path recorded as given would not be found by a resume started from another folder
+    (tmp_path / "ur.toml").write_text("")
+    (tmp_path / "tracker.toml").write_text("")
+    monkeypatch.chdir(tmp_path)
+    request = session_ops.SessionRequest(
+        robot="ur10", targets_file="t.toml", poses=12, robot_driver="ur", tracker_driver="serial", profile="ur.toml",
+        tracker_profile="tracker.toml",
+    )  # fmt: skip
+    *_, metadata = session_ops._drivers(request, load("ur10"), TARGETS)
+    assert metadata["profiles"] == {"robot": str(tmp_path / "ur.toml"), "tracker": str(tmp_path / "tracker.toml")}
+    assert opened == [("ur.toml", "tracker.toml", TARGETS.shape)]

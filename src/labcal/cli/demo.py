@@ -1,4 +1,4 @@
-"""`labcal demo`: simulated session → every method → exports → report, no hardware."""
+"""`labcal demo`: simulated session → local POE, the paper's ANN and the hybrid → exports → report, no hardware."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ def demo(
     held_out: int = typer.Option(60, "--held-out", help="Fresh configurations, recorded apart, that score each fit."),
     seed: int = typer.Option(0, "--seed", help="Seed of the simulated robot, planner and fits."),
 ) -> None:
-    """A simulated UR10 with geometric and non-geometric errors: record, fit every method, export, report.
+    """A simulated UR10 with geometric and non-geometric errors: record, fit local POE, ANN and hybrid, export, report.
 
     Example: labcal demo --out /tmp/labcal-demo
     """

@@ -112,7 +112,9 @@ def robot_for(dataset_robot: dict, robot: str | None = None) -> RobotSpec:
 
 def check_seed(seed: int | None, flag: str = "--seed") -> None:
     """A seed is a non-negative integer (numpy's generators refuse others with a message naming no flag)."""
-    if seed is not None and not (isinstance(seed, int) and seed >= 0):
+    if seed is None:
+        return
+    if isinstance(seed, bool) or not hasattr(seed, "__index__") or seed.__index__() < 0:  # numpy integers pass
         raise UserError(f"{flag} must be a non-negative integer, got {seed!r}")
 
 

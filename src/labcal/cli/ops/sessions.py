@@ -184,7 +184,10 @@ def _drivers(request: SessionRequest, spec: RobotSpec, targets):
     if r.profile is None or r.tracker_profile is None:
         raise UserError("real drivers need --profile drivers/<robot>.toml and --tracker-profile drivers/<tracker>.toml")
     robot, tracker = _real_drivers(r.profile, r.tracker_profile, targets)
-    return robot, tracker, "tracker", {"profiles": {"robot": str(r.profile), "tracker": str(r.tracker_profile)}}
+    # recorded as absolute paths where they are files, so that `session resume` finds them from any folder
+    profiles = {k: str(Path(v).resolve()) if Path(v).is_file() else str(v)
+                for k, v in (("robot", r.profile), ("tracker", r.tracker_profile))}  # fmt: skip
+    return robot, tracker, "tracker", {"profiles": profiles}
 
 
 def _real_drivers(profile, tracker_profile, targets):
