@@ -741,6 +741,7 @@ def test_empty_input_gives_an_empty_answer(tmp_path):
         (np.full(6, 0.1 + 0.5j), "got complex numbers"),  # its imaginary part was dropped with a warning
         (np.ma.masked_array(np.zeros(6), mask=[0, 0, 1, 0, 0, 0]), "masked values"),  # the mask was ignored
         ([object()] * 6, "must be numbers"),
+        ([[0.0] * 6, [0.0] * 5], "must be numbers"),  # ragged: numpy's own error, unnamed, before
         (np.array([[0.0] * 6, [0.0, 0.0, np.nan, 0.0, 0.0, 0.0]]), "configuration 1, joint 3 is nan"),
         (np.array([0.0, np.inf, 0.0, 0.0, 0.0, 0.0]), "configuration 0, joint 2 is inf"),
     ],

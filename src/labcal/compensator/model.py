@@ -311,14 +311,16 @@ class CalibratedRobot:
     def _batch(self, q) -> tuple[np.ndarray, bool]:
         if np.ma.isMaskedArray(q) and np.ma.getmaskarray(q).any():
             raise ValueError("q has masked values: fill or drop them first (a masked joint has no value to correct)")
-        kind = np.asarray(q).dtype.kind
-        if kind in "cUSV":  # complex would lose its imaginary part, text would be parsed: both hide a caller's bug
-            what = "complex numbers" if kind == "c" else "text"
-            raise ValueError(f"q must be real numbers of shape ({self.n},) or (k, {self.n}), got {what}")
         try:
-            q = np.asarray(q, dtype=float)
+            given = np.asarray(q)  # converted once: its dtype says what the caller passed
+            kind = given.dtype.kind
+            if kind not in "cUSV":  # complex would lose its imaginary part, text would be parsed: both hide a bug
+                q = given.astype(float, copy=False)
         except (TypeError, ValueError) as err:
             raise ValueError(f"q must be numbers of shape ({self.n},) or (k, {self.n}): {err}") from err
+        if kind in "cUSV":
+            what = "complex numbers" if kind == "c" else "text"
+            raise ValueError(f"q must be real numbers of shape ({self.n},) or (k, {self.n}), got {what}")
         single = q.ndim == 1
         q2 = q[None, :] if single else q
         if q2.ndim != 2 or q2.shape[1] != self.n:
