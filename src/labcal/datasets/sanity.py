@@ -516,10 +516,11 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
 
     turned, turns = q.copy(), {}
     for c in np.flatnonzero(rev):  # greedy, column by column: a turn that puts more rows inside is kept
-        best = min((1, -1, 2, -2), key=lambda k: outside(turned - np.eye(q.shape[1])[c] * 2 * math.pi * k))
-        shifted = turned - np.eye(q.shape[1])[c] * 2 * math.pi * best
-        if outside(shifted) < outside(turned):
-            turned, turns[c] = shifted, best
+        one_turn = np.zeros(q.shape[1])
+        one_turn[c] = 2 * math.pi
+        best = min((1, -1, 2, -2), key=lambda k: outside(turned - k * one_turn))
+        if outside(turned - best * one_turn) < outside(turned):
+            turned, turns[c] = turned - best * one_turn, best
     if turns and fits(turned):
         named = ", ".join(f"q{c + 1} by {k:+d} turn(s) ({360 * k:+d}°)" for c, k in turns.items())
         return (
