@@ -18,7 +18,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-import urscript_subset
 from export_fixtures import sample
 
 from labcal.calibration import Observations
@@ -27,6 +26,7 @@ from labcal.export.urscript import FLOAT32_BOUND, urscript_text
 from labcal.robots import load
 from labcal.simulation.actual import ErrorSpec
 from labcal.simulation.scenarios import good
+from labcal.testing import urscript_subset
 
 OLD = "65c384c:src/labcal/export/urscript.py"
 
