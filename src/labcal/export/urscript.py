@@ -6,20 +6,40 @@
   ``q_cmd = labcal_correct(q)`` and ``movej(q_cmd, …)``.
 - **program** (``urscript_program_text``, ``--format urscript-program``): the same definitions inside one
   ``def labcal_program(): … end`` for the primary/secondary script port (30001/30002). On its own it runs a self
-  test (the golden configurations of the export, compared with the Python runtime's q_cmd within
-  :data:`FLOAT32_BOUND`) and says so with ``textmsg``; a caller may pass ``body`` lines (e.g. ``movej``) to run after.
+  test (golden configurations of the export within :data:`FLOAT32_BOUND` of the Python runtime's q_cmd, and
+  configurations near the wrist and elbow singularities within :data:`AGREEMENT`, see
+  :func:`near_singular_self_test`) and says so with ``textmsg``; a caller may pass ``body`` lines (e.g. ``movej``) to
+  run after.
 
 What it computes (``method="newton"``, the default, matches :meth:`CalibratedRobot.correct`):
 
 1. the nominal tool pose of q (the robot's own kinematics, local POE, written out as constant frames);
-2. a fixed number (``iterations``, default 4) of Gauss-Newton steps from q_cmd = q on
+2. Gauss-Newton steps (``lc_attempt``, at most ``iterations``, default :data:`ITERATIONS`) from q_cmd = q on
    ``log(T_nominal(q) T_model(q_cmd)⁻¹) − J(q_cmd) δρ(q_cmd) = 0``: the identified frames' forward kinematics, the
    joint twists J, the network δρ (tanh hidden layers, normalisation folded into the weights) and a 6×6 solve by
-   Gaussian elimination with partial pivoting — the same equations as the Python runtime, which stops adaptively
-   where the script always runs ``iterations`` steps;
-3. ``method="paper"`` instead emits eq. (24), q − δρ_a(q): one network evaluation, exact for the paper's method.
+   Gaussian elimination with partial pivoting — the same equations as the Python runtime, under the same verdict
+   as its Gauss-Newton mode (:func:`labcal.compensator.solve.verdict`): a first step above ``GN_MAX_STEP``, a later
+   one above half the previous (unless below :data:`CONVERGED_STEP`, i.e. rounding) or one that is not finite
+   means a (near-)singular configuration;
+3. it returns q_cmd only when the step that led to it is below :data:`CONVERGED_STEP`, the residual there is below
+   :data:`RESIDUAL_TOL` (length-scaled, L1) and ``|q_cmd − q|`` is within ``max_correction`` (default
+   :data:`MAX_CORRECTION`); a converged q_cmd takes the step at hand once more (r and J are computed), which in
+   double precision brings it to rounding of ``correct()``'s answer. Otherwise ``labcal_correct`` writes the
+   reason to the log (``textmsg``) and stops the program: ``popup`` naming the configuration, then ``halt``.
+   Where ``correct()`` needs its damped fallback the script refuses instead of damping: there the damped answer
+   is mostly a least-squares compromise with a residual left, which nothing in the script could check
+   (``benchmarks/urscript_agreement.py`` counts both), and 24 damped steps would cost the controller another
+   ~200 frames;
+4. ``method="paper"`` instead emits eq. (24), q − δρ_a(q): one network evaluation, exact for the paper's method.
 
-Rules the emitted script keeps (checked on every emitted script by ``tests/export/urscript_subset.check``):
+Whenever the script returns, its q_cmd is within :data:`AGREEMENT` of ``correct()`` in float64 and float32 (the
+last step below 1e-5 rad bounds the distance to the root, and in float32 the step is the rounding noise amplified
+by the configuration's conditioning, so an ill-conditioned configuration whose noise exceeds it is refused).
+
+Strings: every text the exporter writes into a comment or a string literal (robot name, method, provenance, popup
+messages) goes through :func:`_text`, which keeps printable ASCII and writes every other character, the quote,
+the backslash, ``%`` and ``#`` as %XX escapes, so no name or provenance value can end a comment or a string.
+Rules the emitted script keeps (checked on every emitted script by ``labcal.testing.urscript_subset.check``):
 
 - **List capacity.** Since PolyScope 5.15 a list can only be assigned to an existing list of greater or equal
   capacity, and a list literal's capacity is its length. Every list is created at its full size (``[0.0, …]`` of
@@ -29,8 +49,8 @@ Rules the emitted script keeps (checked on every emitted script by ``tests/expor
   the type of its first assignment (an int counter never receives a float).
 - **Scope.** Every variable a function assigns is declared ``local`` (or is a parameter), so a user program's
   global of the same name (``i``, ``q`` …) is never overwritten; globals are the ``lc_``-prefixed constants.
-- **Built-ins.** Only sin, cos, sqrt, atan2, pow, sync, popup, textmsg, movej (and ``halt``); URScript has no ``exp`` or
-  ``tanh`` (tanh is built from pow).
+- **Built-ins.** Only sin, cos, sqrt, atan2, pow, sync, popup, textmsg, str_cat, movej (and ``halt``); URScript has no
+  ``exp`` or ``tanh`` (tanh is built from pow).
 - **Statement budget.** The manual asks for ``sync()`` next to computation-heavy code (a thread that uses its
   whole 2 ms frame without one risks "Lost communication with Controller" and a protective stop). Each heavy
   phase (a chain, the twists, the features, each network layer, the solve) starts with ``sync()``; loops over
@@ -50,9 +70,9 @@ within :data:`FLOAT32_BOUND` rad on configurations whose length-scaled joint Jac
 agreement holds only in double precision).
 
 Not covered (say so where it matters): configurations outside the calibrated joint ranges stop the program
-(``popup`` + ``halt``) — there is no ``extrapolate``; there is no Levenberg-Marquardt fallback, so near a singular
-configuration the script returns whatever the fixed Gauss-Newton steps give (the Python runtime would damp them);
-robots with fewer than 6 joints are supported without a network only (virtual joints need a QR decomposition),
+(``popup`` + ``halt``) — there is no ``extrapolate``; where the Python runtime damps (near a singular
+configuration) the script stops instead; robots with fewer than 6 joints are supported without a network only
+(virtual joints need a QR decomposition; their least-squares residual is not zero, so only the step is checked),
 robots with more than 6 not at all (a UR controller drives six); the rotation logarithm assumes a residual rotation
 below π/2 (corrections are milliradians).
 """
