@@ -711,7 +711,7 @@ def _correct_function(n: int, iterations: int, max_correction: float, function_n
         *_range_check(n),
         "  local out = lc_attempt(q)",
         f"  if out[{n}] < 0.5:",
-        f'    textmsg("{_text("labcal: no command (status ")}", out[{n}])',
+        f'    textmsg("{_text("labcal: no command, status ")}", out[{n}])',
     ]
     for k, (below, message) in enumerate(reasons):
         if below is not None:
