@@ -83,6 +83,20 @@ def test_script_agrees_with_correct_near_singularities_wherever_it_returns(featu
         assert np.max(np.abs(expected[returned] - q[returned])) > 1e-3  # it corrected something real
 
 
+@pytest.mark.parametrize("features", [LOCAL, ("gravity", "harmonics:3")], ids=["local-poe", "joint-series"])
+def test_script_never_returns_where_correct_needs_its_damped_fallback(features):
+    """The script judges its steps by correct()'s Gauss-Newton rule, so it returns only where that rule succeeds;
+    where correct() falls back to damping (a different answer, often not a solution) the script stops."""
+    robot = _robot(features, seed=3)
+    q = _near_singular(robot, 150, seed=12)
+    damped = np.max(np.abs(robot.correct(q, damped_iterations=0) - robot.correct(q)), axis=1) > 1e-12
+    assert damped.sum() >= 10  # the premise: these sets hold configurations correct() has to damp
+    ns = urscript_subset.load(urscript_text(robot))
+    returned = np.array([_call(ns, row) is not None for row in q])
+    assert not np.any(returned & damped), f"returned at {np.sum(returned & damped)} damped configurations"
+    assert np.any(returned & ~damped)
+
+
 def test_program_self_test_covers_the_wrist_and_elbow_singularities():
     robot = _robot(HYBRID, seed=6)
     text = urscript_program_text(robot)
