@@ -4,7 +4,7 @@
 
 Statements per labcal_correct call, sync() calls per call (each costs at least one 2 ms frame), the most
 statements between two syncs, and |float32 script − correct()| over configurations whose length-scaled Jacobian
-condition is ≤ 100; the exporter of 65c384c (git show) beside today's when git is available.
+condition is ≤ 100; the exporter of 5770eeb (git show; four fixed Newton steps) beside today's when git is available.
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-import urscript_subset
 from export_fixtures import sample
 
 from labcal.calibration import Observations
@@ -27,8 +26,9 @@ from labcal.export.urscript import FLOAT32_BOUND, urscript_text
 from labcal.robots import load
 from labcal.simulation.actual import ErrorSpec
 from labcal.simulation.scenarios import good
+from labcal.testing import urscript_subset
 
-OLD = "65c384c:src/labcal/export/urscript.py"
+OLD = "5770eeb:src/labcal/export/urscript.py"
 
 
 def run(text: str, q: np.ndarray, float32: bool):
@@ -56,7 +56,7 @@ def main() -> None:
     if old.returncode == 0:
         ns: dict = {"__name__": "old_urscript"}
         exec(compile(old.stdout, "old_urscript.py", "exec"), ns)
-        scripts["65c384c"] = ns["urscript_text"](robot)
+        scripts["5770eeb"] = ns["urscript_text"](robot)
     print(f"{len(q)} configurations, scaled condition <= 100; float32 bound {FLOAT32_BOUND:g} rad")
     print(
         "| exporter | statements / call | sync() / call | max statements between syncs | checker "

@@ -11,7 +11,6 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-import urscript_subset
 from export_fixtures import hybrid, make_network, sample
 
 from labcal.compensator import CalibratedRobot, Compensator
@@ -20,6 +19,7 @@ from labcal.export.urscript import urscript_text
 from labcal.kinematics import se3
 from labcal.kinematics.poe import REVOLUTE, LocalPOEModel
 from labcal.robots import load
+from labcal.testing import urscript_subset
 
 
 def redundant_robot(seed=3) -> CalibratedRobot:

@@ -13,12 +13,12 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-import urscript_subset
 from export_fixtures import hybrid, make_network, sample
 
 from labcal.compensator import CalibratedRobot
 from labcal.export.urscript import FLOAT32_BOUND, urscript_program_text, urscript_text
 from labcal.robots import load
+from labcal.testing import urscript_subset
 
 ROOT = Path(__file__).parents[2]
 

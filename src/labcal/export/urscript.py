@@ -6,20 +6,40 @@
   ``q_cmd = labcal_correct(q)`` and ``movej(q_cmd, …)``.
 - **program** (``urscript_program_text``, ``--format urscript-program``): the same definitions inside one
   ``def labcal_program(): … end`` for the primary/secondary script port (30001/30002). On its own it runs a self
-  test (the golden configurations of the export, compared with the Python runtime's q_cmd within
-  :data:`FLOAT32_BOUND`) and says so with ``textmsg``; a caller may pass ``body`` lines (e.g. ``movej``) to run after.
+  test (golden configurations of the export within :data:`FLOAT32_BOUND` of the Python runtime's q_cmd, and
+  configurations near the wrist and elbow singularities within :data:`AGREEMENT`, see
+  :func:`near_singular_self_test`) and says so with ``textmsg``; a caller may pass ``body`` lines (e.g. ``movej``) to
+  run after.
 
 What it computes (``method="newton"``, the default, matches :meth:`CalibratedRobot.correct`):
 
 1. the nominal tool pose of q (the robot's own kinematics, local POE, written out as constant frames);
-2. a fixed number (``iterations``, default 4) of Gauss-Newton steps from q_cmd = q on
+2. Gauss-Newton steps (``lc_attempt``, at most ``iterations``, default :data:`ITERATIONS`) from q_cmd = q on
    ``log(T_nominal(q) T_model(q_cmd)⁻¹) − J(q_cmd) δρ(q_cmd) = 0``: the identified frames' forward kinematics, the
    joint twists J, the network δρ (tanh hidden layers, normalisation folded into the weights) and a 6×6 solve by
-   Gaussian elimination with partial pivoting — the same equations as the Python runtime, which stops adaptively
-   where the script always runs ``iterations`` steps;
-3. ``method="paper"`` instead emits eq. (24), q − δρ_a(q): one network evaluation, exact for the paper's method.
+   Gaussian elimination with partial pivoting — the same equations as the Python runtime, under the same verdict
+   as its Gauss-Newton mode (:func:`labcal.compensator.solve.verdict`): a first step above ``GN_MAX_STEP``, a later
+   one above half the previous (unless below :data:`CONVERGED_STEP`, i.e. rounding) or one that is not finite
+   means a (near-)singular configuration;
+3. it returns q_cmd only when the step that led to it is below :data:`CONVERGED_STEP`, the residual there is below
+   :data:`RESIDUAL_TOL` (length-scaled, L1) and ``|q_cmd − q|`` is within ``max_correction`` (default
+   :data:`MAX_CORRECTION`); a converged q_cmd takes the step at hand once more (r and J are computed), which in
+   double precision brings it to rounding of ``correct()``'s answer. Otherwise ``labcal_correct`` writes the
+   reason to the log (``textmsg``) and stops the program: ``popup`` naming the configuration, then ``halt``.
+   Where ``correct()`` needs its damped fallback the script refuses instead of damping: there the damped answer
+   is mostly a least-squares compromise with a residual left, which nothing in the script could check
+   (``benchmarks/urscript_agreement.py`` counts both), and 24 damped steps would cost the controller another
+   ~200 frames;
+4. ``method="paper"`` instead emits eq. (24), q − δρ_a(q): one network evaluation, exact for the paper's method.
 
-Rules the emitted script keeps (checked on every emitted script by ``tests/export/urscript_subset.check``):
+Whenever the script returns, its q_cmd is within :data:`AGREEMENT` of ``correct()`` in float64 and float32 (the
+last step below 1e-5 rad bounds the distance to the root, and in float32 the step is the rounding noise amplified
+by the configuration's conditioning, so an ill-conditioned configuration whose noise exceeds it is refused).
+
+Strings: every text the exporter writes into a comment or a string literal (robot name, method, provenance, popup
+messages) goes through :func:`_text`, which keeps printable ASCII and writes every other character, the quote,
+the backslash, ``%`` and ``#`` as %XX escapes, so no name or provenance value can end a comment or a string.
+Rules the emitted script keeps (checked on every emitted script by ``labcal.testing.urscript_subset.check``):
 
 - **List capacity.** Since PolyScope 5.15 a list can only be assigned to an existing list of greater or equal
   capacity, and a list literal's capacity is its length. Every list is created at its full size (``[0.0, …]`` of
@@ -29,8 +49,8 @@ Rules the emitted script keeps (checked on every emitted script by ``tests/expor
   the type of its first assignment (an int counter never receives a float).
 - **Scope.** Every variable a function assigns is declared ``local`` (or is a parameter), so a user program's
   global of the same name (``i``, ``q`` …) is never overwritten; globals are the ``lc_``-prefixed constants.
-- **Built-ins.** Only sin, cos, sqrt, atan2, pow, sync, popup, textmsg, movej (and ``halt``); URScript has no ``exp`` or
-  ``tanh`` (tanh is built from pow).
+- **Built-ins.** Only sin, cos, sqrt, atan2, pow, sync, popup, textmsg, str_cat, movej (and ``halt``); URScript has no
+  ``exp`` or ``tanh`` (tanh is built from pow).
 - **Statement budget.** The manual asks for ``sync()`` next to computation-heavy code (a thread that uses its
   whole 2 ms frame without one risks "Lost communication with Controller" and a protective stop). Each heavy
   phase (a chain, the twists, the features, each network layer, the solve) starts with ``sync()``; loops over
@@ -50,28 +70,37 @@ within :data:`FLOAT32_BOUND` rad on configurations whose length-scaled joint Jac
 agreement holds only in double precision).
 
 Not covered (say so where it matters): configurations outside the calibrated joint ranges stop the program
-(``popup`` + ``halt``) — there is no ``extrapolate``; there is no Levenberg-Marquardt fallback, so near a singular
-configuration the script returns whatever the fixed Gauss-Newton steps give (the Python runtime would damp them);
-robots with fewer than 6 joints are supported without a network only (virtual joints need a QR decomposition),
+(``popup`` + ``halt``) — there is no ``extrapolate``; where the Python runtime damps (near a singular
+configuration) the script stops instead; robots with fewer than 6 joints are supported without a network only
+(virtual joints need a QR decomposition; their least-squares residual is not zero, so only the step is checked),
 robots with more than 6 not at all (a UR controller drives six); the rotation logarithm assumes a residual rotation
 below π/2 (corrections are milliradians).
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
 
 from labcal import features as feature_lib
 from labcal.compensator import CalibratedRobot, golden_configurations
+from labcal.compensator.solve import GN_MAX_STEP
 from labcal.export.zform import ZAxisForm
 from labcal.robots import model_hash
 
-BUILTINS = ("sin", "cos", "sqrt", "atan2", "pow", "sync", "popup", "textmsg", "halt", "movej")
+BUILTINS = ("sin", "cos", "sqrt", "atan2", "pow", "sync", "popup", "textmsg", "str_cat", "halt", "movej")
 STATEMENTS_PER_SYNC = 1000  # default budget of statements between two sync() calls (see the module docstring)
 FLOAT32_BOUND = 2e-5  # rad: |script in float32 − correct()| on configurations with scaled condition ≤ 100
+AGREEMENT = 1e-4  # rad: |script − correct()| wherever the script returns (float64 or float32)
+ITERATIONS = 6  # Gauss-Newton steps at most (a converged call takes two or three)
+CONVERGED_STEP = 1e-5  # rad: the last step must be below this (it bounds the distance to correct()'s answer)
+RESIDUAL_TOL = 1e-5  # |r| (L1, translation over the length scale) at the returned q_cmd, in rad
+MAX_CORRECTION = 0.1  # rad: a larger |q_cmd − q| is refused (calibrations correct milliradians)
 SELF_TEST_COUNT = 4
+SELF_TEST_OFFSETS = (0.05, 0.1, 0.2)  # rad from the wrist and elbow singularities: the self test's candidates
+_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
 def _num(x: float) -> str:
@@ -462,13 +491,17 @@ def _network_functions(robot: CalibratedRobot, kin: ZAxisForm, budget: _Budget) 
     return lines
 
 
-def _check_exportable(robot: CalibratedRobot, method: str, iterations: int, function_name: str) -> None:
+def _check_exportable(
+    robot: CalibratedRobot, method: str, iterations: int, function_name: str, max_correction: float
+) -> None:
     if method not in ("newton", "paper"):
         raise ValueError(f"urscript method must be 'newton' or 'paper', got {method!r}")
-    if not function_name.isidentifier():
-        raise ValueError(f"function name {function_name!r} is not an identifier")
-    if iterations < 1:
-        raise ValueError(f"iterations must be >= 1, got {iterations}")
+    if not _IDENTIFIER.fullmatch(function_name) or function_name.startswith("lc_"):
+        raise ValueError(f"function name {function_name!r} is not an ASCII identifier outside the lc_ prefix")
+    if isinstance(iterations, bool) or not isinstance(iterations, int | np.integer) or iterations < 1:
+        raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
+    if not (isinstance(max_correction, int | float) and 0 < max_correction <= GN_MAX_STEP):
+        raise ValueError(f"max_correction must be a number of rad in (0, {GN_MAX_STEP}], got {max_correction!r}")
     n, net = robot.n, robot.network
     if robot.joint_map is not None:
         raise ValueError(
@@ -493,7 +526,7 @@ def _check_exportable(robot: CalibratedRobot, method: str, iterations: int, func
 
 
 def _definitions(
-    robot: CalibratedRobot, method: str, iterations: int, function_name: str, budget: _Budget
+    robot: CalibratedRobot, method: str, iterations: int, function_name: str, budget: _Budget, max_correction: float
 ) -> tuple[list[str], list[str]]:
     """(constant lines, function lines) of the compensator, ending with ``function_name(q)``."""
     n, net = robot.n, robot.network
@@ -521,34 +554,54 @@ def _definitions(
     if net is not None:
         funcs += _network_functions(robot, kin, budget)
 
-    check = [
-        "  local j = 0",
-        f"  while j < {n}:",
-        "    if q[j] < lc_lo[j] or q[j] > lc_hi[j]:",
-        '      popup("labcal: joint outside the calibrated range", error=True, blocking=True)',
-        "      halt",
-        "    end",
-        "    j = j + 1",
-        "  end",
-    ]
-    main = [f"def {function_name}(q):", *check]
     m = 12 * (n + 1)
     if method == "paper":
         F = "lc_chain(lc_A, lc_lin, q)" if "gravity" in net.features else _zeros(m)
-        main += [
+        main = [
+            f"def {function_name}(q):",
+            *_range_check(n),
             f"  local rho = lc_rho(q, {F})",
             "  return [" + ", ".join(f"q[{j}] - rho[{j}]" for j in range(n)) + "]",
             "end",
         ]
         return consts, funcs + main
+    return consts, funcs + _attempt_function(robot, kin, iterations, max_correction) + _correct_function(
+        n, iterations, max_correction, function_name
+    )
 
+
+def _range_check(n: int) -> list[str]:
+    return [
+        "  local j = 0",
+        f"  while j < {n}:",
+        "    if q[j] < lc_lo[j] or q[j] > lc_hi[j]:",
+        f'      textmsg("{_text("labcal: joint outside the calibrated range, q = ")}", q)',
+        f'      popup(str_cat("{_text("labcal: joint outside the calibrated range, stopped at q = ")}", q), '
+        "error=True, blocking=True)",
+        "      halt",
+        "    end",
+        "    j = j + 1",
+        "  end",
+    ]
+
+
+def _attempt_function(robot: CalibratedRobot, kin: ZAxisForm, iterations: int, max_correction: float) -> list[str]:
+    """lc_attempt(q) → [q_cmd…, status]: Gauss-Newton from q_cmd = q with correct()'s rules and a final check.
+
+    status 1.0: converged (last step below CONVERGED_STEP, residual below RESIDUAL_TOL, correction within
+    max_correction); −1.0: correction too large; −2.0: not converged in ``iterations`` steps; −3.0: a step too large,
+    not contracting or not finite (a (near-)singular configuration, where correct() would damp).
+    """
+    n, net = robot.n, robot.network
     last = 12 * n
-    main += [
+    scale = 1.0 / float(robot.length_scale)
+    lines = [
+        "def lc_attempt(q):",
         "  local T = lc_chain(lc_nA, lc_nlin, q)",
         "  local Rt = [" + ", ".join(f"T[{last + 4 * a + b}]" for a in range(3) for b in range(3)) + "]",
         "  local pt = [" + ", ".join(f"T[{last + 4 * a + 3}]" for a in range(3)) + "]",
         f"  local qc = [{', '.join(f'q[{j}]' for j in range(n))}]",
-        f"  local F = {_zeros(m)}",
+        f"  local F = {_zeros(12 * (n + 1))}",
         f"  local J = {_zeros(6 * n)}",
         f"  local dR = {_zeros(9)}",
         f"  local dp = {_zeros(3)}",
@@ -556,7 +609,12 @@ def _definitions(
         f"  local rho = {_zeros(6)}",
         f"  local st = {_zeros(n)}",
         "  local it = 0",
-        f"  while it < {int(iterations)}:",
+        "  local size = 0.0",
+        "  local prev = 0.0",
+        "  local tot = 0.0",
+        "  local err = 0.0",
+        "  local status = 0.0",
+        "  while status == 0.0:",
         "    F = lc_chain(lc_A, lc_lin, qc)",
         "    J = lc_twists(F, lc_rev, lc_pitch)",
     ]
@@ -565,20 +623,24 @@ def _definitions(
     for a in range(3):
         for b in range(3):
             dR.append(" + ".join(f"Rt[{3 * a + k}] * F[{last + 4 * b + k}]" for k in range(3)))
-    main.append("    dR = [" + ", ".join(dR) + "]")
+    lines.append("    dR = [" + ", ".join(dR) + "]")
     dp = [
         f"pt[{a}] - (" + " + ".join(f"dR[{3 * a + k}] * F[{last + 4 * k + 3}]" for k in range(3)) + ")"
         for a in range(3)
     ]
-    main.append("    dp = [" + ", ".join(dp) + "]")
-    main.append("    r = lc_log(dR, dp)")
+    lines.append("    dp = [" + ", ".join(dp) + "]")
+    lines.append("    r = lc_log(dR, dp)")
     if net is not None:
-        main.append("    rho = lc_rho(qc, F)")
+        lines.append("    rho = lc_rho(qc, F)")
         dy = [" + ".join(f"J[{6 * a + k}] * rho[{k}]" for k in range(6)) for a in range(6)]
-        main.append("    r = [" + ", ".join(f"r[{a}] - ({dy[a]})" for a in range(6)) + "]")
+        lines.append("    r = [" + ", ".join(f"r[{a}] - ({dy[a]})" for a in range(6)) + "]")
     if n >= 6:
-        main.append("    st = lc_solve(J, r)")
+        # the residual in the length-scaled metric (L1, so that a NaN anywhere makes every test below false)
+        err = " + ".join(f"lc_abs(r[{a}])" + (f" * {_num(scale)}" if a < 3 else "") for a in range(6))
+        solve = "      st = lc_solve(J, r)"
     else:
+        # least squares: the residual at the solution is not zero, its projection is the step (checked below)
+        err = "0.0"
         L = float(robot.length_scale)
         w = [1.0 / L**2] * 3 + [1.0] * 3
         JtJ = [
@@ -587,43 +649,128 @@ def _definitions(
             for k in range(n)
         ]
         Jtr = [" + ".join(f"{_num(w[a])} * J[{a * n + i}] * r[{a}]" for a in range(6)) for i in range(n)]
-        main.append("    st = lc_solve([" + ", ".join(JtJ) + "], [" + ", ".join(Jtr) + "])")
-    main += [
-        f"    qc = [{', '.join(f'qc[{j}] + st[{j}]' for j in range(n))}]",
-        "    it = it + 1",
+        solve = "      st = lc_solve([" + ", ".join(JtJ) + "], [" + ", ".join(Jtr) + "])"
+    lines += [
+        f"    err = {err}",
+        f"    if it > 0 and prev < {_num(CONVERGED_STEP)} and err < {_num(RESIDUAL_TOL)}:",
+        "      status = 1.0",
+        f"    elif it >= {int(iterations)}:",
+        "      status = -2.0",
+        "    end",
+        # a converged q_cmd still takes the step at hand (r and J are computed; the solve is cheap next to them):
+        # in double precision it takes the answer from within CONVERGED_STEP² to rounding of correct()'s
+        "    if status >= 0.0:",
+        solve,
+        "      size = lc_amax(st)",
+        "      tot = " + " + ".join(f"lc_abs(st[{j}])" for j in range(n)),
+        # correct()'s Gauss-Newton verdict (solve.verdict): a first step above GN_MAX_STEP, a later one above half
+        # the previous, or one that is not finite fails; below CONVERGED_STEP a step is rounding, not divergence
+        f"      if not (size <= {_num(GN_MAX_STEP)} and tot <= {_num(n * GN_MAX_STEP)}):",
+        "        status = -3.0",
+        f"      elif it > 0 and size > 0.5 * prev and size >= {_num(CONVERGED_STEP)}:",
+        "        status = -3.0",
+        "      else:",
+        f"        qc = [{', '.join(f'qc[{j}] + st[{j}]' for j in range(n))}]",
+        "        prev = size",
+        "        it = it + 1",
+        "      end",
+        "    end",
         "  end",
-        "  return qc",
+        "  if status > 0.0:",
+        f"    st = [{', '.join(f'qc[{j}] - q[{j}]' for j in range(n))}]",
+        f"    if not (lc_amax(st) <= {_num(max_correction)}):",
+        "      status = -1.0",
+        "    end",
+        "  end",
+        f"  return [{', '.join(f'qc[{j}]' for j in range(n))}, status]",
+        "end",
+        "def lc_amax(v):",
+        "  local out = 0.0",
+        "  local j = 0",
+        f"  while j < {n}:",
+        "    if lc_abs(v[j]) > out:",
+        "      out = lc_abs(v[j])",
+        "    end",
+        "    j = j + 1",
+        "  end",
+        "  return out",
         "end",
     ]
-    return consts, funcs + main
+    return lines
+
+
+def _correct_function(n: int, iterations: int, max_correction: float, function_name: str) -> list[str]:
+    """function_name(q): the range check, lc_attempt, and popup + halt for every status but converged."""
+    reasons = [
+        (-2.5, "labcal: Newton steps diverge (near a singular configuration), no command for q = "),
+        (-1.5, f"labcal: no convergence in {int(iterations)} Newton steps, no command for q = "),
+        (None, f"labcal: correction larger than {max_correction:g} rad, no command for q = "),
+    ]
+    lines = [
+        f"def {function_name}(q):",
+        *_range_check(n),
+        "  local out = lc_attempt(q)",
+        f"  if out[{n}] < 0.5:",
+        f'    textmsg("{_text("labcal: no command, status ")}", out[{n}])',
+    ]
+    for k, (below, message) in enumerate(reasons):
+        if below is not None:
+            lines.append(f"    {'if' if k == 0 else 'elif'} out[{n}] < {_num(below)}:")
+        else:
+            lines.append("    else:")
+        lines.append(f'      popup(str_cat("{_text(message)}", q), error=True, blocking=True)')
+    lines += [
+        "    end",
+        "    halt",
+        "  end",
+        f"  return [{', '.join(f'out[{j}]' for j in range(n))}]",
+        "end",
+    ]
+    return lines
 
 
 def _header(robot: CalibratedRobot, method: str, provenance: dict | None, usage: str) -> list[str]:
+    name = _text(robot.nominal.name or "robot")
     head = [
-        f"# labcal compensator for {robot.nominal.name or 'robot'} — method {robot.method}, script: {method}",
+        f"# labcal compensator for {name} - method {_text(robot.method)}, script: {_text(method)}",
         f"# nominal robot sha256 {model_hash(robot.nominal)}",
     ]
-    head += [f"# {k}: {_one_line(v)}" for k, v in sorted((provenance or {}).items())]
+    head += [f"# {_text(k)}: {_text(v)}" for k, v in sorted((provenance or {}).items(), key=lambda kv: str(kv[0]))]
     head += [usage, "# generated by labcal.export.urscript; do not edit (the numbers are the calibration)"]
     return head
 
 
-def _one_line(value) -> str:
-    return " ".join(str(value).split())
+# Characters written as themselves into a URScript comment or string literal: printable ASCII without the quote,
+# the backslash (a string escape in some readers), the percent sign (the escape below) and '#' (a comment).
+_PLAIN = frozenset(chr(c) for c in range(0x20, 0x7F)) - set("\"\\%#'")
+
+
+def _text(value) -> str:
+    """Any value as text that stays inside one URScript comment or string literal: runs of whitespace become one
+    space, and every character outside :data:`_PLAIN` is written as the %XX escapes of its UTF-8 bytes (readable,
+    reversible, and free of quotes, backslashes and line breaks of any kind).
+
+    >>> _text('ur10\\nmovej([0, 0], a=3)\\n#"x"')
+    'ur10 movej([0, 0], a=3) %23%22x%22'
+    """
+    flat = re.sub(r"\s+", " ", str(value))
+    return "".join(ch if ch in _PLAIN else "".join(f"%{b:02X}" for b in ch.encode("utf-8")) for ch in flat)
 
 
 def urscript_text(
     robot: CalibratedRobot,
     *,
     method: str = "newton",
-    iterations: int = 4,
+    iterations: int = ITERATIONS,
     function_name: str = "labcal_correct",
     provenance: dict | None = None,
     statements_per_sync: int = STATEMENTS_PER_SYNC,
+    max_correction: float = MAX_CORRECTION,
 ) -> str:
     """The function file: constants and ``function_name(q)`` for a Script node (see the module docstring)."""
-    _check_exportable(robot, method, iterations, function_name)
-    consts, funcs = _definitions(robot, method, iterations, function_name, _Budget(statements_per_sync))
+    _check_exportable(robot, method, iterations, function_name, max_correction)
+    budget = _Budget(statements_per_sync)
+    consts, funcs = _definitions(robot, method, iterations, function_name, budget, max_correction)
     usage = (
         f"# usage: a Script node in file mode under BeforeStart loads this once; then q_cmd = {function_name}(q)   "
         f"(q: {robot.n} joint angles in rad, the pose you want the nominal model of)"
@@ -635,10 +782,11 @@ def urscript_program_text(
     robot: CalibratedRobot,
     *,
     method: str = "newton",
-    iterations: int = 4,
+    iterations: int = ITERATIONS,
     function_name: str = "labcal_correct",
     provenance: dict | None = None,
     statements_per_sync: int = STATEMENTS_PER_SYNC,
+    max_correction: float = MAX_CORRECTION,
     program_name: str = "labcal_program",
     body: list[str] | None = None,
     self_test: bool = True,
@@ -649,21 +797,27 @@ def urscript_program_text(
     q_cmd differs from the Python runtime's by more than :data:`FLOAT32_BOUND` (a wrong file, or a controller that
     computes differently from what this export assumes).
     """
-    _check_exportable(robot, method, iterations, function_name)
-    if not program_name.isidentifier():
-        raise ValueError(f"program name {program_name!r} is not an identifier")
-    consts, funcs = _definitions(robot, method, iterations, function_name, _Budget(statements_per_sync))
+    _check_exportable(robot, method, iterations, function_name, max_correction)
+    if not _IDENTIFIER.fullmatch(program_name):
+        raise ValueError(f"program name {program_name!r} is not an ASCII identifier")
+    budget = _Budget(statements_per_sync)
+    consts, funcs = _definitions(robot, method, iterations, function_name, budget, max_correction)
     usage = f"# usage: send this file to the controller's script port (30002); it runs {program_name}()"
     lines = [f"def {program_name}():"]
     lines += ["  " + line for line in consts + funcs]
     if self_test:
-        q = golden_configurations(robot)[:SELF_TEST_COUNT]
+        golden = golden_configurations(robot)[:SELF_TEST_COUNT]
+        near = near_singular_self_test(robot, golden, max_correction)
+        q = np.concatenate([golden, near])
+        bounds = [FLOAT32_BOUND] * len(golden) + [AGREEMENT] * len(near)
         expected = robot.correct(q, method=method)
         n = robot.n
         lines += [
-            "  # self test: the Python runtime's q_cmd at a few configurations, within the float32 bound",
+            "  # self test: the Python runtime's q_cmd at a few configurations (the last near the wrist and elbow",
+            "  # singularities), within the float32 bound (near the singularities: the agreement bound)",
             f"  lc_tq = {_list(q)}",
             f"  lc_tx = {_list(expected)}",
+            f"  lc_tb = {_list(bounds)}",
             f"  lc_tin = {_zeros(n)}",
             f"  lc_tout = {_zeros(n)}",
             "  lc_ti = 0",
@@ -673,9 +827,9 @@ def urscript_program_text(
             f"    lc_tout = {function_name}(lc_tin)",
             "    lc_tj = 0",
             f"    while lc_tj < {n}:",
-            f"      if lc_abs(lc_tout[lc_tj] - lc_tx[lc_ti * {n} + lc_tj]) > {_num(FLOAT32_BOUND)}:",
-            '        popup("labcal: self test failed (this controller does not reproduce the export)", '
-            "error=True, blocking=True)",
+            f"      if not (lc_abs(lc_tout[lc_tj] - lc_tx[lc_ti * {n} + lc_tj]) <= lc_tb[lc_ti]):",
+            '        popup(str_cat("labcal: self test failed (this controller does not reproduce the export) at q = ", '
+            "lc_tin), error=True, blocking=True)",
             "        halt",
             "      end",
             "      lc_tj = lc_tj + 1",
@@ -687,6 +841,34 @@ def urscript_program_text(
     lines += ["  " + line for line in body or []]
     lines.append("end")
     return "\n".join(_header(robot, method, provenance, usage) + lines) + "\n"
+
+
+def near_singular_self_test(robot: CalibratedRobot, golden: np.ndarray, max_correction: float) -> np.ndarray:
+    """(k, n) configurations of the program's self test near a UR arm's singularities (none unless six joints).
+
+    For the wrist (q5) and then the elbow (q3): a golden configuration with that joint moved to ±0.05 rad (else ±0.1,
+    ±0.2: the first of :data:`SELF_TEST_OFFSETS` that qualifies), inside its range, where the plain Gauss-Newton
+    steps of ``correct()`` converge (no damped fallback) to a correction within half of ``max_correction``: a
+    configuration the script must return, so that a controller which refuses it or computes it differently fails
+    the self test.
+    """
+    if robot.n != 6:
+        return np.zeros((0, robot.n))
+    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
+    out = []
+    for joint in (4, 2):
+        values = [sign * v for v in SELF_TEST_OFFSETS for sign in (1.0, -1.0)]
+        q = np.tile(golden, (len(values), 1))
+        q[:, joint] = np.repeat(values, len(golden))
+        q = q[(lo[joint] <= q[:, joint]) & (q[:, joint] <= hi[joint])]
+        if not len(q):
+            continue
+        full = robot.correct(q)
+        undamped = robot.correct(q, iterations=ITERATIONS, damped_iterations=0)
+        ok = (np.max(np.abs(full - undamped), axis=1) < 1e-9) & (np.max(np.abs(full - q), axis=1) <= max_correction / 2)
+        if ok.any():
+            out.append(q[np.argmax(ok)])
+    return np.array(out).reshape(-1, robot.n)
 
 
 def write_urscript(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:

@@ -46,7 +46,18 @@ _TOKEN = re.compile(
 )
 _KEYWORDS = {"and", "or", "not", "True", "False"}
 FLOAT_FUNCTIONS = {"sin", "cos", "sqrt", "atan2", "pow"}
-BUILTINS = {"sin": 1, "cos": 1, "sqrt": 1, "atan2": 2, "pow": 2, "sync": 0, "popup": 1, "textmsg": None, "movej": 1}
+BUILTINS = {
+    "sin": 1,
+    "cos": 1,
+    "sqrt": 1,
+    "atan2": 2,
+    "pow": 2,
+    "sync": 0,
+    "popup": 1,
+    "textmsg": None,
+    "str_cat": 2,
+    "movej": 1,
+}
 KEYWORDS = {"popup": {"title", "warning", "error", "blocking"}, "movej": {"a", "v", "t", "r"}}
 ALLOWED_CALLS = set(BUILTINS)
 
@@ -352,7 +363,7 @@ class _Checker:
                 raise URScriptRuleError(f"{where}: {name}() takes {want} argument(s), got {args}")
             if not set(keywords) <= KEYWORDS.get(name, set()):
                 raise URScriptRuleError(f"{where}: {name}() has no keyword(s) {sorted(set(keywords))}")
-            return FLOAT if name in FLOAT_FUNCTIONS else NONE
+            return FLOAT if name in FLOAT_FUNCTIONS else (STR if name == "str_cat" else NONE)
         fn = self.functions.get(name)
         if fn is None:
             raise URScriptRuleError(f"{where}: {name}() is neither a URScript built-in we allow nor defined here")
@@ -538,6 +549,17 @@ def translate(script: str, float32: bool = False) -> str:
     return "\n".join(out) + "\n"
 
 
+def _to_str(value) -> str:
+    """URScript's text of a value (str_cat, textmsg): lists as [a, b, …], numbers as the controller prints them."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(map(_to_str, value)) + "]"
+    if isinstance(value, bool):
+        return str(value)
+    return f"{float(value):.6g}" if not isinstance(value, int) else str(value)
+
+
 def _pow(base, exponent):
     try:
         return math.pow(base, exponent)
@@ -569,7 +591,8 @@ def load(script: str, float32: bool = False) -> dict:
     names.update(
         {
             "popup": popup,
-            "textmsg": lambda *a: stats.messages.append(("textmsg", "".join(map(str, a)))),
+            "textmsg": lambda *a: stats.messages.append(("textmsg", "".join(map(_to_str, a)))),
+            "str_cat": lambda a, b: _to_str(a) + _to_str(b),
             "sync": stats.sync,
             "movej": lambda q, a=1.4, v=1.05, t=0, r=0: stats.messages.append(("movej", [float(x) for x in q])),
             "_S": stats.step,

@@ -1,0 +1,151 @@
+"""What the URScript export sends to a robot cannot hurt it: ``labcal_correct`` returns only what ``correct()``
+returns (within 1e-4 rad, in float64 and float32) and otherwise stops the program with a popup naming the
+configuration; no string the exporter writes (robot name, provenance) can add a statement."""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from export_fixtures import hybrid
+
+from labcal.compensator import golden_configurations
+from labcal.export.urscript import urscript_program_text, urscript_text
+from labcal.testing import urscript_subset
+
+AGREE = 1e-4  # rad: the promise, written here rather than imported from the exporter
+LOCAL, HYBRID = None, ("q", "sincos", "sincos2", "gravity")
+
+
+def _robot(features, seed=3):
+    return hybrid("ur10", features=features, seed=seed)
+
+
+def _call(ns, q):
+    """labcal_correct(q) → (n,) array, or None when the script halted."""
+    try:
+        return np.asarray(ns["labcal_correct"](list(map(float, q))), dtype=float)
+    except urscript_subset.Halted:
+        return None
+
+
+@pytest.mark.parametrize("features", [LOCAL, HYBRID], ids=["local-poe", "hybrid"])
+@pytest.mark.parametrize("float32", [False, True], ids=["float64", "float32"])
+def test_script_stops_where_gauss_newton_diverges(features, float32):
+    """Two millirad from the wrist singularity correct()'s Gauss-Newton fails (it answers from its damped
+    fallback); the script's plain steps go astray there (hundreds of radians on the code before), so it must stop
+    with a popup that names the configuration."""
+    robot = _robot(features)
+    q = golden_configurations(robot)[:2].copy()
+    q[:, 4] = 0.002
+    damped = np.max(np.abs(robot.correct(q, damped_iterations=0) - robot.correct(q)), axis=1) > 1e-12
+    assert damped.all()  # the premise: correct() itself cannot solve these with Gauss-Newton
+    ns = urscript_subset.load(urscript_text(robot), float32=float32)
+    for row in q:
+        ns["stats"].messages.clear()
+        assert _call(ns, row) is None
+        kind, text = ns["stats"].messages[-1]
+        assert kind == "popup" and "no command for q = [" in text
+        shown = [float(x) for x in re.findall(r"-?\d+\.\d+(?:e-?\d+)?", text.split("q = ", 1)[1])]
+        np.testing.assert_allclose(shown, row, atol=1e-4)
+
+
+def _near_singular(robot, k, seed):
+    """k configurations in range with the wrist q5, and k with the elbow q3, uniform in ±0.05 rad."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.maximum(robot.joint_ranges[:, 0], -np.pi), np.minimum(robot.joint_ranges[:, 1], np.pi)
+    q = rng.uniform(lo, hi, size=(2 * k, robot.n))
+    q[:k, 4] = rng.uniform(-0.05, 0.05, size=k)
+    q[k:, 2] = rng.uniform(-0.05, 0.05, size=k)
+    return q
+
+
+@pytest.mark.parametrize("features", [LOCAL, HYBRID], ids=["local-poe", "hybrid"])
+def test_script_agrees_with_correct_near_singularities_wherever_it_returns(features):
+    robot = _robot(features, seed=5)
+    q = _near_singular(robot, 60, seed=11)
+    expected = robot.correct(q)
+    script = urscript_text(robot)
+    for float32 in (False, True):
+        ns = urscript_subset.load(script, float32=float32)
+        got = [_call(ns, row) for row in q]
+        returned = np.array([g is not None for g in got])
+        err = np.array([np.max(np.abs(g - e)) for g, e in zip(got, expected, strict=True) if g is not None])
+        assert np.all(err <= AGREE), f"float32={float32}: {np.sum(err > AGREE)} returned commands differ"
+        # both outcomes occur here: the check is exercised, and the script is not a refusal machine
+        assert 0.3 < returned.mean() < 0.95
+        assert np.max(np.abs(expected[returned] - q[returned])) > 1e-3  # it corrected something real
+
+
+@pytest.mark.parametrize("features", [LOCAL, ("gravity", "harmonics:3")], ids=["local-poe", "joint-series"])
+def test_script_never_returns_where_correct_needs_its_damped_fallback(features):
+    """The script judges its steps by correct()'s Gauss-Newton rule, so it returns only where that rule succeeds;
+    where correct() falls back to damping (a different answer, often not a solution) the script stops."""
+    robot = _robot(features, seed=3)
+    q = _near_singular(robot, 150, seed=12)
+    damped = np.max(np.abs(robot.correct(q, damped_iterations=0) - robot.correct(q)), axis=1) > 1e-12
+    assert damped.sum() >= 10  # the premise: these sets hold configurations correct() has to damp
+    ns = urscript_subset.load(urscript_text(robot))
+    returned = np.array([_call(ns, row) is not None for row in q])
+    assert not np.any(returned & damped), f"returned at {np.sum(returned & damped)} damped configurations"
+    assert np.any(returned & ~damped)
+
+
+def test_program_self_test_covers_the_wrist_and_elbow_singularities():
+    robot = _robot(HYBRID, seed=6)
+    text = urscript_program_text(robot)
+    line = next(x for x in text.splitlines() if x.strip().startswith("lc_tq = "))
+    tq = np.array(eval(line.split("=", 1)[1], {})).reshape(-1, 6)  # a list of numbers
+    assert np.any(np.abs(tq[:, 4]) <= 0.2) and np.any(np.abs(tq[:, 2]) <= 0.2)
+    ns = urscript_subset.load(text, float32=True)
+    ns["labcal_program"]()
+    assert ("textmsg", "labcal: compensator self test passed") in ns["stats"].messages
+    # a controller that gets the near-singular configurations wrong by 2e-4 rad fails the self test
+    expected_line = next(x for x in text.splitlines() if x.strip().startswith("lc_tx = "))
+    values = np.array(eval(expected_line.split("=", 1)[1], {})).reshape(-1, 6)
+    near = (np.abs(tq[:, 4]) <= 0.2) | (np.abs(tq[:, 2]) <= 0.2)
+    values[near, 0] += 2e-4
+    shifted = "lc_tx = [" + ", ".join(repr(float(v)) for v in values.ravel()) + "]"
+    broken = urscript_subset.load(text.replace(expected_line.strip(), shifted), float32=True)
+    with pytest.raises(urscript_subset.Halted):
+        broken["labcal_program"]()
+
+
+HOSTILE = [
+    "ur10\nmovej([0,-1.57,0,-1.57,0,0], a=3, v=3)\n#",
+    "ur10\rmovej([0,-1.57,0,-1.57,0,0], a=3, v=3)\r#",
+    "ur10\u2028movej([0,-1.57,0,-1.57,0,0], a=3, v=3)\u2028#",
+    'ur10")\nmovej([0,0,0,0,0,0])\n#',
+    "ur10\\",
+    "ur10\x1b[31m\x00",
+]
+
+
+def _statements(text: str) -> list[str]:
+    """The lines a controller executes: every line, split at any line break, without comments and blanks."""
+    out = []
+    for line in re.split(r"\r\n|[\n\r\v\f\x1c-\x1e\x85\u2028\u2029]", text):
+        body = line.strip()
+        if body and not body.startswith("#"):
+            out.append(body)
+    return out
+
+
+@pytest.mark.parametrize("name", HOSTILE, ids=[f"name{i}" for i in range(len(HOSTILE))])
+@pytest.mark.parametrize("program", [False, True], ids=["function-file", "program"])
+def test_no_injected_string_becomes_a_statement(name, program):
+    robot = _robot(LOCAL)
+    writer = urscript_program_text if program else urscript_text
+    benign = writer(robot, provenance={"fit_id": "x"})
+    robot = type(robot)(robot.nominal.replace(name=name), robot.model, method=robot.method)
+    text = writer(robot, provenance={"fit_id": name, name: "x", "note": 'a "quoted" \\ value\n#'})
+    assert _statements(text) == _statements(benign)  # the same program, whatever the strings
+    assert all(ch == "\n" or ch.isprintable() for ch in text)  # no other line break, escape or NUL anywhere
+    urscript_subset.check(text)
+    assert "movej" not in " ".join(_statements(text))
