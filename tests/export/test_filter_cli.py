@@ -236,6 +236,7 @@ def test_what_the_reader_refuses_names_file_line_and_column(setup, tmp_path):
         "c.csv": ("x,q1,q2\n1,2,3\n", "missing column(s) q3, q4, q5, q6"),
         "d.csv": ("Q1,q1,q2,q3,q4,q5,q6\n" + "1," * 6 + "1\n", "'Q1' and 'q1' are the same name"),
         "e.csv": (joints_text(np.degrees(q), header=None) + "1,2,3\n", "line 5: 3 fields, the first line has 6"),
+        "f.csv": ("\n \n" + joints_text(np.degrees(q)), "the header is on line 3, after blank lines: remove them"),
     }
     for name, (text, message) in cases.items():
         (tmp_path / name).write_text(text)

@@ -58,19 +58,18 @@ class ProgramTable:
         return int(self.lines[row - 1])
 
 
-def _first_line(path: Path) -> tuple[list[str], str]:
-    """The first non-blank line's cells and the separator it shows (the dialect rule of the module docstring)."""
+def _first_line(path: Path) -> tuple[list[str], str, int]:
+    """The first non-blank line's cells, the separator it shows (the dialect rule of the module docstring) and its
+    1-based line number."""
     try:
         with open(path, encoding="utf-8-sig", newline="") as f:
-            for raw in f:
-                if raw.strip():
-                    break
-            else:
-                raise UserError(f"program {path} is empty")
+            number, raw = next(((i, line) for i, line in enumerate(f, start=1) if line.strip()), (0, ""))
     except UnicodeDecodeError as e:
         raise UserError(f"program {path} is not UTF-8 text ({e.reason} at byte {e.start})") from None
+    if not number:
+        raise UserError(f"program {path} is empty")
     separator = "\t" if "\t" in raw else ";" if ";" in raw else ","
-    return next(csv.reader([raw], delimiter=separator)), separator
+    return next(csv.reader([raw], delimiter=separator)), separator, number
 
 
 def _is_number(cell: str, separator: str) -> bool:
@@ -134,8 +133,10 @@ def read_program(
         raise UserError(f"program {path} is a folder, not a CSV file" if path.is_dir() else f"no such file: {path}")
     wanted = list(POSE_COLUMNS) if kind == "poses" else [f"q{j + 1}" for j in range(n)]
     what = "x, y, z, rx, ry, rz" if kind == "poses" else f"q1 … q{n} (the robot has {n} joints)"
-    first, separator = _first_line(path)
+    first, separator, number = _first_line(path)
     header = not all(_is_number(c, separator) for c in first if c.strip())
+    if header and number > 1:  # the importers' reader takes line 1 as the header
+        raise UserError(f"program {path}: the header is on line {number}, after blank lines: remove them")
     if header:
         table = _Csv(path, separator)
         by_name: dict[str, str] = {}
