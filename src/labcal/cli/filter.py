@@ -102,7 +102,7 @@ def filter_program(
 
       labcal filter prog.csv --calibration ur10.json --length-unit mm --seed-joints 0,-1.6,1.6,-1.6,-1.6,0 --out c.csv
 
-      labcal filter rdk.csv --calibration ur10.json --length-unit mm --angle-unit deg --seed-joints 0,-90,90,-90,-90,0
+      labcal filter rdk.csv --calibration u.json --length-unit mm --angle-unit deg --seed-joints 0,-90,90,0,90,0 --out o
 
       labcal filter joints.csv --kind joints --angle-unit deg --calibration S@v1 --out corrected.csv --script c.script
     """
