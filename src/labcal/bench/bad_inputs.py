@@ -569,6 +569,153 @@ def _with_allow(case: Case) -> Case:
 CASES += [_with_allow(c) for c in CASES if c.name in _ALLOWED]
 
 
+# ----------------------------------------------------------------------------------------------------------------
+# labcal filter (issue 24 item 4): programs in the wrong units or dialects, singular rows, unsafe or failing writes.
+# A compensator of a UR10 whose frames are off by ~0.5 mm / mrad is written directly (no fit), and a 4-row program
+# on one well-conditioned branch; each case changes one thing.
+FILTER_TIMEOUT = 120.0  # s: a filter of a few rows takes a second or two (before the fix, a FIFO --out blocked)
+_FILTER_Q = np.array([0.3, -1.2, 1.4, -1.6, -1.5, 0.4]) + np.linspace(0, 0.2, 4)[:, None] * [1, -1, 1, 1, -1, 1]
+
+
+def _filter_setup(tmp: Path) -> tuple[Path, np.ndarray]:
+    """The compensator file and the program's (4, 6) TCP poses (m, rotation vector rad)."""
+    from labcal.compensator import CalibratedRobot, save
+    from labcal.kinematics import se3
+    from labcal.robots import load
+
+    nominal = load("ur10").model
+    model = nominal.perturbed(np.random.default_rng(7).normal(size=(nominal.n + 1, 6)) * 0.5e-3)
+    comp = tmp / "ur10.json"
+    save(CalibratedRobot(nominal, model, method="local-poe"), comp)
+    T = nominal.fk(_FILTER_Q)
+    return comp, np.concatenate([T[:, :3, 3], se3.log_so3(T[:, :3, :3])], axis=1)
+
+
+def _rows(values: np.ndarray, head: str | None, sep: str = ",", decimal: str = ".") -> str:
+    lines = [] if head is None else [head.replace(",", sep)]
+    lines += [sep.join(repr(float(v)).replace(".", decimal) for v in row) for row in values]
+    return "\n".join(lines) + "\n"
+
+
+def _filter_outcome(r: Run) -> Outcome:
+    return Outcome("filter" if r.code != 0 else "NOT stopped", r.first_line(), r.code, r.traceback)
+
+
+def _filter_case(program: Callable[[np.ndarray], str], args: tuple[str, ...] = (), kind: str = "poses"):
+    """A case that writes a program (from the poses, or from the joints for kind "joints") and runs filter."""
+
+    def go(tmp: Path, _args) -> Outcome:
+        comp, poses = _filter_setup(tmp)
+        (tmp / "prog.csv").write_text(program(poses if kind == "poses" else _FILTER_Q))
+        seed = ["--seed-joints", ",".join(repr(float(v)) for v in _FILTER_Q[0] + 0.02)] if kind == "poses" else []
+        if "deg" in args and kind == "poses":
+            seed = ["--seed-joints", ",".join(repr(float(v)) for v in np.degrees(_FILTER_Q[0] + 0.02))]
+        r = run(["filter", "prog.csv", "--calibration", str(comp), "--kind", kind, *seed, *args, "--out", "out.csv"],
+                cwd=tmp, timeout=FILTER_TIMEOUT)  # fmt: skip
+        return _filter_outcome(r)
+
+    return go
+
+
+def _in_deg(poses: np.ndarray, length: float = 1.0) -> np.ndarray:
+    return np.concatenate([poses[:, :3] * length, np.degrees(poses[:, 3:])], axis=1)
+
+
+def _filter_unsafe_out(make: Callable[[Path], Path]):
+    """filter --force onto a symlink or a device node: refused, and the thing there untouched."""
+
+    def go(tmp: Path, _args) -> Outcome:
+        comp, _ = _filter_setup(tmp)
+        (tmp / "prog.csv").write_text(_rows(_FILTER_Q, "q1,q2,q3,q4,q5,q6"))
+        target = make(tmp)
+        before = os.lstat(target)
+        r = run(["filter", "prog.csv", "--calibration", str(comp), "--kind", "joints", "--out", str(target),
+                 "--force"], cwd=tmp, timeout=FILTER_TIMEOUT)  # fmt: skip
+        after = os.lstat(target)
+        kept = (before.st_mode, before.st_ino) == (after.st_mode, after.st_ino)
+        if (tmp / "target.csv").exists():
+            kept = kept and (tmp / "target.csv").read_text() == "keep me\n"
+        o = _filter_outcome(r)
+        if not kept:
+            o.stage, o.message = "NOT stopped", o.message + " [replaced or written through]"
+        return o
+
+    return go
+
+
+def _symlink_out(tmp: Path) -> Path:
+    (tmp / "target.csv").write_text("keep me\n")
+    (tmp / "link.csv").symlink_to(tmp / "target.csv")
+    return tmp / "link.csv"
+
+
+def _device_out(tmp: Path) -> Path:
+    try:
+        os.mknod(tmp / "null", 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+    except PermissionError:  # not root: a FIFO stands in for "not a regular file" (opened only if not refused)
+        os.mkfifo(tmp / "null")
+    return tmp / "null"
+
+
+def _filter_full_disk(tmp: Path, _args) -> Outcome:
+    """filter --force over an existing program when the disk fills mid-write (the file-size limit: EFBIG, as
+    ENOSPC): the previous program must stay whole."""
+    comp, _ = _filter_setup(tmp)
+    (tmp / "prog.csv").write_text(_rows(np.repeat(_FILTER_Q, 750, axis=0), "q1,q2,q3,q4,q5,q6"))  # 3,000 rows
+    out = tmp / "out.csv"
+    out.write_text("previous program\n" * 100)
+    before = out.read_bytes()
+
+    def limit() -> None:
+        _limit_memory()
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, resource.RLIM_INFINITY))
+
+    p = subprocess.run(
+        [*labcal_command(), "filter", "prog.csv", "--calibration", str(comp), "--kind", "joints", "--out", str(out),
+         "--force"], cwd=tmp, capture_output=True, text=True, timeout=FILTER_TIMEOUT, preexec_fn=limit,
+        env={**os.environ, "COLUMNS": "200"},
+    )  # fmt: skip
+    o = _filter_outcome(Run(p.returncode, p.stdout, p.stderr))
+    if out.read_bytes() != before:
+        lines = out.read_text(errors="replace").count("\n")
+        o.stage, o.message = "NOT stopped", o.message + f" [previous program replaced by {lines} lines]"
+    else:
+        o.message += " [previous program intact]"
+    return o
+
+
+def _singular_rows(q: np.ndarray) -> str:
+    q = q.copy()
+    q[2, 2] = 1e-5  # row 3 a few µrad from the stretched elbow
+    return _rows(q, "q1,q2,q3,q4,q5,q6")
+
+
+CASES += [
+    Case("filter-rotvec-deg", "stop", "filter: rotation vectors in degrees (norms of about 170)",
+         _filter_case(lambda p: _rows(_in_deg(p), "x,y,z,rx,ry,rz"))),
+    Case("filter-joints-deg-as-rad", "stop", "filter: a joint program in degrees without --angle-unit deg",
+         _filter_case(lambda q: _rows(np.degrees(q), "q1,q2,q3,q4,q5,q6"), kind="joints")),
+    Case("filter-mm-as-m", "stop", "filter: a pose program in mm without --length-unit mm",
+         _filter_case(lambda p: _rows(p * [1000, 1000, 1000, 1, 1, 1], "x,y,z,rx,ry,rz"))),
+    Case("filter-near-singular", "stop", "filter: row 3 of a joint program 10 µrad from the elbow singularity",
+         _filter_case(_singular_rows, kind="joints")),
+    Case("filter-semicolon-comma", "pass", "filter: ';' separated, decimal commas, upper-case header (session "
+         "import reads it)", _filter_case(lambda p: _rows(p, "X,Y,Z,RX,RY,RZ", sep=";", decimal=","))),
+    Case("filter-headerless", "pass", "filter: a joint program without a header (6 columns)",
+         _filter_case(lambda q: _rows(q, None), kind="joints")),
+    Case("filter-robodk-mm-deg", "pass", "filter: a pose program in mm and degrees, with --length-unit mm "
+         "--angle-unit deg", _filter_case(lambda p: _rows(_in_deg(p, 1000.0), "x,y,z,rx,ry,rz"),
+                                          ("--length-unit", "mm", "--angle-unit", "deg"))),
+    Case("filter-out-symlink", "clean-error", "filter --force --out a symlink to another file",
+         _filter_unsafe_out(_symlink_out)),
+    Case("filter-out-device", "clean-error", "filter --force --out a device node (a FIFO when not root)",
+         _filter_unsafe_out(_device_out)),
+    Case("filter-disk-full", "clean-error", "filter --force over a program when the disk fills mid-write (3,000 rows)",
+         _filter_full_disk),
+]  # fmt: skip
+
+
 def verdict(case: Case, o: Outcome) -> str:
     stopped = o.stage != "NOT stopped" and not o.stage.startswith("setup")
     if o.stage.startswith("setup"):
