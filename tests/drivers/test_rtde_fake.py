@@ -12,6 +12,8 @@ import pytest
 
 from labcal.testing.rtde_fake import (
     FakeRTDEServer,
+    SimController,
+    _RTDESession,
     paced,
     pack_values,
     read_package,
@@ -275,12 +277,21 @@ def test_an_input_field_another_client_owns_is_answered_in_use(fake):
         kind, body = request(second, "I", b"input_double_register_30,input_int_register_24")
         assert (kind, body) == ("I", b"\x00DOUBLE,IN_USE")
         assert request(second, "I", b"input_double_register_30") == ("I", b"\x01DOUBLE"), "a free field still works"
-        first.close()
-        for _ in range(100):  # the fake frees the fields once it sees the connection closed
-            kind, body = request(second, "I", b"input_int_register_24")
-            if body != b"\x00IN_USE":
-                break
-        assert (kind, body) == ("I", b"\x02INT32")
+        first.close()  # a client that goes away frees its fields at once, as a reconnecting driver needs
+        assert request(second, "I", b"input_int_register_24") == ("I", b"\x02INT32")
+
+
+def test_a_session_sees_its_client_gone_before_its_reader_thread_does():
+    """The IN_USE check peeks at the owner's socket, so a client restarted right away gets its fields back."""
+    server_end, client_end = socket.socketpair()
+    with contextlib.closing(server_end):
+        session = _RTDESession(server_end, SimController([0.0] * 6, (5, 11, 0, 0)), lambda names: None)
+        assert not session.gone()
+        client_end.sendall(b"\x00\x03V")  # unread data: still there
+        assert not session.gone()
+        client_end.close()
+        assert server_end.recv(3) == b"\x00\x03V"
+        assert session.gone()
 
 
 def test_only_the_last_output_recipe_streams_under_its_id(client):

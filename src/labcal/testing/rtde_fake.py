@@ -404,6 +404,20 @@ class _RTDESession:
         with self.send_lock:
             self.sock.sendall(pack_package(kind, payload))
 
+    def gone(self) -> bool:
+        """Whether the client has closed the connection (a peek: the reader thread may not have seen it yet).
+
+        A client killed and restarted (a reconnecting driver) must get its input fields back at once, as a real
+        controller, which learns of the close from the kernel, gives them."""
+        if self.closed.is_set():
+            return True
+        try:
+            return self.sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+        except BlockingIOError:
+            return False  # open, nothing to read
+        except OSError:
+            return True  # reset or closed
+
     def run(self) -> None:
         threading.Thread(target=self._stream, daemon=True).start()
         try:
@@ -484,6 +498,9 @@ class _RTDESession:
             types = []
             for name in names:
                 owner = self.sim.input_owners.get(name)
+                if isinstance(owner, _RTDESession) and owner is not self and owner.gone():
+                    del self.sim.input_owners[name]  # closed, but its reader thread has not noticed yet
+                    owner = None
                 kind = rtde_type(name, "input")
                 types.append("NOT_FOUND" if kind is None else "IN_USE" if owner not in (None, self) else kind)
             recipe = 0 if not names or {"NOT_FOUND", "IN_USE"} & set(types) else len(self.inputs) + 1
