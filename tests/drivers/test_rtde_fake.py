@@ -8,6 +8,7 @@ import itertools
 import socket
 import struct
 
+import numpy as np
 import pytest
 
 from labcal.testing.rtde_fake import (
@@ -18,6 +19,7 @@ from labcal.testing.rtde_fake import (
     pack_values,
     read_package,
     rtde_type,
+    tcp_pose,
     unpack_values,
 )
 
@@ -242,6 +244,30 @@ def test_every_standard_output_of_the_rtde_guide_is_known_with_plausible_values(
     x, y, z = values["elbow_position"]
     assert ((x**2 + y**2) + (z - 0.1273) ** 2) ** 0.5 == pytest.approx(0.612, abs=1e-6)
     assert values["elbow_velocity"] == pytest.approx([0.0, 0.0, 0.0])
+    assert values["actual_TCP_pose"] == pytest.approx(tcp_pose([0.1, 0.2, 0.3, 0.4, 0.5, 0.6], "UR10"))
+    assert values["target_TCP_pose"] == pytest.approx(values["actual_TCP_pose"]), "at rest the target is reached"
+
+
+def test_tcp_pose_is_the_ur10_dh_forward_kinematics_with_a_rotation_vector():
+    """actual_TCP_pose against labcal's reference DH product of the shipped UR10 file (an independent route)."""
+    import tomllib
+    from importlib import resources
+
+    from scipy.spatial.transform import Rotation
+
+    from labcal.kinematics.conversions import dh_fk
+
+    rows = tomllib.loads(resources.files("labcal.robots").joinpath("ur10.toml").read_text())["joints"]
+    rng = np.random.default_rng(4)
+    configurations = [*rng.uniform(-np.pi, np.pi, size=(20, 6)), [0.0, -np.pi / 2, 0.0, -np.pi / 2, 0.0, 0.0]]
+    for q in configurations:
+        T = dh_fk(rows, np.asarray(q))
+        pose = tcp_pose(list(q), "UR10")
+        assert pose[:3] == pytest.approx(T[:3, 3], abs=1e-12)
+        assert np.linalg.norm(pose[3:]) <= np.pi + 1e-12
+        assert Rotation.from_rotvec(pose[3:]).as_matrix() == pytest.approx(T[:3, :3], abs=1e-9)
+    upright = tcp_pose([0.0, -np.pi / 2, 0.0, -np.pi / 2, 0.0, 0.0], "UR10")
+    assert np.linalg.norm(upright[3:]) == pytest.approx(np.pi), "the last configuration is the half-turn edge case"
 
 
 def test_register_ranges_follow_the_rtde_guide(client):

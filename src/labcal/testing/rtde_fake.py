@@ -201,8 +201,8 @@ def read_package(sock: socket.socket) -> tuple[str, bytes]:
     return chr(kind), recv_exact(sock, size - HEADER.size)
 
 
-# Standard outputs the fake keeps constant, at values a powered, idle arm on a bench reports (RTDE guide units:
-# V, A, degC, m/s^2; tool and joint modes 253 = running).
+# Standard outputs the fake keeps constant, at values a powered, idle arm on a bench reports (volts, amperes of the
+# arm, degC, m/s^2; tool and joint modes 253 = running; I/O and tool currents are left at 0: nothing is wired).
 _IDLE_OUTPUTS: dict[str, Any] = {
     "actual_main_voltage": 48.0,
     "actual_robot_voltage": 48.0,
@@ -212,7 +212,6 @@ _IDLE_OUTPUTS: dict[str, Any] = {
     "tool_temperature": 30.0,
     "actual_tool_accelerometer": [0.0, 0.0, 9.81],
     "actual_execution_time": 0.35,  # ms of the 2 ms control period
-    "io_current": 0.05,
     "tool_mode": 253,
     "tool_output_voltage": 24,
     "tool_output_current": 0.0,
@@ -220,16 +219,55 @@ _IDLE_OUTPUTS: dict[str, Any] = {
     "payload_inertia": [0.0] * 6,
 }
 
-# Denavit-Hartenberg d1, a2, a3 (m) of UR arms, enough to place the elbow (RTDE ``elbow_position``).
-_UR_ELBOW_DH = {
-    "UR3": (0.1519, -0.24365),
-    "UR5": (0.089159, -0.425),
-    "UR10": (0.1273, -0.612),
-    "UR3e": (0.15185, -0.24355),
-    "UR5e": (0.1625, -0.425),
-    "UR10e": (0.1807, -0.6127),
-    "UR16e": (0.1807, -0.4784),
+# Denavit-Hartenberg d1, a2, a3, d4, d5, d6 (m) of UR arms (UR's published DH tables); alpha is
+# (pi/2, 0, 0, pi/2, -pi/2, 0) and a1 = a4 = a5 = a6 = 0 on all of them.
+_UR_DH = {
+    "UR3": (0.1519, -0.24365, -0.21325, 0.11235, 0.08535, 0.0819),
+    "UR5": (0.089159, -0.425, -0.39225, 0.10915, 0.09465, 0.0823),
+    "UR10": (0.1273, -0.612, -0.5723, 0.163941, 0.1157, 0.0922),
+    "UR3e": (0.15185, -0.24355, -0.2132, 0.13105, 0.08535, 0.0921),
+    "UR5e": (0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996),
+    "UR10e": (0.1807, -0.6127, -0.57155, 0.17415, 0.11985, 0.11655),
+    "UR16e": (0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655),
 }
+_UR_ALPHA = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
+
+
+def _ur_frames(q: Sequence[float], model: str) -> list[list[list[float]]]:
+    """The base-frame transforms (4 x 4 nested lists) after each of the 6 joints of a UR arm at q (rad)."""
+    d1, a2, a3, d4, d5, d6 = _UR_DH.get(model, _UR_DH["UR10"])
+    T = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+    frames = []
+    for theta, a, d, alpha in zip(q, (0.0, a2, a3, 0.0, 0.0, 0.0), (d1, 0.0, 0.0, d4, d5, d6), _UR_ALPHA, strict=True):
+        ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
+        step = [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0.0, sa, ca, d], [0, 0, 0, 1.0]]
+        T = [[sum(T[i][k] * step[k][j] for k in range(4)) for j in range(4)] for i in range(4)]
+        frames.append(T)
+    return frames
+
+
+def _rotation_vector(R: list[list[float]]) -> list[float]:
+    """Axis * angle (rad) of a rotation matrix, angle in [0, pi]: how UR reports the TCP orientation."""
+    angle = math.acos(max(-1.0, min(1.0, (R[0][0] + R[1][1] + R[2][2] - 1.0) / 2.0)))
+    if angle < 1e-12:
+        return [0.0, 0.0, 0.0]
+    if angle > math.pi - 1e-6:  # sin(angle) ~ 0: the axis from the diagonal, signs from the largest component
+        i = max(range(3), key=lambda k: R[k][k])
+        axis = [0.0, 0.0, 0.0]
+        axis[i] = math.sqrt(max(0.0, (R[i][i] + 1.0) / 2.0))
+        for j in range(3):
+            if j != i:
+                axis[j] = (R[i][j] + R[j][i]) / (4.0 * axis[i])
+        return [angle * v for v in axis]
+    scale = angle / (2.0 * math.sin(angle))
+    return [scale * (R[2][1] - R[1][2]), scale * (R[0][2] - R[2][0]), scale * (R[1][0] - R[0][1])]
+
+
+def tcp_pose(q: Sequence[float], model: str = "UR10") -> list[float]:
+    """The flange pose [x, y, z (m), rx, ry, rz (rotation vector, rad)] in the base frame at q (6,) rad (no TCP
+    offset), as ``actual_TCP_pose`` reports it."""
+    T = _ur_frames(q, model)[-1]
+    return [T[0][3], T[1][3], T[2][3], *_rotation_vector([row[:3] for row in T[:3]])]
 
 
 def elbow_position(q: Sequence[float], model: str = "UR10") -> list[float]:
@@ -238,9 +276,8 @@ def elbow_position(q: Sequence[float], model: str = "UR10") -> list[float]:
     >>> [round(v, 4) + 0.0 for v in elbow_position([0, 0, 0, 0, 0, 0])]
     [-0.612, 0.0, 0.1273]
     """
-    d1, a2 = _UR_ELBOW_DH.get(model, _UR_ELBOW_DH["UR10"])
-    reach = a2 * math.cos(q[1])
-    return [reach * math.cos(q[0]), reach * math.sin(q[0]), d1 + a2 * math.sin(q[1])]
+    T = _ur_frames(q, model)[1]
+    return [T[0][3], T[1][3], T[2][3]]
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -310,6 +347,8 @@ class SimController:
             "target_speed_fraction": lambda: 1.0,
             "joint_mode": lambda: [253] * 6,  # 253 = JOINT_RUNNING_MODE
             "elbow_position": lambda: elbow_position(self.q, self.robot_model),
+            "actual_TCP_pose": lambda: tcp_pose(self.q, self.robot_model),
+            "target_TCP_pose": lambda: tcp_pose(self.target_q, self.robot_model),
             "elbow_velocity": self._elbow_velocity,
             "input_bit_registers0_to_31": lambda: self.registers.get("input_bit_registers0_to_31", 0),
             "input_bit_registers32_to_63": lambda: self.registers.get("input_bit_registers32_to_63", 0),
