@@ -24,6 +24,7 @@ Example::
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,18 @@ def _fit_data(store, ref: str, fit_id: str, load_obs=None) -> dict:
         split=np.array(split, dtype=object) if split and len(split) == pooled.k else pooled.split,
     )
     return {"fit_id": fit_id, "meta": meta, "robot": robot, "before": before, "obs": obs}
+
+
+def _owner(info, key):
+    """The first dict anywhere in a nested info dict that holds key (the stage that trained a curve)."""
+    if isinstance(info, dict):
+        if info.get(key) is not None:
+            return info
+        for value in info.values():
+            found = _owner(value, key)
+            if found is not None:
+                return found
+    return None
 
 
 def _find(info, key):
@@ -142,14 +155,26 @@ def _plot_per_configuration(plt, data: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def _plot_curve(plt, curve: dict, stopped_at, path: Path, title: str) -> None:
+LOSS_LABELS = {
+    # Both losses of labcal.calibration.ann are dimensionless: squared errors divided by a scale of the training rows.
+    "joint": "loss, dimensionless: weighted mean of (joint-space error / output scale)² (eq. 21)",
+    "task": "loss, dimensionless: weighted mean of (point error / training RMS)² (eq. 20)",
+}
+
+
+def loss_axis_label(loss: str | None) -> str:
+    """The y-axis label of a training curve: what the loss measures and its unit, for info["loss"]."""
+    return LOSS_LABELS.get(str(loss), "loss, dimensionless (squared error over a scale of the training rows)")
+
+
+def _plot_curve(plt, curve: dict, stopped_at, path: Path, title: str, loss: str | None = None) -> None:
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.semilogy(curve["train"], label="training")
     ax.semilogy(curve["val"], label="validation")
     if stopped_at is not None:
         ax.axvline(stopped_at, color="k", ls="--", lw=0.8, label=f"validation stop (iteration {stopped_at})")
     ax.set_xlabel("iteration")
-    ax.set_ylabel("loss")
+    ax.set_ylabel(loss_axis_label(loss), fontsize=8)
     ax.set_title(title)
     ax.legend()
     ax.grid(alpha=0.3)
@@ -158,22 +183,49 @@ def _plot_curve(plt, curve: dict, stopped_at, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def histogram_bins(samples: list[np.ndarray]) -> np.ndarray:
+    """Bin edges (mm) for the error histograms: log-spaced over the range of all samples, as many as numpy's "auto"
+    rule chooses for the pooled log10 errors.
+
+    Errors before and after calibration differ by orders of magnitude (3 mm vs 0.07 mm), so linear bins sized for
+    the before-errors (0.25 mm) put every calibrated method in one bar; on a log axis with at least 8 bins a decade
+    methods that differ by a few tens of percent fall in different bins. samples: 1-D arrays of errors in mm
+    (non-finite and non-positive values ignored).
+
+    >>> histogram_bins([np.array([0.05, 0.07, 0.09]), np.array([2.0, 3.0, 5.0])])[[0, -1]]
+    array([0.05, 5.  ])
+    """
+    pooled = np.concatenate([np.asarray(x, dtype=float).ravel() for x in samples] or [np.zeros(0)])
+    pooled = pooled[np.isfinite(pooled) & (pooled > 0)]
+    if pooled.size == 0:
+        return np.geomspace(1e-3, 1.0, 11)
+    lo, hi = float(pooled.min()), float(pooled.max())
+    if hi <= lo * (1 + 1e-9):
+        lo, hi = lo / 1.5, hi * 1.5  # one distinct value: a bar around it
+    span = (np.log10(lo), np.log10(hi))
+    auto = len(np.histogram_bin_edges(np.log10(pooled), bins="auto", range=span)) - 1
+    # at least 8 bins a decade: a factor 1.33 per bin, so a method 30 % better than another sits a bin lower
+    return np.logspace(*span, max(auto, math.ceil(8 * (span[1] - span[0])), 1) + 1)
+
+
 def _plot_histograms(plt, fits: list[dict], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4))
     first = fits[0]
     before = prediction_errors(first["before"], first["obs"])[0] * 1e3
     before = before[np.isfinite(before)]  # poses that saw fewer than three targets have no pose error
-    hi = float(np.max(before)) if before.size else 1.0
-    bins = np.linspace(0, max(hi, 1e-6), 30)
-    ax.hist(before, bins=bins, histtype="step", lw=1.5, label="before (registered nominal)")
+    after = []
     for data in fits:
         e = prediction_errors(data["robot"], data["obs"])[0] * 1e3
-        e = e[np.isfinite(e)]
+        after.append(e[np.isfinite(e)])
+    bins = histogram_bins([before, *after])
+    ax.hist(before, bins=bins, histtype="step", lw=1.5, label="before (registered nominal)")
+    for data, e in zip(fits, after, strict=True):
         ax.hist(e, bins=bins, histtype="step", lw=1.2, label=f"{data['robot'].method} ({data['fit_id']})")
-    ax.set_xlabel("position error (mm), every configuration")
+    ax.set_xscale("log")
+    ax.set_xlabel("position error (mm, log scale), every configuration")
     ax.set_ylabel("configurations")
     ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
+    ax.grid(alpha=0.3, which="both")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -489,14 +541,120 @@ def _cv_lines(cv) -> list[str]:
     return [*lines, ""] if cv.get("failures") else lines
 
 
+def held_out_worse(metrics: dict, where: str) -> list[str]:
+    """Warning texts for held-out figures that calibration made worse than before (the registered nominal).
+
+    metrics: a split table (``{"test": {"before": …, "after": …, "points": …}, …}``); the held-out splits (val,
+    test) are compared, or "all" for data the fit never saw (``labcal evaluate``; where names them). One text per
+    split whose mean point error or mean position error grew.
+
+    >>> m = {"test": {"before": {"pos_mean": 0.003}, "after": {"pos_mean": 0.004}}}
+    >>> held_out_worse(m, "the fit's")
+    ["the fit's test split: mean position error 3.0000 → 4.0000 mm"]
+    """
+    found = []
+    splits = ("all",) if where != "the fit's" else ("val", "test")
+    for split in splits:
+        table = metrics.get(split)
+        if not isinstance(table, dict):
+            continue
+        points = table.get("points") or {}
+        before, after = table.get("before") or {}, table.get("after") or {}
+        pairs = [
+            ("mean point error", (points.get("before") or {}).get("mean"), (points.get("after") or {}).get("mean")),
+            ("mean position error", before.get("pos_mean"), after.get("pos_mean")),
+        ]
+        worse = [
+            f"{what} {b * 1e3:.4f} → {a * 1e3:.4f} mm"
+            for what, b, a in pairs
+            if isinstance(b, int | float) and isinstance(a, int | float) and np.isfinite(a) and np.isfinite(b) and a > b
+        ]
+        if worse:
+            label = f"{where} {split} split" if split != "all" else where
+            found.append(f"{label}: {', '.join(worse)}")
+    return found
+
+
+def _held_out_lines(store, ref: str, data: dict, metrics: dict, *, heading: bool = True) -> list[str]:
+    """Report warnings (not stored with the fit) where a fit does worse than no calibration on data it did not fit."""
+    fid, method = data["fit_id"], data["meta"].get("chosen") or data["robot"].method
+    found = held_out_worse(metrics, "the fit's")
+    for doc in store.list_evaluations(ref, fid):
+        if doc.get("corrupt"):
+            continue
+        seen = (doc.get("data") or {}).get("ref", "?")
+        found += held_out_worse(doc.get("metrics") or {}, f"evaluation {doc.get('evaluation_id')} on {seen}")
+    who = f"fit {fid} ({method}): " if heading else ""
+    return [
+        f"- **WARNING [worse-than-before]** {who}held-out error is worse after calibration than before — {text}; "
+        "do not use this fit to correct the robot"
+        for text in found
+    ]
+
+
+def _identity_text(identity: dict | None, what: str) -> str:
+    """'arm serial 2018… (UR10, software 5.11.0)' from a device's identity dict; says so when none was reported."""
+    identity = identity or {}
+    serial = identity.get("serial")
+    extra = [f"{k} {identity[k]}" for k in ("model", "software", "firmware", "version") if identity.get(k)]
+    if serial in (None, ""):
+        text = f"{what}: serial not reported"
+    else:
+        text = f"{what} serial **{serial}**"
+    return f"{text} ({', '.join(extra)})" if extra else text
+
+
+def device_line(session: dict) -> str:
+    """The units a version was measured with, from its manifest's ``session`` block (as `labcal session show`).
+
+    >>> device_line({"robot_driver": {"driver": "ur", "identity": {"serial": "20185500001", "model": "UR10"}},
+    ...              "tracker": {"driver": "serial", "identity": {"serial": "P9-01234"}}, "metadata": {}})
+    'arm serial **20185500001** (model UR10), ur driver; tracker serial **P9-01234**, serial driver'
+    """
+    robot = session.get("robot_driver") or {}
+    tracker = session.get("tracker") or {}
+    unit = (session.get("metadata") or {}).get("unit")
+    arm = _identity_text(robot.get("identity"), "arm")
+    if unit not in (None, "") and str(unit) != str((robot.get("identity") or {}).get("serial")):
+        arm += f", recorded as unit {unit}"
+    tracker_text = _identity_text(tracker.get("identity"), "tracker")
+    parts = [
+        arm + (f", {robot['driver']} driver" if robot.get("driver") else ""),
+        tracker_text + (f", {tracker['driver']} driver" if tracker.get("driver") else ""),
+    ]
+    return "; ".join(parts)
+
+
+def _devices_of(store, refs: list[str]) -> list[str]:
+    """One line per distinct set of units among the versions refs (a pooled fit may span several arms)."""
+    lines: list[str] = []
+    for r in refs:
+        try:
+            line = device_line(store.load(r).manifest.get("session") or {})
+        except (ValueError, OSError, DatasetError):
+            line = "units unknown (the version cannot be read)"
+        entry = f"{line} ({r})"
+        if not any(e.startswith(line + " (") for e in lines):
+            lines.append(entry)
+    return lines
+
+
+def _metrics_of(data: dict) -> dict:
+    """A fit's split table as stored, recomputed for fits stored before point errors were."""
+    from labcal.calibration.metrics import split_table
+
+    metrics = data["meta"].get("metrics") or {}
+    if not any("points" in m for m in metrics.values() if isinstance(m, dict)):
+        metrics = split_table(data["before"], data["robot"], data["obs"])
+    return metrics
+
+
 def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = None, load_obs=None) -> Path:
     """Write ``report.md`` and PNG plots for the fits of a version into out_dir; returns the report's path.
 
     load_obs(refs) → Observations reads a fit's input versions (the CLI passes its loader, which converts controller
     joints to model joints); default: the versions as stored.
     """
-    from labcal.calibration.metrics import split_table
-
     plt = _plt()
     r = store.resolve(ref)
     ids = fit_ids or [f.fit_id for f in store.list_fits(r)]
@@ -525,8 +683,12 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
         "the pose fitted to the measured targets (position, mm) and the angle between the orientations "
         "(degrees); *before* is the nominal model registered to the data.",
         "",
+        f"Measured with: {device_line(ds.manifest.get('session') or {})}.",
+        "",
     ]
     summary = [line for data in fits for line in _warning_lines(data["meta"], data["fit_id"])]
+    metrics_of = {data["fit_id"]: _metrics_of(data) for data in fits}
+    summary += [line for data in fits for line in _held_out_lines(store, str(r), data, metrics_of[data["fit_id"]])]
     blocked = [d["fit_id"] for d in fits if (d["meta"].get("warnings") or [])]
     lines += ["## Warnings", ""]
     if unreadable:
@@ -543,15 +705,13 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
         lines += ["None: no fit in this report has warnings or notes.", ""]
     for data in fits:
         meta, fid = data["meta"], data["fit_id"]
-        metrics = meta.get("metrics") or {}
-        if not any("points" in m for m in metrics.values() if isinstance(m, dict)):
-            metrics = split_table(data["before"], data["robot"], data["obs"])  # fits stored before point errors
+        metrics = metrics_of[fid]
         lines += [
             f"## Fit {fid}: {meta.get('chosen', data['robot'].method)} "
             f"(asked: {meta.get('method')}, seed {meta.get('seed')})",
             "",
         ]
-        own = _warning_lines(meta, fid, heading=False)
+        own = _warning_lines(meta, fid, heading=False) + _held_out_lines(store, str(r), data, metrics, heading=False)
         if own:
             lines += [*own, ""]
         lines += [
@@ -560,6 +720,9 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
             + ".",
             "",
         ]
+        inputs = [str(x) for x in (meta.get("inputs") or [])]
+        if inputs and inputs != [str(r)]:
+            lines += ["Units of the inputs:", "", *[f"- {line}" for line in _devices_of(store, inputs)], ""]
         claim = observability_lines(meta.get("observability"), data["obs"])
         if claim:
             lines += [*claim, ""]
@@ -588,7 +751,9 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
         curve = _find(info, "curve")
         if curve and curve.get("train"):
             cpng = f"training-{fid}.png"
-            _plot_curve(plt, curve, _find(info, "stopped_at"), out / cpng, f"network training ({fid})")
+            title = f"network training ({fid})"
+            trained = _owner(info, "curve") or {}
+            _plot_curve(plt, curve, trained.get("stopped_at"), out / cpng, title, trained.get("loss"))
             lines += [f"![training curve]({cpng})", ""]
         kept = _find(info, "kept")
         if kept:

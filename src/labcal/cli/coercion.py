@@ -137,5 +137,9 @@ def install(command: Any) -> None:
 
 
 def _give(param: Any) -> None:
+    # The walk over every parameter (the lazily made --help too) also settles how a flag shows in the help.
+    from labcal.cli.helprender import hide_flag_type
+
+    hide_flag_type(param)
     if getattr(param, "_runtime_param", False) is None and hasattr(param, "type_descriptor"):
         param._runtime_param = PlainCoercion(param.type_descriptor)

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Literal
 import typer
 
 if TYPE_CHECKING:
-    from rich.console import Console
+    from rich.console import Console, RenderableType
     from rich.table import Table
 
 STORE_HELP = "Session store folder (default: $LABCAL_STORE, else ./sessions)."
@@ -65,8 +65,10 @@ class _FirstUseConsole:
 def _stdout_console() -> Console:
     from rich.console import Console
 
-    # Piped output (files, CI logs, tests) gets room for the full metrics table instead of 80 columns.
-    return Console(soft_wrap=True, highlight=False, width=None if sys.stdout.isatty() else 200)
+    # Piped output (files, CI logs, tests) gets room for the full metrics table instead of 80 columns, unless
+    # COLUMNS says how wide the reader is (rich reads it when width is None).
+    wide = sys.stdout.isatty() or os.environ.get("COLUMNS", "").strip().isdigit()
+    return Console(soft_wrap=True, highlight=False, width=None if wide else 200)
 
 
 def _stderr_console() -> Console:
@@ -238,59 +240,68 @@ def deg(x) -> str:
     return "—" if x is None else f"{x * 180 / 3.141592653589793:.4f}"
 
 
-def metrics_table(metrics: dict, title: str) -> Table:
-    """Rich table: split × (before, after) with mean / RMS / p95 / max position (mm) and orientation (deg) of the
-    tool pose, and mean / p95 / max of the per-target point error (mm) beside it."""
+def _number_table(title: str | None, head: list[str], numbers: list[str], rows: list[list[str]]) -> Table:
+    """A table whose number columns never shrink below their widest cell: at 80 columns a narrow terminal wraps the
+    headers, never the numbers (rich's default cut them to ``2.…``)."""
     from rich.table import Table
 
-    t = Table(title=title, title_justify="left")
-    t.add_column("split")
-    t.add_column("n", justify="right")
-    t.add_column("")
-    for stat in ("mean", "rms", "p95", "max"):
-        t.add_column(f"pos {stat} mm", justify="right")
-    for stat in ("mean", "rms", "p95", "max"):
-        t.add_column(f"ori {stat} °", justify="right")
-    for stat in ("mean", "p95", "max"):
-        t.add_column(f"point {stat} mm", justify="right")
-    for split in ("train", "val", "test", "all"):
-        if split not in metrics:
-            continue
-        for when in ("before", "after"):
-            s = metrics[split][when]
-            p = (metrics[split].get("points") or {}).get(when) or {}
-            t.add_row(
-                split if when == "before" else "",
-                str(int(s.get("count") or 0)) if when == "before" else "",
-                when,
-                *[mm(s.get(f"pos_{k}")) for k in ("mean", "rms", "p95", "max")],
-                *[deg(s.get(f"ori_{k}")) for k in ("mean", "rms", "p95", "max")],
-                *[mm(p.get(k)) for k in ("mean", "p95", "max")],
-            )
+    t = Table(title=title, title_justify="left", show_edge=False)
+    for name in head:
+        t.add_column(name, no_wrap=True)
+    for j, name in enumerate(numbers, start=len(head)):
+        widest = max((len(row[j]) for row in rows), default=1)
+        t.add_column(name, justify="right", no_wrap=False, overflow="fold", min_width=widest)
+    for row in rows:
+        t.add_row(*row)
     return t
 
 
-def targets_table(metrics: dict, title: str = "per-target point error (mm): mean / p95 / max") -> Table | None:
-    """Rich table: split × (before, after) × target of the point error (mm), or None if the metrics have none."""
+def metrics_table(metrics: dict, title: str) -> RenderableType:
+    """Rich tables, split × (before, after): mean / RMS / p95 / max of the tool position error (mm), of the
+    orientation error (deg), and mean / p95 / max of the per-target point error (mm).
+
+    Three narrow tables rather than one of 14 columns, so that each fits an 80-column terminal whole."""
+    from rich.console import Group
+
+    splits = [s for s in ("train", "val", "test", "all") if s in metrics]
+    cells: dict[str, list[list[str]]] = {"pos": [], "ori": [], "point": []}
+    for split in splits:
+        for when in ("before", "after"):
+            s = metrics[split][when]
+            p = (metrics[split].get("points") or {}).get(when) or {}
+            lead = [split if when == "before" else "", when]
+            n = str(int(s.get("count") or 0)) if when == "before" else ""
+            cells["pos"].append([lead[0], n, when, *[mm(s.get(f"pos_{k}")) for k in ("mean", "rms", "p95", "max")]])
+            cells["ori"].append([*lead, *[deg(s.get(f"ori_{k}")) for k in ("mean", "rms", "p95", "max")]])
+            cells["point"].append([*lead, *[mm(p.get(k)) for k in ("mean", "p95", "max")]])
+    four, three = ("mean", "rms", "p95", "max"), ("mean", "p95", "max")
+    return Group(
+        _number_table(title, ["split", "n", ""], [f"pos {k} mm" for k in four], cells["pos"]),
+        _number_table(None, ["split", ""], [f"ori {k} °" for k in four], cells["ori"]),
+        _number_table(None, ["split", ""], [f"point {k} mm" for k in three], cells["point"]),
+    )
+
+
+def targets_table(metrics: dict, title: str = "per-target point error (mm): mean / p95 / max") -> RenderableType | None:
+    """Rich tables, one per target: split × (before, after) of the point error (mm), or None if the metrics have
+    none. One table per target keeps each within 80 columns however many targets there are."""
     splits = [s for s in ("train", "val", "test", "all") if s in metrics and "points" in metrics[s]]
     if not splits:
         return None
     m = len(metrics[splits[0]]["points"]["after"].get("per_target") or [])
-    from rich.table import Table
+    from rich.console import Group
 
-    t = Table(title=title, title_justify="left")
-    t.add_column("split")
-    t.add_column("")
+    tables = []
     for i in range(m):
-        t.add_column(f"t{i + 1} mean", justify="right")
-        t.add_column(f"t{i + 1} p95", justify="right")
-        t.add_column(f"t{i + 1} max", justify="right")
-    for split in splits:
-        for when in ("before", "after"):
-            per = metrics[split]["points"][when].get("per_target") or []
-            cells = [mm(p.get(k)) for p in per for k in ("mean", "p95", "max")]
-            t.add_row(split if when == "before" else "", when, *cells)
-    return t
+        rows = []
+        for split in splits:
+            for when in ("before", "after"):
+                per = metrics[split]["points"][when].get("per_target") or []
+                p = per[i] if i < len(per) else {}
+                rows.append([split if when == "before" else "", when, *[mm(p.get(k)) for k in ("mean", "p95", "max")]])
+        head = [f"t{i + 1} {k}" for k in ("mean", "p95", "max")]
+        tables.append(_number_table(title if i == 0 else None, ["split", ""], head, rows))
+    return Group(*tables)
 
 
 def print_gates(gates: dict | None, *, what: str = "this fit", footer: bool = True) -> None:

@@ -8,6 +8,9 @@ class on first use, so the help is the same and a later ``import rich.markdown``
 
 ``tests/cli/test_help_render.py`` checks that the help text is identical either way and that the real modules are
 importable afterwards.
+
+:func:`hide_flag_type` keeps a flag's type out of its help line: typer 0.29 prints ``<bool>`` beside every on/off
+flag (``--json <bool>``, ``--help <bool>``), which reads as if the flag took a value.
 """
 
 from __future__ import annotations
@@ -58,3 +61,13 @@ def import_help_renderer() -> None:
         for module, stub in stubs.items():
             if sys.modules.get(module) is stub:
                 del sys.modules[module]
+
+
+def hide_flag_type(param) -> None:
+    """Show no type beside an on/off flag in the help (typer shows ``<bool>``); a flag given a metavar keeps it.
+
+    typer prints the metavar in place of the type when there is one, so an empty metavar prints nothing; a flag takes
+    no value, so click never prints its metavar anywhere else.
+    """
+    if getattr(param, "is_flag", False) and getattr(param, "metavar", "") is None:
+        param.metavar = ""

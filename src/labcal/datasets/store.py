@@ -404,6 +404,21 @@ def session_meta_from_start(start: StartDoc) -> dict:
     }
 
 
+_ID_TIME = re.compile(r"^(\d{4})(\d{2})(\d{2})-(\d{2})(\d{2})(\d{2})-")
+
+
+def started_at(info: SessionInfo) -> str:
+    """ISO-8601 UTC start of a session ("" if unknown): its id's time prefix, else its first version's creation.
+
+    >>> started_at(SessionInfo("20261122-031500-ur10-3f9a", {}, "base", "done", [], None, []))
+    '2026-11-22T03:15:00'
+    """
+    match = _ID_TIME.match(info.session_id)
+    if match:
+        return "{}-{}-{}T{}:{}:{}".format(*match.groups())
+    return info.versions[0].created if info.versions else ""
+
+
 class SessionStore:
     """A folder of sessions. ``root`` defaults to :func:`default_root` (``$LABCAL_STORE`` or ``./sessions``)."""
 
@@ -563,8 +578,9 @@ class SessionStore:
         return SessionInfo(session_id, robot, frame, status, infos, n_meas, warnings)
 
     def list_sessions(self) -> list[SessionInfo]:
-        """:meth:`show` for every session, oldest first."""
-        return [self.show(s) for s in self.session_ids()]
+        """:meth:`show` for every session, oldest first: by the UTC start time in the id, or for an id without one
+        (e.g. the shipped ``example``, which sorted after every dated id) by its first version's creation."""
+        return sorted((self.show(s) for s in self.session_ids()), key=started_at)
 
     # ---------------------------------------------------------------------------------------------- versions
     def manifest(self, ref: str | Ref) -> dict:

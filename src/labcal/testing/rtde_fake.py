@@ -5,11 +5,15 @@ connects, so a fake served by a thread of the same interpreter would never get t
 address (127.0.x.y): the RTDE port is fixed at 30004 and several fakes (and several test runs) may be alive at
 once.
 
-The wire protocol follows UR's public RTDE guide (protocol version 2): every package is a header (uint16
+The wire protocol follows UR's public RTDE guide (protocol versions 1 and 2): every package is a header (uint16
 big-endian size including the 3-byte header, uint8 type) and a payload; ``V`` protocol version, ``v``
 controller version (4 x uint32), ``O``/``I`` output/input recipe setup (recipe id + comma-separated types,
-``NOT_FOUND`` for names it does not know), ``S`` start, ``P`` pause and ``U`` data packages (recipe id + values
-big-endian in recipe order).
+``NOT_FOUND`` for names it does not know, ``IN_USE`` for an input another client owns), ``S`` start, ``P`` pause
+and ``U`` data packages (recipe id + values big-endian in recipe order; no recipe ids in version 1). It knows
+every standard output field of the guide (constant idle values where the fake simulates nothing), the
+registers in the guide's ranges, streams only the output recipe a client set up last, and paces it on absolute
+deadlines with controller-tick timestamps (2 ms on e-Series, 8 ms on CB3), so 125 Hz is 125 packages a second
+stamped 8 ms apart. Checked with ur-rtde 1.6.5 and with UR's own Python client (tests/drivers/test_rtde_fake.py).
 
 The fake is backed by a simulated joint state: q (6,) in rad, safety flags and robot mode, set from the test
 process through a pipe. With ``control=True`` it also emulates what ``rtde_control.RTDEControlInterface``
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import re
 import select
@@ -36,7 +41,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 RTDE_PORT = 30004
@@ -60,31 +65,37 @@ TYPE_FORMATS = {
 
 _VECTOR6D = (
     "target_q target_qd target_qdd target_current target_moment actual_q actual_qd actual_current "
-    "joint_control_output actual_TCP_pose actual_TCP_speed actual_TCP_force target_TCP_pose target_TCP_speed "
-    "joint_temperatures actual_joint_voltage ft_raw_wrench payload_inertia tcp_offset"
+    "actual_current_window actual_current_as_torque joint_control_output actual_TCP_pose actual_TCP_speed "
+    "actual_TCP_force target_TCP_pose target_TCP_speed joint_temperatures actual_joint_voltage ft_raw_wrench "
+    "payload_inertia tcp_offset"
 ).split()
 _DOUBLE = (
     "timestamp actual_execution_time speed_scaling target_speed_fraction actual_momentum actual_main_voltage "
     "actual_robot_voltage actual_robot_current standard_analog_input0 standard_analog_input1 "
-    "standard_analog_output0 standard_analog_output1 payload tool_analog_input0 tool_analog_input1 "
-    "tool_output_current tool_temperature"
+    "standard_analog_output0 standard_analog_output1 io_current euromap67_24V_voltage euromap67_24V_current "
+    "tool_analog_input0 tool_analog_input1 tool_output_current tool_temperature tcp_force_scalar payload "
+    "joint_position_deviation_ratio collision_detection_ratio"
 ).split()
+_UINT32 = (
+    "runtime_state robot_status_bits safety_status_bits analog_io_types euromap67_input_bits "
+    "euromap67_output_bits tool_mode tool_analog_input_types script_control_line output_bit_registers0_to_31 "
+    "output_bit_registers32_to_63 input_bit_registers0_to_31 input_bit_registers32_to_63"
+).split()
+# The standard output fields of UR's RTDE guide (e-Series 5.x), besides the numbered registers.
 _FIXED_TYPES: dict[str, str] = {
     **dict.fromkeys(_VECTOR6D, "VECTOR6D"),
     **dict.fromkeys(_DOUBLE, "DOUBLE"),
+    **dict.fromkeys(_UINT32, "UINT32"),
+    **dict.fromkeys(["tool_output_mode", "tool_digital_output0_mode", "tool_digital_output1_mode"], "UINT8"),
+    **dict.fromkeys(["actual_tool_accelerometer", "payload_cog", "elbow_position", "elbow_velocity"], "VECTOR3D"),
     "actual_digital_input_bits": "UINT64",
     "actual_digital_output_bits": "UINT64",
     "robot_mode": "INT32",
     "safety_mode": "INT32",
     "safety_status": "INT32",
+    "tool_output_voltage": "INT32",
+    "time_scale_source": "INT32",
     "joint_mode": "VECTOR6INT32",
-    "actual_tool_accelerometer": "VECTOR3D",
-    "payload_cog": "VECTOR3D",
-    "runtime_state": "UINT32",
-    "robot_status_bits": "UINT32",
-    "safety_status_bits": "UINT32",
-    "output_bit_registers0_to_31": "UINT32",
-    "output_bit_registers32_to_63": "UINT32",
 }
 # Inputs (what a client may write), besides input_{int,double,bit}_register_N.
 _INPUT_TYPES: dict[str, str] = {
@@ -104,8 +115,13 @@ _INPUT_TYPES: dict[str, str] = {
     "speed_slider_fraction": "DOUBLE",
     "external_force_torque": "VECTOR6D",
 }
-_REGISTER = re.compile(r"^(input|output)_(int|double|bit)_register_(\d+)$")
+_REGISTER = re.compile(r"^(input|output)_(int|double|bit)_register_(0|[1-9]\d*)$")
 _REGISTER_TYPES = {"int": "INT32", "double": "DOUBLE", "bit": "BOOL"}
+# Register numbers the RTDE guide names one by one: int and double 0..47 (0..23 shared with the fieldbus/PLC,
+# 24..47 for RTDE clients); single bits 64..127 only (bits 0..63 are read and written as the two UINT32 words
+# ``*_bit_registers0_to_31`` / ``*_bit_registers32_to_63``).
+REGISTER_RANGES = {"int": range(48), "double": range(48), "bit": range(64, 128)}
+
 
 # UR controller enumerations (RTDE guide): robot mode, safety mode, safety status bits, runtime state.
 ROBOT_MODE_RUNNING = 7
@@ -120,13 +136,19 @@ RUNTIME_PLAYING = 2
 
 
 def rtde_type(name: str, direction: str = "output") -> str | None:
-    """RTDE type of an output (or, with direction="input", input) name; None if unknown (NOT_FOUND)."""
+    """RTDE type of an output (or, with direction="input", input) name; None if unknown (NOT_FOUND).
+
+    >>> rtde_type("output_bit_register_64"), rtde_type("output_bit_register_63"), rtde_type("actual_q")
+    ('BOOL', None, 'VECTOR6D')
+    """
     table = _FIXED_TYPES if direction == "output" else _INPUT_TYPES
     if name in table:
         return table[name]
     match = _REGISTER.match(name)
+    if match is None or int(match.group(3)) not in REGISTER_RANGES[match.group(2)]:
+        return None
     # both directions may read the input registers; only outputs may name output registers
-    if match and int(match.group(3)) < 48 and (direction == "output" or match.group(1) == "input"):
+    if direction == "output" or match.group(1) == "input":
         return _REGISTER_TYPES[match.group(2)]
     return None
 
@@ -179,6 +201,85 @@ def read_package(sock: socket.socket) -> tuple[str, bytes]:
     return chr(kind), recv_exact(sock, size - HEADER.size)
 
 
+# Standard outputs the fake keeps constant, at values a powered, idle arm on a bench reports (volts, amperes of the
+# arm, degC, m/s^2; tool and joint modes 253 = running; I/O and tool currents are left at 0: nothing is wired).
+_IDLE_OUTPUTS: dict[str, Any] = {
+    "actual_main_voltage": 48.0,
+    "actual_robot_voltage": 48.0,
+    "actual_robot_current": 0.6,
+    "actual_joint_voltage": [47.8] * 6,
+    "joint_temperatures": [31.0, 32.5, 33.0, 30.5, 30.0, 29.5],
+    "tool_temperature": 30.0,
+    "actual_tool_accelerometer": [0.0, 0.0, 9.81],
+    "actual_execution_time": 0.35,  # ms of the 2 ms control period
+    "tool_mode": 253,
+    "tool_output_voltage": 24,
+    "tool_output_current": 0.0,
+    "payload": 1.0,
+    "payload_inertia": [0.0] * 6,
+}
+
+# Denavit-Hartenberg d1, a2, a3, d4, d5, d6 (m) of UR arms (UR's published DH tables); alpha is
+# (pi/2, 0, 0, pi/2, -pi/2, 0) and a1 = a4 = a5 = a6 = 0 on all of them.
+_UR_DH = {
+    "UR3": (0.1519, -0.24365, -0.21325, 0.11235, 0.08535, 0.0819),
+    "UR5": (0.089159, -0.425, -0.39225, 0.10915, 0.09465, 0.0823),
+    "UR10": (0.1273, -0.612, -0.5723, 0.163941, 0.1157, 0.0922),
+    "UR3e": (0.15185, -0.24355, -0.2132, 0.13105, 0.08535, 0.0921),
+    "UR5e": (0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996),
+    "UR10e": (0.1807, -0.6127, -0.57155, 0.17415, 0.11985, 0.11655),
+    "UR16e": (0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655),
+}
+_UR_ALPHA = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
+
+
+def _ur_frames(q: Sequence[float], model: str) -> list[list[list[float]]]:
+    """The base-frame transforms (4 x 4 nested lists) after each of the 6 joints of a UR arm at q (rad)."""
+    d1, a2, a3, d4, d5, d6 = _UR_DH.get(model, _UR_DH["UR10"])
+    T = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+    frames = []
+    for theta, a, d, alpha in zip(q, (0.0, a2, a3, 0.0, 0.0, 0.0), (d1, 0.0, 0.0, d4, d5, d6), _UR_ALPHA, strict=True):
+        ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
+        step = [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0.0, sa, ca, d], [0, 0, 0, 1.0]]
+        T = [[sum(T[i][k] * step[k][j] for k in range(4)) for j in range(4)] for i in range(4)]
+        frames.append(T)
+    return frames
+
+
+def _rotation_vector(R: list[list[float]]) -> list[float]:
+    """Axis * angle (rad) of a rotation matrix, angle in [0, pi]: how UR reports the TCP orientation."""
+    angle = math.acos(max(-1.0, min(1.0, (R[0][0] + R[1][1] + R[2][2] - 1.0) / 2.0)))
+    if angle < 1e-12:
+        return [0.0, 0.0, 0.0]
+    if angle > math.pi - 1e-6:  # sin(angle) ~ 0: the axis from the diagonal, signs from the largest component
+        i = max(range(3), key=lambda k: R[k][k])
+        axis = [0.0, 0.0, 0.0]
+        axis[i] = math.sqrt(max(0.0, (R[i][i] + 1.0) / 2.0))
+        for j in range(3):
+            if j != i:
+                axis[j] = (R[i][j] + R[j][i]) / (4.0 * axis[i])
+        return [angle * v for v in axis]
+    scale = angle / (2.0 * math.sin(angle))
+    return [scale * (R[2][1] - R[1][2]), scale * (R[0][2] - R[2][0]), scale * (R[1][0] - R[0][1])]
+
+
+def tcp_pose(q: Sequence[float], model: str = "UR10") -> list[float]:
+    """The flange pose [x, y, z (m), rx, ry, rz (rotation vector, rad)] in the base frame at q (6,) rad (no TCP
+    offset), as ``actual_TCP_pose`` reports it."""
+    T = _ur_frames(q, model)[-1]
+    return [T[0][3], T[1][3], T[2][3], *_rotation_vector([row[:3] for row in T[:3]])]
+
+
+def elbow_position(q: Sequence[float], model: str = "UR10") -> list[float]:
+    """Base-frame position (m) of the elbow (the origin after joint 2's link), from q (6,) rad.
+
+    >>> [round(v, 4) + 0.0 for v in elbow_position([0, 0, 0, 0, 0, 0])]
+    [-0.612, 0.0, 0.1273]
+    """
+    T = _ur_frames(q, model)[1]
+    return [T[0][3], T[1][3], T[2][3]]
+
+
 # --------------------------------------------------------------------------------------------------------------
 # The simulated controller (lives in the child process).
 
@@ -202,6 +303,8 @@ class SimController:
         self.log: list[tuple[str, Any]] = []  # control-side events (script uploads, commands) for tests
         self.serial: str | None = "20185500001"  # None: a controller too old to know "get serial number"
         self.robot_model = "UR10"
+        # input field -> the RTDE session whose recipe claimed it; another client asking for it gets IN_USE
+        self.input_owners: dict[str, object] = {}
 
     def timestamp(self) -> float:
         """Controller time, s since the fake started (stops advancing while frozen)."""
@@ -222,10 +325,13 @@ class SimController:
             bits |= SAFETY_BIT_EMERGENCY_STOPPED
         return bits or SAFETY_BIT_NORMAL
 
-    def value(self, name: str, kind: str) -> Any:
-        """Current value of an output variable (caller holds the lock)."""
+    def value(self, name: str, kind: str, timestamp: float | None = None) -> Any:
+        """Current value of an output variable (caller holds the lock).
+
+        timestamp: the controller time of the sample being packed (s); None for now.
+        """
         simple = {
-            "timestamp": self.timestamp,
+            "timestamp": lambda: self.timestamp() if timestamp is None else timestamp,
             "actual_q": lambda: self.q,
             "target_q": lambda: self.target_q,
             "actual_qd": lambda: self.qd,
@@ -240,18 +346,84 @@ class SimController:
             "speed_scaling": lambda: 1.0,
             "target_speed_fraction": lambda: 1.0,
             "joint_mode": lambda: [253] * 6,  # 253 = JOINT_RUNNING_MODE
+            "elbow_position": lambda: elbow_position(self.q, self.robot_model),
+            "actual_TCP_pose": lambda: tcp_pose(self.q, self.robot_model),
+            "target_TCP_pose": lambda: tcp_pose(self.target_q, self.robot_model),
+            "elbow_velocity": self._elbow_velocity,
+            "input_bit_registers0_to_31": lambda: self.registers.get("input_bit_registers0_to_31", 0),
+            "input_bit_registers32_to_63": lambda: self.registers.get("input_bit_registers32_to_63", 0),
         }
         if name in simple:
             return simple[name]()
         if name in self.registers:
             return self.registers[name]
+        if name in _IDLE_OUTPUTS:
+            return _IDLE_OUTPUTS[name]
         fmt = TYPE_FORMATS[kind]
         zero: Any = False if kind == "BOOL" else 0.0 if "d" in fmt else 0
         return [zero] * int(fmt[0]) if fmt[0].isdigit() else zero
 
+    def _elbow_velocity(self) -> list[float]:
+        """Finite difference of the elbow position over 1 ms at the current joint speeds, m/s."""
+        dt = 1e-3
+        ahead = elbow_position([q + v * dt for q, v in zip(self.q, self.qd, strict=True)], self.robot_model)
+        here = elbow_position(self.q, self.robot_model)
+        return [(a - h) / dt for a, h in zip(ahead, here, strict=True)]
+
+
+def control_period(controller_version: Sequence[int]) -> float:
+    """The controller's control period, s: 2 ms on e-Series (PolyScope 5 and later), 8 ms on CB3 (3.x)."""
+    return 0.008 if int(controller_version[0]) < 5 else 0.002
+
+
+def output_decimation(frequency: float, tick: float) -> int:
+    """Control periods between two output packages: the controller sends every floor(f_control / f)-th sample.
+
+    >>> output_decimation(125.0, 0.002), output_decimation(500.0, 0.002), output_decimation(10.0, 0.008)
+    (4, 1, 12)
+    """
+    if not frequency > 0:
+        return round(1.0 / tick)  # nonsense frequency: 1 Hz
+    return max(1, math.floor(1.0 / (tick * frequency) + 1e-9))
+
+
+def paced(
+    period: float,
+    start: float,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+    max_lag: float = 0.25,
+) -> Iterator[float]:
+    """Yield the deadlines start + n * period (s, on ``clock``), each once it is due, sleeping until then.
+
+    Absolute deadlines: a late wake-up delays one package, never the ones after it (sleeping one period after
+    each package drifts by the overshoot: 119 packages/s for 125 Hz). Late by less than ``max_lag``, the
+    overdue deadlines follow at once; later than that (a stalled process), it skips to the latest due one, as
+    the controller drops the packages it could not send.
+    """
+    n = 0
+    while True:
+        deadline = start + n * period
+        now = clock()
+        if now - deadline > max_lag:
+            n = math.floor((now - start) / period + 1e-9)
+            deadline = start + n * period
+        elif deadline > now:
+            sleep(deadline - now)
+        yield deadline
+        n += 1
+
 
 class _RTDESession:
-    """One client connection on port 30004."""
+    """One client connection on port 30004.
+
+    Protocol version 1 until the client negotiates 2: in version 1 the output setup carries no frequency (the
+    controller streams at 125 Hz) and neither its answer nor the data packages carry a recipe id. The
+    controller keeps one output recipe per client: a later output setup replaces the earlier one, so only the
+    recipe the client set up last is streamed, under its own id. Input fields belong to the first client whose
+    recipe names them until it disconnects; another client's recipe naming one gets ``IN_USE`` (and id 0). One
+    client may name a field in several of its own input recipes (ur-rtde's control interface does).
+    """
 
     def __init__(self, sock: socket.socket, sim: SimController, on_input: Any, unknown: Sequence[str] = ()):
         self.sock = sock
@@ -259,7 +431,10 @@ class _RTDESession:
         self.sim = sim
         self.on_input = on_input  # called with the names of input registers a data package just wrote
         self.send_lock = threading.Lock()
-        self.outputs: dict[int, tuple[float, list[str], list[str]]] = {}
+        self.protocol = 1
+        self.tick = control_period(sim.controller_version)
+        self.output: tuple[int, float, list[str], list[str]] | None = None  # recipe id, Hz, names, types
+        self.output_setups = 0
         self.inputs: dict[int, tuple[list[str], list[str]]] = {}
         self.streaming = threading.Event()
         self.closed = threading.Event()
@@ -267,6 +442,20 @@ class _RTDESession:
     def send(self, kind: str, payload: bytes = b"") -> None:
         with self.send_lock:
             self.sock.sendall(pack_package(kind, payload))
+
+    def gone(self) -> bool:
+        """Whether the client has closed the connection (a peek: the reader thread may not have seen it yet).
+
+        A client killed and restarted (a reconnecting driver) must get its input fields back at once, as a real
+        controller, which learns of the close from the kernel, gives them."""
+        if self.closed.is_set():
+            return True
+        try:
+            return self.sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+        except BlockingIOError:
+            return False  # open, nothing to read
+        except OSError:
+            return True  # reset or closed
 
     def run(self) -> None:
         threading.Thread(target=self._stream, daemon=True).start()
@@ -279,35 +468,28 @@ class _RTDESession:
         finally:
             self.closed.set()
             self.streaming.clear()
+            with self.sim.lock:  # a client that went away frees its input fields
+                for name in [n for n, owner in self.sim.input_owners.items() if owner is self]:
+                    del self.sim.input_owners[name]
             with contextlib.suppress(OSError):
                 self.sock.close()
 
     def _handle(self, kind: str, payload: bytes) -> None:
         if kind == "V":
             (version,) = struct.unpack(">H", payload)
-            self.send("V", struct.pack(">?", version in (1, 2)))
+            accepted = version in (1, 2)
+            if accepted:
+                self.protocol = version
+            self.send("V", struct.pack(">?", accepted))
         elif kind == "v":
             self.send("v", struct.pack(">4I", *self.sim.controller_version))
         elif kind == "O":
-            (frequency,) = struct.unpack(">d", payload[:8])
-            names = [n for n in payload[8:].decode("ascii").split(",") if n]
-            types = [("NOT_FOUND" if n in self.unknown else rtde_type(n)) or "NOT_FOUND" for n in names]
-            recipe = 0 if "NOT_FOUND" in types else len(self.outputs) + 1
-            self._log_not_found("O", names, types)
-            if recipe:
-                self.outputs[recipe] = (frequency, names, types)
-            self.send("O", struct.pack(">B", recipe) + ",".join(types).encode("ascii"))
+            self._setup_outputs(payload)
         elif kind == "I":
-            names = [n for n in payload.decode("ascii").split(",") if n]
-            types = [rtde_type(n, "input") or "NOT_FOUND" for n in names]
-            recipe = 0 if "NOT_FOUND" in types else len(self.inputs) + 1
-            self._log_not_found("I", names, types)
-            if recipe:
-                self.inputs[recipe] = (names, types)
-            self.send("I", struct.pack(">B", recipe) + ",".join(types).encode("ascii"))
+            self._setup_inputs(payload)
         elif kind == "S":
-            self.send("S", struct.pack(">?", bool(self.outputs) or bool(self.inputs)))
-            if self.outputs:
+            self.send("S", struct.pack(">?", self.output is not None or bool(self.inputs)))
+            if self.output is not None:
                 self.streaming.set()
         elif kind == "P":
             with self.send_lock:  # no data package may follow the pause answer
@@ -323,8 +505,52 @@ class _RTDESession:
                 self.on_input(names)
         else:
             text = f"fake controller: unsupported package type {kind!r}".encode("ascii")
-            # 'M' text message: uint8 length, text, uint8 source length, source, uint8 warning level (3 = error)
-            self.send("M", struct.pack(">B", len(text)) + text + b"\x04fake\x03")
+            # 'M' text message, level 1 = error. Version 2: uint8 length, text, uint8 source length, source, level;
+            # version 1: level, text.
+            if self.protocol >= 2:
+                self.send("M", struct.pack(">B", len(text)) + text + b"\x04fake\x01")
+            else:
+                self.send("M", b"\x01" + text)
+
+    def _setup_outputs(self, payload: bytes) -> None:
+        if self.protocol >= 2:
+            (frequency,) = struct.unpack(">d", payload[:8])
+            payload = payload[8:]
+        else:
+            frequency = 125.0
+        names = [n for n in payload.decode("ascii").split(",") if n]
+        types = [("NOT_FOUND" if n in self.unknown else rtde_type(n)) or "NOT_FOUND" for n in names]
+        self._log_not_found("O", names, types)
+        recipe = 0
+        if names and "NOT_FOUND" not in types:
+            self.output_setups += 1
+            recipe = self.output_setups
+            self.output = (recipe, float(frequency), names, types)
+        with self.sim.lock:
+            self.sim.log.append(("setup_outputs", {"recipe": recipe, "names": names, "protocol": self.protocol}))
+        answer = ",".join(types).encode("ascii")
+        self.send("O", (struct.pack(">B", recipe) + answer) if self.protocol >= 2 else answer)
+
+    def _setup_inputs(self, payload: bytes) -> None:
+        names = [n for n in payload.decode("ascii").split(",") if n]
+        with self.sim.lock:
+            types = []
+            for name in names:
+                owner = self.sim.input_owners.get(name)
+                if isinstance(owner, _RTDESession) and owner is not self and owner.gone():
+                    del self.sim.input_owners[name]  # closed, but its reader thread has not noticed yet
+                    owner = None
+                kind = rtde_type(name, "input")
+                types.append("NOT_FOUND" if kind is None else "IN_USE" if owner not in (None, self) else kind)
+            recipe = 0 if not names or {"NOT_FOUND", "IN_USE"} & set(types) else len(self.inputs) + 1
+            if recipe:
+                self.sim.input_owners.update(dict.fromkeys(names, self))
+                self.inputs[recipe] = (names, types)
+            taken = [n for n, t in zip(names, types, strict=True) if t == "IN_USE"]
+            if taken:
+                self.sim.log.append(("in_use", {"names": taken}))
+        self._log_not_found("I", names, types)
+        self.send("I", struct.pack(">B", recipe) + ",".join(types).encode("ascii"))
 
     def _log_not_found(self, kind: str, names: list[str], types: list[str]) -> None:
         missing = [n for n, t in zip(names, types, strict=True) if t == "NOT_FOUND"]
@@ -334,27 +560,32 @@ class _RTDESession:
 
     def _stream(self) -> None:
         while not self.closed.is_set():
-            if not self.streaming.wait(0.05):
+            output = self.output
+            if not self.streaming.wait(0.05) or output is None:
                 continue
-            period = 1.0 / max(min(f for f, _, _ in self.outputs.values()), 1.0)
-            period = max(period, 0.002)  # 500 Hz is the e-Series maximum
+            recipe, frequency, names, types = output
+            period = self.tick * output_decimation(frequency, self.tick)
             with self.sim.lock:
-                packages = [
-                    pack_package(
-                        "U",
-                        struct.pack(">B", recipe)
-                        + pack_values(types, [self.sim.value(n, k) for n, k in zip(names, types, strict=True)]),
-                    )
-                    for recipe, (_, names, types) in self.outputs.items()
-                ]
-            try:
-                with self.send_lock:
-                    if self.streaming.is_set():
-                        for package in packages:
+                t0 = self.sim.t0
+            # first package on the next control tick; the stamps are control ticks, so they step by one period
+            start = t0 + math.ceil((time.monotonic() - t0) / self.tick) * self.tick
+            for deadline in paced(period, start):
+                if self.closed.is_set() or not self.streaming.is_set() or self.output is not output:
+                    break  # paused, gone, or a new recipe: start a new schedule
+                with self.sim.lock:
+                    if self.sim.frozen_at is not None:
+                        stamp = self.sim.frozen_at
+                    else:
+                        stamp = round((deadline - self.sim.t0) / self.tick) * self.tick
+                    values = [self.sim.value(n, k, stamp) for n, k in zip(names, types, strict=True)]
+                body = pack_values(types, values)
+                package = pack_package("U", (struct.pack(">B", recipe) + body) if self.protocol >= 2 else body)
+                try:
+                    with self.send_lock:
+                        if self.streaming.is_set():
                             self.sock.sendall(package)
-            except OSError:
-                return
-            time.sleep(period)
+                except OSError:
+                    return
 
 
 class ControlEmulator:

@@ -239,6 +239,7 @@ _KEEP_INFO = {
     "param_labels", "rank", "expected_rank", "sigma", "T_tracker_base_std", "kept", "val_error_local_poe",
     "val_error_hybrid", "candidates", "observations", "warnings", "iterations", "converged", "unidentifiable",
     "warning", "rank_deficient", "null_directions", "null_space", "n_params", "singular_values", "cov",
+    "loss",  # which loss a network trained on: the report labels its training curve with it
 }  # fmt: skip
 
 
