@@ -72,7 +72,7 @@ from labcal.kinematics import se3
 from labcal.kinematics.conversions import from_dh, from_mdh, from_urdf
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 from labcal.robots.joint_map import JointMap
-from labcal.robots.names import duplicate, label_problem, name_problem
+from labcal.robots.names import duplicate, label_problem, name_problem, printable
 from labcal.tomlschema import Key, SchemaError, Table, validate
 from labcal.tomlschema import is_number as _is_number
 
@@ -172,7 +172,9 @@ def load(name_or_path: str | Path) -> RobotSpec:
 
 def loads(text: str, format: str = "toml", source: str = "<text>") -> RobotSpec:
     """A robot from the text of a robot file (``format`` "toml" or "urdf"), e.g. the copy a session stored."""
+    source = printable(source)  # it names the file in every message: a stored name may hold anything
     if format == "urdf":
+        _check_urdf_joint_names(text, source)
         model = from_urdf(text)
         _check_urdf_names(model, source)
         spec = _spec(model.name or Path(source).stem, model, {}, [], source)
@@ -185,6 +187,23 @@ def loads(text: str, format: str = "toml", source: str = "<text>") -> RobotSpec:
     else:
         raise RobotFileError(f"{source}: robot file format must be 'toml' or 'urdf', got {format!r}")
     return dataclasses.replace(spec, text=text, format=format)
+
+
+def _check_urdf_joint_names(text: str, source: str) -> None:
+    """Refuse repeated <joint name>s before the chain is built (it would silently keep one of them)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        names = [j.get("name") for j in ET.fromstring(text).iter("joint")]
+    except ET.ParseError:
+        return  # from_urdf says what is wrong with the XML
+    twice = duplicate(names)
+    if twice is not None:
+        raise RobotFileError(
+            f"{source}: joint {twice[1] + 1} name {printable(names[twice[1]])!r} repeats joint {twice[0] + 1}'s: "
+            "joint names must be unique",
+            source,
+        )
 
 
 def _check_urdf_names(model: LocalPOEModel, source: str) -> None:
