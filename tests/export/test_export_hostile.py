@@ -170,6 +170,7 @@ def test_exports_name_the_arm_and_the_tracker_by_serial_escaped(fitted):
     assert "# arm_serial: 20185500001" in head and f"# tracker_serial: {shown}" in head
 
 
+@pytest.mark.timeout(60)  # a writer that opened the FIFO would wait for a reader forever
 @pytest.mark.parametrize("kind", ["symlink", "fifo", "folder", "device"])
 def test_export_force_refuses_what_is_not_a_regular_file_with_one_line(fitted, tmp_path, kind):
     victim, out = tmp_path / "victim.json", tmp_path / "out.json"
