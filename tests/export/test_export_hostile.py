@@ -194,3 +194,19 @@ def test_export_force_refuses_what_is_not_a_regular_file_with_one_line(fitted, t
     assert os.lstat(out).st_mode == mode and victim.read_text() == "keep"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.json", "victim.json"]  # nothing left behind
     assert last_line(invoke("session", "list", store=fitted["store"]))  # the store is untouched and readable
+
+
+def test_session_list_and_show_print_a_stored_hostile_name_without_raw_escapes(tmp_path):
+    """A store written before the name checks (or by hand) may hold any robot name: the terminal gets it escaped."""
+    import dataclasses
+
+    store = SessionStore(tmp_path / "store")
+    spec = dataclasses.replace(load("ur10"), name="ur10\x1b[2J\x1b[31mOK")
+    rig = SimRig(simulate(load("ur10"), ErrorSpec.default(), seed=0), TARGETS, seed=0)
+    plan = make_plan(random_configurations(spec.model, 3, seed=0, targets=TARGETS), samples=1, settle=0.0)
+    with rig.robot() as robot, rig.tracker() as tracker:
+        summary = run(store, spec, TARGETS, plan, robot, tracker, frame="base")
+    for args in (("session", "list"), ("session", "show", summary.session_id)):
+        r = invoke(*args, store=tmp_path / "store")
+        assert r.exit_code == 0, r.stderr
+        assert "\x1b" not in r.stdout and "ur10\\x1b[2J" in r.stdout.replace("\n", ""), r.stdout
