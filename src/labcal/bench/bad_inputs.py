@@ -618,7 +618,7 @@ def reseal(edit):
 {change}
 try:
     C.load({target})
-    print("loaded the crafted file: not refused")
+    print("loaded the crafted file: accepted")
 except C.CompensatorFileError as e:
     print("refused:", str(e).splitlines()[0])
     sys.exit(2)

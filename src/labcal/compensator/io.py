@@ -59,7 +59,7 @@ MAX_NETWORK_VALUES = 1_000_000  # weights + biases: 8 MB of float64 (the paper's
 MAX_FILE_BYTES = 48 * 1024**2  # a JSON file, or an NPZ member's uncompressed size (1M numbers as JSON text)
 MAX_META_CHARS = 4 * 1024**2  # the NPZ metadata (JSON text without the arrays)
 MAX_PROVENANCE_DEPTH = 4  # provenance: {key: text | number | [{key: text}]}
-MAX_PROVENANCE_TEXT = 4096
+MAX_PROVENANCE_TEXT = 65536  # one provenance string: a pooled fit lists every input ref and data hash
 # Joint ranges are the data's covered range, which switches the out-of-range guard: a range beyond what any
 # robot file may declare (two turns each way for a revolute joint, 10 m for a prismatic one: labcal.robots) is
 # no range at all (±1e300 would switch the guard off) or degrees/millimetres.

@@ -110,7 +110,7 @@ def device_serials(store: SessionStore, refs: list[str]) -> dict[str, str]:
     arms: list[str] = []
     trackers: list[str] = []
     for ref in refs:
-        session = store.load(ref).manifest.get("session") or {}
+        session = store.load(ref).manifest.get("session") or {}  # verified: a record names what it calibrated
         robot_id = (session.get("robot_driver") or {}).get("identity") or {}
         tracker_id = (session.get("tracker") or {}).get("identity") or {}
         arm = robot_id.get("serial") or (session.get("metadata") or {}).get("unit")
