@@ -3,9 +3,11 @@ JSON / NPZ save and load, and :class:`Compensator`, the deployable runtime that 
 
 :meth:`Compensator.load` reads a JSON or NPZ export written by :func:`save` (schema version, robot model and its
 hash, identified frames, network, joint ranges, tracker pose, length scale, joint map, provenance, golden vectors,
-and a checksum of each of those fields), refuses a file whose fields do not match their checksums (an edit naming
-the field: a widened joint range would otherwise silently switch off the out-of-range guard), re-computes the
-golden vectors and refuses a file that disagrees.
+and a checksum of each of those fields), checks sizes, shapes, finite values, plausible joint ranges, names and
+provenance before anything large is read or computed (:func:`check_payload`; an NPZ member by its ``.npy`` header
+first), refuses a file whose fields do not match their checksums (an edit naming the field: a widened joint range
+would otherwise silently switch off the out-of-range guard), re-computes the golden vectors and refuses a file
+that disagrees. :func:`save` writes through :mod:`labcal.atomicio` and refuses what load would refuse.
 
 Example::
 
