@@ -84,7 +84,7 @@ def test_a_urdf_gets_the_same_name_checks(names, message):
 
 
 def test_the_name_rule_and_the_printable_form():
-    from labcal.robots.names import name_problem, printable
+    from labcal.names import name_problem, printable
 
     for good in ("ur10", "fanuc-m1000ia", "shoulder_pan_joint", "arm/joint_1", "J1", "ur5e+gripper.v2"):
         assert name_problem(good) is None, good

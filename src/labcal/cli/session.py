@@ -215,9 +215,9 @@ def list_(
     t = Table(title=f"sessions in {st.root}", title_justify="left")
     for col in ("session", "robot", "frame", "status", "versions", "rows"):
         t.add_column(col)
-    from labcal.robots.names import printable  # a stored name may predate the name checks: no raw escapes
-
     for info, _ in rows:
+        from labcal.names import printable  # a stored name may predate the name checks: no raw escapes
+
         t.add_row(
             info.session_id, printable(info.robot.get("name")), info.frame, info.status,
             ", ".join(v.name for v in info.versions) or "—", str(info.rows),
@@ -295,7 +295,7 @@ def show(
         n_targets = len(meta["targets"])
         targets = f", {n_targets} target{'s' if n_targets != 1 else ''}"
     unit = "" if _unit(meta) is None else f", unit {_unit(meta)}"
-    from labcal.robots.names import printable  # a stored name may predate the name checks: no raw escapes
+    from labcal.names import printable  # a stored name may predate the name checks: no raw escapes
 
     name = printable(info.robot.get("name"))
     out.print(f"session {info.session_id}: robot {name} ({info.robot.get('hash', '')[:12]}…, "

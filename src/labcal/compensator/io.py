@@ -35,9 +35,9 @@ from labcal.atomicio import write_bytes, write_text
 from labcal.compensator.model import CalibratedRobot, Network
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
+from labcal.names import duplicate, label_problem, name_problem, printable
 from labcal.robots import MAX_LENGTH, MAX_REVOLUTE_LIMIT, model_hash
 from labcal.robots.joint_map import JointMap
-from labcal.robots.names import duplicate, label_problem, name_problem, printable
 
 SCHEMA = "labcal-compensator"
 SCHEMA_VERSION = 2  # 2: joint map, and per-field checksums over everything that changes behaviour
@@ -237,7 +237,7 @@ def check_payload(data: dict, source: str, *, error: type[Exception] = Compensat
     """Refuse a payload whose fields are not what an export holds, before its checksums, models or network are
     computed: sizes and shapes (bounded by :data:`MAX_JOINTS`, :data:`MAX_GOLDEN`, :data:`MAX_LAYERS`,
     :data:`MAX_WIDTH`, :data:`MAX_NETWORK_VALUES`), finite numbers, joint ranges within :data:`MAX_RANGE`, names
-    (:mod:`labcal.robots.names`: a name reaches URScript, YAML and URDF exports), unique joint names, and
+    (:mod:`labcal.names`: a name reaches URScript, YAML and URDF exports), unique joint names, and
     provenance as short printable text nested at most :data:`MAX_PROVENANCE_DEPTH` deep. Checksums cannot stand in
     for this: whoever writes a file can recompute them. One line naming ``source`` and the field.
     """

@@ -44,7 +44,7 @@ readout, the driver's pass-through Cartesian controllers) follow the controller'
 planned on this description (MoveIt, …) reach the calibrated poses. The file says so in a comment.
 
 Strings. The robot's name and the provenance are comments: each is one printable line (control characters
-escaped, :func:`labcal.robots.names.printable`), so nothing in them can start a key; the hash is a double-quoted
+escaped, :func:`labcal.names.printable`), so nothing in them can start a key; the hash is a double-quoted
 YAML scalar (JSON string syntax, which YAML reads the same way). The file is written atomically
 (:mod:`labcal.atomicio`).
 
@@ -72,8 +72,8 @@ from labcal.export.learned import refuse_or_note
 from labcal.export.zform import ZAxisForm
 from labcal.kinematics import se3
 from labcal.kinematics.poe import REVOLUTE
+from labcal.names import printable
 from labcal.robots import model_hash
-from labcal.robots.names import printable
 
 UR_SEGMENTS = ("shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3")
 UR_JOINT_NAMES = (

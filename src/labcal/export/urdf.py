@@ -1,6 +1,6 @@
 """Calibrated URDF export, written with ``xml.etree`` (names and comments are escaped by the XML writer).
 
-Strings. Names are checked where they enter labcal (:mod:`labcal.robots.names`); here every name and comment is
+Strings. Names are checked where they enter labcal (:mod:`labcal.names`); here every name and comment is
 also made printable (XML 1.0 has no form at all for most control characters, escaped or not, so one would make
 the file ill-formed) and the XML library escapes ``<``, ``&`` and quotes. Repeated joint names are refused (a URDF
 addresses joints by name). The file is written atomically (:mod:`labcal.atomicio`).
@@ -45,8 +45,8 @@ from labcal.export.learned import refuse_or_note
 from labcal.export.zform import ZAxisForm
 from labcal.kinematics import se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel, default_twist
+from labcal.names import duplicate, printable
 from labcal.robots import model_hash
-from labcal.robots.names import duplicate, printable
 
 UR_LINKS = ("shoulder_link", "upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link", "wrist_3_link")
 # ur_description's fixed frames after wrist_3_link: flange (x along the last axis), then tool0 (= wrist_3_link's axes).

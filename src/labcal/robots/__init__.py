@@ -71,8 +71,8 @@ import numpy as np
 from labcal.kinematics import se3
 from labcal.kinematics.conversions import from_dh, from_mdh, from_urdf
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
+from labcal.names import duplicate, label_problem, name_problem, printable
 from labcal.robots.joint_map import JointMap
-from labcal.robots.names import duplicate, label_problem, name_problem, printable
 from labcal.tomlschema import Key, SchemaError, Table, validate
 from labcal.tomlschema import is_number as _is_number
 
@@ -244,7 +244,7 @@ def _unit_signs(signs: list[float]) -> str | None:
 
 _JOINT = {
     # Names reach URScript, YAML and URDF exports and the terminal: a line break or an escape character in one would
-    # become a statement, a key or a cursor move there (labcal.robots.names).
+    # become a statement, a key or a cursor move there (labcal.names).
     "name": Key("str", check=name_problem, doc="joint name (default joint1, joint2, …): letters, digits, _ - . + /"),
     "type": Key("str", default=REVOLUTE, choices=(REVOLUTE, PRISMATIC)),
     "limits": Key("vector", shape=(2,), unit="rad, m for prismatic", expect="[lo, hi] numbers", check=_lo_below_hi),

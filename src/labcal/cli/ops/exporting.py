@@ -10,7 +10,7 @@ untouched.
 Provenance names what was calibrated and with what: the session, fit and data hashes, and the serial numbers of
 the arm (``arm_serial``: what the controller reported, else the session's unit id) and of the tracker
 (``tracker_serial``) that the sessions' start documents recorded (``labcal session show``). Serials come from
-devices: each is written as printable text (:func:`labcal.robots.names.printable`), cut to 64 characters, and
+devices: each is written as printable text (:func:`labcal.names.printable`), cut to 64 characters, and
 every writer escapes it again for its own format.
 """
 
@@ -29,8 +29,8 @@ from labcal.atomicio import UnsafeTargetError, check_target, write_bytes
 from labcal.cli.ops.common import UserError, robot_for
 from labcal.cli.ops.fitting import info_warnings, load_stored_fit
 from labcal.datasets import SessionStore
+from labcal.names import printable
 from labcal.robots.joint_map import JointMap
-from labcal.robots.names import printable
 
 MAX_SERIAL = 64  # characters of a device's serial number written into an export (a confused device sends more)
 
