@@ -212,9 +212,12 @@ def from_payload(data: dict, source: str = "<payload>", *, stored: bool = False)
     map, so old sessions' fits can still be reported and exported. An export file on its own must be schema 2.
     """
     legacy = _check_schema(data, source, stored)
-    check_payload(data, source)
-    if not legacy:
-        _check_checksums(data, source)
+    try:
+        check_payload(data, source)
+        if not legacy:
+            _check_checksums(data, source)
+    except RecursionError:  # a field nested deeper than Python recurses (json.loads read it): not an export
+        raise CompensatorFileError(f"{source}: a field is nested too deeply to be a compensator export") from None
     try:
         robot = _robot_from(data, source, legacy)
         golden = data["golden"]
