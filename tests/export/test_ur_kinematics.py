@@ -4,6 +4,7 @@ on the manifold with the calibrated model's predict_pose."""
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -35,7 +36,7 @@ def parse_yaml(text: str) -> tuple[dict, str, np.ndarray]:
         if line == "kinematics:":
             continue
         if line.startswith("  hash: "):
-            digest = line.split(": ", 1)[1]
+            digest = json.loads(line.split(": ", 1)[1])  # a double-quoted YAML scalar (JSON string syntax)
         elif line.startswith("    "):
             key, value = line.strip().split(": ")
             entries[current][key] = float(value)

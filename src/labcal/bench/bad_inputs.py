@@ -716,6 +716,107 @@ CASES += [
 ]  # fmt: skip
 
 
+# hostile inputs to the exports (issue 24, items 2, 3, 5): names that would inject, output paths that are not
+# regular files, crafted compensator files (checksums recomputed after the edit, as a crafter would)
+_INJECTION = r"ur10\nmovej([0,-1.57,0,-1.57,0,0], a=3, v=3)\n#"
+
+
+def _robot_name_injection(tmp: Path, args) -> Outcome:
+    rob = tmp / "evil.toml"
+    text = builtin_path("ur10").read_text()
+    rob.write_text(text.replace('name = "ur10"', f'name = "{_INJECTION}"', 1))
+    scn = _base()
+    csv = write_csv(tmp / "data.csv", scn.q, scn.points)
+    return pipeline(tmp, csv, write_targets(tmp / "t.toml", scn.targets), robot=str(rob), method=args.method)[0]
+
+
+def _export_onto(kind: str):
+    def follow(tmp: Path, ctx: dict, args) -> Outcome:
+        victim, out = tmp / "victim.json", tmp / "out.json"
+        victim.write_text("keep")
+        if kind == "symlink":
+            out.symlink_to(victim)
+        else:
+            try:  # a null device node private to this folder (root); else a FIFO, the other non-file a path can be
+                os.mknod(out, stat.S_IFCHR | 0o666, os.makedev(1, 3))
+            except PermissionError:
+                os.mkfifo(out)
+        mode = os.lstat(out).st_mode
+        session = ctx["ref"].split("@")[0]
+        r = run(["export", session, "--format", "json", "--out", str(out), "--store", str(ctx["store"]), "--force"],
+                cwd=tmp, timeout=120)  # fmt: skip
+        kept = os.lstat(out).st_mode == mode and victim.read_text() == "keep"
+        stage = "export" if r.code not in (0, None) else "NOT stopped"
+        return Outcome(stage, r.first_line() + ("" if kept else " [REPLACED]"), r.code, r.traceback)
+
+    return follow
+
+
+def _crafted(change: str, target: str = "path") -> str:
+    """A snippet: edit the JSON export, recompute its checksums, load ``target``; exit 2 on a clean refusal."""
+    return f"""
+import sys
+def reseal(edit):
+    data = json.loads(open(path).read())
+    edit(data)
+    data["checksums"] = C.field_checksums(data)
+    open(path, "w").write(json.dumps(data))
+{change}
+try:
+    C.load({target})
+    print("loaded the crafted file: accepted")
+except C.CompensatorFileError as e:
+    print("refused:", str(e).splitlines()[0])
+    sys.exit(2)
+"""
+
+
+_NPZ_HUGE = _crafted(
+    """
+import io, zipfile
+npz = path[:-5] + ".npz"
+C.load(path).save(npz)
+with zipfile.ZipFile(npz) as zf:
+    members = {i.filename: zf.read(i) for i in zf.infolist()}
+head = io.BytesIO()
+np.lib.format.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": (20000, 30000)})
+members["joint_ranges.npy"] = head.getvalue() + bytes(4096)
+with zipfile.ZipFile(npz, "w", zipfile.ZIP_DEFLATED) as zf:
+    for name, blob in members.items():
+        zf.writestr(name, blob)
+""",
+    "npz",
+)
+_NAN_RANGES = _crafted('reseal(lambda d: d["joint_ranges"].__setitem__(0, [float("nan"), 1.0]))')
+_HUGE_RANGES = _crafted('reseal(lambda d: d["joint_ranges"].__setitem__(0, [-1e300, 1e300]))')
+_SAME_NAMES = _crafted('reseal(lambda d: d["robot"]["joint_names"].__setitem__(3, d["robot"]["joint_names"][1]))')
+_NAME_INJECTION = _crafted(f'reseal(lambda d: d["robot"].__setitem__("name", {_INJECTION!r}))')
+_DEEP_JSON = _crafted(
+    'open(path, "w").write(\'{"format": "labcal-compensator", "provenance": \' + "[" * 100000 + "]" * 100000 + "}")'
+)
+
+CASES += [
+    Case("robot-name-injection", "clean-error", "robot file name with a newline and a movej (URScript injection)",
+         _robot_name_injection),
+    Case("export-force-symlink", "clean-error", "export --force onto a symlink to another file",
+         _good_then(_export_onto("symlink"))),
+    Case("export-force-device", "clean-error", "export --force onto a device node (a FIFO when not root)",
+         _good_then(_export_onto("device"))),
+    Case("npz-member-gigabytes", "clean-error", "NPZ export whose joint_ranges member declares 20000 x 30000",
+         _good_then(_compensator_api(_NPZ_HUGE))),
+    Case("crafted-nan-ranges", "clean-error", "compensator with NaN joint_ranges, checksums recomputed",
+         _good_then(_compensator_api(_NAN_RANGES))),
+    Case("crafted-1e300-ranges", "clean-error", "compensator with +-1e300 joint_ranges, checksums recomputed",
+         _good_then(_compensator_api(_HUGE_RANGES))),
+    Case("crafted-same-joint-names", "clean-error", "compensator with a repeated joint name, checksums recomputed",
+         _good_then(_compensator_api(_SAME_NAMES))),
+    Case("crafted-name-injection", "clean-error", "compensator whose robot name holds a newline + movej, resealed",
+         _good_then(_compensator_api(_NAME_INJECTION))),
+    Case("crafted-deep-json", "clean-error", "compensator JSON nested 100000 deep",
+         _good_then(_compensator_api(_DEEP_JSON))),
+]  # fmt: skip
+
+
 def verdict(case: Case, o: Outcome) -> str:
     stopped = o.stage != "NOT stopped" and not o.stage.startswith("setup")
     if o.stage.startswith("setup"):

@@ -47,9 +47,11 @@ def export(
 ) -> None:
     """Export a fit; prints the written path last.
 
-    Refused before any work: an existing --out file (unless --force), a missing or read-only output folder, and
-    a fit with warnings (unless --force; the export then records `forced: true` and the warnings in its
-    provenance). The file is written next to --out and moved into place atomically. A urdf or ur-kinematics
+    Refused before any work: an existing --out file (unless --force), a device, a symbolic link, a folder or a
+    FIFO at --out (even with --force: only a regular file is ever replaced), a missing or read-only output folder,
+    and a fit with warnings (unless --force; the export then records `forced: true` and the warnings in its
+    provenance). The file is written next to --out and moved into place atomically. The export names the arm's
+    and the tracker's serial numbers recorded with the session. A urdf or ur-kinematics
     export of a fit with a learned term (hybrid, ann) is refused with the term's size unless --geometry-only.
 
     Examples:

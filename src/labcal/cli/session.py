@@ -216,8 +216,10 @@ def list_(
     for col in ("session", "robot", "frame", "status", "versions", "rows"):
         t.add_column(col)
     for info, _ in rows:
+        from labcal.names import printable  # a stored name may predate the name checks: no raw escapes
+
         t.add_row(
-            info.session_id, str(info.robot.get("name")), info.frame, info.status,
+            info.session_id, printable(info.robot.get("name")), info.frame, info.status,
             ", ".join(v.name for v in info.versions) or "—", str(info.rows),
         )  # fmt: skip
     out.print(t)
@@ -293,7 +295,10 @@ def show(
         n_targets = len(meta["targets"])
         targets = f", {n_targets} target{'s' if n_targets != 1 else ''}"
     unit = "" if _unit(meta) is None else f", unit {_unit(meta)}"
-    out.print(f"session {info.session_id}: robot {info.robot.get('name')} ({info.robot.get('hash', '')[:12]}…, "
+    from labcal.names import printable  # a stored name may predate the name checks: no raw escapes
+
+    name = printable(info.robot.get("name"))
+    out.print(f"session {info.session_id}: robot {name} ({info.robot.get('hash', '')[:12]}…, "
               f"{stored}){unit}, frame {info.frame}{targets}, status {info.status}", markup=False)  # fmt: skip
     from rich.table import Table
 

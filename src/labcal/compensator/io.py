@@ -3,9 +3,11 @@ JSON / NPZ save and load, and :class:`Compensator`, the deployable runtime that 
 
 :meth:`Compensator.load` reads a JSON or NPZ export written by :func:`save` (schema version, robot model and its
 hash, identified frames, network, joint ranges, tracker pose, length scale, joint map, provenance, golden vectors,
-and a checksum of each of those fields), refuses a file whose fields do not match their checksums (an edit naming
-the field: a widened joint range would otherwise silently switch off the out-of-range guard), re-computes the
-golden vectors and refuses a file that disagrees.
+and a checksum of each of those fields), checks sizes, shapes, finite values, plausible joint ranges, names and
+provenance before anything large is read or computed (:func:`check_payload`; an NPZ member by its ``.npy`` header
+first), refuses a file whose fields do not match their checksums (an edit naming the field: a widened joint range
+would otherwise silently switch off the out-of-range guard), re-computes the golden vectors and refuses a file
+that disagrees. :func:`save` writes through :mod:`labcal.atomicio` and refuses what load would refuse.
 
 Example::
 
@@ -20,15 +22,21 @@ Example::
 from __future__ import annotations
 
 import hashlib
+import io
 import json
+import math
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
+from labcal import features as feature_lib
+from labcal.atomicio import write_bytes, write_text
 from labcal.compensator.model import CalibratedRobot, Network
 from labcal.kinematics import metric, se3
-from labcal.kinematics.poe import LocalPOEModel
-from labcal.robots import model_hash
+from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
+from labcal.names import duplicate, label_problem, name_problem, printable
+from labcal.robots import MAX_LENGTH, MAX_REVOLUTE_LIMIT, model_hash
 from labcal.robots.joint_map import JointMap
 
 SCHEMA = "labcal-compensator"
@@ -40,6 +48,25 @@ GOLDEN_TOL_POSE = 1e-10  # m / rad-scaled entries of the predicted pose
 
 class CompensatorFileError(ValueError):
     """A compensator export is unreadable, has the wrong schema, or fails its own golden vectors."""
+
+
+# What a compensator file may hold, checked before anything large is read (:func:`check_payload`, and the NPZ
+# members' headers in :func:`read_payload`). Generous for any arm labcal fits (6-7 joints, a network of a few
+# hundred parameters, 8 golden vectors), tight enough that a crafted file cannot ask for gigabytes.
+MAX_JOINTS = 32
+MAX_GOLDEN = 256
+MAX_LAYERS = 16
+MAX_WIDTH = 4096  # inputs or nodes of one network layer
+MAX_NETWORK_VALUES = 1_000_000  # weights + biases: 8 MB of float64 (the paper's networks hold hundreds)
+MAX_FILE_BYTES = 48 * 1024**2  # a JSON file, or an NPZ member's uncompressed size (1M numbers as JSON text)
+MAX_META_CHARS = 4 * 1024**2  # the NPZ metadata (JSON text without the arrays)
+MAX_PROVENANCE_DEPTH = 4  # provenance: {key: text | number | [{key: text}]}
+MAX_PROVENANCE_TEXT = 65536  # one provenance string: a pooled fit lists every input ref and data hash
+# Joint ranges are the data's covered range, which switches the out-of-range guard: a range beyond what any
+# robot file may declare (two turns each way for a revolute joint, 10 m for a prismatic one: labcal.robots) is
+# no range at all (±1e300 would switch the guard off) or degrees/millimetres.
+MAX_RANGE = {REVOLUTE: MAX_REVOLUTE_LIMIT, PRISMATIC: MAX_LENGTH}
+MAX_LENGTH_SCALE = 100.0  # m/rad: the arm's reach, metres
 
 
 def _model_dict(model: LocalPOEModel) -> dict:
@@ -185,8 +212,12 @@ def from_payload(data: dict, source: str = "<payload>", *, stored: bool = False)
     map, so old sessions' fits can still be reported and exported. An export file on its own must be schema 2.
     """
     legacy = _check_schema(data, source, stored)
-    if not legacy:
-        _check_checksums(data, source)
+    try:
+        check_payload(data, source)
+        if not legacy:
+            _check_checksums(data, source)
+    except RecursionError:  # a field nested deeper than Python recurses (json.loads read it): not an export
+        raise CompensatorFileError(f"{source}: a field is nested too deeply to be a compensator export") from None
     try:
         robot = _robot_from(data, source, legacy)
         golden = data["golden"]
@@ -203,6 +234,163 @@ def from_payload(data: dict, source: str = "<payload>", *, stored: bool = False)
         raise CompensatorFileError(f"{source}: no golden vectors to verify the file against")
     _check_golden(robot, q, q_cmd, pose, golden.get("correct_method", "newton"), source)
     return robot, data
+
+
+def check_payload(data: dict, source: str, *, error: type[Exception] = CompensatorFileError) -> None:
+    """Refuse a payload whose fields are not what an export holds, before its checksums, models or network are
+    computed: sizes and shapes (bounded by :data:`MAX_JOINTS`, :data:`MAX_GOLDEN`, :data:`MAX_LAYERS`,
+    :data:`MAX_WIDTH`, :data:`MAX_NETWORK_VALUES`), finite numbers, joint ranges within :data:`MAX_RANGE`, names
+    (:mod:`labcal.names`: a name reaches URScript, YAML and URDF exports), unique joint names, and
+    provenance as short printable text nested at most :data:`MAX_PROVENANCE_DEPTH` deep. Checksums cannot stand in
+    for this: whoever writes a file can recompute them. One line naming ``source`` and the field.
+    """
+
+    def fail(field: str, problem: str):
+        raise error(f"{source}: {field} {problem}")
+
+    def table(field: str, value) -> dict:
+        if not isinstance(value, dict):
+            fail(field, f"must be a table, got {type(value).__name__}")
+        return value
+
+    def numbers(field: str, value, shape: tuple) -> np.ndarray:
+        try:
+            a = np.asarray(value, dtype=float)
+        except (TypeError, ValueError, RecursionError):
+            a = None
+        if a is None or a.shape != shape:
+            got = "ragged or not numbers" if a is None else f"shape {a.shape}"
+            fail(field, f"must be numbers of shape {shape}, got {got}")
+        if not np.isfinite(a).all():
+            fail(field, "must be finite numbers (it holds NaN or infinity)")
+        return a
+
+    types = table("robot", data.get("robot")).get("joint_types")
+    if not isinstance(types, list) or not 1 <= len(types) <= MAX_JOINTS:
+        fail("robot.joint_types", f"must list 1 to {MAX_JOINTS} joints")
+    n = len(types)
+    for part in ("robot", "model"):
+        d = table(part, data.get(part))
+        if d.get("joint_types") != types or any(t not in (REVOLUTE, PRISMATIC) for t in types):
+            fail(f"{part}.joint_types", f"must be {n} of {REVOLUTE!r} / {PRISMATIC!r}, the same for robot and model")
+        name = d.get("name", "")
+        if name != "" and (problem := name_problem(name)):
+            fail(f"{part}.name", problem)
+        names = d.get("joint_names", [])
+        if not isinstance(names, list) or len(names) not in (0, n):
+            fail(f"{part}.joint_names", f"must list the {n} joints' names")
+        for j, joint in enumerate(names):
+            if problem := name_problem(joint):
+                fail(f"{part}.joint_names[{j + 1}]", problem)
+        if (twice := duplicate(names)) is not None:
+            fail(f"{part}.joint_names", f"repeats {names[twice[1]]!r} (joints {twice[0] + 1} and {twice[1] + 1})")
+        numbers(f"{part}.frames", d.get("frames"), (n + 1, 4, 4))
+        numbers(f"{part}.twists", d.get("twists"), (n, 6))
+        numbers(f"{part}.limits", d.get("limits"), (n, 2))
+    ranges = numbers("joint_ranges", data.get("joint_ranges"), (n, 2))
+    for j, (lo, hi) in enumerate(ranges):
+        bound = MAX_RANGE[types[j]]
+        if lo > hi or max(abs(lo), abs(hi)) > bound:
+            unit = "rad" if types[j] == REVOLUTE else "m"
+            fail(
+                f"joint_ranges[{j + 1}]",
+                f"= [{lo:.6g}, {hi:.6g}] is not a range of a {types[j]} joint (lo <= hi, within ±{bound:.4g} {unit}, "
+                "what a robot file may declare): a wider range would switch off the out-of-range guard",
+            )
+    numbers("T_tracker_base", data.get("T_tracker_base"), (4, 4))
+    scale = data.get("length_scale")
+    if not (isinstance(scale, int | float) and not isinstance(scale, bool) and 0 < scale <= MAX_LENGTH_SCALE):
+        fail("length_scale", f"must be a number of metres per radian in (0, {MAX_LENGTH_SCALE:g}], got {scale!r}")
+    if problem := name_problem(data.get("method")):
+        fail("method", problem)
+    jm = data.get("joint_map")
+    if jm is not None:
+        jm = table("joint_map", jm)
+        for key, shape in (("matrix", (n, n)), ("offsets", (n,))):
+            try:
+                numbers(key, jm.get(key), shape)
+            except error as err:
+                fail("joint_map", f"is not a valid joint map for {n} joints: {str(err).split(': ', 1)[1]}")
+    if data.get("network") is not None:
+        _check_network(table("network", data["network"]), fail, numbers)
+    golden = table("golden", data.get("golden"))
+    q = golden.get("q")
+    k = len(q) if isinstance(q, list | np.ndarray) else 0
+    if not 1 <= k <= MAX_GOLDEN:
+        fail(
+            "golden.q",
+            f"holds {k} configurations: no golden vectors to verify the file against, or more than {MAX_GOLDEN}",
+        )
+    numbers("golden.q", q, (k, n))
+    numbers("golden.q_cmd", golden.get("q_cmd"), (k, n))
+    numbers("golden.pose", golden.get("pose"), (k, 4, 4))
+    if problem := name_problem(golden.get("correct_method", "newton")):
+        fail("golden.correct_method", problem)
+    _check_provenance(data.get("provenance", {}), "provenance", 0, fail)
+    checksums = data.get("checksums")
+    if checksums is not None and not (
+        isinstance(checksums, dict) and all(isinstance(v, str) and len(v) <= 128 for v in checksums.values())
+    ):
+        fail("checksums", "must map each field to a hex digest")
+
+
+def _check_network(net: dict, fail, numbers) -> None:
+    """Features known to the registry, layer shapes that chain, sizes within the bounds, finite numbers."""
+    features = net.get("features")
+    if not isinstance(features, list) or not features:
+        fail("network.features", "must list the network's input features")
+    for i, name in enumerate(features):
+        if label_problem(name, 64) or not feature_lib.is_feature(name):
+            known = ", ".join(feature_lib.NAMES)
+            fail(f"network.features[{i + 1}]", f"must be one of {known}, got {printable(name, 80)!r}")
+    weights, biases = net.get("weights"), net.get("biases")
+    if not (isinstance(weights, list) and isinstance(biases, list) and 1 <= len(weights) == len(biases) <= MAX_LAYERS):
+        fail("network.weights", f"must be 1 to {MAX_LAYERS} layers, each with its biases")
+    in_mean = net.get("in_mean")
+    width = len(in_mean) if isinstance(in_mean, list | np.ndarray) else 0
+    if not 1 <= width <= MAX_WIDTH:
+        fail("network.in_mean", f"must hold 1 to {MAX_WIDTH} numbers (one per network input)")
+    numbers("network.in_mean", in_mean, (width,))
+    numbers("network.in_scale", net.get("in_scale"), (width,))
+    numbers("network.out_mean", net.get("out_mean"), (6,))
+    numbers("network.out_scale", net.get("out_scale"), (6,))
+    total = 0
+    for i, (W, b) in enumerate(zip(weights, biases, strict=True)):
+        rows = 6 if i == len(weights) - 1 else (len(W) if isinstance(W, list | np.ndarray) else 0)
+        if not 1 <= rows <= MAX_WIDTH:
+            fail(f"network.weights.{i}", f"must have 1 to {MAX_WIDTH} rows")
+        total += rows * (width + 1)
+        if total > MAX_NETWORK_VALUES:
+            fail("network.weights", f"hold more than {MAX_NETWORK_VALUES} numbers: more than a compensator holds")
+        numbers(f"network.weights.{i}", W, (rows, width))
+        numbers(f"network.biases.{i}", b, (rows,))
+        width = rows
+
+
+def _check_provenance(value, field: str, depth: int, fail) -> None:
+    """Provenance: text, numbers, true/false, null, and lists / tables of them, shallow and printable."""
+    if value is None or isinstance(value, bool):
+        return
+    if isinstance(value, int | float):
+        if not math.isfinite(value):
+            fail(field, "must be a finite number")
+        return
+    if isinstance(value, str):
+        if problem := label_problem(value, MAX_PROVENANCE_TEXT):
+            fail(field, problem)
+        return
+    if depth >= MAX_PROVENANCE_DEPTH or not isinstance(value, list | dict):
+        fail(field, f"must be text, numbers, or lists and tables of them nested at most {MAX_PROVENANCE_DEPTH} deep")
+    if isinstance(value, list):
+        for i, item in enumerate(value[:10_000]):
+            _check_provenance(item, f"{field}[{i + 1}]", depth + 1, fail)
+        if len(value) > 10_000:
+            fail(field, "must hold at most 10000 entries")
+        return
+    for key, item in value.items():
+        if problem := name_problem(key):
+            fail(f"{field} key", problem)
+        _check_provenance(item, f"{field}.{key}", depth + 1, fail)
 
 
 def _check_schema(data: dict, source: str, stored: bool) -> bool:
@@ -281,18 +469,21 @@ def _check_golden(robot: CalibratedRobot, q, q_cmd, pose, method: str, source: s
 def save(robot: CalibratedRobot, path, provenance: dict | None = None) -> Path:
     """Write a compensator export: ``.json`` (text) or ``.npz`` (arrays; metadata as a JSON string, no pickle)."""
     path = Path(path)
-    payload = to_payload(robot, provenance)
     suffix = path.suffix.lower()
+    if suffix not in (".json", ".npz"):
+        raise ValueError(f"compensator export path must end in .json or .npz, got {path.name!r}")
+    payload = to_payload(robot, provenance)
+    # What load would refuse is not written: a name or a provenance value that could inject into an export.
+    check_payload(payload, "the compensator to save", error=ValueError)
     if suffix == ".json":
-        path.write_text(json.dumps(payload, indent=1) + "\n")
-    elif suffix == ".npz":
+        write_text(path, json.dumps(payload, indent=1) + "\n")
+    else:
         arrays: dict[str, np.ndarray] = {}
         meta = _split_arrays(payload, "", arrays)
         arrays["__meta__"] = np.array(json.dumps(meta))
-        with open(path, "wb") as fh:
-            np.savez(fh, **arrays)
-    else:
-        raise ValueError(f"compensator export path must end in .json or .npz, got {path.name!r}")
+        buffer = io.BytesIO()  # whole in memory first: the file is then replaced in one rename, never half written
+        np.savez(buffer, **arrays)
+        write_bytes(path, buffer.getvalue())
     return path
 
 
@@ -337,26 +528,199 @@ def _join_arrays(obj, arrays):
 
 
 def read_payload(path) -> dict:
-    """The raw payload of a JSON or NPZ export (arrays as numpy arrays for NPZ), unverified."""
+    """The raw payload of a JSON or NPZ export (arrays as numpy arrays for NPZ), not yet verified.
+
+    Bounded before anything large is read: a JSON file by its size; an NPZ file by its metadata (read first, a
+    bounded string) and each member's ``.npy`` header (shape and dtype), checked against the shapes the
+    metadata imply (:func:`_npz_shapes`) before a member's data are read. Every refusal is one line naming the
+    file and the field.
+    """
     path = Path(path)
     if not path.is_file():
         raise CompensatorFileError(f"{path}: no such compensator file")
     suffix = path.suffix.lower()
     try:
         if suffix == ".json":
-            return json.loads(path.read_text())
+            size = path.stat().st_size
+            if size > MAX_FILE_BYTES:
+                raise CompensatorFileError(
+                    f"{path}: {size} bytes is larger than any compensator export ({MAX_FILE_BYTES} bytes at most)"
+                )
+            return json.loads(path.read_bytes())
         if suffix == ".npz":
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {name: z[name] for name in z.files}
-            if "__meta__" not in arrays:
-                raise CompensatorFileError(f"{path}: NPZ file has no __meta__ entry (not a labcal export)")
-            meta = json.loads(str(arrays.pop("__meta__")))
-            return _join_arrays(meta, arrays)
+            return _read_npz(path)
     except CompensatorFileError:
         raise
-    except (OSError, ValueError, UnicodeDecodeError) as err:
-        raise CompensatorFileError(f"{path}: cannot read the export: {err}") from err
+    except RecursionError:
+        raise CompensatorFileError(f"{path}: cannot read the export: nested too deeply to be a compensator") from None
+    except (OSError, ValueError, UnicodeDecodeError, zipfile.BadZipFile, EOFError) as err:
+        raise CompensatorFileError(f"{path}: cannot read the export: {printable(err, 200)}") from None
     raise CompensatorFileError(f"{path}: a compensator export ends in .json or .npz")
+
+
+def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) of an NPZ member from its header alone (a few hundred bytes read)."""
+    with zf.open(info) as fh:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            raise ValueError(f"npy format version {version} is not one labcal writes")
+    return tuple(shape), dtype
+
+
+def _read_npz(path: Path) -> dict:
+    with zipfile.ZipFile(path) as zf:
+        infos = {}
+        for info in zf.infolist():
+            if not info.filename.endswith(".npy"):
+                raise CompensatorFileError(f"{path}: member {info.filename!r} is not an array: not a labcal export")
+            if info.file_size > MAX_FILE_BYTES:
+                raise CompensatorFileError(
+                    f"{path}: {info.filename[:-4]} unpacks to {info.file_size} bytes, more than any compensator "
+                    "field holds: refusing to read it"
+                )
+            infos[info.filename[:-4]] = info
+        if "__meta__" not in infos:
+            raise CompensatorFileError(f"{path}: NPZ file has no __meta__ entry (not a labcal export)")
+        shape, dtype = _npy_header(zf, infos["__meta__"])
+        if shape != () or dtype.kind != "U" or dtype.itemsize // 4 > MAX_META_CHARS:
+            raise CompensatorFileError(f"{path}: __meta__ must be one string of at most {MAX_META_CHARS} characters")
+        with zf.open(infos.pop("__meta__")) as fh:
+            meta = json.loads(str(np.lib.format.read_array(fh, allow_pickle=False)))
+        n, expected = _npz_shapes(meta, str(path))
+        headers = {}
+        for name, info in infos.items():
+            if name not in expected:
+                raise CompensatorFileError(f"{path}: array {name!r} is not referenced by the metadata")
+            shape, dtype = _npy_header(zf, info)
+            if dtype != np.float64:
+                raise CompensatorFileError(f"{path}: {name} must be float64 numbers, got dtype {dtype}")
+            headers[name] = shape
+        _check_npz_shapes(headers, expected, n, str(path))
+        arrays = {}
+        for name, info in infos.items():
+            with zf.open(info) as fh:
+                arrays[name] = np.lib.format.read_array(fh, allow_pickle=False)
+    return _join_arrays(meta, arrays)
+
+
+def _array_refs(obj, out: dict) -> dict:
+    """{array name: the metadata path it sits at} of every {"$array": name} reference in the NPZ metadata."""
+    if isinstance(obj, dict):
+        if set(obj) == {"$array"} and isinstance(obj["$array"], str):
+            out[obj["$array"]] = obj["$array"]
+        else:
+            for value in obj.values():
+                _array_refs(value, out)
+    elif isinstance(obj, list):
+        for value in obj:
+            _array_refs(value, out)
+    return out
+
+
+def _joint_count(meta: dict, source: str) -> int:
+    types = meta.get("robot", {}).get("joint_types") if isinstance(meta.get("robot"), dict) else None
+    if not isinstance(types, list) or not 1 <= len(types) <= MAX_JOINTS:
+        raise CompensatorFileError(f"{source}: robot.joint_types must list 1 to {MAX_JOINTS} joints")
+    return len(types)
+
+
+def _npz_shapes(meta, source: str) -> tuple[int, dict[str, tuple | None]]:
+    """The joint count and {array name: expected shape} for every array the metadata reference (None: a network
+    layer, whose sizes are checked together by :func:`_check_npz_shapes`; negative: a size arrays must share)."""
+    if not isinstance(meta, dict):
+        raise CompensatorFileError(f"{source}: __meta__ is not a compensator payload")
+    n = _joint_count(meta, source)
+    fixed = _field_shapes(n)
+    out: dict[str, tuple | None] = {}
+    for name in _array_refs(meta, {}):
+        if name in fixed:
+            out[name] = fixed[name]
+        elif name.startswith(("network.weights.", "network.biases.")) and name.rsplit(".", 1)[1].isdigit():
+            out[name] = None
+        else:
+            raise CompensatorFileError(f"{source}: the metadata reference an unknown array {printable(name)!r}")
+    return n, out
+
+
+def _field_shapes(n: int) -> dict[str, tuple]:
+    """The shape of every fixed-size array field of an n-joint payload (-1: the golden count or the input count)."""
+    shapes = {}
+    for part in ("robot", "model"):
+        shapes.update({f"{part}.frames": (n + 1, 4, 4), f"{part}.twists": (n, 6), f"{part}.limits": (n, 2)})
+    shapes.update(
+        {
+            "joint_ranges": (n, 2),
+            "T_tracker_base": (4, 4),
+            "joint_map.matrix": (n, n),
+            "joint_map.offsets": (n,),
+            "golden.q": (-1, n),
+            "golden.q_cmd": (-1, n),
+            "golden.pose": (-1, 4, 4),
+            "network.in_mean": (-2,),
+            "network.in_scale": (-2,),
+            "network.out_mean": (6,),
+            "network.out_scale": (6,),
+        }
+    )
+    return shapes
+
+
+def _check_npz_shapes(headers: dict[str, tuple], expected: dict, n: int, source: str) -> None:
+    """Refuse member shapes that disagree with the payload's joint count, each other, or the size bounds."""
+    bound = {-1: None, -2: None}  # the golden count and the network's input count, fixed by the first array
+    limits = {-1: MAX_GOLDEN, -2: MAX_WIDTH}
+    for name, shape in headers.items():
+        want = expected[name]
+        if want is None:
+            continue
+        ok = len(shape) == len(want)
+        for got, w in zip(shape, want, strict=False):
+            if not ok:
+                break
+            if w < 0:
+                if bound[w] is None:
+                    bound[w] = got
+                ok = got == bound[w] and 1 <= got <= limits[w]
+            else:
+                ok = got == w
+        if not ok:
+            shown = tuple("k" if w == -1 else "f" if w == -2 else w for w in want)
+            raise CompensatorFileError(
+                f"{source}: {name} has shape {shape}, expected {shown} for this {n}-joint "
+                f"robot (k ≤ {MAX_GOLDEN} golden vectors, f ≤ {MAX_WIDTH} network inputs)"
+            )
+    layers = [(name, headers[name]) for name in headers if expected[name] is None]
+    weights = {int(k.rsplit(".", 1)[1]): v for k, v in layers if k.startswith("network.weights.")}
+    biases = {int(k.rsplit(".", 1)[1]): v for k, v in layers if k.startswith("network.biases.")}
+    if not weights and not biases:
+        return
+    count = len(weights)
+    if count > MAX_LAYERS or set(weights) != set(range(count)) or set(biases) != set(weights):
+        raise CompensatorFileError(
+            f"{source}: network.weights / network.biases must be 1 to {MAX_LAYERS} numbered layers, one bias per weight"
+        )
+    width = bound[-2]
+    total = 0
+    for i in range(count):
+        W, b = weights[i], biases[i]
+        rows = 6 if i == count - 1 else (W[0] if len(W) == 2 else -1)
+        if len(W) != 2 or W[0] != rows or (width is not None and W[1] != width) or not 1 <= W[0] <= MAX_WIDTH:
+            raise CompensatorFileError(
+                f"{source}: network.weights.{i} has shape {W}, expected ({'6' if i == count - 1 else 'h'}, "
+                f"{width if width is not None else 'f'}) with h ≤ {MAX_WIDTH}"
+            )
+        if b != (W[0],):
+            raise CompensatorFileError(f"{source}: network.biases.{i} has shape {b}, expected ({W[0]},)")
+        total += W[0] * W[1] + W[0]
+        width = W[0]
+    if total > MAX_NETWORK_VALUES:
+        raise CompensatorFileError(
+            f"{source}: the network has {total} weights, more than a compensator holds ({MAX_NETWORK_VALUES})"
+        )
 
 
 class Compensator:

@@ -9,7 +9,7 @@ The file is ur_description's ``kinematics_params`` / ``default_kinematics.yaml``
       wrist_1:   {…}
       wrist_2:   {…}
       wrist_3:   {…}
-      hash: labcal_<16 hex digits>
+      hash: "labcal_<16 hex digits>"
 
 Each entry is a URDF joint origin (metres; roll-pitch-yaw in radians about fixed x, y, z:
 ``R = Rz(yaw) Ry(pitch) Rx(roll)``) of the joint that turns about its local z axis, parent link to child link.
@@ -32,6 +32,22 @@ learned term (hybrid/ann) is not representable either: the export is refused, sa
 ``geometry_only`` (then noted in the file). Refused: robots that are not 6-joint revolute UR arms, joint maps,
 screw joints.
 
+The ``hash`` key. ur_calibration writes ``calib_<n>``, where n is the C++ ``std::hash`` of the controller's own
+DH parameters (the factory calibration it reads from the primary interface, ``KinematicsInfo::toHash`` in
+ur_client_library); ur_robot_driver reads ``kinematics/hash`` from the description and, at every start, compares
+it with the connected controller's value. On a mismatch it logs "The calibration parameters of the connected
+robot don't match the ones from the given kinematics config file" as an ERROR and starts anyway. This file
+describes labcal's identified kinematics, which are *not* the controller's factory calibration, so no honest
+value can match: the key identifies these numbers (``labcal_`` + sha256 of the ``kinematics`` entries) and the
+message is expected. What it means is true: the controller's own Cartesian motions (``movel``, the pendant's TCP
+readout, the driver's pass-through Cartesian controllers) follow the controller's model, while joint targets
+planned on this description (MoveIt, …) reach the calibrated poses. The file says so in a comment.
+
+Strings. The robot's name and the provenance are comments: each is one printable line (control characters
+escaped, :func:`labcal.names.printable`), so nothing in them can start a key; the hash is a double-quoted
+YAML scalar (JSON string syntax, which YAML reads the same way). The file is written atomically
+(:mod:`labcal.atomicio`).
+
 Example::
 
     >>> from labcal.compensator import CalibratedRobot
@@ -45,15 +61,18 @@ Example::
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
 
+from labcal.atomicio import write_text
 from labcal.compensator import CalibratedRobot
 from labcal.export.learned import refuse_or_note
 from labcal.export.zform import ZAxisForm
 from labcal.kinematics import se3
 from labcal.kinematics.poe import REVOLUTE
+from labcal.names import printable
 from labcal.robots import model_hash
 
 UR_SEGMENTS = ("shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3")
@@ -75,7 +94,7 @@ def check_ur(robot: CalibratedRobot, fmt: str) -> None:
     if not is_ur or model.n != 6 or any(t != REVOLUTE for t in model.joint_types):
         raise ValueError(
             f"{fmt} is ur_description's format for Universal Robots arms (6 revolute joints named like "
-            f"{UR_JOINT_NAMES[0]}, or a robot file named ur*); this robot is {model.name or '?'} with "
+            f"{UR_JOINT_NAMES[0]}, or a robot file named ur*); this robot is {printable(model.name or '?')} with "
             f"{model.n} joints ({', '.join(model.joint_types)}). Use --format urdf or the json/npz compensator"
         )
     if robot.joint_map is not None:
@@ -115,8 +134,8 @@ def ur_kinematics_text(robot: CalibratedRobot, provenance: dict | None = None, g
     origins, rest = ur_frames(robot)
     note = refuse_or_note(robot, "ur_description kinematics YAML", geometry_only)
     lines = [
-        f"# labcal calibration of {robot.nominal.name or 'robot'} for ur_description (kinematics_params), method "
-        f"{robot.method}",
+        f"# labcal calibration of {printable(robot.nominal.name or 'robot')} for ur_description (kinematics_params), "
+        f"method {printable(robot.method)}",
         f"# nominal robot sha256 {model_hash(robot.nominal)}; identified model sha256 {model_hash(robot.model)}",
         "# frames: shoulder is given in base_link_inertia (= the controller's base frame, base_link turned by pi "
         "about z); tool0 = wrist_3_link",
@@ -125,16 +144,21 @@ def ur_kinematics_text(robot: CalibratedRobot, provenance: dict | None = None, g
         "# tcp_in_tool0: " + " ".join(_fmt(v) for v in _pose6(rest)),
     ]
     if note:
-        lines.append(f"# {note}")
-    lines += [f"# {k}: {' '.join(str(v).split())}" for k, v in sorted((provenance or {}).items())]
+        lines.append(f"# {printable(note)}")
+    lines += [
+        "# hash: identifies these numbers, not the controller's factory calibration, so ur_robot_driver logs "
+        "\"calibration parameters ... don't match\" at start: expected (its movel/TCP use the controller's model)",
+    ]
+    lines += [f"# {printable(k)}: {printable(v)}" for k, v in sorted((provenance or {}).items())]
     body = ["kinematics:"]
     for name, T in zip(UR_SEGMENTS, origins, strict=True):
         xyz, rpy = T[:3, 3], se3.matrix_to_rpy(T[:3, :3])
         body.append(f"  {name}:")
         body += [f"    {key}: {_fmt(v)}" for key, v in zip(("x", "y", "z"), xyz, strict=True)]
         body += [f"    {key}: {_fmt(v)}" for key, v in zip(("roll", "pitch", "yaw"), rpy, strict=True)]
-    # ur_calibration writes a hash of the controller's calibration; ours identifies the numbers above.
-    body.append(f"  hash: labcal_{hashlib.sha256(chr(10).join(body).encode()).hexdigest()[:16]}")
+    # ur_calibration writes a hash of the controller's calibration; ours identifies the numbers above (module doc).
+    digest = hashlib.sha256(chr(10).join(body).encode()).hexdigest()[:16]
+    body.append(f"  hash: {json.dumps(f'labcal_{digest}')}")
     lines += body
     return "\n".join(lines) + "\n"
 
@@ -153,5 +177,5 @@ def write_ur_kinematics(
     robot: CalibratedRobot, path, provenance: dict | None = None, geometry_only: bool = False
 ) -> Path:
     path = Path(path)
-    path.write_text(ur_kinematics_text(robot, provenance, geometry_only))
+    write_text(path, ur_kinematics_text(robot, provenance, geometry_only))
     return path

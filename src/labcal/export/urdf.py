@@ -1,5 +1,10 @@
 """Calibrated URDF export, written with ``xml.etree`` (names and comments are escaped by the XML writer).
 
+Strings. Names are checked where they enter labcal (:mod:`labcal.names`); here every name and comment is
+also made printable (XML 1.0 has no form at all for most control characters, escaped or not, so one would make
+the file ill-formed) and the XML library escapes ``<``, ``&`` and quotes. Repeated joint names are refused (a URDF
+addresses joints by name). The file is written atomically (:mod:`labcal.atomicio`).
+
 A URDF joint (origin xyz/rpy + axis) is exactly one local-POE frame A_j(0) and unit twist ξ_j, so the identified
 geometric model is written without approximation (17 significant digits), with every joint frame moved onto its
 axis line (:func:`urdf_model`). What the file holds:
@@ -34,11 +39,13 @@ from pathlib import Path
 
 import numpy as np
 
+from labcal.atomicio import write_text
 from labcal.compensator import CalibratedRobot
 from labcal.export.learned import refuse_or_note
 from labcal.export.zform import ZAxisForm
 from labcal.kinematics import se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel, default_twist
+from labcal.names import duplicate, printable
 from labcal.robots import model_hash
 
 UR_LINKS = ("shoulder_link", "upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link", "wrist_3_link")
@@ -141,10 +148,11 @@ def urdf_text(
         notes.append("joint effort/velocity UNKNOWN (the robot file gives none): written as 0, do not simulate with it")
     if masses is not None:
         notes.append("inertials: point masses from the robot file (no inertia tensors are known)")
-    notes += [f"{k}: {' '.join(str(v).split())}" for k, v in sorted((provenance or {}).items())]
+    notes += [f"{k}: {v}" for k, v in sorted((provenance or {}).items())]
 
-    root = ET.Element("robot", name=f"{robot.nominal.name or 'robot'}_calibrated")
-    root.append(ET.Comment(" " + "; ".join(notes).replace("--", "- -") + " "))
+    root = ET.Element("robot", name=printable(f"{robot.nominal.name or 'robot'}_calibrated"))
+    # An XML comment may not hold "--" (nor end in "-": the spaces around it see to that).
+    root.append(ET.Comment(" " + printable("; ".join(map(str, notes))).replace("--", "- -") + " "))
     if ur_names:
         links = ["base_link_inertia", *UR_LINKS]
         joint_names = [
@@ -157,7 +165,13 @@ def urdf_text(
         ]
     else:
         links = ["base_link", *[f"link_{j + 1}" for j in range(n)]]
-        joint_names = list(model.joint_names)
+        joint_names = [printable(name) for name in model.joint_names]
+        twice = duplicate(joint_names)
+        if twice is not None:
+            raise ValueError(
+                f"joints {twice[0] + 1} and {twice[1] + 1} are both named {joint_names[twice[1]]!r}: a URDF addresses "
+                "joints by name, so they must be unique (rename one in the robot file)"
+            )
     elements = {}
     for name in (["base_link"] if ur_names else []) + links + (["flange", "tool0", "base"] if ur_names else ["tool0"]):
         elements[name] = ET.SubElement(root, "link", name=name)
@@ -210,5 +224,5 @@ def urdf_text(
 
 def write_urdf(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:
     path = Path(path)
-    path.write_text(urdf_text(robot, provenance, **options))
+    write_text(path, urdf_text(robot, provenance, **options))
     return path

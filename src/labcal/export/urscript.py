@@ -873,11 +873,15 @@ def near_singular_self_test(robot: CalibratedRobot, golden: np.ndarray, max_corr
 
 def write_urscript(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:
     path = Path(path)
-    path.write_text(urscript_text(robot, provenance=provenance, **options))
+    from labcal.atomicio import write_text  # whole or absent, never over a device or a symlink
+
+    write_text(path, urscript_text(robot, provenance=provenance, **options))
     return path
 
 
 def write_urscript_program(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:
     path = Path(path)
-    path.write_text(urscript_program_text(robot, provenance=provenance, **options))
+    from labcal.atomicio import write_text  # whole or absent, never over a device or a symlink
+
+    write_text(path, urscript_program_text(robot, provenance=provenance, **options))
     return path

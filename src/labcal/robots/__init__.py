@@ -71,6 +71,7 @@ import numpy as np
 from labcal.kinematics import se3
 from labcal.kinematics.conversions import from_dh, from_mdh, from_urdf
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
+from labcal.names import duplicate, label_problem, name_problem, printable
 from labcal.robots.joint_map import JointMap
 from labcal.tomlschema import Key, SchemaError, Table, validate
 from labcal.tomlschema import is_number as _is_number
@@ -171,8 +172,11 @@ def load(name_or_path: str | Path) -> RobotSpec:
 
 def loads(text: str, format: str = "toml", source: str = "<text>") -> RobotSpec:
     """A robot from the text of a robot file (``format`` "toml" or "urdf"), e.g. the copy a session stored."""
+    source = printable(source)  # it names the file in every message: a stored name may hold anything
     if format == "urdf":
+        _check_urdf_joint_names(text, source)
         model = from_urdf(text)
+        _check_urdf_names(model, source)
         spec = _spec(model.name or Path(source).stem, model, {}, [], source)
     elif format == "toml":
         try:
@@ -183,6 +187,39 @@ def loads(text: str, format: str = "toml", source: str = "<text>") -> RobotSpec:
     else:
         raise RobotFileError(f"{source}: robot file format must be 'toml' or 'urdf', got {format!r}")
     return dataclasses.replace(spec, text=text, format=format)
+
+
+def _check_urdf_joint_names(text: str, source: str) -> None:
+    """Refuse repeated <joint name>s before the chain is built (it would silently keep one of them)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        names = [j.get("name") for j in ET.fromstring(text).iter("joint")]
+    except ET.ParseError:
+        return  # from_urdf says what is wrong with the XML
+    twice = duplicate(names)
+    if twice is not None:
+        raise RobotFileError(
+            f"{source}: joint {twice[1] + 1} name {printable(names[twice[1]])!r} repeats joint {twice[0] + 1}'s: "
+            "joint names must be unique",
+            source,
+        )
+
+
+def _check_urdf_names(model: LocalPOEModel, source: str) -> None:
+    """The checks a TOML file's names get, for a URDF's robot and joint names."""
+    if model.name and (problem := name_problem(model.name)):
+        raise RobotFileError(f"{source}: robot name {problem}", source)
+    for j, name in enumerate(model.joint_names):
+        if problem := name_problem(name):
+            raise RobotFileError(f"{source}: joint {j + 1} name {problem}", source)
+    twice = duplicate(model.joint_names)
+    if twice is not None:
+        raise RobotFileError(
+            f"{source}: joint {twice[1] + 1} name {model.joint_names[twice[1]]!r} repeats joint {twice[0] + 1}'s: "
+            "joint names must be unique",
+            source,
+        )
 
 
 def _lo_below_hi(lim: list[float]) -> str | None:
@@ -206,7 +243,9 @@ def _unit_signs(signs: list[float]) -> str | None:
 
 
 _JOINT = {
-    "name": Key("str", doc="joint name (default joint1, joint2, …)"),
+    # Names reach URScript, YAML and URDF exports and the terminal: a line break or an escape character in one would
+    # become a statement, a key or a cursor move there (labcal.names).
+    "name": Key("str", check=name_problem, doc="joint name (default joint1, joint2, …): letters, digits, _ - . + /"),
     "type": Key("str", default=REVOLUTE, choices=(REVOLUTE, PRISMATIC)),
     "limits": Key("vector", shape=(2,), unit="rad, m for prismatic", expect="[lo, hi] numbers", check=_lo_below_hi),
     "mass": Key("number", unit="kg", check=_non_negative, doc="mass of the link this joint moves"),
@@ -243,11 +282,15 @@ _JOINT_MAP = Table(
 )
 
 
+def _robot_name_problem(value: str) -> str | None:
+    return "must not be empty" if not value else name_problem(value)
+
+
 def _robot_schema(joint: Table) -> Table:
     return Table(
         {
-            "name": Key("str", required=True, check=lambda s: None if s else "must not be empty"),
-            "description": Key("str"),
+            "name": Key("str", required=True, check=_robot_name_problem, doc="letters, digits, _ - . + /"),
+            "description": Key("str", check=label_problem, doc="free text on one line"),
             "kinematics": Key("str", required=True, choices=("dh", "mdh", "poe")),
             "units_checked": Key("bool", default=False, doc="true: the numbers are not degrees/mm, skip that check"),
             "joints": Key("tables", table=joint, required=True, min_items=1),
@@ -279,6 +322,13 @@ def parse(data: dict, source: str = "<dict>") -> RobotSpec:
 
     T_tool = se3.pose(np.asarray(tool["xyz"]), np.asarray(tool["rpy"]))
     names = tuple(row.get("name", f"joint{j + 1}") for j, row in enumerate(joints))
+    twice = duplicate(names)
+    if twice is not None:
+        i, j = twice
+        raise fail(
+            f"joints[{j + 1}].name {names[j]!r} repeats joints[{i + 1}].name: joint names must be unique (a URDF or a "
+            "controller addresses joints by name)"
+        )
     if kind == "dh":
         model = from_dh(joints, T_tool, name=name, joint_names=names)
     elif kind == "mdh":

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from labcal.atomicio import write_text
 from labcal.cli.ops.common import UserError, jsonable, load_observations, split_ref
 from labcal.cli.ops.fitting import load_stored_fit, metric_warnings
 from labcal.datasets import SessionStore
@@ -77,7 +78,7 @@ def _robot_argument(store: SessionStore, stored, robot: str | None, tmpdir: Path
         return str(rec["name"])  # the built-in is the very model of the fit: import under its name
     if rec.get("text"):
         path = tmpdir / f"robot.{'urdf' if rec.get('format') == 'urdf' else 'toml'}"
-        path.write_text(rec["text"])
+        write_text(path, rec["text"])
         return str(path)
     if rec.get("name") in BUILTINS:
         return str(rec["name"])

@@ -1,15 +1,23 @@
 """`labcal export` as a function: write a stored fit in one of the export formats, with provenance.
 
 Order of checks, all before any work: the format, the output path (an existing file is refused without
-``force``; a missing or unwritable folder is a one-line error), then the fit's warnings (refused without
-``force``; a forced export records ``forced: true`` and the warnings in its provenance). The file is written to a
-temporary file in the same folder and moved into place with ``os.replace``, so a reader never sees half a file and
-an interrupted export leaves the previous file untouched.
+``force``; a device, a symlink, a folder or a FIFO is refused even with ``force``; a missing or unwritable folder
+is a one-line error), then the fit's warnings (refused without ``force``; a forced export records ``forced: true``
+and the warnings in its provenance). Every writer goes through :mod:`labcal.atomicio` (temporary file in the same
+folder, fsync, rename), so a reader never sees half a file and an interrupted export leaves the previous file
+untouched.
+
+Provenance names what was calibrated and with what: the session, fit and data hashes, and the serial numbers of
+the arm (``arm_serial``: what the controller reported, else the session's unit id) and of the tracker
+(``tracker_serial``) that the sessions' start documents recorded (``labcal session show``). Serials come from
+devices: each is written as printable text (:func:`labcal.names.printable`), cut to 64 characters, and
+every writer escapes it again for its own format.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 import tomllib
 from collections.abc import Callable
@@ -17,10 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
+from labcal.atomicio import UnsafeTargetError, check_target, write_bytes
 from labcal.cli.ops.common import UserError, robot_for
 from labcal.cli.ops.fitting import info_warnings, load_stored_fit
 from labcal.datasets import SessionStore
+from labcal.names import printable
 from labcal.robots.joint_map import JointMap
+
+MAX_SERIAL = 64  # characters of a device's serial number written into an export (a confused device sends more)
 
 
 def stored_warnings(meta: dict) -> list[dict]:
@@ -35,8 +47,13 @@ def check_output(out: str | Path, *, force: bool = False) -> Path:
     """Refuse an output path that cannot be written, or that exists (without force), before any work."""
     out = Path(out)
     parent = out.parent
-    if out.is_dir():
-        raise UserError(f"--out {out} is a folder: give a file name")
+    if out.is_dir() and not out.is_symlink():
+        raise UserError(f"--out {printable(out)} is a folder: give a file name")
+    if os.path.lexists(out):
+        try:
+            check_target(out)  # a device, a symlink, a FIFO: refused with or without --force
+        except UnsafeTargetError as e:
+            raise UserError(f"--out {printable(e)}") from None
     if not parent.is_dir():
         what = "is not a folder" if parent.exists() else "does not exist: create it first"
         raise UserError(f"output folder {parent} {what}")
@@ -77,15 +94,32 @@ def _map_arrays(joint_map, n: int) -> np.ndarray:
     return np.concatenate([jm.matrix.ravel(), jm.offsets])
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def _one_line(text: str) -> str:
-    # URScript comments and URDF/XML comments take one line and no "--".
-    return " ".join(str(text).split()).replace("--", "- -")
+    # URScript comments and URDF/XML comments take one line and no "--"; a device's text no control characters.
+    return printable(text).replace("--", "- -")
+
+
+def device_serials(store: SessionStore, refs: list[str]) -> dict[str, str]:
+    """``arm_serial`` and ``tracker_serial`` of the sessions ``refs`` (their start documents: what the controller
+    and the tracker reported, the arm's falling back to the session's unit id), as printable text; several
+    sessions with different units give a comma-separated list; a serial nobody recorded is ``unknown`` (an
+    imported CSV, a sim tracker), so a reader sees it is missing rather than forgotten.
+
+    Example: ``{"arm_serial": "20185500001", "tracker_serial": "P7-04711"}``
+    """
+    arms: list[str] = []
+    trackers: list[str] = []
+    for ref in refs:
+        session = store.load(ref).manifest.get("session") or {}  # verified: a record names what it calibrated
+        robot_id = (session.get("robot_driver") or {}).get("identity") or {}
+        tracker_id = (session.get("tracker") or {}).get("identity") or {}
+        arm = robot_id.get("serial") or (session.get("metadata") or {}).get("unit")
+        for value, seen in ((arm, arms), (tracker_id.get("serial"), trackers)):
+            if value is not None and str(value).strip():
+                text = printable(value, MAX_SERIAL)
+                if text not in seen:
+                    seen.append(text)
+    return {"arm_serial": ", ".join(arms) or "unknown", "tracker_serial": ", ".join(trackers) or "unknown"}
 
 
 def export_fit(
@@ -140,33 +174,35 @@ def export_fit(
         "inputs": ", ".join(i["ref"] for i in record.inputs),
         "data_sha256": ", ".join(i["manifest_sha256"] for i in record.inputs),
         "method": stored.robot.method,
+        **device_serials(store, [i["ref"] for i in record.inputs]),
     }
     if warnings:
         provenance["forced"] = True
         if fmt in ("json", "npz"):
-            provenance["warnings"] = [{"code": w.get("code"), "message": w.get("message")} for w in warnings]
+            provenance["warnings"] = [
+                {"code": printable(w.get("code")), "message": printable(w.get("message"))} for w in warnings
+            ]
         else:
             provenance["warnings"] = _one_line(" | ".join(f"[{w.get('code')}] {w.get('message')}" for w in warnings))
-    # Same folder ⇒ same file system ⇒ os.replace is atomic. The temporary name keeps the suffix the writers check.
     options = dict(options or {})
     if fmt == "urdf":
         # Unknown effort/velocity: written as 0 with a note in the file and a warning, unless the caller refuses.
         options = {"unknown_dynamics": "zero", **joint_dynamics(spec), **options}
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
+    # The writer works in a private folder beside --out, and only its finished file is copied into place (through
+    # atomicio: temp + fsync + rename, regular files only), so not even a writer that fails halfway touches --out.
+    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
         try:
-            export(stored.robot, fmt, tmp, provenance, **options)
+            written = export(stored.robot, fmt, work / out.name, provenance, **options)
         except ValueError as e:
-            raise UserError(f"fit {stored.fit_id} cannot be exported as {fmt}: {e}") from None
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; an export gets the mode a plain write would
-        os.replace(tmp, out)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+            raise UserError(f"fit {stored.fit_id} cannot be exported as {fmt}: {printable(e)}") from None
+        data = Path(written).read_bytes()
+        try:
+            write_bytes(out, data)
+        except UnsafeTargetError as e:  # swapped in since check_output
+            raise UserError(f"--out {printable(e)}") from None
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     if on_warning is not None and fmt in GEOMETRY_FORMATS and options.get("geometry_only"):
         from labcal.export.learned import dropped_learned_term
 
