@@ -161,6 +161,12 @@ def _check_doc(doc: Any) -> str | None:
     t = doc.get("type")
     if t not in DOC_TYPES:
         return f"unknown document type {t!r}"
+    if t == "start":
+        # a start document damaged into other valid JSON must read as damaged, not crash whoever reads the journal
+        if not isinstance(doc.get("session_id"), str) or not isinstance(doc.get("robot"), dict):
+            return "start document without a session_id or robot"
+        if not isinstance(doc.get("targets"), list) or not isinstance(doc["robot"].get("n_joints"), int):
+            return "start document without targets or robot.n_joints"
     if t == "measurement":
         if not isinstance(doc.get("seq"), int) or not isinstance(doc.get("pose_index"), int):
             return "measurement without integer seq/pose_index"
@@ -313,6 +319,13 @@ class Journal:
             _write_all(fd, line)
             os.fsync(fd)
             fsync_dir(path.parent)
+            # Read back before anyone records: the robot must not move for a session whose start document (robot,
+            # targets, plan) did not reach the disk as written.
+            if path.read_bytes() != line:
+                raise JournalCorrupted(
+                    f"{path}: the start document read back differs from what was written (a failing disk or a second "
+                    "writer?); nothing was recorded: start the session again, in another store if it repeats"
+                )
         except BaseException:
             os.close(fd)
             raise
