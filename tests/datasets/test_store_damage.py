@@ -194,6 +194,9 @@ def test_verify_reports_a_deleted_first_version(two_runs):
     assert r.exit_code == 1
     doc = json.loads(r.stdout)
     assert any(p.startswith("v001: missing") for p in doc["session_checks"]["problems"])
+    # a session written before the versions log: the gap in the numbering still names it
+    (store.session_dir(sid) / "versions.jsonl").unlink()
+    assert any(p.startswith("v001: missing (v002 exists") for p in store.check_session(sid).problems)
 
 
 def test_verify_reports_a_deleted_journal(two_runs):
@@ -211,6 +214,7 @@ def test_a_damaged_journal_is_reported_once_for_the_session_not_against_every_ve
     r = cli("session", "verify", sid, "--store", store.root)
     assert r.exit_code == 1
     assert f"{sid}@v001: ok" in r.stdout and f"{sid}: journal.jsonl: line 2" in r.stdout
+    assert "line 2: unreadable (JSONDecodeError): it lies in the part already sealed" in r.stdout  # v001 has it
 
 
 # ------------------------------------------------------------------------------------------------ foreign entries
