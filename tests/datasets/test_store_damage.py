@@ -287,3 +287,39 @@ def test_a_damaged_version_stops_seal_with_the_version_named(two_runs):
         store.seal(sid)
     # and Journal stays appendable: the damage is in the version, not in the journal
     Journal.open(store.session_dir(sid) / "journal.jsonl").close()
+
+
+def test_a_full_disk_while_recording_names_the_journal_and_how_to_continue(tmp_path, monkeypatch):
+    import errno
+
+    from labcal.datasets import JournalError
+    from labcal.datasets import journal as journal_module
+
+    store = SessionStore(tmp_path / "store")
+    rng = np.random.default_rng(0)
+    with new_journal(store) as j:
+        j.append_measurement(pose_index=0, **fake_measurement(rng))
+
+        def full(fd, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        monkeypatch.setattr(journal_module.os, "write", full)
+        with pytest.raises(JournalError) as e:
+            j.append_measurement(pose_index=1, **fake_measurement(rng))
+        monkeypatch.undo()
+    message = str(e.value)
+    assert "\n" not in message and str(j.path) in message and "No space left on device" in message
+    assert "free space on its disk" in message and f"labcal session resume {j.session_id}" in message
+    assert len(store.read_journal(j.session_id).measurements) == 1  # what was written before is there
+
+
+def test_os_files_among_the_fits_are_noted_not_fatal(two_runs):
+    store, sid, _ = two_runs
+    ref = f"{sid}@v001"
+    store.save_fit(ref, {"model.json": b"{}"}, {"method": "test"})
+    fits = store.session_dir(sid) / "v001" / "fits"
+    (fits / "Thumbs.db").write_bytes(b"\0")
+    report = store.verify_fits(ref)
+    assert report.ok and report.notes and len(store.list_fits(ref)) == 1
+    r = cli("session", "verify", ref, "--store", store.root)
+    assert r.exit_code == 0 and "note: fits/Thumbs.db: foreign file" in r.stdout, r.stdout

@@ -436,7 +436,7 @@ def verify(
             )
         for p in problems:
             out.print(f"{report.ref}: {p}", markup=False)
-        for n in report.notes:
+        for n in [*report.notes, *fits.notes]:
             out.print(f"{report.ref}: note: {n}", markup=False)
     bad = any(not d["ok"] for d in docs) or (whole is not None and not whole.ok)
     if whole is not None and not as_json:

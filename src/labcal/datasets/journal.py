@@ -510,7 +510,14 @@ class Journal:
             os.fsync(self._fd)
         except OSError as e:
             self._broken = True
-            raise JournalError(f"writing to journal {self.path} failed: {e}") from e
+            import errno
+
+            full = e.errno in (errno.ENOSPC, errno.EDQUOT)
+            fix = "free space on its disk, then" if full else "fix the disk, then"
+            raise JournalError(
+                f"writing to journal {self.path} failed: {e.strerror or e}; every document before this one is on disk: "
+                f"{fix} `labcal session resume {self.session_id}` continues after the last one"
+            ) from e
         return doc
 
 

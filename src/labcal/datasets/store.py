@@ -595,7 +595,11 @@ class SessionStore:
             try:
                 m = json.loads((vdir / MANIFEST).read_text(encoding="utf-8"))
                 fits_dir = vdir / FITS
-                nfits = len([p for p in fits_dir.iterdir() if not p.name.startswith(".")]) if fits_dir.is_dir() else 0
+                nfits = (
+                    len([p for p in fits_dir.iterdir() if p.is_dir() and not p.name.startswith(".")])
+                    if fits_dir.is_dir()
+                    else 0
+                )
                 infos.append(
                     VersionInfo(version_name(v), int(m["row_count"]), m["created"], m["source"], m["parent"], nfits)
                 )
@@ -814,12 +818,17 @@ class SessionStore:
         fits_dir = self.session_dir(r.session_id) / version_name(r.version) / FITS  # type: ignore[arg-type]
         problems: list[str] = []
         checked: list[str] = []
+        notes: list[str] = []
         if not fits_dir.is_dir():
             return VerifyReport(str(r), problems, checked)
         for p in sorted(fits_dir.iterdir()):
             if p.name.startswith("."):  # the temporary folder of an interrupted save_fit, never published
                 continue
             where = f"{FITS}/{p.name}"
+            if is_os_or_editor_file(p.name):
+                kind = "folder" if p.is_dir() else "file"
+                notes.append(f"{where}: foreign {kind} (operating system or editor), skipped")
+                continue
             if not p.is_dir():
                 problems.append(f"{where}: extra file in {FITS}/ (a fit is a folder)")
                 continue
@@ -862,7 +871,7 @@ class SessionStore:
             problems += _load_sealed(ep.read_bytes(), "evaluation_sha256", where)[1]
             if not (fits_dir / ep.parent.name / FIT_JSON).is_file():
                 problems.append(f"{where}: evaluates fit {ep.parent.name}, which is not stored under {r}")
-        return VerifyReport(str(r), problems, checked)
+        return VerifyReport(str(r), problems, checked, notes)
 
     def verify_session(self, session_id: str) -> list[VerifyReport]:
         """:meth:`verify` of every version, then :meth:`check_session` (the last report, ``ref`` = the session id)."""
@@ -1261,7 +1270,7 @@ class SessionStore:
         return [
             self.load_fit(r, p.name, check_files=False)
             for p in sorted(fits_dir.iterdir())
-            if not p.name.startswith(".")
+            if not p.name.startswith(".") and not is_os_or_editor_file(p.name)
         ]
 
     def load_fit(self, ref: str | Ref, fit_id: str, *, check_files: bool = True) -> FitRecord:
