@@ -323,3 +323,25 @@ def test_os_files_among_the_fits_are_noted_not_fatal(two_runs):
     assert report.ok and report.notes and len(store.list_fits(ref)) == 1
     r = cli("session", "verify", ref, "--store", store.root)
     assert r.exit_code == 0 and "note: fits/Thumbs.db: foreign file" in r.stdout, r.stdout
+
+
+def test_an_unreadable_start_document_leaves_v001_usable_and_seal_valid_prefix_seals_the_rest(two_runs, tmp_path):
+    store, sid, journal = two_runs
+    _damage_line(journal, 1)
+    assert store.verify(f"{sid}@v001").ok and len(store.load(f"{sid}@v001")) == 5
+    problems = store.check_session(sid).problems
+    assert any(p.startswith("journal.jsonl: line 1: the start document is damaged") and "--valid-prefix" in p
+               for p in problems), problems  # fmt: skip
+    result = store.seal(sid, valid_prefix=True)
+    assert result.created and store.load(result.ref).pose.tolist() == list(range(8))
+    # without a version, nothing holds a copy of the start document: no --valid-prefix advice, a clear refusal
+    other = SessionStore(tmp_path / "other")
+    rng = np.random.default_rng(0)
+    with new_journal(other) as j:
+        for i in range(3):
+            j.append_measurement(pose_index=i, **fake_measurement(rng))
+    _damage_line(j.path, 1)
+    problems = other.check_session(j.session_id).problems
+    assert len(problems) == 1 and "restore the journal from a backup" in problems[0], problems
+    with pytest.raises(JournalCorrupted, match="no version holds a copy"):
+        other.seal(j.session_id, valid_prefix=True)

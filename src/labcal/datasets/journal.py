@@ -108,9 +108,14 @@ class JournalContents:
 
     @functools.cached_property
     def start(self) -> StartDoc | None:
-        """The start document (None if the first document is not one)."""
+        """The start document (None if the first document is not one, or is damaged beyond reading)."""
         first = self.documents[0] if self.documents else None
-        return StartDoc.from_json(first) if first is not None and first["type"] == "start" else None
+        if first is None or first["type"] != "start":
+            return None
+        try:
+            return StartDoc.from_json(first)
+        except (KeyError, TypeError, ValueError):  # damaged into other valid JSON: read as damaged, never a crash
+            return None
 
     @functools.cached_property
     def measurements(self) -> list[MeasurementDoc]:

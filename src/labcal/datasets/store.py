@@ -752,6 +752,8 @@ class SessionStore:
         through = max((int(info.get("bytes", 0)) for _, info in sealed), default=0)
         sealed_lines = _lines_in(jpath, through)
         for ln in contents.corrupt_lines:
+            if ln == 1 and contents.start is None:
+                continue  # the start document: said above, with the fix that applies to it
             why = contents.corrupt_reasons.get(ln, "corrupt")
             if ln <= sealed_lines:
                 fix = f"it lies in the part already sealed: {keep}; {cmd} seals what was recorded after that part"
