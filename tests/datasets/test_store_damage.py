@@ -74,6 +74,9 @@ def test_a_damaged_line_in_the_sealed_part_leaves_v001_usable_and_seal_valid_pre
     prov = store.manifest(result.ref)["provenance"]["journal"]["valid_prefix"]
     assert prov["skipped"][0]["line"] == 3 and "sealed_part_damage" in prov
     assert journal.read_bytes() == before  # the journal is never rewritten
+    # verify still reports the damaged journal, now as handled: no advice to run the same seal again
+    after = store.check_session(sid).problems
+    assert after and all("--valid-prefix`" not in p and "recorded by v002" in p for p in after), after
 
 
 def test_a_flipped_byte_in_the_start_document_leaves_v001_usable_and_is_named(two_runs):

@@ -751,11 +751,26 @@ class SessionStore:
             problems.append(f"{JOURNAL_NAME}: line 1: the start document is damaged or missing: {fix}")
         through = max((int(info.get("bytes", 0)) for _, info in sealed), default=0)
         sealed_lines = _lines_in(jpath, through)
+        # Damage a later `seal --valid-prefix` already sealed around (and recorded): running it again adds nothing.
+        handled: dict[int, str] = {}
+        handled_prefix: dict[int, str] = {}
+        for v, info in sealed:
+            vp = info.get("valid_prefix") or {}
+            for skip in vp.get("skipped") or []:
+                if isinstance(skip, dict) and isinstance(skip.get("line"), int):
+                    handled.setdefault(skip["line"], version_name(v))
+            if vp.get("sealed_part_damage"):
+                for w, _ in sealed:
+                    if w < v:
+                        handled_prefix.setdefault(w, version_name(v))
+        after = "record the remaining poses in a new session"
         for ln in contents.corrupt_lines:
             if ln == 1 and contents.start is None:
                 continue  # the start document: said above, with the fix that applies to it
             why = contents.corrupt_reasons.get(ln, "corrupt")
-            if ln <= sealed_lines:
+            if ln in handled:
+                fix = f"left out and recorded by {handled[ln]}'s seal --valid-prefix; {keep}; {after}"
+            elif ln <= sealed_lines:
                 fix = f"it lies in the part already sealed: {keep}; {cmd} seals what was recorded after that part"
             else:
                 fix = f"{cmd} seals the measurements before it and records what it left out"
@@ -770,10 +785,9 @@ class SessionStore:
                 )
                 damaged.append((v, what))
             elif sha256_file(jpath, limit=n) != info.get("sha256"):
-                what = (
-                    f"the first {n} bytes, sealed into {version_name(v)}, changed since it was sealed; {keep}; "
-                    f"{cmd} seals what was recorded after them"
-                )
+                fix = (f"recorded by {handled_prefix[v]}'s seal --valid-prefix; {after}" if v in handled_prefix
+                       else f"{cmd} seals what was recorded after them")  # fmt: skip
+                what = f"the first {n} bytes, sealed into {version_name(v)}, changed since it was sealed; {keep}; {fix}"
                 damaged.append((v, what))
         if damaged:
             v, what = damaged[0]
