@@ -97,13 +97,64 @@ def fail(source: str, path: str, message: str, error: type[E] = SchemaError) -> 
     return error(f"{where}{path + ' ' if path else ''}{message}", source, path)
 
 
-def read_toml(path: str | Path, error: type[SchemaError] = SchemaError, what: str = "file") -> dict:
-    """Parse a TOML file; an unreadable file or bad TOML raises ``error`` naming the file."""
-    path = Path(path)
+def input_file_problem(path: str | Path) -> str | None:
+    """Why ``path`` cannot be read as an input file, as the end of a sentence (None: a regular file, or a link to one).
+
+    A device such as ``/dev/zero`` never ends and a FIFO blocks until someone writes: both are refused by name
+    instead of being read (or called missing).
+
+    >>> input_file_problem("/dev/zero")
+    'is a device, not a file: name the file itself'
+    """
+    import os
+    import stat
+
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise error(f"{path}: cannot read {what}: {exc}", str(path)) from exc
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "not found (check the path and the current folder)"
+    except OSError as e:
+        return f"cannot be opened ({e.strerror or e})"
+    if stat.S_ISREG(mode):
+        return None
+    if stat.S_ISDIR(mode):
+        return "is a folder, not a file: name the file inside it"
+    if stat.S_ISFIFO(mode):
+        return "is a FIFO (named pipe), not a file: save the data to a regular file first"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "is a device, not a file: name the file itself"
+    return "is not a regular file (a socket?): name a regular file"
+
+
+def decode_text(data: bytes, path: str | Path, error: type[Exception], what: str = "file") -> str:
+    """UTF-8 text of ``data`` (a byte order mark, as Windows editors write, is accepted and dropped); bytes that are
+    not UTF-8 raise ``error`` naming the line and column and how to convert the file."""
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        start = exc.start + (3 if data.startswith(b"\xef\xbb\xbf") else 0)
+        line = data[:start].count(b"\n") + 1
+        column = start - (data.rfind(b"\n", 0, start) + 1) + 1
+        bad = data[start : start + 1].hex()
+        name = Path(path).name
+        raise error(
+            f"{path}: line {line}, column {column}: byte 0x{bad} is not UTF-8 (the {what} was saved in another "
+            f"encoding, e.g. Latin-1 or Windows-1252): save it as UTF-8, e.g. `iconv -f latin1 -t utf-8 {name} > "
+            f"utf8-{name}`"
+        ) from None
+
+
+def read_toml(path: str | Path, error: type[SchemaError] = SchemaError, what: str = "file") -> dict:
+    """Parse a TOML file; an unreadable file or bad TOML raises ``error`` naming the file (and the line)."""
+    path = Path(path)
+    why = input_file_problem(path)
+    if why is not None:
+        raise error(f"{path}: cannot read {what}: it {why}", str(path))
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise error(f"{path}: cannot read {what}: {exc.strerror or exc}", str(path)) from exc
+    text = decode_text(data, path, error, what)
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -269,4 +320,16 @@ def describe(table: Table, indent: str = "") -> str:
     return "\n".join(lines)
 
 
-__all__ = ["MISSING", "Key", "SchemaError", "Table", "describe", "fail", "is_number", "read_toml", "validate"]
+__all__ = [
+    "MISSING",
+    "Key",
+    "SchemaError",
+    "Table",
+    "decode_text",
+    "describe",
+    "fail",
+    "input_file_problem",
+    "is_number",
+    "read_toml",
+    "validate",
+]

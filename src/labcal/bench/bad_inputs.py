@@ -909,3 +909,187 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(raw, indent=1) + "\n")
     return 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# issue 26: store damage and resume. A recorded sim session is damaged the way disks, file managers and people do;
+# then the command a user runs next. "pass": an intact version stays usable (fit, seal, list go through);
+# "clean-error": one line, exit ≠ 0, and for resume no motion (the journal does not grow).
+def _recorded(tmp: Path, poses: int = 30) -> tuple[Path, str, Path]:
+    """A complete sim session (v001 sealed): (store, session id, journal)."""
+    tgt = write_targets(tmp / "targets.toml", S.TARGETS)
+    store = tmp / "store"
+    r = run(["session", "new", "--robot", "ur10", "--targets", str(tgt), "--poses", str(poses), "--store", str(store)],
+            cwd=tmp, timeout=600)  # fmt: skip
+    journal = _journal_path(store)
+    if r.code != 0 or journal is None:
+        raise RuntimeError(f"setup: session new exit {r.code}: {r.first_line()}")
+    return store, journal.parent.name, journal
+
+
+def _damage_journal_line(journal: Path, line_no: int) -> None:
+    lines = journal.read_bytes().split(b"\n")
+    lines[line_no - 1] = b"#" * len(lines[line_no - 1])
+    journal.write_bytes(b"\n".join(lines))
+
+
+def _flip_start_document(journal: Path) -> None:
+    data = bytearray(journal.read_bytes())
+    i = data.index(b'"targets":[[') + len(b'"targets":[[')
+    data[i] = ord("7") if data[i] != ord("7") else ord("8")  # still JSON: another target position
+    journal.write_bytes(bytes(data))
+
+
+def _resume_after(damage: Callable[[Path, str, Path], None]):
+    """Ctrl-C a session (v001 sealed, poses left), damage it, run `session resume`: refused before any motion?"""
+
+    def go(tmp: Path, args) -> Outcome:
+        r, store = _interrupted_session(tmp, poses=60)
+        journal = _journal_path(store)
+        if journal is None or r.code != 130 or not (journal.parent / "v001").is_dir():
+            return Outcome("setup failed", f"no sealed interrupted session (exit {r.code})", r.code, r.traceback)
+        damage(store, journal.parent.name, journal)
+        before = len(journal.read_bytes().splitlines())
+        r = run(["session", "resume", journal.parent.name, "--store", str(store)], cwd=tmp, timeout=600)
+        grew = len(journal.read_bytes().splitlines()) - before
+        note = f" [journal grew by {grew} lines: the robot moved]" if grew > 0 else " [no motion]"
+        stage = "resume" if r.code != 0 and grew <= 0 else "NOT stopped"
+        return Outcome(stage, r.first_line() + note, r.code, r.traceback)
+
+    return go
+
+
+def _flip_version_byte(store: Path, sid: str, journal: Path) -> None:
+    p = store / sid / "v001" / "measurements.parquet"
+    p.chmod(0o644)
+    data = bytearray(p.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    p.write_bytes(bytes(data))
+
+
+def _then(damage: Callable[[Path, str, Path], None], *commands: list[str]):
+    """Damage a complete session, then run each command (SID, STORE substituted); stopped at the first that fails."""
+
+    def go(tmp: Path, args) -> Outcome:
+        store, sid, journal = _recorded(tmp)
+        damage(store, sid, journal)
+        last = None
+        for cmd in commands:
+            argv = [a.replace("SID", sid) for a in cmd] + ["--store", str(store)]
+            last = run(argv, cwd=tmp, timeout=600)
+            if last.code != 0:
+                return Outcome(" ".join(cmd[:2]), last.first_line(), last.code, last.traceback)
+        assert last is not None
+        return Outcome("NOT stopped", last.first_line(), 0, last.traceback)
+
+    return go
+
+
+def _delete(name: str):
+    def damage(store: Path, sid: str, journal: Path) -> None:
+        target = store / sid / name
+        if target.is_dir():
+            for p in target.rglob("*"):
+                p.chmod(0o755 if p.is_dir() else 0o644)
+            shutil.rmtree(target)
+        else:
+            target.unlink()
+
+    return damage
+
+
+def _copy_session(store: Path, sid: str, journal: Path) -> None:
+    shutil.copytree(store / sid, store / f"{sid} (copy)")
+    (store / ".DS_Store").write_bytes(b"\0\0\0\1Bud1")
+    (store / sid / "v001" / "Thumbs.db").write_bytes(b"\0")
+
+
+def _truncate_sealed(store: Path, sid: str, journal: Path) -> None:
+    with open(journal, "r+b") as f:
+        f.truncate(journal.stat().st_size - 400)
+
+
+def _input_case(write: Callable[[Path], Path], *, targets: Callable[[Path], Path] | None = None):
+    """`session import` of one badly made input file (the good data otherwise)."""
+
+    def go(tmp: Path, args) -> Outcome:
+        scn = _base()
+        csv = write_csv(tmp / "data.csv", scn.q, scn.points)
+        tgt = write_targets(tmp / "targets.toml", scn.targets)
+        csv = write(csv)
+        tgt = targets(tgt) if targets is not None else tgt
+        r = run(["session", "import", str(csv), "--robot", "ur10", "--targets", str(tgt), "--store", str(tmp / "s")],
+                cwd=tmp, timeout=120)  # fmt: skip
+        if r.code is None:
+            return Outcome("NOT stopped", "still running after 120 s (killed by the benchmark)", None, r.traceback)
+        return Outcome("import" if r.code != 0 else "NOT stopped", r.first_line(), r.code, r.traceback)
+
+    return go
+
+
+def _comment_line(csv: Path) -> Path:
+    csv.write_text("# exported by the tracker software\n" + csv.read_text())
+    return csv
+
+
+def _semicolons(csv: Path) -> Path:
+    csv.write_text(csv.read_text().replace(",", ";").replace(".", ","))
+    return csv
+
+
+def _latin1_byte(csv: Path) -> Path:
+    data = csv.read_bytes()
+    i = data.index(b"\n") + 1
+    csv.write_bytes(data[:i] + b"\xe9" + data[i + 1 :])
+    return csv
+
+
+def _bom(toml: Path) -> Path:
+    toml.write_bytes(b"\xef\xbb\xbf" + toml.read_bytes())
+    return toml
+
+
+def _fifo(csv: Path) -> Path:
+    fifo = csv.with_name("fifo.csv")
+    os.mkfifo(fifo)
+    return fifo
+
+
+def _metres_as_mm(toml: Path) -> Path:
+    rows = ", ".join("[" + ", ".join(f"{v:.6f}" for v in t) + "]" for t in S.TARGETS)
+    toml.write_text(f'unit = "mm"\npoints = [{rows}]\n')
+    return toml
+
+
+_FIT = ["fit", "SID@v001", "--method", "local-poe"]
+STORE_CASES: list[Case] = [
+    Case("resume-damaged-version", "clean-error", "a byte of v001's parquet flipped, then session resume",
+         _resume_after(_flip_version_byte)),
+    Case("resume-damaged-sealed-line", "clean-error", "a journal line inside v001's part damaged, then session resume",
+         _resume_after(lambda store, sid, journal: _damage_journal_line(journal, 3))),
+    Case("resume-start-flipped", "clean-error", "a byte of the start document flipped, then session resume",
+         _resume_after(lambda store, sid, journal: _flip_start_document(journal))),
+    Case("sealed-line-fit-seal", "pass", "a journal line inside v001's part damaged: fit v001, seal --valid-prefix",
+         _then(lambda store, sid, journal: _damage_journal_line(journal, 3), _FIT,
+               ["session", "seal", "SID", "--valid-prefix"])),
+    Case("start-flipped-fit-seal", "pass", "a byte of the start document flipped: fit v001, seal --valid-prefix",
+         _then(lambda store, sid, journal: _flip_start_document(journal), _FIT,
+               ["session", "seal", "SID", "--valid-prefix"])),
+    Case("journal-cut-fit-seal", "pass", "journal cut 400 bytes short of v001's part: fit v001, seal --valid-prefix",
+         _then(_truncate_sealed, _FIT, ["session", "seal", "SID", "--valid-prefix"])),
+    Case("verify-deleted-version", "clean-error", "v001 deleted, then session verify", _then(_delete("v001"),
+         ["session", "verify", "SID"])),
+    Case("verify-deleted-journal", "clean-error", "journal deleted, then session verify",
+         _then(_delete("journal.jsonl"), ["session", "verify", "SID"])),
+    Case("list-copied-session", "pass", "'ID (copy)' folder, .DS_Store, Thumbs.db in v001: session list, fit v001",
+         _then(_copy_session, ["session", "list"], _FIT)),
+    Case("csv-comment-line", "clean-error", "a '# …' comment line above the CSV header", _input_case(_comment_line)),
+    Case("csv-semicolons", "clean-error", "';'-separated CSV, decimal commas, no mapping", _input_case(_semicolons)),
+    Case("csv-latin1", "clean-error", "a Latin-1 byte in the CSV", _input_case(_latin1_byte)),
+    Case("targets-bom", "pass", "targets TOML saved with a byte order mark", _input_case(lambda c: c, targets=_bom)),
+    Case("csv-dev-zero", "clean-error", "import /dev/zero", _input_case(lambda c: Path("/dev/zero"))),
+    Case("csv-fifo", "clean-error", "import a FIFO", _input_case(_fifo)),
+    Case("targets-m-as-mm", "clean-error", "targets file in m declared as mm",
+         _input_case(lambda c: c, targets=_metres_as_mm)),
+]  # fmt: skip
+CASES += STORE_CASES

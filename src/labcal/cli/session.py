@@ -207,8 +207,10 @@ def list_(
         if unit is not None and _unit(meta) != unit:
             continue
         rows.append((info, meta))
+    foreign = st.foreign_entries()  # copies, OS and editor files: listed, skipped, never fatal
     if as_json:
-        print_json("labcal.session-list/1", {"store": str(st.root), "sessions": [_session_doc(i, m) for i, m in rows]})
+        print_json("labcal.session-list/1", {"store": str(st.root), "sessions": [_session_doc(i, m) for i, m in rows],
+                                             "foreign": [{"name": n, "why": w} for n, w in foreign]})  # fmt: skip
         return
     from rich.table import Table
 
@@ -223,6 +225,8 @@ def list_(
             ", ".join(v.name for v in info.versions) or "—", str(info.rows),
         )  # fmt: skip
     out.print(t)
+    for name, why in foreign:
+        out.print(f"foreign: {name!r} skipped ({why})", markup=False)
 
 
 def _meta(st, session_id: str) -> dict:
@@ -398,10 +402,12 @@ def verify(
     as_json: bool = JsonOption,
     store: Path | None = StoreOption,
 ) -> None:
-    """Check the file hashes of a version and of the fits stored under it (SESSION alone: every version).
+    """Check the file hashes of a version and of the fits stored under it (SESSION alone: every version, and what
+    spans them: the journal against the part each version sealed, the start document, versions or journal gone).
 
-    Exit 1 with one line per problem if anything is wrong (with --json: the same problems in the document, and
-    exit 1 too).
+    Each version stands on its own files: a damaged journal is reported once, for the session, and leaves intact
+    versions usable. Foreign files (.DS_Store, editor backups) are noted and skipped. Exit 1 with one line per
+    problem if anything is wrong (with --json: the same problems in the document, and exit 1 too).
 
     Examples:
 
@@ -414,8 +420,7 @@ def verify(
     r = parse_ref(session)
     st = store_of(store)
     refs = [st.resolve(r)] if r.version is not None else [Ref(r.session_id, v) for v in st.versions(r.session_id)]
-    if not refs:
-        st.resolve(r)  # raises: the session has no version yet
+    whole = st.check_session(r.session_id) if r.version is None else None
     docs = []
     for ref in refs:
         report = st.verify(ref)
@@ -424,7 +429,7 @@ def verify(
         n_fits = len({c.split("/")[1] for c in fits.checked})
         docs.append({
             "ref": str(report.ref), "ok": not problems, "files_checked": len(report.checked), "fits_checked": n_fits,
-            "fit_files_checked": len(fits.checked), "problems": problems,
+            "fit_files_checked": len(fits.checked), "problems": problems, "notes": report.notes,
         })  # fmt: skip
         if as_json:
             continue
@@ -436,9 +441,23 @@ def verify(
             )
         for p in problems:
             out.print(f"{report.ref}: {p}", markup=False)
-    bad = any(not d["ok"] for d in docs)
+        for n in [*report.notes, *fits.notes]:
+            out.print(f"{report.ref}: note: {n}", markup=False)
+    bad = any(not d["ok"] for d in docs) or (whole is not None and not whole.ok)
+    if whole is not None and not as_json:
+        if whole.ok:
+            what = ", ".join(whole.checked) or "no journal (imported)"
+            out.print(f"{whole.ref}: ok (session: {len(refs)} version(s), {what} checked)", markup=False)
+        for p in whole.problems:
+            out.print(f"{whole.ref}: {p}", markup=False)
+        for n in whole.notes:
+            out.print(f"{whole.ref}: note: {n}", markup=False)
     if as_json:
-        print_json("labcal.session-verify/1", {"session": r.session_id, "ok": not bad, "versions": docs})
+        doc = {"session": r.session_id, "ok": not bad, "versions": docs}
+        if whole is not None:
+            doc["session_checks"] = {"ok": whole.ok, "checked": whole.checked, "problems": whole.problems,
+                                     "notes": whole.notes}  # fmt: skip
+        print_json("labcal.session-verify/1", doc)
     if bad:
         raise typer.Exit(VERIFY_FAILED)
 

@@ -82,7 +82,11 @@ def fsync_dir(path: Path) -> None:
 
 
 def write_file_durable(path: Path, data: bytes, *, read_only: bool = True) -> None:
-    """Write a new file (must not exist), fsync it, and optionally make it read-only."""
+    """Write a new file (must not exist), fsync it, and optionally make it read-only.
+
+    An error of ``write`` or ``fsync`` (a full disk: ENOSPC, a quota, an I/O error) carries no file name of its own;
+    it is re-raised with ``path`` as its filename, so the one-line message names the file that could not be written.
+    """
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
     try:
         view = memoryview(data)
@@ -90,6 +94,10 @@ def write_file_durable(path: Path, data: bytes, *, read_only: bool = True) -> No
             n = os.write(fd, view)
             view = view[n:]
         os.fsync(fd)
+    except OSError as e:
+        if e.filename is None:
+            raise OSError(e.errno, e.strerror or str(e), str(path)) from e
+        raise
     finally:
         os.close(fd)
     if read_only:

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import math
 import warnings
 from collections.abc import Mapping, Sequence
@@ -46,7 +47,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
-from labcal.tomlschema import Key, Table, fail, read_toml, validate
+from labcal.tomlschema import Key, Table, decode_text, fail, input_file_problem, read_toml, validate
 
 from ._util import sha256_bytes, sha256_file
 from .documents import metadata_with_unit
@@ -163,13 +164,16 @@ class _Csv:
 
     def __init__(self, path: Path, separator: str) -> None:
         self.path = path
+        why = input_file_problem(path)
+        if why is not None:
+            raise ImportFormatError(f"{path} {why}")
         try:
-            with open(path, encoding="utf-8-sig", newline="") as f:
-                header = next(csv.reader(f, delimiter=separator), None)
-        except FileNotFoundError:
-            raise ImportFormatError("file not found", path=str(path)) from None
-        except UnicodeDecodeError as e:
-            raise ImportFormatError(f"not UTF-8 text: {e}", path=str(path)) from None
+            data = path.read_bytes()
+        except OSError as e:
+            raise ImportFormatError(f"cannot be read ({e.strerror or e})", path=str(path)) from None
+        text = decode_text(data, path, ImportFormatError, "CSV file")  # the line and the fix of a non-UTF-8 byte
+        _refuse_comments(text, path, separator)
+        header = next(csv.reader(io.StringIO(text, newline=""), delimiter=separator), None)
         if not header or not any(h.strip() for h in header):
             raise ImportFormatError("empty file (no header line)", path=str(path))
         names = [h.strip() for h in header]
@@ -194,8 +198,8 @@ class _Csv:
                 )
         except pd.errors.ParserWarning:
             raise ImportFormatError(
-                f"a row has more fields than the {len(names)} columns of the header", path=str(path),
-                line=_first_long_line(path, separator, len(names)),
+                f"a row has more fields than the {len(names)} columns of the header{_separator_hint(names, separator)}",
+                path=str(path), line=_first_long_line(path, separator, len(names)),
             ) from None  # fmt: skip
         except pd.errors.ParserError as e:
             raise ImportFormatError(f"malformed CSV: {e}", path=str(path)) from None
@@ -282,6 +286,33 @@ class _Csv:
                 path=str(self.path),
                 row=int(blind[0]) + 1,
                 line=int(self.lines[int(blind[0])]),
+            )
+
+
+def _separator_hint(names: Sequence[str], separator: str) -> str:
+    """The fix when the header is one column that holds the others: the file uses another separator (and, with ';',
+    usually decimal commas, which is why the data rows split on the ',' the header lacks)."""
+    joined = next((sep for sep in (";", "\t", "|") if sep != separator and len(names) == 1 and sep in names[0]), None)
+    if joined is None:
+        return ""
+    shown = "\\t" if joined == "\t" else joined
+    return (
+        f": the file is {joined!r}-separated, not {separator!r}-separated; describe it with a --mapping TOML that says "
+        f'separator = "{shown}" (and decimal = "," if its numbers have decimal commas; see labcal\'s mappings/'
+        "ipa-ur10.toml)"
+    )
+
+
+def _refuse_comments(text: str, path: Path, separator: str) -> None:
+    """A line starting with '#' (a comment some exporters write above the header) names its line and the fix,
+    instead of becoming the header or a row with more fields than it."""
+    for i, line in enumerate(text.splitlines(), start=1):
+        if line.lstrip().startswith("#"):
+            raise ImportFormatError(
+                f"a comment line ({line.strip()[:40]!r}): labcal reads the first line as the column header and every "
+                "other line as a row; delete the comment lines (e.g. `grep -v '^#' in.csv > out.csv`)",
+                path=str(path),
+                line=i,
             )
 
 

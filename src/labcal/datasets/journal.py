@@ -108,9 +108,14 @@ class JournalContents:
 
     @functools.cached_property
     def start(self) -> StartDoc | None:
-        """The start document (None if the first document is not one)."""
+        """The start document (None if the first document is not one, or is damaged beyond reading)."""
         first = self.documents[0] if self.documents else None
-        return StartDoc.from_json(first) if first is not None and first["type"] == "start" else None
+        if first is None or first["type"] != "start":
+            return None
+        try:
+            return StartDoc.from_json(first)
+        except (KeyError, TypeError, ValueError):  # damaged into other valid JSON: read as damaged, never a crash
+            return None
 
     @functools.cached_property
     def measurements(self) -> list[MeasurementDoc]:
@@ -161,6 +166,12 @@ def _check_doc(doc: Any) -> str | None:
     t = doc.get("type")
     if t not in DOC_TYPES:
         return f"unknown document type {t!r}"
+    if t == "start":
+        # a start document damaged into other valid JSON must read as damaged, not crash whoever reads the journal
+        if not isinstance(doc.get("session_id"), str) or not isinstance(doc.get("robot"), dict):
+            return "start document without a session_id or robot"
+        if not isinstance(doc.get("targets"), list) or not isinstance(doc["robot"].get("n_joints"), int):
+            return "start document without targets or robot.n_joints"
     if t == "measurement":
         if not isinstance(doc.get("seq"), int) or not isinstance(doc.get("pose_index"), int):
             return "measurement without integer seq/pose_index"
@@ -313,6 +324,13 @@ class Journal:
             _write_all(fd, line)
             os.fsync(fd)
             fsync_dir(path.parent)
+            # Read back before anyone records: the robot must not move for a session whose start document (robot,
+            # targets, plan) did not reach the disk as written.
+            if path.read_bytes() != line:
+                raise JournalCorrupted(
+                    f"{path}: the start document read back differs from what was written (a failing disk or a second "
+                    "writer?); nothing was recorded: start the session again, in another store if it repeats"
+                )
         except BaseException:
             os.close(fd)
             raise
@@ -497,7 +515,14 @@ class Journal:
             os.fsync(self._fd)
         except OSError as e:
             self._broken = True
-            raise JournalError(f"writing to journal {self.path} failed: {e}") from e
+            import errno
+
+            full = e.errno in (errno.ENOSPC, errno.EDQUOT)
+            fix = "free space on its disk, then" if full else "fix the disk, then"
+            raise JournalError(
+                f"writing to journal {self.path} failed: {e.strerror or e}; every document before this one is on disk: "
+                f"{fix} `labcal session resume {self.session_id}` continues after the last one"
+            ) from e
         return doc
 
 

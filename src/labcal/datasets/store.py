@@ -11,6 +11,8 @@ Layout::
                 fit.json              inputs (refs + hashes), caller's metadata, sha256 of each fit file
                 ...                   the caller's files (model weights, metrics, exports)
         v002/ …                       parent = v001: all rows of v001 plus the new ones
+        versions.jsonl                one line per version ever published (name, manifest sha256): so a deleted
+                                      version is reported, not silently forgotten
 
 The default store is ``$LABCAL_STORE`` if set, else ``./sessions`` relative to the current directory.
 
@@ -19,6 +21,14 @@ read-only (0o444), then renamed to ``vNNN`` in one step, so it either exists com
 holds for a whole imported session and for a fit. Hidden ``.tmp-*`` directories left by a crash are ignored.
 The ``fits/`` folder of a version is the only thing that may change after the version was written: adding a
 fit never touches the version's data files or manifest, and ``verify`` ignores ``fits/``.
+
+Each version stands on its own manifest: :meth:`SessionStore.verify` checks only the version's own files against its
+own hashes, so damage elsewhere (the journal, another version) never makes an intact version unusable. What spans
+the session (the journal against the part of it each version sealed, the start document, versions listed in
+``versions.jsonl`` or named as a parent but gone, a journal gone) is :meth:`SessionStore.check_session`;
+:meth:`SessionStore.check_before_recording` runs both over the whole session before a recording command moves the
+robot. Entries that labcal did not write (a copied ``ID (copy)`` folder, ``.DS_Store``, ``Thumbs.db``, ``*~``) are
+listed as foreign (:meth:`SessionStore.foreign_entries`, :attr:`VerifyReport.notes`) and skipped, never fatal.
 """
 
 from __future__ import annotations
@@ -58,6 +68,21 @@ FIT_JSON = "fit.json"
 # folder never changes after save_fit), each a self-hashed JSON document like fit.json.
 EVALUATIONS = ".evaluations"
 _VERSION_DIR = re.compile(r"^v(\d{3,6})$")
+#: The session's list of published versions (append-only JSON lines: version, manifest sha256, parent).
+VERSIONS_LOG = "versions.jsonl"
+# Files that operating systems, file managers and editors drop into any folder they touch: foreign, never fatal.
+_OS_FILES = frozenset({".DS_Store", "Thumbs.db", "desktop.ini", ".directory", "Icon\r", ".localized"})
+
+
+def is_os_or_editor_file(name: str) -> bool:
+    """True for the litter of file managers and editors (``.DS_Store``, ``Thumbs.db``, ``._x``, ``x~``, ``.x.swp``):
+    foreign in the store, reported as such and skipped, never a reason to refuse a version."""
+    return (
+        name in _OS_FILES
+        or name.startswith(("._", ".#", ".~lock."))
+        or name.endswith(("~", ".swp", ".swo", ".bak", ".orig"))
+    )
+
 
 # journal, documents and schema are imported where they are used: an empty store, a listing of imported sessions
 # and `labcal --help` need none of them (schema imports pandas). The journal's file name is all a listing needs;
@@ -104,10 +129,17 @@ def _writes(what: str):
             except DatasetError:
                 raise
             except OSError as e:
+                import errno
+
                 where = f" ({e.filename})" if getattr(e, "filename", None) else ""
+                fix = (
+                    "free space on its disk, or set --store or LABCAL_STORE to a folder on another disk"
+                    if e.errno in (errno.ENOSPC, errno.EDQUOT)
+                    else "is it read-only or full? set --store or LABCAL_STORE to a writable folder"
+                )
                 raise StoreWriteError(
-                    f"cannot {what} in the session store {self.root}: {e.strerror or e}{where} "
-                    "(is it read-only or full? set --store or LABCAL_STORE to a writable folder)"
+                    f"cannot {what} in the session store {self.root}: {e.strerror or e}{where} ({fix}); nothing "
+                    "half-written was left"
                 ) from e
 
         return wrapper
@@ -248,11 +280,14 @@ class Dataset:
 
 @dataclass(frozen=True)
 class VerifyReport:
-    """Result of :meth:`SessionStore.verify`. ``problems`` has one line per fault (empty = intact)."""
+    """Result of :meth:`SessionStore.verify` (one version) or :meth:`SessionStore.check_session` (what spans the
+    session; ``ref`` is then the session id). ``problems`` has one line per fault (empty = intact); ``notes`` lists
+    foreign entries (OS and editor files) that were skipped and do not make the result bad."""
 
     ref: str
     problems: list[str]
     checked: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -433,16 +468,29 @@ class SessionStore:
         return self.root / validate_id(session_id)
 
     def session_ids(self) -> list[str]:
-        """All session ids, sorted (ids start with their UTC creation time, so this is chronological)."""
+        """All session ids, sorted (ids start with their UTC creation time, so this is chronological).
+
+        Only folders whose name is a valid session id and that hold a journal, a version or a versions log count;
+        anything else (``ID (copy)``, ``.DS_Store``, stray files) is foreign: see :meth:`foreign_entries`."""
+        return sorted(p.name for p in self._root_entries() if _session_folder_problem(p) is None)
+
+    def _root_entries(self) -> list[Path]:
         if not self.root.is_dir():
             return []
+        # labcal's own hidden temporary folders (an import interrupted before its rename) are not entries at all
+        return [p for p in self.root.iterdir() if not p.name.startswith(".tmp-")]
+
+    def foreign_entries(self) -> list[tuple[str, str]]:
+        """(name, why) of every entry of the store folder that is not a session: skipped by listings, never fatal.
+
+        Example: a folder copied by a file manager, ``20261122-031500-ur10-3f9a (copy)``, gives ``("… (copy)", "not a
+        session id (…): a copy? rename it to a new id to use it as a session")``."""
         out = []
-        for p in self.root.iterdir():
-            if p.name.startswith(".") or not p.is_dir():
-                continue
-            if (p / JOURNAL_NAME).exists() or any(_VERSION_DIR.match(c.name) for c in p.iterdir()):
-                out.append(p.name)
-        return sorted(out)
+        for p in sorted(self._root_entries(), key=lambda q: q.name):
+            why = _session_folder_problem(p)
+            if why is not None:
+                out.append((p.name, why))
+        return out
 
     def require_root(self) -> None:
         """Raise :class:`UnknownSession` with one clear line when the store folder does not exist."""
@@ -562,7 +610,11 @@ class SessionStore:
             try:
                 m = json.loads((vdir / MANIFEST).read_text(encoding="utf-8"))
                 fits_dir = vdir / FITS
-                nfits = len([p for p in fits_dir.iterdir() if not p.name.startswith(".")]) if fits_dir.is_dir() else 0
+                nfits = (
+                    len([p for p in fits_dir.iterdir() if p.is_dir() and not p.name.startswith(".")])
+                    if fits_dir.is_dir()
+                    else 0
+                )
                 infos.append(
                     VersionInfo(version_name(v), int(m["row_count"]), m["created"], m["source"], m["parent"], nfits)
                 )
@@ -617,25 +669,176 @@ class SessionStore:
                 checked.append(name)
                 if actual != info.get("sha256"):
                     problems.append(f"{name}: sha256 mismatch: expected {info.get('sha256')}, actual {actual}")
+        notes: list[str] = []
         for p in sorted(vdir.iterdir()) if manifest is not None else []:
             if p.name in listed or p.name == MANIFEST or (p.name == FITS and p.is_dir()):
                 continue
-            problems.append(f"{p.name}: extra {'directory' if p.is_dir() else 'file'} not listed in the manifest")
-        jinfo = (manifest or {}).get("provenance", {}).get("journal") if manifest else None
-        jpath = self.session_dir(r.session_id) / JOURNAL_NAME
-        if jinfo and jpath.exists():
-            n = int(jinfo["bytes"])
-            if jpath.stat().st_size < n:
-                problems.append(f"{JOURNAL_NAME}: shorter ({jpath.stat().st_size} bytes) than when sealed ({n})")
-            else:
-                actual = sha256_file(jpath, limit=n)
-                checked.append(f"{JOURNAL_NAME}[:{n}]")
-                if actual != jinfo["sha256"]:
+            kind = "directory" if p.is_dir() else "file"
+            if is_os_or_editor_file(p.name):
+                notes.append(f"{p.name}: foreign {kind} (operating system or editor), skipped")
+                continue
+            problems.append(f"{p.name}: extra {kind} not listed in the manifest")
+        # The journal is not part of the version: the version holds its own copy of every measurement it sealed,
+        # so damage to the journal must never make it unusable (check_session reports the journal).
+        return VerifyReport(str(r), problems, checked, notes)
+
+    def check_session(self, session_id: str) -> VerifyReport:
+        """What spans the versions of a session: the journal against the part of it each version sealed, the
+        start document, versions gone (listed in the versions log, a gap in the numbering) and the journal gone.
+
+        Each version's own files are :meth:`verify`'s; ``ref`` of the report is the session id. Foreign entries
+        of the session folder are notes. One line per problem, naming the file, the line or version, and the fix.
+        """
+        from .journal import read_journal
+
+        d = self._require_session(session_id)
+        problems: list[str] = []
+        checked: list[str] = []
+        notes: list[str] = []
+        for p in sorted(d.iterdir()):
+            n = p.name
+            if n in (JOURNAL_NAME, VERSIONS_LOG) or n.startswith(".tmp-") or (p.is_dir() and _VERSION_DIR.match(n)):
+                continue
+            notes.append(f"{n}: foreign {'folder' if p.is_dir() else 'file'} (not written by labcal), skipped")
+        versions = self.versions(session_id)
+        manifests: dict[int, dict | None] = {}
+        for v in versions:
+            try:
+                manifests[v] = json.loads((d / version_name(v) / MANIFEST).read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                manifests[v] = None  # the version's own verify says why
+        missing: dict[int, str] = {}
+        for v in range(1, (versions[-1] if versions else 0)):
+            if v not in manifests:
+                missing[v] = f"{version_name(versions[-1])} exists and versions are numbered in order"
+        log = d / VERSIONS_LOG
+        if log.is_file():
+            entries, lp, ln = _read_versions_log(log)
+            problems += lp
+            notes += ln
+            checked.append(VERSIONS_LOG)
+            logged = set()
+            for e in entries:
+                try:
+                    from .ids import parse_version
+
+                    v = parse_version(e["version"])
+                except DatasetError:
+                    problems.append(f"{VERSIONS_LOG}: names an invalid version {e['version']!r}")
+                    continue
+                logged.add(v)
+                if v not in manifests:
+                    missing[v] = f"published {e.get('time', '?')}, listed in {VERSIONS_LOG}"
+                elif manifests[v] is not None and manifests[v].get("manifest_sha256") != e.get("manifest_sha256"):
                     problems.append(
-                        f"{JOURNAL_NAME}: the first {n} bytes changed since sealing: expected sha256 "
-                        f"{jinfo['sha256']}, actual {actual}"
+                        f"{version_name(v)}/{MANIFEST}: not the manifest that was published (sha256 "
+                        f"{e.get('manifest_sha256')} in {VERSIONS_LOG}, {manifests[v].get('manifest_sha256')} now): "
+                        f"restore {version_name(v)} from a backup"
                     )
-        return VerifyReport(str(r), problems, checked)
+            for v in versions:
+                if v not in logged:
+                    notes.append(
+                        f"{version_name(v)}: not listed in {VERSIONS_LOG} (written by an older labcal, or a seal "
+                        "interrupted after the version was complete)"
+                    )
+        for v, why in sorted(missing.items()):
+            problems.append(
+                f"{version_name(v)}: missing ({why}): restore {d / version_name(v)} from a backup; the other versions "
+                "stand on their own"
+            )
+        sealed = [(v, m["provenance"]["journal"]) for v, m in manifests.items()
+                  if m and isinstance((m.get("provenance") or {}).get("journal"), dict)]  # fmt: skip
+        jpath = d / JOURNAL_NAME
+        if not jpath.exists():
+            if sealed:
+                problems.append(
+                    f"{JOURNAL_NAME}: missing ({version_name(sealed[0][0])} was sealed from it): restore it from a "
+                    "backup; the versions keep their own copies of the measurements (fit them as they are), but the "
+                    "session cannot be resumed or sealed again"
+                )
+            return VerifyReport(session_id, problems, checked, notes)
+        contents = read_journal(jpath)
+        checked.append(JOURNAL_NAME)
+        cmd = f"`labcal session seal {session_id} --valid-prefix`"
+        keep = "the versions keep their own copies and stay usable"
+        if contents.start is None:
+            fix = (f"{keep}; {cmd} seals what was recorded after the damage" if sealed else
+                   "no version holds a copy of it: restore the journal from a backup")  # fmt: skip
+            problems.append(f"{JOURNAL_NAME}: line 1: the start document is damaged or missing: {fix}")
+        through = max((int(info.get("bytes", 0)) for _, info in sealed), default=0)
+        sealed_lines = _lines_in(jpath, through)
+        # Damage a later `seal --valid-prefix` already sealed around (and recorded): running it again adds nothing.
+        handled: dict[int, str] = {}
+        handled_prefix: dict[int, str] = {}
+        for v, info in sealed:
+            vp = info.get("valid_prefix") or {}
+            for skip in vp.get("skipped") or []:
+                if isinstance(skip, dict) and isinstance(skip.get("line"), int):
+                    handled.setdefault(skip["line"], version_name(v))
+            if vp.get("sealed_part_damage"):
+                for w, _ in sealed:
+                    if w < v:
+                        handled_prefix.setdefault(w, version_name(v))
+        after = "record the remaining poses in a new session"
+        for ln in contents.corrupt_lines:
+            if ln == 1 and contents.start is None:
+                continue  # the start document: said above, with the fix that applies to it
+            why = contents.corrupt_reasons.get(ln, "corrupt")
+            if ln in handled:
+                fix = f"left out and recorded by {handled[ln]}'s seal --valid-prefix; {keep}; {after}"
+            elif ln <= sealed_lines:
+                fix = f"it lies in the part already sealed: {keep}; {cmd} seals what was recorded after that part"
+            else:
+                fix = f"{cmd} seals the measurements before it and records what it left out"
+            problems.append(f"{JOURNAL_NAME}: line {ln}: {why}: {fix}")
+        damaged = []
+        for v, info in sealed:
+            n = int(info.get("bytes", 0))
+            if contents.size < n:
+                what = (
+                    f"shorter ({contents.size} bytes) than when {version_name(v)} was sealed ({n} bytes): its end was "
+                    f"cut off; {keep}; record the remaining poses in a new session"
+                )
+                damaged.append((v, what))
+            elif sha256_file(jpath, limit=n) != info.get("sha256"):
+                fix = (f"recorded by {handled_prefix[v]}'s seal --valid-prefix; {after}" if v in handled_prefix
+                       else f"{cmd} seals what was recorded after them")  # fmt: skip
+                what = f"the first {n} bytes, sealed into {version_name(v)}, changed since it was sealed; {keep}; {fix}"
+                damaged.append((v, what))
+        if damaged:
+            v, what = damaged[0]
+            also = [version_name(w) for w, _ in damaged[1:]]
+            also_text = f" (so did the parts sealed into {', '.join(also)})" if also else ""
+            problems.append(f"{JOURNAL_NAME}: {what}{also_text}")
+            if contents.start is not None and manifests.get(v):
+                if session_meta_from_start(contents.start) != manifests[v].get("session"):
+                    problems.append(
+                        f"{JOURNAL_NAME}: line 1: the start document differs from the copy in {version_name(v)}'s "
+                        f"manifest; the versions use their own copy"
+                    )
+        return VerifyReport(session_id, problems, checked, notes)
+
+    def check_before_recording(self, session_id: str) -> None:
+        """Verify the whole session before a recording command moves the robot: every version's own files, the
+        journal (against what each version sealed), the start document, versions or journal gone.
+
+        Raises :class:`DatasetCorrupted` with one line naming the first problem, how many more there are and the fix,
+        so a resume never drives the plan only to find at the end that the result cannot be sealed."""
+        reports = [self.verify(Ref(session_id, v)) for v in self.versions(session_id)]
+        reports.append(self.check_session(session_id))
+        problems = [f"{r.ref}: {p}" if r.ref != session_id else p for r in reports for p in r.problems]
+        if not problems:
+            return
+        n_more = len(problems) - 1
+        more = f" (and {n_more} more: `labcal session verify {session_id}` lists them)" if n_more else ""
+        bad_version = next((r.ref for r in reports[:-1] if r.problems), None)
+        fix = ""
+        if bad_version is not None and not reports[-1].problems:
+            fix = (f"; restore {self.version_dir(bad_version)} from a backup (the other versions stand on their own), "
+                   "or record the remaining poses in a new session")  # fmt: skip
+        raise DatasetCorrupted(
+            f"session {session_id} is damaged; nothing was moved: {problems[0]}{more}{fix}", problems
+        )
 
     def verify_fits(self, ref: str | Ref) -> VerifyReport:
         """Check every fit stored under a version (the version's own :meth:`verify` leaves ``fits/`` out).
@@ -647,12 +850,17 @@ class SessionStore:
         fits_dir = self.session_dir(r.session_id) / version_name(r.version) / FITS  # type: ignore[arg-type]
         problems: list[str] = []
         checked: list[str] = []
+        notes: list[str] = []
         if not fits_dir.is_dir():
             return VerifyReport(str(r), problems, checked)
         for p in sorted(fits_dir.iterdir()):
             if p.name.startswith("."):  # the temporary folder of an interrupted save_fit, never published
                 continue
             where = f"{FITS}/{p.name}"
+            if is_os_or_editor_file(p.name):
+                kind = "folder" if p.is_dir() else "file"
+                notes.append(f"{where}: foreign {kind} (operating system or editor), skipped")
+                continue
             if not p.is_dir():
                 problems.append(f"{where}: extra file in {FITS}/ (a fit is a folder)")
                 continue
@@ -695,10 +903,11 @@ class SessionStore:
             problems += _load_sealed(ep.read_bytes(), "evaluation_sha256", where)[1]
             if not (fits_dir / ep.parent.name / FIT_JSON).is_file():
                 problems.append(f"{where}: evaluates fit {ep.parent.name}, which is not stored under {r}")
-        return VerifyReport(str(r), problems, checked)
+        return VerifyReport(str(r), problems, checked, notes)
 
     def verify_session(self, session_id: str) -> list[VerifyReport]:
-        return [self.verify(Ref(session_id, v)) for v in self.versions(session_id)]
+        """:meth:`verify` of every version, then :meth:`check_session` (the last report, ``ref`` = the session id)."""
+        return [*(self.verify(Ref(session_id, v)) for v in self.versions(session_id)), self.check_session(session_id)]
 
     def load(self, ref: str | Ref) -> Dataset:
         """Load a version after verifying its hashes; raises :class:`DatasetCorrupted` on any mismatch."""
@@ -726,11 +935,15 @@ class SessionStore:
             data = _parquet_bytes(table)
             write_file_durable(tmp / MEASUREMENTS, data)
             manifest = {**manifest, "files": {MEASUREMENTS: {"sha256": sha256_bytes(data), "bytes": len(data)}}}
-            write_file_durable(tmp / MANIFEST, _dump_sealed(manifest, "manifest_sha256"))
+            sealed = _dump_sealed(manifest, "manifest_sha256")
+            write_file_durable(tmp / MANIFEST, sealed)
             publish_dir(tmp, where / version_name(number))
         except BaseException:
             remove_tree(tmp)
             raise
+        # After the rename: a crash in between leaves a complete version the log does not list yet, which
+        # check_session notes; the other order would list a version that was never published.
+        _log_version(where, version_name(number), json.loads(sealed)["manifest_sha256"], manifest.get("parent"))
 
     def _manifest(
         self,
@@ -852,72 +1065,108 @@ class SessionStore:
         lines that are not a torn last write make sealing fail (:class:`JournalCorrupted`), unless
         ``valid_prefix``: then only the documents before the first corrupt line are sealed, and the version's
         provenance lists every line left out (line number and why). The journal itself is never changed.
+
+        Damage inside the part of the journal that the latest version already sealed (a corrupt line, changed
+        bytes, a damaged start document) does not touch that version, which keeps its own copy: with
+        ``valid_prefix`` the measurements recorded after that part are sealed (up to the first corrupt line after
+        it), the session metadata taken from the version's manifest, and the damage recorded in the provenance.
         """
         from .documents import MeasurementDoc
         from .journal import read_journal
         from .schema import normalize_table
 
         d = self._require_session(session_id)
-        contents = read_journal(d / JOURNAL_NAME)
-        skipped: list[dict] = []
-        measurements = contents.measurements
-        if contents.corrupt_lines:
-            first = contents.corrupt_lines[0]
-            if not valid_prefix:
-                why = "; ".join(
-                    f"line {ln}: {contents.corrupt_reasons.get(ln, 'corrupt')}" for ln in contents.corrupt_lines
-                )
-                raise JournalCorrupted(
-                    f"journal of {session_id!r} has corrupt line(s) {contents.corrupt_lines} ({why}); refusing to "
-                    f"seal (`labcal session seal {session_id} --valid-prefix` seals the measurements before line "
-                    f"{first} and records what it left out)"
-                )
-            # Everything from the first corrupt line on is left out, readable or not: after an unexplained
-            # corruption the order and completeness of the later documents cannot be trusted.
-            reasons = contents.corrupt_reasons
-            skipped = [{"line": ln, "reason": reasons.get(ln, "corrupt")} for ln in contents.corrupt_lines]
-            measurements = []
-            for ln, doc in zip(contents.document_lines, contents.documents, strict=True):
-                if doc["type"] != "measurement":
-                    continue
-                if ln < first:
-                    measurements.append(MeasurementDoc.from_json(doc))
-                else:
-                    skipped.append(
-                        {"line": ln, "seq": doc["seq"], "pose_index": doc["pose_index"], "status": doc["status"],
-                         "reason": f"after the corrupt line {first}"}
-                    )  # fmt: skip
-            skipped.sort(key=lambda s: s["line"])
-        start = contents.start
-        if start is None:
-            raise JournalCorrupted(f"journal of {session_id!r} has no start document")
+        jpath = d / JOURNAL_NAME
+        contents = read_journal(jpath)
         versions = self.versions(session_id)
         parent = versions[-1] if versions else None
-        parent_ds = self.load(Ref(session_id, parent)) if parent else None
-        through = int(parent_ds.manifest.get("journal_seq_through", 0)) if parent_ds is not None else 0
-        new = [m for m in measurements if m.seq > through and m.valid]
+        parent_ds = self.load(Ref(session_id, parent)) if parent else None  # its own files only
         latest = f"{session_id}@{version_name(parent)}" if parent else None
+        through = int(parent_ds.manifest.get("journal_seq_through", 0)) if parent_ds is not None else 0
+        pj = ((parent_ds.manifest.get("provenance") or {}).get("journal") if parent_ds is not None else None) or {}
+        sealed_bytes = int(pj.get("bytes", 0))
+        damage = None  # what happened to the part of the journal the latest version sealed
+        if sealed_bytes and contents.size < sealed_bytes:
+            damage = f"the journal is shorter ({contents.size} bytes) than when {latest} was sealed ({sealed_bytes})"
+        elif sealed_bytes and sha256_file(jpath, limit=sealed_bytes) != pj.get("sha256"):
+            damage = f"the first {sealed_bytes} bytes of the journal, sealed into {latest}, changed since"
+        sealed_lines = _lines_in(jpath, min(sealed_bytes, contents.size))
+        reasons = contents.corrupt_reasons
+        old = [ln for ln in contents.corrupt_lines if ln <= sealed_lines]
+        tail = [ln for ln in contents.corrupt_lines if ln > sealed_lines]
+        if old and damage is None:  # cannot happen with intact bytes, but a line judged corrupt is damage all the same
+            damage = f"line(s) {old} of the part sealed into {latest} cannot be read"
+        cmd = f"`labcal session seal {session_id} --valid-prefix`"
+        if damage is not None and not valid_prefix:
+            truncated = contents.size < sealed_bytes
+            fix = ("nothing recorded after it can be placed: record the remaining poses in a new session" if truncated
+                   else f"{cmd} seals the measurements recorded after it and records the damage")  # fmt: skip
+            raise JournalCorrupted(
+                f"journal of {session_id!r}: {damage}; {latest} keeps its own copy of those measurements and stays "
+                f"usable; refusing to seal ({fix})"
+            )
+        if tail and not valid_prefix:
+            why = "; ".join(f"line {ln}: {reasons.get(ln, 'corrupt')}" for ln in tail)
+            raise JournalCorrupted(
+                f"journal of {session_id!r} has corrupt line(s) {tail} ({why}); refusing to seal ({cmd} seals the "
+                f"measurements before line {tail[0]} and records what it left out)"
+            )
+        start = contents.start
+        if damage is not None and parent_ds is not None:
+            meta = dict(parent_ds.manifest["session"])  # the version's verified copy of the start document
+        elif start is not None:
+            meta = session_meta_from_start(start)
+        else:
+            raise JournalCorrupted(
+                f"journal of {session_id!r}: line 1, the start document, is damaged or missing and no version holds "
+                "a copy of it: the measurements cannot be tied to their robot and targets; restore the journal "
+                "from a backup"
+            )
+        n_joints, n_targets = int(meta["robot"]["n_joints"]), len(meta["targets"])
+        first_bad = tail[0] if tail else None
+        after = sealed_lines if damage is not None else 0
+        skipped: list[dict] = [
+            {"line": ln, "reason": f"{reasons.get(ln, 'corrupt')} (in the part sealed into {latest}, which keeps its "
+                                   "own copy)"}
+            for ln in old
+        ]  # fmt: skip
+        skipped += [{"line": ln, "reason": reasons.get(ln, "corrupt")} for ln in tail]
+        measurements: list[MeasurementDoc] = []
+        for ln, doc in zip(contents.document_lines, contents.documents, strict=True):
+            if doc["type"] != "measurement" or ln <= after:
+                continue
+            if first_bad is not None and ln > first_bad:
+                # after an unexplained corruption the order and completeness of the later documents cannot be trusted
+                skipped.append(
+                    {"line": ln, "seq": doc["seq"], "pose_index": doc["pose_index"], "status": doc["status"],
+                     "reason": f"after the corrupt line {first_bad}"}
+                )  # fmt: skip
+                continue
+            measurements.append(MeasurementDoc.from_json(doc))
+        skipped.sort(key=lambda x: x["line"])
+        new = [m for m in measurements if m.seq > through and m.valid]
         if not new:
             where = f"since {latest}" if latest else "in the journal"
-            return SealResult(latest, False, 0, f"nothing new to seal {where} (no new valid measurements)")
-        meta = session_meta_from_start(start)
-        rows = journal_rows(new, start.n_joints, start.n_targets)
+            why = f"; {damage}, and {latest} keeps its own copy" if damage else ""
+            return SealResult(latest, False, 0, f"nothing new to seal {where} (no new valid measurements){why}")
+        rows = journal_rows(new, n_joints, n_targets)
         table = _pandas().concat([parent_ds.table, rows], ignore_index=True) if parent_ds is not None else rows
-        table = normalize_table(table, start.n_joints, start.n_targets)
+        table = normalize_table(table, n_joints, n_targets)
         seq_through = max(m.seq for m in measurements)
         provenance = {
             "journal": {
                 "seq_through": seq_through,
                 "bytes": contents.size,
-                "sha256": sha256_file(d / JOURNAL_NAME, limit=contents.size),
+                "sha256": sha256_file(jpath, limit=contents.size),
                 "new_seqs": [m.seq for m in new],
                 "warnings": contents.warnings,
             }
         }
-        if contents.corrupt_lines:
+        if skipped or damage is not None:
             provenance["journal"]["valid_prefix"] = {
-                "through_line": contents.corrupt_lines[0] - 1,
+                "through_line": (first_bad - 1) if first_bad is not None else max(contents.document_lines),
                 "skipped": skipped,
+                **({"sealed_part_damage": damage} if damage is not None else {}),
             }
         number = (parent or 0) + 1
         manifest = self._manifest(
@@ -933,6 +1182,8 @@ class SessionStore:
         self._write_version(d, number, table, manifest)
         ref = f"{session_id}@{version_name(number)}"
         left_out = f"; left out {len(skipped)} journal line(s) from line {skipped[0]['line']} on" if skipped else ""
+        if damage is not None:
+            left_out += f" ({damage}: sealed only what was recorded after it)"
         return SealResult(ref, True, len(new), f"sealed {len(new)} new measurement(s) into {ref}{left_out}")
 
     # ---------------------------------------------------------------------------------------------- fits
@@ -1051,7 +1302,7 @@ class SessionStore:
         return [
             self.load_fit(r, p.name, check_files=False)
             for p in sorted(fits_dir.iterdir())
-            if not p.name.startswith(".")
+            if not p.name.startswith(".") and not is_os_or_editor_file(p.name)
         ]
 
     def load_fit(self, ref: str | Ref, fit_id: str, *, check_files: bool = True) -> FitRecord:
@@ -1089,6 +1340,77 @@ class SessionStore:
                     return self.load_fit(Ref(s, v), fit_id)
         known = [p.parent.name for s in self.session_ids() for p in self.session_dir(s).glob(f"v*/{FITS}/*/{FIT_JSON}")]
         raise UnknownVersion(f"no fit {fit_id!r} in store {self.root}{_did_you_mean(fit_id, known)}")
+
+
+def _lines_in(path: Path, n: int) -> int:
+    """The number of lines that lie (at least partly) in the first ``n`` bytes of ``path``."""
+    if n <= 0:
+        return 0
+    with open(path, "rb") as f:
+        head = f.read(n)
+    return head.count(b"\n") + (0 if head.endswith(b"\n") else 1)
+
+
+def _log_version(session_dir: Path, name: str, manifest_sha256: str, parent: str | None) -> None:
+    """Append the published version to the session's versions log (one fsynced line)."""
+    entry = {"version": name, "manifest_sha256": manifest_sha256, "parent": parent, "time": iso(utc_now())}
+    line = canonical_json(entry)
+    path = session_dir / VERSIONS_LOG
+    created = not path.exists()
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    try:
+        os.write(fd, (line + "\n").encode("utf-8"))
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    if created:
+        fsync_dir(session_dir)
+
+
+def _read_versions_log(path: Path) -> tuple[list[dict], list[str], list[str]]:
+    """(entries, problems, notes) of a versions log; an unfinished last line (a crash mid-append) is a note."""
+    entries: list[dict] = []
+    problems: list[str] = []
+    notes: list[str] = []
+    data = path.read_bytes()
+    lines = data.split(b"\n")
+    torn = bool(data) and not data.endswith(b"\n")  # then the last element is an unfinished line
+    for i, raw in enumerate(lines, start=1):
+        if not raw.strip():
+            continue
+        try:
+            doc = json.loads(raw.decode("utf-8"))
+            if not isinstance(doc, dict) or not isinstance(doc.get("version"), str):
+                raise ValueError("no version")
+        except (UnicodeDecodeError, ValueError):
+            if torn and i == len(lines):
+                notes.append(f"{VERSIONS_LOG}: line {i} unfinished (an interrupted write), ignored")
+            else:
+                problems.append(f"{VERSIONS_LOG}: line {i} unreadable")
+            continue
+        entries.append(doc)
+    return entries, problems, notes
+
+
+def _session_folder_problem(p: Path) -> str | None:
+    """Why the store entry ``p`` is not a session folder, or None if it is one."""
+    from .ids import _ID_RE
+
+    name = p.name
+    if is_os_or_editor_file(name):
+        return "a file of the operating system or an editor"
+    if not p.is_dir():
+        return "a file, not a session folder"
+    if not _ID_RE.match(name) or ".." in name:
+        return (
+            "not a session id (letters, digits, '.', '_', '-'): a copy of a session? rename it to a new id to use it "
+            "as one"
+        )
+    try:
+        labcal = any(c.name in (JOURNAL_NAME, VERSIONS_LOG) or _VERSION_DIR.match(c.name) for c in p.iterdir())
+    except OSError as e:
+        return f"cannot be read ({e.strerror or e})"
+    return None if labcal else "a folder without a journal or a version"
 
 
 def _did_you_mean(name: str, known: Sequence[str]) -> str:

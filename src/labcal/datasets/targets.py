@@ -20,7 +20,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from labcal.tomlschema import Key, Table, is_number, read_toml, validate
+from labcal.tomlschema import Key, Table, input_file_problem, is_number, read_toml, validate
 
 from .errors import TargetsError
 
@@ -127,9 +127,37 @@ TARGETS_SCHEMA = Table(
 def load_targets(path: str | Path) -> np.ndarray:
     """Read a targets TOML file; return the (m, 3) targets in metres (row i = target t(i+1))."""
     path = Path(path)
-    if not path.is_file():
-        raise TargetsError(f"targets file {path} not found", str(path))
+    why = input_file_problem(path)
+    if why is not None:
+        raise TargetsError(f"targets file {path} {why}", str(path))
     doc = validate(read_toml(path, TargetsError, "targets file"), TARGETS_SCHEMA, source=str(path), error=TargetsError)
     # The numbers were checked before scaling so that a message shows what the user wrote.
-    scaled = [[float(v) * LENGTH_UNITS[doc["unit"]] for v in p] for p in doc["points"]]
-    return validate_targets(scaled, source=f"targets file {path}")
+    scale = LENGTH_UNITS[doc["unit"]]
+    scaled = [[float(v) * scale for v in p] for p in doc["points"]]
+    try:
+        return validate_targets(scaled, source=f"targets file {path}")
+    except TargetsError as e:
+        hint = _unit_hint(doc["points"], doc["unit"])
+        if hint is None:
+            raise
+        raise TargetsError(f"{e}; {hint}", str(path)) from None
+
+
+def _unit_hint(points: list, unit: str) -> str | None:
+    """When targets coincide only because of the unit (numbers of a file in metres declared "mm"), the fix.
+
+    The spread of the numbers as written: a tool's targets lie millimetres to decimetres apart, so a set that spans
+    less than one unit of "mm" (or "in") but is a sensible tool in metres is a unit mistake, not a repeated point.
+    """
+    import numpy as np
+
+    raw = np.asarray(points, dtype=float).reshape(-1, 3)
+    if unit == "m" or len(raw) < 2:
+        return None
+    span = float(max(np.linalg.norm(a - b) for a in raw for b in raw))
+    if 0.0 < span < 1.0 and span >= MIN_TARGET_HEIGHT:
+        return (
+            f'the points span {span:g} {unit} as written, which is a tool of {span:g} m: write unit = "m" at the top '
+            "of the file if the numbers are metres"
+        )
+    return None

@@ -35,10 +35,14 @@ def import_session(
     """
     from labcal.datasets import ImportOptions, import_mapped, import_probe_csv, import_targets_csv, load_targets
     from labcal.datasets.sanity import check_names
+    from labcal.tomlschema import input_file_problem
 
     path = Path(path)
-    if not path.is_file():
+    if not path.exists() or path.is_dir():
         raise UserError(f"{path} is a folder, not a CSV file" if path.is_dir() else f"no such file: {path}")
+    why = input_file_problem(path)  # a device (/dev/zero) or a FIFO is named as such, not called missing
+    if why is not None:
+        raise UserError(f"{path} {why}")
     check_names(allow)  # an unknown --allow name is an error before any reading
     if form not in FORMS:
         raise UserError(f"--form must be 'targets' or 'probe', got {form!r}")

@@ -255,8 +255,13 @@ def resume_session(
     anything moves, another arm (serial number), another robot model (hash) or a robot still in a protective stop.
 
     allow: record-time sanity checks to override, added to those the session was started with."""
-    from labcal.sessions import resume
+    from labcal.datasets import DatasetCorrupted
+    from labcal.sessions import SessionError, resume
 
+    try:  # the whole session (versions, journal, start document) before anything is opened or moved
+        store.check_before_recording(session_id)
+    except DatasetCorrupted as e:
+        raise SessionError(str(e)) from None
     meta = store.session_meta(session_id)
     spec = robot_for(meta["robot"], robot)
     metadata = meta.get("metadata") or {}
