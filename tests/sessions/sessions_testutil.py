@@ -17,7 +17,7 @@ TARGETS_TOML = 'unit = "m"\npoints = [[0.08, 0.0, 0.03], [-0.04, 0.07, 0.03], [-
 def write_custom_robot(folder: Path, name: str = "lab-arm") -> Path:
     """A robot file that is not a built-in: the ur10 with another name and a 3 mm longer base (another hash)."""
     text = builtin_path("ur10").read_text()
-    text = "\n".join(f'name = "{name}"' if line.startswith("name = ") else line for line in text.splitlines())
+    text = text.replace('name = "ur10"', f'name = "{name}"', 1)  # the robot's name; joint names stay unique
     assert "d = 0.1273" in text
     text = text.replace("d = 0.1273", "d = 0.1303", 1) + "\n"
     path = folder / f"{name}.toml"
