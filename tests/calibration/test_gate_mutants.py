@@ -151,3 +151,19 @@ def test_held_out_rows_worse_after_calibration_are_a_warning_when_nothing_cross_
     assert r.cv is None
     (w,) = [w for w in r.warnings if w["code"] == "worse-than-nominal"]
     assert w["message"].startswith("on the held-out 'test' rows the mean position error")
+
+
+def test_large_corrections_at_a_third_of_the_configurations_are_a_warning():
+    # The rule, apart from any fit: a compensator that moves joint 2 by 0.2 rad wherever joint 1 is above 0.35 rad
+    # (about a third of the data's range [-1, 1]) corrects far too much there. A unit slip or a wrong model exceeds
+    # nearly everywhere; a tenth of the checked configurations is already too many.
+    q = np.random.default_rng(0).uniform(-1.0, 1.0, size=(40, 6))
+
+    def correct(q, extrapolate=True, damped_iterations=None):
+        return q + np.where(q[:, :1] > 0.35, [[0.0, 0.2, 0, 0, 0, 0]], 0.0)
+
+    robot = SimpleNamespace(network=None, model=SimpleNamespace(joint_types=UR10.model.joint_types),
+                            nominal=UR10.model, correct=correct)  # fmt: skip
+    message = fit_module._large_correction(robot, q, seed=0)
+    assert message is not None and "move joint 2 by 0.2 rad" in message
+    assert "32% of 296 checked configurations" in message

@@ -55,3 +55,12 @@ def test_one_row_with_a_target_8_mm_off_is_an_outlier(good):
     points[7, 1] += [0.008, 0.0, 0.0]
     f = findings(good.q, points, good.targets)
     assert set(f) == {"target-outliers"} and "row 8" in f["target-outliers"]
+
+
+def test_radians_read_as_degrees_are_found_on_an_arm_with_limits_under_360_degrees():
+    # A FANUC-class arm: joint limits 135° to 360° wide, so the check must not wait for ±360° joints.
+    fanuc = load("fanuc-m1000ia")
+    g = sc.good("fanuc-m1000ia", 40, seed=3)
+    report = check_measurements(np.radians(g.q), g.points, g.targets, robot=fanuc, angle_unit="deg")
+    f = {f.check: f.message for f in report.failures}
+    assert "joint-span" in f and "the values look like radians imported as degrees" in f["joint-span"]

@@ -13,6 +13,7 @@ import pytest
 from datasets_testutil import ROBOT_HASH, TARGETS, fake_measurement, new_journal
 
 from labcal.datasets import (
+    DatasetCorrupted,
     DatasetError,
     InvalidId,
     JournalError,
@@ -179,3 +180,22 @@ def test_a_targets_file_without_points_is_refused():
     with pytest.raises(TargetsError, match="at least 1 target point"):
         validate_targets([])
     assert validate_targets([[0.0, 0.0, 0.1]]).shape == (1, 3)
+
+
+def test_load_hashes_the_very_bytes_it_parses(tmp_path, monkeypatch):
+    # Another process rewriting the table between load's verify() and its read: the read bytes are hashed again.
+    store, ref = _sealed(tmp_path)
+    table = store.version_dir(ref) / "measurements.parquet"
+    verify = SessionStore.verify
+
+    def verify_then_rewrite(self, r):
+        report = verify(self, r)
+        os.chmod(table, 0o644)
+        data = bytearray(table.read_bytes())
+        data[len(data) // 2] ^= 0x01
+        table.write_bytes(bytes(data))
+        return report
+
+    monkeypatch.setattr(SessionStore, "verify", verify_then_rewrite)
+    with pytest.raises(DatasetCorrupted, match="changed while loading"):
+        store.load(ref)
