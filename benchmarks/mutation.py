@@ -15,7 +15,11 @@ and its coverage pass found no test reaching them through this src layout and th
 operator swaps over these modules cannot run on two shared cores in minutes. A short list of bugs a person makes
 (dropped fsync, ``<=`` → ``<``, a dropped check, a looser constant) runs in minutes and each survivor says something.
 
-Results: benchmarks/results/mutation.txt (``--out``).
+Two batches: batch 1 was written first and tests were added for its survivors; batch 2 was written after batch 1
+was all killed and run before any test for it (``--batch 2``), which measures the suite on bugs nobody targeted.
+Results: benchmarks/results/mutation.txt (``--out``); mutation_before.txt (batch 1 before the tests it asked for)
+and mutation_batch2_before.txt (batch 2 before its tests). Each mutation runs only its named tests, so a new test
+that would catch a mutation counts only once it is named in the entry.
 """
 
 from __future__ import annotations
