@@ -58,6 +58,8 @@ def M(module, path, original, replacement, what, *tests, accepted="", batch=1):
 
 T_JOURNAL = "tests/datasets/test_datasets_journal.py"
 T_STORE = "tests/datasets/test_datasets_store.py"
+T_DAMAGE = "tests/datasets/test_store_damage.py"
+T_COMPF = "tests/test_compensator_files.py"
 T_DUR = "tests/datasets/test_durability_mutants.py"
 T_DOCS = "tests/datasets/test_documents.py"
 T_IMPORT = "tests/datasets/test_datasets_import.py"
@@ -126,10 +128,11 @@ MUTATIONS: list[Mutation] = [
     M("datasets/store", S, '                checked.append(name)\n                if actual != info.get("sha256"):',
       '                checked.append(name)\n                if False:', "verify ignores a changed data file",
       T_STORE),
-    M("datasets/store", S, 'if actual != jinfo["sha256"]:', "if False:",
-      "verify ignores an edited journal prefix", T_STORE),
-    M("datasets/store", S, "actual = sha256_file(jpath, limit=n)", "actual = sha256_file(jpath)",
-      "verify hashes the whole journal, not the sealed prefix", T_STORE, T_DUR),
+    M("datasets/store", S, 'elif sha256_file(jpath, limit=n) != info.get("sha256"):', "elif False:",
+      "verify ignores an edited journal prefix", T_STORE, T_DAMAGE),
+    M("datasets/store", S, 'elif sha256_file(jpath, limit=n) != info.get("sha256"):',
+      'elif sha256_file(jpath) != info.get("sha256"):',
+      "verify hashes the whole journal, not the sealed prefix", T_STORE, T_DUR, T_DAMAGE),
     M("datasets/store", S, 'elif canonical_json(obj, indent=2).encode("utf-8") != data:', "elif False:",
       "a reformatted manifest passes verify", T_STOREM, T_STORE),
     M("datasets/store", S, "    if actual != obj[key]:\n", "    if actual != actual:\n",
@@ -138,9 +141,8 @@ MUTATIONS: list[Mutation] = [
       "sealing again repeats the last sealed row", T_STORE, T_DUR),
     M("datasets/store", S, "if m.seq > through and m.valid]", "if m.seq > through]",
       "rejected measurements are sealed as rows", T_STORE),
-    M("datasets/store", S, "                if ln < first:\n", "                if ln <= first:\n",
-      "valid-prefix keeps the first corrupt line", T_STORE, T_JOURNAL,
-      accepted="equivalent: a corrupt line is never a document line, so ln == first cannot happen"),
+    M("datasets/store", S, "            if first_bad is not None and ln > first_bad:\n",
+      "            if False:\n", "valid-prefix seals the documents after a corrupt line", T_STORE, T_DAMAGE),
     M("datasets/store", S, "np.allclose(ta, tb, rtol=0, atol=1e-9)", "np.allclose(ta, tb, rtol=0, atol=1e-2)",
       "new rows with targets 1 cm off are merged into a session", T_STOREM, T_IMPORT),
     M("datasets/store", S, 'if a["frame"] != b["frame"]:', "if False:",
@@ -252,8 +254,8 @@ MUTATIONS: list[Mutation] = [
     # -------------------------------------------------------------------------------------------- compensator
     M("compensator/io", IO, '    "joint_ranges",\n    "T_tracker_base",', '    "T_tracker_base",',
       "a widened joint range is not caught by the checksums", T_COMP),
-    M("compensator/io", IO, "    if not legacy:\n        _check_checksums(data, source)",
-      "    if legacy:\n        _check_checksums(data, source)",
+    M("compensator/io", IO, "        if not legacy:\n            _check_checksums(data, source)",
+      "        if legacy:\n            _check_checksums(data, source)",
       "checksums are not checked", T_COMP),
     M("compensator/io", IO, "legacy = stored and version == 1", "legacy = version == 1",
       "a schema-1 export file outside a store is loaded", T_COMP),
@@ -264,8 +266,8 @@ MUTATIONS: list[Mutation] = [
       'if model_hash(nominal) != data["robot"].get("hash"):', "the robot hash ignores the joint map", T_COMP),
     M("compensator/io", IO, "    if joint_map is not None and joint_map.n != nominal.n:", "    if False:",
       "a joint map for another joint count is loaded", T_COMP),
-    M("compensator/io", IO, "np.load(path, allow_pickle=False)", "np.load(path, allow_pickle=True)",
-      "an NPZ export may carry pickled objects", T_COMPM, T_COMP),
+    M("compensator/io", IO, "            if dtype != np.float64:\n", "            if False:\n",
+      "an NPZ export may carry pickled objects (or any other dtype)", T_COMPM, T_COMP, T_COMPF),
     M("compensator/io", IO, '        if np.size(golden["q"]) == 0:\n            raise',
       "        if False:\n            raise",
       "an export without golden vectors is loaded", T_COMP),

@@ -348,3 +348,24 @@ def test_an_unreadable_start_document_leaves_v001_usable_and_seal_valid_prefix_s
     assert len(problems) == 1 and "restore the journal from a backup" in problems[0], problems
     with pytest.raises(JournalCorrupted, match="no version holds a copy"):
         other.seal(j.session_id, valid_prefix=True)
+
+
+def test_a_session_recorded_on_after_its_seal_checks_clean(two_runs):
+    """The journal grows after v001 was sealed: only the sealed prefix is compared, so growth is no damage."""
+    store, sid, _journal = two_runs
+    assert store.check_session(sid).problems == []
+    store.check_before_recording(sid)  # raises DatasetCorrupted when the session is damaged
+    assert store.seal(sid).ref == f"{sid}@v002"
+
+
+def test_valid_prefix_stops_at_a_corrupt_line_in_the_unsealed_part(two_runs):
+    """After an unexplained corrupt line the order of later documents cannot be trusted: they are skipped, named."""
+    store, sid, journal = two_runs
+    lines = journal.read_bytes().split(b"\n")
+    pose6 = next(i for i, raw in enumerate(lines, 1) if b'"pose_index":6' in raw.replace(b" ", b""))
+    _damage_line(journal, pose6)
+    result = store.seal(sid, valid_prefix=True)
+    assert store.load(result.ref).pose.tolist() == [0, 1, 2, 3, 4, 5]  # pose 7 came after the damage
+    skipped = store.manifest(result.ref)["provenance"]["journal"]["valid_prefix"]["skipped"]
+    assert [s["line"] for s in skipped] == [pose6, pose6 + 1]
+    assert skipped[1]["pose_index"] == 7 and f"after the corrupt line {pose6}" in skipped[1]["reason"]
