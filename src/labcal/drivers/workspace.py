@@ -129,7 +129,7 @@ def parse_workspace(doc: dict[str, Any], source: str = "<workspace>", error: typ
 
     def box(lo, hi, name: str, where: str) -> Box:
         try:
-            return Box(tuple(np.asarray(lo) * 1e-3), tuple(np.asarray(hi) * 1e-3), name)
+            return Box(tuple(np.asarray(lo) / 1000.0), tuple(np.asarray(hi) / 1000.0), name)
         except ValueError:
             raise fail(source, where, "min_mm must be below max_mm in every coordinate", error) from None
 
@@ -139,7 +139,7 @@ def parse_workspace(doc: dict[str, Any], source: str = "<workspace>", error: typ
         for i, b in enumerate(doc.get("keep_out", []))
     )
     tracker = doc.get("tracker_mm")
-    return Workspace(allowed, keep, None if tracker is None else tuple(np.asarray(tracker) * 1e-3))
+    return Workspace(allowed, keep, None if tracker is None else tuple(np.asarray(tracker) / 1000.0))
 
 
 __all__ = ["WORKSPACE_SCHEMA", "Box", "Workspace", "parse_workspace"]

@@ -303,6 +303,17 @@ def random_configurations(
         if np.any(box_limits[:, 0] > box_limits[:, 1]):
             raise PlanningError("limits and the robot's joint limits do not overlap")
     ranges = joint_ranges(model, box_limits, range_fraction)
+    # Limits on controller joints through a coupling joint map are a slanted box in model joints: draw uniformly in
+    # the controller box instead (a linear map keeps a uniform density uniform) and check the model's ranges.
+    through_map = (
+        safety is not None and safety.joint_map is None and joint_map is not None and not joint_map.is_identity
+    )
+    if through_map:
+        ctrl = np.asarray(safety.joint_limits, dtype=float)
+        mid, half = ctrl.mean(axis=1), 0.5 * (ctrl[:, 1] - ctrl[:, 0]) * range_fraction
+        draw_lo, draw_hi = mid - half, mid + half
+    else:
+        draw_lo, draw_hi = ranges[:, 0], ranges[:, 1]
     box = _check_region(region)
     if max_condition is not None and not max_condition >= 1:
         raise PlanningError(f"max_condition must be >= 1 (or None), got {max_condition!r}")
@@ -318,6 +329,16 @@ def random_configurations(
         raise PlanningError(f"facing has {facing.normals.shape[0]} normals; give targets with as many points")
     if workspace is not None and not workspace.bounds_motion:
         workspace = None
+    if workspace is not None:
+        # The base frame's origin never moves: a keep-out box around it (a table drawn up to z = 0) refuses every
+        # pose, which is worth saying outright instead of after thousands of draws.
+        base = model.link_frames(np.zeros((1, model.n)))[:, :1, :3, 3]
+        if not workspace.admits(base)[0]:
+            raise PlanningError(
+                f"the workspace refuses the robot's base (link 1 origin {np.round(base[0, 0], 4).tolist()} m): "
+                f"{', '.join(workspace.offenders(base[0]))}; a keep-out box must leave the base out (e.g. a "
+                "table's top just below it)"
+            )
     max_tries = max(10_000, 200 * int(count)) if max_tries is None else int(max_tries)
     if max_tries < count:
         raise PlanningError(f"max_tries ({max_tries}) is smaller than count ({count})")
@@ -338,9 +359,14 @@ def random_configurations(
     batch = max(256, 4 * int(count))
     while have < count and drawn < max_tries:
         size = min(batch, max_tries - drawn)
-        q = rng.uniform(ranges[:, 0], ranges[:, 1], size=(size, model.n))
+        q = rng.uniform(draw_lo, draw_hi, size=(size, model.n))
         drawn += size
         ok = np.ones(size, dtype=bool)
+        if through_map:
+            q = joint_map.to_model(q)
+            inside = np.all((q >= ranges[:, 0]) & (q <= ranges[:, 1]), axis=1)
+            rejected["joint limits"] += int(np.sum(~inside))
+            ok &= inside
         if safety is not None:
             accepted = runner_accepts(q, safety, joint_map)
             rejected["joint limits"] += int(np.sum(~accepted))
