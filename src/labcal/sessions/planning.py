@@ -803,13 +803,13 @@ def _or_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_pass
                 removed = edge(prev, seg[0]) + edge(seg[-1], nxt) - (edge(prev, nxt) if nxt != -1 else 0.0)
                 rest = np.concatenate([order[:i], order[i + length :]])
                 # insert between rest[g-1] and rest[g] (g = 0 … len(rest)); rest[-1] before 0 is the start
-                left = np.concatenate([[-1], rest])
-                right = np.concatenate([rest, [-1]])
+                # old_link[g]: the edge rest[g-1] → rest[g] that an insertion at g replaces (none at the end)
+                old_link = np.concatenate([[start[rest[0]] if start is not None else 0.0], D[rest[:-1], rest[1:]], [0]])
                 best_gain, best = 1e-9, None
                 for piece in (seg, seg[::-1]):
                     head, tail = piece[0], piece[-1]
-                    into = np.array([edge(a, head) for a in left]) + np.where(right == -1, 0.0, D[tail, right])
-                    old_link = np.array([edge(a, b) for a, b in zip(left, right, strict=True)])
+                    into = np.concatenate([[start[head] if start is not None else 0.0], D[rest, head]])
+                    into[:-1] += D[tail, rest]
                     gain = removed - (into - old_link)
                     g = int(np.argmax(gain))
                     if gain[g] > best_gain:
