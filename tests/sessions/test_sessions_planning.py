@@ -552,3 +552,49 @@ def test_the_tracker_profile_placement_is_read_in_millimetres(tmp_path):
     path.write_text(open("drivers/ndi-polaris.toml").read() + "\n[placement]\nposition_mm = [2400.0, 0.0, 600.0]\n")
     assert load_placement(path) == pytest.approx((2.4, 0.0, 0.6))
     assert load_placement("drivers/ndi-polaris.toml") is None
+
+
+def _uncomment(text: str, first: str) -> str:
+    """The file with its commented example block (from the line ``# {first}`` to the next blank line) switched on."""
+    lines = text.splitlines()
+    start = lines.index(f"# {first}")
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("#")), len(lines))
+    block = [line[2:] if line.startswith("# ") else "" for line in lines[start:end]]
+    return "\n".join(lines[:start] + block + lines[end:]) + "\n"
+
+
+@pytest.mark.parametrize("name", ["ur10-lab.toml", "ur5e-lab.toml"])
+def test_the_example_profiles_workspace_block_loads_and_plans(tmp_path, name):
+    from pathlib import Path
+
+    from labcal.drivers.ur import load_ur_profile
+
+    path = tmp_path / name
+    path.write_text(_uncomment((Path("drivers") / name).read_text(), "[workspace]"))
+    profile = load_ur_profile(path)
+    assert [b.name for b in profile.workspace.keep_out] == ["table", "tracker stand"]
+    assert profile.workspace.tracker is not None and load_ur_profile(Path("drivers") / name).workspace is None
+    model = load(name.split("-")[0]).model
+    q = random_configurations(model, 10, seed=0, targets=TARGETS, workspace=profile.workspace, safety=profile.limits)
+    assert profile.workspace.admits(checked_points(model, q, TARGETS)).all()
+
+
+def test_the_example_placement_and_normals_load(tmp_path):
+    from pathlib import Path
+
+    from labcal.datasets.targets import load_target_normals
+    from labcal.drivers.serial.profiles import load_placement
+
+    for name in ("ndi-polaris.toml", "ascii-example.toml"):
+        path = tmp_path / name
+        path.write_text(_uncomment((Path("drivers") / name).read_text(), "[placement]"))
+        assert load_placement(path) == pytest.approx((2.6, 0.0, 0.6))
+    path = tmp_path / "targets.toml"
+    path.write_text(
+        _uncomment(
+            Path("drivers/targets-example.toml").read_text(),
+            "normals = [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]",
+        )
+    )
+    normals, acceptance = load_target_normals(path)
+    assert normals.shape == (3, 3) and np.allclose(acceptance, np.radians(30))
