@@ -598,3 +598,25 @@ def test_the_example_placement_and_normals_load(tmp_path):
     )
     normals, acceptance = load_target_normals(path)
     assert normals.shape == (3, 3) and np.allclose(acceptance, np.radians(30))
+
+
+def test_runner_accepts_exactly_what_the_drivers_check_motion_accepts():
+    from labcal.sessions.planning import runner_accepts
+
+    M = np.eye(6)
+    M[2, 1] = 1.0
+    joints = JointMap(M, np.zeros(6))
+    for safety in (
+        SafetyLimits(np.radians(NARROW_DEG), max_speed=0.5, max_acceleration=0.8),  # controller joints
+        SafetyLimits(np.radians(NARROW_DEG), max_speed=0.5, max_acceleration=0.8, joint_map=joints),  # model joints
+    ):
+        q = np.random.default_rng(0).uniform(-3.5, 3.5, size=(300, 6))  # model joints
+        verdict = runner_accepts(q, safety, joints)
+        assert 0 < verdict.sum() < 300
+        for row, ok in zip(joints.to_controller(q), verdict, strict=True):
+            try:
+                safety.check_motion(row, 0.5, 0.8)
+                refused = False
+            except MotionRejected:
+                refused = True
+            assert refused != ok
