@@ -17,6 +17,11 @@ Two planners:
     optionally, no target closer than ``min_target_distance`` (m) to another target's line of sight (the ray
     from the tracker through it), so the tracker sees three separate markers.
 
+  and the cell a real robot will accept (``safety``: the robot driver's own :class:`SafetyLimits`, checked with
+  the same ``SafetyLimits.within`` its moves are checked with; ``workspace``: the allowed and keep-out boxes of
+  the robot profile, on the targets, the tool origin and every link origin; ``facing``: every target's normal
+  within its acceptance angle of the tracker, :class:`TargetFacing`).
+
 - :func:`optimal_configurations` picks, from a large pool of such candidates, the subset that maximises the
   observability of the frame errors δζ (paper eq. 8-11) from the measured target points (1..k targets): greedy
   D-optimality (maximise log det of the information matrix on the identifiable subspace) with rank-3m Woodbury updates,
@@ -25,6 +30,9 @@ Two planners:
   average prediction variance over the workspace (I-optimality, :func:`prediction_variance`): a large
   determinant alone did not lower the held-out error much; the prediction variance is what held-out error
   measures.
+
+:func:`order_for_motion` orders the chosen configurations for the least motion time at the robot's speed and
+acceleration caps (nearest neighbour, then 2-opt and or-opt over trapezoidal move times; deterministic).
 
 The identification Jacobian of one configuration is the 3m × 6(n+1) matrix ``G = P · frame_jacobian(q)`` with
 ``P`` stacking ``[I, −skew(p_i)]`` for the m targets p_i (base frame): δp_i = δv + δω × p_i. The indices count
@@ -104,7 +112,7 @@ class LineOfSight:
         return ok
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TargetFacing:
     """Which way the targets face, and where the tracker is: a reflector (SMR) returns the beam only within its
     acceptance angle about its normal.
