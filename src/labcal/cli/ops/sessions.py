@@ -218,15 +218,13 @@ def plan_cell(request: SessionRequest, spec: RobotSpec, normals, robot) -> dict:
     the robot profile's ``[workspace]`` boxes, and, when the targets file gives normals and the tracker's position
     is known, targets facing the tracker. The tracker's position comes from the robot profile's
     ``[workspace] tracker_mm`` or the tracker profile's ``[placement] position_mm`` (both given: they must agree
-    within 1 mm); on the sim rig, from the simulated tracker's pose. ``normals``: ``load_target_normals`` of
-    the targets file (None: no line-of-sight check)."""
+    within 1 mm). ``normals``: ``load_target_normals`` of the targets file (None: no line-of-sight check)."""
     from labcal.sessions.planning import TargetFacing
 
     cell: dict[str, Any] = {"safety": robot.limits, "joint_map": spec.joints}
     tracker = None
-    if request.robot_driver == "sim":
-        tracker = tuple(np.linalg.inv(robot.rig.actual.T_tracker_base)[:3, 3])
-    else:
+    # The sim rig's tracker frame is the base frame (a convention, not a place in a cell): no line of sight there.
+    if request.robot_driver != "sim":
         from labcal.drivers.serial.profiles import load_placement
         from labcal.drivers.ur import load_ur_profile
 
