@@ -84,3 +84,28 @@ def test_bad_serialised_commands_are_named():
         Plan.from_json('{"commands": []}')
     with pytest.raises(PlanError, match="configuration 1"):
         make_plan([[0.0], [float("inf")]])
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Motion time: what the plan's order costs
+
+
+def test_move_time_is_trapezoidal_and_triangular_for_short_moves():
+    from labcal.sessions.plans import move_time
+
+    # 2 rad at 0.5 rad/s, 1 rad/s²: 0.5 s to speed up, 0.5 s to slow down (0.125 rad each), 1.75 rad cruise (3.5 s).
+    assert move_time(2.0, 0.5, 1.0) == pytest.approx(4.5)
+    # 0.1 rad never reaches 0.5 rad/s: two halves of 0.05 rad at 1 rad/s², √0.1 s each.
+    assert move_time(0.1, 0.5, 1.0) == pytest.approx(2 * 0.1**0.5)
+    assert move_time(-2.0, 0.5, 1.0) == move_time(2.0, 0.5, 1.0)
+
+
+def test_motion_time_adds_the_slowest_joint_of_each_move_from_the_start():
+    from labcal.sessions.plans import motion_time, move_time
+
+    plan = make_plan([[0.0, 1.0], [2.0, 1.1], [2.0, 0.0]], speed=0.5, acceleration=1.0)
+    slowest = [move_time(2.0, 0.5, 1.0), move_time(1.1, 0.5, 1.0)]
+    assert motion_time(plan) == pytest.approx(sum(slowest))
+    assert motion_time(plan, start=[0.0, 0.0]) == pytest.approx(sum(slowest) + move_time(1.0, 0.5, 1.0))
+    with pytest.raises(PlanError, match="start has 3 joint values"):
+        motion_time(plan, start=[0.0, 0.0, 0.0])

@@ -161,6 +161,7 @@ def new(
     from labcal.cli.ops import new_session
     from labcal.cli.ops.sessions import SessionRequest
     from labcal.datasets import load_targets
+    from labcal.datasets.targets import load_target_normals
     from labcal.robots import load
 
     request = SessionRequest(
@@ -171,6 +172,7 @@ def new(
     request.check()
     load(robot)  # a typo in the robot or targets fails here, before the store is created
     load_targets(targets)
+    load_target_normals(targets)  # normals for the planner's line of sight, checked before the store is made
     st = _store(store, create=True)
     with _RunProgress() as progress:
         summary = new_session(st, request, progress=progress)

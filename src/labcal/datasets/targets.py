@@ -119,6 +119,9 @@ TARGETS_SCHEMA = Table(
     {
         "unit": Key("str", required=True, choices=tuple(LENGTH_UNITS), doc='"m", "mm" or "in"'),
         "points": Key("any", required=True, check=_points_problem, doc="one [x, y, z] per target, tool frame"),
+        # Optional: which way each reflector faces, for the planner's line of sight (labcal.sessions.planning).
+        "normals": Key("vectors", shape=(None, 3), doc="one [x, y, z] direction per target, tool frame"),
+        "acceptance_deg": Key("any", unit="deg", doc="half-angle a reflector answers within: one, or one per target"),
     },
     name="targets file",
 )
@@ -161,3 +164,38 @@ def _unit_hint(points: list, unit: str) -> str | None:
             "of the file if the numbers are metres"
         )
     return None
+
+
+def load_target_normals(path: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """The targets file's ``normals`` (m, 3), unit vectors in the tool frame, and ``acceptance_deg`` as (m,) rad;
+    None when the file gives no normals. Raises :class:`TargetsError` naming the key.
+
+    ``acceptance_deg`` is required with ``normals``: one number for all targets or one per target, in (0, 90]
+    (a reflector (SMR) answers within about ±30° to ±60° of its normal).
+    """
+    import numpy as np
+
+    path = Path(path)
+    doc = validate(read_toml(path, TargetsError, "targets file"), TARGETS_SCHEMA, source=str(path), error=TargetsError)
+    if "normals" not in doc:
+        if "acceptance_deg" in doc:
+            raise TargetsError(f"{path}: acceptance_deg needs normals (one [x, y, z] per target)", str(path))
+        return None
+    m = len(doc["points"])
+    normals = np.asarray(doc["normals"], dtype=float)
+    if normals.shape != (m, 3):
+        raise TargetsError(f"{path}: normals lists {len(normals)} directions for {m} targets; give one per target")
+    length = np.linalg.norm(normals, axis=1)
+    for i in np.flatnonzero(length < 1e-9):
+        raise TargetsError(f"{path}: normals entry t{i + 1} is zero; give the direction the reflector faces")
+    if "acceptance_deg" not in doc:
+        raise TargetsError(f"{path}: normals need acceptance_deg (the reflectors' half-angle, e.g. 30)", str(path))
+    raw = doc["acceptance_deg"]
+    values = [raw] if is_number(raw) else raw
+    ok = isinstance(values, list) and len(values) in (1, m) and all(is_number(v) and 0 < v <= 90 for v in values)
+    if not ok:
+        raise TargetsError(
+            f"{path}: acceptance_deg must be one angle in (0, 90] degrees or {m} of them (one per target), got {raw!r}"
+        )
+    acceptance = np.radians(np.broadcast_to(np.asarray(values, dtype=float), (m,)))
+    return normals / length[:, None], np.array(acceptance)

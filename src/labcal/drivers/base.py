@@ -161,6 +161,24 @@ class SafetyLimits:
     max_acceleration: float = 1.4
     joint_map: JointMap | None = None
 
+    def within(self, q: np.ndarray) -> np.ndarray:
+        """(k, n) commanded joints → (k,) bool: every joint inside ``joint_limits`` (through the joint map).
+
+        The one definition of "inside the limits": :meth:`check_motion` refuses exactly the targets this calls
+        False, and the planner keeps exactly the ones it calls True.
+
+        >>> SafetyLimits(np.array([[-1.0, 1.0], [0.0, 2.0]])).within(np.array([[0.5, 2.0], [0.5, 2.1]])).tolist()
+        [True, False]
+        """
+        q = np.asarray(q, dtype=float)
+        limits = np.asarray(self.joint_limits, dtype=float)
+        checked = self.joint_map.to_model(q) if self._mapped else q
+        return np.all((checked >= limits[:, 0]) & (checked <= limits[:, 1]), axis=-1)
+
+    @property
+    def _mapped(self) -> bool:
+        return self.joint_map is not None and not self.joint_map.is_identity
+
     def check_motion(self, q: np.ndarray, speed: float, acceleration: float) -> np.ndarray:
         """Return q as a float array if the motion is allowed, else raise MotionRejected naming the cause."""
         q = np.asarray(q, dtype=float)
@@ -169,15 +187,16 @@ class SafetyLimits:
             raise MotionRejected(f"target has {q.shape} joint values, the robot has {limits.shape[0]} joints")
         if not np.all(np.isfinite(q)):
             raise MotionRejected(f"target contains non-finite joint values: {q.tolist()}")
-        mapped = self.joint_map is not None and not self.joint_map.is_identity
+        mapped = self._mapped
         checked = self.joint_map.to_model(q) if mapped else q
         what = "model joint" if mapped else "joint"
-        for j, (value, (lo, hi)) in enumerate(zip(checked, limits, strict=True)):
-            if not lo <= value <= hi:
-                raise MotionRejected(
-                    f"{what} {j + 1} target {value:.6f} is outside its limits [{lo:.6f}, {hi:.6f}]"
-                    + (f" (controller joints {np.round(q, 6).tolist()} through the joint map)" if mapped else "")
-                )
+        if not self.within(q[None])[0]:
+            j = int(np.flatnonzero((checked < limits[:, 0]) | (checked > limits[:, 1]))[0])
+            value, (lo, hi) = checked[j], limits[j]
+            raise MotionRejected(
+                f"{what} {j + 1} target {value:.6f} is outside its limits [{lo:.6f}, {hi:.6f}]"
+                + (f" (controller joints {np.round(q, 6).tolist()} through the joint map)" if mapped else "")
+            )
         if not (np.isfinite(speed) and 0 < speed <= self.max_speed):
             raise MotionRejected(f"speed {speed} rad/s is outside (0, {self.max_speed}] rad/s")
         if not (np.isfinite(acceleration) and 0 < acceleration <= self.max_acceleration):

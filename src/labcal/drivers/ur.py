@@ -49,6 +49,7 @@ from labcal.drivers.base import (
     SafetyLimits,
     StaleData,
 )
+from labcal.drivers.workspace import WORKSPACE_SCHEMA, Workspace, parse_workspace
 from labcal.tomlschema import Key, SchemaError, Table, read_toml, validate
 
 log = logging.getLogger(__name__)
@@ -102,6 +103,7 @@ class URProfile:
     connect_timeout: float = 2.0
     stale_timeout: float = 0.5
     frequency: float = -1.0
+    workspace: Workspace | None = None  # the cell's allowed/keep-out boxes and tracker position, for the planner
 
     def with_host(self, host: str) -> URProfile:
         """The same profile pointed at another controller (e.g. a fake on a loopback address)."""
@@ -167,6 +169,7 @@ UR_PROFILE_SCHEMA = Table(
         "joint_limits_deg": Key(
             "table", table=Table({"lower": Key("vector", **_DEG6), "upper": Key("vector", **_DEG6)})
         ),
+        "workspace": Key("table", table=WORKSPACE_SCHEMA, doc="the cell: allowed/keep-out boxes, tracker position"),
         "timing": Key(
             "table",
             default={},
@@ -239,6 +242,7 @@ def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfi
         connect_timeout=timing["connect_timeout_s"],
         stale_timeout=timing["stale_timeout_s"],
         frequency=timing["frequency_hz"],
+        workspace=parse_workspace(doc["workspace"], source, URProfileError) if "workspace" in doc else None,
     )
 
 

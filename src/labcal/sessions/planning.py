@@ -17,6 +17,11 @@ Two planners:
     optionally, no target closer than ``min_target_distance`` (m) to another target's line of sight (the ray
     from the tracker through it), so the tracker sees three separate markers.
 
+  and the cell a real robot will accept (``safety``: the robot driver's own :class:`SafetyLimits`, checked with
+  the same ``SafetyLimits.within`` its moves are checked with; ``workspace``: the allowed and keep-out boxes of
+  the robot profile, on the targets, the tool origin and every link origin; ``facing``: every target's normal
+  within its acceptance angle of the tracker, :class:`TargetFacing`).
+
 - :func:`optimal_configurations` picks, from a large pool of such candidates, the subset that maximises the
   observability of the frame errors δζ (paper eq. 8-11) from the measured target points (1..k targets): greedy
   D-optimality (maximise log det of the information matrix on the identifiable subspace) with rank-3m Woodbury updates,
@@ -25,6 +30,9 @@ Two planners:
   average prediction variance over the workspace (I-optimality, :func:`prediction_variance`): a large
   determinant alone did not lower the held-out error much; the prediction variance is what held-out error
   measures.
+
+:func:`order_for_motion` orders the chosen configurations for the least motion time at the robot's speed and
+acceleration caps (nearest neighbour, then 2-opt and or-opt over trapezoidal move times; deterministic).
 
 The identification Jacobian of one configuration is the 3m × 6(n+1) matrix ``G = P · frame_jacobian(q)`` with
 ``P`` stacking ``[I, −skew(p_i)]`` for the m targets p_i (base frame): δp_i = δv + δω × p_i. The indices count
@@ -51,8 +59,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from labcal.drivers.base import SafetyLimits
+from labcal.drivers.workspace import Workspace
 from labcal.kinematics.poe import LocalPOEModel
 from labcal.kinematics.se3 import skew
+from labcal.robots.joint_map import JointMap
+from labcal.sessions.plans import move_time
 
 #: Default bound on the length-scaled condition number of J_ρ (see the module docstring).
 DEFAULT_MAX_CONDITION = 100.0
@@ -98,6 +110,97 @@ class LineOfSight:
         if self.max_range is not None:
             ok &= dist <= self.max_range
         return ok
+
+
+@dataclass(frozen=True, eq=False)
+class TargetFacing:
+    """Which way the targets face, and where the tracker is: a reflector (SMR) returns the beam only within its
+    acceptance angle about its normal.
+
+    tracker: (3,) tracker origin in the robot base frame, m; normals: (m, 3) target normals in the tool frame
+    (normalised here); acceptance: (m,) half-angles, rad, in (0, π/2] (SMRs: about 0.52 to 1.05, ±30° to ±60°).
+
+    >>> f = TargetFacing((0.0, 0.0, 2.0), [[0.0, 0.0, 1.0]], [np.radians(30)])
+    >>> f.facing(np.array([[[0.0, 0.0, 0.0]], [[1.5, 0.0, 0.0]]]), np.array([[[0.0, 0.0, 1.0]]] * 2)).tolist()
+    [[True], [False]]
+    """
+
+    tracker: tuple[float, float, float]
+    normals: np.ndarray
+    acceptance: np.ndarray
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.tracker, dtype=float)
+        n = np.asarray(self.normals, dtype=float)
+        a = np.asarray(self.acceptance, dtype=float).reshape(-1)
+        if t.shape != (3,) or not np.all(np.isfinite(t)):
+            raise PlanningError(f"TargetFacing.tracker must be 3 finite numbers (m), got {self.tracker!r}")
+        if n.ndim != 2 or n.shape[1] != 3 or not np.all(np.isfinite(n)) or np.any(np.linalg.norm(n, axis=1) < 1e-12):
+            raise PlanningError("TargetFacing.normals must be (m, 3) finite non-zero vectors (tool frame)")
+        a = np.broadcast_to(a, (n.shape[0],)) if a.size == 1 else a
+        if a.shape != (n.shape[0],) or not np.all((a > 0) & (a <= np.pi / 2)):
+            raise PlanningError(f"TargetFacing.acceptance must be one or {n.shape[0]} angles in (0, π/2] rad")
+        object.__setattr__(self, "tracker", tuple(float(x) for x in t))
+        object.__setattr__(self, "normals", n / np.linalg.norm(n, axis=1, keepdims=True))
+        object.__setattr__(self, "acceptance", np.array(a, dtype=float))
+
+    def facing(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """points (k, m, 3) and normals (k, m, 3) in the base frame → (k, m) bool: the tracker within acceptance."""
+        to_tracker = np.asarray(self.tracker) - np.asarray(points, dtype=float)
+        dist = np.maximum(np.linalg.norm(to_tracker, axis=-1), 1e-15)
+        cos = np.einsum("kma,kma->km", normals, to_tracker) / dist
+        return cos >= np.cos(self.acceptance)
+
+    def visible(self, model: LocalPOEModel, q, targets) -> np.ndarray:
+        """(k, m) bool: target i of pose q[k] (targets (m, 3) m, tool frame) faces the tracker."""
+        T = model.fk(np.atleast_2d(np.asarray(q, dtype=float)))
+        points = np.einsum("kab,mb->kma", T[:, :3, :3], np.asarray(targets, dtype=float)) + T[:, None, :3, 3]
+        normals = np.einsum("kab,mb->kma", T[:, :3, :3], self.normals)
+        return self.facing(points, normals)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The cell: joint limits the runner checks, the workspace
+
+
+def cell_limits(model: LocalPOEModel, safety: SafetyLimits | None = None, joint_map: JointMap | None = None):
+    """(n, 2) model-joint box to sample: the model's limits, narrowed by the runner's ``safety.joint_limits``
+    where those are model joints (the safety limits carry the joint map, or controller and model joints agree).
+
+    joint_map: model → controller joints as the runner commands them (``spec.joints``). Limits on controller
+    joints through a non-identity map are not a box in model joints: they are applied by the per-pose check
+    (:func:`runner_accepts`) alone.
+    """
+    lim = np.array(model.limits, dtype=float)
+    if safety is None:
+        return lim
+    sl = np.asarray(safety.joint_limits, dtype=float)
+    if sl.shape != lim.shape:
+        raise PlanningError(f"the robot's joint limits are for {sl.shape[0]} joints, the model has {model.n}")
+    if safety.joint_map is not None or joint_map is None or joint_map.is_identity:
+        lim = np.stack([np.maximum(lim[:, 0], sl[:, 0]), np.minimum(lim[:, 1], sl[:, 1])], axis=1)
+        for j in np.flatnonzero(lim[:, 0] > lim[:, 1]):
+            raise PlanningError(
+                f"joint {j + 1}: the robot's limits [{sl[j, 0]:.6f}, {sl[j, 1]:.6f}] rad and the model's "
+                f"[{model.limits[j, 0]:.6f}, {model.limits[j, 1]:.6f}] rad do not overlap; fix the robot profile"
+            )
+    return lim
+
+
+def runner_accepts(q, safety: SafetyLimits, joint_map: JointMap | None = None) -> np.ndarray:
+    """(k, n) model joints → (k,) bool: the robot driver's own limit check (``safety.within``) accepts the
+    controller joints the runner would command."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    return safety.within(q if joint_map is None else joint_map.to_controller(q))
+
+
+def checked_points(model: LocalPOEModel, q, targets) -> np.ndarray:
+    """(k, m + n + 2, 3) m: the points the workspace check covers, base frame: the targets, the tool origin and
+    the origin of every link frame (K_1 … K_{n+1})."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    links = model.link_frames(q)[:, :, :3, 3]
+    tool = model.fk(q)[:, None, :3, 3]
+    return np.concatenate([model.target_points(q, targets), tool, links], axis=1)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -176,8 +279,19 @@ def random_configurations(
     min_target_distance: float | None = None,
     tracker: LineOfSight | None = None,
     max_tries: int | None = None,
+    safety: SafetyLimits | None = None,
+    joint_map: JointMap | None = None,
+    workspace: Workspace | None = None,
+    facing: TargetFacing | None = None,
 ) -> np.ndarray:
     """Draw ``count`` configurations (count, n) uniformly within the joint ranges that pass every check.
+
+    The cell (what the lab's robot will accept): safety: the robot driver's :class:`SafetyLimits` (``robot.limits``,
+    the object the runner's moves are checked against): configurations are drawn inside the model's limits ∩
+    these and each is checked with ``safety.within`` on the controller joints ``joint_map`` (``spec.joints``) gives,
+    so no planned pose is refused for its joints. workspace: every checked point (:func:`checked_points`) inside
+    its allowed box and out of its keep-out boxes. facing: every target's normal within its acceptance angle of
+    the direction to the tracker (:class:`TargetFacing`; needs ``targets``).
 
     limits: (n, 2) rad (m) sampling limits inside the model's, default ``model.limits``; range_fraction: keep
     this fraction of each range about its middle. region: ``[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]]`` m, box
@@ -190,7 +304,24 @@ def random_configurations(
     """
     if isinstance(count, bool) or not isinstance(count, int | np.integer) or count < 1:
         raise PlanningError(f"count must be a positive integer, got {count!r}")
-    ranges = joint_ranges(model, limits, range_fraction)
+    box_limits = cell_limits(model, safety, joint_map)
+    if limits is not None:
+        lim = joint_ranges(model, limits)  # checked against the model's limits before narrowing
+        box_limits = np.stack([np.maximum(lim[:, 0], box_limits[:, 0]), np.minimum(lim[:, 1], box_limits[:, 1])], 1)
+        if np.any(box_limits[:, 0] > box_limits[:, 1]):
+            raise PlanningError("limits and the robot's joint limits do not overlap")
+    ranges = joint_ranges(model, box_limits, range_fraction)
+    # Limits on controller joints through a coupling joint map are a slanted box in model joints: draw uniformly in
+    # the controller box instead (a linear map keeps a uniform density uniform) and check the model's ranges.
+    through_map = (
+        safety is not None and safety.joint_map is None and joint_map is not None and not joint_map.is_identity
+    )
+    if through_map:
+        ctrl = np.asarray(safety.joint_limits, dtype=float)
+        mid, half = ctrl.mean(axis=1), 0.5 * (ctrl[:, 1] - ctrl[:, 0]) * range_fraction
+        draw_lo, draw_hi = mid - half, mid + half
+    else:
+        draw_lo, draw_hi = ranges[:, 0], ranges[:, 1]
     box = _check_region(region)
     if max_condition is not None and not max_condition >= 1:
         raise PlanningError(f"max_condition must be >= 1 (or None), got {max_condition!r}")
@@ -202,6 +333,20 @@ def random_configurations(
     pts = np.zeros((1, 3)) if targets is None else np.asarray(targets, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
         raise PlanningError(f"targets must be a finite (m, 3) array in m (tool frame), got shape {pts.shape}")
+    if facing is not None and (targets is None or facing.normals.shape[0] != pts.shape[0]):
+        raise PlanningError(f"facing has {facing.normals.shape[0]} normals; give targets with as many points")
+    if workspace is not None and not workspace.bounds_motion:
+        workspace = None
+    if workspace is not None:
+        # The base frame's origin never moves: a keep-out box around it (a table drawn up to z = 0) refuses every
+        # pose, which is worth saying outright instead of after thousands of draws.
+        base = model.link_frames(np.zeros((1, model.n)))[:, :1, :3, 3]
+        if not workspace.admits(base)[0]:
+            raise PlanningError(
+                f"the workspace refuses the robot's base (link 1 origin {np.round(base[0, 0], 4).tolist()} m): "
+                f"{', '.join(workspace.offenders(base[0]))}; a keep-out box must leave the base out (e.g. a "
+                "table's top just below it)"
+            )
     max_tries = max(10_000, 200 * int(count)) if max_tries is None else int(max_tries)
     if max_tries < count:
         raise PlanningError(f"max_tries ({max_tries}) is smaller than count ({count})")
@@ -209,13 +354,44 @@ def random_configurations(
     rng = np.random.default_rng(seed)
     chosen: list[np.ndarray] = []
     have, drawn = 0, 0
-    rejected = {"condition": 0, "region": 0, "line of sight": 0, "target separation": 0}
+    rejected = {
+        "joint limits": 0,
+        "workspace": 0,
+        "facing away": 0,
+        "condition": 0,
+        "region": 0,
+        "line of sight": 0,
+        "target separation": 0,
+    }
+    example: list[str] = []  # what the first pose the workspace refused ran into, for the error message
     batch = max(256, 4 * int(count))
     while have < count and drawn < max_tries:
         size = min(batch, max_tries - drawn)
-        q = rng.uniform(ranges[:, 0], ranges[:, 1], size=(size, model.n))
+        q = rng.uniform(draw_lo, draw_hi, size=(size, model.n))
         drawn += size
         ok = np.ones(size, dtype=bool)
+        if through_map:
+            q = joint_map.to_model(q)
+            inside = np.all((q >= ranges[:, 0]) & (q <= ranges[:, 1]), axis=1)
+            rejected["joint limits"] += int(np.sum(~inside))
+            ok &= inside
+        if safety is not None:
+            accepted = runner_accepts(q, safety, joint_map)
+            rejected["joint limits"] += int(np.sum(~accepted))
+            ok &= accepted
+        if workspace is not None and ok.any():
+            idx = np.flatnonzero(ok)
+            points = checked_points(model, q[idx], pts)
+            inside = workspace.admits(points)
+            rejected["workspace"] += int(np.sum(~inside))
+            if not example and not inside.all():
+                example = workspace.offenders(points[np.flatnonzero(~inside)[0]])
+            ok[idx[~inside]] = False
+        if facing is not None and ok.any():
+            idx = np.flatnonzero(ok)
+            seen = facing.visible(model, q[idx], pts).all(axis=1)
+            rejected["facing away"] += int(np.sum(~seen))
+            ok[idx[~seen]] = False
         if box is not None:
             p = model.fk(q)[:, :3, 3]
             inside = np.all((p >= box[0]) & (p <= box[1]), axis=1)
@@ -241,9 +417,10 @@ def random_configurations(
         have += int(ok.sum())
     if have < count:
         why = ", ".join(f"{k}: {v}" for k, v in rejected.items() if v) or "none"
+        hint = f" (e.g. {', '.join(example)})" if example else ""
         raise PlanningError(
-            f"only {have} of {count} configurations passed after {drawn} draws (max_tries); rejected by {why}. "
-            "Loosen max_condition, the region or the tracker cone, or raise max_tries."
+            f"only {have} of {count} configurations passed after {drawn} draws (max_tries); rejected by {why}{hint}. "
+            "Loosen max_condition, the workspace, the region or the tracker cone, or raise max_tries."
         )
     return np.concatenate(chosen)[:count]
 
@@ -544,21 +721,174 @@ def optimal_configurations(
     return pool[idx]
 
 
+# --------------------------------------------------------------------------------------------------------------
+# Order: less motion
+
+
+def move_time_matrix(a, b, speed, acceleration) -> np.ndarray:
+    """(k, l) seconds of the joint move from each configuration a (k, n) to each b (l, n): the longest of the
+    joints' trapezoidal times (:func:`labcal.sessions.plans.move_time`) at ``speed`` rad/s and ``acceleration``
+    rad/s² (scalars, or (n,) per-joint caps)."""
+    a, b = np.atleast_2d(np.asarray(a, dtype=float)), np.atleast_2d(np.asarray(b, dtype=float))
+    out = np.empty((len(a), len(b)))
+    for i in range(len(a)):  # row by row: (l, n) at a time keeps 10,000 poses at a few hundred MB
+        out[i] = move_time(b - a[i], speed, acceleration).max(axis=1)
+    return out
+
+
+def _path_time(D: np.ndarray, order: np.ndarray, start: np.ndarray | None) -> float:
+    total = float(D[order[:-1], order[1:]].sum())
+    return total + (float(start[order[0]]) if start is not None else 0.0)
+
+
+def _nearest_neighbour(D: np.ndarray, first: int) -> np.ndarray:
+    k = len(D)
+    order = np.empty(k, dtype=int)
+    free = np.ones(k, dtype=bool)
+    here = first
+    for i in range(k):
+        order[i] = here
+        free[here] = False
+        if i + 1 < k:
+            row = np.where(free, D[here], np.inf)
+            here = int(np.argmin(row))  # ties: the lowest index, so the order is reproducible
+    return order
+
+
+def _two_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_passes: int) -> np.ndarray:
+    """Reverse segments of an open path while that shortens it (D symmetric). The path begins at ``start`` (times
+    from it to each pose) when given; otherwise its first pose is free too."""
+    order = order.copy()
+    k = len(order)
+    for _ in range(max_passes):
+        improved = False
+        for i in range(k - 1):
+            # Reverse order[i..j] for every j > i: the edges (i-1, i) and (j, j+1) become (i-1, j) and (i, j+1).
+            j = np.arange(i + 1, k)
+            p, q = order[i], order[j]
+            if i > 0:
+                before_old = D[order[i - 1], p]
+                before_new = D[order[i - 1], q]
+            elif start is not None:
+                before_old, before_new = start[p], start[q]
+            else:
+                before_old, before_new = 0.0, np.zeros(len(j))
+            nxt = np.minimum(j + 1, k - 1)
+            has_next = j + 1 < k
+            after_old = np.where(has_next, D[q, order[nxt]], 0.0)
+            after_new = np.where(has_next, D[p, order[nxt]], 0.0)
+            gain = before_old + after_old - before_new - after_new
+            best = int(np.argmax(gain))
+            if gain[best] > 1e-9:
+                order[i : j[best] + 1] = order[i : j[best] + 1][::-1].copy()
+                improved = True
+        if not improved:
+            break
+    return order
+
+
+def _or_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_passes: int) -> np.ndarray:
+    """Move segments of 1 to 3 poses (as they are or reversed) to the place in the path where they cost least,
+    while that shortens it. Position -1 stands for the path's beginning (after ``start`` when given)."""
+    order = order.copy()
+    k = len(order)
+
+    def edge(a, b):  # time of the edge a → b; a = -1 is the start (free without one), b = -1 the open end
+        if b == -1:
+            return 0.0
+        if a == -1:
+            return float(start[b]) if start is not None else 0.0
+        return float(D[a, b])
+
+    for _ in range(max_passes):
+        improved = False
+        for length in (1, 2, 3):
+            i = 0
+            while i + length <= k:
+                seg = order[i : i + length]
+                prev = order[i - 1] if i > 0 else -1
+                nxt = order[i + length] if i + length < k else -1
+                removed = edge(prev, seg[0]) + edge(seg[-1], nxt) - (edge(prev, nxt) if nxt != -1 else 0.0)
+                rest = np.concatenate([order[:i], order[i + length :]])
+                # insert between rest[g-1] and rest[g] (g = 0 … len(rest)); rest[-1] before 0 is the start
+                # old_link[g]: the edge rest[g-1] → rest[g] that an insertion at g replaces (none at the end)
+                old_link = np.concatenate([[start[rest[0]] if start is not None else 0.0], D[rest[:-1], rest[1:]], [0]])
+                best_gain, best = 1e-9, None
+                for piece in (seg, seg[::-1]):
+                    head, tail = piece[0], piece[-1]
+                    into = np.concatenate([[start[head] if start is not None else 0.0], D[rest, head]])
+                    into[:-1] += D[tail, rest]
+                    gain = removed - (into - old_link)
+                    g = int(np.argmax(gain))
+                    if gain[g] > best_gain:
+                        best_gain, best = float(gain[g]), (g, piece.copy())
+                if best is not None:
+                    g, piece = best
+                    order = np.concatenate([rest[:g], piece, rest[g:]])
+                    improved = True
+                i += 1
+        if not improved:
+            break
+    return order
+
+
+def order_for_motion(q, speed, acceleration, *, start=None, max_passes: int = 200, starts: int = 4) -> np.ndarray:
+    """(k,) permutation of the configurations q (k, n) that shortens the total motion time of visiting them.
+
+    Move times: :func:`move_time_matrix` at ``speed`` / ``acceleration`` (the robot profile's caps). Nearest
+    neighbour from every pose (or from ``start`` (n,), the robot's joints when the plan begins), the shortest
+    kept, then 2-opt (segment reversals) until no reversal shortens the path or ``max_passes``. No randomness
+    and ties go to the lowest index: the same configurations give the same order.
+
+    >>> order_for_motion(np.array([[0.0], [3.0], [1.0], [2.0]]), 0.5, 1.0).tolist()
+    [0, 2, 3, 1]
+    """
+    q = np.asarray(q, dtype=float)
+    if q.ndim != 2 or len(q) == 0 or not np.all(np.isfinite(q)):
+        raise PlanningError(f"q must be a finite (k, n) array of configurations, got shape {q.shape}")
+    if len(q) < 3 and start is None:
+        return np.arange(len(q))
+    D = move_time_matrix(q, q, speed, acceleration)
+    s = None if start is None else move_time_matrix(np.reshape(start, (1, -1)), q, speed, acceleration)[0]
+    if s is not None:
+        candidates = [_nearest_neighbour(D, int(np.argmin(s)))]
+    else:
+        candidates = [_nearest_neighbour(D, first) for first in range(len(q))]
+    times = np.array([_path_time(D, c, s) for c in candidates])
+    best: np.ndarray | None = None
+    for c in np.argsort(times, kind="stable")[:starts]:
+        order = candidates[int(c)]
+        for _ in range(max_passes):  # alternate until neither improves
+            before = _path_time(D, order, s)
+            order = _or_opt(D, _two_opt(D, order, s, max_passes), s, max_passes)
+            if _path_time(D, order, s) >= before - 1e-9:
+                break
+        if best is None or _path_time(D, order, s) < _path_time(D, best, s) - 1e-9:
+            best = order
+    return best
+
+
 __all__ = [
     "CRITERIA",
     "DEFAULT_MAX_CONDITION",
     "LineOfSight",
     "Observability",
     "PlanningError",
+    "TargetFacing",
+    "cell_limits",
+    "checked_points",
     "exchange_i_optimal",
     "greedy_d_optimal",
     "identifiable_basis",
     "identification_jacobian",
     "joint_ranges",
     "length_scaled_condition",
+    "move_time_matrix",
     "observability",
     "optimal_configurations",
+    "order_for_motion",
     "prediction_variance",
     "random_configurations",
+    "runner_accepts",
     "target_weights",
 ]

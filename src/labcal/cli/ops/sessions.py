@@ -39,18 +39,27 @@ def sim_actual(spec: RobotSpec, errors: str, seed: int):
 
 
 def plan_configurations(
-    spec: RobotSpec, poses: int, planner: str, seed: int, targets, samples: int = 2000, dropout: float | None = None
+    spec: RobotSpec,
+    poses: int,
+    planner: str,
+    seed: int,
+    targets,
+    samples: int = 2000,
+    dropout: float | None = None,
+    cell: dict | None = None,
 ):
     """(poses, n) model joints. ``dropout``: the tracker's chance of losing a target, which the optimal planner
-    weighs in (it maximises the information of the points expected to be measured)."""
+    weighs in (it maximises the information of the points expected to be measured). ``cell``: the planner's
+    cell arguments (:func:`plan_cell`: safety, joint_map, workspace, facing)."""
     from labcal.sessions import optimal_configurations, random_configurations
 
     check_plan_size(poses, planner, samples)
+    cell = cell or {}
     if planner == "random":
-        return random_configurations(spec.model, poses, seed=seed, targets=targets)
+        return random_configurations(spec.model, poses, seed=seed, targets=targets, **cell)
     if planner == "optimal":
         return optimal_configurations(
-            spec.model, poses, seed=seed, targets=targets, candidates=samples, dropout=dropout or None
+            spec.model, poses, seed=seed, targets=targets, candidates=samples, dropout=dropout or None, **cell
         )
     raise UserError(f"--planner must be one of {', '.join(PLANNERS)}, got {planner!r}")
 
@@ -203,13 +212,47 @@ def _real_drivers(profile, tracker_profile, targets):
         raise
 
 
+def plan_cell(request: SessionRequest, spec: RobotSpec, normals, robot) -> dict:
+    """What the planner must respect, as keyword arguments of the planners: the robot driver's own
+    ``robot.limits`` (the SafetyLimits every move is checked against: no planned pose is refused for its joints),
+    the robot profile's ``[workspace]`` boxes, and, when the targets file gives normals and the tracker's position
+    is known, targets facing the tracker. The tracker's position comes from the robot profile's
+    ``[workspace] tracker_mm`` or the tracker profile's ``[placement] position_mm`` (both given: they must agree
+    within 1 mm). ``normals``: ``load_target_normals`` of the targets file (None: no line-of-sight check)."""
+    from labcal.sessions.planning import TargetFacing
+
+    cell: dict[str, Any] = {"safety": robot.limits, "joint_map": spec.joints}
+    tracker = None
+    # The sim rig's tracker frame is the base frame (a convention, not a place in a cell): no line of sight there.
+    if request.robot_driver != "sim":
+        from labcal.drivers.serial.profiles import load_placement
+        from labcal.drivers.ur import load_ur_profile
+
+        workspace = load_ur_profile(request.profile).workspace
+        cell["workspace"] = workspace
+        sources = {
+            f"{request.profile} [workspace] tracker_mm": workspace.tracker if workspace else None,
+            f"{request.tracker_profile} [placement] position_mm": load_placement(request.tracker_profile),
+        }
+        given = {k: v for k, v in sources.items() if v is not None}
+        if len(given) == 2 and np.linalg.norm(np.subtract(*given.values())) > 1e-3:
+            raise UserError(
+                f"the tracker's position differs between {' and '.join(given)}: keep one, or make them agree"
+            )
+        tracker = next(iter(given.values()), None)
+    if normals is not None and tracker is not None:
+        cell["facing"] = TargetFacing(tracker, *normals)
+    return cell
+
+
 def new_session(store: SessionStore, request: SessionRequest | None = None, *, progress=None, **fields: Any):
     """Plan and record a session; returns the runner's RunSummary (its .ref is the new SESSION@vNNN).
 
     ``request``: a :class:`SessionRequest`, or its fields as keywords (``new_session(store, robot="ur10",
     targets_file="t.toml", poses=40)``). ``progress``: the runner's progress callback. Every argument is checked
-    before anything is planned, connected or moved."""
+    before anything is connected or moved; the plan is drawn once the robot is open, inside its own limits."""
     from labcal.datasets import load_targets
+    from labcal.datasets.targets import load_target_normals
     from labcal.sessions import RunOptions, make_plan, run
 
     if request is None:
@@ -219,18 +262,33 @@ def new_session(store: SessionStore, request: SessionRequest | None = None, *, p
     request.check()  # before anything is loaded, planned or allocated
     spec = load(request.robot)
     targets = load_targets(request.targets_file)
-    q = plan_configurations(
-        spec, request.poses, request.planner, request.seed, targets, request.samples, request.sim_dropout
-    )
+    normals = load_target_normals(request.targets_file)
     sim = request.robot_driver == "sim"
-    plan = make_plan(q, samples=3 if sim else 5, settle=0.0 if sim else 0.5)
     rob, trk, frame, meta = _drivers(request, spec, targets)
     # The unit: --unit, else the serial the robot driver reports (the sim rig's is sim-<seed>; see sim_unit).
     options = RunOptions(
         frame=frame, progress=progress, metadata=meta, allow=_allowed(request.allow), unit=request.unit
     )
     with rob, trk:
+        # Planned after the drivers open, inside the limits object the robot checks every move against.
+        cell = plan_cell(request, spec, normals, rob)
+        q = plan_configurations(
+            spec, request.poses, request.planner, request.seed, targets, request.samples, request.sim_dropout, cell
+        )
+        plan = make_plan(q, samples=3, settle=0.0) if sim else plan_for_robot(q, spec, rob.limits)
         return run(store, spec, targets, plan, rob, trk, options)
+
+
+def plan_for_robot(q, spec: RobotSpec, limits, *, samples: int = 5, settle: float = 0.5):
+    """The plan a real robot runs: poses ordered for the least motion time (``order_for_motion`` on the
+    controller joints the runner commands), moves at the robot's speed and acceleration caps (``limits``: its
+    SafetyLimits). The sim rig moves instantly, so its plans keep the planner's order (and their recorded data)."""
+    from labcal.sessions import make_plan
+    from labcal.sessions.planning import order_for_motion
+
+    speed, acceleration = limits.max_speed, limits.max_acceleration
+    q = q[order_for_motion(spec.joints.to_controller(q), speed, acceleration)]
+    return make_plan(q, samples=samples, settle=settle, speed=speed, acceleration=acceleration)
 
 
 def _allowed(allow) -> tuple[str, ...]:

@@ -222,12 +222,35 @@ NDI_SCHEMA = Table(
 )
 
 
+PLACEMENT_SCHEMA = Table(
+    {
+        "position_mm": Key(
+            "vector", shape=(3,), required=True, unit="mm, robot base frame", doc="the tracker's origin (line of sight)"
+        )
+    }
+)
+
+
+def load_placement(path: str | Path) -> tuple[float, float, float] | None:
+    """The tracker's origin in the robot base frame, m, from the profile's ``[placement] position_mm``; None when
+    the profile has no placement. The whole profile is checked first (:func:`load_profile`)."""
+    load_profile(path)
+    if str(path) in BUILTIN_PROFILES and not Path(path).is_file():
+        return None  # the built-in profiles describe devices, not a cell
+    placement = read_toml(path, ProfileError, "device profile").get("placement")
+    if not placement:
+        return None
+    x, y, z = (float(v) / 1000.0 for v in placement["position_mm"])
+    return (x, y, z)
+
+
 def _profile_schema(protocol: str) -> Table:
     keys = {
         "protocol": Key("str", required=True, choices=("ascii", "ndi")),
         "name": Key("str"),
         "description": Key("str"),
         "port": Key("table", table=PORT_SCHEMA, default={}),
+        "placement": Key("table", table=PLACEMENT_SCHEMA, doc="where the tracker stands in the robot cell"),
     }
     if protocol == "ndi":
         keys["ndi"] = Key("table", table=NDI_SCHEMA, default={})
