@@ -63,7 +63,7 @@ class Rehearsal:
         self._lock = threading.Lock()
         self.controller: FakeRTDEServer | None = None
         self.tracker: FakeNDIDevice | None = None
-        self.garbage = False  # the tracker answers every measurement with a garbled frame
+        self.garbage = False  # the tracker reports markers at random places (frames that match no target triangle)
 
     # -- lifecycle -------------------------------------------------------------------------------------------
 
@@ -113,8 +113,8 @@ class Rehearsal:
     def points(self) -> np.ndarray:
         """(m, 3) m in the tracker frame: the simulated robot's targets at the fake controller's joints."""
         assert self.controller is not None
-        if self.garbage and self.tracker is not None:
-            self.tracker.inject("garbled")
+        if self.garbage:  # markers anywhere: no frame matches the target triangle
+            return self._rng.uniform(-1.0, 1.0, size=self.targets.shape) + np.array([0.0, 0.0, -2.0])
         q = np.asarray(self.controller.snapshot()["q"], dtype=float)
         self.q0 = q.tolist()  # a restarted controller starts where the last one stopped
         with self._lock:
