@@ -145,6 +145,14 @@ class Rehearsal:
         assert self.controller is not None
         self.controller.set_safety(protective=False)
 
+    def send_garbage(self) -> None:
+        """The tracker reports markers at random places from now on (no frame matches the target triangle)."""
+        self.garbage = True
+
+    def send_points(self) -> None:
+        """The tracker reports the targets again."""
+        self.garbage = False
+
     def kill_tracker(self) -> None:
         """Close the tracker's pty (a tracker unplugged or switched off)."""
         assert self.tracker is not None
