@@ -146,7 +146,8 @@ def run_scenario(name: str, poses: int, src: Path, cap: float) -> dict:
             done = {d["pose_index"] for d in docs if d.get("type") == "measurement"}
             valid = sum(d.get("type") == "measurement" and d.get("status") == "valid" for d in docs)
             ok = resumed.returncode == 0 and len(done) == poses
-            row["resumes"] = f"yes ({valid}/{poses} valid)" if ok else f"no (exit {resumed.returncode})"
+            last = (resumed.stderr.strip().splitlines() or [""])[-1][:160]
+            row["resumes"] = f"yes ({valid}/{poses} valid)" if ok else f"no (exit {resumed.returncode}: {last})"
         return row
 
 
