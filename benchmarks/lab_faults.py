@@ -49,10 +49,11 @@ def cell_robot(folder: Path, half: float = 0.1) -> Path:
     return path
 
 
-def write_profiles(folder: Path, rig: Rehearsal) -> tuple[Path, Path]:
+def write_profiles(folder: Path, rig: Rehearsal, port: str | None = None) -> tuple[Path, Path]:
     """Profile copies pointing at the rig's current controller and tracker (rewritten when one is replaced)."""
     ur = re.sub(r"(?m)^host = .*$", f'host = "{rig.host}"', (REPO / "drivers" / "ur10-lab.toml").read_text())
-    ndi = re.sub(r"(?m)^url = .*$", f'url = "{rig.port}"', (REPO / "drivers" / "ndi-polaris.toml").read_text())
+    url = port or rig.port
+    ndi = re.sub(r"(?m)^url = .*$", f'url = "{url}"', (REPO / "drivers" / "ndi-polaris.toml").read_text())
     (folder / "ur.toml").write_text(ur)
     (folder / "ndi.toml").write_text(ndi)
     return folder / "ur.toml", folder / "ndi.toml"
@@ -79,7 +80,7 @@ SCENARIOS = {
     "tracker unplugged mid-run": ("run", "kill_tracker", "start_tracker"),
     "tracker sends garbage mid-run": ("run", "send_garbage", "send_points"),
     "controller refuses (nothing at host) at open": ("open", "kill_controller", "start_controller"),
-    "serial port missing at open": ("open", "kill_tracker", "start_tracker"),
+    "serial port missing at open": ("open", "missing port", None),
     "tracker silent at open": ("open", "silence_tracker", "start_tracker"),
 }
 
@@ -92,8 +93,10 @@ def run_scenario(name: str, poses: int, src: Path, cap: float) -> dict:
         Rehearsal(TARGETS, robot=str(cell_robot(Path(tmp)))) as rig,
     ):
         folder, store = Path(tmp), Path(tmp) / "store"
-        inject = getattr(rig, inject_name)
-        ur, ndi = write_profiles(folder, rig)
+        # a closed pty's name is soon another terminal's: a port that is missing is a path that never existed
+        missing = str(folder / "ttyGONE") if inject_name == "missing port" else None
+        inject = getattr(rig, inject_name) if missing is None else lambda: None
+        ur, ndi = write_profiles(folder, rig, missing)
         command = [
             sys.executable, "-m", "labcal.cli.app", "session", "new", "--robot", str(folder / "ur10-cell.toml"),
             "--targets", str(TARGETS), "--poses", str(poses), "--robot-driver", "ur", "--tracker-driver", "serial",
@@ -132,7 +135,7 @@ def run_scenario(name: str, poses: int, src: Path, cap: float) -> dict:
         session = docs[0]["session_id"] if docs else None
         if restore_name is not None:
             getattr(rig, restore_name)()
-            write_profiles(folder, rig)
+        write_profiles(folder, rig)
         if session is None:
             # nothing was recorded: "resuming" is running the same command again
             again = subprocess.run(command, env=env, capture_output=True, text=True, timeout=cap)

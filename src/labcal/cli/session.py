@@ -187,6 +187,10 @@ def new(
       labcal session new --robot ur10 --targets t.toml --poses 40 --seed 7 --sim-seed 0   # same sim robot, new poses
 
       labcal session new --robot ur10 --targets one-smr.toml --poses 120 --sim-dropout 0.1
+
+      labcal session new --robot ur10 --targets t.toml --poses 40 --robot-driver ur --tracker-driver serial
+        --profile drivers/ur10-lab.toml --tracker-profile drivers/ndi-polaris.toml --robot-host 127.0.0.5
+        --tracker-port /dev/pts/3   # rehearsal: the fakes of `python -m labcal.testing.rehearse`
     """
     from labcal.cli.ops import new_session
     from labcal.cli.ops.sessions import SessionRequest
