@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -78,9 +79,11 @@ def stop(docs: list[dict]) -> dict:
     return stops[-1]
 
 
-def run_with_fault(command: list[str], store: Path, inject) -> subprocess.CompletedProcess:
-    """Run ``command``; once the journal holds a measurement, call ``inject()``; wait for the command to end."""
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def run_with_fault(command: list[str], store: Path, inject, process=None) -> subprocess.CompletedProcess:
+    """Run ``command`` (or watch ``process``, running it); once the journal holds a measurement, call ``inject()``;
+    wait for the command to end."""
+    if process is None:
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + HANG
     while not any('"measurement"' in p.read_text() for p in store.glob("*/journal.jsonl")):
         if process.poll() is not None or time.monotonic() > deadline:
@@ -214,6 +217,24 @@ def test_a_protective_stop_pauses_the_run_and_it_resumes_once_cleared(tmp_path, 
     docs = journal(store)
     assert measured(docs) == dict.fromkeys(range(3), "valid")
     assert stop(docs)["exit_status"] == "success"
+
+
+def test_ctrl_c_in_the_terminal_stops_the_robot_and_the_run_resumes(tmp_path, cell, rig):
+    # A terminal's Ctrl-C reaches the whole process group: labcal and its ur-rtde processes.
+    store = tmp_path / "store"
+    command = new_args(store, cell, rig, poses=3)
+    process = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    result = run_with_fault(command, store, lambda: os.killpg(process.pid, signal.SIGINT), process)
+    assert result.returncode == 130, result.stderr
+    docs = journal(store)
+    assert stop(docs)["exit_status"] == "aborted"
+    log = rig.controller.snapshot()["log"]
+    assert ["command", 34] in log or ["dashboard", "stop"] in log, log[-6:]  # stopJ, or the program stopped
+    again = run(labcal(*resume_hint(result)))
+    assert again.returncode == 0, again.stderr
+    assert measured(journal(store)) == dict.fromkeys(range(3), "valid")
 
 
 def test_unreachable_devices_are_one_line_naming_what_to_fix(tmp_path, cell, rig):

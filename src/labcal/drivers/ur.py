@@ -709,12 +709,7 @@ class URRobot:
                     f"{self.profile.watchdog_timeout} s)"
                 )
 
-        try:
-            return bool(self._control.call("moveJ", *args, timeout=None, watch=watch))
-        except BaseException:
-            if not self._control.alive:
-                self._halt_from_dashboard()
-            raise
+        return bool(self._control.call("moveJ", *args, timeout=None, watch=watch))
 
     def _halt_from_dashboard(self) -> None:
         """Stop the program through the dashboard server (independent of RTDE): the best left when the control
@@ -793,7 +788,8 @@ class URRobot:
         if self._control is None or self._closed:
             return
         if isinstance(self._control, RemoteInterface) and not self._control.alive:
-            return  # already halted through the dashboard when the interface was abandoned
+            self._halt_from_dashboard()  # the control interface is gone: the dashboard is what is left
+            return
         try:
             self._control.stopJ(self.profile.stop_acceleration, False)
         except Exception as exc:  # stop() is called on error paths; it must not mask the original error

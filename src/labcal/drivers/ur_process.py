@@ -23,6 +23,7 @@ import json
 import logging
 import os
 import select
+import signal
 import subprocess
 import sys
 import threading
@@ -102,6 +103,20 @@ class RemoteInterface:
             return self._await(limit, f"{name}()", watch)  # type: ignore[arg-type]
 
     def _await(self, timeout: float | None, what: str, watch: Callable[[], None] | None) -> Any:
+        try:
+            line = self._read_line(timeout, what, watch)
+        except BaseException:
+            # Whatever stopped the wait (deadline, dead child, watchdog, Ctrl-C), the answer may still come and would
+            # be taken for the next call's: this interface is done.
+            self._died(f"{what} was abandoned")
+            raise
+        reply = json.loads(line)
+        if reply[0] == "ok":
+            return reply[1]
+        error = ValueError if reply[1] == "ValueError" else RuntimeError
+        raise error(reply[2])
+
+    def _read_line(self, timeout: float | None, what: str, watch: Callable[[], None] | None) -> bytes:
         assert self._process.stdout is not None
         fd = self._process.stdout.fileno()
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -115,11 +130,7 @@ class RemoteInterface:
                 wait = remaining if wait is None else min(wait, remaining)
             if not select.select([fd], [], [], wait)[0]:
                 if watch is not None:
-                    try:
-                        watch()
-                    except BaseException:
-                        self._died(f"{what} was abandoned by the watchdog")
-                        raise
+                    watch()
                 continue
             chunk = os.read(fd, 65536)
             if not chunk:
@@ -128,11 +139,7 @@ class RemoteInterface:
                 raise RuntimeError(f"the ur-rtde {self.kind} interface is gone: {self._dead}")
             self._buffer += chunk
         line, self._buffer = self._buffer.split(b"\n", 1)
-        reply = json.loads(line)
-        if reply[0] == "ok":
-            return reply[1]
-        error = ValueError if reply[1] == "ValueError" else RuntimeError
-        raise error(reply[2])
+        return line
 
     # -- lifecycle -------------------------------------------------------------------------------------------
 
@@ -177,6 +184,8 @@ class RemoteInterface:
 
 
 def _child(kind: str, host: str, frequency: float, variables: list[str]) -> None:
+    # Ctrl-C in a terminal reaches the whole process group: labcal decides how to stop, through this process.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # The protocol keeps the original stdout; ur-rtde's C++ prints (std::cout) go to stderr, away from it.
     replies = os.fdopen(os.dup(1), "w")
     os.dup2(2, 1)
