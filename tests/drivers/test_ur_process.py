@@ -6,14 +6,15 @@ from __future__ import annotations
 import contextlib
 import os
 import socket
+import threading
 from pathlib import Path
 
 import pytest
 from ur_fixtures import make_profile
 
 from labcal.drivers import ur
-from labcal.drivers.base import ConnectionFailed
-from labcal.drivers.ur import URRobot
+from labcal.drivers.base import ConnectionFailed, StaleData
+from labcal.drivers.ur import URRobot, load_ur_profile
 from labcal.drivers.ur_process import RemoteInterface
 from labcal.testing.rtde_fake import FakeRTDEServer, candidate_hosts
 
@@ -69,3 +70,27 @@ def test_a_dead_interface_process_is_a_connection_failure_not_a_crash():
         assert receive.isConnected() is False
         robot.close()
     assert children() == []
+
+
+def test_a_controller_whose_clock_stops_mid_move_is_abandoned_by_the_watchdog():
+    with FakeRTDEServer(control=True) as fake:
+        robot = URRobot.connect(make_profile(fake.host, watchdog_timeout=0.3, connect_timeout=2.0))
+        target = robot.state().q + 0.3  # 3 s at 0.1 rad/s: the clock stops long before the move would end
+        timer = threading.Timer(0.5, fake.freeze_timestamp)
+        timer.start()
+        with pytest.raises(StaleData, match=r"silent during a move: .*watchdog 0.3 s"):
+            robot.move_joints(target, speed=0.1, acceleration=1.0)
+        timer.join()
+        assert not robot._control.alive  # abandoned, not waited for
+        robot.stop()  # the control interface is gone: the program is stopped through the dashboard
+        assert ["dashboard", "stop"] in fake.snapshot()["log"]
+        robot.close()
+    assert children() == []
+
+
+def test_the_watchdog_settings_are_checked_in_the_profile(tmp_path):
+    text = (Path(__file__).resolve().parents[2] / "drivers" / "ur10-lab.toml").read_text()
+    bad = tmp_path / "ur.toml"
+    bad.write_text(text.replace("watchdog_timeout_s = 1.0", "watchdog_timeout_s = 30.0"))
+    with pytest.raises(ValueError, match=r"watchdog_timeout_s.*must be within \[0.05, 4.0\]"):
+        load_ur_profile(bad)
