@@ -52,6 +52,8 @@ def cell_robot(folder: Path, half: float = 0.1) -> Path:
 def write_profiles(folder: Path, rig: Rehearsal, port: str | None = None) -> tuple[Path, Path]:
     """Profile copies pointing at the rig's current controller and tracker (rewritten when one is replaced)."""
     ur = re.sub(r"(?m)^host = .*$", f'host = "{rig.host}"', (REPO / "drivers" / "ur10-lab.toml").read_text())
+    # the watchdog keys at their defaults, left out so that an older labcal (--src) reads the profile too
+    ur = re.sub(r"(?m)^(watchdog_timeout_s|call_timeout_s) = .*\n", "", ur)
     url = port or rig.port
     ndi = re.sub(r"(?m)^url = .*$", f'url = "{url}"', (REPO / "drivers" / "ndi-polaris.toml").read_text())
     (folder / "ur.toml").write_text(ur)
