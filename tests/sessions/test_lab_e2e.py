@@ -266,7 +266,7 @@ def test_the_hardware_test_options_work_as_the_readme_says(rig):
     # README: `pytest -m hardware --tracker-port=/dev/ttyUSB0 … FILES`, run against the fakes. (Written
     # `--tracker-port /dev/ttyUSB0` without a test path, pytest takes the existing device for the rootdir, never
     # loads tests/conftest.py and refuses the option: the README's old line.)
-    env = {**os.environ, "LABCAL_TRACKER_TARGETS": str(TARGETS)}
+    env = {**os.environ, "LABCAL_TRACKER_TARGETS": str(TARGETS), "LABCAL_ALLOW_MOTION": "1"}
     result = subprocess.run(
         [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-q", "-m", "hardware",
          f"--tracker-port={rig.port}", f"--robot-host={rig.host}", "tests/drivers/test_serial_hardware.py",
@@ -274,4 +274,4 @@ def test_the_hardware_test_options_work_as_the_readme_says(rig):
         capture_output=True, text=True, timeout=HANG, cwd=REPO, env=env,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout + result.stderr
-    assert re.search(r"\b4 passed", result.stdout), result.stdout
+    assert re.search(r"\b5 passed", result.stdout), result.stdout  # 2 tracker, 3 robot tests (one moves the fake)
