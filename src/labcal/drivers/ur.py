@@ -439,7 +439,6 @@ CONSTRUCT_TIMEOUT = 10.0
 
 def _remote_factory(kind: str, call_timeout: float) -> Callable[[str, float], Any]:
     """A factory building the ur-rtde interface ``kind`` in its own process (see :mod:`labcal.drivers.ur_process`)."""
-    from labcal.drivers.ur_process import RemoteInterface
 
     def build(host: str, frequency: float) -> Any:
         variables = RECEIVE_VARIABLES if kind == "receive" else ()
@@ -681,7 +680,8 @@ class URRobot:
     def _move_watched(self, target: np.ndarray, speed: float, acceleration: float, before: RobotState) -> bool:
         """moveJ, blocking; in a process of its own it is watched: the controller timestamp must advance at least
         every ``watchdog_timeout`` s and the move must end within twice its planned time (+ 10 s). Otherwise the
-        control interface is killed and StaleData / ConnectionFailed / MotionFailed raised."""
+        control interface is killed and StaleData (timestamp stuck) or ConnectionFailed (link down, move too long)
+        raised; the caller's stop() then halts the program through the dashboard."""
         args = (target.tolist(), speed, acceleration, False)
         if not isinstance(self._control, RemoteInterface):
             return self._control.moveJ(*args)
