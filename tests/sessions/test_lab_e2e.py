@@ -164,6 +164,11 @@ def test_a_tracker_that_dies_fails_the_run_and_the_session_resumes_on_a_new_port
     hint = resume_hint(first)
     assert hint[:3] == ["session", "resume", docs[0]["session_id"]] and "--store" in hint
 
+    gone = run(labcal(*hint, "--tracker-port", str(tmp_path / "ttyGONE")))  # not plugged in yet: one line
+    assert gone.returncode == 2
+    (line,) = gone.stderr.strip().splitlines()
+    assert line.startswith(f"error: cannot use the tracker on {tmp_path / 'ttyGONE'}: ")
+    assert line.endswith(f"No such file or directory: '{tmp_path / 'ttyGONE'}' (check --tracker-port)")
     port = rig.start_tracker()  # plugged in again, on another port
     second = run(labcal(*hint, "--tracker-port", port))
     assert second.returncode == 0, second.stderr

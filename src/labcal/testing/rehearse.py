@@ -75,8 +75,12 @@ class Rehearsal:
         self.stop()
 
     def start(self) -> None:
-        self.start_controller()
-        self.start_tracker()
+        try:
+            self.start_controller()
+            self.start_tracker()
+        except BaseException:
+            self.stop()
+            raise
 
     def start_controller(self) -> str:
         """(Re)start the fake controller (a new process, perhaps on another address); returns its host."""
