@@ -27,6 +27,7 @@ import argparse
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -81,6 +82,7 @@ SCENARIOS = {
     "protective stop during a move": ("run", "protective_stop_next_move", "clear_protective_stop"),
     "tracker unplugged mid-run": ("run", "kill_tracker", "start_tracker"),
     "tracker sends garbage mid-run": ("run", "send_garbage", "send_points"),
+    "Ctrl-C in the terminal mid-run": ("run", "ctrl-c", None),
     "controller refuses (nothing at host) at open": ("open", "kill_controller", "start_controller"),
     "serial port missing at open": ("open", "missing port", None),
     "tracker silent at open": ("open", "silence_tracker", "start_tracker"),
@@ -97,7 +99,10 @@ def run_scenario(name: str, poses: int, src: Path, cap: float) -> dict:
         folder, store = Path(tmp), Path(tmp) / "store"
         # a closed pty's name is soon another terminal's: a port that is missing is a path that never existed
         missing = str(folder / "ttyGONE") if inject_name == "missing port" else None
-        inject = getattr(rig, inject_name) if missing is None else lambda: None
+        if inject_name == "ctrl-c":  # a terminal's Ctrl-C reaches the whole process group
+            inject = lambda: os.killpg(process.pid, signal.SIGINT)  # noqa: E731
+        else:
+            inject = getattr(rig, inject_name) if missing is None else lambda: None
         ur, ndi = write_profiles(folder, rig, missing)
         command = [
             sys.executable, "-m", "labcal.cli.app", "session", "new", "--robot", str(folder / "ur10-cell.toml"),
@@ -106,7 +111,9 @@ def run_scenario(name: str, poses: int, src: Path, cap: float) -> dict:
         ]  # fmt: skip
         if when == "open":
             inject()
-        process = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        process = subprocess.Popen(
+            command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+        )
         if when == "run":
             while not has_measurement(store) and process.poll() is None:
                 time.sleep(0.01)

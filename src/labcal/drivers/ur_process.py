@@ -22,7 +22,7 @@ import contextlib
 import json
 import logging
 import os
-import select
+import queue
 import signal
 import subprocess
 import sys
@@ -60,7 +60,7 @@ class RemoteInterface:
             raise ValueError(f"kind must be 'receive' or 'control', got {kind!r}")
         self.kind, self.host, self.call_timeout = kind, host, float(call_timeout)
         self._lock = threading.Lock()
-        self._buffer = b""
+        self._replies: queue.Queue[bytes | None] = queue.Queue()
         self._dead: str | None = None
         self._process = subprocess.Popen(
             [sys.executable, "-m", "labcal.drivers.ur_process", kind, host, repr(float(frequency)),
@@ -70,6 +70,7 @@ class RemoteInterface:
             stderr=subprocess.PIPE,
         )  # fmt: skip
         threading.Thread(target=self._log_stderr, name=f"ur-rtde {kind} log", daemon=True).start()
+        threading.Thread(target=self._read_replies, name=f"ur-rtde {kind} replies", daemon=True).start()
         try:
             self._await(start_timeout, f"connecting the RTDE {kind} interface to {host}", None)
         except BaseException:
@@ -117,10 +118,8 @@ class RemoteInterface:
         raise error(reply[2])
 
     def _read_line(self, timeout: float | None, what: str, watch: Callable[[], None] | None) -> bytes:
-        assert self._process.stdout is not None
-        fd = self._process.stdout.fileno()
         deadline = None if timeout is None else time.monotonic() + timeout
-        while b"\n" not in self._buffer:
+        while True:
             wait = WATCH_PERIOD if watch is not None else None
             if deadline is not None:
                 remaining = deadline - time.monotonic()
@@ -128,18 +127,25 @@ class RemoteInterface:
                     self._died(f"{what} got no answer within {timeout} s")
                     raise RuntimeError(f"ur-rtde {self.kind}: {what} got no answer within {timeout} s")
                 wait = remaining if wait is None else min(wait, remaining)
-            if not select.select([fd], [], [], wait)[0]:
+            try:
+                line = self._replies.get(timeout=wait)
+            except queue.Empty:
                 if watch is not None:
                     watch()
                 continue
-            chunk = os.read(fd, 65536)
-            if not chunk:
+            if line is None:
                 code = self._process.wait()
                 self._died(f"its process ended with code {code} during {what}")
                 raise RuntimeError(f"the ur-rtde {self.kind} interface is gone: {self._dead}")
-            self._buffer += chunk
-        line, self._buffer = self._buffer.split(b"\n", 1)
-        return line
+            return line
+
+    def _read_replies(self) -> None:
+        # A thread rather than select(): pipes cannot be selected on Windows.
+        assert self._process.stdout is not None
+        with contextlib.suppress(OSError, ValueError):
+            for line in self._process.stdout:
+                self._replies.put(line)
+        self._replies.put(None)
 
     # -- lifecycle -------------------------------------------------------------------------------------------
 
