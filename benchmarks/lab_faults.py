@@ -62,6 +62,12 @@ def write_profiles(folder: Path, rig: Rehearsal, port: str | None = None) -> tup
     return folder / "ur.toml", folder / "ndi.toml"
 
 
+def default_sigint() -> None:
+    """In the child: SIGINT back to its default. Started in the background (`nohup … &`), this script ignores SIGINT,
+    the child would inherit that, and Python then never raises KeyboardInterrupt (the Ctrl-C row would lie)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def journal(store: Path) -> list[dict]:
     paths = list(store.glob("*/journal.jsonl"))
     if not paths:
@@ -112,8 +118,9 @@ def run_scenario(name: str, poses: int, src: Path, cap: float) -> dict:
         if when == "open":
             inject()
         process = subprocess.Popen(
-            command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
-        )
+            command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+            preexec_fn=default_sigint,
+        )  # fmt: skip
         if when == "run":
             while not has_measurement(store) and process.poll() is None:
                 time.sleep(0.01)

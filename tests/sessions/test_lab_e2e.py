@@ -228,8 +228,10 @@ def test_ctrl_c_in_the_terminal_stops_the_robot_and_the_run_resumes(tmp_path, ce
     # A terminal's Ctrl-C reaches the whole process group: labcal and its ur-rtde processes.
     store = tmp_path / "store"
     command = new_args(store, cell, rig, poses=3)
+    # SIGINT back to its default in the child: a test run started in the background ignores it, and so would the child
+    default = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731
     process = subprocess.Popen(
-        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=default
     )
     result = run_with_fault(command, store, lambda: os.killpg(process.pid, signal.SIGINT), process)
     assert result.returncode == 130, result.stderr
