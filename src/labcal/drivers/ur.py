@@ -763,7 +763,11 @@ class URRobot:
         if self._program_running():
             return
         try:
-            restarted = self._control.reuploadScript()
+            if isinstance(self._control, RemoteInterface):  # uploading waits for the controller: a longer deadline
+                timeout = SCRIPT_START_TIMEOUT + self.profile.call_timeout
+                restarted = self._control.call("reuploadScript", timeout=timeout)
+            else:
+                restarted = self._control.reuploadScript()
         except RuntimeError as exc:
             raise ConnectionFailed(f"could not restart the control script on {self.profile.host}: {exc}") from exc
         if not restarted:
