@@ -1,4 +1,9 @@
-"""Shared pytest options. Hardware tests run only when a device is named on the command line."""
+"""Shared pytest options. Hardware tests run only when a device is named on the command line.
+
+Write them with ``=`` (``--tracker-port=/dev/ttyUSB0``) or name test files: ``--tracker-port /dev/ttyUSB0`` alone
+makes pytest take the existing device for the folder to test, so this file is never loaded and the option is
+"unrecognized" (tests/sessions/test_lab_e2e.py runs the README's lines against the fakes).
+"""
 
 from __future__ import annotations
 

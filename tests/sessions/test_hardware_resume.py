@@ -39,7 +39,7 @@ def _paused_hardware_session(store, rig, profiles):
 def opened(monkeypatch, rig):
     calls = []
 
-    def drivers(profile, tracker_profile, targets):
+    def drivers(profile, tracker_profile, targets, *overrides):
         calls.append((str(profile), str(tracker_profile), targets.shape))
         return rig.robot(), rig.tracker()
 
@@ -97,12 +97,12 @@ def test_opening_the_drivers_releases_the_robot_when_the_tracker_fails(monkeypat
     monkeypatch.setattr(ur, "load_ur_profile", lambda path: path)
     monkeypatch.setattr(ur.URRobot, "connect", staticmethod(lambda profile: Robot()))
 
-    def no_tracker(profile, targets):
+    def no_tracker(profile, targets, url=None):
         raise OSError("no such serial port")
 
     monkeypatch.setattr(serial_tracker, "open_tracker", no_tracker)
-    with pytest.raises(OSError, match="no such serial port"):
-        session_ops._real_drivers("ur.toml", "tracker.toml", TARGETS)
+    with pytest.raises(UserError, match=r"tracker on /dev/ttyX: no such serial port \(check --tracker-port\)"):
+        session_ops._real_drivers("ur.toml", "tracker.toml", TARGETS, tracker_port="/dev/ttyX")
     assert closed == [True]
 
 

@@ -14,9 +14,10 @@ from sessions_testutil import TARGETS, CountingRobot, record_interrupted
 from labcal.cli.ops import UserError, open_store, plan_configurations
 from labcal.cli.ops.sessions import MAX_POSES, resume_session
 from labcal.datasets import JournalCorrupted, SessionStore, read_journal
+from labcal.drivers.base import MotionRejected
 from labcal.drivers.sim import SimFaults, SimRig
 from labcal.robots import load
-from labcal.sessions import SessionError, make_plan, random_configurations, resume, run
+from labcal.sessions import RetryPolicy, SessionError, make_plan, random_configurations, resume, run
 from labcal.simulation import ErrorSpec, simulate
 
 
@@ -112,6 +113,64 @@ def test_a_tracker_that_never_answers_fails_the_run_after_a_few_poses(spec, stor
     assert rig.moves == 3  # it stopped instead of walking the robot through the other 9 poses
     stop = read_journal(store.session_dir(summary.session_id) / "journal.jsonl").stop
     assert stop.exit_status == "failed"
+
+
+def test_a_tracker_sending_only_garbage_stops_the_run_after_max_failed_poses(spec, store):
+    rig = SimRig(simulate(spec, ErrorSpec.default(), seed=0), TARGETS, seed=0,
+                 faults=SimFaults(garbled_probability=1.0))  # fmt: skip
+    plan = make_plan(random_configurations(spec.model, 60, seed=0, targets=TARGETS), samples=1, settle=0.0)
+    with rig.robot() as robot, rig.tracker() as tracker:
+        summary = run(store, spec, TARGETS, plan, robot, tracker, frame="base", retry=RetryPolicy(max_failed_poses=4))
+    assert summary.exit_status == "failed" and "4 consecutive poses rejected" in summary.reason
+    assert rig.moves == 4 and summary.rejected == 4  # not 60 poses walked for nothing
+    assert read_journal(store.session_dir(summary.session_id) / "journal.jsonl").stop.exit_status == "failed"
+
+
+def test_a_valid_pose_resets_the_count_of_failed_poses(spec, store):
+    # one move and three measure attempts per rejected pose: poses 0, 1 use calls 1-6, pose 2 is valid at call 7
+    garbled = set(range(1, 40)) - {7}
+    rig = SimRig(simulate(spec, ErrorSpec.default(), seed=0), TARGETS, seed=0,
+                 faults=SimFaults(garbled_at=garbled))  # fmt: skip
+    plan = make_plan(random_configurations(spec.model, 12, seed=0, targets=TARGETS), samples=1, settle=0.0)
+    with rig.robot() as robot, rig.tracker() as tracker:
+        summary = run(store, spec, TARGETS, plan, robot, tracker, frame="base", retry=RetryPolicy(max_failed_poses=3))
+    assert summary.exit_status == "failed" and "3 consecutive poses rejected (last at pose 5" in summary.reason
+    assert (summary.valid, summary.rejected) == (1, 5)
+
+
+class RefusingRobot:
+    """Wraps a robot: its driver refuses (MotionRejected) the moves numbered in ``refuse`` (1-based)."""
+
+    def __init__(self, inner, refuse):
+        self.inner, self.refuse, self.moves = inner, set(refuse), 0
+
+    def move_joints(self, q, speed, acceleration):
+        self.moves += 1
+        if self.moves in self.refuse:
+            raise MotionRejected("outside the profile's joint limits")
+        return self.inner.move_joints(q, speed, acceleration)
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.inner.close()
+
+
+def test_poses_the_robot_refuses_neither_count_nor_reset_failed_poses(spec, store):
+    # every frame garbled; the moves to poses 1 and 2 are refused: rejected 0, (1, 2 refused), 3, 4 -> stop at 4
+    rig = SimRig(simulate(spec, ErrorSpec.default(), seed=0), TARGETS, seed=0,
+                 faults=SimFaults(garbled_probability=1.0))  # fmt: skip
+    plan = make_plan(random_configurations(spec.model, 12, seed=0, targets=TARGETS), samples=1, settle=0.0)
+    with RefusingRobot(rig.robot(), refuse={2, 3}) as robot, rig.tracker() as tracker:
+        summary = run(store, spec, TARGETS, plan, robot, tracker, frame="base", retry=RetryPolicy(max_failed_poses=3))
+    assert "3 consecutive poses rejected (last at pose 4" in summary.reason
+    assert RetryPolicy().max_failed_poses == 5  # the documented default (README, --max-failed-poses)
+    with pytest.raises(ValueError, match="max_failed_poses must be an integer >= 0"):
+        RetryPolicy(max_failed_poses=-1)
 
 
 def test_a_run_where_every_pose_is_rejected_is_a_failure_that_says_why(spec, store):

@@ -41,17 +41,39 @@ def _store(store: Path | None, *, create: bool = False, write: bool = False):
     return open_store(store, create=create, write=write)
 
 
-def _end_run(summary, line: str) -> None:
-    """Print the outcome line, then the version ref (last line of stdout) if one exists; exit with the run's code."""
+def _end_run(summary, line: str, resume_flags: list[str] | None = None) -> None:
+    """Print the outcome line, then the version ref (last line of stdout) if one exists; exit with the run's code.
+
+    A run that did not finish (paused, failed, aborted) with poses left names its session and the command that
+    continues it (``resume_flags``: --store and the like, passed on as given)."""
     out.print(line, markup=False)
     code = _EXIT.get(summary.exit_status, 1)
     if code and summary.exit_status != "aborted":
         err.print(f"error: the run ended {summary.exit_status}: {summary.reason}", markup=False)
+    if code and summary.remaining:
+        import shlex
+
+        command = shlex.join(["labcal", "session", "resume", summary.session_id, *(resume_flags or [])])
+        err.print(
+            f"session {summary.session_id}: {summary.remaining} pose(s) left; continue with: {command}", markup=False
+        )
     if summary.ref is not None:
         print(summary.ref)
     if code or summary.ref is None:
         raise typer.Exit(code or 1)
 
+
+def _resume_flags(store: Path | None, robot_host: str | None = None, tracker_port: str | None = None) -> list[str]:
+    """The flags a resume needs to find this store and these devices again, as the user gave them."""
+    flags = [] if store is None else ["--store", str(store)]
+    flags += ["--robot-host", robot_host] if robot_host else []
+    return flags + (["--tracker-port", tracker_port] if tracker_port else [])
+
+
+ROBOT_HOST_HELP = "Address of the UR controller: replaces the robot profile's `host` (e.g. a fake controller)."
+TRACKER_PORT_HELP = (
+    "Serial port (pyserial URL) of the tracker: replaces the tracker profile's `[port] url` (e.g. a fake's pty)."
+)
 
 app = typer.Typer(
     help="Record, inspect and import measurement sessions.\n\n"
@@ -137,6 +159,14 @@ def new(
         help="Id of the robot unit (recorded as the session's unit; default: the controller's serial number, "
         "sim-<seed> on the sim rig).",
     ),
+    robot_host: str | None = typer.Option(None, "--robot-host", help=ROBOT_HOST_HELP),
+    tracker_port: str | None = typer.Option(None, "--tracker-port", help=TRACKER_PORT_HELP),
+    max_failed_poses: int = typer.Option(
+        5,
+        "--max-failed-poses",
+        help="Stop the run (failed, resumable) after this many consecutive rejected poses (0: never); a pose the "
+        "robot refuses to move to does not count.",
+    ),
     store: Path | None = StoreOption,
 ) -> None:
     """Plan and record a new session; prints the new SESSION@vNNN last.
@@ -157,6 +187,10 @@ def new(
       labcal session new --robot ur10 --targets t.toml --poses 40 --seed 7 --sim-seed 0   # same sim robot, new poses
 
       labcal session new --robot ur10 --targets one-smr.toml --poses 120 --sim-dropout 0.1
+
+      labcal session new --robot ur10 --targets t.toml --poses 40 --robot-driver ur --tracker-driver serial
+        --profile drivers/ur10-lab.toml --tracker-profile drivers/ndi-polaris.toml --robot-host 127.0.0.5
+        --tracker-port /dev/pts/3   # rehearsal: the fakes of `python -m labcal.testing.rehearse`
     """
     from labcal.cli.ops import new_session
     from labcal.cli.ops.sessions import SessionRequest
@@ -168,6 +202,7 @@ def new(
         robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver, tracker_driver=tracker_driver,
         profile=profile, tracker_profile=tracker_profile, planner=planner, samples=samples, seed=seed,
         sim_errors=sim_errors, sim_seed=sim_seed, sim_dropout=sim_dropout, allow=tuple(allow), unit=unit,
+        robot_host=robot_host, tracker_port=tracker_port, max_failed_poses=max_failed_poses,
     )  # fmt: skip
     request.check()
     load(robot)  # a typo in the robot or targets fails here, before the store is created
@@ -179,6 +214,7 @@ def new(
     _end_run(
         summary,
         f"{summary.exit_status}: {summary.valid} valid, {summary.rejected} rejected, {summary.remaining} remaining",
+        _resume_flags(store, robot_host, tracker_port),
     )
 
 
@@ -332,6 +368,12 @@ def resume(
     tracker_profile: str | None = typer.Option(
         None, "--tracker-profile", help="Tracker profile (hardware sessions; default: the one the session recorded)."
     ),
+    robot_host: str | None = typer.Option(
+        None, "--robot-host", help=ROBOT_HOST_HELP + " Default: the host the session was started with."
+    ),
+    tracker_port: str | None = typer.Option(
+        None, "--tracker-port", help=TRACKER_PORT_HELP + " Default: the port the session was started with."
+    ),
     store: Path | None = StoreOption,
 ) -> None:
     """Continue an interrupted or paused session at its first unmeasured pose; prints the new version last.
@@ -360,8 +402,12 @@ def resume(
             allow=tuple(allow),
             profile=profile,
             tracker_profile=tracker_profile,
+            robot_host=robot_host,
+            tracker_port=tracker_port,
         )
-    _end_run(summary, f"{summary.exit_status}: {summary.reason or 'done'}")
+    _end_run(
+        summary, f"{summary.exit_status}: {summary.reason or 'done'}", _resume_flags(store, robot_host, tracker_port)
+    )
 
 
 @app.command("seal")

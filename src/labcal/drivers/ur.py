@@ -1,6 +1,6 @@
 """Universal Robots driver: the ``Robot`` port over ur-rtde 1.6.5 (``rtde_receive`` / ``rtde_control``).
 
-Three ur-rtde behaviours shape this module:
+Four ur-rtde behaviours shape this module:
 
 - A controller that accepts the TCP connection but never answers makes the interface constructors hang forever
   *while holding the GIL*. So :meth:`URRobot.connect` first probes each port with a socket timeout and checks
@@ -10,6 +10,11 @@ Three ur-rtde behaviours shape this module:
   tell a protective/emergency stop from another failure.
 - Getters keep returning the last values after the connection died. Health is judged by the controller
   ``timestamp`` advancing (:class:`~labcal.drivers.base.StaleData`), and ``isConnected()`` going False.
+- After the controller dies a blocking ``moveJ`` keeps ``Reconnecting...`` for about ten minutes, and after a
+  dropped RTDE connection ur-rtde can crash the interpreter (SIGSEGV). So :meth:`URRobot.connect` runs each
+  interface in its own process (:mod:`labcal.drivers.ur_process`): every call has a deadline, a move is watched
+  (the controller timestamp must advance at least every ``watchdog_timeout`` s), and a failed interface is killed,
+  never waited for. A fault ends a move within ``watchdog_timeout`` + ``call_timeout`` s.
 
 ur-rtde's RuntimeError/ValueError never escape: they become labcal's :mod:`labcal.drivers.base` errors.
 
@@ -29,6 +34,7 @@ import math
 import re
 import socket
 import struct
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -39,6 +45,7 @@ import numpy as np
 
 from labcal.drivers.base import (
     ConnectionFailed,
+    DriverError,
     DriverTimeout,
     EmergencyStop,
     MotionFailed,
@@ -49,6 +56,7 @@ from labcal.drivers.base import (
     SafetyLimits,
     StaleData,
 )
+from labcal.drivers.ur_process import RemoteInterface
 from labcal.drivers.workspace import WORKSPACE_SCHEMA, Workspace, parse_workspace
 from labcal.tomlschema import Key, SchemaError, Table, read_toml, validate
 
@@ -88,6 +96,8 @@ class URProfile:
     position_tolerance: max |q_actual - q_target| after a move, rad.
     stale_timeout: how long a controller timestamp may stay unchanged before data counts as stale, s.
     frequency: RTDE output rate, Hz (-1: controller default, 125 Hz on CB3, 500 Hz on e-Series).
+    watchdog_timeout: during a move, how long the controller timestamp may stay unchanged before the move is
+    abandoned (controller dead, network down), s. call_timeout: the longest any other ur-rtde call may take, s.
     """
 
     name: str
@@ -104,6 +114,8 @@ class URProfile:
     stale_timeout: float = 0.5
     frequency: float = -1.0
     workspace: Workspace | None = None  # the cell's allowed/keep-out boxes and tracker position, for the planner
+    watchdog_timeout: float = 1.0
+    call_timeout: float = 2.0
 
     def with_host(self, host: str) -> URProfile:
         """The same profile pointed at another controller (e.g. a fake on a loopback address)."""
@@ -178,6 +190,8 @@ UR_PROFILE_SCHEMA = Table(
                     "connect_timeout_s": Key("number", default=2.0, unit="s", check=_within(0.01, 60.0)),
                     "stale_timeout_s": Key("number", default=0.5, unit="s", check=_within(0.01, 10.0)),
                     "frequency_hz": Key("number", default=-1.0, unit="Hz", check=_frequency_ok),
+                    "watchdog_timeout_s": Key("number", default=1.0, unit="s", check=_within(0.05, 4.0)),
+                    "call_timeout_s": Key("number", default=2.0, unit="s", check=_within(0.1, 4.0)),
                 }
             ),
         ),
@@ -243,6 +257,8 @@ def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfi
         stale_timeout=timing["stale_timeout_s"],
         frequency=timing["frequency_hz"],
         workspace=parse_workspace(doc["workspace"], source, URProfileError) if "workspace" in doc else None,
+        watchdog_timeout=timing["watchdog_timeout_s"],
+        call_timeout=timing["call_timeout_s"],
     )
 
 
@@ -421,16 +437,20 @@ def probe_script_port(host: str, port: int = SCRIPT_PORT, timeout: float = 2.0) 
 # The robot.
 
 
-def _real_receive(host: str, frequency: float) -> Any:
-    import rtde_receive  # lazy: keep `labcal --help` fast
-
-    return rtde_receive.RTDEReceiveInterface(host, frequency, RECEIVE_VARIABLES)
+# How long an interface may take to connect: ur-rtde's control constructor alone waits up to 5 s for its script, s.
+CONSTRUCT_TIMEOUT = 10.0
 
 
-def _real_control(host: str, frequency: float) -> Any:
-    import rtde_control  # lazy: keep `labcal --help` fast
+def _remote_factory(kind: str, call_timeout: float) -> Callable[[str, float], Any]:
+    """A factory building the ur-rtde interface ``kind`` in its own process (see :mod:`labcal.drivers.ur_process`)."""
 
-    return rtde_control.RTDEControlInterface(host, frequency)
+    def build(host: str, frequency: float) -> Any:
+        variables = RECEIVE_VARIABLES if kind == "receive" else ()
+        return RemoteInterface(
+            kind, host, frequency, variables, start_timeout=CONSTRUCT_TIMEOUT, call_timeout=call_timeout
+        )
+
+    return build
 
 
 class URRobot:
@@ -471,8 +491,8 @@ class URRobot:
         *,
         read_only: bool = False,
         probe: bool = True,
-        receive_factory: Callable[[str, float], Any] = _real_receive,
-        control_factory: Callable[[str, float], Any] = _real_control,
+        receive_factory: Callable[[str, float], Any] | None = None,
+        control_factory: Callable[[str, float], Any] | None = None,
         identify: bool | None = None,
     ) -> URRobot:
         """Probe the controller's ports, then build the interfaces (control only unless ``read_only``).
@@ -481,8 +501,9 @@ class URRobot:
         software version (:meth:`device_identity`); a controller that does not tell leaves a note, never an error.
 
         Raises ConnectionFailed (ProbeTimeout for a silent peer) or ProtocolError; never hangs on a peer that
-        fails the probe. A peer that answers the probe and then stops answering can still hang ur-rtde: that
-        race cannot be closed from Python.
+        fails the probe. ``receive_factory`` / ``control_factory`` (``(host, frequency) -> interface``; tests pass
+        stand-ins): by default each ur-rtde interface runs in its own process, so a peer that answers the probe
+        and then goes silent costs at most CONSTRUCT_TIMEOUT s, never a hang.
         """
         host, timeout = profile.host, profile.connect_timeout
         if probe:
@@ -495,6 +516,8 @@ class URRobot:
         if probe if identify is None else identify:
             identity = read_dashboard_identity(host, profile.dashboard_port, timeout)
             log.info("UR controller at %s: %s", host, identity)
+        receive_factory = receive_factory or _remote_factory("receive", profile.call_timeout)
+        control_factory = control_factory or _remote_factory("control", profile.call_timeout)
         receive = _construct(receive_factory, host, profile.frequency, "RTDE receive interface")
         control = None
         if not read_only:
@@ -526,10 +549,17 @@ class URRobot:
         if self._closed:
             return
         self._closed = True
+        remote = [i for i in (self._control, self._receive) if isinstance(i, RemoteInterface)]
+        # ur-rtde's disconnect() takes ~0.5 s per interface: both at once; a dead link is killed, not waited for
+        closers = [threading.Thread(target=i.close, args=(min(1.0, self.profile.call_timeout),)) for i in remote]
+        for thread in closers:
+            thread.start()
         for iface in (self._control, self._receive):
-            if iface is not None:
+            if iface is not None and iface not in remote:
                 with contextlib.suppress(Exception):
                     iface.disconnect()
+        for thread in closers:
+            thread.join()
 
     # -- reading ---------------------------------------------------------------------------------------------
 
@@ -619,16 +649,20 @@ class URRobot:
         if self._control is None:
             raise MotionRejected("this UR robot was opened read-only (no control interface)")
         target = self.limits.check_motion(q, speed, acceleration)
+        if isinstance(self._control, RemoteInterface) and not self._control.alive:
+            raise ConnectionFailed(f"the control interface to {self.profile.host} was lost; resume the session")
         before = self.state()
         self._raise_if_stopped(before, "before the move")
         mode = self.robot_mode()
         if mode != ROBOT_MODE_RUNNING:
             raise MotionRejected(f"robot mode is {mode}, not RUNNING ({ROBOT_MODE_RUNNING}); refusing to move")
         try:
-            ok = self._control.moveJ(target.tolist(), float(speed), float(acceleration), False)
+            ok = self._move_watched(target, float(speed), float(acceleration), before)
         except ValueError as exc:
             raise MotionRejected(f"ur-rtde refused the move: {exc}") from exc
         except RuntimeError as exc:
+            if isinstance(self._control, RemoteInterface) and not self._control.alive:
+                raise ConnectionFailed(f"lost the control interface to {self.profile.host}: {exc}") from exc
             self._raise_stop_or(MotionFailed(f"moveJ raised: {exc}"), exc)
         if not ok:
             self._raise_stop_or(MotionFailed(f"controller reported moveJ to {target.tolist()} failed"), None)
@@ -646,6 +680,54 @@ class URRobot:
                     f"robot ended {error:.6f} rad from the target (tolerance {self.profile.position_tolerance} "
                     f"rad): q = {after.q.tolist()}"
                 )
+
+    def _move_watched(self, target: np.ndarray, speed: float, acceleration: float, before: RobotState) -> bool:
+        """moveJ, blocking; in a process of its own it is watched: the controller timestamp must advance at least
+        every ``watchdog_timeout`` s and the move must end within twice its planned time (+ 10 s). Otherwise the
+        control interface is killed and StaleData (timestamp stuck) or ConnectionFailed (link down, move too long)
+        raised; the caller's stop() then halts the program through the dashboard."""
+        args = (target.tolist(), speed, acceleration, False)
+        if not isinstance(self._control, RemoteInterface):
+            return self._control.moveJ(*args)
+        distance = float(np.max(np.abs(target - before.q)))
+        planned = distance / speed + speed / acceleration
+        budget = 2.0 * planned + 10.0
+        deadline = self._clock() + budget
+        last = {"timestamp": before.timestamp, "at": self._clock()}
+
+        def watch() -> None:
+            now = self._clock()
+            if now > deadline:
+                raise ConnectionFailed(
+                    f"moveJ on {self.profile.host} did not end within {budget:.1f} s (planned {planned:.1f} s)"
+                )
+            timestamp = self._call_rx("getTimestamp")
+            if not self._connected(self._rx()):
+                raise ConnectionFailed(f"the RTDE connection to {self.profile.host} is down during a move")
+            if timestamp > last["timestamp"]:
+                last.update(timestamp=timestamp, at=now)
+            elif now - last["at"] > self.profile.watchdog_timeout:
+                raise StaleData(
+                    f"controller {self.profile.host} silent during a move: its timestamp stuck at {timestamp:.6f} s "
+                    f"for {now - last['at']:.1f} s (controller down or network lost; watchdog "
+                    f"{self.profile.watchdog_timeout} s)"
+                )
+
+        return bool(self._control.call("moveJ", *args, timeout=None, watch=watch))
+
+    def _halt_from_dashboard(self) -> None:
+        """Stop the program through the dashboard server (independent of RTDE): the best left when the control
+        interface is gone. Never raises; bounded by a short timeout (a dead controller refuses or times out)."""
+        what = f"dashboard stop on {self.profile.host}:{self.profile.dashboard_port}"
+        timeout = min(0.5, self.profile.connect_timeout)
+        deadline = time.monotonic() + timeout
+        try:
+            with contextlib.closing(_open(self.profile.host, self.profile.dashboard_port, timeout)) as sock:
+                _read_line(sock, deadline, what)
+                sock.sendall(b"stop\n")
+                log.warning("%s: %s", what, _read_line(sock, deadline, what))
+        except (DriverError, OSError) as exc:
+            log.info("%s failed: %s", what, exc)
 
     def _raise_stop_or(self, error: MotionFailed, cause: BaseException | None) -> None:
         """After a failed move: raise the stop that caused it if the safety state shows one, else ``error``.
@@ -685,7 +767,11 @@ class URRobot:
         if self._program_running():
             return
         try:
-            restarted = self._control.reuploadScript()
+            if isinstance(self._control, RemoteInterface):  # uploading waits for the controller: a longer deadline
+                timeout = SCRIPT_START_TIMEOUT + self.profile.call_timeout
+                restarted = self._control.call("reuploadScript", timeout=timeout)
+            else:
+                restarted = self._control.reuploadScript()
         except RuntimeError as exc:
             raise ConnectionFailed(f"could not restart the control script on {self.profile.host}: {exc}") from exc
         if not restarted:
@@ -708,6 +794,9 @@ class URRobot:
     def stop(self) -> None:
         """Decelerate any joint motion (stopJ). Always safe: never raises, also after close or an error."""
         if self._control is None or self._closed:
+            return
+        if isinstance(self._control, RemoteInterface) and not self._control.alive:
+            self._halt_from_dashboard()  # the control interface is gone: the dashboard is what is left
             return
         try:
             self._control.stopJ(self.profile.stop_acceleration, False)

@@ -121,18 +121,23 @@ class RetryPolicy:
     """max_attempts: measurement attempts per pose (>= 1); remove: move to the pose again before each retry;
     max_silent_poses: stop the run as "failed" after this many consecutive poses on which the tracker timed out on
     every attempt (0 = never): a tracker that does not answer would otherwise walk the robot through the whole plan
-    and record nothing."""
+    and record nothing; max_failed_poses: stop the run as "failed" after this many consecutive rejected poses,
+    whatever the reason (garbled frames, targets not seen, distances off; 0 = never): a tracker sending garbage
+    would otherwise walk the robot through the whole plan too. A pose the driver refuses to move to (limits, caps)
+    is the plan's fault, not the measurement's, and neither counts nor resets the count."""
 
     max_attempts: int = 3
     remove: bool = False
     max_silent_poses: int = 3
+    max_failed_poses: int = 5
 
     def __post_init__(self) -> None:
         if isinstance(self.max_attempts, bool) or not isinstance(self.max_attempts, int) or self.max_attempts < 1:
             raise ValueError(f"RetryPolicy.max_attempts must be an integer >= 1, got {self.max_attempts!r}")
-        silent = self.max_silent_poses
-        if isinstance(silent, bool) or not isinstance(silent, int) or silent < 0:
-            raise ValueError(f"RetryPolicy.max_silent_poses must be an integer >= 0, got {silent!r}")
+        for name in ("max_silent_poses", "max_failed_poses"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"RetryPolicy.{name} must be an integer >= 0, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -221,6 +226,7 @@ class _Outcome:
     attempts: int
     residual: float | None
     silent: bool = False  # the tracker timed out on every attempt
+    refused: bool = False  # the driver refused the motion (the plan's fault, not the measurement's)
 
 
 def _pairs(m: int) -> list[tuple[int, int]]:
@@ -400,6 +406,7 @@ class _Run:
         robot, journal = self.robot, self.journal
         pose: int | None = None
         silent = 0  # consecutive poses without a single tracker answer
+        failed = 0  # consecutive rejected poses (motion refusals aside)
         valid_now = 0
         try:
             for step in self.plan.poses():
@@ -438,6 +445,20 @@ class _Run:
                         journal.stop("failed", why)
                         return "failed", why
                 silent = silent + 1 if outcome.silent else 0
+                if not outcome.refused:
+                    failed = failed + 1 if outcome.status == "rejected" else 0
+                if (
+                    self.retry.max_failed_poses
+                    and failed >= self.retry.max_failed_poses
+                    and not (self.retry.max_silent_poses and silent >= self.retry.max_silent_poses)
+                ):
+                    _safe_stop(robot)
+                    reason = (
+                        f"{failed} consecutive poses rejected (last at pose {pose}: {outcome.reason}): check the "
+                        "tracker (line of sight, targets, profile), then resume"
+                    )
+                    journal.stop("failed", reason)
+                    return "failed", reason
                 if self.retry.max_silent_poses and silent >= self.retry.max_silent_poses:
                     _safe_stop(robot)
                     reason = (
@@ -508,7 +529,7 @@ class _Run:
                 except MotionRejected as e:
                     # The plan itself is at fault (limits, caps): retrying cannot help.
                     reasons.append(f"motion rejected: {e}")
-                    return _Outcome("rejected", None, None, _join(reasons), attempt, None)
+                    return _Outcome("rejected", None, None, _join(reasons), attempt, None, refused=True)
                 except MotionFailed as e:
                     reasons.append(f"motion failed: {e}")
                     continue

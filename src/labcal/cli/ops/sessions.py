@@ -150,6 +150,9 @@ class SessionRequest:
     sim_dropout: float = 0.0
     allow: tuple[str, ...] = ()
     unit: str | None = None
+    robot_host: str | None = None
+    tracker_port: str | None = None
+    max_failed_poses: int = 5
 
     def check(self) -> None:
         """The checks that need nothing loaded: plan size, driver names, sim options, override names."""
@@ -173,6 +176,16 @@ class SessionRequest:
             raise UserError("--sim-dropout is an option of the sim tracker (--tracker-driver sim)")
         _allowed(self.allow)
         check_unit_option(self.unit)
+        if (self.robot_host or self.tracker_port) and self.robot_driver == "sim":
+            raise UserError("--robot-host and --tracker-port are options of the hardware drivers (--robot-driver ur)")
+        check_max_failed_poses(self.max_failed_poses)
+
+
+def check_max_failed_poses(value: int) -> int:
+    """--max-failed-poses: an integer >= 0 (0: never stop for rejected poses)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise UserError(f"--max-failed-poses must be an integer >= 0 (0: never stop early), got {value!r}")
+    return value
 
 
 def sim_unit(sim: dict) -> str:
@@ -192,23 +205,44 @@ def _drivers(request: SessionRequest, spec: RobotSpec, targets):
         return rig.robot(), rig.tracker(), "base", {"sim": sim}
     if r.profile is None or r.tracker_profile is None:
         raise UserError("real drivers need --profile drivers/<robot>.toml and --tracker-profile drivers/<tracker>.toml")
-    robot, tracker = _real_drivers(r.profile, r.tracker_profile, targets)
+    robot, tracker = _real_drivers(r.profile, r.tracker_profile, targets, r.robot_host, r.tracker_port)
     # recorded as absolute paths where they are files, so that `session resume` finds them from any folder
     profiles = {k: str(Path(v).resolve()) if Path(v).is_file() else str(v)
                 for k, v in (("robot", r.profile), ("tracker", r.tracker_profile))}  # fmt: skip
-    return robot, tracker, "tracker", {"profiles": profiles}
+    meta: dict[str, Any] = {"profiles": profiles}
+    # the overrides too: a resume without flags goes back to the same controller and port
+    overrides = {k: v for k, v in (("robot_host", r.robot_host), ("tracker_port", r.tracker_port)) if v}
+    if overrides:
+        meta["overrides"] = overrides
+    return robot, tracker, "tracker", meta
 
 
-def _real_drivers(profile, tracker_profile, targets):
-    """(UR robot, serial tracker) opened from their profile files: what `session new` and `session resume` use."""
+def _real_drivers(profile, tracker_profile, targets, robot_host=None, tracker_port=None):
+    """(UR robot, serial tracker) opened from their profile files: what `session new` and `session resume` use.
+
+    robot_host / tracker_port (--robot-host / --tracker-port) replace the profile's ``host`` and ``[port] url``.
+    A controller or tracker that cannot be reached is a UserError naming the host or port and the profile key to
+    fix (one line, exit 2): nothing has moved yet."""
+    from labcal.drivers.base import DriverError
     from labcal.drivers.serial_tracker import open_tracker
     from labcal.drivers.ur import URRobot, load_ur_profile
 
-    robot = URRobot.connect(load_ur_profile(profile))
+    ur_profile = load_ur_profile(profile)
+    if robot_host:
+        ur_profile = ur_profile.with_host(robot_host)
     try:
-        return robot, open_tracker(tracker_profile, targets)
-    except BaseException:
+        robot = URRobot.connect(ur_profile)
+    except DriverError as e:
+        where = "--robot-host" if robot_host else f"`host` in {profile}, or pass --robot-host"
+        raise UserError(f"cannot use the UR controller at {ur_profile.host}: {e} (check {where})") from None
+    try:
+        return robot, open_tracker(tracker_profile, targets, url=tracker_port or None)
+    except BaseException as e:
         robot.close()  # nothing moved: release the controller before reporting the tracker's error
+        if isinstance(e, DriverError | OSError):
+            url = tracker_port or _profile_url(tracker_profile)
+            where = "--tracker-port" if tracker_port else f"[port] url in {tracker_profile}, or pass --tracker-port"
+            raise UserError(f"cannot use the tracker on {url}: {_one_line(e)} (check {where})") from None
         raise
 
 
@@ -245,6 +279,20 @@ def plan_cell(request: SessionRequest, spec: RobotSpec, normals, robot) -> dict:
     return cell
 
 
+def _profile_url(tracker_profile) -> str:
+    from labcal.drivers.serial_tracker import load_profile
+
+    try:
+        return load_profile(tracker_profile).port.url or "(no port)"
+    except (OSError, ValueError):
+        return "(the profile's port)"
+
+
+def _one_line(e: BaseException) -> str:
+    text = str(e).strip() or type(e).__name__
+    return text.splitlines()[0]
+
+
 def new_session(store: SessionStore, request: SessionRequest | None = None, *, progress=None, **fields: Any):
     """Plan and record a session; returns the runner's RunSummary (its .ref is the new SESSION@vNNN).
 
@@ -253,7 +301,7 @@ def new_session(store: SessionStore, request: SessionRequest | None = None, *, p
     before anything is connected or moved; the plan is drawn once the robot is open, inside its own limits."""
     from labcal.datasets import load_targets
     from labcal.datasets.targets import load_target_normals
-    from labcal.sessions import RunOptions, make_plan, run
+    from labcal.sessions import RetryPolicy, RunOptions, make_plan, run
 
     if request is None:
         request = SessionRequest(**fields)
@@ -267,8 +315,9 @@ def new_session(store: SessionStore, request: SessionRequest | None = None, *, p
     rob, trk, frame, meta = _drivers(request, spec, targets)
     # The unit: --unit, else the serial the robot driver reports (the sim rig's is sim-<seed>; see sim_unit).
     options = RunOptions(
-        frame=frame, progress=progress, metadata=meta, allow=_allowed(request.allow), unit=request.unit
-    )
+        frame=frame, progress=progress, metadata=meta, allow=_allowed(request.allow), unit=request.unit,
+        retry=RetryPolicy(max_failed_poses=check_max_failed_poses(request.max_failed_poses)),
+    )  # fmt: skip
     with rob, trk:
         # Planned after the drivers open, inside the limits object the robot checks every move against.
         cell = plan_cell(request, spec, normals, rob)
@@ -306,10 +355,13 @@ def resume_session(
     allow: tuple[str, ...] = (),
     profile=None,
     tracker_profile=None,
+    robot_host: str | None = None,
+    tracker_port: str | None = None,
 ):
     """Resume a session on the drivers it was recorded with: a sim session re-creates its simulated robot from the
     recorded errors and seed; a hardware session reopens the UR and the tracker from the profile files it recorded
-    (``profile`` / ``tracker_profile`` replace them, e.g. when the files moved). The runner then refuses, before
+    (``profile`` / ``tracker_profile`` replace them, e.g. when the files moved; ``robot_host`` / ``tracker_port``
+    replace the host and port, else those the session was started with). The runner then refuses, before
     anything moves, another arm (serial number), another robot model (hash) or a robot still in a protective stop.
 
     allow: record-time sanity checks to override, added to those the session was started with."""
@@ -326,8 +378,11 @@ def resume_session(
     targets = np.asarray(meta["targets"], dtype=float).reshape(-1, 3)
     allowed = _allowed(allow)
     if metadata.get("sim"):
-        if profile is not None or tracker_profile is not None:
-            raise UserError(f"session {session_id} was recorded on the sim rig: it resumes there, without profiles")
+        if any(v is not None for v in (profile, tracker_profile, robot_host, tracker_port)):
+            raise UserError(
+                f"session {session_id} was recorded on the sim rig: it resumes there, without profiles, "
+                "--robot-host or --tracker-port"
+            )
         rig = _sim_rig(spec, targets, metadata["sim"])
         rob, trk = rig.robot(), rig.tracker()
     else:
@@ -338,6 +393,9 @@ def resume_session(
                 flag for flag, value in (("--profile", profile), ("--tracker-profile", tracker_profile)) if not value
             )
             raise UserError(f"session {session_id} did not record its driver profiles: pass {missing}")
-        rob, trk = _real_drivers(profile, tracker_profile, targets)
+        overrides = metadata.get("overrides") or {}
+        robot_host = robot_host or overrides.get("robot_host")
+        tracker_port = tracker_port or overrides.get("tracker_port")
+        rob, trk = _real_drivers(profile, tracker_profile, targets, robot_host, tracker_port)
     with rob, trk:
         return resume(store, session_id, rob, trk, spec=spec, progress=progress, allow=allowed)

@@ -1,0 +1,229 @@
+"""ur-rtde interfaces in their own processes, so that no ur-rtde failure can hang or crash labcal.
+
+Why: ur-rtde 1.6.5 hangs its constructor forever (holding the GIL) on a peer that accepts and never answers;
+after the controller dies it keeps calling ``Reconnecting...`` for minutes inside a blocking ``moveJ``; and after
+an RTDE connection drop its ``disconnect()`` / destructor can crash the interpreter with SIGSEGV. None of that can
+be bounded from Python in the same process. Here each interface (receive or control) lives in a child process
+(``python -m labcal.drivers.ur_process KIND HOST FREQUENCY VARIABLES``); :class:`RemoteInterface` forwards method
+calls over a pipe and waits with a deadline. A call that misses its deadline, or a child that dies, kills the
+child (SIGKILL: nothing of ur-rtde's runs in labcal's process) and raises ``RuntimeError`` — the error ur-rtde
+itself raises — so :mod:`labcal.drivers.ur` maps it as before.
+
+Example::
+
+    rx = RemoteInterface("receive", "192.168.1.10", -1.0, ["timestamp", "actual_q"], start_timeout=5.0)
+    rx.getActualQ()       # -> [q1, ..., q6], or RuntimeError within rx.call_timeout s
+    rx.close()            # disconnect() with a deadline, then the child is gone
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+# How often a long call (a blocking moveJ) runs its watchdog while waiting for the child's answer, s.
+WATCH_PERIOD = 0.05
+
+
+class RemoteInterface:
+    """A ur-rtde ``RTDEReceiveInterface`` ("receive") or ``RTDEControlInterface`` ("control") in a child process.
+
+    Any method name is forwarded: ``iface.getActualQ()``. Every call waits at most ``call_timeout`` s; a call
+    given ``timeout=None`` (see :meth:`call`) waits as long as ``watch`` (called every WATCH_PERIOD s while
+    waiting) does not raise. Timeouts and a dead child raise RuntimeError and kill the child; later calls raise
+    RuntimeError at once, and ``isConnected()`` answers False.
+    """
+
+    def __init__(
+        self,
+        kind: str,
+        host: str,
+        frequency: float,
+        variables: Sequence[str] = (),
+        *,
+        start_timeout: float = 10.0,
+        call_timeout: float = 2.0,
+    ):
+        if kind not in ("receive", "control"):
+            raise ValueError(f"kind must be 'receive' or 'control', got {kind!r}")
+        self.kind, self.host, self.call_timeout = kind, host, float(call_timeout)
+        self._lock = threading.Lock()
+        self._replies: queue.Queue[bytes | None] = queue.Queue()
+        self._dead: str | None = None
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "labcal.drivers.ur_process", kind, host, repr(float(frequency)),
+             json.dumps(list(variables))],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+        )  # fmt: skip
+        threading.Thread(target=self._log_stderr, name=f"ur-rtde {kind} log", daemon=True).start()
+        threading.Thread(target=self._read_replies, name=f"ur-rtde {kind} replies", daemon=True).start()
+        try:
+            self._await(start_timeout, f"connecting the RTDE {kind} interface to {host}", None)
+        except BaseException:
+            self.kill()
+            raise
+
+    # -- calls -----------------------------------------------------------------------------------------------
+
+    def __getattr__(self, name: str) -> Callable[..., Any]:
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return lambda *args: self.call(name, *args)
+
+    def call(
+        self, name: str, *args: Any, timeout: float | str | None = "default", watch: Callable[[], None] | None = None
+    ) -> Any:
+        """Call ``name(*args)`` in the child. timeout: s, "default" (call_timeout), or None (``watch`` bounds it)."""
+        if name == "isConnected" and self._dead is not None:
+            return False
+        with self._lock:
+            if self._dead is not None:
+                raise RuntimeError(f"the ur-rtde {self.kind} interface is gone: {self._dead}")
+            assert self._process.stdin is not None
+            try:
+                self._process.stdin.write((json.dumps([name, list(args)]) + "\n").encode())
+                self._process.stdin.flush()
+            except OSError as exc:
+                self._died(f"its process ended ({exc})")
+                raise RuntimeError(f"the ur-rtde {self.kind} interface is gone: {self._dead}") from None
+            limit = self.call_timeout if timeout == "default" else timeout
+            return self._await(limit, f"{name}()", watch)  # type: ignore[arg-type]
+
+    def _await(self, timeout: float | None, what: str, watch: Callable[[], None] | None) -> Any:
+        try:
+            line = self._read_line(timeout, what, watch)
+        except BaseException:
+            # Whatever stopped the wait (deadline, dead child, watchdog, Ctrl-C), the answer may still come and would
+            # be taken for the next call's: this interface is done.
+            self._died(f"{what} was abandoned")
+            raise
+        reply = json.loads(line)
+        if reply[0] == "ok":
+            return reply[1]
+        error = ValueError if reply[1] == "ValueError" else RuntimeError
+        raise error(reply[2])
+
+    def _read_line(self, timeout: float | None, what: str, watch: Callable[[], None] | None) -> bytes:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            wait = WATCH_PERIOD if watch is not None else None
+            if deadline is not None:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    self._died(f"{what} got no answer within {timeout} s")
+                    raise RuntimeError(f"ur-rtde {self.kind}: {what} got no answer within {timeout} s")
+                wait = remaining if wait is None else min(wait, remaining)
+            try:
+                line = self._replies.get(timeout=wait)
+            except queue.Empty:
+                if watch is not None:
+                    watch()
+                continue
+            if line is None:
+                code = self._process.wait()
+                self._died(f"its process ended with code {code} during {what}")
+                raise RuntimeError(f"the ur-rtde {self.kind} interface is gone: {self._dead}")
+            return line
+
+    def _read_replies(self) -> None:
+        # A thread rather than select(): pipes cannot be selected on Windows.
+        assert self._process.stdout is not None
+        with contextlib.suppress(OSError, ValueError):
+            for line in self._process.stdout:
+                self._replies.put(line)
+        self._replies.put(None)
+
+    # -- lifecycle -------------------------------------------------------------------------------------------
+
+    @property
+    def alive(self) -> bool:
+        return self._dead is None and self._process.poll() is None
+
+    def _died(self, why: str) -> None:
+        if self._dead is None:
+            self._dead = why
+        self.kill()
+
+    def kill(self) -> None:
+        """SIGKILL the child (whatever ur-rtde is doing in it). Safe to repeat."""
+        if self._dead is None:
+            self._dead = "killed"
+        with contextlib.suppress(OSError):
+            if self._process.poll() is None:
+                self._process.kill()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self._process.wait(2.0)
+        for stream in (self._process.stdin, self._process.stdout):
+            with contextlib.suppress(OSError):
+                if stream is not None:
+                    stream.close()
+
+    def close(self, timeout: float = 1.0) -> None:
+        """``disconnect()`` within ``timeout`` s (a healthy link is told goodbye), then the child goes."""
+        if self._dead is None:
+            with contextlib.suppress(Exception):
+                self.call("disconnect", timeout=timeout)
+        self.kill()
+
+    def _log_stderr(self) -> None:
+        assert self._process.stderr is not None
+        for raw in self._process.stderr:  # ur-rtde's own chatter ("Reconnecting..."), kept out of the terminal
+            log.debug("ur-rtde %s (%s): %s", self.kind, self.host, raw.decode("utf-8", "replace").rstrip())
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The child.
+
+
+def _child(kind: str, host: str, frequency: float, variables: list[str]) -> None:
+    # Ctrl-C in a terminal reaches the whole process group: labcal decides how to stop, through this process.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # The protocol keeps the original stdout; ur-rtde's C++ prints (std::cout) go to stderr, away from it.
+    replies = os.fdopen(os.dup(1), "w")
+    os.dup2(2, 1)
+
+    def reply(*values: Any) -> None:
+        replies.write(json.dumps(list(values)) + "\n")
+        replies.flush()
+
+    try:
+        if kind == "receive":
+            import rtde_receive
+
+            iface = rtde_receive.RTDEReceiveInterface(host, frequency, variables)
+        else:
+            import rtde_control
+
+            iface = rtde_control.RTDEControlInterface(host, frequency)
+    except Exception as exc:
+        reply("error", type(exc).__name__, str(exc))
+        return
+    reply("ok", None)
+    for line in sys.stdin:  # EOF when labcal goes away: never outlive it
+        name, args = json.loads(line)
+        try:
+            value = getattr(iface, name)(*args)
+        except Exception as exc:
+            reply("error", type(exc).__name__, str(exc))
+        else:
+            reply("ok", value)
+    # No disconnect here: after a dropped link it is what crashes; the parent asks for it while the link is up.
+    os._exit(0)
+
+
+if __name__ == "__main__":
+    _child(sys.argv[1], sys.argv[2], float(sys.argv[3]), json.loads(sys.argv[4]))
