@@ -405,7 +405,7 @@ def hardware(monkeypatch, tmp_path):
 
     opened = []
 
-    def drivers(profile, tracker_profile, targets):
+    def drivers(profile, tracker_profile, targets, robot_host=None, tracker_port=None):
         rig = session_ops._sim_rig(load("ur10"), targets, {"errors": "none", "seed": 1, "noise_seed": 1})
         rig.safety = load_ur_profile(profile).limits
         robot = rig.robot()
