@@ -159,6 +159,9 @@ class CVResult:
         }
 
 
+ROUNDING = 1e-12  # m: errors that differ by less are the same to floating point (a noise-free fit's residuals)
+
+
 def choose(result: CVResult, candidates: tuple[str, ...]) -> str:
     """The simplest candidate within a near-tie of the best (module docstring). Raises if none ran."""
     names = [n for n in ORDER if n in candidates and result.available(n)]
@@ -175,7 +178,8 @@ def choose(result: CVResult, candidates: tuple[str, ...]) -> str:
             continue
         d = e[common] - eb[common]
         se = float(np.std(d, ddof=1) / math.sqrt(d.size)) if d.size > 1 else 0.0
-        if float(np.mean(d)) <= max(NEAR_TIE * float(np.mean(eb[common])), se):
+        # ROUNDING: a difference of errors at the round-off of a noise-free fit is a tie, not an improvement
+        if float(np.mean(d)) <= max(NEAR_TIE * float(np.mean(eb[common])), se, ROUNDING):
             return name
     return best
 
