@@ -386,18 +386,11 @@ def _initial_base(obs: Observations, model: LocalPOEModel, rows: np.ndarray) -> 
     return rigid_fit(pred, obs.points[rows][seen][None])[0]
 
 
-def _robot(nominal, model, T_tb, obs, method, tool_std=None) -> CalibratedRobot:
-    # Robot and tool apart (labcal.calibration.tool): the robot ends at tool0, the fixture is the measurement tool.
-    # (fit_local_poe splits its chain canonically first; register estimates no joint frame)
+def _robot(nominal, model, T_tb, obs, method) -> CalibratedRobot:
+    # Robot and tool apart (labcal.calibration.tool): the robot ends at tool0, the fixture is the measurement tool
+    # (the registration estimates no joint frame: nothing commutes into the tool).
     robot_model, X = (nominal, None) if model is nominal else split_tool(nominal, model, canonical=False)
-    return CalibratedRobot(
-        nominal=nominal,
-        model=robot_model,
-        T_tracker_base=T_tb,
-        method=method,
-        measurement_tool=X,
-        measurement_tool_std=tool_std,
-    )
+    return CalibratedRobot(nominal=nominal, model=robot_model, T_tracker_base=T_tb, method=method, measurement_tool=X)
 
 
 def register(
@@ -570,5 +563,12 @@ def fit_local_poe(
         info["warnings"] = [info["warning"]]  # the key the CLI's stored diagnostics keep
     info["measurement_tool"] = X
     info["measurement_tool_std"] = X_std
-    robot = _robot(nominal, model, T_tb, obs, "local-poe", X_std)
+    robot = CalibratedRobot(
+        nominal=nominal,
+        model=robot_model,
+        T_tracker_base=T_tb,
+        method="local-poe",
+        measurement_tool=X,
+        measurement_tool_std=X_std,
+    )
     return robot, info
