@@ -360,7 +360,13 @@ def _covariance(lp: dict, data: dict) -> np.ndarray | None:
         frames = list(range(1 if estimate_base else 0, n + 1))
         rows = fitting_rows(obs)
         r, J = _residual_and_jacobian(
-            robot.model, robot.T_tracker_base, obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base
+            robot.measurement_model,
+            robot.T_tracker_base,
+            obs.q[rows],
+            obs.targets,
+            obs.points[rows],
+            frames,
+            estimate_base,
         )
         L = float(lp.get("length_scale") or robot.length_scale)
         scale = parameter_weights(J.shape[1] // 6, L)

@@ -88,3 +88,16 @@ def test_a_schema_2_file_still_loads_and_an_edited_tool_is_refused(probe_fit):
     edited["measurement_tool"][0][3] += 0.01
     with pytest.raises(CompensatorFileError, match="measurement_tool does not match its checksum"):
         from_payload(edited, "edited.json")
+
+
+def test_the_urscript_header_names_the_measurement_tool_and_its_answer_is_the_tcp_free_correction(probe_fit):
+    from labcal.export.urscript import urscript_text
+
+    text = urscript_text(probe_fit)
+    line = next(ln for ln in text.splitlines() if "measurement tool in tool0" in ln)
+    values = np.array([float(v) for v in line.rsplit(": ", 1)[1].split()])
+    np.testing.assert_allclose(values[:3], probe_fit.measurement_tool[:3, 3], atol=1e-12)
+    # what the script solves is the flange's equation: any TCP gives the same exact correction
+    q = np.array([[0.3, -1.2, 1.1, -1.4, 1.2, 0.4]])
+    tcp = se3.pose([0.03, -0.05, 0.243], [0.4, -0.5, 1.1])
+    np.testing.assert_allclose(probe_fit.correct(q, tcp=tcp), probe_fit.correct(q), atol=1e-10)

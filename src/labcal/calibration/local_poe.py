@@ -526,7 +526,12 @@ def fit_local_poe(
     scale_p = metric.parameter_weights(len(labels) // 6, L)
     X_std = tool_std(J_split, scale_p, len(frames), out["sigma"], X, structural["basis"], rank_rtol)
     std = np.full((n + 1, 6), np.nan)
-    std[frames] = out["std"][: 6 * len(frames)].reshape(len(frames), 6)
+    # The standard deviations of the split chain's parameters (A_n and the tool moved): σ² (JᵀJ)⁺ on the fit's rank
+    Js = J_split * scale_p
+    lam_s, V_s = np.linalg.eigh(Js.T @ Js)
+    Vk = V_s[:, lam_s.size - out["rank"] :] / np.sqrt(lam_s[lam_s.size - out["rank"] :])
+    split_std = np.sqrt(np.einsum("ij,ij->i", Vk, Vk)) * out["sigma"] * scale_p
+    std[frames] = split_std[: 6 * len(frames)].reshape(len(frames), 6)
     scale = metric.parameter_weights(len(labels) // 6, L)
     null_lines = _describe_null(_without(out["null_space"], structural["basis"], scale), labels)
     n_params = len(labels)
@@ -545,7 +550,7 @@ def fit_local_poe(
         "delta_zeta": delta,
         "std": std,
         "T_tracker_base": T_tb,
-        "T_tracker_base_std": out["std"][-6:] if estimate_base else np.zeros(6),
+        "T_tracker_base_std": split_std[-6:] if estimate_base else np.zeros(6),
         "sigma": out["sigma"],
         "iterations": out["iterations"],
         "converged": out["converged"],
