@@ -1,6 +1,11 @@
 """Does a calibration survive a tool change? Prints a table; not a test.
 
-    python benchmarks/tool_change.py > benchmarks/results/tool_change.txt
+    python benchmarks/tool_change.py [--no-real] > benchmarks/results/tool_change.txt
+
+The last section (unless ``--no-real``): the real UR10 data (../shared/data/ipa-robot-accuracy-ur10, a 6-DOF probe on
+a ~93 mm mount, imported as ``labcal bench real-ur10`` does) fitted with local POE on all poses from the robot
+file's model (the mount not described): the identified measurement tool, and where tool0 of the robot and of the
+ur-kinematics export sits against the nominal flange.
 
 A simulated UR10 (``simulate(load("ur10"), ErrorSpec.paper())``: 0.5 mm / 0.5 mrad frame errors, 0.5 mrad joint
 offsets, 0.05 mm tracker noise; seeds 1-3) is calibrated (local POE, 60 random well-conditioned poses) twice:
@@ -26,7 +31,11 @@ shows what that is worth, and what no calibration with another fixture can give.
 
 from __future__ import annotations
 
+import re
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -131,7 +140,53 @@ def main() -> None:
         print(
             f"  {name}: position {e[:, 0].max() * 1e3:.3f} mm, rotation {e[:, 1].max() * 1e3:.3f} mrad (max of seeds)"
         )
+    if "--no-real" not in sys.argv:
+        real_ur10()
     print(f"\n({time.perf_counter() - t0:.0f} s)")
+
+
+def real_ur10() -> None:
+    """The real UR10 (a 6-DOF probe on a ~93 mm mount): the identified tool and where tool0 of the exports sits."""
+    from labcal.bench.real_ur10 import DataNotFound, load_observations, locate_data
+    from labcal.calibration.fit import fit
+    from labcal.calibration.tool import tool_lines
+    from labcal.export.ros import ur_kinematics_text
+
+    try:
+        data = locate_data()
+    except DataNotFound as e:
+        print(f"(real UR10 data skipped: {e})")
+        return
+    with tempfile.TemporaryDirectory() as store:
+        obs, _ = load_observations(data, Path(store))
+    nominal = load("ur10").model
+    robot = fit(obs, nominal, "local-poe", seed=0).robot  # the robot file's model: the probe mount not described
+    print(f"\n# real UR10 ({obs.k} poses, local POE on all of them, the robot file's tool: the bare flange)")
+    print("\n".join(tool_lines(robot.measurement_tool, robot.measurement_tool_std)))
+    dp, dr = se3.pose_distance(robot.model.fk(obs.q), nominal.fk(obs.q))
+    print(
+        f"tool0 (the robot to its flange) against the nominal flange over the data: mean {dp.mean() * 1e3:.3f} mm / "
+        f"{dr.mean() * 1e3:.3f} mrad, max {dp.max() * 1e3:.3f} mm / {dr.max() * 1e3:.3f} mrad"
+    )
+    text = ur_kinematics_text(robot)
+    for line in text.splitlines():
+        if line.startswith(("# tcp_in_tool0:", "# measurement_tool_in_tool0:")):
+            print("ur-kinematics YAML " + line[2:])
+    nom = _entries(ur_kinematics_text(CalibratedRobot(nominal, nominal)))
+    got = _entries(text)
+    print(
+        "ur-kinematics YAML joint origins against the nominal file's: max |Δxyz| "
+        f"{np.abs(got - nom)[:, :3].max() * 1e3:.3f} mm, max |Δrpy| {np.abs(got - nom)[:, 3:].max() * 1e3:.3f} mrad"
+    )
+    q = obs.q
+    q_cmd = robot.correct(q, extrapolate=True)
+    print(f"correct() on the data's configurations: max |q_cmd - q| {np.abs(q_cmd - q).max():.4f} rad")
+
+
+def _entries(text: str) -> np.ndarray:
+    """(6, 6) x y z roll pitch yaw of the six segments of a kinematics YAML."""
+    values = re.findall(r"^    (?:x|y|z|roll|pitch|yaw): (\S+)$", text, flags=re.M)
+    return np.array(values, dtype=float).reshape(6, 6)
 
 
 if __name__ == "__main__":
