@@ -198,6 +198,7 @@ def cross_validate(
     series_fixed: dict | None = None,
     ann_options: dict | None = None,
     progress: Callable[[str], None] | None = None,
+    register_tool: bool = False,
 ) -> CVResult:
     """Held-out errors of the candidates over the folds of ``obs`` (all its rows are fitting rows).
 
@@ -228,7 +229,7 @@ def cross_validate(
         stage1 = before = None
         try:
             if active & {"nominal", "ann"}:
-                before = register(train, nominal)[0]
+                before = register(train, nominal, estimate_tool=register_tool)[0]  # as fit()'s registration
             if active & {"local-poe", "hybrid+series", "hybrid+ann"}:
                 stage1, lp_info = fit_local_poe(train, nominal, start=start, **lp_opts)
                 if lp_info["rank"] < lp_info["expected_rank"]:

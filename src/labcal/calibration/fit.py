@@ -273,6 +273,7 @@ def _fit(
                 start=None if stage1 is None else stage1[0],
                 local_poe_options=lp_opts if method != "local-poe" else {**lp_opts, **options},
                 series_options=series_opts,
+                register_tool=register_tool,
                 series_fixed=series_fixed(series_full),
                 ann_options=ann_opts,
                 progress=say,
