@@ -101,3 +101,14 @@ def test_the_urscript_header_names_the_measurement_tool_and_its_answer_is_the_tc
     q = np.array([[0.3, -1.2, 1.1, -1.4, 1.2, 0.4]])
     tcp = se3.pose([0.03, -0.05, 0.243], [0.4, -0.5, 1.1])
     np.testing.assert_allclose(probe_fit.correct(q, tcp=tcp), probe_fit.correct(q), atol=1e-10)
+
+
+def test_the_runtime_compensator_takes_the_tcp_too(probe_fit, tmp_path):
+    comp = Compensator.load(probe_fit.save(tmp_path / "c.json"))
+    np.testing.assert_array_equal(comp.measurement_tool, probe_fit.measurement_tool)
+    q = np.array([0.3, -1.2, 1.1, -1.4, 1.2, 0.4])
+    tcp = se3.pose([0.03, -0.05, 0.243], [0.4, -0.5, 1.1])
+    q_cmd = comp.correct(q, tcp=tcp, extrapolate=True)
+    np.testing.assert_allclose(comp.predict_pose(q_cmd, tcp=tcp, extrapolate=True), UR10.model.fk(q) @ tcp, atol=1e-9)
+    with pytest.raises(ValueError, match="tcp must be"):
+        comp.correct(q, tcp=[[1, 2]], extrapolate=True)

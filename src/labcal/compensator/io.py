@@ -795,6 +795,11 @@ class Compensator:
         return self.robot.T_tracker_base
 
     @property
+    def measurement_tool(self) -> np.ndarray | None:
+        """(4, 4) the fixture the calibration measured through, in tool0 (None: tool0 itself); not corrected."""
+        return self.robot.measurement_tool
+
+    @property
     def joint_map(self) -> JointMap:
         """The controller → model joint map (identity when the robot file declared none)."""
         return self._map if self._map is not None else JointMap.identity(self.n)
@@ -836,29 +841,33 @@ class Compensator:
         method: str = "newton",
         tol: float = 1e-11,
         damped_iterations: int | None = None,
+        tcp=None,
     ) -> np.ndarray:
         """Commanded controller joints (n,) or (k, n) that make the real robot reach the nominal pose of the
-        controller joints q (an empty (0, n) q gives an empty answer). method, tol and damped_iterations: as
-        :meth:`CalibratedRobot.correct` (a control loop that must bound its worst case lowers damped_iterations)."""
+        controller joints q (an empty (0, n) q gives an empty answer). method, tol, damped_iterations and tcp (the
+        working TCP in tool0): as :meth:`CalibratedRobot.correct` (a control loop that must bound its worst case
+        lowers damped_iterations)."""
         correct = self.robot.correct
         if self._map is None:  # a control loop's call: keywords, not a dict unpacked, cost least
-            return correct(q, extrapolate=extrapolate, method=method, tol=tol, damped_iterations=damped_iterations)
+            return correct(
+                q, extrapolate=extrapolate, method=method, tol=tol, damped_iterations=damped_iterations, tcp=tcp
+            )
         q_model = self.to_model(q)
         if not extrapolate:
             self._check_model_range(q_model)
-        q_cmd = correct(q_model, extrapolate=True, method=method, tol=tol, damped_iterations=damped_iterations)
+        q_cmd = correct(q_model, extrapolate=True, method=method, tol=tol, damped_iterations=damped_iterations, tcp=tcp)
         return self._map.to_controller(q_cmd)
 
-    def predict_pose(self, q, *, extrapolate: bool = False) -> np.ndarray:
-        """Pose (4, 4) or (k, 4, 4) in the base frame that the real robot reaches when commanded the controller
-        joints q (an empty (0, n) q gives (0, 4, 4))."""
+    def predict_pose(self, q, *, extrapolate: bool = False, tcp=None) -> np.ndarray:
+        """Pose (4, 4) or (k, 4, 4) in the base frame of the TCP (``tcp`` in tool0; default tool0) that the real robot
+        reaches when commanded the controller joints q (an empty (0, n) q gives (0, 4, 4))."""
         if self._map is None:
             self.robot.check_range(q, extrapolate)
-            return self.robot.predict_pose(q)
+            return self.robot.predict_pose(q, tcp=tcp)
         q_model = self.to_model(q)
         if not extrapolate:
             self._check_model_range(q_model)
-        return self.robot.predict_pose(q_model)
+        return self.robot.predict_pose(q_model, tcp=tcp)
 
 
 def load(path) -> Compensator:
