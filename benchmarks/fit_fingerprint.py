@@ -57,7 +57,7 @@ def _cases():
         # correction aims at the probe's nominal pose instead of turning the wrist to put the probe on the flange.
         bare = load("ur10").model
         registered, _ = register(obs, bare, estimate_tool=True)
-        return obs, bare.with_tool(np.linalg.solve(bare.frames[-1], registered.model.frames[-1]))
+        return obs, bare.with_tool(np.linalg.solve(bare.frames[-1], registered.measurement_model.frames[-1]))
 
     return [
         ("ur10-good-60", scn(lambda: scenarios.good("ur10", 60, seed=1)), ("local-poe", "ann", "hybrid", "auto")),

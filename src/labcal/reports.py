@@ -31,6 +31,7 @@ import numpy as np
 
 from labcal.calibration.metrics import point_errors, prediction_errors
 from labcal.calibration.observations import Observations
+from labcal.calibration.tool import tool_lines
 from labcal.compensator import from_payload
 from labcal.datasets.errors import DatasetError
 from labcal.kinematics.metric import parameter_weights
@@ -359,7 +360,13 @@ def _covariance(lp: dict, data: dict) -> np.ndarray | None:
         frames = list(range(1 if estimate_base else 0, n + 1))
         rows = fitting_rows(obs)
         r, J = _residual_and_jacobian(
-            robot.model, robot.T_tracker_base, obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base
+            robot.measurement_model,
+            robot.T_tracker_base,
+            obs.q[rows],
+            obs.targets,
+            obs.points[rows],
+            frames,
+            estimate_base,
         )
         L = float(lp.get("length_scale") or robot.length_scale)
         scale = parameter_weights(J.shape[1] // 6, L)
@@ -370,6 +377,24 @@ def _covariance(lp: dict, data: dict) -> np.ndarray | None:
         return sigma2 * (scale[:, None] * (Vk / lk) @ Vk.T * scale[None, :])
     except Exception:  # an optional refinement: without it the combinations show no σ
         return None
+
+
+def _measurement_tool_lines(info: dict, data: dict | None = None) -> list[str]:
+    """Robot and tool apart: the identified measurement tool (± σ) against the robot file's tool, when identified."""
+    lp = _local_poe_info(_chosen_info(info, (data or {}).get("meta", {}).get("chosen")))
+    if lp is None or lp.get("measurement_tool") is None:
+        return []
+    X = np.asarray(lp["measurement_tool"], dtype=float)
+    std = lp.get("measurement_tool_std")
+    std = None if std is None else np.array([np.nan if v is None else v for v in std], dtype=float)
+    body = tool_lines(X, std)
+    return [
+        "**Measurement tool** (identified apart from the robot; the robot's model ends at tool0, so a tool change "
+        "keeps the calibration):",
+        "",
+        *[f"    {line}" for line in body],
+        "",
+    ]
 
 
 def _parameter_lines(info: dict, data: dict | None = None) -> list[str]:
@@ -770,6 +795,7 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
                 "",
             ]
         lines += [*_parameter_lines(info, data), ""]
+        lines += _measurement_tool_lines(info, data)
         lines += [*_evaluation_lines(store, str(r), fid), ""]
     hpng = "histogram.png"
     _plot_histograms(plt, fits, out / hpng)

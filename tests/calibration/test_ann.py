@@ -59,8 +59,8 @@ def test_learns_a_smooth_joint_error_field_on_held_out_configurations(data, fitt
     assert rel < 0.2, rel
     # The learned robot predicts held-out poses far better than the base robot.
     T_meas = test.measured_poses()
-    before = se3.pose_distance(T_meas, base.predict_pose(test.q))[0]
-    after = se3.pose_distance(T_meas, robot.predict_pose(test.q))[0]
+    before = se3.pose_distance(T_meas, base.predict_pose(test.q, tcp=base.measurement_tool))[0]
+    after = se3.pose_distance(T_meas, robot.predict_pose(test.q, tcp=robot.measurement_tool))[0]
     assert np.mean(after) < 0.3 * np.mean(before)
     assert robot.method == "ann" and robot.model is base.model
     # the ranges of every row the network was given (train + early-stopping rows), not only the rows it trained on

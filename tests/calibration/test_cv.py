@@ -317,7 +317,7 @@ def test_a_good_fit_of_singular_wrist_sweeps_is_not_a_large_correction():
     r = fit(obs, UR10.model, "local-poe")
     # with the damped budget the large-correction check uses (a default call stops near-singular rows sooner)
     dq = np.abs(r.robot.correct(obs.q, extrapolate=True, damped_iterations=30) - obs.q)
-    assert dq.max() > 0.1  # the wrist joints do move by tenths of a radian on these data…
+    assert dq.max() > 0.05  # the wrist joints do move by a tenth of a radian on these data…
     assert "large-correction" not in codes(r), r.warnings  # …and the fit is still good
 
 

@@ -49,6 +49,8 @@ def position_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
     if obs.k == 0:
         return np.zeros(0)
     T_pred = robot.T_tracker_base @ predict_pose(robot, obs.q)
+    if robot.measurement_tool is not None:  # the measured poses are the fixture's
+        T_pred = T_pred @ robot.measurement_tool
     return np.linalg.norm(rigid_fit(obs.targets, obs.points)[:, :3, 3] - T_pred[:, :3, 3], axis=1)
 
 

@@ -105,9 +105,14 @@ def test_export_every_format_round_trips(world, tmp_path, fmt, name):
         q = np.asarray(payload["golden"]["q"])
         np.testing.assert_allclose(comp.correct(q), payload["golden"]["q_cmd"], atol=1e-10)
     elif fmt == "urdf":
-        model = from_urdf(out.read_text())
+        # robot and tool apart: the robot ends at tool0, the identified measurement fixture is a link beyond it
+        model = from_urdf(out.read_text(), tip_link="tool0")
         q = np.asarray(payload["golden"]["q"])
         np.testing.assert_allclose(model.fk(q)[:, :3, 3], np.asarray(payload["golden"]["pose"])[:, :3, 3], atol=1e-12)
+        if payload.get("measurement_tool") is not None:
+            fixture = from_urdf(out.read_text(), tip_link="measurement_tool").fk(q)
+            tool = np.asarray(payload["golden"]["pose"]) @ np.asarray(payload["measurement_tool"])
+            np.testing.assert_allclose(fixture, tool, atol=1e-12)
     elif fmt == "ur-kinematics":
         text = out.read_text()
         assert all(f"{seg}:" in text for seg in ("shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3"))

@@ -98,8 +98,9 @@ def test_a_fit_that_lost_its_joint_map_is_not_exported(coupled, tmp_path):
         export_fit(store, ref, "json", tmp_path / "lost.json", record.fit_id)
 
 
-def test_probe_data_fit_with_the_probe_mount_as_nominal_tool(tmp_path):
-    """The committed example is real IPA UR10 probe data: the probe sits ~93 mm / 90° off the bare flange."""
+def test_probe_data_fit_with_the_probe_mount_as_measurement_tool(tmp_path):
+    """The committed example is real IPA UR10 probe data: the probe sits ~93 mm / 90° off the bare flange. Robot and
+    tool apart: the mount is the fit's measurement tool, the robot stays to its flange."""
     import shutil
 
     shutil.copytree("sessions", tmp_path / "store")
@@ -110,5 +111,7 @@ def test_probe_data_fit_with_the_probe_mount_as_nominal_tool(tmp_path):
     comp = Compensator.load(export_fit(store, "example", "json", tmp_path / "ipa.json", outcome.fit_id))
     q = store.load("example").q
     q = q[np.abs(q[:, 4]) > 0.2]  # away from the wrist singularity (the first row is the home pose, q5 = 0)
-    # Without the mount in the nominal the wrist turned ~0.6 rad to bring the probe onto the flange's pose.
+    # Folded into the robot, the mount turned the wrist ~0.6 rad to bring the probe onto the flange's pose.
     assert np.max(np.abs(comp.correct(q) - q)) < 0.05
+    assert 0.08 < np.linalg.norm(comp.robot.measurement_tool[:3, 3]) < 0.11
+    assert np.array_equal(comp.robot.model.frames[-1], comp.robot.nominal.frames[-1])

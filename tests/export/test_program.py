@@ -61,8 +61,13 @@ def program_poses(robot: CalibratedRobot, k: int, seed: int) -> tuple[np.ndarray
 def test_filtered_poses_put_the_true_robot_where_the_program_asked(calibrated):
     actual, robot = calibrated
     poses, q_path = program_poses(robot, 12, seed=1)
-    result = filter_poses(robot, poses, seed=q_path[0] + 0.05)
-    np.testing.assert_allclose(result.q_nominal, q_path, atol=1e-8)  # the nominal solution on the program's branch
+    # the simulated robot's true tool is what the calibration identified as its measurement tool: the program's TCP
+    X = robot.measurement_tool
+    tcp = np.concatenate([X[:3, 3], se3.log_so3(X[:3, :3])])
+    result = filter_poses(robot, poses, seed=q_path[0] + 0.05, tcp=tcp)
+    # the nominal solution on the program's branch, for the TCP the program names
+    np.testing.assert_allclose(robot.nominal.fk(result.q_nominal) @ X, pose_matrix(poses), atol=1e-8)
+    assert np.abs(result.q_nominal - q_path).max() < 0.05
     asked = pose_matrix(poses)
     dp_filtered, dr_filtered = se3.pose_distance(actual.true_pose(result.q_command), asked)
     dp_plain, _ = se3.pose_distance(actual.true_pose(result.q_nominal), asked)
@@ -76,8 +81,9 @@ def test_filtered_poses_put_the_true_robot_where_the_program_asked(calibrated):
 def test_joint_programs_are_filtered_in_one_batch(calibrated):
     actual, robot = calibrated
     _, q_path = program_poses(robot, 20, seed=2)
-    result = filter_joints(robot, q_path)
-    asked = robot.nominal.fk(q_path)
+    # the true robot carries the tool the calibration identified as its measurement tool: the working TCP
+    result = filter_joints(robot, q_path, tcp=robot.measurement_tool)
+    asked = robot.nominal.fk(q_path) @ robot.measurement_tool
     dp, _ = se3.pose_distance(actual.true_pose(result.q_command), asked)
     assert dp.max() < 0.05e-3
     np.testing.assert_array_equal(result.q_nominal, q_path)

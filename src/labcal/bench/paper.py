@@ -150,12 +150,14 @@ class Run:
 
 
 def _errors(robot, actual, q):
-    return se3.pose_distance(robot.predict_pose(q), actual.true_pose(q))
+    return se3.pose_distance(robot.predict_pose(q, tcp=robot.measurement_tool), actual.true_pose(q))
 
 
 def _compensated(robot, actual, q):
     q_cmd = robot.correct(q, extrapolate=True)  # held-out configurations may leave the data's joint ranges
-    return se3.pose_distance(actual.true_pose(q_cmd), robot.nominal.fk(q))
+    # The working TCP is the tool the simulated robot carries, known as the calibration identified it.
+    tcp = np.eye(4) if robot.measurement_tool is None else robot.measurement_tool
+    return se3.pose_distance(actual.true_pose(q_cmd), robot.nominal.fk(q) @ tcp)
 
 
 def run_once(

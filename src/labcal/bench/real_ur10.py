@@ -144,7 +144,7 @@ def run_one(
 
     t = time.perf_counter()
     registered, _ = register(obs, nominal0, estimate_tool=True)
-    nominal = nominal0.with_tool(np.linalg.solve(nominal0.frames[-1], registered.model.frames[-1]))
+    nominal = nominal0.with_tool(np.linalg.solve(nominal0.frames[-1], registered.measurement_model.frames[-1]))
     seconds["nominal"] = time.perf_counter() - t
     robots["nominal"] = registered
     t = time.perf_counter()

@@ -165,7 +165,7 @@ def run_family(
             # The real data measure a probe, not the flange: the methods start from the registered probe frame,
             # as the real-UR10 benchmark does (the plain LSQ finds it itself).
             registered, _ = register(obs, model, estimate_tool=True)
-            nominal = model.with_tool(np.linalg.solve(model.frames[-1], registered.model.frames[-1]))
+            nominal = model.with_tool(np.linalg.solve(model.frames[-1], registered.measurement_model.frames[-1]))
         for m in methods:
             t = time.perf_counter()
             try:

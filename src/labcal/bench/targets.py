@@ -214,7 +214,7 @@ def fit_and_score(method: str, draw: Draw, name: str, n: int, seed: int, cell: C
                 # The real data measure a probe, not the flange: start from the probe frame registered on these
                 # rows, as a user of this variant would (the plain LSQ finds it itself).
                 registered, _ = register(obs, model, estimate_tool=True)
-                nominal = model.with_tool(np.linalg.solve(model.frames[-1], registered.model.frames[-1]))
+                nominal = model.with_tool(np.linalg.solve(model.frames[-1], registered.measurement_model.frames[-1]))
             result = fit(obs, nominal, method, seed=seed)
             robot = result.robot
             T = np.asarray(robot.T_tracker_base, float)

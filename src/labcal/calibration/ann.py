@@ -543,6 +543,8 @@ def fit_ann(
         model=base.model,
         network=network,
         T_tracker_base=base.T_tracker_base,
+        measurement_tool=base.measurement_tool,
+        measurement_tool_std=base.measurement_tool_std,
         # Every row the fit was given, including the ones the condition filter kept out of training: the ranges
         # say where the calibration data lie, and the network is smooth across the dropped (singular) points.
         joint_ranges=np.stack([used.q.min(axis=0), used.q.max(axis=0)], axis=1),

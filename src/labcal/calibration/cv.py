@@ -159,6 +159,9 @@ class CVResult:
         }
 
 
+ROUNDING = 1e-12  # m: errors that differ by less are the same to floating point (a noise-free fit's residuals)
+
+
 def choose(result: CVResult, candidates: tuple[str, ...]) -> str:
     """The simplest candidate within a near-tie of the best (module docstring). Raises if none ran."""
     names = [n for n in ORDER if n in candidates and result.available(n)]
@@ -175,7 +178,8 @@ def choose(result: CVResult, candidates: tuple[str, ...]) -> str:
             continue
         d = e[common] - eb[common]
         se = float(np.std(d, ddof=1) / math.sqrt(d.size)) if d.size > 1 else 0.0
-        if float(np.mean(d)) <= max(NEAR_TIE * float(np.mean(eb[common])), se):
+        # ROUNDING: a difference of errors at the round-off of a noise-free fit is a tie, not an improvement
+        if float(np.mean(d)) <= max(NEAR_TIE * float(np.mean(eb[common])), se, ROUNDING):
             return name
     return best
 
@@ -194,6 +198,7 @@ def cross_validate(
     series_fixed: dict | None = None,
     ann_options: dict | None = None,
     progress: Callable[[str], None] | None = None,
+    register_tool: bool = False,
 ) -> CVResult:
     """Held-out errors of the candidates over the folds of ``obs`` (all its rows are fitting rows).
 
@@ -224,7 +229,7 @@ def cross_validate(
         stage1 = before = None
         try:
             if active & {"nominal", "ann"}:
-                before = register(train, nominal)[0]
+                before = register(train, nominal, estimate_tool=register_tool)[0]  # as fit()'s registration
             if active & {"local-poe", "hybrid+series", "hybrid+ann"}:
                 stage1, lp_info = fit_local_poe(train, nominal, start=start, **lp_opts)
                 if lp_info["rank"] < lp_info["expected_rank"]:

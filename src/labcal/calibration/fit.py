@@ -98,6 +98,7 @@ from threadpoolctl import threadpool_limits
 from labcal.calibration.local_poe import fit_local_poe, register
 from labcal.calibration.metrics import observability, point_residual_warning, split_table
 from labcal.calibration.observations import ObservationError, Observations
+from labcal.calibration.tool import tool_lines
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import se3
 from labcal.kinematics.poe import LocalPOEModel
@@ -161,6 +162,7 @@ def fit(
     val_fraction: float = 0.0,
     progress: Callable[[str], None] | None = None,
     local_poe_options: dict | None = None,
+    register_tool: bool = False,
     **options,
 ) -> FitResult:
     """Fit one method (or choose one with "auto"), measure it against the registered nominal, and check it.
@@ -170,6 +172,8 @@ def fit(
     "hybrid" and "auto"; ``stage2`` and ``series_options`` go to the hybrid only (see ``fit_hybrid``).
     val_fraction: share of the unlabelled rows held out (only measured); 0 fits on every row.
     progress: optional callable receiving one status line per step.
+    register_tool: the registered nominal ("before", and the base of the paper's ANN method) also estimates the
+    measurement tool (probe data: the probe's mount is the tool, not a robot error the network should learn).
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
@@ -177,10 +181,12 @@ def fit(
     # 3-20x slower on a loaded 2-core machine (local POE at 1,000 rows: 4.0 s threaded, 1.1 s single), and one
     # thread keeps the summation order, so the bits of a fit, independent of the core count.
     with threadpool_limits(limits=1, user_api="blas"):
-        return _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options)
+        return _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options, register_tool)
 
 
-def _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options) -> FitResult:
+def _fit(
+    obs, nominal, method, seed, val_fraction, progress, local_poe_options, options, register_tool=False
+) -> FitResult:
     from labcal.calibration.cv import cross_validate, fold_plan
 
     if method not in METHODS:
@@ -213,7 +219,7 @@ def _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, 
         return out
 
     say("registering the nominal model")
-    before, reg_info = timed("nominal", lambda: register(obs, nominal))
+    before, reg_info = timed("nominal", lambda: register(obs, nominal, estimate_tool=register_tool))
     if method == "nominal":
         return _result(
             method, "nominal", before, before, {"register": reg_info}, obs, counts, seed, seconds, [], [], None
@@ -267,6 +273,7 @@ def _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, 
                 start=None if stage1 is None else stage1[0],
                 local_poe_options=lp_opts if method != "local-poe" else {**lp_opts, **options},
                 series_options=series_opts,
+                register_tool=register_tool,
                 series_fixed=series_fixed(series_full),
                 ann_options=ann_opts,
                 progress=say,
@@ -336,6 +343,8 @@ def _result(method, chosen, robot, before, info, obs, counts, seed, seconds, war
                "unobservable" in d), None)  # fmt: skip
     claims = observability(obs, None if lp is None else lp["unobservable"])
     notes.extend(f"unobservable: {text}" for text in claims["unobservable"])
+    if robot.measurement_tool is not None:  # robot and tool apart: the fixture is reported, not corrected
+        notes.append(" ".join(line.strip() for line in tool_lines(robot.measurement_tool, robot.measurement_tool_std)))
     return FitResult(
         method=method,
         chosen=chosen,

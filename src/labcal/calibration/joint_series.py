@@ -251,6 +251,8 @@ def fit_joint_series(
         model=base.model,
         network=network,
         T_tracker_base=base.T_tracker_base,
+        measurement_tool=base.measurement_tool,
+        measurement_tool_std=base.measurement_tool_std,
         joint_ranges=np.stack([train.q.min(axis=0), train.q.max(axis=0)], axis=1),
         length_scale=base.length_scale,
         method="series",

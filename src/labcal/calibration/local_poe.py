@@ -55,6 +55,7 @@ import math
 import numpy as np
 
 from labcal.calibration.observations import Observations, rigid_fit, target_geometry
+from labcal.calibration.tool import split_robot, split_tool, tool_std
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
@@ -386,7 +387,10 @@ def _initial_base(obs: Observations, model: LocalPOEModel, rows: np.ndarray) -> 
 
 
 def _robot(nominal, model, T_tb, obs, method) -> CalibratedRobot:
-    return CalibratedRobot(nominal=nominal, model=model, T_tracker_base=T_tb, method=method)
+    # Robot and tool apart (labcal.calibration.tool): the robot ends at tool0, the fixture is the measurement tool
+    # (the registration estimates no joint frame: nothing commutes into the tool).
+    robot_model, X = (nominal, None) if model is nominal else split_tool(nominal, model, canonical=False)
+    return CalibratedRobot(nominal=nominal, model=robot_model, T_tracker_base=T_tb, method=method, measurement_tool=X)
 
 
 def register(
@@ -490,7 +494,7 @@ def fit_local_poe(
     if start is not None:
         if start.model.n != n:
             raise ValueError(f"start has {start.model.n} joints, the nominal {n}")
-        model0, T0 = start.model, np.asarray(start.T_tracker_base, float)
+        model0, T0 = start.measurement_model, np.asarray(start.T_tracker_base, float)
     elif estimate_base:
         T0 = _initial_base(obs, nominal, rows)
     else:
@@ -511,10 +515,23 @@ def fit_local_poe(
         seen=_seen_rows(obs, rows),
         fixed=structural["basis"],
     )
-    model = out["model"]
-    delta = se3.log_se3(se3.inv(nominal.frames) @ model.frames)
+    robot_model, X, T_tb = split_robot(nominal, out["model"], out["T_tb"] if estimate_base else None, obs.q[rows])
+    T_tb = out["T_tb"] if T_tb is None else T_tb
+    model = robot_model.replace(frames=np.concatenate([robot_model.frames[:-1], (nominal.frames[-1] @ X)[None]]))
+    delta = se3.log_se3(se3.inv(nominal.frames) @ model.frames)  # the last row: the measurement tool in tool0
+    seen = _seen_rows(obs, rows)
+    _, J_split = _residual_and_jacobian(
+        model, T_tb, obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base, seen
+    )
+    scale_p = metric.parameter_weights(len(labels) // 6, L)
+    X_std = tool_std(J_split, scale_p, len(frames), out["sigma"], X, structural["basis"], rank_rtol)
     std = np.full((n + 1, 6), np.nan)
-    std[frames] = out["std"][: 6 * len(frames)].reshape(len(frames), 6)
+    # The standard deviations of the split chain's parameters (A_n and the tool moved): σ² (JᵀJ)⁺ on the fit's rank
+    Js = J_split * scale_p
+    lam_s, V_s = np.linalg.eigh(Js.T @ Js)
+    Vk = V_s[:, lam_s.size - out["rank"] :] / np.sqrt(lam_s[lam_s.size - out["rank"] :])
+    split_std = np.sqrt(np.einsum("ij,ij->i", Vk, Vk)) * out["sigma"] * scale_p
+    std[frames] = split_std[: 6 * len(frames)].reshape(len(frames), 6)
     scale = metric.parameter_weights(len(labels) // 6, L)
     null_lines = _describe_null(_without(out["null_space"], structural["basis"], scale), labels)
     n_params = len(labels)
@@ -532,8 +549,8 @@ def fit_local_poe(
         "singular_values": out["singular_values"],
         "delta_zeta": delta,
         "std": std,
-        "T_tracker_base": out["T_tb"],
-        "T_tracker_base_std": out["std"][-6:] if estimate_base else np.zeros(6),
+        "T_tracker_base": T_tb,
+        "T_tracker_base_std": split_std[-6:] if estimate_base else np.zeros(6),
         "sigma": out["sigma"],
         "iterations": out["iterations"],
         "converged": out["converged"],
@@ -549,5 +566,14 @@ def fit_local_poe(
             "every identifiable direction; measure more, better spread configurations"
         )
         info["warnings"] = [info["warning"]]  # the key the CLI's stored diagnostics keep
-    robot = _robot(nominal, model, out["T_tb"], obs, "local-poe")
+    info["measurement_tool"] = X
+    info["measurement_tool_std"] = X_std
+    robot = CalibratedRobot(
+        nominal=nominal,
+        model=robot_model,
+        T_tracker_base=T_tb,
+        method="local-poe",
+        measurement_tool=X,
+        measurement_tool_std=X_std,
+    )
     return robot, info

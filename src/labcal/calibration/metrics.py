@@ -62,7 +62,7 @@ def prediction_errors(robot: CalibratedRobot, obs: Observations) -> tuple[np.nda
     """
     if obs.k == 0:
         return np.zeros(0), np.zeros(0)
-    T_pred = robot.T_tracker_base @ robot.predict_pose(obs.q)
+    T_pred = robot.T_tracker_base @ robot.predict_pose(obs.q, tcp=robot.measurement_tool)  # the fixture measured
     has = obs.pose_rows()
     if has.all():
         return se3.pose_distance(obs.measured_poses(), T_pred)

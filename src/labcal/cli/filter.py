@@ -77,8 +77,9 @@ def filter_program(
     tcp: str | None = typer.Option(
         None,
         "--tcp",
-        help="The program's TCP in the robot's tool frame, 'x,y,z,rx,ry,rz' (--length-unit, --angle-unit); "
-        "default: the tool frame of the robot file (the flange for the built-in robots).",
+        help="The working TCP in the robot's tool frame, 'x,y,z,rx,ry,rz' (--length-unit, --angle-unit): pose "
+        "programs give its poses; corrections and reported errors are taken there; default: the tool frame of the "
+        "robot file (the flange for the built-in robots), not the calibration's measurement tool.",
     ),
     fit_id: str | None = typer.Option(None, "--fit", help="With SESSION: the fit id (default: the newest)."),
     speed: float = typer.Option(1.05, "--speed", help="movej speed in the script (rad/s)."),
@@ -130,19 +131,20 @@ def filter_program(
         raise UserError("this calibration's robot has a joint map: filter works in model joints only (UR arms)")
     types = robot.nominal.joint_types
     table = read_program(program, kind, n=robot.n, joint_types=types, length_unit=length_unit, angle_unit=angle_unit)
+    offset = _numbers(tcp, 6, "--tcp")
+    if offset is not None:
+        offset = np.asarray(offset) * np.array(
+            [prog.LENGTH_UNITS[length_unit]] * 3 + [prog.ANGLE_UNITS[angle_unit]] * 3
+        )
     try:
         if kind == "joints":
-            result = prog.filter_joints(robot, table.values, angle_unit=angle_unit)
+            tcp4 = None if offset is None else prog.pose_matrix(offset)[0]
+            result = prog.filter_joints(robot, table.values, angle_unit=angle_unit, tcp=tcp4)
         else:
             seed = _numbers(seed_joints, robot.n, "--seed-joints")
             if seed is None:
                 raise UserError("a pose program needs --seed-joints (joints near its first row: they pick the branch)")
             seed = np.asarray(seed) * prog.joint_factors(types, length_unit, angle_unit)
-            offset = _numbers(tcp, 6, "--tcp")
-            if offset is not None:
-                offset = np.asarray(offset) * np.array(
-                    [prog.LENGTH_UNITS[length_unit]] * 3 + [prog.ANGLE_UNITS[angle_unit]] * 3
-                )
             result = prog.filter_poses(robot, table.values, seed, tcp=offset, angle_unit=angle_unit)
     except prog.ProgramError as e:  # the message names the row; the file line helps find it
         line = table.line_of(e.row)

@@ -40,7 +40,10 @@ from labcal.robots import MAX_LENGTH, MAX_REVOLUTE_LIMIT, model_hash
 from labcal.robots.joint_map import JointMap
 
 SCHEMA = "labcal-compensator"
-SCHEMA_VERSION = 2  # 2: joint map, and per-field checksums over everything that changes behaviour
+SCHEMA_VERSION = 3  # 2: joint map, and per-field checksums over everything that changes behaviour
+# 3: robot and tool apart: "model" ends at tool0 and "measurement_tool" holds the identified fixture (null: none).
+# Version 2 files still load: their model ends at whatever the fit identified last (the fixture), as before.
+READS = (2, 3)
 GOLDEN_COUNT = 8
 GOLDEN_TOL_Q = 1e-10  # rad (m): a loaded file must reproduce its golden q_cmd to this
 GOLDEN_TOL_POSE = 1e-10  # m / rad-scaled entries of the predicted pose
@@ -122,6 +125,7 @@ CHECKED_FIELDS = (
     "method",
     "provenance",
     "golden",
+    "measurement_tool",
 )
 
 
@@ -140,10 +144,17 @@ def _canonical(value):
     return value
 
 
+def _checked_fields(payload: dict) -> tuple[str, ...]:
+    """The checked fields of a payload's schema version (version 2 had no measurement tool)."""
+    if payload.get("schema_version") == 2:
+        return tuple(name for name in CHECKED_FIELDS if name != "measurement_tool")
+    return CHECKED_FIELDS
+
+
 def field_checksums(payload: dict) -> dict[str, str]:
     """sha256 of each checked field's canonical JSON (floats written exactly): {field: hex}."""
     out = {}
-    for name in CHECKED_FIELDS:
+    for name in _checked_fields(payload):
         text = json.dumps(_canonical(payload.get(name)), sort_keys=True, separators=(",", ":"))
         out[name] = hashlib.sha256(text.encode()).hexdigest()
     return out
@@ -156,7 +167,7 @@ def _check_checksums(data: dict, source: str) -> None:
             f"{source}: no checksums field: the file was damaged or edited — refusing to load it"
         )
     got = field_checksums(data)
-    for name in CHECKED_FIELDS:
+    for name in _checked_fields(data):
         if stored.get(name) != got[name]:
             raise CompensatorFileError(
                 f"{source}: {name} does not match its checksum: the file was edited or damaged — refusing to load it "
@@ -188,6 +199,8 @@ def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
         "length_scale": float(robot.length_scale),
         "joint_ranges": np.asarray(robot.joint_ranges, float).tolist(),
         "T_tracker_base": np.asarray(robot.T_tracker_base, float).tolist(),
+        # the identified measurement fixture in tool0 (the model ends at tool0: robot and tool apart)
+        "measurement_tool": None if robot.measurement_tool is None else np.asarray(robot.measurement_tool).tolist(),
         "method": robot.method,
         # controller → model joints (q_model = matrix q_controller + offsets); None: the controller's joints are the
         # model's. Golden vectors, joint ranges and the models are in model joints.
@@ -298,6 +311,10 @@ def check_payload(data: dict, source: str, *, error: type[Exception] = Compensat
                 "what a robot file may declare): a wider range would switch off the out-of-range guard",
             )
     numbers("T_tracker_base", data.get("T_tracker_base"), (4, 4))
+    if data.get("measurement_tool") is not None:
+        X = numbers("measurement_tool", data["measurement_tool"], (4, 4))
+        if not (np.allclose(X[3], [0, 0, 0, 1]) and np.allclose(X[:3, :3].T @ X[:3, :3], np.eye(3), atol=1e-9)):
+            fail("measurement_tool", "must be a rigid transform (rotation + translation, last row 0 0 0 1)")
     scale = data.get("length_scale")
     if not (isinstance(scale, int | float) and not isinstance(scale, bool) and 0 < scale <= MAX_LENGTH_SCALE):
         fail("length_scale", f"must be a number of metres per radian in (0, {MAX_LENGTH_SCALE:g}], got {scale!r}")
@@ -399,10 +416,11 @@ def _check_schema(data: dict, source: str, stored: bool) -> bool:
         raise CompensatorFileError(f"{source}: not a labcal compensator export (format field is not {SCHEMA!r})")
     version = data.get("schema_version")
     legacy = stored and version == 1
-    if version != SCHEMA_VERSION and not legacy:
+    if version not in READS and not legacy:
         hint = "; export the fit again with this labcal" if version == 1 else ""
+        reads = ", ".join(map(str, READS))
         raise CompensatorFileError(
-            f"{source}: schema_version {version!r} is not supported (this labcal reads {SCHEMA_VERSION}){hint}"
+            f"{source}: schema_version {version!r} is not supported (this labcal reads {reads}){hint}"
         )
     return legacy
 
@@ -441,6 +459,7 @@ def _robot_from(data: dict, source: str, legacy: bool) -> CalibratedRobot:
         length_scale=float(data["length_scale"]),
         method=str(data.get("method", "")),
         joint_map=joint_map,
+        measurement_tool=None if data.get("measurement_tool") is None else np.asarray(data["measurement_tool"], float),
     )
 
 
@@ -488,7 +507,7 @@ def save(robot: CalibratedRobot, path, provenance: dict | None = None) -> Path:
 
 
 _ARRAY_KEYS = {"frames", "twists", "limits", "in_mean", "in_scale", "out_mean", "out_scale", "joint_ranges"}
-_ARRAY_KEYS |= {"T_tracker_base", "q", "q_cmd", "pose", "matrix", "offsets"}
+_ARRAY_KEYS |= {"T_tracker_base", "q", "q_cmd", "pose", "matrix", "offsets", "measurement_tool"}
 
 
 def _split_arrays(obj, prefix: str, arrays: dict):
@@ -655,6 +674,7 @@ def _field_shapes(n: int) -> dict[str, tuple]:
         {
             "joint_ranges": (n, 2),
             "T_tracker_base": (4, 4),
+            "measurement_tool": (4, 4),
             "joint_map.matrix": (n, n),
             "joint_map.offsets": (n,),
             "golden.q": (-1, n),
@@ -775,6 +795,11 @@ class Compensator:
         return self.robot.T_tracker_base
 
     @property
+    def measurement_tool(self) -> np.ndarray | None:
+        """(4, 4) the fixture the calibration measured through, in tool0 (None: tool0 itself); not corrected."""
+        return self.robot.measurement_tool
+
+    @property
     def joint_map(self) -> JointMap:
         """The controller → model joint map (identity when the robot file declared none)."""
         return self._map if self._map is not None else JointMap.identity(self.n)
@@ -816,29 +841,33 @@ class Compensator:
         method: str = "newton",
         tol: float = 1e-11,
         damped_iterations: int | None = None,
+        tcp=None,
     ) -> np.ndarray:
         """Commanded controller joints (n,) or (k, n) that make the real robot reach the nominal pose of the
-        controller joints q (an empty (0, n) q gives an empty answer). method, tol and damped_iterations: as
-        :meth:`CalibratedRobot.correct` (a control loop that must bound its worst case lowers damped_iterations)."""
+        controller joints q (an empty (0, n) q gives an empty answer). method, tol, damped_iterations and tcp (the
+        working TCP in tool0): as :meth:`CalibratedRobot.correct` (a control loop that must bound its worst case
+        lowers damped_iterations)."""
         correct = self.robot.correct
         if self._map is None:  # a control loop's call: keywords, not a dict unpacked, cost least
-            return correct(q, extrapolate=extrapolate, method=method, tol=tol, damped_iterations=damped_iterations)
+            return correct(
+                q, extrapolate=extrapolate, method=method, tol=tol, damped_iterations=damped_iterations, tcp=tcp
+            )
         q_model = self.to_model(q)
         if not extrapolate:
             self._check_model_range(q_model)
-        q_cmd = correct(q_model, extrapolate=True, method=method, tol=tol, damped_iterations=damped_iterations)
+        q_cmd = correct(q_model, extrapolate=True, method=method, tol=tol, damped_iterations=damped_iterations, tcp=tcp)
         return self._map.to_controller(q_cmd)
 
-    def predict_pose(self, q, *, extrapolate: bool = False) -> np.ndarray:
-        """Pose (4, 4) or (k, 4, 4) in the base frame that the real robot reaches when commanded the controller
-        joints q (an empty (0, n) q gives (0, 4, 4))."""
+    def predict_pose(self, q, *, extrapolate: bool = False, tcp=None) -> np.ndarray:
+        """Pose (4, 4) or (k, 4, 4) in the base frame of the TCP (``tcp`` in tool0; default tool0) that the real robot
+        reaches when commanded the controller joints q (an empty (0, n) q gives (0, 4, 4))."""
         if self._map is None:
             self.robot.check_range(q, extrapolate)
-            return self.robot.predict_pose(q)
+            return self.robot.predict_pose(q, tcp=tcp)
         q_model = self.to_model(q)
         if not extrapolate:
             self._check_model_range(q_model)
-        return self.robot.predict_pose(q_model)
+        return self.robot.predict_pose(q_model, tcp=tcp)
 
 
 def load(path) -> Compensator:

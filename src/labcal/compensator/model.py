@@ -5,7 +5,17 @@ A :class:`CalibratedRobot` is the output of every calibration method and the con
 - ``model``: the identified local-POE frames (equal to ``nominal`` for the paper's pure ANN method);
 - ``network``: optional learned joint motion errors δρ(q) of the equivalent robot built on ``model`` (eq. 12-16),
   six outputs: the n actuated joints, then 6 − n virtual joints; its inputs are :mod:`labcal.features`;
-- ``T_tracker_base``: the estimated pose of the robot base in the tracker frame (identity for base-frame data).
+- ``T_tracker_base``: the estimated pose of the robot base in the tracker frame (identity for base-frame data);
+- ``measurement_tool``: the identified pose of the measurement fixture (the frame the calibration's targets were
+  given in: probe, SMR nest) in the robot's tool0 frame (the last frame of ``nominal``: the flange, or the robot
+  file's ``[tool]``); None when it is tool0 itself. ``model`` ends at tool0: it describes the robot only, so a
+  calibration survives a tool change.
+
+Tool frames. :meth:`CalibratedRobot.predict_pose` and :meth:`CalibratedRobot.correct` work at a TCP given in tool0
+(``tcp=``; default tool0, i.e. the robot file's tool); :meth:`CalibratedRobot.predict_points` places targets on the
+measurement fixture (the calibration's own targets). For a 6-joint arm the exact correction is the same for every
+TCP (the flange reaching its nominal pose brings every rigidly attached point there); the TCP sets where the pose
+error is measured while the solver is not yet exact (damped steps near a singularity, least squares for n < 6).
 
 The real robot commanded q reaches (first order in δρ, eq. 14)::
 
@@ -265,6 +275,41 @@ def _after(n: int) -> np.ndarray:
     return out
 
 
+def _check_pose(T, what: str) -> np.ndarray:
+    """A (4, 4) rigid transform as a read-only float array, or a ValueError naming ``what``."""
+    try:
+        T = np.array(T, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{what} must be a (4, 4) rigid transform: {err}") from None
+    if (
+        T.shape != (4, 4)
+        or not np.isfinite(T).all()
+        or not np.allclose(T[3], [0, 0, 0, 1])
+        or not np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-9)
+        or np.linalg.det(T[:3, :3]) < 0
+    ):
+        raise ValueError(f"{what} must be a finite (4, 4) rigid transform (rotation + translation, last row 0 0 0 1)")
+    T.setflags(write=False)
+    return T
+
+
+def _about_point(residual, points: np.ndarray):
+    """The solver's residual re-expressed as twists about ``points`` (k, 3) instead of the base origin: the linear
+    velocity becomes the velocity of that point, v + ω × p (a constant linear map of r and J per configuration, so
+    an exact solution is unchanged while the damped steps and the metric of a least-squares solve measure at p)."""
+
+    def moved(qc: np.ndarray, rows: np.ndarray, jacobian: bool = True):
+        r, J = residual(qc, rows, jacobian)
+        p = points[rows]
+        r = np.concatenate([r[:, :3] + np.cross(r[:, 3:], p), r[:, 3:]], axis=1)
+        if J is not None:
+            Jv = J[:, :3] + np.cross(J[:, 3:].transpose(0, 2, 1), p[:, None, :]).transpose(0, 2, 1)
+            J = np.concatenate([Jv, J[:, 3:]], axis=1)
+        return r, J
+
+    return moved
+
+
 @dataclass(frozen=True, eq=False)
 class CalibratedRobot:
     """A calibrated robot: what every fit returns and every export stores.
@@ -283,8 +328,17 @@ class CalibratedRobot:
     length_scale: float | None = None
     method: str = "nominal"
     joint_map: JointMap | None = None
+    measurement_tool: np.ndarray | None = None
+    measurement_tool_std: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        if self.measurement_tool is not None:
+            X = _check_pose(self.measurement_tool, "measurement_tool")
+            object.__setattr__(self, "measurement_tool", None if np.array_equal(X, np.eye(4)) else X)
+        if self.measurement_tool_std is not None:
+            std = np.array(self.measurement_tool_std, dtype=float).reshape(6)
+            std.setflags(write=False)
+            object.__setattr__(self, "measurement_tool_std", std)
         if self.model.n != self.nominal.n:
             raise ValueError(f"model has {self.model.n} joints, nominal has {self.nominal.n}")
         if self.joint_map is not None:
@@ -491,10 +545,15 @@ class CalibratedRobot:
         """(k, 6, 6) J_ρ of the identified model (actuated + virtual joints, eq. 12-14)."""
         return self.model.equivalent_jacobian(q, length_scale=self.length_scale)
 
-    def predict_pose(self, q) -> np.ndarray:
-        """Pose (4, 4) or (k, 4, 4) in the base frame that the real robot reaches when commanded q."""
+    def predict_pose(self, q, *, tcp=None) -> np.ndarray:
+        """Pose (4, 4) or (k, 4, 4) in the base frame of the TCP that the real robot reaches when commanded q.
+
+        tcp: (4, 4) the TCP in tool0 (default: tool0 itself, the robot file's tool); ``tcp=robot.measurement_tool``
+        gives the pose of the fixture the calibration measured."""
         q2, single = self._batch(q)
         T = self._predict(q2)
+        if tcp is not None:
+            T = T @ _check_pose(tcp, "tcp")
         return T[0] if single else T
 
     def _predict(self, q2: np.ndarray) -> np.ndarray:
@@ -507,9 +566,12 @@ class CalibratedRobot:
         return _exp_small(dy) @ T
 
     def predict_points(self, q, targets) -> np.ndarray:
-        """(k, m, 3) predicted target positions in the base frame (targets (m, 3) in the tool frame)."""
+        """(k, m, 3) predicted target positions in the base frame (targets (m, 3) as the calibration data give
+        them: in the measurement fixture's frame, which sits at ``measurement_tool`` in tool0)."""
         q2, _ = self._batch(q)
         T = self._predict(q2)
+        if self.measurement_tool is not None:
+            T = T @ self.measurement_tool
         targets = np.asarray(targets, dtype=float)
         return np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
 
@@ -554,8 +616,13 @@ class CalibratedRobot:
         tol: float = 1e-11,
         extrapolate: bool = False,
         damped_iterations: int | None = None,
+        tcp=None,
     ) -> np.ndarray:
         """Joint commands that make the real robot reach the nominal pose of q. (n,) or (k, n), like q.
+
+        tcp: (4, 4) the working TCP in tool0 (default tool0: the robot file's tool). Both the real and the nominal
+        robot carry it, so an exact correction is the same for every TCP; it sets the point about which the pose
+        error is measured where the solver is not exact (module docstring).
 
         method: ``"newton"`` (default) solves ``T_real(q_cmd) = T_nominal(q)`` on the calibrated forward model with
         :func:`labcal.compensator.solve.solve`: Gauss-Newton (least squares in the length-scaled metric for n < 6:
@@ -582,22 +649,28 @@ class CalibratedRobot:
         if q2.shape[0] == 0:
             return q2.copy()  # nothing to correct: an empty (0, n) answer, like the input
         if method == "newton":
-            out = self._newton(q2, iterations, tol, damped_iterations)
+            out = self._newton(q2, iterations, tol, damped_iterations, None if tcp is None else _check_pose(tcp, "tcp"))
         else:
             out = self._network_only(q2, method, iterations, tol)
         return out[0] if single else out
 
-    def _newton(self, q2: np.ndarray, iterations: int, tol: float, damped_iterations: int | None) -> np.ndarray:
+    def _newton(
+        self, q2: np.ndarray, iterations: int, tol: float, damped_iterations: int | None, tcp: np.ndarray | None = None
+    ) -> np.ndarray:
         """method="newton": the solver over :meth:`residual`, or over its one-configuration form for one command
-        of a 6-joint arm."""
+        of a 6-joint arm; with a tcp, residual and Jacobian are twists about the TCP's nominal position."""
         if q2.shape[0] == 1 and self.n == 6:
             residual = self._one_configuration_residual(q2[0])
+            if tcp is not None:
+                residual = _about_point(residual, (self.nominal.fk(q2) @ tcp)[:, :3, 3])
         else:
             T_target = self.nominal.fk(q2)
 
             def residual(qc: np.ndarray, rows: np.ndarray, jacobian: bool = True):
                 return self.residual(qc, T_target[rows], jacobian)
 
+            if tcp is not None:
+                residual = _about_point(residual, (T_target @ tcp)[:, :3, 3])
         weights, budget = self._twist_weights, damped_iterations
         return solver.solve(residual, q2, iterations=iterations, tol=tol, weights=weights, damped_iterations=budget)
 
@@ -671,6 +744,16 @@ class CalibratedRobot:
             np.array_equal(self.model.frames, self.nominal.frames)
             and np.array_equal(self.model.twists, self.nominal.twists)
         )
+
+    @functools.cached_property
+    def measurement_model(self) -> LocalPOEModel:
+        """The identified chain ending at the measurement fixture (``model`` with ``measurement_tool`` appended):
+        what the calibration data saw."""
+        if self.measurement_tool is None:
+            return self.model
+        frames = np.array(self.model.frames)
+        frames[-1] = frames[-1] @ self.measurement_tool
+        return self.model.replace(frames=frames)
 
     def save(self, path, provenance: dict | None = None) -> Path:
         """Write this robot as a compensator export (``.json`` or ``.npz`` by extension); returns the path."""

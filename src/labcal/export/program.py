@@ -347,10 +347,12 @@ def filter_joints(
     max_correction: float = MAX_CORRECTION,
     max_condition: float = MAX_CONDITION,
     angle_unit: str = "rad",
+    tcp: np.ndarray | None = None,
 ) -> FilteredProgram:
     """Correct nominal joint targets (k, n): the joints at which the calibrated robot reaches their nominal poses.
 
-    ``angle_unit``: the unit the program was written in (only to phrase a refusal's hint)."""
+    ``angle_unit``: the unit the program was written in (only to phrase a refusal's hint). tcp: (4, 4) the working
+    TCP in tool0 (None: tool0, the robot file's tool): the correction is solved and its errors reported there."""
     q_nominal = np.atleast_2d(np.asarray(q_nominal, dtype=float))
     if q_nominal.shape[1] != robot.n:
         raise ProgramError(f"the program has {q_nominal.shape[1]} joints per row, the robot {robot.n}")
@@ -363,12 +365,12 @@ def filter_joints(
         raise ProgramError(
             _singular_message(i + 1, q_nominal[i], cond_nominal[i], j, "the row is", max_condition), i + 1
         )
-    q_cmd = robot.correct(q_nominal)
-    T_nominal = robot.nominal.fk(q_nominal)
+    q_cmd = robot.correct(q_nominal, tcp=tcp)
+    T_nominal = robot.nominal.fk(q_nominal) if tcp is None else robot.nominal.fk(q_nominal) @ tcp
     dq = np.max(np.abs(q_cmd - q_nominal), axis=1)
     cond_cmd = _condition(robot, robot.model, q_cmd)
     same = _det_sign(robot, robot.model, q_cmd) == _det_sign(robot, robot.nominal, q_nominal)
-    missed_p, missed_r = se3.pose_distance(robot.predict_pose(q_cmd), T_nominal)
+    missed_p, missed_r = se3.pose_distance(robot.predict_pose(q_cmd, tcp=tcp), T_nominal)
     bad = ~(dq <= max_correction) | ~same | ~(cond_cmd <= max_condition)
     bad |= ~(missed_p <= REACHED) | ~(missed_r <= REACHED)
     if bad.any():
@@ -412,7 +414,7 @@ def filter_joints(
             "calibration or the row",
             i + 1,
         )
-    dp, dr = se3.pose_distance(robot.predict_pose(q_nominal), T_nominal)
+    dp, dr = se3.pose_distance(robot.predict_pose(q_nominal, tcp=tcp), T_nominal)
     return FilteredProgram(q_nominal, q_cmd, dp, dr)
 
 
@@ -439,9 +441,10 @@ def filter_poses(
     seed = np.asarray(seed, dtype=float).reshape(robot.n)
     check_joints(robot, seed[None], angle_unit, seed=True)
     T = pose_matrix(poses)
-    if tcp is not None:
-        T = T @ se3.inv(pose_matrix(tcp)[0])
+    tcp4 = None if tcp is None else pose_matrix(np.asarray(tcp, dtype=float).reshape(1, 6))[0]
+    if tcp4 is not None:
+        T = T @ se3.inv(tcp4)
     q_nominal = nominal_ik(robot, T, seed, max_condition=max_condition)
     return filter_joints(
-        robot, q_nominal, max_correction=max_correction, max_condition=max_condition, angle_unit=angle_unit
+        robot, q_nominal, max_correction=max_correction, max_condition=max_condition, angle_unit=angle_unit, tcp=tcp4
     )

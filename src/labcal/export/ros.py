@@ -22,10 +22,15 @@ from this file. At the other end ur_description fixes ``wrist_3_link → flange 
 (0, −π/2, −π/2), tool0 back by (π/2, 0, π/2), so tool0 is the wrist_3_link frame) and has no calibration entry
 for it.
 
+Robot and tool apart. ``robot.model`` ends at tool0 (the robot file's tool: the flange for the built-in UR
+files), so ``tool0``/``flange`` of the description sit on the real flange, off by the robot's own errors only;
+the identified measurement fixture (``robot.measurement_tool``) is written beside it as a comment,
+``# measurement_tool_in_tool0: x y z rx ry rz``.
+
 What is exact. The joint frames of the identified local-POE model, rewritten with every joint axis along local z
 through the frame origin (:class:`~labcal.export.zform.ZAxisForm`), are written to 17 significant digits, and a
 rotation about / shift along the last joint's axis in the identified tool frame moves exactly into ``wrist_3``.
-The rest of the identified tool frame (a shift across the last axis and a tilt: 4 numbers) has no place in
+The rest of the identified tool0 frame (a shift across the last axis and a tilt: 4 numbers) has no place in
 ur_description: it is written as ``# tcp_in_tool0: x y z rx ry rz`` (m, rotation vector, the pendant's TCP form)
 in a comment and returned, to be set as the TCP; with it, the YAML reproduces the geometric model exactly. A
 learned term (hybrid/ann) is not representable either: the export is refused, saying how large it is, unless
@@ -143,6 +148,14 @@ def ur_kinematics_text(robot: CalibratedRobot, provenance: dict | None = None, g
         "as the TCP",
         "# tcp_in_tool0: " + " ".join(_fmt(v) for v in _pose6(rest)),
     ]
+    if robot.measurement_tool is not None:
+        # Robot and tool apart: the fixture the calibration measured through is not the robot (ur_description ignores
+        # comments), so tool0 stays on the real flange and the fixture is written beside it.
+        lines += [
+            "# measurement_tool_in_tool0 (m, rotation vector): the identified measurement fixture (probe, SMR nest) "
+            "the calibration saw the robot through; not part of the robot: set it as the TCP only to work with it",
+            "# measurement_tool_in_tool0: " + " ".join(_fmt(v) for v in _pose6(rest @ robot.measurement_tool)),
+        ]
     if note:
         lines.append(f"# {printable(note)}")
     lines += [

@@ -21,6 +21,10 @@ axis line (:func:`urdf_model`). What the file holds:
   controller's base — is ``base_link_inertia`` and ``base``; ``shoulder_link`` … ``wrist_3_link``, ``flange`` and
   ``tool0``). With generic names ``base_link`` is K0 itself.
 
+Robot and tool apart: the chain ends at ``tool0`` (the robot file's tool, the flange for the built-in robots) on
+the identified robot; the calibration's identified measurement fixture, when it has one, is a separate link
+``measurement_tool`` fixed to ``tool0``.
+
 What a URDF cannot hold is left out and said: the tracker-to-base transform, and a learned joint-motion-error term
 (hybrid / ann). Exporting a calibration with a learned term is refused, stating its size over the calibration's
 joint ranges (:mod:`labcal.export.learned`), unless ``geometry_only=True``, which writes the frames alone and
@@ -218,6 +222,10 @@ def urdf_text(
         fixed("base_link-base_fixed_joint", "base_link", "base", se3.pose([0, 0, 0], [0, 0, np.pi]))
     else:
         fixed("tool_fixed", links[n], "tool0", T_tool)
+    if robot.measurement_tool is not None:
+        # Robot and tool apart: the fixture the calibration measured through, beside the robot (tool0 stays on tool0)
+        ET.SubElement(root, "link", name="measurement_tool")
+        fixed("tool0-measurement_tool", "tool0", "measurement_tool", robot.measurement_tool)
     ET.indent(root, space="  ")
     return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 

@@ -77,7 +77,10 @@ def run_fit(
     if features is not None:
         options["features"] = tuple(features)
     nominal, tool_note = nominal_for(obs, datasets, spec.model)
-    result = fit(obs, nominal, method, seed=seed, val_fraction=val_fraction, progress=progress, **options)
+    probe = tool_note is not None  # the registered nominal then carries the probe as its measurement tool
+    result = fit(
+        obs, nominal, method, seed=seed, val_fraction=val_fraction, progress=progress, register_tool=probe, **options
+    )
     metrics = result.metrics
     gates = fit_gates(result)
     if tool_note:
@@ -113,12 +116,12 @@ def run_fit(
 
 
 def nominal_for(obs, datasets, model):
-    """The nominal model a fit starts from and its compensator aims for, and a note when it is not the robot file's.
+    """The nominal model a fit starts from and its compensator aims for (the robot file's), and a note for probe data.
 
     Probe data (a 6-DOF probe's pose per row) give the targets in the probe's frame, but where the probe sits on
-    the flange is not part of the robot file. That mount is registered first (closed form, then Gauss-Newton) and
-    becomes the nominal tool: otherwise every method would count the mount as a robot error, and the compensator
-    would turn the wrist to bring the probe onto the bare flange's pose (0.6 rad on the IPA UR10 data).
+    the flange is not part of the robot file. Robot and tool apart: the fits identify that mount as the measurement
+    tool (the registered nominal too, ``fit(register_tool=True)``), so no method counts it as a robot error and the
+    compensator and the exports keep the robot to its flange. The note says how large the mount is.
     """
     from labcal.calibration.local_poe import register
 
@@ -126,13 +129,13 @@ def nominal_for(obs, datasets, model):
     if "probe" not in forms:
         return model, None
     registered, _ = register(obs, model, estimate_tool=True)
-    mount = np.linalg.solve(model.frames[-1], registered.model.frames[-1])
+    mount = np.eye(4) if registered.measurement_tool is None else registered.measurement_tool
     angle = float(np.degrees(np.arccos(np.clip((np.trace(mount[:3, :3]) - 1) / 2, -1.0, 1.0))))
     note = (
         f"probe data: the probe's mount on the tool frame was registered ({np.linalg.norm(mount[:3, 3]) * 1e3:.1f} mm, "
-        f"{angle:.1f}°) and is the nominal tool of this fit"
+        f"{angle:.1f}°): it is the measurement tool of this fit, not part of the robot"
     )
-    return model.with_tool(mount), note
+    return model, note
 
 
 def fit_gates(result) -> dict:
@@ -240,6 +243,7 @@ _KEEP_INFO = {
     "val_error_hybrid", "candidates", "observations", "warnings", "iterations", "converged", "unidentifiable",
     "warning", "rank_deficient", "null_directions", "null_space", "n_params", "singular_values", "cov",
     "loss",  # which loss a network trained on: the report labels its training curve with it
+    "measurement_tool", "measurement_tool_std",  # robot and tool apart: the identified fixture, for the report
 }  # fmt: skip
 
 
