@@ -572,9 +572,10 @@ def fit_local_poe(
     scale = metric.parameter_weights(len(labels) // 6, L)
     null_lines = _describe_null(_without(out["null_space"], structural["basis"], scale), labels)
     n_params = len(labels)
+    weak_words = _describe_null(out["weak_space"], labels, 3, rotate=False)
     weak_lines = [
         f"{line} (the noise alone would move it by ±{noise / sv * 1e3:.3g} mm)"
-        for line, sv in zip(_describe_null(out["weak_space"], labels, 3, rotate=False), out["weak_singular_values"], strict=True)
+        for line, sv in zip(weak_words, out["weak_singular_values"], strict=True)
     ]
     info = {
         "rank": out["rank"],
@@ -583,6 +584,8 @@ def fit_local_poe(
         "weak_directions": weak_lines,
         "weak_space": out["weak_space"],
         "weak_threshold": _weak_threshold(noise, error_bound),
+        "noise": float(noise),
+        "error_bound": float(error_bound),
         "expected_rank": needed,
         "n_params": n_params,
         "unidentifiable": n_params - out["rank"],

@@ -33,6 +33,7 @@ import numpy as np
 from labcal import features as feature_lib
 from labcal.atomicio import write_bytes, write_text
 from labcal.compensator.model import CalibratedRobot, Network
+from labcal.compensator.validity import ValidityRegion
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 from labcal.names import duplicate, label_problem, name_problem, printable
@@ -142,11 +143,20 @@ def _canonical(value):
 
 def field_checksums(payload: dict) -> dict[str, str]:
     """sha256 of each checked field's canonical JSON (floats written exactly): {field: hex}."""
+    return _optional_checksums(payload, CHECKED_FIELDS)
+
+
+def _optional_checksums(payload: dict, names) -> dict[str, str]:
     out = {}
-    for name in CHECKED_FIELDS:
+    for name in names:
         text = json.dumps(_canonical(payload.get(name)), sort_keys=True, separators=(",", ":"))
         out[name] = hashlib.sha256(text.encode()).hexdigest()
     return out
+
+
+# Fields added after schema 2 was published: checked when the file has them (or their checksum), so files written
+# before them still load (a compensator without a validity region falls back to the joint ranges).
+OPTIONAL_CHECKED_FIELDS = ("validity",)
 
 
 def _check_checksums(data: dict, source: str) -> None:
@@ -156,7 +166,9 @@ def _check_checksums(data: dict, source: str) -> None:
             f"{source}: no checksums field: the file was damaged or edited — refusing to load it"
         )
     got = field_checksums(data)
-    for name in CHECKED_FIELDS:
+    optional = tuple(name for name in OPTIONAL_CHECKED_FIELDS if name in data or name in stored)
+    got.update(_optional_checksums(data, optional))
+    for name in CHECKED_FIELDS + optional:
         if stored.get(name) != got[name]:
             raise CompensatorFileError(
                 f"{source}: {name} does not match its checksum: the file was edited or damaged — refusing to load it "
@@ -200,7 +212,11 @@ def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
             "pose": robot.predict_pose(q).tolist(),
         },
     }
+    if robot.validity is not None:
+        payload["validity"] = robot.validity.as_dict()
     payload["checksums"] = field_checksums(payload)
+    if robot.validity is not None:
+        payload["checksums"].update(_optional_checksums(payload, OPTIONAL_CHECKED_FIELDS))
     return payload
 
 
@@ -441,7 +457,18 @@ def _robot_from(data: dict, source: str, legacy: bool) -> CalibratedRobot:
         length_scale=float(data["length_scale"]),
         method=str(data.get("method", "")),
         joint_map=joint_map,
+        validity=_validity_from(data.get("validity"), nominal.n, source),
     )
+
+
+def _validity_from(value, n: int, source: str) -> ValidityRegion | None:
+    """The stored validity region, None for a file written without one (the joint ranges alone then)."""
+    if value is None:
+        return None
+    try:
+        return ValidityRegion.from_dict(value, n)
+    except (KeyError, TypeError, ValueError) as err:
+        raise CompensatorFileError(f"{source}: validity is not a validity region of {n} joints: {err}") from None
 
 
 def _check_golden(robot: CalibratedRobot, q, q_cmd, pose, method: str, source: str) -> None:

@@ -37,6 +37,7 @@ import numpy as np
 
 from labcal import features as feature_lib
 from labcal.compensator import solve as solver
+from labcal.compensator.validity import ValidityRegion
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import LocalPOEModel, runtime_walk_pair
 from labcal.robots.joint_map import JointMap
@@ -273,6 +274,9 @@ class CalibratedRobot:
     ``extrapolate=True``. length_scale: metres per radian used to build virtual joints (n < 6), fixed at fit time.
     joint_map: the robot file's controller → model joint map (None: identity). Every method here works in *model*
     joints; the map only travels with the robot into its export, where :class:`Compensator` converts through it.
+    validity: the neighbourhood of the fitted configurations (:mod:`labcal.compensator.validity`); when set,
+    ``correct`` and ``check_range`` also refuse q farther than its radius from every fitted configuration
+    (None: the joint ranges alone, as files written before it).
     """
 
     nominal: LocalPOEModel
@@ -283,6 +287,7 @@ class CalibratedRobot:
     length_scale: float | None = None
     method: str = "nominal"
     joint_map: JointMap | None = None
+    validity: ValidityRegion | None = None
 
     def __post_init__(self) -> None:
         if self.model.n != self.nominal.n:
@@ -342,6 +347,7 @@ class CalibratedRobot:
     def _check_range(self, q2: np.ndarray) -> None:
         lo, hi = self._ranges
         if (q2 >= lo).all() and (q2 <= hi).all():
+            self._check_validity(q2)
             return
         bad = (q2 < lo) | (q2 > hi)
         i, j = np.argwhere(bad)[0]
@@ -349,6 +355,21 @@ class CalibratedRobot:
             f"configuration {i}: joint {j + 1} = {q2[i, j]:.6f} is outside the calibrated range "
             f"[{self.joint_ranges[j, 0]:.6f}, {self.joint_ranges[j, 1]:.6f}]; pass extrapolate=True to correct it "
             "anyway"
+        )
+
+    def _check_validity(self, q2: np.ndarray) -> None:
+        """Raise ValueError naming the first configuration farther than the validity radius from the data."""
+        region = self.validity
+        if region is None or q2.shape[0] == 0:
+            return
+        d = region.distance(q2)
+        if (d <= region.radius).all():
+            return
+        i = int(np.argmax(d > region.radius))
+        raise ValueError(
+            f"configuration {i} is {d[i]:.3g} rad (scaled joint distance) from the nearest configuration the "
+            f"calibration measured, beyond its validity radius {region.radius:.3g}: the data say nothing there; "
+            "measure poses near it, or pass extrapolate=True to correct it anyway"
         )
 
     def _valid_single(self, q, extrapolate: bool) -> bool:
@@ -360,7 +381,11 @@ class CalibratedRobot:
         lo, hi = self._range_lists
         if len(values) != len(lo) or not math.isfinite(sum(values)):
             return False
-        return extrapolate or (all(map(operator.le, lo, values)) and all(map(operator.le, values, hi)))
+        if extrapolate:
+            return True
+        if not (all(map(operator.le, lo, values)) and all(map(operator.le, values, hi))):
+            return False
+        return self.validity is None or bool(self.validity.inside(q[None])[0])
 
     @functools.cached_property
     def _range_lists(self) -> tuple[list, list]:

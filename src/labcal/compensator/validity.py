@@ -1,0 +1,117 @@
+"""The validity region of a compensator: the neighbourhood of the configurations its data measured.
+
+A calibration is measured where its data are. The per-joint box of the data's ranges is not that region: data
+taken in a small cube at one orientation move the wrist joints together with the arm joints, and the box lets every
+joint vary on its own, so most of its volume is configurations no pose resembled (the narrow series of issue 27:
+large corrections at 15 % of the box). The region is therefore the union of balls of radius ``radius`` around the
+fitted configurations (``centres``) in a scaled joint space: radians for revolute joints, metres divided by the
+robot's length scale for prismatic ones (a metre of travel counts as the arm's reach turned by a radian).
+
+``radius`` is twice the median distance from a fitted configuration to its nearest neighbour, at least
+:data:`MIN_RADIUS`: the spacing of the data themselves, so the balls of a well-spread series overlap into one
+region, while a corner of the box that no configuration came near stays outside. The file keeps at most
+:data:`MAX_CENTRES` configurations (a farthest-point subsample, deterministic; the radius grows to the largest
+distance of a dropped configuration to the kept ones, so every fitted configuration stays inside): bounded size
+(at most 512 × n numbers) whatever the session's length.
+
+Example::
+
+    >>> region = ValidityRegion.from_configurations(np.array([[0.0, 0.0], [0.2, 0.0], [0.4, 0.0]]))
+    >>> round(region.radius, 3), bool(region.inside(np.array([[0.3, 0.1]]))[0])
+    (0.4, True)
+    >>> float(region.distance(np.array([[0.4, 1.0]]))[0])
+    1.0
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MAX_CENTRES = 512  # configurations kept in a compensator file
+MIN_RADIUS = 0.05  # rad: below this the region would be the noise of the joint encoders' positioning
+RADIUS_FACTOR = 2.0  # radius = factor × median nearest-neighbour distance of the data
+
+
+@dataclass(frozen=True, eq=False)
+class ValidityRegion:
+    """centres (c, n) in scaled joint units (rad; prismatic m / length_scale), radius (same units), weights (n,)
+    the factors that turn joint values into those units (1 for revolute, 1/length_scale for prismatic)."""
+
+    centres: np.ndarray
+    radius: float
+    weights: np.ndarray
+
+    @classmethod
+    def from_configurations(cls, q: np.ndarray, weights: np.ndarray | None = None) -> ValidityRegion:
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        w = np.ones(q.shape[1]) if weights is None else np.asarray(weights, dtype=float)
+        x = np.unique(q * w, axis=0)
+        if len(x) > 1:
+            nearest = _nearest(x, x, exclude_self=True)
+            radius = max(MIN_RADIUS, RADIUS_FACTOR * float(np.median(nearest)))
+        else:
+            radius = MIN_RADIUS
+        if len(x) > MAX_CENTRES:
+            keep = _farthest_points(x, MAX_CENTRES)
+            radius = max(radius, float(_nearest(x, x[keep]).max()))
+            x = x[keep]
+        return cls(centres=x, radius=radius, weights=w)
+
+    def distance(self, q2: np.ndarray) -> np.ndarray:
+        """(k,) scaled distance from each configuration (k, n) to the nearest centre."""
+        return _nearest(np.atleast_2d(q2) * self.weights, self.centres)
+
+    def inside(self, q2: np.ndarray) -> np.ndarray:
+        return self.distance(q2) <= self.radius
+
+    def sample(self, count: int, rng: np.random.Generator) -> np.ndarray:
+        """(count, n) configurations drawn uniformly in the balls around random centres (model joint units)."""
+        n = self.centres.shape[1]
+        c = self.centres[rng.integers(0, len(self.centres), size=count)]
+        u = rng.normal(size=(count, n))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        r = self.radius * rng.uniform(0, 1, size=(count, 1)) ** (1.0 / n)
+        return (c + u * r) / self.weights
+
+    def as_dict(self) -> dict:
+        return {"centres": self.centres.tolist(), "radius": float(self.radius), "weights": self.weights.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict, n: int) -> ValidityRegion:
+        centres = np.asarray(d["centres"], dtype=float).reshape(-1, n)
+        weights = np.asarray(d["weights"], dtype=float).reshape(n)
+        radius = float(d["radius"])
+        if not (len(centres) and np.isfinite(centres).all() and np.isfinite(weights).all() and weights.min() > 0):
+            raise ValueError("validity: centres and weights must be finite numbers (weights > 0), at least one centre")
+        if not (np.isfinite(radius) and radius > 0) or len(centres) > MAX_CENTRES:
+            raise ValueError(f"validity: radius must be > 0 and at most {MAX_CENTRES} centres")
+        return cls(centres=centres, radius=radius, weights=weights)
+
+
+def _nearest(x: np.ndarray, centres: np.ndarray, exclude_self: bool = False) -> np.ndarray:
+    """(k,) Euclidean distance from each row of x to the nearest row of centres (in blocks: bounded memory)."""
+    out = np.empty(len(x))
+    for start in range(0, len(x), 256):
+        block = x[start : start + 256]
+        d2 = (
+            np.einsum("ka,ka->k", block, block)[:, None]
+            - 2.0 * block @ centres.T
+            + np.einsum("ca,ca->c", centres, centres)[None]
+        )
+        if exclude_self:
+            d2[np.arange(len(block)), np.arange(start, start + len(block))] = np.inf
+        out[start : start + 256] = np.sqrt(np.clip(d2.min(axis=1), 0.0, None))
+    return out
+
+
+def _farthest_points(x: np.ndarray, count: int) -> np.ndarray:
+    """Indices of a greedy farthest-point subsample, starting at row 0 (deterministic)."""
+    chosen = [0]
+    d = np.linalg.norm(x - x[0], axis=1)
+    for _ in range(count - 1):
+        i = int(np.argmax(d))
+        chosen.append(i)
+        d = np.minimum(d, np.linalg.norm(x - x[i], axis=1))
+    return np.array(sorted(chosen))
