@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -100,3 +101,17 @@ def test_the_large_correction_gate_names_a_unit_slip_when_the_data_themselves_ne
     q = np.random.default_rng(0).uniform(-1, 1, (40, 6)) + np.array([0, -1.2, 1.0, -1.4, -1.5, 0.2])
     message = _large_correction(robot, q, 0)
     assert message and "unit slip" in message and "tool mismatch" not in message
+
+
+def test_single_reflector_corrections_in_the_validity_region_stay_below_a_tenth_of_a_radian():
+    from labcal.calibration import fit
+
+    scn = scenarios.with_targets(scenarios.good("ur10", 60, seed=0), [0])
+    result = fit(Observations(**scn.arrays()), load("ur10").model, "local-poe")
+    assert not result.warnings  # exports without --force
+    robot = result.robot
+    q = robot.validity.sample(300, np.random.default_rng(5))
+    dq = np.abs(robot.correct(q) - q).max(axis=1)
+    unbounded = np.abs(dataclasses.replace(robot, validity=None).correct(q, extrapolate=True) - q).max(axis=1)
+    assert unbounded.max() > 0.1 >= dq.max() - 1e-12  # the ill-conditioned tail is there, and bounded
+    assert np.median(dq) == pytest.approx(np.median(unbounded), rel=1e-6)  # the typical correction is unchanged

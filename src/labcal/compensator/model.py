@@ -624,7 +624,12 @@ class CalibratedRobot:
                 return self.residual(qc, T_target[rows], jacobian)
 
         weights, budget = self._twist_weights, damped_iterations
-        return solver.solve(residual, q2, iterations=iterations, tol=tol, weights=weights, damped_iterations=budget)
+        # A fitted compensator (it has a validity region) bounds its corrections as its URScript does (issue 27)
+        bound = None if self.validity is None else solver.MAX_CORRECTION
+        return solver.solve(
+            residual, q2, iterations=iterations, tol=tol, weights=weights, damped_iterations=budget,
+            max_correction=bound,
+        )  # fmt: skip
 
     def _network_only(self, q2: np.ndarray, method: str, iterations: int, tol: float) -> np.ndarray:
         """method="paper": eq. (24), q − δρ_a(q); "fixed-point": q_cmd = q − δρ_a(q_cmd), iterated."""
