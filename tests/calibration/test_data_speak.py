@@ -115,3 +115,15 @@ def test_single_reflector_corrections_in_the_validity_region_stay_below_a_tenth_
     unbounded = np.abs(dataclasses.replace(robot, validity=None).correct(q, extrapolate=True) - q).max(axis=1)
     assert unbounded.max() > 0.1 >= dq.max() - 1e-12  # the ill-conditioned tail is there, and bounded
     assert np.median(dq) == pytest.approx(np.median(unbounded), rel=1e-6)  # the typical correction is unchanged
+
+
+def test_the_large_correction_gate_names_a_weak_direction_when_the_rule_is_off():
+    from labcal.calibration import fit
+
+    obs, _, model, _ = narrow(60, spin=0.5)  # the tool axis fixed: its length trades against the base translation
+    free = fit(obs, model, "local-poe", error_bound=math.inf)
+    message = next(w["message"] for w in free.warnings if w["code"] == "large-correction")
+    assert "weakly determined direction" in message and "unit slip" not in message
+    held = fit(obs, model, "local-poe")
+    assert "large-correction" not in [w["code"] for w in held.warnings]
+    assert any(note.startswith("weak: ") and "tool frame" in note for note in held.notes)

@@ -29,12 +29,20 @@ T_TRACKER = se3.pose(np.array([3.0, 1.0, -0.5]))
 
 
 def narrow(
-    k: int = 80, *, cube: float = 0.3, tilt: float = 0.0, seed: int = 0, frame: str = "tracker", held_out: int = 0
+    k: int = 80,
+    *,
+    cube: float = 0.3,
+    tilt: float = 0.0,
+    spin: float = 0.0,
+    seed: int = 0,
+    frame: str = "tracker",
+    held_out: int = 0,
 ):
     """(observations, held-out (q, true points in the observations' frame), nominal model, true robot): k poses of
     the UR10 with the tool at the orientation of :data:`Q0` and its position uniform in a cube of side ``cube``
     (m) around it; tilt > 0 (rad) turns each pose's tool by a random rotation up to it ("little change of
-    orientation"). The held-out poses come from the same cube, measured without noise."""
+    orientation"); spin > 0 (rad) turns it about its own z axis by up to that, the axis itself fixed. The
+    held-out poses come from the same cube, measured without noise."""
     spec = load("ur10")
     model = spec.model
     actual = simulate(spec, ErrorSpec.default(), seed=seed)
@@ -46,6 +54,10 @@ def narrow(
         T[:, :3, 3] = T0[:3, 3] + rng.uniform(-cube / 2, cube / 2, (count, 3))
         if tilt > 0:
             T[:, :3, :3] = se3.exp_so3(rng.uniform(-tilt, tilt, (count, 3))) @ T0[:3, :3]
+        if spin > 0:
+            about_z = np.zeros((count, 3))
+            about_z[:, 2] = rng.uniform(-spin, spin, count)
+            T[:, :3, :3] = T[:, :3, :3] @ se3.exp_so3(about_z)
         q, ok = _ik(model, T, Q0)
         return q[ok]
 

@@ -682,13 +682,21 @@ WEAK_NOTE = 1e-3  # m: the noise's share of the least-determined identified dire
 
 
 def _correction_cause(robot, at_data: float, lp: dict | None) -> str:
-    """The cause of large corrections the evidence shows, in words: a tool mismatch (the identified tool frame is
-    far from the robot file's), a unit slip or wrong model (large at the data themselves), a weakly determined
-    direction (the least-determined identified direction is barely above the noise), else configurations outside
-    the data (large only away from the fitted configurations)."""
+    """The cause of large corrections the evidence shows, in words, in this order: a tool mismatch (the identified
+    tool frame is far from the robot file's, and the data determine that offset: over 3 standard deviations); a
+    weakly determined direction (the least-determined identified direction moves by more than WEAK_NOTE on the
+    noise alone — a tool offset the data do not determine is one; its corrections are large at the data too, since
+    the compensator corrects the pose the points cannot see); a unit slip or wrong model (large corrections at the
+    measured configurations themselves, from well-determined parameters); else configurations outside the data."""
     delta = se3.log_se3(se3.inv(robot.nominal.frames[-1]) @ robot.model.frames[-1])
     offset, angle = float(np.linalg.norm(delta[:3])), float(np.linalg.norm(delta[3:]))
-    if offset > TOOL_MISMATCH or angle > MAX_TOOL_CORRECTION[1]:
+    std = None if lp is None or lp.get("std") is None else np.asarray(lp["std"], float)[-1]
+    determined = (
+        std is None
+        or not np.isfinite(std).all()
+        or (offset > 3 * float(np.linalg.norm(std[:3])) or angle > 3 * float(np.linalg.norm(std[3:])))
+    )
+    if (offset > TOOL_MISMATCH or angle > MAX_TOOL_CORRECTION[1]) and determined:
         p = robot.model.frames[-1][:3, 3] * 1e3
         p0 = robot.nominal.frames[-1][:3, 3] * 1e3
         return (
@@ -697,22 +705,28 @@ def _correction_cause(robot, at_data: float, lp: dict | None) -> str:
             f"({p0[0]:.1f}, {p0[1]:.1f}, {p0[2]:.1f}) mm, and the compensator moves the joints to bring the "
             "measurement fixture onto the nominal tool: give the fixture's tool in the robot file"
         )
-    if at_data >= _CORRECTION_SHARE:
-        return (
-            "the corrections are large at the measured configurations themselves: a unit slip (degrees as radians, "
-            "mm as m) or a wrong robot model is likely"
-        )
     if lp is not None and lp.get("singular_values") is not None and lp.get("weak_threshold") is not None:
         s = np.asarray(lp["singular_values"], float)
         kept = s[s > max(float(lp["weak_threshold"]), 1e-6 * float(s.max()))]
         noise = float(lp.get("noise", 0.05e-3))
         if kept.size and noise / float(kept.min()) > WEAK_NOTE:
-            return (
-                f"a weakly determined direction: the least-determined identified direction moves by "
-                f"±{noise / float(kept.min()) * 1e3:.2g} mm on the tracker noise alone, and the corrections grow "
-                "away from the data; measure more spread poses (other orientations), or fit with a smaller "
-                "error_bound so it stays at the nominal"
+            tool = (
+                f" (the identified tool is {offset * 1e3:.3g} mm from the robot file's, ±"
+                f"{float(np.linalg.norm(std[:3])) * 1e3:.2g} mm)"
+                if std is not None and offset > TOOL_MISMATCH
+                else ""
             )
+            return (
+                f"a weakly determined direction{tool}: the least-determined identified direction moves by "
+                f"±{noise / float(kept.min()) * 1e3:.2g} mm on the tracker noise alone, and the compensator corrects "
+                "the pose along it though the points barely see it; measure more spread poses (other orientations), "
+                "or fit with the default error_bound so it stays at the nominal"
+            )
+    if at_data >= _CORRECTION_SHARE:
+        return (
+            "the corrections are large at the measured configurations themselves: a unit slip (degrees as radians, "
+            "mm as m) or a wrong robot model is likely"
+        )
     return (
         "configurations outside the data: the corrections are small at the measured configurations and large "
         "only away from them; measure poses where the robot will work"
