@@ -148,11 +148,26 @@ def solve(
                 break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
         out, failed = rows.out, rows.failed()
+        budget = DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
         if max_correction is not None:
-            far = np.flatnonzero(~(np.abs(out - q0).max(axis=1) <= max_correction))
-            failed = np.union1d(failed, far) if far.size else failed
+            far = np.setdiff1d(np.flatnonzero(~(np.abs(out - q0).max(axis=1) <= max_correction)), failed)
+            if far.size:
+                # A Gauss-Newton answer beyond the box: the damped mode starts from it clipped into the box (the
+                # best compromise is usually near it) when that is better than q0, else from q0 with the failed rows.
+                lo, hi = q0[far] - max_correction, q0[far] + max_correction
+                clipped = np.minimum(np.maximum(out[far], lo), hi)
+                r, J = residual(clipped, far)
+                cost_clip = np.sum((r * w) ** 2, axis=1)
+                cost_q0 = np.sum((at_q0[0][far] * w) ** 2, axis=1)
+                better = cost_clip < cost_q0
+                if better.any():
+                    rows_b = far[better]
+                    out[rows_b] = _damped(
+                        residual, q0[rows_b], rows_b, w, budget, tol, (r[better], J[better]), max_correction,
+                        clipped[better],
+                    )  # fmt: skip
+                failed = np.union1d(failed, far[~better])
         if failed.size:
-            budget = DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
             start = (at_q0[0][failed], at_q0[1][failed])
             out[failed] = _damped(residual, q0[failed], failed, w, budget, tol, start, max_correction)
     return out
@@ -304,6 +319,7 @@ def _damped(
     tol: float,
     start=None,
     bound: float | None = None,
+    q_init: np.ndarray | None = None,
 ):
     """The damped mode from q0 (m, n) for the batch rows ``rows``: steps kept only where they do not raise |W r|.
 
@@ -311,12 +327,13 @@ def _damped(
     point), when λ passed LAMBDA_GIVE_UP, or, from half its budget on, when its last STALL_WINDOW steps did not
     lower its cost by STALL_FALL; all stop after the budget. A row keeps its best q. start: (r, J) at q0 when the
     caller has them (the Gauss-Newton mode's first evaluation), else evaluated here. bound: steps stay within
-    ``|q − q0| ≤ bound`` (None: no bound).
+    ``|q − q0| ≤ bound`` (None: no bound). q_init: where the steps start (within the bound; default q0), with
+    ``start`` evaluated there.
     """
     if len(q0) == 1:
-        return _damped_one(residual, q0, rows, w, budget, tol, start, bound)
+        return _damped_one(residual, q0, rows, w, budget, tol, start, bound, q_init)
     box = math.inf if bound is None else bound
-    out = q0.copy()
+    out = (q0 if q_init is None else q_init).copy()
     r, J = residual(out, rows) if start is None else start
     err, jac = r * w, J * w[:, None]
     cost = np.sum(err * err, axis=1)
@@ -351,11 +368,13 @@ def _damped(
     return out
 
 
-def _damped_one(residual: Residual, q0, rows, w: np.ndarray, budget: int, tol: float, start=None, bound=None):
+def _damped_one(
+    residual: Residual, q0, rows, w: np.ndarray, budget: int, tol: float, start=None, bound=None, q_init=None
+):
     """:func:`_damped` for one row (a control loop's call): the same steps and stopping rule, with the bookkeeping
     in Python floats and the 2-D solve, because at one row numpy's per-call cost is the price of every step."""
     n = q0.shape[1]
-    out = q0.copy()
+    out = (q0 if q_init is None else q_init).copy()
     r, J = residual(out, rows) if start is None else start
     w_col = w[:, None]
     err, jac = r[0] * w, J[0] * w_col
