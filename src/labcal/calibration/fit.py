@@ -40,9 +40,12 @@ forced) and **notes** (``FitResult.notes``, information). Codes:
   order) by more than :data:`FRAME_JUMP` and 4× their spread: the tracker moved during the session; names the row;
 - ``large-correction``: ``robot.correct`` moves a joint by more than :data:`MAX_CORRECTION` (0.05 rad revolute,
   10 mm prismatic) and the nominal tool by more than :data:`MAX_TOOL_CORRECTION` (10 mm or 0.02 rad) at 10 % or
-  more of the checked configurations — the data's own and 256 random ones within the data's joint ranges (near a
+  more of the checked configurations — the data's own and 256 random ones in the validity region (near a
   singular wrist a tiny orientation error needs tenths of a radian at joints 4 and 6 but hardly moves the tool,
-  so the joint bound alone would flag good fits); the message gives the largest. Real calibration corrections
+  so the joint bound alone would flag good fits); the message gives the largest and names the cause the evidence
+  shows (:func:`_correction_cause`: a tool mismatch with the identified tool, a weakly determined direction, a unit
+  slip or wrong model, or configurations outside the data). The validity region is the fitted configurations'
+  neighbourhood that every fit attaches to its robot (:mod:`labcal.compensator.validity`). Real calibration corrections
   are milliradians and millimetres; unit slips produced 0.1–0.6 rad;
 - ``rows-dropped``: a kept network was trained without more than 10 % of the rows (condition filter), with the
   cause of each group; when no network is kept the same count is a note (the dropped rows only ever feed the
@@ -53,6 +56,8 @@ forced) and **notes** (``FitResult.notes``, information). Codes:
 - ``few-poses``: fewer than 2 distinct poses per joint were fitted (the import's ``few-poses`` check, which
   ``--allow few-poses`` overrides at import but not here);
 - ``no-network``: ``ann`` alone could not train its network (the same causes): the fit is the registered nominal;
+- ``weak`` (a note): local POE held directions the data determine worse than ``error_bound`` at the tracker noise
+  at the nominal (:mod:`labcal.calibration.local_poe`, "Weak directions"); names them;
 - ``unobservable`` (a note): the targets cannot show some rotations of the tool (one target: the tool's
   orientation; targets on a line: the rotation about it), named in words. It is a note, not a warning: those
   directions are a property of the measuring set-up, not a failure of the data, and the fit leaves them at the
