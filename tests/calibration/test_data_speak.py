@@ -125,5 +125,5 @@ def test_the_large_correction_gate_names_a_weak_direction_when_the_rule_is_off()
     message = next(w["message"] for w in free.warnings if w["code"] == "large-correction")
     assert "weakly determined direction" in message and "unit slip" not in message
     held = fit(obs, model, "local-poe")
-    assert "large-correction" not in [w["code"] for w in held.warnings]
+    assert not held.warnings  # exports without --force: joint 5's sliver is all the validity region claims
     assert any(note.startswith("weak: ") and "tool frame" in note for note in held.notes)

@@ -388,8 +388,7 @@ def _with_validity(robot: CalibratedRobot, q: np.ndarray) -> CalibratedRobot:
     """The robot with its validity region: the neighbourhood of the fitted configurations (scaled joint space)."""
     from labcal.compensator.validity import ValidityRegion
 
-    weights = np.array([1.0 / robot.length_scale if t == "prismatic" else 1.0 for t in robot.model.joint_types])
-    return dataclasses.replace(robot, validity=ValidityRegion.from_configurations(q, weights))
+    return dataclasses.replace(robot, validity=ValidityRegion.from_configurations(q))
 
 
 def _data_ranges(q: np.ndarray) -> np.ndarray:
@@ -572,6 +571,9 @@ def _narrow_joints(robot, q: np.ndarray) -> str | None:
         return None  # no correction to extrapolate
     span = q.max(axis=0) - q.min(axis=0)
     claimed = np.asarray(robot.joint_ranges, dtype=float)
+    if robot.validity is not None:  # correct() refuses configurations outside the region: that is what it claims
+        reach = robot.validity.reach()
+        claimed = np.stack([np.maximum(claimed[:, 0], reach[:, 0]), np.minimum(claimed[:, 1], reach[:, 1])], axis=1)
     names = []
     for j, kind in enumerate(robot.model.joint_types):
         least = NARROW_JOINT.get(kind, NARROW_JOINT["revolute"])

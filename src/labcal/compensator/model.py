@@ -367,8 +367,9 @@ class CalibratedRobot:
             return
         i = int(np.argmax(d > region.radius))
         raise ValueError(
-            f"configuration {i} is {d[i]:.3g} rad (scaled joint distance) from the nearest configuration the "
-            f"calibration measured, beyond its validity radius {region.radius:.3g}: the data say nothing there; "
+            f"configuration {i} is {d[i]:.3g} (joint distance in units of each joint's spread in the data) from the "
+            f"nearest configuration the calibration measured, beyond its validity radius {region.radius:.3g}: the "
+            "data say nothing there; "
             "measure poses near it, or pass extrapolate=True to correct it anyway"
         )
 

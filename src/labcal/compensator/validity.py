@@ -4,8 +4,10 @@ A calibration is measured where its data are. The per-joint box of the data's ra
 taken in a small cube at one orientation move the wrist joints together with the arm joints, and the box lets every
 joint vary on its own, so most of its volume is configurations no pose resembled (the narrow series of issue 27:
 large corrections at 15 % of the box). The region is therefore the union of balls of radius ``radius`` around the
-fitted configurations (``centres``) in a scaled joint space: radians for revolute joints, metres divided by the
-robot's length scale for prismatic ones (a metre of travel counts as the arm's reach turned by a radian).
+fitted configurations (``centres``) in a scaled joint space: each joint divided by its spread in the data (standard
+deviation, at least :data:`MIN_SPREAD`). A joint the data swept is measured in units of that sweep; a joint the
+data barely moved (joint 5 of a series at one tool axis) keeps the region within a few of its tiny spreads of
+where it was, so nothing the data did not see is extrapolated along it.
 
 ``radius`` is twice the median distance from a fitted configuration to its nearest neighbour, at least
 :data:`MIN_RADIUS`: the spacing of the data themselves, so the balls of a well-spread series overlap into one
@@ -16,11 +18,12 @@ distance of a dropped configuration to the kept ones, so every fitted configurat
 
 Example::
 
-    >>> region = ValidityRegion.from_configurations(np.array([[0.0, 0.0], [0.2, 0.0], [0.4, 0.0]]))
-    >>> round(region.radius, 3), bool(region.inside(np.array([[0.3, 0.1]]))[0])
-    (0.4, True)
-    >>> float(region.distance(np.array([[0.4, 1.0]]))[0])
-    1.0
+    >>> q = np.array([[0.0, 1.0], [0.2, 1.0], [0.4, 1.0]])            # joint 2 never moved
+    >>> region = ValidityRegion.from_configurations(q)
+    >>> region.weights.round(3).tolist()                               # 1 / spread (joint 2: 1 / MIN_SPREAD)
+    [6.124, 1000.0]
+    >>> bool(region.inside(np.array([[0.3, 1.0]]))[0]), bool(region.inside(np.array([[0.3, 1.01]]))[0])
+    (True, False)
 """
 
 from __future__ import annotations
@@ -30,14 +33,15 @@ from dataclasses import dataclass
 import numpy as np
 
 MAX_CENTRES = 512  # configurations kept in a compensator file
-MIN_RADIUS = 0.05  # rad: below this the region would be the noise of the joint encoders' positioning
+MIN_SPREAD = 1e-3  # rad (m): the least spread a joint is scaled by (a joint that never moved: 1 mrad)
+MIN_RADIUS = 0.5  # spreads: the least radius (a single configuration, or many coincident ones)
 RADIUS_FACTOR = 2.0  # radius = factor × median nearest-neighbour distance of the data
 
 
 @dataclass(frozen=True, eq=False)
 class ValidityRegion:
-    """centres (c, n) in scaled joint units (rad; prismatic m / length_scale), radius (same units), weights (n,)
-    the factors that turn joint values into those units (1 for revolute, 1/length_scale for prismatic)."""
+    """centres (c, n) in scaled joint units, radius (same units), weights (n,) the factors that turn joint values
+    (rad, m) into those units: 1 / the joint's spread in the data."""
 
     centres: np.ndarray
     radius: float
@@ -46,7 +50,7 @@ class ValidityRegion:
     @classmethod
     def from_configurations(cls, q: np.ndarray, weights: np.ndarray | None = None) -> ValidityRegion:
         q = np.atleast_2d(np.asarray(q, dtype=float))
-        w = np.ones(q.shape[1]) if weights is None else np.asarray(weights, dtype=float)
+        w = 1.0 / np.maximum(q.std(axis=0), MIN_SPREAD) if weights is None else np.asarray(weights, dtype=float)
         x = np.unique(q * w, axis=0)
         if len(x) > 1:
             nearest = _nearest(x, x, exclude_self=True)
@@ -62,6 +66,13 @@ class ValidityRegion:
     def distance(self, q2: np.ndarray) -> np.ndarray:
         """(k,) scaled distance from each configuration (k, n) to the nearest centre."""
         return _nearest(np.atleast_2d(q2) * self.weights, self.centres)
+
+    def reach(self) -> np.ndarray:
+        """(n, 2) the least and greatest value of each joint inside the region (model joint units)."""
+        half = self.radius / self.weights
+        return np.stack(
+            [self.centres.min(axis=0) / self.weights - half, self.centres.max(axis=0) / self.weights + half], axis=1
+        )
 
     def inside(self, q2: np.ndarray) -> np.ndarray:
         return self.distance(q2) <= self.radius
