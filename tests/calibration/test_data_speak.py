@@ -66,7 +66,7 @@ def test_validity_region_refuses_configurations_away_from_the_data_unless_extrap
     assert region.inside(region.sample(100, np.random.default_rng(1))).all()
 
 
-def test_the_validity_region_is_stored_bounded_checked_and_old_files_still_load():
+def test_the_validity_region_is_stored_bounded_checked_and_old_files_still_load(tmp_path):
     model = load("ur10").model
     q = np.random.default_rng(0).uniform(-1, 1, (700, 6))
     region = ValidityRegion.from_configurations(q)
@@ -81,6 +81,11 @@ def test_the_validity_region_is_stored_bounded_checked_and_old_files_still_load(
         from_payload(edited)
     old = json.loads(json.dumps(to_payload(CalibratedRobot(nominal=model, model=robot.model))))
     assert "validity" not in old and from_payload(old)[0].validity is None
+    from labcal.compensator.io import load as load_compensator
+
+    for name in ("c.json", "c.npz"):
+        stored = load_compensator(robot.save(tmp_path / name)).robot.validity
+        assert np.array_equal(stored.centres, region.centres) and np.array_equal(stored.weights, region.weights)
 
 
 def test_the_large_correction_gate_names_a_tool_mismatch_with_the_identified_tool():

@@ -33,7 +33,7 @@ import numpy as np
 from labcal import features as feature_lib
 from labcal.atomicio import write_bytes, write_text
 from labcal.compensator.model import CalibratedRobot, Network
-from labcal.compensator.validity import ValidityRegion
+from labcal.compensator.validity import MAX_CENTRES, ValidityRegion
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 from labcal.names import duplicate, label_problem, name_problem, printable
@@ -515,7 +515,7 @@ def save(robot: CalibratedRobot, path, provenance: dict | None = None) -> Path:
 
 
 _ARRAY_KEYS = {"frames", "twists", "limits", "in_mean", "in_scale", "out_mean", "out_scale", "joint_ranges"}
-_ARRAY_KEYS |= {"T_tracker_base", "q", "q_cmd", "pose", "matrix", "offsets"}
+_ARRAY_KEYS |= {"T_tracker_base", "q", "q_cmd", "pose", "matrix", "offsets", "centres", "joint_scale"}
 
 
 def _split_arrays(obj, prefix: str, arrays: dict):
@@ -691,6 +691,8 @@ def _field_shapes(n: int) -> dict[str, tuple]:
             "network.in_scale": (-2,),
             "network.out_mean": (6,),
             "network.out_scale": (6,),
+            "validity.centres": (-3, n),
+            "validity.joint_scale": (n,),
         }
     )
     return shapes
@@ -698,8 +700,9 @@ def _field_shapes(n: int) -> dict[str, tuple]:
 
 def _check_npz_shapes(headers: dict[str, tuple], expected: dict, n: int, source: str) -> None:
     """Refuse member shapes that disagree with the payload's joint count, each other, or the size bounds."""
-    bound = {-1: None, -2: None}  # the golden count and the network's input count, fixed by the first array
-    limits = {-1: MAX_GOLDEN, -2: MAX_WIDTH}
+    # the golden count, the network's input count and the validity region's centres, fixed by the first array
+    bound = {-1: None, -2: None, -3: None}
+    limits = {-1: MAX_GOLDEN, -2: MAX_WIDTH, -3: MAX_CENTRES}
     for name, shape in headers.items():
         want = expected[name]
         if want is None:
@@ -715,7 +718,7 @@ def _check_npz_shapes(headers: dict[str, tuple], expected: dict, n: int, source:
             else:
                 ok = got == w
         if not ok:
-            shown = tuple("k" if w == -1 else "f" if w == -2 else w for w in want)
+            shown = tuple({-1: "k", -2: "f", -3: "c"}.get(w, w) for w in want)
             raise CompensatorFileError(
                 f"{source}: {name} has shape {shape}, expected {shown} for this {n}-joint "
                 f"robot (k ≤ {MAX_GOLDEN} golden vectors, f ≤ {MAX_WIDTH} network inputs)"

@@ -87,12 +87,12 @@ class ValidityRegion:
         return (c + u * r) / self.weights
 
     def as_dict(self) -> dict:
-        return {"centres": self.centres.tolist(), "radius": float(self.radius), "weights": self.weights.tolist()}
+        return {"centres": self.centres.tolist(), "radius": float(self.radius), "joint_scale": self.weights.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict, n: int) -> ValidityRegion:
         centres = np.asarray(d["centres"], dtype=float).reshape(-1, n)
-        weights = np.asarray(d["weights"], dtype=float).reshape(n)
+        weights = np.asarray(d["joint_scale"], dtype=float).reshape(n)
         radius = float(d["radius"])
         if not (len(centres) and np.isfinite(centres).all() and np.isfinite(weights).all() and weights.min() > 0):
             raise ValueError("validity: centres and weights must be finite numbers (weights > 0), at least one centre")
