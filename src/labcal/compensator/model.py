@@ -591,6 +591,12 @@ class CalibratedRobot:
         ``"paper"`` is eq. (24), q − δρ_a(q); ``"fixed-point"`` iterates q_cmd = q − δρ_a(q_cmd). Both apply the
         network alone, so they are refused (a ValueError saying why) unless the identified frames are the nominal
         ones and there is a network: the paper's ANN method. An empty (0, n) q gives an empty (0, n) answer.
+        A robot with a validity region (every fit's) never returns ``|q_cmd − q|`` above
+        :data:`labcal.compensator.solve.MAX_CORRECTION` (0.1 rad, the URScript's refusal bound): where Gauss-Newton's
+        answer lies beyond it (an ill-conditioned configuration: q5 ≈ 0, a stretched elbow) the damped iteration
+        finds the best pose within that box. Corrections are full-pose also with one or two targets: the identified
+        joint axes determine the orientation, and a position-only solve was 3× worse at a tool point 150 mm from
+        the reflector (benchmarks/data_speak.py).
         damped_iterations: the damped iteration's step budget (default solve.DAMPED_BUDGET); a control loop
         that must bound its worst-case time lowers it (near-singular configurations then stop earlier, no worse
         than at q).
