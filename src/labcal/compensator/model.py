@@ -386,7 +386,7 @@ class CalibratedRobot:
             return True
         if not (all(map(operator.le, lo, values)) and all(map(operator.le, values, hi))):
             return False
-        return self.validity is None or bool(self.validity.inside(q[None])[0])
+        return self.validity is None or self.validity.contains(q)
 
     @functools.cached_property
     def _range_lists(self) -> tuple[list, list]:

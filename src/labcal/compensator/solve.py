@@ -149,7 +149,7 @@ def solve(
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
         out, failed = rows.out, rows.failed()
         budget = DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
-        if max_correction is not None:
+        if max_correction is not None and not (k == 1 and failed.size == 0 and _within(out[0], q0[0], max_correction)):
             far = np.setdiff1d(np.flatnonzero(~(np.abs(out - q0).max(axis=1) <= max_correction)), failed)
             if far.size:
                 # A Gauss-Newton answer beyond the box: the damped mode starts from it clipped into the box (the
@@ -171,6 +171,11 @@ def solve(
             start = (at_q0[0][failed], at_q0[1][failed])
             out[failed] = _damped(residual, q0[failed], failed, w, budget, tol, start, max_correction)
     return out
+
+
+def _within(q: np.ndarray, q0: np.ndarray, bound: float) -> bool:
+    """max |q − q0| ≤ bound for one row, in Python floats (a control loop's call)."""
+    return max(map(abs, map(float.__sub__, q.tolist(), q0.tolist()))) <= bound
 
 
 class _Rows:
