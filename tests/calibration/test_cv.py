@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import numpy as np
@@ -231,11 +232,20 @@ def test_a_tracker_moved_during_the_session_is_a_frame_jump_warning_naming_the_r
 
 def test_a_joint_the_data_hardly_moved_is_a_narrow_joint_warning_for_a_geometric_model():
     # the axis is fitted on a sliver and extrapolated over the robot's limits, out of sight of the folds
+    from labcal.calibration.fit import _narrow_joints
+
     q = random_poses(60).copy()
     q[:, 1] = -1.2 + np.random.default_rng(4).uniform(-0.01, 0.01, len(q))
     r = fit(Observations(q, measure(q, errors=ErrorSpec.paper()), TARGETS), UR10.model, "local-poe")
-    message = next(w["message"] for w in r.warnings if w["code"] == "narrow-joint")
+    message = _narrow_joints(dataclasses.replace(r.robot, validity=None), q)  # a compensator claiming the limits
     assert message.startswith("joint 2 moved over 1.") and "joint 1" not in message
+    # the fitted compensator's validity region keeps joint 2 on its sliver (issue 27): nothing is extrapolated, no
+    # warning, and a configuration with joint 2 off the sliver is refused
+    assert "narrow-joint" not in codes(r)
+    off = q[5].copy()
+    off[1] += 0.1
+    with pytest.raises(ValueError, match="validity radius"):
+        r.robot.correct(off)
     q = q.copy()  # Observations keeps (and freezes) the array it was given
     q[:, 1] = -1.2 + np.random.default_rng(4).uniform(-0.1, 0.1, len(q))  # 11°: enough travel to fit the axis
     r = fit(Observations(q, measure(q, errors=ErrorSpec.paper()), TARGETS), UR10.model, "local-poe")
@@ -316,9 +326,13 @@ def test_a_good_fit_of_singular_wrist_sweeps_is_not_a_large_correction():
     obs = Observations(scn.q, scn.points, scn.targets)
     r = fit(obs, UR10.model, "local-poe")
     # with the damped budget the large-correction check uses (a default call stops near-singular rows sooner)
-    dq = np.abs(r.robot.correct(obs.q, extrapolate=True, damped_iterations=30) - obs.q)
-    assert dq.max() > 0.05  # the wrist joints do move by a tenth of a radian on these data…
+    unbounded = dataclasses.replace(r.robot, validity=None)  # no validity region: corrections are not bounded
+    dq = np.abs(unbounded.correct(obs.q, extrapolate=True, damped_iterations=30) - obs.q)
+    assert dq.max() > 0.05  # the wrist joints would move by about a tenth of a radian on these data…
     assert "large-correction" not in codes(r), r.warnings  # …and the fit is still good
+    # the fitted compensator bounds that tail (issue 27): at most solve.MAX_CORRECTION, as its URScript
+    dq = np.abs(r.robot.correct(obs.q, extrapolate=True, damped_iterations=30) - obs.q)
+    assert dq.max() <= 0.1 + 1e-12
 
 
 def test_fewer_than_two_poses_per_joint_block_the_export_even_when_the_fit_looks_good():

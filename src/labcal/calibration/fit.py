@@ -40,9 +40,12 @@ forced) and **notes** (``FitResult.notes``, information). Codes:
   order) by more than :data:`FRAME_JUMP` and 4× their spread: the tracker moved during the session; names the row;
 - ``large-correction``: ``robot.correct`` moves a joint by more than :data:`MAX_CORRECTION` (0.05 rad revolute,
   10 mm prismatic) and the nominal tool by more than :data:`MAX_TOOL_CORRECTION` (10 mm or 0.02 rad) at 10 % or
-  more of the checked configurations — the data's own and 256 random ones within the data's joint ranges (near a
+  more of the checked configurations — the data's own and 256 random ones in the validity region (near a
   singular wrist a tiny orientation error needs tenths of a radian at joints 4 and 6 but hardly moves the tool,
-  so the joint bound alone would flag good fits); the message gives the largest. Real calibration corrections
+  so the joint bound alone would flag good fits); the message gives the largest and names the cause the evidence
+  shows (:func:`_correction_cause`: a tool mismatch with the identified tool, a weakly determined direction, a unit
+  slip or wrong model, or configurations outside the data). The validity region is the fitted configurations'
+  neighbourhood that every fit attaches to its robot (:mod:`labcal.compensator.validity`). Real calibration corrections
   are milliradians and millimetres; unit slips produced 0.1–0.6 rad;
 - ``rows-dropped``: a kept network was trained without more than 10 % of the rows (condition filter), with the
   cause of each group; when no network is kept the same count is a note (the dropped rows only ever feed the
@@ -53,6 +56,8 @@ forced) and **notes** (``FitResult.notes``, information). Codes:
 - ``few-poses``: fewer than 2 distinct poses per joint were fitted (the import's ``few-poses`` check, which
   ``--allow few-poses`` overrides at import but not here);
 - ``no-network``: ``ann`` alone could not train its network (the same causes): the fit is the registered nominal;
+- ``weak`` (a note): local POE held directions the data determine worse than ``error_bound`` at the tracker noise
+  at the nominal (:mod:`labcal.calibration.local_poe`, "Weak directions"); names them;
 - ``unobservable`` (a note): the targets cannot show some rotations of the tool (one target: the tool's
   orientation; targets on a line: the rotation about it), named in words. It is a note, not a warning: those
   directions are a property of the measuring set-up, not a failure of the data, and the fit leaves them at the
@@ -323,6 +328,7 @@ def _fit(
         info_cv = cv.summary(chosen_key)
     else:
         chosen_key, info_cv = chosen, None
+    robot = _with_validity(robot, fit_obs.q)
     metrics = split_table(before, robot, obs)
     warnings = _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, seed, notes)
     if "no_network" in info:
@@ -385,6 +391,13 @@ def _fit_ann_or_nominal(fit_obs, before, seed, options):
         reason = f"the paper's network could not be trained: {err}; this fit is the registered nominal (no correction)"
         return dataclasses.replace(before, method="ann"), {"method": "ann", "no_network": reason}
     return dataclasses.replace(robot, joint_ranges=_data_ranges(fit_obs.q)), info
+
+
+def _with_validity(robot: CalibratedRobot, q: np.ndarray) -> CalibratedRobot:
+    """The robot with its validity region: the neighbourhood of the fitted configurations (scaled joint space)."""
+    from labcal.compensator.validity import ValidityRegion
+
+    return dataclasses.replace(robot, validity=ValidityRegion.from_configurations(q))
 
 
 def _data_ranges(q: np.ndarray) -> np.ndarray:
@@ -482,6 +495,15 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
                 f"were left at the nominal. Unidentifiable parameter combinations (largest components): {shown}. "
                 "Measure more, better spread configurations (every joint moved, not only single-joint sweeps)",
             ))  # fmt: skip
+        if lp.get("weak"):
+            lines = lp.get("weak_directions", [])
+            notes.append(
+                f"weak: {lp['weak']} of {lp['rank']} identifiable direction(s) are held at the nominal — the data "
+                f"determine them worse than ±{lp['error_bound'] * 1e3:g} mm at {lp['noise'] * 1e3:g} mm tracker "
+                f"noise, so the calibration corrects nothing along them ({lp['identified']} identified): "
+                + "; ".join(lines[:4])
+                + (f"; … ({len(lines) - 4} more)" if len(lines) > 4 else "")
+            )
     in_sample = float(np.mean(point_errors(robot, fit_obs)))
     if cv is not None and not cv.available(chosen_key):
         notes.append(
@@ -536,7 +558,7 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
     points = point_residual_warning(metrics.get("all"))
     if points:
         warnings.append(points)
-    big = _large_correction(robot, fit_obs.q, seed)
+    big = _large_correction(robot, fit_obs.q, seed, stage1[1] if uses_stage1 else None)
     if big:
         warnings.append(_warn("large-correction", big))
     narrow = _narrow_joints(robot, fit_obs.q)
@@ -558,6 +580,9 @@ def _narrow_joints(robot, q: np.ndarray) -> str | None:
         return None  # no correction to extrapolate
     span = q.max(axis=0) - q.min(axis=0)
     claimed = np.asarray(robot.joint_ranges, dtype=float)
+    if robot.validity is not None:  # correct() refuses configurations outside the region: that is what it claims
+        reach = robot.validity.reach()
+        claimed = np.stack([np.maximum(claimed[:, 0], reach[:, 0]), np.minimum(claimed[:, 1], reach[:, 1])], axis=1)
     names = []
     for j, kind in enumerate(robot.model.joint_types):
         least = NARROW_JOINT.get(kind, NARROW_JOINT["revolute"])
@@ -620,19 +645,25 @@ def _frame_jump(robot, obs) -> str | None:
     )
 
 
-def _large_correction(robot, q_data: np.ndarray, seed: int) -> str | None:
+def _large_correction(robot, q_data: np.ndarray, seed: int, lp: dict | None = None) -> str | None:
     """A message when robot.correct makes large corrections (module docstring: MAX_CORRECTION), else None.
 
     A correction is large when it moves a joint beyond MAX_CORRECTION *and* moves the nominal tool beyond
     MAX_TOOL_CORRECTION: near a singular wrist a milliradian of orientation error needs tenths of a radian at
     joints 4 and 6 while the tool barely moves, which is the geometry, not a bad fit; a unit slip or a wrong model
-    moves both, nearly everywhere.
+    moves both, nearly everywhere. The configurations checked are the data's own and random ones in the
+    compensator's validity region (:mod:`labcal.compensator.validity`; the data's joint box without one). The
+    message names the cause the evidence shows (:func:`_correction_cause`).
     """
     if robot.network is None and robot.model is robot.nominal:
         return None
-    lo, hi = q_data.min(axis=0), q_data.max(axis=0)
     rng = np.random.default_rng([seed, 49979687])
-    q = np.concatenate([q_data, rng.uniform(lo, hi, size=(_CORRECTION_SAMPLES, q_data.shape[1]))])
+    if robot.validity is not None:
+        extra = robot.validity.sample(_CORRECTION_SAMPLES, rng)
+    else:
+        lo, hi = q_data.min(axis=0), q_data.max(axis=0)
+        extra = rng.uniform(lo, hi, size=(_CORRECTION_SAMPLES, q_data.shape[1]))
+    q = np.concatenate([q_data, extra])
     with np.errstate(all="ignore"):
         # An offline check, not a control loop: a damped row may travel as far as 30 clipped steps take it, so a
         # slipped joint shows as the largest correction even where its rows leave Gauss-Newton's range.
@@ -651,13 +682,70 @@ def _large_correction(robot, q_data: np.ndarray, seed: int) -> str | None:
     j = int(np.argmax(np.median(np.nan_to_num(over[large], posinf=1e300), axis=0)))
     i = int(np.argmax(np.where(large, np.nan_to_num(over[:, j], posinf=1e300), -1.0)))
     unit, factor = ("rad", 1.0) if robot.model.joint_types[j] != "prismatic" else ("mm", 1e3)
+    where = "in the data's validity region" if robot.validity is not None else "within the data's joint ranges"
+    at_data = float(np.mean(large[: len(q_data)]))
     return (
         f"the compensator would move joint {j + 1} by {dq[i, j] * factor:.3g} {unit} and the tool by "
         f"{moved[i] * 1e3:.3g} mm / {np.degrees(turned[i]):.2g}° (bounds {bound[j] * factor:g} {unit}, "
         f"{MAX_TOOL_CORRECTION[0] * 1e3:g} mm / {np.degrees(MAX_TOOL_CORRECTION[1]):.2g}°; {share:.0%} of "
-        f"{q.shape[0]} checked configurations within the data's joint ranges exceed both): real calibration "
-        "corrections are milliradians and millimetres — a unit slip (degrees as radians, mm as m) or a wrong robot "
-        "model is likely"
+        f"{q.shape[0]} checked configurations {where} exceed both, {at_data:.0%} of the data's own): "
+        "real calibration corrections are milliradians and millimetres — " + _correction_cause(robot, at_data, lp)
+    )
+
+
+TOOL_MISMATCH = 5e-3  # m: an identified tool frame this far from the robot file's is a different tool, not an error
+WEAK_NOTE = 1e-3  # m: the noise's share of the least-determined identified direction that makes it the suspect
+
+
+def _correction_cause(robot, at_data: float, lp: dict | None) -> str:
+    """The cause of large corrections the evidence shows, in words, in this order: a tool mismatch (the identified
+    tool frame is far from the robot file's, and the data determine that offset: over 3 standard deviations); a
+    weakly determined direction (the least-determined identified direction moves by more than WEAK_NOTE on the
+    noise alone — a tool offset the data do not determine is one; its corrections are large at the data too, since
+    the compensator corrects the pose the points cannot see); a unit slip or wrong model (large corrections at the
+    measured configurations themselves, from well-determined parameters); else configurations outside the data."""
+    delta = se3.log_se3(se3.inv(robot.nominal.frames[-1]) @ robot.model.frames[-1])
+    offset, angle = float(np.linalg.norm(delta[:3])), float(np.linalg.norm(delta[3:]))
+    std = None if lp is None or lp.get("std") is None else np.asarray(lp["std"], float)[-1]
+    determined = (
+        std is None
+        or not np.isfinite(std).all()
+        or (offset > 3 * float(np.linalg.norm(std[:3])) or angle > 3 * float(np.linalg.norm(std[3:])))
+    )
+    if (offset > TOOL_MISMATCH or angle > MAX_TOOL_CORRECTION[1]) and determined:
+        p = robot.model.frames[-1][:3, 3] * 1e3
+        p0 = robot.nominal.frames[-1][:3, 3] * 1e3
+        return (
+            f"a tool mismatch: the identified tool frame sits at ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm from the "
+            f"last joint's frame, {offset * 1e3:.3g} mm / {np.degrees(angle):.2g}° from the robot file's "
+            f"({p0[0]:.1f}, {p0[1]:.1f}, {p0[2]:.1f}) mm, and the compensator moves the joints to bring the "
+            "measurement fixture onto the nominal tool: give the fixture's tool in the robot file"
+        )
+    if lp is not None and lp.get("singular_values") is not None and lp.get("weak_threshold") is not None:
+        s = np.asarray(lp["singular_values"], float)
+        kept = s[s > max(float(lp["weak_threshold"]), 1e-6 * float(s.max()))]
+        noise = float(lp.get("noise", 0.05e-3))
+        if kept.size and noise / float(kept.min()) > WEAK_NOTE:
+            tool = (
+                f" (the identified tool is {offset * 1e3:.3g} mm from the robot file's, ±"
+                f"{float(np.linalg.norm(std[:3])) * 1e3:.2g} mm)"
+                if std is not None and offset > TOOL_MISMATCH
+                else ""
+            )
+            return (
+                f"a weakly determined direction{tool}: the least-determined identified direction moves by "
+                f"±{noise / float(kept.min()) * 1e3:.2g} mm on the tracker noise alone, and the compensator corrects "
+                "the pose along it though the points barely see it; measure more spread poses (other orientations), "
+                "or fit with the default error_bound so it stays at the nominal"
+            )
+    if at_data >= _CORRECTION_SHARE:
+        return (
+            "the corrections are large at the measured configurations themselves: a unit slip (degrees as radians, "
+            "mm as m) or a wrong robot model is likely"
+        )
+    return (
+        "configurations outside the data: the corrections are small at the measured configurations and large "
+        "only away from them; measure poses where the robot will work"
     )
 
 

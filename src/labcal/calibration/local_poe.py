@@ -32,6 +32,20 @@ scara4 with 60 random configurations: 1.0e-2 … 2.5e-2 against 1.2e-8 … 1.4e-
 Optional Levenberg-Marquardt damping (``damping``, relative to s_max²) is raised automatically when a step
 does not lower the cost.
 
+**Weak directions** (issue 27). A direction of the scaled parameter space with singular value s is estimated with
+the noise's standard deviation ``σ / s`` (σ: the tracker noise per coordinate). Where that exceeds ``error_bound``,
+a bound on any real geometric error along one direction, the data do not measure it: its step would be noise, and on
+narrow data (an ISO-9283 cube at one tool axis) such directions drift by tens of millimetres — the tool length
+along the flange axis traded against the base translation — which the points barely see but the compensator turns
+into joint motion. So singular values ``s ≤ σ / error_bound`` (defaults 0.05 mm / 5 mm = 0.01) are truncated
+like the rank-deficient ones: those directions stay at the start (the nominal). The info counts them
+(``weak``, out of the numerical ``rank``: ``identified = rank − weak``) and names each with ``σ / s``. Chosen over a
+prior toward the nominal (``weak_rule="prior"``, weight ``(σ / error_bound)²``): on the narrow series both keep the
+held-out error and bound the corrections, but the truncation says which directions it held, leaves them exactly at
+the nominal (the prior leaves part of the drift), and leaves every fit with no weak direction bit-identical, where the
+prior pulls every direction a little (benchmarks/data_speak.py). Its result is the same for bounds of 1-5 mm on the
+narrow series; on ordinary data the smallest identified singular value is ~0.3-1, 30× above the threshold.
+
 **What the targets cannot show.** The tool frame's error is one of the parameters, so the points fix it only as
 far as the targets span: one target (or targets closer than 1 mm) shows no rotation of the tool about it, 3
 directions (the tool's orientation; its position — where the target sits on the flange — is still identified),
@@ -62,6 +76,14 @@ from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 
 AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
 DEFAULT_RANK_RTOL = 1e-6
+# m: the tracker noise per coordinate that the weak-direction rule assumes (the simulation's default tracker; laser
+# trackers quote 0.01-0.05 mm over a cell, and a fit's residual of 0.05 mm includes the non-geometric errors too)
+TRACKER_NOISE = 0.05e-3
+# m (angles times the length scale): a bound on the real geometric error along any one direction of the scaled
+# parameter space. Robots' frame errors are tenths of a millimetre to a few millimetres; a direction whose estimate
+# the noise alone moves by more than this is not measured by the data, and stays at the nominal. On the narrow
+# series of benchmarks/data_speak.py bounds of 1-5 mm hold the same directions (10 mm and above fewer).
+ERROR_BOUND = 5e-3
 
 
 class IdentificationError(ValueError):
@@ -167,6 +189,8 @@ def _gauss_newton(
     damping: float,
     seen: np.ndarray | None = None,
     fixed: np.ndarray | None = None,
+    s_min: float = 0.0,
+    prior: bool = False,
 ) -> dict:
     """Iterated, rank-revealing Gauss-Newton / LM. Returns the final model, T_tb and diagnostics.
 
@@ -175,7 +199,13 @@ def _gauss_newton(
     rotation about the targets, a lever of millimetres for a near-miss such as a point beside the last joint's
     axis) are removed from the Jacobian's columns, so every parameter combination that acts only through them —
     those directions and whatever the robot's redundant parameters turn them into — is a null direction of every
-    step and stays at the start."""
+    step and stays at the start.
+
+    s_min: the weak-direction threshold (module docstring, "Weak directions"): singular values of the scaled
+    Jacobian at or below it are held like the rank-deficient ones; ``weak`` counts them (among the numerical rank)
+    and ``weak_space`` is their basis (SI units). prior: instead of holding them, pull every direction toward the
+    start with the weight ``s_min²`` (a Gaussian prior of std ``error_bound`` on the scaled parameters; the
+    alternative the benchmark compares, benchmarks/data_speak.py)."""
     n_params = 6 * len(frames) + (6 if estimate_base else 0)
     # Parameter scaling: angular parameters in units of length_scale metres (unit-consistent truncation).
     scale = metric.parameter_weights(n_params // 6, length_scale)
@@ -195,16 +225,22 @@ def _gauss_newton(
     lam = damping
     converged = False
     iterations = 0
+    mu, offset = (s_min**2, np.zeros(n_params)) if prior else (0.0, None)  # the prior's weight, scaled offset
+    truncate = 0.0 if prior else s_min
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is reported
-        lam_k, V, keep = _eig(scaled(J), rank_rtol)
-        g = V[:, keep].T @ (scaled(J).T @ r)
-        step = scale * (V[:, keep] @ (g / (lam_k[keep] + lam * lam_k[-1])))
+        lam_k, V, keep = _eig(scaled(J), rank_rtol, truncate)
+        grad = scaled(J).T @ r if offset is None else scaled(J).T @ r - mu * offset
+        g = V[:, keep].T @ grad
+        step = scale * (V[:, keep] @ (g / (lam_k[keep] + mu + lam * lam_k[-1])))
         cand_model, cand_T = _apply(model, T_tb, step, frames, estimate_base)
         r_c, J_c = _residual_and_jacobian(cand_model, cand_T, q, targets, measured, frames, estimate_base, seen)
         cost_c = float(r_c @ r_c)
+        offset_c = None if offset is None else offset + step / scale
+        if offset is not None:
+            cost_c += mu * float(offset_c @ offset_c)
         step_size = float(np.linalg.norm(step / scale))
         if cost_c <= cost * (1 + 1e-12) or step_size < tol:
-            model, T_tb, r, J, cost = cand_model, cand_T, r_c, J_c, cost_c
+            model, T_tb, r, J, cost, offset = cand_model, cand_T, r_c, J_c, cost_c, offset_c
             history.append(cost)
             lam = lam / 10 if lam > 1e-12 else 0.0
             if step_size < tol:
@@ -215,14 +251,15 @@ def _gauss_newton(
             if lam > 1e6:
                 break
     # Final linearisation: rank, null space and parameter covariance at the solution.
-    lam_k, V, keep = _eig(scaled(J), rank_rtol)
-    rank = int(keep.sum())
-    dof = max(r.size - rank, 1)
+    lam_k, V, keep = _eig(scaled(J), rank_rtol, truncate)
+    numeric = np.sqrt(lam_k) > rank_rtol * np.sqrt(lam_k[-1])  # the rank-revealing threshold alone
+    weak = numeric & ~keep
+    rank = int(numeric.sum())
+    dof = max(r.size - int(keep.sum()), 1)
     sigma2 = cost / dof
     Vk = V[:, keep] / np.sqrt(lam_k[keep])
     cov_scaled = sigma2 * (Vk @ Vk.T)
     std = np.sqrt(np.clip(np.diag(cov_scaled), 0, None)) * scale
-    null_full = V[:, ~keep] * scale[:, None]
     s = np.sqrt(np.clip(lam_k, 0, None))[::-1]
     return dict(
         model=model,
@@ -231,7 +268,10 @@ def _gauss_newton(
         singular_values=s,
         std=std,
         sigma=math.sqrt(sigma2),
-        null_space=null_full,
+        null_space=V[:, ~numeric] * scale[:, None],
+        weak=int(weak.sum()),
+        weak_space=V[:, weak] * scale[:, None],
+        weak_singular_values=np.sqrt(np.clip(lam_k[weak], 0, None)),
         iterations=iterations,
         converged=converged,
         cost_history=history,
@@ -239,8 +279,22 @@ def _gauss_newton(
     )
 
 
-def _eig(Js: np.ndarray, rank_rtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Eigen-decomposition of the scaled normal matrix: eigenvalues λ = s² (ascending), vectors, kept mask.
+def _prior(weak_rule: str) -> bool:
+    if weak_rule not in ("truncate", "prior"):
+        raise ValueError(f"weak_rule must be 'truncate' or 'prior', got {weak_rule!r}")
+    return weak_rule == "prior"
+
+
+def _weak_threshold(noise: float, error_bound: float) -> float:
+    """The singular value (scaled Jacobian, unitless) at or below which a direction is weak: noise / error_bound."""
+    if not (noise >= 0 and error_bound > 0):
+        raise ValueError(f"noise must be ≥ 0 and error_bound > 0 (m), got {noise!r} and {error_bound!r}")
+    return float(noise / error_bound)
+
+
+def _eig(Js: np.ndarray, rank_rtol: float, s_min: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eigen-decomposition of the scaled normal matrix: eigenvalues λ = s² (ascending), vectors, kept mask
+    (s above ``rank_rtol · s_max`` and above ``s_min``, the weak-direction threshold).
 
     The normal matrix (p × p) replaces an SVD of the tall Jacobian: LAPACK's SVD was up to 100× slower on a
     loaded 2-core machine (threaded OpenBLAS), and with s > rank_rtol · s_max, rank_rtol ≥ 1e-7, squaring the
@@ -248,14 +302,18 @@ def _eig(Js: np.ndarray, rank_rtol: float) -> tuple[np.ndarray, np.ndarray, np.n
     """
     lam, V = np.linalg.eigh(Js.T @ Js)
     lam = np.clip(lam, 0.0, None)
-    keep = np.sqrt(lam) > rank_rtol * np.sqrt(lam[-1])
+    s = np.sqrt(lam)
+    keep = (s > rank_rtol * s[-1]) & (s > s_min)
     return lam, V, keep
 
 
-def _describe_null(null: np.ndarray, labels: list[str], top: int = 2) -> list[str]:
-    """One line per unidentifiable direction: its largest components (after a canonicalising rotation)."""
+def _describe_null(null: np.ndarray, labels: list[str], top: int = 2, rotate: bool = True) -> list[str]:
+    """One line per unidentifiable direction: its largest components (after a canonicalising rotation unless
+    ``rotate`` is False: the weak directions are singular vectors, each with its own singular value)."""
     if null.shape[1] == 0:
         return []
+    if not rotate:
+        return [_describe_null(null[:, [i]], labels, top)[0] for i in range(null.shape[1])]
     # Rotate the basis so each vector is as concentrated as possible (pivoted QR on the transpose).
     import scipy.linalg
 
@@ -458,6 +516,9 @@ def fit_local_poe(
     damping: float = 0.0,
     length_scale: float | None = None,
     start: CalibratedRobot | None = None,
+    noise: float = TRACKER_NOISE,
+    error_bound: float = ERROR_BOUND,
+    weak_rule: str = "truncate",
 ) -> tuple[CalibratedRobot, dict]:
     """Identify the local-POE frame errors δζ_j, j = 1 … n+1 (eq. 11) from three-point measurements.
 
@@ -468,6 +529,9 @@ def fit_local_poe(
     to s_max² (0: pure Gauss-Newton with automatic damping on a failed step). start: a robot to start the
     iteration from instead of the nominal (cross-validation starts each fold from the fit on all rows: the
     iteration converges to the same minimum in a few steps; identified errors stay relative to ``nominal``).
+    noise, error_bound: the weak-direction rule (module docstring): a direction whose singular value is at or below
+    ``noise / error_bound`` stays where it started (``error_bound=math.inf`` switches the rule off). weak_rule:
+    ``"truncate"`` (that rule) or ``"prior"`` (a prior toward the start of std error_bound instead; for comparison).
 
     Returns the calibrated robot (identified frames, no network) and an info dict:
     ``rank``, ``expected_rank``, ``n_params``, ``unidentifiable`` (count), ``null_directions`` (text: the
@@ -475,6 +539,9 @@ def fit_local_poe(
     in SI units, rows labelled by ``param_labels``),
     ``target_geometry`` ("point", "line" or "plane": the targets seen), ``unobservable`` (words: the tool
     rotations those targets cannot show, counted out of ``expected_rank``; empty for three non-collinear targets),
+    ``weak`` (count of identifiable directions held at the nominal by the weak-direction rule, counted out of
+    ``identified`` = ``rank − weak``), ``weak_directions`` (text, as ``null_directions``, each with the noise's
+    standard deviation along it), ``weak_space`` ((n_params, weak) basis, SI units), ``weak_threshold``,
     ``delta_zeta`` (n+1, 6) total identified frame errors w.r.t. the nominal frames (zero rows for frames that
     were not estimated), ``std`` (n+1, 6) their standard deviations (from the residual variance and the truncated
     pseudo-inverse; NaN where not estimated), ``T_tracker_base`` (+ ``T_tracker_base_std`` (6,)), ``sigma`` (m,
@@ -514,6 +581,8 @@ def fit_local_poe(
         damping=damping,
         seen=_seen_rows(obs, rows),
         fixed=structural["basis"],
+        s_min=_weak_threshold(noise, error_bound),
+        prior=_prior(weak_rule),
     )
     robot_model, X, T_tb = split_robot(nominal, out["model"], out["T_tb"] if estimate_base else None, obs.q[rows])
     T_tb = out["T_tb"] if T_tb is None else T_tb
@@ -535,8 +604,20 @@ def fit_local_poe(
     scale = metric.parameter_weights(len(labels) // 6, L)
     null_lines = _describe_null(_without(out["null_space"], structural["basis"], scale), labels)
     n_params = len(labels)
+    weak_words = _describe_null(out["weak_space"], labels, 3, rotate=False)
+    weak_lines = [
+        f"{line} (the noise alone would move it by ±{noise / sv * 1e3:.3g} mm)"
+        for line, sv in zip(weak_words, out["weak_singular_values"], strict=True)
+    ]
     info = {
         "rank": out["rank"],
+        "weak": out["weak"],
+        "identified": out["rank"] - out["weak"],
+        "weak_directions": weak_lines,
+        "weak_space": out["weak_space"],
+        "weak_threshold": _weak_threshold(noise, error_bound),
+        "noise": float(noise),
+        "error_bound": float(error_bound),
         "expected_rank": needed,
         "n_params": n_params,
         "unidentifiable": n_params - out["rank"],

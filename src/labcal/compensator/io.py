@@ -33,6 +33,7 @@ import numpy as np
 from labcal import features as feature_lib
 from labcal.atomicio import write_bytes, write_text
 from labcal.compensator.model import CalibratedRobot, Network
+from labcal.compensator.validity import MAX_CENTRES, ValidityRegion
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 from labcal.names import duplicate, label_problem, name_problem, printable
@@ -153,11 +154,20 @@ def _checked_fields(payload: dict) -> tuple[str, ...]:
 
 def field_checksums(payload: dict) -> dict[str, str]:
     """sha256 of each checked field's canonical JSON (floats written exactly): {field: hex}."""
+    return _optional_checksums(payload, _checked_fields(payload))
+
+
+def _optional_checksums(payload: dict, names) -> dict[str, str]:
     out = {}
-    for name in _checked_fields(payload):
+    for name in names:
         text = json.dumps(_canonical(payload.get(name)), sort_keys=True, separators=(",", ":"))
         out[name] = hashlib.sha256(text.encode()).hexdigest()
     return out
+
+
+# Fields added after schema 2 was published: checked when the file has them (or their checksum), so files written
+# before them still load (a compensator without a validity region falls back to the joint ranges).
+OPTIONAL_CHECKED_FIELDS = ("validity",)
 
 
 def _check_checksums(data: dict, source: str) -> None:
@@ -167,7 +177,9 @@ def _check_checksums(data: dict, source: str) -> None:
             f"{source}: no checksums field: the file was damaged or edited — refusing to load it"
         )
     got = field_checksums(data)
-    for name in _checked_fields(data):
+    optional = tuple(name for name in OPTIONAL_CHECKED_FIELDS if name in data or name in stored)
+    got.update(_optional_checksums(data, optional))
+    for name in _checked_fields(data) + optional:
         if stored.get(name) != got[name]:
             raise CompensatorFileError(
                 f"{source}: {name} does not match its checksum: the file was edited or damaged — refusing to load it "
@@ -213,7 +225,11 @@ def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
             "pose": robot.predict_pose(q).tolist(),
         },
     }
+    if robot.validity is not None:
+        payload["validity"] = robot.validity.as_dict()
     payload["checksums"] = field_checksums(payload)
+    if robot.validity is not None:
+        payload["checksums"].update(_optional_checksums(payload, OPTIONAL_CHECKED_FIELDS))
     return payload
 
 
@@ -460,7 +476,18 @@ def _robot_from(data: dict, source: str, legacy: bool) -> CalibratedRobot:
         method=str(data.get("method", "")),
         joint_map=joint_map,
         measurement_tool=None if data.get("measurement_tool") is None else np.asarray(data["measurement_tool"], float),
+        validity=_validity_from(data.get("validity"), nominal.n, source),
     )
+
+
+def _validity_from(value, n: int, source: str) -> ValidityRegion | None:
+    """The stored validity region, None for a file written without one (the joint ranges alone then)."""
+    if value is None:
+        return None
+    try:
+        return ValidityRegion.from_dict(value, n)
+    except (KeyError, TypeError, ValueError) as err:
+        raise CompensatorFileError(f"{source}: validity is not a validity region of {n} joints: {err}") from None
 
 
 def _check_golden(robot: CalibratedRobot, q, q_cmd, pose, method: str, source: str) -> None:
@@ -508,6 +535,7 @@ def save(robot: CalibratedRobot, path, provenance: dict | None = None) -> Path:
 
 _ARRAY_KEYS = {"frames", "twists", "limits", "in_mean", "in_scale", "out_mean", "out_scale", "joint_ranges"}
 _ARRAY_KEYS |= {"T_tracker_base", "q", "q_cmd", "pose", "matrix", "offsets", "measurement_tool"}
+_ARRAY_KEYS |= {"centres", "joint_scale"}
 
 
 def _split_arrays(obj, prefix: str, arrays: dict):
@@ -684,6 +712,8 @@ def _field_shapes(n: int) -> dict[str, tuple]:
             "network.in_scale": (-2,),
             "network.out_mean": (6,),
             "network.out_scale": (6,),
+            "validity.centres": (-3, n),
+            "validity.joint_scale": (n,),
         }
     )
     return shapes
@@ -691,8 +721,9 @@ def _field_shapes(n: int) -> dict[str, tuple]:
 
 def _check_npz_shapes(headers: dict[str, tuple], expected: dict, n: int, source: str) -> None:
     """Refuse member shapes that disagree with the payload's joint count, each other, or the size bounds."""
-    bound = {-1: None, -2: None}  # the golden count and the network's input count, fixed by the first array
-    limits = {-1: MAX_GOLDEN, -2: MAX_WIDTH}
+    # the golden count, the network's input count and the validity region's centres, fixed by the first array
+    bound = {-1: None, -2: None, -3: None}
+    limits = {-1: MAX_GOLDEN, -2: MAX_WIDTH, -3: MAX_CENTRES}
     for name, shape in headers.items():
         want = expected[name]
         if want is None:
@@ -708,7 +739,7 @@ def _check_npz_shapes(headers: dict[str, tuple], expected: dict, n: int, source:
             else:
                 ok = got == w
         if not ok:
-            shown = tuple("k" if w == -1 else "f" if w == -2 else w for w in want)
+            shown = tuple({-1: "k", -2: "f", -3: "c"}.get(w, w) for w in want)
             raise CompensatorFileError(
                 f"{source}: {name} has shape {shape}, expected {shown} for this {n}-joint "
                 f"robot (k ≤ {MAX_GOLDEN} golden vectors, f ≤ {MAX_WIDTH} network inputs)"

@@ -47,6 +47,7 @@ import numpy as np
 
 from labcal import features as feature_lib
 from labcal.compensator import solve as solver
+from labcal.compensator.validity import ValidityRegion
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import LocalPOEModel, runtime_walk_pair
 from labcal.robots.joint_map import JointMap
@@ -318,6 +319,9 @@ class CalibratedRobot:
     ``extrapolate=True``. length_scale: metres per radian used to build virtual joints (n < 6), fixed at fit time.
     joint_map: the robot file's controller → model joint map (None: identity). Every method here works in *model*
     joints; the map only travels with the robot into its export, where :class:`Compensator` converts through it.
+    validity: the neighbourhood of the fitted configurations (:mod:`labcal.compensator.validity`); when set,
+    ``correct`` and ``check_range`` also refuse q farther than its radius from every fitted configuration
+    (None: the joint ranges alone, as files written before it).
     """
 
     nominal: LocalPOEModel
@@ -330,6 +334,7 @@ class CalibratedRobot:
     joint_map: JointMap | None = None
     measurement_tool: np.ndarray | None = None
     measurement_tool_std: np.ndarray | None = None
+    validity: ValidityRegion | None = None
 
     def __post_init__(self) -> None:
         if self.measurement_tool is not None:
@@ -396,6 +401,7 @@ class CalibratedRobot:
     def _check_range(self, q2: np.ndarray) -> None:
         lo, hi = self._ranges
         if (q2 >= lo).all() and (q2 <= hi).all():
+            self._check_validity(q2)
             return
         bad = (q2 < lo) | (q2 > hi)
         i, j = np.argwhere(bad)[0]
@@ -403,6 +409,22 @@ class CalibratedRobot:
             f"configuration {i}: joint {j + 1} = {q2[i, j]:.6f} is outside the calibrated range "
             f"[{self.joint_ranges[j, 0]:.6f}, {self.joint_ranges[j, 1]:.6f}]; pass extrapolate=True to correct it "
             "anyway"
+        )
+
+    def _check_validity(self, q2: np.ndarray) -> None:
+        """Raise ValueError naming the first configuration farther than the validity radius from the data."""
+        region = self.validity
+        if region is None or q2.shape[0] == 0:
+            return
+        d = region.distance(q2)
+        if (d <= region.radius).all():
+            return
+        i = int(np.argmax(d > region.radius))
+        raise ValueError(
+            f"configuration {i} is {d[i]:.3g} (joint distance in units of each joint's spread in the data) from the "
+            f"nearest configuration the calibration measured, beyond its validity radius {region.radius:.3g}: the "
+            "data say nothing there; "
+            "measure poses near it, or pass extrapolate=True to correct it anyway"
         )
 
     def _valid_single(self, q, extrapolate: bool) -> bool:
@@ -414,7 +436,11 @@ class CalibratedRobot:
         lo, hi = self._range_lists
         if len(values) != len(lo) or not math.isfinite(sum(values)):
             return False
-        return extrapolate or (all(map(operator.le, lo, values)) and all(map(operator.le, values, hi)))
+        if extrapolate:
+            return True
+        if not (all(map(operator.le, lo, values)) and all(map(operator.le, values, hi))):
+            return False
+        return self.validity is None or self.validity.contains(q)
 
     @functools.cached_property
     def _range_lists(self) -> tuple[list, list]:
@@ -632,6 +658,12 @@ class CalibratedRobot:
         ``"paper"`` is eq. (24), q − δρ_a(q); ``"fixed-point"`` iterates q_cmd = q − δρ_a(q_cmd). Both apply the
         network alone, so they are refused (a ValueError saying why) unless the identified frames are the nominal
         ones and there is a network: the paper's ANN method. An empty (0, n) q gives an empty (0, n) answer.
+        A robot with a validity region (every fit's) never returns ``|q_cmd − q|`` above
+        :data:`labcal.compensator.solve.MAX_CORRECTION` (0.1 rad, the URScript's refusal bound): where Gauss-Newton's
+        answer lies beyond it (an ill-conditioned configuration: q5 ≈ 0, a stretched elbow) the damped iteration
+        finds the best pose within that box. Corrections are full-pose also with one or two targets: the identified
+        joint axes determine the orientation, and a position-only solve was 3× worse at a tool point 150 mm from
+        the reflector (benchmarks/data_speak.py).
         damped_iterations: the damped iteration's step budget (default solve.DAMPED_BUDGET); a control loop
         that must bound its worst-case time lowers it (near-singular configurations then stop earlier, no worse
         than at q).
@@ -672,7 +704,12 @@ class CalibratedRobot:
             if tcp is not None:
                 residual = _about_point(residual, (T_target @ tcp)[:, :3, 3])
         weights, budget = self._twist_weights, damped_iterations
-        return solver.solve(residual, q2, iterations=iterations, tol=tol, weights=weights, damped_iterations=budget)
+        # A fitted compensator (it has a validity region) bounds its corrections as its URScript does (issue 27)
+        bound = None if self.validity is None else solver.MAX_CORRECTION
+        return solver.solve(
+            residual, q2, iterations=iterations, tol=tol, weights=weights, damped_iterations=budget,
+            max_correction=bound,
+        )  # fmt: skip
 
     def _network_only(self, q2: np.ndarray, method: str, iterations: int, tol: float) -> np.ndarray:
         """method="paper": eq. (24), q − δρ_a(q); "fixed-point": q_cmd = q − δρ_a(q_cmd), iterated."""

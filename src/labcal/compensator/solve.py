@@ -54,6 +54,12 @@ NOISE_FLOOR = 1e-12
 DAMPED_MAX_STEP = 0.02  # rad per damped step: corrections are milliradians, so larger steps mean a singularity
 LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP = 1e-6, 1e-12, 1e6
 DAMPED_BUDGET = 24  # damped steps per call at most, by default
+# rad: the largest |q_cmd − q| a fitted compensator's correction returns (``solve(max_correction=…)``), the URScript's
+# refusal bound (export.urscript.MAX_CORRECTION). Calibration corrections are milliradians; a Gauss-Newton answer
+# beyond it is an ill-conditioned configuration (q5 ≈ 0, an elbow stretched) turning the wrist to fix micro-radians
+# of orientation, so that row is solved again in the damped mode confined to this box: the best compromise within it,
+# never worse than q (issue 27).
+MAX_CORRECTION = 0.1
 STALL_WINDOW, STALL_FALL = 4, 0.5  # after half its budget a row stops when 4 steps did not halve its cost
 _ONES6 = np.ones(6)
 
@@ -117,11 +123,14 @@ def solve(
     tol: float = 1e-11,
     weights: np.ndarray | None = None,
     damped_iterations: int | None = None,
+    max_correction: float | None = None,
 ) -> np.ndarray:
     """(k, n) start q0 → (k, n) solutions of ``residual(q) = 0`` (module docstring: the two modes).
 
     weights: (6,) the metric W of the damped mode, and of Gauss-Newton's least squares for n < 6. iterations:
     Gauss-Newton steps per row (at least 1); damped_iterations: damped steps (default :data:`DAMPED_BUDGET`).
+    max_correction: a bound on ``max |q − q0|`` (e.g. :data:`MAX_CORRECTION`): a Gauss-Newton answer beyond it is
+    solved again in the damped mode, whose steps stay within it (None: no bound).
     """
     k, n = q0.shape
     w = _ONES6 if weights is None else np.asarray(weights, dtype=float)
@@ -139,11 +148,34 @@ def solve(
                 break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
         out, failed = rows.out, rows.failed()
+        budget = DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
+        if max_correction is not None and not (k == 1 and failed.size == 0 and _within(out[0], q0[0], max_correction)):
+            far = np.setdiff1d(np.flatnonzero(~(np.abs(out - q0).max(axis=1) <= max_correction)), failed)
+            if far.size:
+                # A Gauss-Newton answer beyond the box: the damped mode starts from it clipped into the box (the
+                # best compromise is usually near it) when that is better than q0, else from q0 with the failed rows.
+                lo, hi = q0[far] - max_correction, q0[far] + max_correction
+                clipped = np.minimum(np.maximum(out[far], lo), hi)
+                r, J = residual(clipped, far)
+                cost_clip = np.sum((r * w) ** 2, axis=1)
+                cost_q0 = np.sum((at_q0[0][far] * w) ** 2, axis=1)
+                better = cost_clip < cost_q0
+                if better.any():
+                    rows_b = far[better]
+                    out[rows_b] = _damped(
+                        residual, q0[rows_b], rows_b, w, budget, tol, (r[better], J[better]), max_correction,
+                        clipped[better],
+                    )  # fmt: skip
+                failed = np.union1d(failed, far[~better])
         if failed.size:
-            budget = DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
             start = (at_q0[0][failed], at_q0[1][failed])
-            out[failed] = _damped(residual, q0[failed], failed, w, budget, tol, start)
+            out[failed] = _damped(residual, q0[failed], failed, w, budget, tol, start, max_correction)
     return out
+
+
+def _within(q: np.ndarray, q0: np.ndarray, bound: float) -> bool:
+    """max |q − q0| ≤ bound for one row, in Python floats (a control loop's call)."""
+    return max(map(abs, map(float.__sub__, q.tolist(), q0.tolist()))) <= bound
 
 
 class _Rows:
@@ -283,17 +315,30 @@ def lambda_after(kept: bool, gain: float, lam: float, grow: float) -> tuple[floa
     return lam * grow, 2 * grow
 
 
-def _damped(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray, budget: int, tol: float, start=None):
+def _damped(
+    residual: Residual,
+    q0: np.ndarray,
+    rows: np.ndarray,
+    w: np.ndarray,
+    budget: int,
+    tol: float,
+    start=None,
+    bound: float | None = None,
+    q_init: np.ndarray | None = None,
+):
     """The damped mode from q0 (m, n) for the batch rows ``rows``: steps kept only where they do not raise |W r|.
 
     A row stops when its last step (kept or refused) was below tol (the cost cannot fall further in floating
     point), when λ passed LAMBDA_GIVE_UP, or, from half its budget on, when its last STALL_WINDOW steps did not
     lower its cost by STALL_FALL; all stop after the budget. A row keeps its best q. start: (r, J) at q0 when the
-    caller has them (the Gauss-Newton mode's first evaluation), else evaluated here.
+    caller has them (the Gauss-Newton mode's first evaluation), else evaluated here. bound: steps stay within
+    ``|q − q0| ≤ bound`` (None: no bound). q_init: where the steps start (within the bound; default q0), with
+    ``start`` evaluated there.
     """
     if len(q0) == 1:
-        return _damped_one(residual, q0, rows, w, budget, tol, start)
-    out = q0.copy()
+        return _damped_one(residual, q0, rows, w, budget, tol, start, bound, q_init)
+    box = math.inf if bound is None else bound
+    out = (q0 if q_init is None else q_init).copy()
     r, J = residual(out, rows) if start is None else start
     err, jac = r * w, J * w[:, None]
     cost = np.sum(err * err, axis=1)
@@ -303,6 +348,8 @@ def _damped(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray,
     history[0] = cost
     for i in range(1, budget + 1):
         step = damped_step(err, jac, lam)
+        if bound is not None:
+            step = np.clip(step, q0 - box - out, q0 + box - out)
         step[~going] = 0.0
         model = err - np.einsum("kai,ki->ka", jac, step)  # the linear model's residual after the step
         predicted = cost - np.sum(model * model, axis=1)
@@ -326,18 +373,23 @@ def _damped(residual: Residual, q0: np.ndarray, rows: np.ndarray, w: np.ndarray,
     return out
 
 
-def _damped_one(residual: Residual, q0, rows, w: np.ndarray, budget: int, tol: float, start=None):
+def _damped_one(
+    residual: Residual, q0, rows, w: np.ndarray, budget: int, tol: float, start=None, bound=None, q_init=None
+):
     """:func:`_damped` for one row (a control loop's call): the same steps and stopping rule, with the bookkeeping
     in Python floats and the 2-D solve, because at one row numpy's per-call cost is the price of every step."""
     n = q0.shape[1]
-    out = q0.copy()
+    out = (q0 if q_init is None else q_init).copy()
     r, J = residual(out, rows) if start is None else start
     w_col = w[:, None]
     err, jac = r[0] * w, J[0] * w_col
     cost, lam, grow = float(err @ err), LAMBDA_START, 2.0
     history = [cost]  # the best cost after each step
+    lo, hi = (None, None) if bound is None else (q0[0] - bound, q0[0] + bound)
     for i in range(1, budget + 1):
         step = damped_step(err[None], jac[None], lam)[0]
+        if bound is not None:
+            step = np.clip(step, lo - out[0], hi - out[0])
         size = max(map(abs, step.tolist()))
         model = err - jac @ step
         predicted = cost - float(model @ model)
