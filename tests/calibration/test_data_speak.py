@@ -125,7 +125,6 @@ def test_single_reflector_corrections_in_the_validity_region_stay_below_a_tenth_
 
 def test_the_large_correction_gate_names_a_weak_direction_when_the_rule_is_off():
     from labcal.calibration import fit
-
     from labcal.calibration.fit import _correction_cause
 
     obs, _, model, _ = narrow(60, spin=0.5)  # the tool axis fixed: its length trades against the base translation

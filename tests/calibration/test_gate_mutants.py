@@ -167,8 +167,8 @@ def test_large_corrections_at_a_third_of_the_configurations_are_a_warning():
     def correct(q, extrapolate=True, damped_iterations=None):
         return q + np.where(q[:, :1] > 0.35, [[0.0, 0.2, 0, 0, 0, 0]], 0.0)
 
-    robot = SimpleNamespace(network=None, validity=None, nominal=UR10.model, correct=correct,
-                            model=SimpleNamespace(joint_types=UR10.model.joint_types, frames=UR10.model.frames))  # fmt: skip
+    model = SimpleNamespace(joint_types=UR10.model.joint_types, frames=UR10.model.frames)
+    robot = SimpleNamespace(network=None, validity=None, nominal=UR10.model, correct=correct, model=model)
     message = fit_module._large_correction(robot, q, seed=0)
     assert message is not None and "move joint 2 by 0.2 rad" in message
     assert "32% of 296 checked configurations" in message
