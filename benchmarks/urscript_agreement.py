@@ -118,6 +118,13 @@ def _cells(counts: np.ndarray) -> str:
     return " | ".join(map(str, counts[:5])) + f" | {counts[5]} ({counts[6]}) |"[:-2]
 
 
+def _in_region(robot, q) -> np.ndarray:
+    """Which configurations correct() accepts without extrapolating (all of them for a robot without a region)."""
+    if getattr(robot, "validity", None) is None:
+        return np.ones(len(q), dtype=bool)
+    return robot.validity.inside(q)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--configs", type=int, default=1000, help="configurations per set (three sets per export)")
@@ -138,8 +145,11 @@ def main() -> None:
         for precision in ("float64", "float32"):
             total = np.zeros(7, dtype=int)
             for set_name, q in sets.items():
-                expected = robot.correct(q)
-                damped = np.max(np.abs(robot.correct(q, damped_iterations=0) - expected), axis=1) > 1e-12
+                # The script checks the joint box, not the validity region (issue 27): compare with correct()
+                # extrapolating, and count below what it returned outside the region.
+                expected = robot.correct(q, extrapolate=True)
+                damped = np.max(np.abs(robot.correct(q, extrapolate=True, damped_iterations=0) - expected), axis=1)
+                damped = damped > 1e-12
                 r, _ = robot.residual(expected, robot.nominal.fk(q), jacobian=False)
                 exact = np.sum(np.abs(r) * np.array([1 / robot.length_scale] * 3 + [1.0] * 3), axis=1) < 1e-8
                 got, stopped = run(subset, script, q, precision == "float32")
@@ -162,7 +172,8 @@ def main() -> None:
                         f"{name}, {precision}: {stopped.sum()} of {len(q)} in-range configurations stopped "
                         f"({100 * stopped.mean():.1f} %: {(stopped & damped).sum()} where correct() damps, "
                         f"{(stopped & large).sum()} where its correction exceeds {MAX_CORRECTION:g} rad); "
-                        f"{(stopped & tame).sum()} of the {tame.sum()} with scaled condition <= 100"
+                        f"{(stopped & tame).sum()} of the {tame.sum()} with scaled condition <= 100; "
+                        f"{(returned & ~_in_region(robot, q)).sum()} returned outside the validity region"
                     )
             rows.append(f"| {name} | **all** | {precision} | {_cells(total)} |")
     print("\n".join(rows))
