@@ -11,7 +11,10 @@ where it was, so nothing the data did not see is extrapolated along it.
 
 ``radius`` is twice the median distance from a fitted configuration to its nearest neighbour, at least
 :data:`MIN_RADIUS`: the spacing of the data themselves, so the balls of a well-spread series overlap into one
-region, while a corner of the box that no configuration came near stays outside. The file keeps at most
+region, while a corner of the box that no configuration came near stays outside. The floor is what keeps
+configurations like the data's inside as the data grow denser: with 0.5 spreads, a local-POE fit on 1,500 of the
+real UR10's random poses refused 10 % of the other 1,273; with 1.5 spreads it refuses 0.1 % (97 % inside with 150
+fitted poses, 99.6 % with 500), and a joint the data barely moved still stays within 1.5 of its tiny spreads. The file keeps at most
 :data:`MAX_CENTRES` configurations (a farthest-point subsample, deterministic; the radius grows to the largest
 distance of a dropped configuration to the kept ones, so every fitted configuration stays inside): bounded size
 (at most 512 × n numbers) whatever the session's length.
@@ -34,7 +37,7 @@ import numpy as np
 
 MAX_CENTRES = 512  # configurations kept in a compensator file
 MIN_SPREAD = 1e-3  # rad (m): the least spread a joint is scaled by (a joint that never moved: 1 mrad)
-MIN_RADIUS = 0.5  # spreads: the least radius (a single configuration, or many coincident ones)
+MIN_RADIUS = 1.5  # spreads: the least radius (see the module docstring: data-like configurations must be inside)
 RADIUS_FACTOR = 2.0  # radius = factor × median nearest-neighbour distance of the data
 
 
