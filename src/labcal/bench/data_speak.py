@@ -169,13 +169,13 @@ def _wide() -> None:
               f"frames bit-identical: {same}")  # fmt: skip
 
 
-def _position_only(robot, q: np.ndarray, point: np.ndarray, iterations: int = 20) -> np.ndarray:
-    """Minimum-norm Gauss-Newton on the position of one tool point only (the compared alternative)."""
-    T = robot.nominal.fk(q)
+def _position_only(robot, q: np.ndarray, point: np.ndarray, fixture: np.ndarray, iterations: int = 20) -> np.ndarray:
+    """Minimum-norm Gauss-Newton on the position of one point of the fixture only (the compared alternative)."""
+    T = robot.nominal.fk(q) @ fixture
     target = T[:, :3, :3] @ point + T[:, :3, 3]
     qc = q.copy()
     for _ in range(iterations):
-        T = robot.predict_pose(qc)
+        T = robot.predict_pose(qc, tcp=fixture)
         x = T[:, :3, :3] @ point + T[:, :3, 3]
         G = np.concatenate(
             [np.broadcast_to(np.eye(3), (len(qc), 3, 3)), -se3.skew(x)], axis=2
@@ -198,21 +198,30 @@ def _single_reflector() -> None:
     print("\nsingle reflector, UR10, 60 poses (scenarios.good + with_targets [0]), local POE with default options: "
           f"warnings {[w['code'] for w in result.warnings] or 'none'}")  # fmt: skip
     q = robot.validity.sample(400, np.random.default_rng(5))
+    # The compensator corrects tool0 unless given the TCP the program names: here the program names the reflector
+    # at its identified place on the fixture (issue 27: the measurement tool apart from the robot), and a point is
+    # judged against where that TCP definition puts it on the nominal robot.
+    fixture = np.eye(4) if robot.measurement_tool is None else robot.measurement_tool
+
+    def tcp(p):
+        shift = np.eye(4)
+        shift[:3, 3] = p
+        return fixture @ shift
 
     def error(q_cmd, p):
-        Ta, Tn = actual.true_pose(q_cmd), robot.nominal.fk(q)
-        return np.linalg.norm((Ta[:, :3, :3] @ p + Ta[:, :3, 3]) - (Tn[:, :3, :3] @ p + Tn[:, :3, 3]), axis=1) * 1e3
+        Ta, Tn = actual.true_pose(q_cmd), robot.nominal.fk(q) @ tcp(p)
+        return np.linalg.norm((Ta[:, :3, :3] @ p + Ta[:, :3, 3]) - Tn[:, :3, 3], axis=1) * 1e3
 
-    unbounded = dataclasses.replace(robot, validity=None).correct(q, extrapolate=True)
+    unbounded = dataclasses.replace(robot, validity=None).correct(q, extrapolate=True, tcp=tcp(reflector))
     tail = np.abs(unbounded - q).max(axis=1) > 0.1
     print(f"400 configurations drawn in its validity region; {tail.sum()} need more than 0.1 rad unbounded")
     print(f"{'correction':34s} {'reflector mm mean/p95':>22s} {'tool 150 mm mean/p95':>21s} "
           f"{'|dq| rad median/p99/max':>24s} {'tool at the tail':>16s}")  # fmt: skip
     for name, q_cmd in (
         ("none", q),
-        ("full pose, bounded (default)", robot.correct(q)),
+        ("full pose, bounded (default)", robot.correct(q, tcp=tcp(reflector))),
         ("full pose, unbounded", unbounded),
-        ("position of the reflector only", _position_only(robot, q, reflector)),
+        ("position of the reflector only", _position_only(robot, q, reflector, fixture)),
     ):
         a, b, dq = error(q_cmd, reflector), error(q_cmd, tool), np.abs(q_cmd - q).max(axis=1)
         at_tail = f"{b[tail].mean():.3f}" if tail.any() else "-"
