@@ -145,3 +145,14 @@ def test_a_second_start_document_is_corrupt_not_a_new_session(tmp_path):
     assert [d["type"] for d in c.documents] == ["start", "measurement"] and c.start.session_id == sid
     with pytest.raises(JournalError, match=r"corrupt line\(s\) \[3\]"):
         store.seal(sid)
+
+
+def test_publishing_fsyncs_the_folder_that_holds_the_new_name(tmp_path, monkeypatch):
+    """The rename is durable only once the parent folder is fsynced, by publish_dir itself (not by whatever the
+    caller happens to write next)."""
+    tmp, final = tmp_path / ".tmp-v001-x", tmp_path / "v001"
+    tmp.mkdir()
+    (tmp / "data").write_bytes(b"new")
+    spy = FsSpy(monkeypatch)
+    publish_dir(tmp, final)
+    assert spy.index("fsync", tmp_path.stat().st_ino) > spy.index("rename", final.stat().st_ino)

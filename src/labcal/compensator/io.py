@@ -249,9 +249,7 @@ def from_payload(data: dict, source: str = "<payload>", *, stored: bool = False)
         raise CompensatorFileError(f"{source}: a field is nested too deeply to be a compensator export") from None
     try:
         robot = _robot_from(data, source, legacy)
-        golden = data["golden"]
-        if np.size(golden["q"]) == 0:
-            raise CompensatorFileError(f"{source}: no golden vectors to verify the file against")
+        golden = data["golden"]  # check_payload saw 1..MAX_GOLDEN of them
         q = np.asarray(golden["q"], dtype=float).reshape(-1, robot.n)
         q_cmd = np.asarray(golden["q_cmd"], dtype=float).reshape(q.shape)
         pose = np.asarray(golden["pose"], dtype=float).reshape(q.shape[0], 4, 4)
@@ -447,13 +445,10 @@ def _robot_from(data: dict, source: str, legacy: bool) -> CalibratedRobot:
     model = _model_from(data["model"], f"{source}: model")
     jd = None if legacy else data["joint_map"]
     try:
+        # check_payload saw an (n, n) matrix and (n,) offsets for the robot's n joints
         joint_map = None if jd is None else JointMap(np.asarray(jd["matrix"]), np.asarray(jd["offsets"]))
     except (KeyError, TypeError, ValueError) as err:
         raise CompensatorFileError(f"{source}: joint_map is not a valid joint map: {err}") from err
-    if joint_map is not None and joint_map.n != nominal.n:
-        raise CompensatorFileError(
-            f"{source}: joint_map is not a valid joint map: it maps {joint_map.n} joints, the robot has {nominal.n}"
-        )
     if model_hash(nominal, joint_map) != data["robot"].get("hash"):
         raise CompensatorFileError(f"{source}: robot model does not match its hash (file edited or damaged)")
     nd = data.get("network")

@@ -447,23 +447,20 @@ class _Run:
                 silent = silent + 1 if outcome.silent else 0
                 if not outcome.refused:
                     failed = failed + 1 if outcome.status == "rejected" else 0
-                if (
-                    self.retry.max_failed_poses
-                    and failed >= self.retry.max_failed_poses
-                    and not (self.retry.max_silent_poses and silent >= self.retry.max_silent_poses)
-                ):
-                    _safe_stop(robot)
-                    reason = (
-                        f"{failed} consecutive poses rejected (last at pose {pose}: {outcome.reason}): check the "
-                        "tracker (line of sight, targets, profile), then resume"
-                    )
-                    journal.stop("failed", reason)
-                    return "failed", reason
+                # a silent tracker is named as such first: its poses are rejected poses too
                 if self.retry.max_silent_poses and silent >= self.retry.max_silent_poses:
                     _safe_stop(robot)
                     reason = (
                         f"the tracker did not answer on {silent} consecutive poses (every attempt timed out, last "
                         f"at pose {pose}): check its cable, power and profile, then resume"
+                    )
+                    journal.stop("failed", reason)
+                    return "failed", reason
+                if self.retry.max_failed_poses and failed >= self.retry.max_failed_poses:
+                    _safe_stop(robot)
+                    reason = (
+                        f"{failed} consecutive poses rejected (last at pose {pose}: {outcome.reason}): check the "
+                        "tracker (line of sight, targets, profile), then resume"
                     )
                     journal.stop("failed", reason)
                     return "failed", reason
