@@ -14,7 +14,8 @@ where it was, so nothing the data did not see is extrapolated along it.
 region, while a corner of the box that no configuration came near stays outside. The floor is what keeps
 configurations like the data's inside as the data grow denser: with 0.5 spreads, a local-POE fit on 1,500 of the
 real UR10's random poses refused 10 % of the other 1,273; with 1.5 spreads it refuses 0.1 % (97 % inside with 150
-fitted poses, 99.6 % with 500), and a joint the data barely moved still stays within 1.5 of its tiny spreads. The file keeps at most
+fitted poses, 99.6 % with 500), and a joint the data barely moved still stays within 1.5 of its tiny spreads.
+The file keeps at most
 :data:`MAX_CENTRES` configurations (a farthest-point subsample, deterministic; the radius grows to the largest
 distance of a dropped configuration to the kept ones, so every fitted configuration stays inside): bounded size
 (at most 512 × n numbers) whatever the session's length.
