@@ -14,6 +14,9 @@ in float64 and in float32 (the controller's precision) and is sorted into:
 - **stopped**: the script halted (popup + halt) or failed at run time (a controller stops the program too);
 - **differ**: returned, more than 1e-4 rad from ``correct()`` — a silent wrong command (must be 0);
 - **worse**: returned, farther from ``correct()`` than q itself (worse than no correction; part of "differ");
+- **residual rounding** (below the table): the largest ``|J_s (q_script − correct())|∞`` over the returned
+  answers in float32 (J_s: the length-scaled Jacobian at correct()'s answer), in machine epsilons (2⁻²³): the
+  rounding the script's residual carried, which its precision check takes as at most 4 ε;
 - **stopped where correct() damps**: stopped where ``correct()``'s Gauss-Newton fails and its damped fallback
   answers (``correct(q, damped_iterations=0)`` differs from ``correct(q)``), and of those, how many damped answers
   are exact (weighted residual L1 < 1e-8 rad: the rest leave a residual, a least-squares compromise).
@@ -144,6 +147,8 @@ def main() -> None:
         sets = configurations(robot, args.configs)
         for precision in ("float64", "float32"):
             total = np.zeros(7, dtype=int)
+            rounding = 0.0  # largest |J_s (q_script - correct())|inf / eps: the residual rounding answers carried
+            eps = np.finfo(np.float32 if precision == "float32" else np.float64).eps
             for set_name, q in sets.items():
                 # The script checks the joint box, not the validity region (issue 27): compare with correct()
                 # extrapolating, and count below what it returned outside the region.
@@ -160,6 +165,11 @@ def main() -> None:
                     agree = returned & (err <= AGREE)
                     differ = returned & ~(err <= AGREE)
                     worse = returned & ~(err <= none)
+                if returned.any():
+                    w = np.array([1 / robot.length_scale] * 3 + [1.0] * 3)
+                    Js = w[:, None] * robot.model.equivalent_jacobian(expected[returned])
+                    dr = np.einsum("kij,kj->ki", Js, got[returned] - expected[returned])
+                    rounding = max(rounding, float(np.max(np.abs(dr))) / eps)
                 d, e = (stopped & damped).sum(), (stopped & damped & exact).sum()
                 counts = np.array([len(q), agree.sum(), stopped.sum(), differ.sum(), worse.sum(), d, e])
                 total += counts
@@ -176,6 +186,8 @@ def main() -> None:
                         f"{(returned & ~_in_region(robot, q)).sum()} returned outside the validity region"
                     )
             rows.append(f"| {name} | **all** | {precision} | {_cells(total)} |")
+            if precision == "float32":  # in float64 correct()'s own stopping rule, not rounding, dominates
+                totals.append(f"{name}, {precision}: residual rounding of the returned answers <= {rounding:.2f} eps")
     print("\n".join(rows))
     print()
     print("\n".join(totals))

@@ -39,9 +39,13 @@ the answer is the same for every TCP, the controller's active one (``get_tcp_off
 needs none. A TCP changes :meth:`CalibratedRobot.correct` only where it damps (``tcp=``: the pose error is measured
 at the TCP), which is exactly where the script refuses.
 
-Whenever the script returns, its q_cmd is within :data:`AGREEMENT` of ``correct()`` in float64 and float32 (the
-last step below 1e-5 rad bounds the distance to the root, and in float32 the step is the rounding noise amplified
-by the configuration's conditioning, so an ill-conditioned configuration whose noise exceeds it is refused).
+Whenever the script returns, its q_cmd is within :data:`AGREEMENT` of ``correct()`` in float64 and float32: the
+last step below 1e-5 rad bounds the distance to the root of the residual *as computed*, and the computed residual
+differs from the exact one by rounding δr, which moves the root by ``J_s⁻¹ δr``. Near the elbow ``‖J_s⁻¹‖∞``
+(length-scaled) reaches 10³, and in float32 a step and a residual below 1e-5 left a q_cmd 1.1e-4 rad off (the real
+UR10 fit, q = [1.6962, 0.7805, −0.0283, −1.0017, 1.5547, 0.5462]). So a six-joint script also computes
+``‖J_s⁻¹‖∞`` (six solves with the J it has) and the machine epsilon ε of its arithmetic, and refuses where
+``‖J_s⁻¹‖∞ · RESIDUAL_ROUNDING · ε > AGREEMENT`` (status −4).
 
 Strings: every text the exporter writes into a comment or a string literal (robot name, method, provenance, popup
 messages) goes through :func:`_text`, which keeps printable ASCII and writes every other character, the quote,
@@ -106,6 +110,12 @@ ITERATIONS = 6  # Gauss-Newton steps at most (a converged call takes two or thre
 CONVERGED_STEP = 1e-5  # rad: the last step must be below this (it bounds the distance to correct()'s answer)
 RESIDUAL_TOL = 1e-5  # |r| (L1, translation over the length scale) at the returned q_cmd, in rad
 MAX_CORRECTION = 0.1  # rad: a larger |q_cmd − q| is refused (calibrations correct milliradians)
+# |δr|∞, the rounding left in the residual at the returned q_cmd, in machine epsilons ε. Measured as
+# |J_s (q_cmd − correct())|∞ over the float32 answers of benchmarks/urscript_agreement.py (printed below its table):
+# at most 3.8 ε over the three exports, with this check or without it. The bound ‖J_s⁻¹‖∞ |δr|∞ assumes the worst
+# alignment of δr; the errors measured were at most 2.0 ε ‖J_s⁻¹‖∞, so 4 ε leaves about 2× on the joint error.
+RESIDUAL_ROUNDING = 4.0
+FLOAT32_EPS = 2.0**-23  # a controller's machine epsilon (lc_eps measures the script's own)
 SELF_TEST_COUNT = 4
 SELF_TEST_OFFSETS = (0.05, 0.1, 0.2)  # rad from the wrist and elbow singularities: the self test's candidates
 _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -598,7 +608,8 @@ def _attempt_function(robot: CalibratedRobot, kin: ZAxisForm, iterations: int, m
 
     status 1.0: converged (last step below CONVERGED_STEP, residual below RESIDUAL_TOL, correction within
     max_correction); −1.0: correction too large; −2.0: not converged in ``iterations`` steps; −3.0: a step too large,
-    not contracting or not finite (a (near-)singular configuration, where correct() would damp).
+    not contracting or not finite (a (near-)singular configuration, where correct() would damp); −4.0 (six joints):
+    ``‖J_s⁻¹‖∞ · RESIDUAL_ROUNDING · ε`` above AGREEMENT (the arithmetic's rounding could move q_cmd that far).
     """
     n, net = robot.n, robot.network
     last = 12 * n
@@ -690,6 +701,22 @@ def _attempt_function(robot: CalibratedRobot, kin: ZAxisForm, iterations: int, m
         "      status = -1.0",
         "    end",
         "  end",
+    ]
+    if n >= 6:
+        # The returned q_cmd differs from correct()'s root by J_s⁻¹ δr (plus the last step squared, negligible),
+        # δr being the rounding in the residual the last step solved for, so a small step and residual bound the
+        # joint error only together with ‖J_s⁻¹‖∞ (J_s: the length-scaled J). Near the elbow ‖J_s⁻¹‖∞ reaches 10³
+        # while |δr|∞ reaches ~4 ε in float32 (ε = 2⁻²³): 1e-4 rad off with step and residual below 1e-5. Refuse where
+        # ‖J_s⁻¹‖∞ · RESIDUAL_ROUNDING · ε could exceed AGREEMENT; ε is measured at run time (float32 on a
+        # controller: ‖J_s⁻¹‖∞ ≤ 210, every configuration of scaled condition ≤ 100 passes; float64: ~never).
+        lines += [
+            "  if status > 0.0:",
+            f"    if not (lc_inv_norm(J) * {_num(RESIDUAL_ROUNDING)} * lc_eps() <= {_num(AGREEMENT)}):",
+            "      status = -4.0",
+            "    end",
+            "  end",
+        ]
+    lines += [
         f"  return [{', '.join(f'qc[{j}]' for j in range(n))}, status]",
         "end",
         "def lc_amax(v):",
@@ -704,12 +731,43 @@ def _attempt_function(robot: CalibratedRobot, kin: ZAxisForm, iterations: int, m
         "  return out",
         "end",
     ]
+    if n >= 6:
+        w = [float(robot.length_scale)] * 3 + [1.0] * (n - 3)
+        lines += [
+            "# ‖J_s⁻¹‖∞ of the length-scaled J_s = diag(1/L, 1/L, 1/L, 1, 1, 1) J: the largest row sum of",
+            "# |J⁻¹ diag(L, L, L, 1, 1, 1)|, column by column (J x = L e_k for a translation, e_k for a rotation)",
+            "def lc_inv_norm(J):",
+            f"  local w = {_list(w)}",
+            f"  local e = {_zeros(n)}",
+            f"  local c = {_zeros(n)}",
+            f"  local s = {_zeros(n)}",
+            "  local k = 0",
+            f"  while k < {n}:",
+            f"    e = {_zeros(n)}",
+            "    e[k] = w[k]",
+            "    c = lc_solve(J, e)",
+            f"    s = [{', '.join(f's[{j}] + lc_abs(c[{j}])' for j in range(n))}]",
+            "    k = k + 1",
+            "  end",
+            "  return lc_amax(s)",
+            "end",
+            "# the arithmetic's machine epsilon (2^-23 on a controller computing in float32, 2^-52 in float64)",
+            "def lc_eps():",
+            "  sync()",
+            "  local u = 1.0",
+            "  while 1.0 + 0.5 * u > 1.0:",
+            "    u = 0.5 * u",
+            "  end",
+            "  return u",
+            "end",
+        ]
     return lines
 
 
 def _correct_function(n: int, iterations: int, max_correction: float, function_name: str) -> list[str]:
     """function_name(q): the range check, lc_attempt, and popup + halt for every status but converged."""
     reasons = [
+        (-3.5, "labcal: too near a singular configuration for the controller's float precision, no command for q = "),
         (-2.5, "labcal: Newton steps diverge (near a singular configuration), no command for q = "),
         (-1.5, f"labcal: no convergence in {int(iterations)} Newton steps, no command for q = "),
         (None, f"labcal: correction larger than {max_correction:g} rad, no command for q = "),
@@ -882,9 +940,21 @@ def near_singular_self_test(robot: CalibratedRobot, golden: np.ndarray, max_corr
         full = robot.correct(q)
         undamped = robot.correct(q, iterations=ITERATIONS, damped_iterations=0)
         ok = (np.max(np.abs(full - undamped), axis=1) < 1e-9) & (np.max(np.abs(full - q), axis=1) <= max_correction / 2)
+        # and one the script's precision check accepts in float32, with a factor 2 to spare (its J is float32)
+        ok &= _inv_norm(robot, full) * RESIDUAL_ROUNDING * FLOAT32_EPS <= AGREEMENT / 2
         if ok.any():
             out.append(q[np.argmax(ok)])
     return np.array(out).reshape(-1, robot.n)
+
+
+def _inv_norm(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
+    """(k,) ‖J_s⁻¹‖∞ at (k, 6) configurations, as ``lc_inv_norm`` computes it (J_s: the length-scaled Jacobian)."""
+    J = robot.model.equivalent_jacobian(q)
+    w = np.array([float(robot.length_scale)] * 3 + [1.0] * 3)
+    with np.errstate(all="ignore"):
+        inv = np.linalg.inv(J) * w  # J⁻¹ diag(L, L, L, 1, 1, 1) = J_s⁻¹
+    out = np.abs(inv).sum(axis=2).max(axis=1)
+    return np.where(np.isfinite(out), out, np.inf)
 
 
 def write_urscript(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:
