@@ -252,3 +252,22 @@ def test_a_prismatic_joint_is_read_and_written_in_the_length_unit():
     row = joints_csv(result, angle_unit="deg", length_unit="mm", joint_types=("revolute", "prismatic")).splitlines()[1]
     np.testing.assert_allclose([float(v) for v in row.split(",")[1:5]], [np.degrees(0.5), 250.5, np.degrees(0.5), 250])
     assert [float(v) for v in row.split(",")[5:]] == pytest.approx([0.5, 1.0, 2.0])  # mrad, mm, mrad as named
+
+
+def test_a_row_outside_the_validity_region_is_refused_by_its_row_number():
+    """correct() refuses configurations away from the calibration's data; the filter names the program row."""
+    from labcal.compensator import CalibratedRobot
+    from labcal.compensator.validity import ValidityRegion
+    from labcal.export.program import ProgramError, filter_joints
+    from labcal.robots import load
+
+    model = load("ur10").model
+    q = np.random.default_rng(0).uniform(-0.3, 0.3, (40, 6)) + np.array([0, -1.2, 1.0, -1.4, -1.5, 0.2])
+    robot = CalibratedRobot(
+        nominal=model, model=model.perturbed(np.full((7, 6), 1e-4)), validity=ValidityRegion.from_configurations(q)
+    )
+    assert filter_joints(robot, q[:3]).q_command.shape == (3, 6)  # the data's own configurations are corrected
+    far = q[3] + np.array([0.0, 0.0, 0.0, 1.5, 0.0, 0.0])  # inside the joint limits, far from every pose
+    with pytest.raises(ProgramError, match="row 2: outside the calibration's validity region") as refused:
+        filter_joints(robot, np.stack([q[4], far]))
+    assert refused.value.row == 2

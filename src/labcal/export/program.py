@@ -153,8 +153,9 @@ def _degree_hint(robot: CalibratedRobot, q: np.ndarray, ranges: np.ndarray, angl
 
 
 def check_joints(robot: CalibratedRobot, q: np.ndarray, angle_unit: str = "rad", *, seed: bool = False) -> None:
-    """Refuse joint values (k, n; rad, m) outside the robot's joint limits or the calibrated ranges, naming the
-    first bad row and joint; ``angle_unit`` (the unit they were read in) phrases the hint. ``seed``: q is the
+    """Refuse joint values (k, n; rad, m) outside the robot's joint limits, the calibrated ranges or the
+    calibration's validity region, naming the first bad row (and joint); ``angle_unit`` (the unit they were read
+    in) phrases the hint. ``seed``: q is the
     one row of ``--seed-joints``, which only picks a branch: the robot's limits apply, not the calibrated ranges."""
     q = np.atleast_2d(np.asarray(q, dtype=float))
     checks = [(robot.nominal.limits, "the robot's joint limits")]
@@ -170,6 +171,18 @@ def check_joints(robot: CalibratedRobot, q: np.ndarray, angle_unit: str = "rad",
                 f"{name}: joint {j + 1} = {q[i, j]:.6g} is outside {what} [{lo[j]:.6g}, {hi[j]:.6g}]"
                 f"{_degree_hint(robot, q, ranges, angle_unit)}",
                 None if seed else i + 1,
+            )
+    validity = getattr(robot, "validity", None)
+    if not seed and validity is not None:  # correct() refuses these too; here the row is named
+        distance = validity.distance(q)
+        far = ~(distance <= validity.radius)
+        if far.any():
+            i = int(np.argmax(far))
+            raise ProgramError(
+                f"row {i + 1}: outside the calibration's validity region ({distance[i]:.3g} of the data's joint "
+                f"spreads from the nearest measured configuration; its radius is {validity.radius:.3g}): the data say "
+                "nothing there, so it is not corrected. Measure poses near it and fit again",
+                i + 1,
             )
 
 
