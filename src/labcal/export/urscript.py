@@ -97,7 +97,7 @@ import numpy as np
 
 from labcal import features as feature_lib
 from labcal.compensator import CalibratedRobot, golden_configurations
-from labcal.compensator.solve import GN_MAX_STEP
+from labcal.compensator.solve import GN_MAX_STEP, MAX_CORRECTION
 from labcal.export.zform import ZAxisForm
 from labcal.kinematics import se3
 from labcal.robots import model_hash
@@ -109,7 +109,7 @@ AGREEMENT = 1e-4  # rad: |script − correct()| wherever the script returns (flo
 ITERATIONS = 6  # Gauss-Newton steps at most (a converged call takes two or three)
 CONVERGED_STEP = 1e-5  # rad: the last step must be below this (it bounds the distance to correct()'s answer)
 RESIDUAL_TOL = 1e-5  # |r| (L1, translation over the length scale) at the returned q_cmd, in rad
-MAX_CORRECTION = 0.1  # rad: a larger |q_cmd − q| is refused (calibrations correct milliradians)
+# MAX_CORRECTION (solve's, 0.1 rad): a larger |q_cmd − q| is refused, the bound correct() itself keeps
 # |δr|∞, the rounding left in the residual at the returned q_cmd, in machine epsilons ε. Measured as
 # |J_s (q_cmd − correct())|∞ over the float32 answers of benchmarks/urscript_agreement.py (printed below its table):
 # at most 3.8 ε over the three exports, with this check or without it. The bound ‖J_s⁻¹‖∞ |δr|∞ assumes the worst
