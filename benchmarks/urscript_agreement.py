@@ -5,7 +5,9 @@
 Exports (default options): a local-POE and a hybrid fit of the simulated UR10 (``scenarios.good``, 200 poses,
 ``ErrorSpec.default()``, seed 1, fit seed 0), and a local-POE fit of the real UR10 data (all 1,000 poses of
 ../shared/data/ipa-robot-accuracy-ur10, imported as ``labcal bench real-ur10`` does), unless ``--no-real``.
-For each export, ``3 × --configs`` configurations: uniform in the compensator's joint ranges (clipped to ±π, which
+For each export, ``4 × --configs`` configurations: uniform in the compensator's validity region and joint ranges
+(:meth:`~labcal.compensator.validity.ValidityRegion.sample`: where ``correct()`` answers without extrapolating),
+uniform in the compensator's joint ranges (clipped to ±π, which
 hold every pose of a ±2π joint), the same with the wrist q5 uniform in ±0.05 rad, and with the elbow q3 uniform in
 ±0.05 rad. Each runs through ``labcal_correct`` in the URScript interpreter of :mod:`labcal.testing.urscript_subset`
 in float64 and in float32 (the controller's precision) and is sorted into:
@@ -16,7 +18,7 @@ in float64 and in float32 (the controller's precision) and is sorted into:
 - **worse**: returned, farther from ``correct()`` than q itself (worse than no correction; part of "differ");
 - **residual rounding** (below the table): the largest ``|J_s (q_script − correct())|∞`` over the returned
   answers in float32 (J_s: the length-scaled Jacobian at correct()'s answer), in machine epsilons (2⁻²³): the
-  rounding the script's residual carried, which its precision check takes as at most 4 ε;
+  rounding the script's residual carried, which its precision check takes as at most 5 ε (RESIDUAL_ROUNDING);
 - **stopped where correct() damps**: stopped where ``correct()``'s Gauss-Newton fails and its damped fallback
   answers (``correct(q, damped_iterations=0)`` differs from ``correct(q)``), and of those, how many damped answers
   are exact (weighted residual L1 < 1e-8 rad: the rest leave a residual, a least-squares compromise).
@@ -95,6 +97,12 @@ def configurations(robot, k: int, seed: int = 0) -> dict:
     lo = np.maximum(robot.joint_ranges[:, 0], -np.pi)
     hi = np.minimum(robot.joint_ranges[:, 1], np.pi)
     sets = {}
+    if getattr(robot, "validity", None) is not None:  # where correct() answers without extrapolating
+        q = robot.validity.sample(20 * k, rng)  # the balls reach past the joint ranges: keep what is in both
+        q = q[_in_box(robot, q)][:k]
+        if len(q) < k:
+            raise SystemExit(f"fewer than {k} of {20 * k} samples of the validity region are in the joint ranges")
+        sets["in the validity region"] = q
     for name, joint in (("in range", None), ("wrist q5 in ±0.05", 4), ("elbow q3 in ±0.05", 2)):
         q = rng.uniform(lo, hi, size=(k, robot.n))
         if joint is not None:
@@ -119,6 +127,10 @@ def run(subset, script: str, q: np.ndarray, float32: bool) -> tuple[np.ndarray, 
 
 def _cells(counts: np.ndarray) -> str:
     return " | ".join(map(str, counts[:5])) + f" | {counts[5]} ({counts[6]}) |"[:-2]
+
+
+def _in_box(robot, q) -> np.ndarray:
+    return np.all((q >= robot.joint_ranges[:, 0]) & (q <= robot.joint_ranges[:, 1]), axis=1)
 
 
 def _in_region(robot, q) -> np.ndarray:
@@ -150,8 +162,8 @@ def main() -> None:
             rounding = 0.0  # largest |J_s (q_script - correct())|inf / eps: the residual rounding answers carried
             eps = np.finfo(np.float32 if precision == "float32" else np.float64).eps
             for set_name, q in sets.items():
-                # The script checks the joint box, not the validity region (issue 27): compare with correct()
-                # extrapolating, and count below what it returned outside the region.
+                # The box sets leave the validity region, where the script stops as correct() refuses: compare
+                # with correct() extrapolating, and count below what it returned outside the region (must be 0).
                 expected = robot.correct(q, extrapolate=True)
                 damped = np.max(np.abs(robot.correct(q, extrapolate=True, damped_iterations=0) - expected), axis=1)
                 damped = damped > 1e-12
@@ -174,15 +186,16 @@ def main() -> None:
                 counts = np.array([len(q), agree.sum(), stopped.sum(), differ.sum(), worse.sum(), d, e])
                 total += counts
                 rows.append(f"| {name} | {set_name} | {precision} | {_cells(counts)} |")
-                if set_name == "in range":
+                if set_name in ("in the validity region", "in range"):
                     J = robot.model.equivalent_jacobian(q, length_scale=robot.length_scale)
                     tame = scaled_condition(J, robot.length_scale) <= 100
                     large = ~damped & (np.max(np.abs(expected - q), axis=1) > MAX_CORRECTION)
                     totals.append(
-                        f"{name}, {precision}: {stopped.sum()} of {len(q)} in-range configurations stopped "
+                        f"{name}, {precision}: {stopped.sum()} of {len(q)} configurations {set_name} stopped "
                         f"({100 * stopped.mean():.1f} %: {(stopped & damped).sum()} where correct() damps, "
                         f"{(stopped & large).sum()} where its correction exceeds {MAX_CORRECTION:g} rad); "
                         f"{(stopped & tame).sum()} of the {tame.sum()} with scaled condition <= 100; "
+                        f"{(stopped & ~_in_box(robot, q)).sum()} outside the joint ranges; "
                         f"{(returned & ~_in_region(robot, q)).sum()} returned outside the validity region"
                     )
             rows.append(f"| {name} | **all** | {precision} | {_cells(total)} |")

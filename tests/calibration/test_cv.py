@@ -335,6 +335,34 @@ def test_a_good_fit_of_singular_wrist_sweeps_is_not_a_large_correction():
     assert dq.max() <= 0.1 + 1e-12
 
 
+def test_the_correction_bound_holds_inside_the_validity_region_and_is_lifted_outside_it():
+    """Inside the region no correction exceeds solve.MAX_CORRECTION; a configuration outside it that extrapolate=True
+    lets through gets the model's unbounded answer (the caller asked for the extrapolation), row by row in a batch
+    that mixes both, and on the single-configuration path."""
+    from labcal.compensator.solve import MAX_CORRECTION
+    from labcal.simulation import scenarios
+
+    scn = scenarios.sweeps("ur10", 36, 4, singular_wrist=True, seed=4)
+    robot = fit(Observations(scn.q, scn.points, scn.targets), UR10.model, "local-poe").robot
+    unbounded = dataclasses.replace(robot, validity=None)
+    rng = np.random.default_rng(0)
+
+    def far_reaching(q):  # rows whose unbounded correction exceeds the bound
+        return q[np.abs(unbounded.correct(q, extrapolate=True) - q).max(axis=1) > MAX_CORRECTION]
+
+    inside = far_reaching(robot.validity.sample(1000, rng))[0]
+    wrists = rng.uniform(-np.pi, np.pi, size=(1000, 6))
+    wrists[:, 4] = rng.uniform(-0.02, 0.02, 1000)  # near-singular wrists, mostly far from these sweeps
+    outside = far_reaching(wrists[~robot.validity.inside(wrists)])[0]
+    q = np.stack([inside, outside])
+    got = robot.correct(q, extrapolate=True)
+    assert np.abs(got[0] - inside).max() <= MAX_CORRECTION + 1e-12
+    np.testing.assert_array_equal(got[1], unbounded.correct(outside[None], extrapolate=True)[0])
+    assert np.abs(got[1] - outside).max() > MAX_CORRECTION
+    np.testing.assert_array_equal(robot.correct(outside, extrapolate=True), unbounded.correct(outside, extrapolate=True))
+    assert np.abs(robot.correct(inside) - inside).max() <= MAX_CORRECTION + 1e-12
+
+
 def test_fewer_than_two_poses_per_joint_block_the_export_even_when_the_fit_looks_good():
     """The import refuses such data unless --allow few-poses; the fit must not turn that override into an export."""
     q = random_poses(12)

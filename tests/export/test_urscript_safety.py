@@ -189,3 +189,28 @@ def test_no_injected_string_becomes_a_statement(name, program):
     assert all(ch == "\n" or ch.isprintable() for ch in text)  # no other line break, escape or NUL anywhere
     urscript_subset.check(text)
     assert "movej" not in " ".join(_statements(text))
+
+
+def test_script_corrects_only_inside_the_validity_region():
+    """Where correct() refuses without extrapolate (inside the joint ranges, but far from every measured
+    configuration) the script stops with a popup naming the region; at the measured configurations it answers as
+    correct() does."""
+    from labcal.calibration import Observations, fit
+    from labcal.simulation import scenarios
+
+    scn = scenarios.good("ur10", 40, seed=0)
+    robot = fit(Observations(scn.q, scn.points, scn.targets), load("ur10").model, "local-poe").robot
+    ns = urscript_subset.load(urscript_text(robot))
+    for row in scn.q[:5]:
+        np.testing.assert_allclose(_call(ns, row), robot.correct(row), atol=AGREE, rtol=0)
+    lo, hi = robot.joint_ranges.T
+    box = np.random.default_rng(5).uniform(lo, hi, size=(200, 6))
+    outside = box[~robot.validity.inside(box)][:5]
+    assert len(outside) == 5
+    for row in outside:
+        with pytest.raises(ValueError, match="validity radius"):
+            robot.correct(row)
+        ns["stats"].messages.clear()
+        assert _call(ns, row) is None
+        kind, text = ns["stats"].messages[-1]
+        assert kind == "popup" and "outside the validity region of the calibration" in text
