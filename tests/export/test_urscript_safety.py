@@ -214,3 +214,18 @@ def test_script_corrects_only_inside_the_validity_region():
         assert _call(ns, row) is None
         kind, text = ns["stats"].messages[-1]
         assert kind == "popup" and "outside the validity region of the calibration" in text
+
+
+def test_program_self_test_runs_inside_the_validity_region_of_a_fit_with_wide_joint_ranges():
+    """A local-POE fit keeps the robot's ±2π ranges while its data fill a fraction of them: the self test must
+    pick configurations where the script answers (the golden ones span the ranges and left the region: the export
+    failed with correct()'s 'validity radius' refusal)."""
+    from labcal.calibration import Observations, fit
+    from labcal.simulation import scenarios
+
+    scn = scenarios.good("ur10", 40, seed=0)
+    robot = fit(Observations(scn.q, scn.points, scn.targets), load("ur10").model, "local-poe").robot
+    assert not robot.validity.inside(golden_configurations(robot)).all()  # the premise
+    ns = urscript_subset.load(urscript_program_text(robot), float32=True)
+    ns["labcal_program"]()
+    assert ("textmsg", "labcal: compensator self test passed") in ns["stats"].messages

@@ -85,11 +85,11 @@ calibration's validity region (farther than its radius from every stored configu
 :mod:`labcal.compensator.validity`: where ``correct()`` refuses without ``extrapolate``) stop the program
 (``popup`` + ``halt``) — there is no ``extrapolate``; the region check loops over the stored configurations
 (at most :data:`labcal.compensator.validity.MAX_CENTRES`), about (2n + 3) statements each, so it adds
-``centres × (2n + 3) / (statements_per_sync / 2)`` sync frames (2 ms each) to a call; where the Python runtime damps (near a singular
-configuration) the script stops instead; robots with fewer than 6 joints are supported without a network only
-(virtual joints need a QR decomposition; their least-squares residual is not zero, so only the step is checked),
-robots with more than 6 not at all (a UR controller drives six); the rotation logarithm assumes a residual rotation
-below π/2 (corrections are milliradians).
+``centres × (2n + 3) / (statements_per_sync / 2)`` sync frames (2 ms each) to a call; where the Python runtime
+damps (near a singular configuration) the script stops instead; robots with fewer than 6 joints are supported
+without a network only (virtual joints need a QR decomposition; their least-squares residual is not zero, so
+only the step is checked), robots with more than 6 not at all (a UR controller drives six); the rotation logarithm
+assumes a residual rotation below π/2 (corrections are milliradians).
 """
 
 from __future__ import annotations
@@ -104,6 +104,7 @@ from labcal.compensator import CalibratedRobot, golden_configurations
 from labcal.compensator.solve import GN_MAX_STEP, MAX_CORRECTION
 from labcal.export.zform import ZAxisForm
 from labcal.kinematics import se3
+from labcal.kinematics.metric import scaled_condition
 from labcal.robots import model_hash
 
 BUILTINS = ("sin", "cos", "sqrt", "atan2", "pow", "sync", "popup", "textmsg", "str_cat", "halt", "movej")
@@ -941,7 +942,7 @@ def urscript_program_text(
     lines = [f"def {program_name}():"]
     lines += ["  " + line for line in consts + funcs]
     if self_test:
-        golden = golden_configurations(robot)[:SELF_TEST_COUNT]
+        golden = self_test_configurations(robot)
         near = near_singular_self_test(robot, golden, max_correction)
         q = np.concatenate([golden, near])
         bounds = [FLOAT32_BOUND] * len(golden) + [AGREEMENT] * len(near)
@@ -978,6 +979,20 @@ def urscript_program_text(
     return "\n".join(_header(robot, method, provenance, usage) + lines) + "\n"
 
 
+def self_test_configurations(robot: CalibratedRobot, count: int = SELF_TEST_COUNT) -> np.ndarray:
+    """(count, n) well-conditioned configurations where the script must answer: the compensator's golden
+    configurations, or for a robot with a validity region the best-conditioned of samples of it inside the joint
+    ranges (the golden ones span the joint ranges, where the script stops outside the region)."""
+    region = robot.validity
+    if region is None:
+        return golden_configurations(robot)[:count]
+    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
+    cand = region.sample(64 * count, np.random.default_rng(0))
+    cand = cand[np.all((cand >= lo) & (cand <= hi), axis=1) & region.inside(cand)]
+    J = robot.model.equivalent_jacobian(cand, length_scale=robot.length_scale)
+    return cand[np.argsort(scaled_condition(J, robot.length_scale), kind="stable")[:count]]
+
+
 def near_singular_self_test(robot: CalibratedRobot, golden: np.ndarray, max_correction: float) -> np.ndarray:
     """(k, n) configurations of the program's self test near a UR arm's singularities (none unless six joints).
 
@@ -996,6 +1011,8 @@ def near_singular_self_test(robot: CalibratedRobot, golden: np.ndarray, max_corr
         q = np.tile(golden, (len(values), 1))
         q[:, joint] = np.repeat(values, len(golden))
         q = q[(lo[joint] <= q[:, joint]) & (q[:, joint] <= hi[joint])]
+        if robot.validity is not None:  # where the script answers
+            q = q[robot.validity.inside(q)]
         if not len(q):
             continue
         full = robot.correct(q)
