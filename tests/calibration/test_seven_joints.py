@@ -111,6 +111,23 @@ def test_eq21_on_a_redundant_arm_is_the_minimum_norm_joint_error(panda, targets)
         assert jeo.rank is not None and set(jeo.rank.tolist()) == {3}
 
 
+def test_the_condition_filter_sees_a_redundant_arms_singularity_not_its_self_motion(panda):
+    """The self-motion alone is no singularity (random configurations are kept); joints 1, 3 and 5 in one line
+    (q2 = 0, the elbow stretched out, q4 = 0: just outside the Panda's range, whose end at -0.07 rad already drops
+    about a third of such rows) leave even seven joints short of six directions: dropped, with that cause."""
+    model = panda.model
+    base = CalibratedRobot(nominal=model, model=model)
+    q = sample(model, 100, np.random.default_rng(0), shrink=0.8)
+    free = joint_error_observations(Observations(q, model.target_points(q, TARGETS), TARGETS), base)
+    assert free.kept.mean() > 0.95
+    q = q.copy()
+    q[:, 1], q[:, 3] = 0.0, 0.0
+    stuck = joint_error_observations(Observations(q, model.target_points(q, TARGETS), TARGETS), base)
+    assert stuck.kept.mean() < 0.1
+    cause = stuck.causes(base)[0]
+    assert cause["joint"] == 2 and {1, 3} <= set(cause["lost"]) and cause["rows"] > 0.3 * len(q)
+
+
 def test_hybrid_keeps_a_seven_output_learned_term_that_beats_local_poe_on_held_out_poses(panda, default_errors):
     obs, lp, hy = default_errors
     assert hy.chosen == "hybrid" and hy.info["kept"] in ("local-poe+series", "local-poe+ann")
