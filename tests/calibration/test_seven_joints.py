@@ -9,12 +9,14 @@ written as a robot file here so the tests need no built-in Panda file. The link 
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
 from labcal.calibration import Observations, fit
 from labcal.calibration.equivalent import equivalent_joints, joint_error_observations
-from labcal.compensator import CalibratedRobot, Compensator
+from labcal.compensator import CalibratedRobot, Compensator, CompensatorFileError, field_checksums
 from labcal.kinematics import se3
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
@@ -192,3 +194,15 @@ def test_a_seven_joint_learned_term_survives_its_export_and_corrects_to_the_nomi
     geometric = CalibratedRobot(robot.nominal, robot.model, T_tracker_base=robot.T_tracker_base)
     moved, _ = se3.pose_distance(geometric.predict_pose(q_cmd), robot.nominal.fk(q))
     assert np.max(moved) > 1e-6
+
+
+def test_a_seven_joint_file_whose_network_has_six_outputs_is_refused_by_name(panda, default_errors, tmp_path):
+    path = default_errors[2].robot.save(tmp_path / "panda.json")
+    data = json.loads(path.read_text())
+    net = data["network"]
+    net["weights"][-1], net["biases"][-1] = net["weights"][-1][:6], net["biases"][-1][:6]
+    net["out_mean"], net["out_scale"] = net["out_mean"][:6], net["out_scale"][:6]
+    data["checksums"] = field_checksums(data)  # consistently edited: the shape check, not the checksum, refuses it
+    path.write_text(json.dumps(data))
+    with pytest.raises(CompensatorFileError, match=r"network\.out_mean.*\(7,\)"):
+        Compensator.load(path)
