@@ -171,11 +171,21 @@ def test_redundant_arm_correct_takes_minimum_norm_gauss_newton_steps(monkeypatch
     assert np.max(np.abs(dq)) > 1e-4
 
 
-def test_a_network_needs_a_robot_with_at_most_six_joints():
+def test_a_redundant_arms_network_moves_each_of_its_joints_by_its_output():
+    """n > 6: one network output per joint, δρ applied as exp(Σ δρ_j ξ_j) on the model (eq. 14); six outputs for a
+    7-joint arm are refused naming both counts."""
     robot = redundant_robot()
-    network = make_network(load("ur10").model, ("q",))
-    with pytest.raises(ValueError, match=r"at most 6 joints.*has 7"):
-        CalibratedRobot(robot.nominal, robot.model, network)
+    with pytest.raises(ValueError, match=r"network has 6 outputs; .* 7-joint robot has 7 joint motion errors"):
+        CalibratedRobot(robot.nominal, robot.model, make_network(robot.model, ("q",)))
+    rng = np.random.default_rng(1)
+    net = Network(("q",), (rng.normal(size=(7, 7)) * 1e-3,), (rng.normal(size=7) * 1e-3,),
+                  np.zeros(7), np.ones(7), np.zeros(7), np.ones(7))  # fmt: skip
+    learned = CalibratedRobot(robot.nominal, robot.model, net)
+    q = sample(learned, 5, seed=4)
+    rho = q @ net.weights[0].T + net.biases[0]
+    np.testing.assert_allclose(learned.joint_motion_errors(q), rho, rtol=0, atol=1e-15)
+    twist = np.einsum("kaj,kj->ka", robot.model.joint_twists(q), rho)
+    np.testing.assert_allclose(learned.predict_pose(q), se3.exp_se3(twist) @ robot.model.fk(q), rtol=0, atol=1e-12)
 
 
 def test_redundant_arm_golden_vectors_accept_any_solution_and_refuse_a_wrong_one(tmp_path):

@@ -78,11 +78,21 @@ def _evaluate_columns(cols, q, frames):
     return out
 
 
-@pytest.mark.parametrize("robot", ["ur10", "scara4"])
+def _panda_mdh():
+    """A 7-joint arm (the Franka Emika Panda's published modified DH, flange d = 0.107 m): features for n > 6."""
+    from labcal.kinematics.conversions import from_mdh, trans
+
+    a, d = (0, 0, 0, 0.0825, -0.0825, 0, 0.088), (0.333, 0, 0.316, 0, 0.384, 0, 0)
+    alpha = (0, -np.pi / 2, np.pi / 2, np.pi / 2, -np.pi / 2, np.pi / 2, np.pi / 2)
+    rows = [{"a": a[j], "alpha": alpha[j], "d": d[j], "theta": 0.0, "limits": [-2.8, 2.8]} for j in range(7)]
+    return from_mdh(rows, trans(z=0.107))
+
+
+@pytest.mark.parametrize("robot", ["ur10", "scara4", "panda-mdh"])
 def test_every_registered_feature_matches_its_column_recipes_and_size(robot):
     from labcal.robots import load
 
-    model = load(robot).model
+    model = _panda_mdh() if robot == "panda-mdh" else load(robot).model
     rng = np.random.default_rng(1)
     q = rng.uniform(model.limits[:, 0], model.limits[:, 1], size=(9, model.n))
     frames = model.link_frames(q)

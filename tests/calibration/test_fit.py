@@ -131,34 +131,6 @@ def test_held_out_rows_are_only_measured_never_used_to_choose(fake_ann):
     assert a.metrics["val"]["after"]["pos_mean"] < b.metrics["val"]["after"]["pos_mean"]
 
 
-def redundant_arm(tmp_path):
-    """A 7-joint arm in modified DH (Panda-like link lengths), written as a robot file."""
-    rows = [(0, 0.333, 0), (0, 0, -1), (0, 0.316, 1), (0.0825, 0, 1), (-0.0825, 0.384, -1), (0, 0, 1), (0.088, 0, 1)]
-    text = 'name = "arm7"\nkinematics = "mdh"\n'
-    for j, (a, d, sign) in enumerate(rows):
-        text += f"[[joints]]\nname = 'j{j}'\ntype = 'revolute'\na = {a}\nalpha = {sign * np.pi / 2}\nd = {d}\n"
-        text += "theta = 0.0\nlimits = [-2.8, 2.8]\nmass = 3.0\n"
-    (tmp_path / "arm7.toml").write_text(text + "[tool]\nxyz = [0.0, 0.0, 0.107]\n")
-    return load(tmp_path / "arm7.toml")
-
-
-def test_network_methods_refuse_a_redundant_arm_and_auto_fits_local_poe_alone(tmp_path, fake_ann):
-    spec = redundant_arm(tmp_path)
-    assert spec.model.n == 7
-    fake_ann(lambda obs, base: pytest.fail("a network was fitted for a 7-joint arm"))
-    rng = np.random.default_rng(2)
-    q = rng.uniform(-2.5, 2.5, size=(60, 7))
-    obs = Observations(q, simulate(spec, ErrorSpec.paper(), seed=2).measure(q, TARGETS, rng), TARGETS)
-    for method in ("ann", "hybrid"):
-        with pytest.raises(ValueError, match=f"'{method}'.*at most 6 joints; 'arm7' has 7: use local-poe"):
-            fit(obs, spec.model, method)
-    lines = []
-    result = fit(obs, spec.model, "auto", progress=lines.append)
-    assert result.chosen == "local-poe" and result.info["cv_errors"].keys() == {"local-poe"}
-    assert any("at most 6 joints" in line for line in lines) and any("at most 6 joints" in n for n in result.notes)
-    assert result.cv["mean"]["local-poe"] < 0.1 * result.cv["mean"]["nominal"]
-
-
 def test_local_poe_fit_does_not_import_torch():
     code = (
         "import sys, numpy as np\n"

@@ -1,8 +1,9 @@
 """The paper's calibration method: a neural network learns the joint motion errors of an equivalent robot.
 
 Eq. (16-22): a feed-forward network N(q, w) — inputs the nominal joint values (or features of them), tanh hidden
-layer(s), 6 linear outputs — approximates the joint motion errors δρ(q) (n actuated + 6 − n virtual joints) of
-the equivalent robot built on a *base* robot. Training data are the eq. (21) observations
+layer(s), N = max(n, 6) linear outputs — approximates the joint motion errors δρ(q) (n actuated + 6 − n virtual
+joints; a redundant arm's n joints, δρ without self-motion, :mod:`labcal.calibration.equivalent`) of the equivalent
+robot built on a *base* robot. Training data are the eq. (21) observations
 ``δρ_k = (P_k J_ρ,k)^+ δp_k`` of :mod:`labcal.calibration.equivalent`, after the condition filter.
 
 Training, in torch (imported lazily), float64 and single-threaded so that the same data and seed give
@@ -35,10 +36,13 @@ joint-error directions: its eq. (21) "observation" is the minimum-norm solution,
 (:mod:`labcal.calibration.equivalent`). A joint-space fit would learn that projection as if it were δρ, so when any
 row is such a row the network is trained on eq. (20) — the points themselves — whatever ``loss`` says, and
 ``info["loss_note"]`` says so (measured on one-target UR10 data, the point loss was clearly better than the joint
-loss on the minimum-norm observations; numbers in the issue-15 report).
+loss on the minimum-norm observations; numbers in the issue-15 report). A redundant arm's rows (n > 6) with three
+targets are minimum-norm too, but they lose only the self-motion, which moves no point (J_ρ δρ is the full
+δρ's): the joint loss stays defined there.
 
-Default size: one hidden layer of round(√(6 f)) tanh nodes for f network inputs — the paper's √(6n) rule of
-thumb (the geometric mean of inputs and outputs), identical to it for the paper's ``features=("q",)``.
+Default size: one hidden layer of round(√(N f)) tanh nodes for f network inputs and N outputs — the paper's √(6n)
+rule of thumb (the geometric mean of inputs and outputs), identical to it for the paper's ``features=("q",)`` on a
+robot with at most six joints.
 
 Example (slow-ish, so not a doctest)::
 
@@ -61,6 +65,7 @@ from labcal.calibration.equivalent import (
     MAX_CONDITION,
     SOFT_CONDITION,
     JointErrorObservations,
+    equivalent_joints,
     joint_error_observations,
 )
 from labcal.calibration.observations import ObservationError, Observations
@@ -81,13 +86,14 @@ _OUTPUT_INIT = 1e-2  # relative scale of the initial output-layer weights
 ProgressFn = Callable[[int, int, float, float], None]
 
 
-def default_hidden(n_inputs: int) -> int:
-    """The paper's rule of thumb: round(√(6 · inputs)) hidden nodes (at least 1)."""
-    return max(1, round(math.sqrt(6 * n_inputs)))
+def default_hidden(n_inputs: int, n_outputs: int = 6) -> int:
+    """The paper's rule of thumb: round(√(outputs · inputs)) hidden nodes (at least 1); outputs: the equivalent
+    robot's joint motion errors, max(n, 6)."""
+    return max(1, round(math.sqrt(n_outputs * n_inputs)))
 
 
-def _layer_shapes(n_in: int, hidden: tuple[int, ...]) -> list[tuple[int, int]]:
-    sizes = [n_in, *hidden, 6]
+def _layer_shapes(n_in: int, hidden: tuple[int, ...], n_out: int = 6) -> list[tuple[int, int]]:
+    sizes = [n_in, *hidden, n_out]
     return [(sizes[i + 1], sizes[i]) for i in range(len(sizes) - 1)]
 
 
@@ -127,7 +133,7 @@ def _weight_mask(shapes) -> np.ndarray:
 
 
 def _forward(theta, x, shapes):
-    """Torch forward pass on standardised inputs x (k, f) → standardised outputs (k, 6). Same op order as Network."""
+    """Torch forward pass on standardised inputs x (k, f) → standardised outputs (k, N). Same op order as Network."""
     import torch
 
     h = x
@@ -192,8 +198,8 @@ class _Problem:
         k, f = x.shape
         hidden, outs = W1.shape[0], W2.shape[0]
         a = torch.tanh(x @ W1.T + b1)  # (k, H)
-        slope = W2[None, :, :] * (1.0 - a * a)[:, None, :]  # (k, 6, H): d out / d pre-activation
-        # B: d residual / d out per row, (k, m, 6) — the weighted identity (eq. 21) or −√w A (eq. 20). The blocks
+        slope = W2[None, :, :] * (1.0 - a * a)[:, None, :]  # (k, N, H): d out / d pre-activation
+        # B: d residual / d out per row, (k, m, N) — the weighted identity (eq. 21) or −√w A (eq. 20). The blocks
         # of d residual / d θ are formed from it directly, never the (k, 6, P) Jacobian of the outputs.
         if self.A is None:
             B = torch.diag_embed(self.sqrt_w.expand(k, outs))
@@ -323,9 +329,9 @@ def _standardise(a: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.n
     return mean, scale
 
 
-def _check_hidden(hidden, n_in: int) -> tuple[int, ...]:
+def _check_hidden(hidden, n_in: int, n_out: int = 6) -> tuple[int, ...]:
     if hidden is None:
-        return (default_hidden(n_in),)
+        return (default_hidden(n_in, n_out),)
     layers = (hidden,) if isinstance(hidden, int | np.integer) else tuple(hidden)
     if not layers or any(not isinstance(h, int | np.integer) or h < 1 for h in layers):
         raise ValueError(f"hidden must be a positive int or a non-empty sequence of them, got {hidden!r}")
@@ -414,10 +420,10 @@ def fit_ann(
     :data:`MIN_STOP_ROWS` early-stopping rows remain, :class:`NetworkDataError` names the cause.
     base: a network-free robot — the nominal
     one for the paper's method, an identified local-POE robot for the hybrid. hidden: nodes per hidden layer (an
-    int or a tuple for several layers; default round(√(6 f)) for f inputs). features: network inputs, see
-    :func:`labcal.compensator.input_features`. trainer: "lm" | "adam" | "gd". max_condition / soft_condition:
-    the condition filter of :func:`labcal.calibration.equivalent.joint_error_observations`. loss: "joint"
-    (eq. 21) or "task" (eq. 20). max_iter / patience / lr: trainer defaults if None. progress: called as
+    int or a tuple for several layers; default round(√(N f)) for f inputs and N = max(n, 6) outputs). features:
+    network inputs, see :func:`labcal.compensator.input_features`. trainer: "lm" | "adam" | "gd". max_condition /
+    soft_condition: the condition filter of :func:`labcal.calibration.equivalent.joint_error_observations`. loss:
+    "joint" (eq. 21) or "task" (eq. 20). max_iter / patience / lr: trainer defaults if None. progress: called as
     progress(restart, iteration, train_loss, val_loss).
 
     Returns the calibrated robot (model = base.model, method "ann") and an info dict: observation filter summary
@@ -493,10 +499,13 @@ def fit_ann(
     ok = np.all(np.isfinite(jeo.delta_rho), axis=1)
     y[ok] = (jeo.delta_rho[ok] - out_mean) / out_scale
 
-    shapes = _layer_shapes(x.shape[1], _check_hidden(hidden, x.shape[1]))
+    n_out = equivalent_joints(base.n)
+    shapes = _layer_shapes(x.shape[1], _check_hidden(hidden, x.shape[1], n_out), n_out)
     n_params = _n_params(shapes)
-    if n_params > 6 * tr.size:
-        warnings.append(f"the network has {n_params} weights for {6 * tr.size} training numbers: expect over-fitting")
+    if n_params > n_out * tr.size:
+        warnings.append(
+            f"the network has {n_params} weights for {n_out * tr.size} training numbers: expect over-fitting"
+        )
 
     def problem(torch, idx):
         if loss == "joint":
@@ -588,7 +597,7 @@ def fit_ann(
 
 
 def torch_predict(network: Network, q: np.ndarray, model) -> np.ndarray:
-    """(k, n) joints → (k, 6) δρ computed by the torch forward pass of the training code from a Network's
+    """(k, n) joints → (k, N) δρ computed by the torch forward pass of the training code from a Network's
     weights (float64). Used to verify that an export reproduces the trained model."""
     feats = input_features(q, network.features, model)
     x = (feats - network.in_mean) / network.in_scale

@@ -1,15 +1,29 @@
 """Observations of the joint motion errors of an equivalent robot (paper eq. 12-14, 18, 21).
 
-The equivalent robot explains every pose error of the real robot by joint motion errors δρ (6 per configuration:
-the n actuated joints, then 6 − n virtual joints) of a *base* robot — the nominal model for the paper's method,
-the identified local-POE model for the hybrid. At configuration k:
+The equivalent robot explains every pose error of the real robot by joint motion errors δρ (max(n, 6) per
+configuration: the n actuated joints, then 6 − n virtual joints for n < 6; a redundant arm's n > 6 joints and no
+virtual ones) of a *base* robot — the nominal model for the paper's method, the identified local-POE model for the
+hybrid. At configuration k:
 
 - the base robot predicts target points p̂_i (base frame) and, through ``T_tracker_base``, in the observation frame;
 - δp_k = measured − predicted (3m,), rotated back into the base frame (so it matches eq. 18 in K0);
 - ``P_k = [[I, r̂_1], …, [I, r̂_m]]`` with r_i = −p̂_i, the vector from target i to the origin of K0:
   a twist δy = (δv, δω) moves a point p by δv + δω × p = δv + r̂ δω (eq. 18);
-- J_ρ,k is the base robot's equivalent Jacobian (eq. 14, virtual joints for n < 6);
+- J_ρ,k is the base robot's equivalent Jacobian (eq. 14, virtual joints for n < 6; (6, n) for n > 6);
 - the observation is δρ_k = (P_k J_ρ,k)^+ δp_k (eq. 21), computed once.
+
+**Redundant arms (n > 6).** P J_ρ is (3m, n) with rank at most 6: a joint-error direction in the null space of
+J_ρ (the self-motion, e.g. a 7-joint arm's elbow turning about the shoulder-wrist line) moves no point, so no
+measurement says anything about it. δρ_k is then the minimum-norm solution in the length-scaled metric, truncated
+at the row's rank (6 with three non-collinear targets, fewer with fewer points, as below), i.e. the δρ with no
+self-motion component. Minimum norm rather than a regularised (Tikhonov) solution because (1) the null-space
+component is exactly unobservable, so the only honest choice is to add none of it, and it changes no predicted
+pose (J_ρ δρ is the same); (2) a ridge term would also shrink the observed directions, biasing every δρ towards
+zero by an amount that depends on an arbitrary λ, whereas the directions that are poorly (not un-) observed near a
+singularity are already handled by the condition filter below, for every n alike; (3) the compensator's redundant
+steps are minimum norm too (:mod:`labcal.compensator.solve`), so the learned δρ never asks for a self-motion the
+user did not command. Rows of a redundant arm therefore always take the truncated path below; their ``rank`` is
+what the points see (at most 6) and their ``condition`` is σ_max / σ_rank.
 
 **Fewer than three targets in a row.** Eq. (21) uses the rows of P that the pose has: a target the tracker did not
 see gets zero rows in P J_ρ and in δp (so it adds nothing to any fit built on them: the joint series' normal
@@ -68,14 +82,15 @@ class JointErrorObservations:
     """Eq. 21 for every configuration of an :class:`Observations`, plus the condition filter's verdict.
 
     q: (k, n) joints; delta_p: (k, 3m) measured − predicted target positions in the base frame (m; 0 for a
-    target the row did not see); PJ: (k, 3m, 6) P_k J_ρ,k (zero rows for unseen targets); delta_rho: (k, 6)
-    observed joint motion errors (rad, m for prismatic joints; the minimum-norm solution where ``rank`` < 6;
-    NaN where PJ is numerically singular); condition: (k,) cond(P J_ρ S) (see module docstring);
+    target the row did not see); PJ: (k, 3m, N) P_k J_ρ,k with N = max(n, 6) joint motion errors (zero rows for
+    unseen targets); delta_rho: (k, N) observed joint motion errors (rad, m for prismatic joints; the minimum-norm
+    solution where ``rank`` < N, so always for n > 6; NaN where PJ is numerically singular); condition: (k,)
+    cond(P J_ρ S) (see module docstring);
     weight: (k,) 0 for dropped rows, (soft/cond)² in the down-weighted band, else 1;
     reason: (k,) "" for kept rows, else why the row was dropped; split: (k,) the observations' split labels;
     targets: (m, 3) the targets in the tool frame (to name the cause of dropped rows, :func:`dropped_causes`);
     seen: (k, m) the targets each row saw (None: all); rank: (k,) the joint-error directions the row's points
-    can see (6, 5 with two points or a line of them, 3 with one; None: 6 everywhere).
+    can see (6, 5 with two points or a line of them, 3 with one; None: 6 everywhere, n ≤ 6 only).
     """
 
     q: np.ndarray
@@ -143,13 +158,23 @@ def point_matrix(points: np.ndarray) -> np.ndarray:
     return P
 
 
+def equivalent_joints(n: int) -> int:
+    """The number of joint motion errors of an n-joint robot's equivalent robot: max(n, 6) (eq. 12-14).
+
+    >>> equivalent_joints(4), equivalent_joints(6), equivalent_joints(7)
+    (6, 6, 7)
+    """
+    return max(int(n), 6)
+
+
 def metric_scale(base: CalibratedRobot) -> np.ndarray:
-    """(6,) column scaling S of the length-scaled metric: L for prismatic actuated joints, 1 otherwise."""
-    return metric.joint_weights(base.model.joint_types, base.length_scale, size=6)
+    """(N,) column scaling S of the length-scaled metric (N = max(n, 6)): L for prismatic actuated joints, 1
+    otherwise."""
+    return metric.joint_weights(base.model.joint_types, base.length_scale, size=equivalent_joints(base.n))
 
 
 def condition_numbers(PJ: np.ndarray, scale: np.ndarray, rank: np.ndarray | None = None) -> np.ndarray:
-    """(k, 3m, 6) P J_ρ and (6,) column scaling → (k,) condition numbers (inf where rank deficient).
+    """(k, 3m, N) P J_ρ and (N,) column scaling → (k,) condition numbers (inf where rank deficient).
 
     rank: (k,) the directions each row can see (module docstring); the condition is then σ_max / σ_rank."""
     sv = np.linalg.svd(PJ * scale, compute_uv=False)
@@ -173,7 +198,7 @@ def row_ranks(targets: np.ndarray, seen: np.ndarray) -> np.ndarray:
 
 
 def _masked_pj(base: CalibratedRobot, q: np.ndarray, targets: np.ndarray, seen: np.ndarray):
-    """(predicted points (k, m, 3), P J_ρ (k, 3m, 6)) with zero rows for the targets a row did not see."""
+    """(predicted points (k, m, 3), P J_ρ (k, 3m, N)) with zero rows for the targets a row did not see."""
     predicted = base.predict_points(q, targets)
     PJ = np.einsum("kab,kbc->kac", point_matrix(predicted), base.equivalent_jacobian(q))
     PJ[~np.repeat(seen, 3, axis=1)] = 0.0
@@ -181,7 +206,7 @@ def _masked_pj(base: CalibratedRobot, q: np.ndarray, targets: np.ndarray, seen: 
 
 
 def _min_norm(PJ: np.ndarray, delta_p: np.ndarray, rank: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """(k, 6) minimum-norm solutions of P J_ρ δρ = δp in the length-scaled metric, truncated at each row's rank."""
+    """(k, N) minimum-norm solutions of P J_ρ δρ = δp in the length-scaled metric, truncated at each row's rank."""
     U, s, Vt = np.linalg.svd(PJ * scale, full_matrices=False)
     keep = np.arange(s.shape[1])[None, :] < rank[:, None]
     coef = np.where(keep, np.einsum("kai,ka->ki", U, delta_p) / np.where(keep, s, 1.0), 0.0)
@@ -213,7 +238,8 @@ def joint_error_observations(
             raise ValueError(f"soft_condition {soft_condition} exceeds max_condition {max_condition}")
     q = obs.q
     k = obs.k
-    if not obs.complete or obs.m != 3 or target_geometry(obs.targets)[0] != "plane":
+    if base.n > 6 or not obs.complete or obs.m != 3 or target_geometry(obs.targets)[0] != "plane":
+        # A redundant arm's P J_ρ always has a null space (the self-motion): the truncated minimum-norm path.
         return _partial_observations(obs, base, max_condition, soft_condition)
     predicted = base.predict_points(q, obs.targets) if k else np.zeros((0, 3, 3))  # (k, 3, 3) base frame
     R, t = base.T_tracker_base[:3, :3], base.T_tracker_base[:3, 3]
@@ -250,12 +276,14 @@ def _screen(condition: np.ndarray, max_condition, soft_condition) -> tuple[np.nd
 
 
 def _partial_observations(obs, base, max_condition, soft_condition) -> JointErrorObservations:
-    """:func:`joint_error_observations` unless every row sees the same three non-collinear targets (module
-    docstring): zero rows for unseen targets, each row's rank, the condition of what it can see, min-norm δρ."""
+    """:func:`joint_error_observations` unless every row sees the same three non-collinear targets and the robot
+    has at most six joints (module docstring): zero rows for unseen targets, each row's rank, the condition of what
+    it can see, min-norm δρ."""
     q, k, m = obs.q, obs.k, obs.m
     seen = obs.seen
     rank = row_ranks(obs.targets, seen)
-    predicted, PJ = _masked_pj(base, q, obs.targets, seen) if k else (np.zeros((0, m, 3)), np.zeros((0, 3 * m, 6)))
+    N = equivalent_joints(base.n)
+    predicted, PJ = _masked_pj(base, q, obs.targets, seen) if k else (np.zeros((0, m, 3)), np.zeros((0, 3 * m, N)))
     R, t = base.T_tracker_base[:3, :3], base.T_tracker_base[:3, 3]
     in_obs_frame = np.einsum("ab,kmb->kma", R, predicted) + t
     diff = np.where(seen[..., None], obs.points - in_obs_frame, 0.0)
@@ -263,7 +291,7 @@ def _partial_observations(obs, base, max_condition, soft_condition) -> JointErro
     scale = metric_scale(base)
     condition = condition_numbers(PJ, scale, rank) if k else np.zeros(0)
     reason, weight, ok = _screen(condition, max_condition, soft_condition)
-    delta_rho = np.full((k, 6), np.nan)
+    delta_rho = np.full((k, N), np.nan)
     if np.any(ok):
         delta_rho[ok] = _min_norm(PJ[ok], delta_p[ok], rank[ok], scale)
     return JointErrorObservations(
@@ -293,7 +321,7 @@ def dropped_causes(jeo: JointErrorObservations, base: CalibratedRobot) -> list[d
     q = jeo.q[dropped]
     _, _, Vt = np.linalg.svd(jeo.PJ[dropped] * scale, full_matrices=False)
     if jeo.rank is None:
-        null = np.abs(Vt[:, -1, :])  # (d, 6)
+        null = np.abs(Vt[:, -1, :])  # (d, 6): n <= 6 here (a redundant arm's rows always carry their rank)
     else:  # the weakest direction the row's points can see
         null = np.abs(np.take_along_axis(Vt, (jeo.rank[dropped] - 1)[:, None, None], axis=1)[:, 0])
     cond0 = jeo.condition[dropped]
@@ -320,7 +348,7 @@ def dropped_causes(jeo: JointErrorObservations, base: CalibratedRobot) -> list[d
     out = []
     for joint in sorted(set(culprit.tolist())):
         rows = np.flatnonzero(culprit == joint)
-        counts = np.bincount(np.concatenate([lost_sets[i] for i in rows]), minlength=7)
+        counts = np.bincount(np.concatenate([lost_sets[i] for i in rows]), minlength=equivalent_joints(n) + 1)
         lost = [int(j) for j in np.flatnonzero(counts >= max(1, len(rows) / 2))]  # lost in most of these rows
         names = ", ".join(str(j) if j <= n else f"virtual {j}" for j in lost)
         what = f"joints {names} cannot be told apart" if len(lost) > 1 else f"the error of joint {names} is not seen"

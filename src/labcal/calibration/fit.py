@@ -11,8 +11,9 @@ Methods (:data:`METHODS`):
 - ``auto``: cross-validates local-poe, hybrid (+series, +ann) and ann in the same folds and keeps the simplest
   within a near-tie of the best (order local-poe < hybrid+series < hybrid+ann < ann; :mod:`labcal.calibration.cv`).
 
-ann and hybrid learn the six joint motion errors of the equivalent robot, so they need a robot with at most 6 joints;
-for a redundant arm (n > 6) they are refused and auto fits local-poe alone.
+ann and hybrid learn the joint motion errors of the equivalent robot: six for n ≤ 6 (virtual joints for n < 6), the
+n joints of a redundant arm (n > 6), observed without self-motion (:mod:`labcal.calibration.equivalent`); auto
+considers them for every n.
 
 **Rows.** By default (``val_fraction=0``) every row that is not labelled "val" or "test" is a fitting row: local
 POE and the registration use all of them, and the learned stages are chosen by K-fold cross-validation over them
@@ -202,11 +203,6 @@ def _fit(
     counts = {s: int(np.sum(obs.split == s)) for s in ("train", "val", "test")}
     if counts["train"] == 0:
         raise ValueError("no fitting rows: every row is labelled val or test")
-    if method in ("hybrid", "ann") and nominal.n > 6:
-        raise ValueError(
-            f"method {method!r} learns the six joint motion errors of the equivalent robot (eq. 12-14), which needs a "
-            f"robot with at most 6 joints; {nominal.name!r} has {nominal.n}: use local-poe"
-        )
     lp_opts = dict(local_poe_options or {})
     hybrid_opts = {key: options.pop(key) for key in ("stage2", "series_options") if key in options}
     stage2 = tuple(hybrid_opts.get("stage2", ("ann", "series")))
@@ -243,12 +239,7 @@ def _fit(
         learned = tuple(c for c, s in (("hybrid+series", "series"), ("hybrid+ann", "ann")) if s in stage2)
         candidates = ("nominal", "local-poe", *learned)
         if method == "auto":
-            if nominal.n > 6:
-                say(f"auto: ann and hybrid need a robot with at most 6 joints ({nominal.name!r} has {nominal.n})")
-                notes.append(f"auto: ann and hybrid need at most 6 joints; {nominal.name!r} has {nominal.n}")
-                candidates = ("nominal", "local-poe")
-            else:
-                candidates = (*candidates, "ann")
+            candidates = (*candidates, "ann")
     folds, scheme = fold_plan(fit_obs, seed)
     series_full = None
     if "hybrid+series" in candidates:

@@ -31,9 +31,15 @@ penalised like order 1. By default cross-validation decides whether to include t
 of the actuated joints' transmissions; a lower-mobility robot's out-of-plane errors are geometric and belong to
 the local-POE stage.
 
+**Redundant arms** (n > 6): every joint gets its series, fitted in task space like any other. The self-motion
+(the null space of J_ρ) moves no point, so the data cannot split an error between joints that only differ by it;
+the ridge penalty then picks the smallest coefficients that explain the points, and a direction no row sees stays
+at zero. Nothing here forms (P J_ρ)⁺, so no minimum-norm choice is needed (see
+:mod:`labcal.calibration.equivalent` for the network's).
+
 The result is an ordinary :class:`~labcal.compensator.CalibratedRobot` whose ``network`` is a
-:class:`~labcal.compensator.Network` without hidden layer: one weight matrix (6, 2nH) that is zero outside each
-joint's own block, biases c_j, features ``("harmonics:H",)``.
+:class:`~labcal.compensator.Network` without hidden layer: one weight matrix (N, 2nH), N = max(n, 6) joint motion
+errors, that is zero outside each joint's own block, biases c_j, features ``("harmonics:H",)``.
 
 Example (not a doctest: it needs a data set)::
 
@@ -49,7 +55,7 @@ import math
 import numpy as np
 
 from labcal import features as feature_lib
-from labcal.calibration.equivalent import joint_error_observations
+from labcal.calibration.equivalent import equivalent_joints, joint_error_observations
 from labcal.calibration.metrics import primary_error
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot, Network, input_features
@@ -89,7 +95,7 @@ class _Design:
         zero); None when every row saw every target."""
         n = basis.shape[1]
         self.points = points
-        self.PJ = PJ[:, :, :n]  # (k, 9, n)
+        self.PJ = PJ[:, :, :n]  # (k, 3m, n): the actuated joints (virtual ones of n < 6 are not modelled)
         self.delta_p = delta_p  # (k, 9)
         self.basis = basis  # (k, n, m)
         self.C = np.einsum("kai,kaj->kij", self.PJ, self.PJ)
@@ -230,11 +236,12 @@ def fit_joint_series(
     coef = coef.reshape(n, m)
     g_cols = n_grav if use_gravity else 0
 
-    W = np.zeros((6, g_cols + 2 * n * H))
+    N = equivalent_joints(n)
+    W = np.zeros((N, g_cols + 2 * n * H))
     for j in range(n):
         W[j, :g_cols] = coef[j, 1 : 1 + g_cols]
         W[j, g_cols + 2 * H * j : g_cols + 2 * H * (j + 1)] = coef[j, 1 + g_cols :]
-    bias = np.zeros(6)
+    bias = np.zeros(N)
     bias[:n] = coef[:, 0]
     f = W.shape[1]
     network = Network(
@@ -243,8 +250,8 @@ def fit_joint_series(
         biases=(bias,),
         in_mean=np.zeros(f),
         in_scale=np.ones(f),
-        out_mean=np.zeros(6),
-        out_scale=np.ones(6),
+        out_mean=np.zeros(N),
+        out_scale=np.ones(N),
     )
     robot = CalibratedRobot(
         nominal=base.nominal,

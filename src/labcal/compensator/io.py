@@ -343,7 +343,7 @@ def check_payload(data: dict, source: str, *, error: type[Exception] = Compensat
             except error as err:
                 fail("joint_map", f"is not a valid joint map for {n} joints: {str(err).split(': ', 1)[1]}")
     if data.get("network") is not None:
-        _check_network(table("network", data["network"]), fail, numbers)
+        _check_network(table("network", data["network"]), fail, numbers, max(n, 6))
     golden = table("golden", data.get("golden"))
     q = golden.get("q")
     k = len(q) if isinstance(q, list | np.ndarray) else 0
@@ -365,8 +365,9 @@ def check_payload(data: dict, source: str, *, error: type[Exception] = Compensat
         fail("checksums", "must map each field to a hex digest")
 
 
-def _check_network(net: dict, fail, numbers) -> None:
-    """Features known to the registry, layer shapes that chain, sizes within the bounds, finite numbers."""
+def _check_network(net: dict, fail, numbers, outputs: int) -> None:
+    """Features known to the registry, layer shapes that chain, sizes within the bounds, finite numbers; outputs:
+    the equivalent robot's joint motion errors, max(n, 6) for an n-joint robot."""
     features = net.get("features")
     if not isinstance(features, list) or not features:
         fail("network.features", "must list the network's input features")
@@ -383,11 +384,11 @@ def _check_network(net: dict, fail, numbers) -> None:
         fail("network.in_mean", f"must hold 1 to {MAX_WIDTH} numbers (one per network input)")
     numbers("network.in_mean", in_mean, (width,))
     numbers("network.in_scale", net.get("in_scale"), (width,))
-    numbers("network.out_mean", net.get("out_mean"), (6,))
-    numbers("network.out_scale", net.get("out_scale"), (6,))
+    numbers("network.out_mean", net.get("out_mean"), (outputs,))
+    numbers("network.out_scale", net.get("out_scale"), (outputs,))
     total = 0
     for i, (W, b) in enumerate(zip(weights, biases, strict=True)):
-        rows = 6 if i == len(weights) - 1 else (len(W) if isinstance(W, list | np.ndarray) else 0)
+        rows = outputs if i == len(weights) - 1 else (len(W) if isinstance(W, list | np.ndarray) else 0)
         if not 1 <= rows <= MAX_WIDTH:
             fail(f"network.weights.{i}", f"must have 1 to {MAX_WIDTH} rows")
         total += rows * (width + 1)
@@ -705,8 +706,8 @@ def _field_shapes(n: int) -> dict[str, tuple]:
             "golden.pose": (-1, 4, 4),
             "network.in_mean": (-2,),
             "network.in_scale": (-2,),
-            "network.out_mean": (6,),
-            "network.out_scale": (6,),
+            "network.out_mean": (max(n, 6),),
+            "network.out_scale": (max(n, 6),),
             "validity.centres": (-3, n),
             "validity.joint_scale": (n,),
         }
@@ -753,10 +754,10 @@ def _check_npz_shapes(headers: dict[str, tuple], expected: dict, n: int, source:
     total = 0
     for i in range(count):
         W, b = weights[i], biases[i]
-        rows = 6 if i == count - 1 else (W[0] if len(W) == 2 else -1)
+        rows = max(n, 6) if i == count - 1 else (W[0] if len(W) == 2 else -1)
         if len(W) != 2 or W[0] != rows or (width is not None and W[1] != width) or not 1 <= W[0] <= MAX_WIDTH:
             raise CompensatorFileError(
-                f"{source}: network.weights.{i} has shape {W}, expected ({'6' if i == count - 1 else 'h'}, "
+                f"{source}: network.weights.{i} has shape {W}, expected ({max(n, 6) if i == count - 1 else 'h'}, "
                 f"{width if width is not None else 'f'}) with h ≤ {MAX_WIDTH}"
             )
         if b != (W[0],):

@@ -4,7 +4,8 @@ A :class:`CalibratedRobot` is the output of every calibration method and the con
 
 - ``model``: the identified local-POE frames (equal to ``nominal`` for the paper's pure ANN method);
 - ``network``: optional learned joint motion errors δρ(q) of the equivalent robot built on ``model`` (eq. 12-16),
-  six outputs: the n actuated joints, then 6 − n virtual joints; its inputs are :mod:`labcal.features`;
+  max(n, 6) outputs: the n actuated joints, then 6 − n virtual joints for n < 6; its inputs are
+  :mod:`labcal.features`;
 - ``T_tracker_base``: the estimated pose of the robot base in the tracker frame (identity for base-frame data);
 - ``measurement_tool``: the identified pose of the measurement fixture (the frame the calibration's targets were
   given in: probe, SMR nest) in the robot's tool0 frame (the last frame of ``nominal``: the flange, or the robot
@@ -77,7 +78,8 @@ def _feature_evaluator(names: tuple[str, ...], model: LocalPOEModel):
 
 @dataclass(frozen=True, eq=False)
 class Network:
-    """A feed-forward network in numpy: normalised features → tanh hidden layers → 6 linear outputs.
+    """A feed-forward network in numpy: normalised features → tanh hidden layers → N linear outputs (N = max(n, 6),
+    the equivalent robot's joint motion errors).
 
     weights[i]: (out_i, in_i); biases[i]: (out_i,). Inputs are standardised with in_mean/in_scale and outputs
     de-standardised with out_mean/out_scale, so the stored weights act on unit-scale numbers.
@@ -92,7 +94,7 @@ class Network:
     out_scale: np.ndarray
 
     def __call__(self, q: np.ndarray, model: LocalPOEModel) -> np.ndarray:
-        """(k, n) joint values → (k, 6) joint motion errors δρ (rad or m)."""
+        """(k, n) joint values → (k, N) joint motion errors δρ (rad or m)."""
         h = (input_features(q, self.features, model) - self.in_mean) / self.in_scale
         last = len(self.weights) - 1
         for i, (W, b) in enumerate(zip(self.weights, self.biases, strict=True)):
@@ -104,6 +106,11 @@ class Network:
     @property
     def hidden(self) -> tuple[int, ...]:
         return tuple(W.shape[0] for W in self.weights[:-1])
+
+    @property
+    def outputs(self) -> int:
+        """N, the joint motion errors it predicts (the last layer's rows)."""
+        return int(np.shape(self.weights[-1])[0])
 
     @functools.cached_property
     def _folded(self) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
@@ -118,7 +125,7 @@ class Network:
         return tuple(np.ascontiguousarray(W.T) for W in Ws), tuple(bs)
 
     def forward_features(self, x: np.ndarray) -> np.ndarray:
-        """(k, f) raw (un-normalised) features → (k, 6) outputs; the fast path of __call__."""
+        """(k, f) raw (un-normalised) features → (k, N) outputs; the fast path of __call__."""
         Wt, bs = self._folded
         h = x
         last = len(Wt) - 1
@@ -357,10 +364,10 @@ class CalibratedRobot:
             object.__setattr__(self, "length_scale", self.nominal.reach())
         if not (math.isfinite(self.length_scale) and self.length_scale > 0):
             raise ValueError(f"length_scale must be a positive number of metres per radian, got {self.length_scale!r}")
-        if self.network is not None and self.n > 6:
+        if self.network is not None and self.network.outputs != max(self.n, 6):
             raise ValueError(
-                f"a joint-motion-error network needs a robot with at most 6 joints (the equivalent robot has six, "
-                f"eq. 12-14); this one has {self.n}"
+                f"the joint-motion-error network has {self.network.outputs} outputs; the equivalent robot of this "
+                f"{self.n}-joint robot has {max(self.n, 6)} joint motion errors (eq. 12-14: max(n, 6))"
             )
 
     @property
@@ -560,15 +567,16 @@ class CalibratedRobot:
         return frames, J, dy
 
     def joint_motion_errors(self, q) -> np.ndarray:
-        """(k, 6) predicted joint motion errors δρ(q) of the equivalent robot (zeros without a network)."""
+        """(k, N) predicted joint motion errors δρ(q) of the equivalent robot, N = max(n, 6) (zeros without a
+        network)."""
         q2, _ = self._batch(q)
         if self.network is None or q2.shape[0] == 0:
-            return np.zeros((q2.shape[0], 6))
+            return np.zeros((q2.shape[0], max(self.n, 6)))
         frames = self.model.link_frames(q2) if self._inputs.needs_frames else None
         return self.network.forward_features(self._inputs(q2, frames))
 
     def equivalent_jacobian(self, q) -> np.ndarray:
-        """(k, 6, 6) J_ρ of the identified model (actuated + virtual joints, eq. 12-14)."""
+        """(k, 6, N) J_ρ of the identified model (actuated + virtual joints, eq. 12-14; N = max(n, 6))."""
         return self.model.equivalent_jacobian(q, length_scale=self.length_scale)
 
     def predict_pose(self, q, *, tcp=None) -> np.ndarray:
