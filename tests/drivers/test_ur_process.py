@@ -94,3 +94,15 @@ def test_the_watchdog_settings_are_checked_in_the_profile(tmp_path):
     bad.write_text(text.replace("watchdog_timeout_s = 1.0", "watchdog_timeout_s = 30.0"))
     with pytest.raises(ValueError, match=r"watchdog_timeout_s.*must be within \[0.05, 4.0\]"):
         load_ur_profile(bad)
+
+
+def test_a_control_interface_that_cannot_be_built_leaves_no_receive_process_behind():
+    # connect() builds the receive interface first; when the control one then fails, the receive interface's own
+    # process must end too (disconnect() alone leaves it waiting for calls until labcal itself exits).
+    def failing_control(host: str, frequency: float):
+        raise RuntimeError(f"Could not connect to: {host} at 30004")
+
+    with FakeRTDEServer() as fake:
+        with pytest.raises(ConnectionFailed, match="Could not connect"):
+            URRobot.connect(make_profile(fake.host), probe=False, control_factory=failing_control)
+        assert children() == []

@@ -525,7 +525,11 @@ class URRobot:
                 control = _construct(control_factory, host, profile.frequency, "RTDE control interface")
             except BaseException:
                 with contextlib.suppress(Exception):
-                    receive.disconnect()
+                    # a RemoteInterface's process outlives disconnect() (it waits for calls): close() ends it too
+                    if isinstance(receive, RemoteInterface):
+                        receive.close()
+                    else:
+                        receive.disconnect()
                 raise
         return cls(profile, receive, control, identity=identity)
 
