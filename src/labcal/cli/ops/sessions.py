@@ -261,10 +261,12 @@ def plan_cell(request: SessionRequest, spec: RobotSpec, normals, robot) -> dict:
     # The sim rig's tracker frame is the base frame (a convention, not a place in a cell): no line of sight there.
     if request.robot_driver != "sim":
         from labcal.drivers.serial.profiles import load_placement
+        from labcal.drivers.ur import load_ur_profile
 
         # The profile the robot was opened with (its limits are cell["safety"]), not the file read again: edited
-        # in between, the two would disagree.
-        workspace = robot.profile.workspace
+        # in between, the two would disagree. (A stand-in robot without one: the file.)
+        opened = getattr(robot, "profile", None)
+        workspace = (opened if opened is not None else load_ur_profile(request.profile)).workspace
         cell["workspace"] = workspace
         sources = {
             f"{request.profile} [workspace] tracker_mm": workspace.tracker if workspace else None,
