@@ -544,9 +544,11 @@ class URRobot:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if exc and exc[0] is not None:
-            self.stop()  # leaving because of an error: make sure nothing keeps moving
-        self.close()
+        try:
+            if exc and exc[0] is not None:
+                self.stop()  # leaving because of an error: make sure nothing keeps moving
+        finally:
+            self.close()  # also when a second Ctrl-C lands during the stop
 
     def close(self) -> None:
         """Disconnect both interfaces. Safe to call twice; never raises."""
