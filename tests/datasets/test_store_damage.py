@@ -384,3 +384,13 @@ def test_a_versions_log_line_torn_by_a_crash_does_not_swallow_the_next_version(t
     listed = [n for n in report.notes if "not listed in versions.jsonl" in n]
     assert len(listed) == 1 and listed[0].startswith("v001: ")  # its entry was torn; v002's is whole
     store.check_before_recording(sid)  # a resume is not refused
+
+
+def test_a_whole_versions_log_entry_without_its_newline_is_kept(two_runs):
+    store, sid, _ = two_runs
+    log = store.session_dir(sid) / "versions.jsonl"
+    log.write_bytes(log.read_bytes().rstrip(b"\n"))  # v001's entry whole, only its newline lost
+    assert store.seal(sid).ref == f"{sid}@v002"
+    report = store.check_session(sid)
+    assert report.problems == [] and not [n for n in report.notes if "not listed" in n]
+    assert [json.loads(line)["version"] for line in log.read_text().splitlines()] == ["v001", "v002"]
