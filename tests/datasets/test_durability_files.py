@@ -156,3 +156,15 @@ def test_publishing_fsyncs_the_folder_that_holds_the_new_name(tmp_path, monkeypa
     spy = FsSpy(monkeypatch)
     publish_dir(tmp, final)
     assert spy.index("fsync", tmp_path.stat().st_ino) > spy.index("rename", final.stat().st_ino)
+
+
+def test_a_new_store_folder_is_fsynced_into_the_folder_that_holds_it(tmp_path, monkeypatch):
+    # `labcal session new --store NEW` creates the store: until the folder holding its name is fsynced, a power loss
+    # can lose the store's own entry, and with it every measurement fsynced inside it.
+    spy = FsSpy(monkeypatch)
+    store = SessionStore(tmp_path / "lab" / "store")
+    with new_journal(store) as j:
+        path = Path(j.path)
+    created = spy.index("fsync", path.stat().st_ino)  # the start document
+    assert spy.index("fsync", (tmp_path / "lab").stat().st_ino) < created  # holds the name "store"
+    assert spy.index("fsync", tmp_path.stat().st_ino) < created  # holds the name "lab", also created here

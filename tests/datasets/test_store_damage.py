@@ -369,3 +369,28 @@ def test_valid_prefix_stops_at_a_corrupt_line_in_the_unsealed_part(two_runs):
     skipped = store.manifest(result.ref)["provenance"]["journal"]["valid_prefix"]["skipped"]
     assert [s["line"] for s in skipped] == [pose6, pose6 + 1]
     assert skipped[1]["pose_index"] == 7 and f"after the corrupt line {pose6}" in skipped[1]["reason"]
+
+
+def test_a_versions_log_line_torn_by_a_crash_does_not_swallow_the_next_version(two_runs):
+    # A crash in the middle of appending to versions.jsonl leaves an unfinished last line (a note, not damage). The
+    # next seal must start its entry on a fresh line: glued onto the torn one, both become one unreadable line in
+    # the middle, which check_before_recording refuses forever, and v002's entry is lost.
+    store, sid, _ = two_runs
+    log = store.session_dir(sid) / "versions.jsonl"
+    log.write_bytes(log.read_bytes()[:-20])  # v001's entry cut short, no newline
+    assert store.seal(sid).ref == f"{sid}@v002"
+    report = store.check_session(sid)
+    assert report.problems == []
+    listed = [n for n in report.notes if "not listed in versions.jsonl" in n]
+    assert len(listed) == 1 and listed[0].startswith("v001: ")  # its entry was torn; v002's is whole
+    store.check_before_recording(sid)  # a resume is not refused
+
+
+def test_a_whole_versions_log_entry_without_its_newline_is_kept(two_runs):
+    store, sid, _ = two_runs
+    log = store.session_dir(sid) / "versions.jsonl"
+    log.write_bytes(log.read_bytes().rstrip(b"\n"))  # v001's entry whole, only its newline lost
+    assert store.seal(sid).ref == f"{sid}@v002"
+    report = store.check_session(sid)
+    assert report.problems == [] and not [n for n in report.notes if "not listed" in n]
+    assert [json.loads(line)["version"] for line in log.read_text().splitlines()] == ["v001", "v002"]

@@ -197,6 +197,16 @@ def test_context_manager_stops_on_error_and_closes():
     assert ctl.stops and rx.disconnects == 1
 
 
+def test_a_second_ctrl_c_during_the_stop_on_the_way_out_still_closes_the_interfaces():
+    # Leaving on an error, the robot is stopped, then closed; an operator's second Ctrl-C during that stop must not
+    # skip the close (each ur-rtde interface is a process and a controller connection of its own).
+    robot, rx, ctl = make_robot()
+    ctl.stop_error = KeyboardInterrupt()
+    with pytest.raises(KeyboardInterrupt), robot:
+        raise KeyboardInterrupt
+    assert ctl.stops and (rx.disconnects, ctl.disconnects) == (1, 1)
+
+
 def test_read_only_robot_refuses_to_move():
     rx = StubReceive()
     robot = URRobot(make_profile(), rx, None)

@@ -94,3 +94,47 @@ def test_the_watchdog_settings_are_checked_in_the_profile(tmp_path):
     bad.write_text(text.replace("watchdog_timeout_s = 1.0", "watchdog_timeout_s = 30.0"))
     with pytest.raises(ValueError, match=r"watchdog_timeout_s.*must be within \[0.05, 4.0\]"):
         load_ur_profile(bad)
+
+
+def test_a_control_interface_that_cannot_be_built_leaves_no_receive_process_behind():
+    # connect() builds the receive interface first; when the control one then fails, the receive interface's own
+    # process must end too (disconnect() alone leaves it waiting for calls until labcal itself exits).
+    def failing_control(host: str, frequency: float):
+        raise RuntimeError(f"Could not connect to: {host} at 30004")
+
+    with FakeRTDEServer() as fake:
+        with pytest.raises(ConnectionFailed, match="Could not connect"):
+            URRobot.connect(make_profile(fake.host), probe=False, control_factory=failing_control)
+        assert children() == []
+
+
+def test_a_call_interrupted_just_after_it_was_sent_never_hands_its_answer_to_the_next_call():
+    # Ctrl-C can land between sending a request and waiting for its answer; the answer still comes, and a later
+    # call (stopJ on the way out, a getter) would take it for its own. The interface must be given up instead.
+    class InterruptedAfterFlush:
+        def __init__(self, stream):
+            self.stream = stream
+
+        def write(self, data):
+            return self.stream.write(data)
+
+        def flush(self):
+            self.stream.flush()  # the request has left
+            raise KeyboardInterrupt
+
+        def close(self):
+            self.stream.close()
+
+    with FakeRTDEServer() as fake:
+        rx = RemoteInterface("receive", fake.host, -1.0, ["timestamp", "actual_q"], start_timeout=10.0)
+        try:
+            stdin = rx._process.stdin
+            rx._process.stdin = InterruptedAfterFlush(stdin)
+            with pytest.raises(KeyboardInterrupt):
+                rx.getActualQ()
+            rx._process.stdin = stdin
+            with pytest.raises(RuntimeError, match="interface is gone"):
+                rx.getTimestamp()  # not getActualQ's list of six
+            assert not rx.alive and children() == []
+        finally:
+            rx.kill()

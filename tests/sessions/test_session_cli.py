@@ -279,3 +279,27 @@ def test_fit_refuses_two_versions_of_one_session(tmp_path):
     r = invoke("fit", first.ref, second, "--method", "local-poe", store=st.root)
     assert r.exit_code == 2 and r.stderr.startswith("error: ")
     assert f"{first.ref} and {second} are two versions of one session, which share rows" in r.stderr
+
+
+def test_the_plan_keeps_to_the_workspace_of_the_profile_the_robot_was_opened_with(tmp_path, targets):
+    # `session new` opens the robot from its profile, then plans; a profile edited in between must not give the
+    # planner another cell than the one belonging to the limits the robot checks every move against.
+    from labcal.cli.ops.sessions import SessionRequest, plan_cell
+    from labcal.drivers.ur import URRobot, load_ur_profile
+    from labcal.robots import load
+
+    repo = Path(__file__).resolve().parents[2]
+    text = (repo / "drivers" / "ur10-lab.toml").read_text()
+    profile = tmp_path / "ur.toml"
+    box = "\n[workspace]\nallowed_min_mm = [{0}, {0}, -300.0]\nallowed_max_mm = [{1}, {1}, 1500.0]\n"
+    profile.write_text(text + box.format(-1000.0, 1000.0))
+    robot = URRobot(load_ur_profile(profile), receive=None)  # planning reads no controller
+    profile.write_text(text + box.format(-500.0, 500.0))  # edited while the session was starting
+    request = SessionRequest(
+        robot="ur10", targets_file=targets, poses=3, robot_driver="ur", tracker_driver="serial",
+        profile=str(profile), tracker_profile=str(repo / "drivers" / "ndi-polaris.toml"),
+    )  # fmt: skip
+    cell = plan_cell(request, load("ur10"), None, robot)
+    assert cell["safety"] is robot.limits
+    assert cell["workspace"] == robot.profile.workspace
+    assert cell["workspace"].allowed.hi[0] == pytest.approx(1.0)

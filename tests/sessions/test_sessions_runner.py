@@ -372,3 +372,21 @@ def test_kill_9_loses_nothing_and_resume_measures_nothing_twice(spec, actual, st
     ds = store.load(summary.ref)
     assert len(ds) == summary.valid == sum(d.status == "valid" for d in after.measurements)
     assert json.loads(json.dumps(ds.manifest))["row_count"] == len(ds)
+
+
+def test_resume_with_a_lowered_speed_cap_refuses_before_moving_instead_of_rejecting_every_pose(spec, actual, store):
+    # The plan's moves were made at the robot's caps when the session started. Resumed on a robot whose cap was
+    # lowered since (the profile narrowed), every remaining move would be refused and journaled as a rejected pose:
+    # the plan burnt for good, nothing measured. Refused up front instead, naming the cap; nothing is journaled.
+    plan = make_plan(random_configurations(spec.model, 4, seed=1), samples=3, settle=0.0, speed=0.8)
+    first = SimRig(actual, TARGETS, seed=1, max_speed=1.0, faults=SimFaults(protective_stop_at={2}))
+    with first.robot() as robot, first.tracker() as tracker:
+        summary = run(store, spec, TARGETS, plan, robot, tracker)
+    assert summary.exit_status == "paused"
+    before = journal_docs(store, summary.session_id)
+    slower = SimRig(actual, TARGETS, seed=1, max_speed=0.5)
+    with slower.robot() as robot, slower.tracker() as tracker:
+        with pytest.raises(SessionError, match=r"pose 1 moves at 0.8 rad/s.*0.5 rad/s"):
+            resume(store, summary.session_id, robot, tracker)
+    assert slower.moves == 0
+    assert journal_docs(store, summary.session_id) == before

@@ -81,6 +81,19 @@ def fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def make_dirs_durable(path: Path) -> None:
+    """``path.mkdir(parents=True, exist_ok=True)``, and the name of every folder it created made durable (its parent
+    fsynced): files fsynced inside a folder whose own entry never reached the disk are lost with it."""
+    created = []
+    for p in (path, *path.parents):
+        if p.exists():
+            break
+        created.append(p)
+    path.mkdir(parents=True, exist_ok=True)
+    for p in reversed(created):
+        fsync_dir(p.parent)
+
+
 def write_file_durable(path: Path, data: bytes, *, read_only: bool = True) -> None:
     """Write a new file (must not exist), fsync it, and optionally make it read-only.
 

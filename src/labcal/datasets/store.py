@@ -48,6 +48,7 @@ from ._util import (
     fsync_dir,
     iso,
     jsonable,
+    make_dirs_durable,
     make_temp_dir,
     publish_dir,
     remove_tree,
@@ -550,7 +551,7 @@ class SessionStore:
         from .journal import Journal
 
         session_id = validate_id(header.session_id) if header.session_id else new_session_id(header.robot_name)
-        self.root.mkdir(parents=True, exist_ok=True)
+        make_dirs_durable(self.root)
         d = self.root / session_id
         try:
             d.mkdir()
@@ -1040,7 +1041,7 @@ class SessionStore:
 
         session_id = validate_id(session_id) if session_id else new_session_id(meta["robot"]["name"])
         meta = with_robot_record({**meta, "session_id": session_id})
-        self.root.mkdir(parents=True, exist_ok=True)
+        make_dirs_durable(self.root)
         final = self.root / session_id
         if final.exists():
             raise DatasetError(f"session {session_id!r} already exists in {self.root}")
@@ -1270,7 +1271,7 @@ class SessionStore:
         if not (fit_dir / validate_id(fit_id) / FIT_JSON).is_file():
             raise DatasetError(f"{r} has no fit {fit_id!r} to store an evaluation under")
         folder = fit_dir / EVALUATIONS / fit_id
-        folder.mkdir(parents=True, exist_ok=True)
+        make_dirs_durable(folder)
         eval_id = new_fit_id()
         data = _dump_sealed({**jsonable(dict(doc)), "evaluation_id": eval_id}, "evaluation_sha256")
         tmp = folder / f".{eval_id}.json.tmp"
@@ -1357,9 +1358,24 @@ def _log_version(session_dir: Path, name: str, manifest_sha256: str, parent: str
     line = canonical_json(entry)
     path = session_dir / VERSIONS_LOG
     created = not path.exists()
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
     try:
-        os.write(fd, (line + "\n").encode("utf-8"))
+        # After a crash mid-append the last line is unfinished (read as a note). Appended to, it would join this entry
+        # into one unreadable line in the middle: a problem that blocks every later recording, and this entry lost.
+        # So an unreadable tail is cut off (its version then reads as "not listed", the note for a seal interrupted
+        # after the version was complete); a readable one only gets its newline.
+        size = os.fstat(fd).st_size
+        tail = os.pread(fd, size, 0).rsplit(b"\n", 1)[-1] if size else b""
+        data = (line + "\n").encode("utf-8")
+        if tail:
+            entries, _, _ = _read_versions_log_bytes(tail + b"\n")
+            if entries:
+                data = b"\n" + data
+            else:
+                os.ftruncate(fd, size - len(tail))
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view) :]
         os.fsync(fd)
     finally:
         os.close(fd)
@@ -1369,10 +1385,13 @@ def _log_version(session_dir: Path, name: str, manifest_sha256: str, parent: str
 
 def _read_versions_log(path: Path) -> tuple[list[dict], list[str], list[str]]:
     """(entries, problems, notes) of a versions log; an unfinished last line (a crash mid-append) is a note."""
+    return _read_versions_log_bytes(path.read_bytes())
+
+
+def _read_versions_log_bytes(data: bytes) -> tuple[list[dict], list[str], list[str]]:
     entries: list[dict] = []
     problems: list[str] = []
     notes: list[str] = []
-    data = path.read_bytes()
     lines = data.split(b"\n")
     torn = bool(data) and not data.endswith(b"\n")  # then the last element is an unfinished line
     for i, raw in enumerate(lines, start=1):

@@ -525,7 +525,11 @@ class URRobot:
                 control = _construct(control_factory, host, profile.frequency, "RTDE control interface")
             except BaseException:
                 with contextlib.suppress(Exception):
-                    receive.disconnect()
+                    # a RemoteInterface's process outlives disconnect() (it waits for calls): close() ends it too
+                    if isinstance(receive, RemoteInterface):
+                        receive.close()
+                    else:
+                        receive.disconnect()
                 raise
         return cls(profile, receive, control, identity=identity)
 
@@ -540,9 +544,11 @@ class URRobot:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if exc and exc[0] is not None:
-            self.stop()  # leaving because of an error: make sure nothing keeps moving
-        self.close()
+        try:
+            if exc and exc[0] is not None:
+                self.stop()  # leaving because of an error: make sure nothing keeps moving
+        finally:
+            self.close()  # also when a second Ctrl-C lands during the stop
 
     def close(self) -> None:
         """Disconnect both interfaces. Safe to call twice; never raises."""

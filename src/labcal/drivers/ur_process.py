@@ -94,23 +94,33 @@ class RemoteInterface:
             if self._dead is not None:
                 raise RuntimeError(f"the ur-rtde {self.kind} interface is gone: {self._dead}")
             assert self._process.stdin is not None
-            try:
-                self._process.stdin.write((json.dumps([name, list(args)]) + "\n").encode())
-                self._process.stdin.flush()
-            except OSError as exc:
-                self._died(f"its process ended ({exc})")
-                raise RuntimeError(f"the ur-rtde {self.kind} interface is gone: {self._dead}") from None
             limit = self.call_timeout if timeout == "default" else timeout
-            return self._await(limit, f"{name}()", watch)  # type: ignore[arg-type]
+            try:
+                try:
+                    self._process.stdin.write((json.dumps([name, list(args)]) + "\n").encode())
+                    self._process.stdin.flush()
+                except OSError as exc:
+                    self._died(f"its process ended ({exc})")
+                    raise RuntimeError(f"the ur-rtde {self.kind} interface is gone: {self._dead}") from None
+                line = self._read_line(limit, f"{name}()", watch)  # type: ignore[arg-type]
+            except BaseException:
+                # Whatever stopped the call once the request may have left (deadline, dead child, watchdog, Ctrl-C
+                # even between sending and waiting), its answer may still come and would be taken for the next
+                # call's: this interface is done.
+                self._died(f"{name}() was abandoned")
+                raise
+            return self._decode(line)
 
     def _await(self, timeout: float | None, what: str, watch: Callable[[], None] | None) -> Any:
         try:
             line = self._read_line(timeout, what, watch)
         except BaseException:
-            # Whatever stopped the wait (deadline, dead child, watchdog, Ctrl-C), the answer may still come and would
-            # be taken for the next call's: this interface is done.
-            self._died(f"{what} was abandoned")
+            self._died(f"{what} was abandoned")  # as in call()
             raise
+        return self._decode(line)
+
+    @staticmethod
+    def _decode(line: bytes) -> Any:
         reply = json.loads(line)
         if reply[0] == "ok":
             return reply[1]

@@ -698,7 +698,8 @@ def resume(
     seal and allow (added to the session's overrides) apply.
 
     Raises :class:`SessionError` before anything moves when the journal has a corrupt line (naming it): the run
-    could not be sealed afterwards, so measuring would only move the robot for nothing.
+    could not be sealed afterwards, so measuring would only move the robot for nothing; likewise when the plan's
+    moves are faster than the robot's speed or acceleration caps now (every pose would be refused and burnt).
     """
     opts = (options or RunOptions()).with_changes(**changes)
     journal = store.open_journal(session_id)
@@ -737,6 +738,7 @@ def resume(
         if why:
             raise SessionError(why)
         if len(state.done) < plan.n_poses:
+            _check_motion_caps(plan, state.done, robot)
             if robot.state().protective_stop:
                 raise SessionError("the robot is still in a protective stop: clear it on the robot, then resume")
             crashed = journal.state == "running"
@@ -751,6 +753,30 @@ def resume(
         raise
     state.emit(None, status, message=why)
     return _finish(store, journal, status, why, state.measured, plan, opts.seal)
+
+
+def _check_motion_caps(plan: Plan, done: set[int], robot: Robot) -> None:
+    """Refuse to resume a plan whose moves are faster than the robot's caps now (before anything moves).
+
+    The driver refuses such a move, and the runner journals a refused pose as rejected (the plan's fault): with a
+    cap lowered since the session started, every remaining pose would be burnt that way and none measured. Joint
+    limits stay per pose: a narrowed limit refuses only the poses outside it.
+    """
+    limits = robot.limits
+    for step in plan.poses():
+        if step.index in done:
+            continue
+        move = step.move
+        for what, value, cap, unit in (
+            ("moves at", move.speed, limits.max_speed, "rad/s"),
+            ("accelerates at", move.acceleration, limits.max_acceleration, "rad/s²"),
+        ):
+            if not value <= cap:
+                raise SessionError(
+                    f"pose {step.index} {what} {value:g} {unit}, above the robot's cap of {cap:g} {unit} (lowered "
+                    "since the session started?); nothing was moved: resume with the cap the session was planned "
+                    "for, or record the remaining poses in a new session"
+                )
 
 
 def _check_same_unit(session_id: str, start: StartDoc, robot: Robot) -> None:

@@ -249,10 +249,11 @@ def _real_drivers(profile, tracker_profile, targets, robot_host=None, tracker_po
 def plan_cell(request: SessionRequest, spec: RobotSpec, normals, robot) -> dict:
     """What the planner must respect, as keyword arguments of the planners: the robot driver's own
     ``robot.limits`` (the SafetyLimits every move is checked against: no planned pose is refused for its joints),
-    the robot profile's ``[workspace]`` boxes, and, when the targets file gives normals and the tracker's position
-    is known, targets facing the tracker. The tracker's position comes from the robot profile's
-    ``[workspace] tracker_mm`` or the tracker profile's ``[placement] position_mm`` (both given: they must agree
-    within 1 mm). ``normals``: ``load_target_normals`` of the targets file (None: no line-of-sight check)."""
+    the ``[workspace]`` boxes of the profile the robot was opened with (``robot.profile``), and, when the targets
+    file gives normals and the tracker's position is known, targets facing the tracker. The tracker's position
+    comes from the robot profile's ``[workspace] tracker_mm`` or the tracker profile's ``[placement] position_mm``
+    (both given: they must agree within 1 mm). ``normals``: ``load_target_normals`` of the targets file (None: no
+    line-of-sight check)."""
     from labcal.sessions.planning import TargetFacing
 
     cell: dict[str, Any] = {"safety": robot.limits, "joint_map": spec.joints}
@@ -262,7 +263,10 @@ def plan_cell(request: SessionRequest, spec: RobotSpec, normals, robot) -> dict:
         from labcal.drivers.serial.profiles import load_placement
         from labcal.drivers.ur import load_ur_profile
 
-        workspace = load_ur_profile(request.profile).workspace
+        # The profile the robot was opened with (its limits are cell["safety"]), not the file read again: edited
+        # in between, the two would disagree. (A stand-in robot without one: the file.)
+        opened = getattr(robot, "profile", None)
+        workspace = (opened if opened is not None else load_ur_profile(request.profile)).workspace
         cell["workspace"] = workspace
         sources = {
             f"{request.profile} [workspace] tracker_mm": workspace.tracker if workspace else None,
