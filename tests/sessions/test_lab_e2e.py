@@ -240,6 +240,25 @@ def test_ctrl_c_in_the_terminal_stops_the_robot_and_the_run_resumes(tmp_path, ce
     assert measured(journal(store)) == dict.fromkeys(range(3), "valid")
 
 
+def test_sigterm_to_labcal_alone_stops_the_robot_and_writes_the_stop_record(tmp_path, cell, rig):
+    """A supervisor's `kill PID` reaches labcal only (its ur-rtde processes keep running): by default Python died on
+    the spot, leaving the move in progress running and no stop record; it takes Ctrl-C's path instead."""
+    store = tmp_path / "store"
+    command = new_args(store, cell, rig, poses=3)
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    result = run_with_fault(command, store, lambda: process.send_signal(signal.SIGTERM), process)
+    assert result.returncode == 128 + signal.SIGTERM, result.stderr
+    assert "interrupted by SIGTERM" in result.stderr and "Traceback" not in result.stderr
+    docs = journal(store)
+    assert stop(docs)["exit_status"] == "aborted"
+    assert "interrupted by SIGTERM" in stop(docs)["reason"]
+    log = rig.controller.snapshot()["log"]
+    assert ["command", 34] in log or ["dashboard", "stop"] in log, log[-6:]  # stopJ, or the program stopped
+    again = run(labcal(*resume_hint(result)))
+    assert again.returncode == 0, again.stderr
+    assert measured(journal(store)) == dict.fromkeys(range(3), "valid")
+
+
 def test_unreachable_devices_are_one_line_naming_what_to_fix(tmp_path, cell, rig):
     store = tmp_path / "store"
     refused = run([*new_args(store, cell, rig, poses=3)[:-4], "--robot-host", "127.0.0.1", "--tracker-port", rig.port])

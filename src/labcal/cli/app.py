@@ -18,6 +18,7 @@ command functions; ``tests/cli/test_scripting.py`` checks it.
 
 from __future__ import annotations
 
+import signal
 import sys
 
 import typer
@@ -25,7 +26,7 @@ from typer._click import exceptions as click_exceptions  # typer vendors click; 
 from typer.core import TyperGroup
 
 from labcal.cli import bench, coercion, helprender, session
-from labcal.cli.common import INTERRUPTED
+from labcal.cli.common import TERMINATED_BY, interruption
 from labcal.cli.demo import demo
 from labcal.cli.evaluate import evaluate
 from labcal.cli.export import export
@@ -139,13 +140,24 @@ app.command("evaluate")(evaluate)
 app.command("demo")(demo)
 
 
+def _terminate(signum: int, _frame) -> None:
+    # A supervisor's SIGTERM or a closed terminal's SIGHUP takes Ctrl-C's path: the robot is stopped and the
+    # journal's stop record written (by default Python would die on the spot, the move in progress running on).
+    TERMINATED_BY.append(signum)  # for commands that report an interrupted run themselves (session new / resume)
+    raise KeyboardInterrupt(signum)
+
+
 def main() -> None:
-    """Console-script entry point. Ctrl-C outside a command's own handling exits 130 (128 + SIGINT), not 0/1."""
+    """Console-script entry point. Ctrl-C outside a command's own handling exits 130 (128 + SIGINT), not 0/1;
+    SIGTERM and SIGHUP are handled as Ctrl-C is and exit 143 / 129."""
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, _terminate)
     try:
         app()
-    except KeyboardInterrupt:
-        print("interrupted (Ctrl-C)", file=sys.stderr)
-        sys.exit(INTERRUPTED)
+    except KeyboardInterrupt as e:
+        message, code = interruption(e)
+        print(message, file=sys.stderr)
+        sys.exit(code)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,21 @@ if TYPE_CHECKING:
 STORE_HELP = "Session store folder (default: $LABCAL_STORE, else ./sessions)."
 StoreOption = typer.Option(None, "--store", help=STORE_HELP, show_default=False)
 INTERRUPTED = 130  # exit code after Ctrl-C
+
+
+TERMINATED_BY: list[int] = []  # the SIGTERM / SIGHUP labcal.cli.app.main turned into a KeyboardInterrupt, if any
+
+
+def interruption(e: KeyboardInterrupt) -> tuple[str, int]:
+    """(what to print, exit code) for an interrupt: Ctrl-C, or a SIGTERM / SIGHUP that :func:`labcal.cli.app.main`
+    turned into a KeyboardInterrupt carrying the signal (the shell convention: 128 + the signal's number)."""
+    if e.args and isinstance(e.args[0], int) and e.args[0] > 0:
+        import signal
+
+        return f"terminated ({signal.Signals(e.args[0]).name})", 128 + e.args[0]
+    return "interrupted (Ctrl-C)", INTERRUPTED
+
+
 VERIFY_FAILED = 1  # verification found damage, a recording failed or paused
 USAGE_ERROR = 2  # bad option, bad input file, missing store …
 
@@ -92,11 +107,12 @@ def user_errors(fn):
             return fn(*args, **kwargs)
         except typer.Exit:
             raise
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as e:
             # The shell convention for SIGINT (128 + 2): scripts must not mistake an interrupted run for a
             # successful one. Whatever was recorded is already on disk (the journal is fsynced per measurement).
-            err.print("interrupted (Ctrl-C)", markup=False)
-            raise typer.Exit(INTERRUPTED) from None
+            message, code = interruption(e)
+            err.print(message, markup=False)
+            raise typer.Exit(code) from None
         except (ValueError, DatasetError, OSError, KeyError, RuntimeError) as e:
             # OSError covers more than missing / forbidden files: a full disk or a read-only file system met
             # mid-write is a one-line error too, not a traceback.

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from labcal.cli.common import (
+    TERMINATED_BY,
     VERIFY_FAILED,
     Planner,
     RobotDriver,
@@ -25,7 +26,7 @@ from labcal.cli.session_import import import_
 JsonOption = typer.Option(False, "--json", help="Print one JSON document on stdout (schema: docs/cli-json.md).")
 
 # Exit codes of a recording run: success 0; failed / paused (nothing or not everything recorded) 1; Ctrl-C 130,
-# as a shell reports a command ended by SIGINT. User errors stay 2 (user_errors).
+# as a shell reports a command ended by SIGINT (SIGTERM 143, SIGHUP 129). User errors stay 2 (user_errors).
 _EXIT = {"success": 0, "failed": 1, "paused": 1, "aborted": 130}
 ALLOW_HELP = (
     "Override a record-time sanity check by name (repeatable): "
@@ -48,6 +49,8 @@ def _end_run(summary, line: str, resume_flags: list[str] | None = None) -> None:
     continues it (``resume_flags``: --store and the like, passed on as given)."""
     out.print(line, markup=False)
     code = _EXIT.get(summary.exit_status, 1)
+    if summary.exit_status == "aborted" and TERMINATED_BY:  # SIGTERM / SIGHUP, not Ctrl-C: 128 + its number
+        code = 128 + TERMINATED_BY[0]
     if code and summary.exit_status != "aborted":
         err.print(f"error: the run ended {summary.exit_status}: {summary.reason}", markup=False)
     if code and summary.remaining:

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import signal
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
@@ -470,12 +471,15 @@ class _Run:
             journal.pause(reason)
             journal.stop("paused", reason)
             return "paused", reason
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as e:
             _safe_stop(robot)
             # counted in the journal, not a plan index: "at pose 92" read as 92 recorded or as the 92nd, depending on
             # the moment, and a count kept here can miss the pose journaled just before the interrupt
             valid = len(journal.valid_pose_indices())
-            reason = f"interrupted by the operator (Ctrl-C) with {valid} of {self.plan.n_poses} poses recorded valid"
+            # labcal's entry point turns SIGTERM / SIGHUP into a KeyboardInterrupt carrying the signal's number
+            signum = e.args[0] if e.args and isinstance(e.args[0], int) else None
+            by = "by the operator (Ctrl-C)" if signum is None else f"by {signal.Signals(signum).name}"
+            reason = f"interrupted {by} with {valid} of {self.plan.n_poses} poses recorded valid"
             journal.stop("aborted", reason)
             return "aborted", reason
         except JournalError:
