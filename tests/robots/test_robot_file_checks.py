@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labcal.robots import EXAMPLES, RobotFileError, load, loads, model_hash
+from labcal.robots import BUILTINS, EXAMPLES, RobotFileError, load, loads, model_hash
 
 TWO = """
 name = "two"
@@ -156,7 +156,7 @@ limits = [0.0, {lim}]
 
 def test_plausible_values_pass_and_every_shipped_file_is_in_si_units():
     loads(two(alpha=6.2, limits="[-12.0, 12.0]", a=3.0))  # a two-turn wrist and a 3 m link are real arms
-    for name in ("ur5e", "ur10", "ur10e", "fanuc-m1000ia", "scara4", *EXAMPLES):
+    for name in (*BUILTINS, *EXAMPLES):
         load(name)
 
 
@@ -191,8 +191,6 @@ def test_a_joint_key_of_the_other_kinematics_is_refused():
 
 
 def test_every_builtin_and_example_follows_the_schema():
-    from labcal.robots import BUILTINS
-
     for name in BUILTINS + EXAMPLES:
         assert load(name).model.n >= 4
 

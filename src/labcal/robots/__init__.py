@@ -47,7 +47,8 @@ file ``coupled-elbow-6r`` (beside the built-ins, loadable by that name) is a 6R 
 Identity: :attr:`RobotSpec.hash` is :func:`model_hash` of the model *and* its joint map, because the map changes
 what recorded joint values mean; an identity map (or none) adds nothing, so files without a map keep their hashes.
 
-Built-ins: ``ur5e``, ``ur10``, ``ur10e``, ``fanuc-m1000ia``, ``scara4``. A path ending in ``.urdf`` loads a URDF
+Built-ins: ``ur5e``, ``ur10``, ``ur10e``, ``fanuc-m1000ia``, ``scara4`` and the 7-joint ``franka-panda`` and
+``kuka-iiwa14-r820``. A path ending in ``.urdf`` loads a URDF
 (no joint map, no units check: a URDF is metres and radians by definition).
 
 Example::
@@ -76,7 +77,7 @@ from labcal.robots.joint_map import JointMap
 from labcal.tomlschema import Key, SchemaError, Table, validate
 from labcal.tomlschema import is_number as _is_number
 
-BUILTINS = ("ur5e", "ur10", "ur10e", "fanuc-m1000ia", "scara4")
+BUILTINS = ("ur5e", "ur10", "ur10e", "fanuc-m1000ia", "scara4", "franka-panda", "kuka-iiwa14-r820")
 # Example robot files shipped beside the built-ins and loadable by name, but not robots of their own: models to copy
 # (coupled-elbow-6r: the fanuc-m1000ia geometry with a controller whose J3 is measured from the horizontal).
 EXAMPLES = ("coupled-elbow-6r",)
