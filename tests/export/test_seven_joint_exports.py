@@ -1,7 +1,8 @@
 """The exports of a 7-joint calibration through the real app (issue 28): a sim session of a Franka Panda, fitted with
 local POE, exported without --force as JSON, NPZ and URDF and used by `labcal filter`; URScript and the UR YAML
 refuse a non-UR robot in one line. The checks use semantics written here: the Panda's modified-DH product (the
-maker's published parameters) for the nominal pose, and a URDF walk of origin · rot(axis, q) per joint."""
+maker's published parameters, not the robot file) for the nominal pose, and a URDF walk of origin · rot(axis, q)
+per joint."""
 
 from __future__ import annotations
 
@@ -31,22 +32,7 @@ ROWS = [  # the Panda's modified DH (a_{j-1}, alpha_{j-1}, d_j, theta_j), Franka
         strict=True,
     )
 ]
-LIMITS = [
-    (-2.8973, 2.8973), (-1.7628, 1.7628), (-2.8973, 2.8973), (-3.0718, -0.0698), (-2.8973, 2.8973),
-    (-0.0175, 3.7525), (-2.8973, 2.8973),
-]  # fmt: skip
 FLANGE_D = 0.107  # m: the flange along joint 7's axis
-
-
-def panda_toml() -> str:
-    text = 'name = "panda-test"\nkinematics = "mdh"\n'
-    for j, row in enumerate(ROWS):
-        lo, hi = LIMITS[j]
-        text += (
-            f'\n[[joints]]\nname = "J{j + 1}"\ntype = "revolute"\na = {row["a"]!r}\nalpha = {row["alpha"]!r}\n'
-            f"d = {row['d']!r}\ntheta = 0.0\nlimits = [{lo!r}, {hi!r}]\nvelocity = 2.175\neffort = 87.0\n"
-        )
-    return text + f"\n[tool]\nxyz = [0.0, 0.0, {FLANGE_D!r}]\nrpy = [0.0, 0.0, 0.0]\n"
 
 
 def nominal_fk(q: np.ndarray) -> np.ndarray:
@@ -58,13 +44,12 @@ def nominal_fk(q: np.ndarray) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def fit(tmp_path_factory):
-    """A 60-pose sim session of the Panda with three targets, a local-POE fit, and its JSON export."""
+    """A 60-pose sim session of the built-in franka-panda with three targets, a local-POE fit, and its JSON export."""
     root = tmp_path_factory.mktemp("seven")
-    (root / "panda.toml").write_text(panda_toml())
     (root / "targets.toml").write_text(TARGETS)
     store = root / "store"
     r = invoke(
-        "session", "new", "--robot", root / "panda.toml", "--robot-driver", "sim", "--tracker-driver", "sim",
+        "session", "new", "--robot", "franka-panda", "--robot-driver", "sim", "--tracker-driver", "sim",
         "--targets", root / "targets.toml", "--poses", 60, "--seed", 3, store=store,
     )  # fmt: skip
     assert r.exit_code == 0, r.stdout + r.stderr
