@@ -22,8 +22,10 @@ written as 0, as ``labcal export`` does where the robot file gives none), the JS
 held-out configurations inside the calibration's validity region go through the program filter
 (:func:`labcal.export.program.filter_joints`, what ``labcal filter --kind joints`` runs) one row at a time. A cell
 reads ``ok/splits`` (filter: every row corrected); ``filter rows`` counts the rows corrected over all splits; the
-first refusal of each is listed below. A row near a singular configuration (the Panda's stretched elbow, q4 → 0)
-is refused by the filter by design: the calibrated robot cannot reach its nominal pose with a small correction.
+first refusal of each is listed below. The filter refuses, by design, a row whose nominal pose the calibrated robot
+cannot reach nearby: the Panda's elbow is stretched at q4 ≈ −0.47 rad (not 0: the ±82.5 mm offsets of links 4 and
+5), and the sampler's condition limit (500) admits rows within about 0.1 rad of it, where the nominal pose can lie
+beyond the calibrated arm's reach (no exact correction within 0.5 rad; the damped answer stays ~1 mm away).
 """
 
 from __future__ import annotations
@@ -126,7 +128,7 @@ def run_family(name: str, spec, poses: int, splits: int, methods, say) -> dict:
                 cell["chosen"].append(str(result.chosen))
             with tempfile.TemporaryDirectory(prefix="labcal-seven-") as tmp:
                 cell["exports"][s] = exports(result, q[test], Path(tmp))
-            failed = [f for f, v in cell["exports"][s].items() if v != "ok"]
+            failed = [f for f in FORMATS if cell["exports"][s][f] != "ok"]
             line.append(f"{m} {cell['errors'][s] * 1e3:.4f}" + (f" (refused: {', '.join(failed)})" if failed else ""))
         lsq = res["plain-lsq"]["errors"].get(s)
         say(f"  {name} split {s}: plain-lsq {'FAILED' if lsq is None else f'{lsq * 1e3:.4f}'}, {', '.join(line)}")
