@@ -133,7 +133,11 @@ def test_urdf_of_a_7_joint_fit_reproduces_the_compensator(fit):
 
 @pytest.mark.parametrize(
     ("fmt", "says"),
-    [("urscript", "URScript export of a 7-joint robot is not supported"), ("ur-kinematics", "Universal Robots")],
+    [
+        ("urscript", "URScript export of a 7-joint robot is not supported"),
+        ("urscript-program", "URScript export of a 7-joint robot is not supported"),
+        ("ur-kinematics", "Universal Robots"),
+    ],
 )
 def test_ur_formats_refuse_a_7_joint_robot_in_one_line(fit, fmt, says):
     r, path = export(fit, fmt, f"panda.{fmt}")
