@@ -55,13 +55,14 @@ from labcal.simulation.actual import ActualRobot, ErrorSpec, drop_unseen, seen_m
 #: A scalene target triangle (m, tool frame) 50 mm in front of the flange: sides 224, 269, 335 mm (the paper
 #: benchmark's triangle, so a scenario and a paper run use the same tool).
 TARGETS = np.array([[0.20, 0.00, 0.05], [-0.10, 0.15, 0.05], [0.00, -0.10, 0.05]])
-#: The wrist joint whose zero is singular on the built-in 6R arms (q5 = 0 lines up the axes of joints 4 and 6).
+#: The wrist joint whose zero is singular on the built-in 6R arms (q5 = 0 lines up the axes of joints 4 and 6);
+#: :func:`wrist_joint` finds it on any arm (q6 on the 7R Panda and iiwa).
 WRIST = 4
 #: |q5| below this counts as "singular wrist" (rad): the controller reports a value this close to zero.
 WRIST_TOL = 1e-3
 #: Length-scaled cond(J_ρ) above which a pose counts as singular (the paper benchmark's bound).
 MAX_CONDITION = 500.0
-#: The coupled-elbow map on a 6R arm: model elbow (J3) = controller J2 + controller J3.
+#: The coupled-elbow map on a 6R arm: model elbow (J3) = controller J2 + controller J3 (any n: :func:`coupled_map`).
 COUPLED_ELBOW = np.array(
     [
         [1, 0, 0, 0, 0, 0],
@@ -152,6 +153,54 @@ def joint_box(model: LocalPOEModel, fraction: float = 0.5) -> tuple[np.ndarray, 
     return mid - half, mid + half
 
 
+def coupled_map(n: int) -> np.ndarray:
+    """(n, n) the coupled-elbow map of an n-joint arm (n ≥ 3): the identity but model J3 = controller J2 + J3.
+
+    >>> bool(np.array_equal(coupled_map(6), COUPLED_ELBOW)), coupled_map(7)[2].tolist()
+    (True, [0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0])
+    """
+    if n < 3:
+        raise ValueError(f"a coupled elbow needs at least 3 joints, got {n}")
+    M = np.eye(n)
+    M[2, 1] = 1.0
+    return M
+
+
+def wrist_joint(model: LocalPOEModel) -> int | None:
+    """The index of the wrist joint whose zero is singular: the last revolute joint j, with revolute neighbours,
+    whose zero (inside its limits) turns the axes of joints j − 1 and j + 1 parallel; None if the arm has none.
+
+    q5 (index 4) on the 6R built-ins (UR: axes 4 and 6 parallel to 2 and 3; fanuc: a spherical wrist); q6 (index
+    5) on the 7R ones (iiwa: axes 5 and 7 in line; Panda: parallel, 88 mm apart); none on scara4. On a 6R arm it is
+    a singularity of the Jacobian; on a 7R arm the redundancy keeps the rank, but the two axes move alike, as a
+    lab's data with the wrist held there do.
+
+    >>> from labcal.robots import load
+    >>> wrist_joint(load("ur10").model), wrist_joint(load("franka-panda").model), wrist_joint(load("scara4").model)
+    (4, 5, None)
+    """
+    n, revolute = model.n, [t == "revolute" for t in model.joint_types]
+    # Other joints at random, from a stream of its own (the scenarios' streams stay untouched).
+    q = np.random.default_rng(0).uniform(*joint_box(model), size=(8, n))
+    for j in range(n - 2, 0, -1):
+        lo, hi = model.limits[j]
+        if not (revolute[j - 1] and revolute[j] and revolute[j + 1]) or not lo <= 0.0 <= hi:
+            continue
+        q0 = q.copy()
+        q0[:, j] = 0.0
+        w = model.joint_twists(q0)[:, 3:]  # (k, 3, n) axis directions in K0
+        if np.all(np.linalg.norm(np.cross(w[:, :, j - 1], w[:, :, j + 1]), axis=1) < 1e-9):
+            return j
+    return None
+
+
+def _wrist(model: LocalPOEModel, robot: str) -> int:
+    w = wrist_joint(model)
+    if w is None:
+        raise ValueError(f"{robot!r} has no wrist joint whose zero is singular")
+    return w
+
+
 def _measure(actual: ActualRobot, q: np.ndarray, targets: np.ndarray, seed: int) -> np.ndarray:
     # A separate stream from the robot's own seed, so changing the poses never changes the true robot.
     return actual.measure(q, targets, np.random.default_rng([seed, 7919]))
@@ -200,9 +249,12 @@ def good(robot: str = "ur10", k: int = 60, *, errors: ErrorSpec | None = None, s
 
 
 def few_poses(robot: str = "ur10", k: int = 10, *, errors: ErrorSpec | None = None, seed: int = 0) -> Scenario:
-    """Only ``k`` good poses (fewer than the identifiable parameters of a 6R arm, about 30)."""
+    """Only ``k`` good poses (fewer than the identifiable parameters of a 6R arm, about 30; 34 for a 7R arm)."""
     scn = good(robot, k, errors=errors, seed=seed)
-    return scn.changed("few-poses", f"only {k} poses (a 6R arm has about 30 identifiable parameters)")
+    prismatic = sum(t != "revolute" for t in scn.actual.nominal.joint_types)
+    arm = f"{scn.n}R" if not prismatic else f"{scn.n}-joint"
+    count = 4 * (scn.n - prismatic) + 2 * prismatic + 6  # the local POE fit's rank (4 per revolute, 2 per prismatic)
+    return scn.changed("few-poses", f"only {k} poses (a {arm} arm has about {count} identifiable parameters)")
 
 
 def sweeps(
@@ -220,8 +272,9 @@ def sweeps(
 
     Sweep s moves joint ``s mod n`` through ``per_sweep`` evenly spaced values over ``span`` rad (centred on its
     start) while every other joint keeps the sweep's start configuration; starts are drawn near one home pose
-    (±0.3 rad). With ``singular_wrist`` the wrist joint (q5) is held within ±:data:`WRIST_TOL` of zero except in
-    the sweeps of q5 itself, so most rows are singular (5/6 of the sweeps on a 6R arm). ``group`` = sweep index.
+    (±0.3 rad). With ``singular_wrist`` the wrist joint (:func:`wrist_joint`: q5 on a 6R arm, q6 on the 7R
+    built-ins; none on scara4) is held within ±:data:`WRIST_TOL` of zero except in its own sweeps, so most rows are
+    singular (5/6 of the sweeps on a 6R arm). ``group`` = sweep index.
     The last sweep is shortened when ``per_sweep`` does not divide ``n_poses``.
 
     >>> scn = sweeps("fanuc-m1000ia", 24, 3, seed=0)
@@ -235,13 +288,14 @@ def sweeps(
     rng = np.random.default_rng([seed, 2])
     lo, hi = joint_box(model, 0.5)
     home = nonsingular(model, 1, rng)[0]
+    wrist = wrist_joint(model) if singular_wrist else None
     rows, groups = [], []
     n_sweeps = -(-n_poses // per_sweep)
     for s in range(n_sweeps):
         joint = s % model.n
         start = np.clip(home + rng.uniform(-0.3, 0.3, model.n), lo, hi)
-        if singular_wrist and model.n > WRIST:
-            start[WRIST] = rng.uniform(-WRIST_TOL, WRIST_TOL) / 2
+        if wrist is not None:
+            start[wrist] = rng.uniform(-WRIST_TOL, WRIST_TOL) / 2
         values = start[joint] + np.linspace(-span / 2, span / 2, per_sweep)
         block = np.tile(start, (per_sweep, 1))
         block[:, joint] = np.clip(values, model.limits[joint, 0], model.limits[joint, 1])
@@ -249,7 +303,7 @@ def sweeps(
         groups += [s] * per_sweep
     q = np.concatenate(rows)[:n_poses]
     group = np.asarray(groups[:n_poses])
-    wrist = "most with the wrist singular (|q5| < 1 mrad)" if singular_wrist else "wrist free"
+    wrist = f"most with the wrist singular (|q{wrist + 1}| < 1 mrad)" if wrist is not None else "wrist free"
     return Scenario(
         "sweeps" + ("-singular-wrist" if singular_wrist else ""), robot, q, _measure(actual, q, targets, seed),
         targets, group=group, actual=actual, seed=seed,
@@ -266,16 +320,18 @@ def singular_wrist(
     seed: int = 0,
     targets=None,
 ) -> Scenario:
-    """k random poses, ``fraction`` of them (rounded, at random rows) with |q5| < :data:`WRIST_TOL` (singular)."""
+    """k random poses, ``fraction`` of them (rounded, at random rows) with the wrist joint (:func:`wrist_joint`, q5
+    on a 6R arm) within :data:`WRIST_TOL` of zero (singular)."""
     model, actual = _robot(robot, errors, seed)
+    wrist = _wrist(model, robot)
     targets = TARGETS if targets is None else np.asarray(targets, float)
     rng = np.random.default_rng([seed, 3])
     q = nonsingular(model, k, rng)
     rows = rng.permutation(k)[: round(fraction * k)]
-    q[rows, WRIST] = rng.uniform(-WRIST_TOL, WRIST_TOL, size=len(rows)) / 2
+    q[rows, wrist] = rng.uniform(-WRIST_TOL, WRIST_TOL, size=len(rows)) / 2
     return Scenario(
         "singular-wrist", robot, q, _measure(actual, q, targets, seed), targets, actual=actual, seed=seed,
-        description=f"{k} random poses, {len(rows)} of them with |q5| < 1 mrad",
+        description=f"{k} random poses, {len(rows)} of them with |q{wrist + 1}| < 1 mrad",
     )  # fmt: skip
 
 
@@ -285,18 +341,19 @@ def coupled_elbow(
     """Good poses recorded by a controller whose elbow is measured from the horizontal: model J3 = J2 + J3.
 
     ``q`` are the model joints the measurements belong to, ``q_controller = M⁻¹ q`` what the controller (and a
-    CSV) reports, ``joint_map = M`` (:data:`COUPLED_ELBOW`). Importing ``q_controller`` as model joints is the
-    mistake; converting through the map gives ``q`` back exactly.
+    CSV) reports, ``joint_map = M`` (:func:`coupled_map`, :data:`COUPLED_ELBOW` on a 6R arm). Importing
+    ``q_controller`` as model joints is the mistake; converting through the map gives ``q`` back exactly.
     """
     scn = good(robot, k, errors=errors, seed=seed, targets=targets)
-    if scn.n != 6:
-        raise ValueError(f"coupled_elbow needs a 6-joint arm, {robot!r} has {scn.n}")
-    q_ctrl = scn.q @ np.linalg.inv(COUPLED_ELBOW).T
+    if scn.n < 3:
+        raise ValueError(f"coupled_elbow needs an arm of at least 3 joints, {robot!r} has {scn.n}")
+    M = coupled_map(scn.n)
+    q_ctrl = scn.q @ np.linalg.inv(M).T
     return scn.changed(
         "coupled-elbow",
         f"{k} poses; controller elbow measured from horizontal (model J3 = J2 + J3)",
         q_controller=q_ctrl,
-        joint_map=COUPLED_ELBOW.copy(),
+        joint_map=M,
     )
 
 
