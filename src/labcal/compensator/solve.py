@@ -25,8 +25,9 @@ once, given a function that returns the residual r (m, 6) and the joint twists J
   the end) finishes, while one settling into a least-squares minimum with a residual left, where the cost hardly
   moves any more, stops. All stop after ``damped_iterations`` steps. So near a singularity the answer is never
   worse than q0, and a call's worst case is bounded. For a redundant arm each damped step is the least one of its
-  own linear model (the ``λ μ |s|²`` term), not of the total change: only a damped row (near a singularity, or
-  beyond ``max_correction``) may keep a self-motion of the second order in its correction.
+  own linear model (the ``λ μ |s|²`` term), not of the total change, so a damped row (near a singularity, or
+  beyond ``max_correction``) may move along the self-motion: there the best reachable pose uses it (removing that
+  part of such an answer raises its pose error), and the pose is not reached exactly anyway.
 
 Both modes are one loop each over the same residual function, so a single configuration (k = 1) takes exactly the
 path a batch takes; only the residual function may be specialised for it (:mod:`labcal.compensator.model`).
