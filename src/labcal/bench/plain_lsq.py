@@ -145,9 +145,24 @@ class PlainFit:
     nfev: int
     converged: bool = True
 
-    def predict_points(self, q: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        T = self.T_tb @ self.poe.fk(self.x, q)
+    def predict_points(self, q: np.ndarray, targets: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
+        """(k, m, 3) target points in the data's frame; ``x``: other parameters than the fitted ones."""
+        T = self.T_tb @ self.poe.fk(self.x if x is None else x, q)
         return np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]
+
+    def rank(self, q: np.ndarray, targets: np.ndarray, length_scale: float, rtol: float = 1e-6) -> int:
+        """Numerical rank of the fitted points' Jacobian w.r.t. the robot's parameters at the solution: central
+        differences, angular columns (ω parts) divided by ``length_scale`` (1 rad counts as that many metres, as
+        local POE scales its own); singular values above ``rtol`` · the largest. The directions the normalisation
+        removes (axis length, moment along the axis) give zero columns and are not counted."""
+        cols = []
+        for i in range(self.x.size):
+            step = np.zeros_like(self.x)
+            step[i] = h = 1e-7
+            diff = self.predict_points(q, targets, self.x + step) - self.predict_points(q, targets, self.x - step)
+            cols.append(diff.ravel() / (2 * h) / (length_scale if i % 6 >= 3 else 1.0))
+        s = np.linalg.svd(np.array(cols).T, compute_uv=False)
+        return int((s > rtol * s[0]).sum())
 
 
 def _points(poe: GlobalPOE, x: np.ndarray, T_tb: np.ndarray, q: np.ndarray, targets: np.ndarray) -> np.ndarray:
