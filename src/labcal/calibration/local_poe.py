@@ -108,11 +108,12 @@ AXIS_TOL = 0.02
 # Arms with at least this many joints hold those tilts only where the data do not measure them (the weak-direction
 # rule's test, made on the fit itself: :func:`_tilts_measured`), not for being within AXIS_TOL alone. A reflector in
 # a nest on a 7-joint arm's small flange sits within 20 mm of joint 7's axis, yet 5-20 mm of lever over a few dozen
-# poses measures the tilts to a fraction of a milliradian: held, they left the fit 0.3-3.6 % above an independent
-# least-squares fit on training points (simulated Panda, 90 poses, reflector 15 mm off the axis), and the projection
-# that holds them made Gauss-Newton crawl (13-50 iterations instead of 5, one split stopped by the cap). The same is
-# true of 6-joint arms, which keep the distance rule so that their fits stay bit-identical (the fit fingerprint);
-# switching them is a decision of its own (issue 28).
+# poses measures the tilts: held, they left the fit up to 3.8 % above an independent least-squares fit on its
+# training points with a rank two short of it, 26 % with four times the geometric errors, where its held-out error
+# was up to 25 % worse too (benchmarks/seven_joints_lsq.py: simulated Panda, reflector 15 mm off the axis, or 17.5 mm
+# off where the targets file put it on the axis), and the projection that holds them made Gauss-Newton crawl (up to
+# the 50-iteration cap instead of 4-5). The same is true of 6-joint arms, which keep the distance
+# rule so that their fits stay bit-identical (the fit fingerprint); switching them is a decision of its own.
 MEASURED_TILT_MIN_JOINTS = 7
 
 
