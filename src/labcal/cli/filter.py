@@ -129,6 +129,11 @@ def filter_program(
     robot = _calibration(calibration, fit_id, store)
     if robot.joint_map is not None:
         raise UserError("this calibration's robot has a joint map: filter works in model joints only (UR arms)")
+    if script is not None and robot.n != 6:
+        raise UserError(
+            f"--script writes a URScript movej program for a UR controller (6 joints); this robot has {robot.n} "
+            "joints: leave out --script and send the corrected joints (--out) with the robot's own controller"
+        )
     types = robot.nominal.joint_types
     table = read_program(program, kind, n=robot.n, joint_types=types, length_unit=length_unit, angle_unit=angle_unit)
     offset = _numbers(tcp, 6, "--tcp")

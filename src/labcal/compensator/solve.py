@@ -3,17 +3,18 @@
 :func:`solve` finds q with ``r(q) = 0`` (or ``|W r(q)|`` least, for fewer than six joints) for a batch of rows at
 once, given a function that returns the residual r (m, 6) and the joint twists J (m, 6, n) at m configurations:
 
-- **Gauss-Newton** first, from q0, with the full step ``J⁻¹ r`` (least squares in the metric W for n < 6,
-  minimum norm for n > 6). A row stops when its estimated distance to the solution, ``|step| ρ / (1 − ρ)`` with ρ
-  the ratio of its last two steps (linear convergence), is below ``tol``, or when a step is below
-  :data:`NOISE_FLOOR` (rounding: a tol below it cannot be reached). A row *fails* when its steps stop
-  contracting (a step more than half the previous one), are not finite, or exceed :data:`GN_MAX_STEP`: a
-  (near-)singular configuration. For n ≥ 6, after a step below :data:`REUSE_BELOW` the next one reuses J: the
+- **Gauss-Newton** first, from q0, with the full step ``J⁻¹ r`` (least squares in the metric W for n < 6; for
+  a redundant arm, n > 6, the step to the least total change ``|q − q0|`` of the linearised problem, so q − q0
+  has no self-motion: :func:`gauss_newton_step`). A row stops when its estimated distance to the solution,
+  ``|step| ρ / (1 − ρ)`` with ρ the ratio of its last two steps (linear convergence), is below ``tol``, or when a
+  step is below :data:`NOISE_FLOOR` (rounding: a tol below it cannot be reached). A row *fails* when its steps
+  stop contracting (a step more than half the previous one), are not finite, or exceed :data:`GN_MAX_STEP`: a
+  (near-)singular configuration. For n = 6, after a step below :data:`REUSE_BELOW` the next one reuses J: the
   residual is asked for r alone (``jacobian=False``) and may skip J, which moved by less than its own
   approximation error and is much of a residual's cost (the simplified Newton method; its zero is still r = 0,
-  whereas a least-squares step's zero moves with J). A J the residual returns anyway is not used, so that one
-  configuration steps with the inverse of J it kept: a product, where a solve costs numpy's wrapper around one
-  small LAPACK call.
+  whereas a least-squares step's zero, and a redundant arm's least change, move with J). A J the residual returns
+  anyway is not used, so that one configuration steps with the inverse of J it kept: a product, where a solve
+  costs numpy's wrapper around one small LAPACK call.
 - The failed rows then start over from q0 in **damped** mode: steps ``(JᵀJ + λ μ I)⁻¹ Jᵀ r`` in the length-scaled
   metric W (μ the mean of JᵀJ's diagonal), clipped to :data:`DAMPED_MAX_STEP`, kept only where they do not raise
   ``|W r|``. λ follows the gain ratio ϱ of a kept step (actual over predicted fall of ``|W r|²``): it is multiplied
@@ -23,7 +24,10 @@ once, given a function that returns the residual r (m, 6) and the joint twists J
   halve its cost: a row on its way to an exact solution (whose cost falls by orders of magnitude per step near
   the end) finishes, while one settling into a least-squares minimum with a residual left, where the cost hardly
   moves any more, stops. All stop after ``damped_iterations`` steps. So near a singularity the answer is never
-  worse than q0, and a call's worst case is bounded.
+  worse than q0, and a call's worst case is bounded. For a redundant arm each damped step is the least one of its
+  own linear model (the ``λ μ |s|²`` term), not of the total change, so a damped row (near a singularity, or
+  beyond ``max_correction``) may move along the self-motion: there the best reachable pose uses it (removing that
+  part of such an answer raises its pose error), and the pose is not reached exactly anyway.
 
 Both modes are one loop each over the same residual function, so a single configuration (k = 1) takes exactly the
 path a batch takes; only the residual function may be specialised for it (:mod:`labcal.compensator.model`).
@@ -69,9 +73,31 @@ _ONES6 = np.ones(6)
 Residual = Callable[..., tuple[np.ndarray, np.ndarray | None]]
 
 
-def gauss_newton_step(r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+def gauss_newton_step(
+    r: np.ndarray, J: np.ndarray, weights: np.ndarray | None, change: np.ndarray | None = None
+) -> np.ndarray:
     """(m, 6) residuals, (m, 6, n) Jacobians → (m, n) full steps: J⁻¹ r (n = 6), least squares in diag(weights)
-    (n < 6), or the minimum-norm step Jᵀ (J Jᵀ)⁻¹ r (n > 6). NaN rows where J is singular."""
+    (n < 6), or for n > 6 the step to the minimum-norm *total* change: with ``change`` (m, n) the change made so far
+    (q − q0), ``Jᵀ (J Jᵀ)⁻¹ (r + J change) − change`` (without it, change = 0: ``Jᵀ (J Jᵀ)⁻¹ r``). NaN rows where J
+    is singular.
+
+    Why the total: a redundant arm reaches the pose along a whole self-motion manifold, and the correction must
+    be its point nearest q0 (the elbow the user commanded stays where it was). Minimum-norm steps from wherever the
+    iteration stands add up to a change whose self-motion part grows with the square of the correction (each
+    step's row space is that of a different J); this step solves the linearised problem for the total change
+    afresh at every iterate, so the fixed point has r = 0 and q − q0 in the row space of J there (no self-motion),
+    the first-order condition of ``min |q − q0|`` on the manifold.
+
+    Example (one row, J = [I₆ | e₁]: joints 1 and 7 move the same way)::
+
+        >>> J = np.hstack([np.eye(6), np.eye(6)[:, :1]])[None]
+        >>> r = np.array([[0.2, 0, 0, 0, 0, 0]])
+        >>> gauss_newton_step(r, J, None).round(12).tolist()           # half of it on each of joints 1 and 7
+        [[0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1]]
+        >>> change = np.array([[0.2, 0, 0, 0, 0, 0, 0.0]])             # the pose reached, by joint 1 alone:
+        >>> gauss_newton_step(np.zeros((1, 6)), J, None, change).round(12).tolist()  # share it out (self-motion)
+        [[-0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1]]
+    """
     n = J.shape[2]
     if weights is not None:
         r, J = r * weights, J * weights[:, None]
@@ -82,13 +108,21 @@ def gauss_newton_step(r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) 
             return np.linalg.solve(J, r[:, :, None])[:, :, 0]
         Jt = J.transpose(0, 2, 1)
         if n > 6:
-            return (Jt @ np.linalg.solve(J @ Jt, r[:, :, None]))[:, :, 0]
+            if change is None:
+                return (Jt @ np.linalg.solve(J @ Jt, r[:, :, None]))[:, :, 0]
+            target = r + (J @ change[:, :, None])[:, :, 0]  # the linearised pose change from q0 still to be made
+            return (Jt @ np.linalg.solve(J @ Jt, target[:, :, None]))[:, :, 0] - change
         return np.linalg.solve(Jt @ J, Jt @ r[:, :, None])[:, :, 0]
     except np.linalg.LinAlgError:
         if len(J) == 1:
             return np.full((1, n), np.nan)
     # numpy's stacked solve refuses the whole stack for one singular matrix: row by row, only those rows fail
-    return np.concatenate([gauss_newton_step(r[i : i + 1], J[i : i + 1], None) for i in range(len(J))])
+    return np.concatenate(
+        [
+            gauss_newton_step(r[i : i + 1], J[i : i + 1], None, None if change is None else change[i : i + 1])
+            for i in range(len(J))
+        ]
+    )
 
 
 @functools.lru_cache(maxsize=8)
@@ -135,7 +169,9 @@ def solve(
     k, n = q0.shape
     w = _ONES6 if weights is None else np.asarray(weights, dtype=float)
     rows = _OneRow(q0, tol) if k == 1 else _Rows(q0, tol)
-    reuse = n >= 6  # a step with an older J still heads for r = 0; a least-squares step's zero moves with J
+    # A step with an older J still heads for r = 0; a least-squares step's zero moves with J, and so does a
+    # redundant arm's least total change (its self-motion is J's null space at the answer): n = 6 only
+    reuse = n == 6
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a singular J gives a NaN step
         for i in range(max(iterations, 1)):
             q, active = rows.active()
@@ -183,7 +219,7 @@ class _Rows:
     :func:`verdict`'s rule in array arithmetic (:func:`_verdicts`)."""
 
     def __init__(self, q0: np.ndarray, tol: float) -> None:
-        self.out, self.tol = q0.copy(), tol
+        self.out, self.tol, self.q0 = q0.copy(), tol, q0
         self.prev: np.ndarray | None = None  # (k,) last step sizes, after the first step
         self.J: np.ndarray | None = None  # (k, 6, n) the Jacobians of the last full steps
         self.bad = np.zeros(len(q0), dtype=bool)
@@ -210,7 +246,12 @@ class _Rows:
             self.J[self.rows] = new
         return new
 
-    step = staticmethod(gauss_newton_step)  # the steps of the rows still iterating, from r and the kept J
+    def step(self, r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+        """The steps of the rows still iterating, from r and the kept J (n > 6: towards the least total change)."""
+        if J.shape[2] <= 6:
+            return gauss_newton_step(r, J, weights)
+        q, rows = self.active()
+        return gauss_newton_step(r, J, weights, q - (self.q0 if self._everyone() else self.q0[rows]))
 
     def advance(self, step: np.ndarray) -> bool:
         """Judge and apply one step of the rows still iterating; False when none is left."""
@@ -243,7 +284,7 @@ class _OneRow:
     _ROWS = np.zeros(1, dtype=int)
 
     def __init__(self, q0: np.ndarray, tol: float) -> None:
-        self.out, self.tol = q0.copy(), tol
+        self.out, self.tol, self.q0 = q0.copy(), tol, q0
         self.prev: float | None = None
         self.J: np.ndarray | None = None
         self.J_inv: np.ndarray | None = None  # of the kept J when it is square, once a step needed it
@@ -264,7 +305,7 @@ class _OneRow:
         """:func:`gauss_newton_step` with the kept J; a square one is inverted instead, so that the steps which
         reuse it cost a product: numpy's wrapper around one 6×6 LAPACK call, not the maths, is a solve's price."""
         if weights is not None or J.shape[1] != J.shape[2]:
-            return gauss_newton_step(r, J, weights)
+            return gauss_newton_step(r, J, weights, self.out - self.q0 if J.shape[2] > 6 else None)
         if self.J_inv is None:
             try:
                 self.J_inv = np.linalg.inv(J[0])

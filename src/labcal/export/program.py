@@ -240,7 +240,12 @@ def _pose_error(T_target: np.ndarray, T: np.ndarray) -> np.ndarray:
 
 
 def _det_sign(robot: CalibratedRobot, model, q: np.ndarray) -> np.ndarray:
+    """(k,) sign of det J at q (k, n): which configuration branch q is on. A redundant arm (n > 6) has no square
+    Jacobian and no finite set of branches (its self-motion joins them), so every q gets +1: its branch is kept by
+    path following from the seed, the correction bound and the condition checks alone."""
     J = model.equivalent_jacobian(q, length_scale=robot.length_scale)
+    if J.shape[-1] != 6:
+        return np.ones(len(J))
     return np.sign(np.linalg.det(J))
 
 
