@@ -660,9 +660,10 @@ class CalibratedRobot:
 
         method: ``"newton"`` (default) solves ``T_real(q_cmd) = T_nominal(q)`` on the calibrated forward model with
         :func:`labcal.compensator.solve.solve`: Gauss-Newton (least squares in the length-scaled metric for n < 6:
-        only actuated joints are corrected; minimum-norm steps for a redundant arm, n > 6, so q_cmd is a solution
-        near q) until the estimated distance to the solution is below ``tol`` (rad), and where a full step does
-        not contract (near a singularity) a damped iteration from q that never makes the error worse than at q.
+        only actuated joints are corrected; for a redundant arm, n > 6, the least joint change q_cmd − q that
+        reaches the pose, so no self-motion is added) until the estimated distance to the solution is below
+        ``tol`` (rad), and where a full step does not contract (near a singularity) a damped iteration from q that
+        never makes the error worse than at q.
         ``"paper"`` is eq. (24), q − δρ_a(q); ``"fixed-point"`` iterates q_cmd = q − δρ_a(q_cmd). Both apply the
         network alone, so they are refused (a ValueError saying why) unless the identified frames are the nominal
         ones and there is a network: the paper's ANN method. An empty (0, n) q gives an empty (0, n) answer.
