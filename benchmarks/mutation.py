@@ -234,8 +234,8 @@ MUTATIONS: list[Mutation] = [
       "a paused run is sealed", T_RUNNER, T_FAULTS),
     M("sessions/runner", R, "if robot.n_joints != spec.model.n or plan.n_joints != spec.model.n:",
       "if robot.n_joints != spec.model.n:", "a plan for another joint count starts", T_RUNM, T_RUNNER),
-    M("sessions/runner", R, "        except KeyboardInterrupt:\n            _safe_stop(robot)\n",
-      "        except KeyboardInterrupt:\n", "Ctrl-C does not stop the robot", T_RUNNER, T_FAULTS),
+    M("sessions/runner", R, "        except KeyboardInterrupt as e:\n            _safe_stop(robot)\n",
+      "        except KeyboardInterrupt as e:\n", "Ctrl-C does not stop the robot", T_RUNNER, T_FAULTS),
     M("sessions/runner", R, "needed = SANITY_MIN_ROWS if at_end else self.sanity_at", "needed = self.sanity_at",
       "a short session is never sanity-checked", T_RUNM, T_RUNNER),
     # --------------------------------------------------------------------------------------- sessions: plans
