@@ -7,7 +7,14 @@ main()``), N times, with the "before" and "after" source trees interleaved run b
     git worktree add /tmp/before65 65c384c
     .venv/bin/python benchmarks/cli_startup.py --before /tmp/before65/src --runs 15
 
-"before" runs with ``PYTHONPATH=<before>``, "after" with this checkout's ``src``. The stores are made once by the
+"before" runs with ``PYTHONPATH=<before>``, "after" with this checkout's ``src`` (or ``--after SRC``: e.g. a copy of
+this tree with a change tried out, as issue 29 timed the CLI without labcal.cli.coercion and labcal.cli.helprender:
+
+    git archive HEAD src | tar -x -C /tmp/lean_before        # the tree as committed
+    mkdir /tmp/nopatch && cp -r src /tmp/nopatch/   # then delete the coercion.install(self) and
+    # helprender.import_help_renderer() calls from /tmp/nopatch/src/labcal/cli/app.py
+    .venv/bin/python benchmarks/cli_startup.py --before /tmp/lean_before/src --after /tmp/nopatch/src --runs 9
+). The stores are made once by the
 after code: an empty folder, and one with three small sim sessions (imported by both trees). Where the time goes:
 ``python -X importtime -c "import labcal.cli.app"``.
 
@@ -135,6 +142,7 @@ def commit() -> str:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--before", type=Path, default=Path("/tmp/before65/src"), help="src/ of the before tree")
+    p.add_argument("--after", type=Path, default=AFTER_SRC, help="src/ of the after tree (default: this checkout's)")
     p.add_argument("--runs", type=int, default=15)
     p.add_argument("--sessions", type=int, default=3, help="sessions in the non-empty store")
     p.add_argument("--bytecode", choices=("compiled", "cached", "both"), default="both", help="see above")
@@ -155,13 +163,13 @@ def main() -> None:
             f"labcal session list ({a.sessions} sessions)": ["session", "list", "--store", str(full)],
             f"labcal session list --json ({a.sessions} sessions)": ["session", "list", "--json", "--store", str(full)],
         }
-        trees = {"before": a.before, "after": AFTER_SRC}
+        trees = {"before": a.before, "after": a.after}
         modes = ("compiled", "cached") if a.bytecode == "both" else (a.bytecode,)
         results = {m: time_commands(commands, trees, a.runs, bytecode_env(m, root)) for m in modes}
         load = os.getloadavg()
         lines = [
             f"CLI time, s: median (min … max) of {a.runs} runs, fresh interpreter each, before/after interleaved; "
-            f"before = {a.before}, after = {AFTER_SRC}; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} "
+            f"before = {a.before}, after = {a.after}; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} "
             f"on {os.cpu_count()} cores; python {sys.version.split()[0]}",
             "wall: elapsed time; CPU: the process's user + system time (less sensitive to other jobs' load)",
         ]
@@ -179,7 +187,8 @@ def main() -> None:
         if a.out is not None:
             argv = " ".join([".venv/bin/python", "benchmarks/cli_startup.py", *sys.argv[1:]])
             when = time.strftime("%Y-%m-%dT%H:%MZ", time.gmtime())
-            header = f"# {argv}   (after = {commit()}, before = {a.before}; {when})"
+            after = commit() if a.after.resolve() == AFTER_SRC else a.after
+            header = f"# {argv}   (after = {after}, before = {a.before}; {when})"
             a.out.write_text(header + "\n" + "\n".join(lines) + "\n", encoding="utf-8")
     finally:
         shutil.rmtree(root, ignore_errors=True)

@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from labcal.cli.common import UserError
 from labcal.cli.ops import export_fit, load_stored_fit, new_session, open_store, run_fit
-from labcal.cli.ops.common import UserError
 from labcal.compensator import Compensator, CompensatorFileError, from_payload, to_payload
 from labcal.robots import load
 

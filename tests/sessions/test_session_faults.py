@@ -241,7 +241,7 @@ def test_plan_size_is_bounded_before_anything_is_allocated(spec, monkeypatch):
 
 
 def test_open_store_read_write_create(tmp_path):
-    with pytest.raises(UserError, match=r"no session store at .*missing \(.*--store or LABCAL_STORE\)"):
+    with pytest.raises(UserError, match=r"no session store at .*missing \(.*--store or LABCAL_STORE"):
         open_store(tmp_path / "missing", create=False)
     assert not (tmp_path / "missing").exists()
     assert open_store(tmp_path / "new", create=True).root.is_dir()

@@ -94,7 +94,7 @@ def test_session_new_with_a_single_target_and_sim_dropout_fits_from_the_store(tm
 
 
 def test_sim_dropout_is_checked_before_anything_runs(tmp_path):
-    from labcal.cli.ops.common import UserError
+    from labcal.cli.common import UserError
 
     with pytest.raises(UserError, match="--sim-dropout must be a probability"):
         new_session(SessionStore(tmp_path / "s"), robot="ur10", targets_file=tmp_path / "none.toml", poses=3,

@@ -10,6 +10,13 @@ not listed here, stay exactly typer's.
 
 ``tests/cli/test_coercion.py`` compares the two on the types and values labcal's options use, and fails if a new
 typer no longer has the hook used here (then :func:`install` does nothing and typer checks everything itself).
+
+Why typer's private modules at all (issue 29): without this module and :mod:`labcal.cli.helprender`, typer 0.29
+imports pydantic and builds a TypeAdapter for every parameter of a command, ``--help`` included, and the light
+commands took 0.34-0.45 s here (1.4-2.0x; benchmarks/results/cli_startup.txt), over their 0.35 s budget; typer has
+no public way to check a value without pydantic. So typer is pinned exactly (pyproject.toml) to
+:data:`WRITTEN_FOR_TYPER`, and ``tests/cli/test_typer_pin.py`` fails on any other typer with the list of what to
+re-check before the pin moves.
 """
 
 from __future__ import annotations
@@ -17,6 +24,10 @@ from __future__ import annotations
 import re
 from pathlib import Path
 from typing import Any
+
+# The typer release whose private modules (typer._coercion, typer._param_types, typer.core's ``_runtime_param``,
+# typer.rich_utils' imports, typer._click) this module and labcal.cli.helprender were written for and tested on.
+WRITTEN_FOR_TYPER = "0.29.2"
 
 # Only spellings whose meaning cannot differ between Python and pydantic; anything else goes to pydantic.
 _INT = re.compile(r"-?[0-9]{1,18}\Z")

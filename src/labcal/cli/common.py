@@ -1,6 +1,7 @@
-"""Shared CLI pieces: the --store option, user-error handling (stderr, exit 2, no traceback; Ctrl-C exit 130),
-the option choices (typing.Literal: typer checks them and completes them in the shell), JSON output, tables, and the
-fit warnings every command shows the same way.
+"""Shared CLI pieces: the --store option and the store it opens (``open_store``), ``UserError`` and its handling
+(stderr, exit 2, no traceback; Ctrl-C exit 130), the option choices (typing.Literal: typer checks them and completes
+them in the shell), JSON output (``plain``, ``print_json``), tables, and the fit warnings every command shows the
+same way. ``labcal.cli.ops`` uses the same ``UserError``, ``open_store`` and ``plain``: one definition each.
 
 Light on purpose: every command module imports this one, and `labcal --help` imports every command module. rich is
 imported when the first line is printed through ``out`` / ``err`` or a table is built, so printing JSON needs none
@@ -138,45 +139,57 @@ def complete_robot(incomplete: str) -> list[str]:
     return [name for name in BUILTINS if name.startswith(incomplete)]
 
 
-class InputError(ValueError):
-    """An input the user can fix (user_errors prints it as one `error: …` line, exit 2)."""
+class UserError(ValueError):
+    """A problem with the command's input that the user can fix (the message says what): :func:`user_errors` prints
+    it as one `error: …` line, exit 2. The one definition: ``labcal.cli.ops`` raises this class too."""
 
 
 STORE_HINT = "set --store or LABCAL_STORE; `labcal session new` or `labcal session import` creates a store"
+RETRY_HINT = "set --store or LABCAL_STORE"  # a store that cannot be made or written: only another one helps
 
 
-def store_root(store: Path | str | None) -> Path:
-    """--store, else :func:`labcal.datasets.store.default_root` ($LABCAL_STORE, else ./sessions)."""
-    if store is not None:
-        return Path(store)
-    from labcal.datasets.store import default_root  # no pandas, as store_of's import
+def open_store(path: Path | str | None, *, create: bool | None = None, write: bool = False):
+    """The session store (a :class:`labcal.datasets.SessionStore`) at ``path``, else
+    :func:`labcal.datasets.store.default_root` ($LABCAL_STORE, else ./sessions), checked before any work is done.
 
-    return default_root()
-
-
-def store_of(store: Path | str | None, *, write: bool = False):
-    """The existing session store (a :class:`labcal.datasets.SessionStore`), checked before any work.
-
-    Only `session new` and `session import` create a store: every other command refuses a missing one with one
-    line naming the path (exit 2), instead of reporting "no session X" in a store that is not there, or writing a
-    fit into a folder a typo created. ``write``: the command adds files (a fit, an export record), so a read-only
-    store fails here rather than after minutes of fitting.
+    - ``create=False`` (read commands): the folder must exist, else UserError "no session store at PATH (…)". Only
+      `session new` and `session import` create a store: every other command refuses a missing one with one line
+      naming the path (exit 2), instead of reporting "no session X" in a store that is not there, or writing a fit
+      into a folder a typo created;
+    - ``create=None`` (callers that do not say; kept for old callers): no existence check here; a command that
+      names a session still gets that one-line error from the store itself (``SessionStore.require_root``);
+    - ``write=True`` (commands that add a fit, an export record, a version …): it must exist and accept a new
+      file, so a read-only store fails here rather than after minutes of fitting;
+    - ``create=True`` (commands that create sessions): it may be missing and is then created; it must accept a new
+      file.
     """
-    from labcal.datasets.store import SessionStore  # no pandas: tables are read only when a version is loaded
+    from labcal.datasets.store import SessionStore, default_root  # no pandas: tables are read when a version loads
 
-    root = store_root(store)
+    root = Path(path) if path is not None else default_root()
+    if root.exists() and not root.is_dir():
+        raise UserError(f"the session store {root} is not a folder ({STORE_HINT})")
     if not root.exists():
-        raise InputError(f"no session store at {root} ({STORE_HINT})")
-    if not root.is_dir():
-        raise InputError(f"the session store {root} is not a folder ({STORE_HINT})")
-    if write:
-        probe = root / f".labcal-write-probe-{uuid.uuid4().hex[:12]}"
+        if create is None:
+            return SessionStore(root)
+        if not create:
+            raise UserError(f"no session store at {root} ({STORE_HINT})")
         try:
-            os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-            probe.unlink()
+            root.mkdir(parents=True, exist_ok=True)
         except OSError as e:
-            raise InputError(f"the session store {root} is not writable: {e.strerror or e}") from None
+            raise UserError(f"cannot create the session store {root}: {e.strerror or e} ({RETRY_HINT})") from None
+    if create or write:
+        _check_writable(root)
     return SessionStore(root)
+
+
+def _check_writable(root: Path) -> None:
+    """Create and remove a hidden probe file: the only test that also catches read-only mounts and root squash."""
+    probe = root / f".labcal-write-probe-{uuid.uuid4().hex[:12]}"
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        probe.unlink()
+    except OSError as e:
+        raise UserError(f"the session store {root} is not writable: {e.strerror or e} ({RETRY_HINT})") from None
 
 
 def plain(obj, depth: int = 0):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import deg, mm, out, user_errors
+from labcal.cli.common import UserError, deg, mm, open_store, out, user_errors
 
 DEMO_TARGETS = 'unit = "mm"\npoints = [[120.0, 0.0, 60.0], [-60.0, 100.0, 60.0], [-60.0, -100.0, 90.0]]\n'
 METHODS = ("local-poe", "ann", "hybrid")
@@ -29,8 +29,8 @@ def demo(
     """
     from rich.table import Table
 
-    from labcal.cli.ops import export_fit, new_session, open_store, run_fit
-    from labcal.cli.ops.common import UserError, check_seed
+    from labcal.cli.ops import export_fit, new_session, run_fit
+    from labcal.cli.ops.common import check_seed
     from labcal.cli.ops.evaluating import evaluate_fit
     from labcal.reports import write_session_report
 

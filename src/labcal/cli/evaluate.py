@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import StoreOption, err, metrics_table, out, print_json, store_of, targets_table, user_errors
+from labcal.cli.common import StoreOption, err, metrics_table, open_store, out, print_json, targets_table, user_errors
 
 
 @user_errors
@@ -49,7 +49,7 @@ def evaluate(
         "targets_file": targets, "mapping": mapping, "length_unit": length_unit, "angle_unit": angle_unit,
         "frame": frame, "form": form, "allow": list(allow),
     }  # fmt: skip
-    outcome = evaluate_fit(store_of(store), fit_id, data, robot=robot, import_options=options)
+    outcome = evaluate_fit(open_store(store, create=False), fit_id, data, robot=robot, import_options=options)
     ev = outcome.evaluation
     if as_json:
         print_json("labcal.evaluate/1", _counts_as_integers({**ev, "stored_at": str(outcome.path)}))

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import ExportFormat, StoreOption, UnknownDynamics, err, store_of, user_errors
+from labcal.cli.common import ExportFormat, StoreOption, UnknownDynamics, err, open_store, user_errors
 
 
 @user_errors
@@ -71,7 +71,7 @@ def export(
     from labcal.cli.ops.exporting import stored_warnings
     from labcal.cli.ops.fitting import load_stored_fit
 
-    st = store_of(store)
+    st = open_store(store, create=False)
     if fmt in ("urdf", "ur-kinematics"):
         options: dict = {"geometry_only": geometry_only}
         if fmt == "urdf":

@@ -6,14 +6,12 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import AngleUnit, LengthUnit, ProgramKind, StoreOption, err, store_of, user_errors
+from labcal.cli.common import AngleUnit, LengthUnit, ProgramKind, StoreOption, UserError, err, open_store, user_errors
 
 
 def _numbers(text: str | None, count: int, option: str) -> list[float] | None:
     if text is None:
         return None
-    from labcal.cli.ops.common import UserError
-
     try:
         values = [float(v) for v in text.replace(";", ",").split(",") if v.strip()]
     except ValueError:
@@ -110,7 +108,6 @@ def filter_program(
     import numpy as np
 
     from labcal import atomicio
-    from labcal.cli.ops.common import UserError
     from labcal.cli.ops.exporting import check_output
     from labcal.cli.ops.programs import read_program
     from labcal.export import program as prog
@@ -169,8 +166,6 @@ def filter_program(
 
 
 def _calibration(calibration: str, fit_id: str | None, store: Path | None):
-    from labcal.cli.ops.common import UserError
-
     path = Path(calibration)
     if path.suffix.lower() in (".json", ".npz"):
         from labcal.compensator import CompensatorFileError, load
@@ -182,4 +177,4 @@ def _calibration(calibration: str, fit_id: str | None, store: Path | None):
     from labcal.cli.ops import split_ref
     from labcal.cli.ops.fitting import load_stored_fit
 
-    return load_stored_fit(store_of(store), split_ref(calibration), fit_id).robot
+    return load_stored_fit(open_store(store, create=False), split_ref(calibration), fit_id).robot

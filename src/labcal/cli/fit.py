@@ -13,10 +13,10 @@ from labcal.cli.common import (
     err,
     metrics_doc,
     metrics_table,
+    open_store,
     out,
     print_gates,
     print_json,
-    store_of,
     targets_table,
     user_errors,
 )
@@ -77,8 +77,9 @@ def fit(
     refs = [split_ref(s) for s in sessions]
     say = err if as_json else out  # with --json stdout holds the document alone
     outcome = run_fit(
-        store_of(store, write=True), refs, method, seed=seed, hidden=hidden, val_fraction=val_fraction, robot=robot,
-        pool_units=pool_units, progress=lambda msg: say.print(f"  {msg}", markup=False),
+        open_store(store, create=False, write=True), refs, method, seed=seed, hidden=hidden,
+        val_fraction=val_fraction, robot=robot, pool_units=pool_units,
+        progress=lambda msg: say.print(f"  {msg}", markup=False),
     )  # fmt: skip
     r = outcome.result
     if as_json:

@@ -7,7 +7,8 @@ in markdown mode (labcal's is rich markup) and the second only for pretty traceb
 class on first use, so the help is the same and a later ``import rich.markdown`` gets the real module.
 
 ``tests/cli/test_help_render.py`` checks that the help text is identical either way and that the real modules are
-importable afterwards.
+importable afterwards. It relies on typer.rich_utils' imports, a private detail: typer is pinned for it and for
+:mod:`labcal.cli.coercion` (whose docstring says why; ``tests/cli/test_typer_pin.py``).
 
 :func:`hide_flag_type` keeps a flag's type out of its help line: typer 0.29 prints ``<bool>`` beside every on/off
 flag (``--json <bool>``, ``--help <bool>``), which reads as if the flag took a value.

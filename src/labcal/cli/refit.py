@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 
 import typer
 
-from labcal.cli.common import INTERRUPTED, StoreOption, err, mm, out, user_errors
+from labcal.cli.common import INTERRUPTED, StoreOption, err, mm, open_store, out, user_errors
 
 if TYPE_CHECKING:
     from rich.table import Table
@@ -60,13 +60,13 @@ def refit(
 
       labcal refit S1 S2@v2 --method hybrid
     """
-    from labcal.cli.ops.common import open_store, split_ref
+    from labcal.cli.ops.common import split_ref
     from labcal.cli.ops.refit import FITTED, Selection, parse_since, run_refit, select_versions
 
     refs = tuple(split_ref(s) for s in sessions or ())
     selection = Selection(everything, robot, unit, parse_since(since) if since else None, refs, every_version)
     selection.check()
-    st = open_store(store, write=True)
+    st = open_store(store, create=False, write=True)
     chosen, skipped = select_versions(st, selection)
     for what, why in skipped:
         err.print(f"left out {what}: {why}", markup=False)

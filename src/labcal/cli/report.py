@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import StoreOption, store_of, user_errors
+from labcal.cli.common import StoreOption, open_store, user_errors
 
 
 @user_errors
@@ -34,7 +34,7 @@ def report(
     from labcal.cli.ops.exporting import stored_warnings
     from labcal.reports import write_session_report
 
-    st = store_of(store)
+    st = open_store(store, create=False)
     ref = split_ref(session)
     # A stored fit already decided whether to pool sessions of different units: the report reads what it fitted.
     path = write_session_report(

@@ -16,9 +16,9 @@ from labcal.cli.common import (
     TrackerDriver,
     complete_robot,
     err,
+    open_store,
     out,
     print_json,
-    store_of,
     user_errors,
 )
 from labcal.cli.session_import import import_
@@ -33,13 +33,6 @@ ALLOW_HELP = (
     "target-distances, target-outliers, joint-limits, joint-span, nominal, reach, duplicates, few-poses. "
     "Recorded with the session."
 )
-
-
-def _store(store: Path | None, *, create: bool = False, write: bool = False):
-    """The store checked before any work: missing (read), unwritable (write/create) → one line, exit 2."""
-    from labcal.cli.ops.common import open_store
-
-    return open_store(store, create=create, write=write)
 
 
 def _end_run(summary, line: str, resume_flags: list[str] | None = None) -> None:
@@ -211,7 +204,7 @@ def new(
     load(robot)  # a typo in the robot or targets fails here, before the store is created
     load_targets(targets)
     load_target_normals(targets)  # normals for the planner's line of sight, checked before the store is made
-    st = _store(store, create=True)
+    st = open_store(store, create=True)
     with _RunProgress() as progress:
         summary = new_session(st, request, progress=progress)
     _end_run(
@@ -240,7 +233,7 @@ def list_(
 
       labcal session list --unit UR10-2019-0417 --json
     """
-    st = store_of(store)
+    st = open_store(store, create=False)
     rows = []
     for info in st.list_sessions():
         # The table needs no metadata; reading it again costs a second pass over each journal.
@@ -328,7 +321,7 @@ def show(
 
       labcal session show 20261122-031500-ur10-3f9a --json
     """
-    st = store_of(store)
+    st = open_store(store, create=False)
     info = st.show(session)
     meta = _meta(st, session)
     if as_json:
@@ -395,7 +388,7 @@ def resume(
     """
     from labcal.cli.ops import resume_session
 
-    st = _store(store, write=True)
+    st = open_store(store, create=False, write=True)
     with _RunProgress() as progress:
         summary = resume_session(
             st,
@@ -432,7 +425,7 @@ def seal(
     from labcal.datasets import validate_id
 
     validate_id(session)
-    st = _store(store, write=True)
+    st = open_store(store, create=False, write=True)
     result = st.seal(session, valid_prefix=valid_prefix)
     out.print(result.message, markup=False)
     if result.created:
@@ -469,7 +462,7 @@ def verify(
     from labcal.datasets import Ref, parse_ref
 
     r = parse_ref(session)
-    st = store_of(store)
+    st = open_store(store, create=False)
     refs = [st.resolve(r)] if r.version is not None else [Ref(r.session_id, v) for v in st.versions(r.session_id)]
     whole = st.check_session(r.session_id) if r.version is None else None
     docs = []

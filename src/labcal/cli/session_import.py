@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import StoreOption, err, user_errors
+from labcal.cli.common import StoreOption, err, open_store, user_errors
 from labcal.datasets.checks import CHECKS
 
 _CHECK_LIST = "\n\n".join(f"  {name}: {what}" for name, what in CHECKS.items())
@@ -68,7 +68,6 @@ def import_(
     store: Path | None = StoreOption,
 ) -> None:
     from labcal.cli.ops import import_session
-    from labcal.cli.ops.common import open_store
     from labcal.datasets import load_version
 
     st = open_store(store, create=True)

@@ -4,11 +4,13 @@ Every function takes an opened :class:`~labcal.datasets.SessionStore` and return
 Errors the user can fix are raised as :class:`UserError` (or the library's ValueError subclasses) with a message
 that names the bad input.
 
-Submodules: ``common`` (store, robot model, errors), ``fitting``, ``exporting``, ``sessions``, ``imports``. New code
-imports from the submodule; the names below are kept for existing callers.
+Submodules: ``common`` (robot model, pooled observations), ``fitting``, ``exporting``, ``sessions``, ``imports``;
+the store (``open_store``) and ``UserError`` are :mod:`labcal.cli.common`'s. New code imports from the submodule;
+the names below are kept for existing callers.
 """
 
-from labcal.cli.ops.common import UserError, jsonable, load_observations, open_store, robot_for, split_ref
+from labcal.cli.common import UserError, open_store
+from labcal.cli.ops.common import load_observations, robot_for, split_ref
 from labcal.cli.ops.exporting import export_fit
 from labcal.cli.ops.fitting import BEFORE_FILE, ROBOT_FILE, FitOutcome, StoredFit, load_stored_fit, run_fit, slim_info
 from labcal.cli.ops.imports import import_session
@@ -35,7 +37,6 @@ __all__ = [
     "UserError",
     "export_fit",
     "import_session",
-    "jsonable",
     "load_observations",
     "load_stored_fit",
     "new_session",

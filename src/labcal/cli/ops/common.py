@@ -1,64 +1,15 @@
-"""What every workflow shares: the store, the robot model a session was recorded with, user errors, JSON."""
+"""What every workflow shares: the robot model a session was recorded with, the pooled observations, the checks of
+seeds and units. ``UserError``, ``open_store`` and the JSON converter ``plain`` are
+:mod:`labcal.cli.common`'s (one definition each, light enough for `labcal --help`)."""
 
 from __future__ import annotations
-
-import os
-import uuid
-from pathlib import Path
 
 import numpy as np
 
 from labcal.calibration.observations import Observations
+from labcal.cli.common import UserError
 from labcal.datasets import Dataset, SessionStore, parse_ref
 from labcal.robots import BUILTINS, RobotSpec, load, loads
-
-
-class UserError(ValueError):
-    """A problem with the command's input that the user can fix (the message says what)."""
-
-
-STORE_HINT = "set --store or LABCAL_STORE"
-
-
-def open_store(path: str | Path | None, *, create: bool | None = None, write: bool = False) -> SessionStore:
-    """The store at path, else $LABCAL_STORE, else ./sessions, checked before any work is done.
-
-    - ``create=False`` (read commands): the folder must exist, else UserError "no session store at PATH (set
-      --store or LABCAL_STORE)";
-    - ``create=None`` (callers that do not say; kept for old callers): no existence check here; a command that
-      names a session still gets that one-line error from the store itself (``SessionStore.require_root``);
-    - ``write=True`` (commands that add a fit, a version …): it must exist and accept a new file;
-    - ``create=True`` (commands that create sessions): it may be missing and is then created; it must accept a new
-      file. A read-only or unwritable store fails here with one line, not with a traceback after the work.
-    """
-    if path is None:
-        path = os.environ.get("LABCAL_STORE") or "sessions"
-    root = Path(path)
-    if root.exists() and not root.is_dir():
-        raise UserError(f"the session store {root} is not a folder ({STORE_HINT})")
-    if not root.exists():
-        if create is None:
-            return SessionStore(root)
-        if not create:
-            raise UserError(f"no session store at {root} ({STORE_HINT})")
-        try:
-            root.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise UserError(f"cannot create the session store {root}: {e.strerror or e} ({STORE_HINT})") from None
-    if create or write:
-        _check_writable(root)
-    return SessionStore(root)
-
-
-def _check_writable(root: Path) -> None:
-    """Create and remove a hidden probe file: the only test that also catches read-only mounts and root squash."""
-    probe = root / f".labcal-write-probe-{uuid.uuid4().hex[:12]}"
-    try:
-        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        os.close(fd)
-        probe.unlink()
-    except OSError as e:
-        raise UserError(f"the session store {root} is not writable: {e.strerror or e} ({STORE_HINT})") from None
 
 
 def robot_for(dataset_robot: dict, robot: str | None = None) -> RobotSpec:
@@ -221,27 +172,6 @@ def load_observations(
     if with_spec:
         return obs, datasets, spec
     return obs, datasets
-
-
-def jsonable(obj, depth: int = 0):
-    """numpy-free JSON data: arrays → lists, non-finite floats → None, unknown objects → their str."""
-    if depth > 12:
-        return None
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v, depth + 1) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [jsonable(v, depth + 1) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist(), depth + 1)
-    if isinstance(obj, bool | np.bool_):
-        return bool(obj)
-    if isinstance(obj, int | np.integer):
-        return int(obj)
-    if isinstance(obj, float | np.floating):
-        return float(obj) if np.isfinite(obj) else None
-    if obj is None or isinstance(obj, str):
-        return obj
-    return str(obj)
 
 
 def split_ref(text: str) -> str:

@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from labcal.atomicio import write_text
-from labcal.cli.ops.common import UserError, jsonable, load_observations, split_ref
+from labcal.cli.common import UserError, plain
+from labcal.cli.ops.common import load_observations, split_ref
 from labcal.cli.ops.fitting import load_stored_fit, metric_warnings
 from labcal.datasets import SessionStore
 
@@ -223,5 +224,5 @@ def evaluate_fit(
         "outside_calibrated_ranges": int(outside.sum()),
         "warnings": warnings,
     }
-    evaluation["evaluation_id"], path = store.save_evaluation(stored.ref, fit_id, jsonable(evaluation))
-    return EvaluationOutcome(jsonable(evaluation), path, ref, imported)
+    evaluation["evaluation_id"], path = store.save_evaluation(stored.ref, fit_id, plain(evaluation))
+    return EvaluationOutcome(plain(evaluation), path, ref, imported)

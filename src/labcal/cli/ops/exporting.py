@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from labcal.atomicio import UnsafeTargetError, check_target, write_bytes
-from labcal.cli.ops.common import UserError, robot_for
+from labcal.cli.common import UserError
+from labcal.cli.ops.common import robot_for
 from labcal.cli.ops.fitting import info_warnings, load_stored_fit
 from labcal.datasets import SessionStore
 from labcal.names import printable

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from labcal.calibration.metrics import point_residual_warning
-from labcal.cli.ops.common import UserError, check_seed, jsonable, load_observations
+from labcal.cli.common import UserError, plain
+from labcal.cli.ops.common import check_seed, load_observations
 from labcal.compensator import CalibratedRobot, from_payload, to_payload
 from labcal.datasets import SessionStore
 
@@ -111,7 +112,7 @@ def run_fit(
         ROBOT_FILE: json.dumps(to_payload(fitted, {"sessions": [d.ref for d in datasets]})),
         BEFORE_FILE: json.dumps(to_payload(before)),
     }
-    record = store.save_fit([d.ref for d in datasets], files, jsonable(meta))
+    record = store.save_fit([d.ref for d in datasets], files, plain(meta))
     return FitOutcome(result, record.fit_id, record.ref, [d.ref for d in datasets], meta["metrics"], gates)
 
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from labcal.cli.ops.common import UserError, check_unit_option
+from labcal.cli.common import UserError
+from labcal.cli.ops.common import check_unit_option
 from labcal.datasets import SessionStore
 from labcal.robots import load
 

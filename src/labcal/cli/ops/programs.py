@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labcal.cli.ops.common import UserError
+from labcal.cli.common import UserError
 
 POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
 SEPARATORS = {"\t": "tab", ";": "';'", ",": "','"}

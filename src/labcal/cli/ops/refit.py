@@ -35,7 +35,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from labcal.cli.ops.common import UserError, check_seed
+from labcal.cli.common import UserError
+from labcal.cli.ops.common import check_seed
 from labcal.datasets import DatasetError, SessionStore
 
 FITTED, FAILED, NOT_RUN = "fitted", "failed", "not run"

@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from labcal.cli.ops.common import UserError, check_seed, check_unit_option, robot_for
+from labcal.cli.common import UserError
+from labcal.cli.ops.common import check_seed, check_unit_option, robot_for
 from labcal.datasets import SessionStore
 from labcal.robots import RobotSpec, load
 
