@@ -26,7 +26,9 @@ import io
 import json
 import math
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
@@ -100,6 +102,8 @@ def _model_from(d: dict, what: str) -> LocalPOEModel:
 
 def golden_configurations(robot: CalibratedRobot, count: int = GOLDEN_COUNT, seed: int = 0) -> np.ndarray:
     """(count, n) well-conditioned configurations inside the robot's joint ranges, deterministic for a seed."""
+    # CalibratedRobot.__post_init__ fills both from the nominal model when they were not given
+    assert robot.joint_ranges is not None and robot.length_scale is not None
     lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
     rng = np.random.default_rng(seed)
     cand = lo + (hi - lo) * rng.uniform(0.1, 0.9, size=(32 * count, robot.n))
@@ -192,6 +196,7 @@ def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
     q = golden_configurations(robot)
     net = robot.network
     jm = robot.joint_map
+    assert robot.length_scale is not None  # CalibratedRobot.__post_init__ fills it from the nominal model
     payload = {
         "format": SCHEMA,
         "schema_version": SCHEMA_VERSION,
@@ -272,7 +277,7 @@ def check_payload(data: dict, source: str, *, error: type[Exception] = Compensat
     for this: whoever writes a file can recompute them. One line naming ``source`` and the field.
     """
 
-    def fail(field: str, problem: str):
+    def fail(field: str, problem: str) -> NoReturn:
         raise error(f"{source}: {field} {problem}")
 
     def table(field: str, value) -> dict:
@@ -365,7 +370,9 @@ def check_payload(data: dict, source: str, *, error: type[Exception] = Compensat
         fail("checksums", "must map each field to a hex digest")
 
 
-def _check_network(net: dict, fail, numbers, outputs: int) -> None:
+def _check_network(
+    net: dict, fail: Callable[[str, str], NoReturn], numbers: Callable[..., np.ndarray], outputs: int
+) -> None:
     """Features known to the registry, layer shapes that chain, sizes within the bounds, finite numbers; outputs:
     the equivalent robot's joint motion errors, max(n, 6) for an n-joint robot."""
     features = net.get("features")
@@ -524,7 +531,8 @@ def save(robot: CalibratedRobot, path, provenance: dict | None = None) -> Path:
         meta = _split_arrays(payload, "", arrays)
         arrays["__meta__"] = np.array(json.dumps(meta))
         buffer = io.BytesIO()  # whole in memory first: the file is then replaced in one rename, never half written
-        np.savez(buffer, **arrays)
+        # numpy's stub types savez's **kwds as its allow_pickle: bool keyword; these are arrays by name
+        np.savez(buffer, **arrays)  # type: ignore[arg-type]
         write_bytes(path, buffer.getvalue())
     return path
 
@@ -537,7 +545,7 @@ _ARRAY_KEYS |= {"centres", "joint_scale"}
 def _split_arrays(obj, prefix: str, arrays: dict):
     """Move numeric arrays out of the payload into ``arrays`` (referenced as {"$array": key})."""
     if isinstance(obj, dict):
-        out = {}
+        out: dict[str, object] = {}
         for key, value in obj.items():
             name = f"{prefix}{key}"
             if key in _ARRAY_KEYS and value is not None:
@@ -814,6 +822,7 @@ class Compensator:
     @property
     def joint_ranges(self) -> np.ndarray:
         """(n, 2) the joint ranges the calibration covered (rad, m), in model joints (see :attr:`joint_map`)."""
+        assert self.robot.joint_ranges is not None  # CalibratedRobot.__post_init__ fills it
         return self.robot.joint_ranges
 
     @property

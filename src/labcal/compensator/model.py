@@ -258,7 +258,7 @@ def _pose_error_one(target: tuple[list, list], Ad: np.ndarray) -> np.ndarray:
 
 
 # ad(ξ) of a twist ξ = (v, ω), [[ω̂, v̂], [0, ω̂]], as a linear map: ξ @ _AD = ad(ξ).ravel()
-_AD = np.zeros((6, 6, 6))
+_AD: np.ndarray = np.zeros((6, 6, 6))
 for _a, (_i, _j) in enumerate(((2, 1), (0, 2), (1, 0))):  # ŵ[i, j] = +w_a, ŵ[j, i] = −w_a
     for _row, _col, _src in ((0, 0, 3), (3, 3, 3), (0, 3, 0)):
         _AD[_src + _a, _row + _i, _col + _j], _AD[_src + _a, _row + _j, _col + _i] = 1.0, -1.0
@@ -360,9 +360,11 @@ class CalibratedRobot:
                 object.__setattr__(self, "joint_map", None)  # one stored form: no map
         if self.joint_ranges is None:
             object.__setattr__(self, "joint_ranges", self.nominal.limits.copy())
-        if self.length_scale is None:
-            object.__setattr__(self, "length_scale", self.nominal.reach())
-        if not (math.isfinite(self.length_scale) and self.length_scale > 0):
+        length_scale = self.length_scale
+        if length_scale is None:
+            length_scale = self.nominal.reach()
+            object.__setattr__(self, "length_scale", length_scale)
+        if not (math.isfinite(length_scale) and length_scale > 0):
             raise ValueError(f"length_scale must be a positive number of metres per radian, got {self.length_scale!r}")
         if self.network is not None and self.network.outputs != max(self.n, 6):
             raise ValueError(
@@ -412,9 +414,11 @@ class CalibratedRobot:
             return
         bad = (q2 < lo) | (q2 > hi)
         i, j = np.argwhere(bad)[0]
+        ranges = self.joint_ranges
+        assert ranges is not None  # __post_init__ sets it
         raise ValueError(
             f"configuration {i}: joint {j + 1} = {q2[i, j]:.6f} is outside the calibrated range "
-            f"[{self.joint_ranges[j, 0]:.6f}, {self.joint_ranges[j, 1]:.6f}]; pass extrapolate=True to correct it "
+            f"[{ranges[j, 0]:.6f}, {ranges[j, 1]:.6f}]; pass extrapolate=True to correct it "
             "anyway"
         )
 
@@ -463,6 +467,7 @@ class CalibratedRobot:
     @functools.cached_property
     def _twist_weights(self) -> np.ndarray:
         """(6,) the length-scaled metric of pose errors (:func:`labcal.kinematics.metric.twist_weights`)."""
+        assert self.length_scale is not None  # __post_init__ sets it
         return metric.twist_weights(self.length_scale)
 
     @functools.cached_property
@@ -747,10 +752,10 @@ class CalibratedRobot:
         # more. Outside it (extrapolate=True) the bound is lifted: the caller asked for the model's extrapolation,
         # and near singular configurations far from the data its large corrections are the model's answer (the
         # paper benchmark's compensated held-out means grew 1.24x when they were clipped).
-        bound = solver.MAX_CORRECTION if bounded else None
+        limit = solver.MAX_CORRECTION if bounded else None
         return solver.solve(
             residual, q2, iterations=iterations, tol=tol, weights=weights, damped_iterations=budget,
-            max_correction=bound,
+            max_correction=limit,
         )  # fmt: skip
 
     def _network_only(self, q2: np.ndarray, method: str, iterations: int, tol: float) -> np.ndarray:
@@ -776,8 +781,9 @@ class CalibratedRobot:
         nominal_adjoints, first_walk = runtime_walk_pair(self.nominal, self.model, q)
         target = _pose_lists(nominal_adjoints[-1])
         walk, network = self.model.runtime_walk, self.network
-        series = network and self._linear_series
-        inputs = network and series is None and self._one_configuration_inputs  # the series has its own features
+        series = None if network is None else self._linear_series
+        # the series has its own features
+        inputs = None if network is None or series is not None else self._one_configuration_inputs
         pending = [first_walk]  # the solver's first evaluation is at q itself: that walk is done already
 
         def residual(qc: np.ndarray, rows: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
@@ -786,6 +792,7 @@ class CalibratedRobot:
             if network is None:
                 return e[None], J[None]
             if series is None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
+                assert inputs is not None  # set whenever the network has no series
                 rho = network.forward_features(inputs(qc[0], cos_q, sin_q, adjoints))
                 return (e - J.dot(rho))[None], J[None]
             rho, slope = series(qc[0], cos_q, sin_q, adjoints)

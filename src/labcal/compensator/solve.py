@@ -132,20 +132,20 @@ def _eye(n: int) -> np.ndarray:
     return out
 
 
-def damped_step(r: np.ndarray, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
+def damped_step(r: np.ndarray, J: np.ndarray, lam: np.ndarray | float) -> np.ndarray:
     """(m, 6) weighted residuals, (m, 6, n) weighted Jacobians, (m,) λ (a float for m = 1) → (m, n) clipped
     Levenberg-Marquardt steps."""
     n = J.shape[2]
     if len(J) == 1:  # one row (a control loop's call): the 2-D products and solve cost less per call
         J1 = J[0]
-        lam = lam if isinstance(lam, float) else float(np.ravel(lam)[0])
+        lam1 = lam if isinstance(lam, float) else float(np.ravel(lam)[0])
         # mean of JᵀJ's diagonal: trace(JᵀJ) is the sum of J's squares
-        step = np.linalg.solve(J1.T @ J1 + (lam * float(np.vdot(J1, J1)) / n) * _eye(n), J1.T @ r[0])
+        step = np.linalg.solve(J1.T @ J1 + (lam1 * float(np.vdot(J1, J1)) / n) * _eye(n), J1.T @ r[0])
         return np.minimum(np.maximum(step, -DAMPED_MAX_STEP), DAMPED_MAX_STEP)[None]
     JtJ = np.einsum("kai,kaj->kij", J, J)
     mean_diag = (np.trace(JtJ, axis1=1, axis2=2) / n)[:, None, None]
     rhs = np.einsum("kai,ka->ki", J, r)[..., None]
-    step = np.linalg.solve(JtJ + (lam[:, None, None] * mean_diag) * _eye(n), rhs)[..., 0]
+    step = np.linalg.solve(JtJ + (np.asarray(lam)[:, None, None] * mean_diag) * _eye(n), rhs)[..., 0]
     return np.minimum(np.maximum(step, -DAMPED_MAX_STEP), DAMPED_MAX_STEP)
 
 
@@ -193,6 +193,7 @@ def solve(
                 lo, hi = q0[far] - max_correction, q0[far] + max_correction
                 clipped = np.minimum(np.maximum(out[far], lo), hi)
                 r, J = residual(clipped, far)
+                assert J is not None  # called with jacobian=True (Residual's contract)
                 cost_clip = np.sum((r * w) ** 2, axis=1)
                 cost_q0 = np.sum((at_q0[0][far] * w) ** 2, axis=1)
                 better = cost_clip < cost_q0
@@ -239,10 +240,12 @@ class _Rows:
     def jacobians(self, new: np.ndarray | None) -> np.ndarray:
         """Keep the Jacobians ``new`` of the rows still iterating and return them; for None, the ones kept."""
         if new is None:
+            assert self.J is not None  # the first call (at q0) always brings new Jacobians
             return self.J if self._everyone() else self.J[self.rows]
         if self._everyone():
             self.J = new
         else:
+            assert self.J is not None  # rows thin out only after a first full step
             self.J[self.rows] = new
         return new
 
@@ -267,6 +270,7 @@ class _Rows:
             self.prev = size
         else:
             self.out[rows] += step
+            assert self.prev is not None  # rows thin out only after a first full step
             self.prev[rows] = size
         stop = bad | done
         if stop.any():
@@ -299,6 +303,7 @@ class _OneRow:
     def jacobians(self, new: np.ndarray | None) -> np.ndarray:
         if new is not None:
             self.J, self.J_inv = new, None
+        assert self.J is not None  # the first call (at q0) always brings new Jacobians
         return self.J
 
     def step(self, r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
@@ -422,20 +427,22 @@ def _damped_one(
     n = q0.shape[1]
     out = (q0 if q_init is None else q_init).copy()
     r, J = residual(out, rows) if start is None else start
+    assert J is not None  # called with jacobian=True (Residual's contract)
     w_col = w[:, None]
     err, jac = r[0] * w, J[0] * w_col
     cost, lam, grow = float(err @ err), LAMBDA_START, 2.0
     history = [cost]  # the best cost after each step
-    lo, hi = (None, None) if bound is None else (q0[0] - bound, q0[0] + bound)
+    box = None if bound is None else (q0[0] - bound, q0[0] + bound)
     for i in range(1, budget + 1):
         step = damped_step(err[None], jac[None], lam)[0]
-        if bound is not None:
-            step = np.clip(step, lo - out[0], hi - out[0])
+        if box is not None:
+            step = np.clip(step, box[0] - out[0], box[1] - out[0])
         size = max(map(abs, step.tolist()))
         model = err - jac @ step
         predicted = cost - float(model @ model)
         cand = out + step
         r, J = residual(cand, rows)
+        assert J is not None  # called with jacobian=True (Residual's contract)
         err_c = r[0] * w
         cost_c = float(err_c @ err_c)
         kept = cost_c <= cost

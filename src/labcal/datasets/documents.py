@@ -404,7 +404,7 @@ def measured_points(value: Any, m: int, *, allow_none: bool) -> list | None:
     if a.shape != (m, 3):
         raise JournalError(f"points must have shape ({m}, 3) (targets × xyz, m), got {a.shape}")
     finite = np.isfinite(a)
-    seen = finite.all(axis=1)
+    seen = np.all(finite, axis=1)  # np.all, not finite.all: numpy's stub types the method's as "a bool or an array"
     if allow_none:
         return None if not seen.any() else [row.tolist() if ok else None for row, ok in zip(a, seen, strict=True)]
     lost = ~finite.any(axis=1) & np.isnan(a).all(axis=1)

@@ -242,8 +242,8 @@ class _Csv:
         text = self.frame[column].str.strip()
         if decimal != ".":
             if (bad := text.str.contains(".", regex=False)).any():
-                i = int(np.flatnonzero(bad.to_numpy())[0])
-                raise self.error(f"value {text[i]!r} has '.' but the decimal mark is {decimal!r}", i, column)
+                at = int(np.flatnonzero(bad.to_numpy())[0])
+                raise self.error(f"value {text[at]!r} has '.' but the decimal mark is {decimal!r}", at, column)
             text = text.str.replace(decimal, ".", regex=False)
         values = pd.to_numeric(text, errors="coerce").to_numpy(dtype=np.float64, copy=True)
         for i in np.flatnonzero(~np.isfinite(values)):

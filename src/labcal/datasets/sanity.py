@@ -212,7 +212,7 @@ def _apply(R: np.ndarray, t: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ R.T + t
 
 
-def _hand_eye(F: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _hand_eye(F: np.ndarray, P: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """Closed-form Y (tracker ← base) and X (tool ← probe) with P_i ≈ Y F_i X, from (k, 4, 4) tool poses F and
     measured probe poses P. Rotation of Y: A R_Y = R_Y B for relative motions A = R_Pi R_Pjᵀ, B = R_Fi R_Fjᵀ,
     a linear null-space problem; then R_X by averaging, translations by linear least squares."""
@@ -722,13 +722,14 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
         near = [(h, m) for h, m in scored if m <= max(1.5 * lowest, lowest + 2e-3)]
         best, best_mean = min(near, key=lambda hm: (hm[0].cost, hm[1]))
     explained = best is not None and best_mean <= NOMINAL_MEAN_LIMIT and best_mean < 0.5 * mean
+    best_text = "" if best is None else best.text  # said only when explained (best is then not None)
     if explained:
-        report.stats["nominal_best_explanation"] = {"fix": best.text, "mean_mm": round(best_mean * 1e3, 4)}
+        report.stats["nominal_best_explanation"] = {"fix": best_text, "mean_mm": round(best_mean * 1e3, 4)}
     if len(reach_bad):
         i = int(reach_bad[0])
         dist = float(np.nanmax(np.linalg.norm(points[i], axis=1)))
         fix = (
-            f"the data fit the nominal model to {_mm(best_mean)} mean {best.text}"
+            f"the data fit the nominal model to {_mm(best_mean)} mean {best_text}"
             if explained
             else f"the points look like tracker coordinates — pass {hints.frame.format(frame='tracker')}"
         )
@@ -753,7 +754,7 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
     worst = np.argsort(per_row)[::-1][:3]
     worst_text = ", ".join(f"{hints.row_text(int(i))} {_mm(float(per_row[i]))}" for i in worst)
     if explained:
-        fix = f"the mean drops to {_mm(best_mean)} {best.text}"
+        fix = f"the mean drops to {_mm(best_mean)} {best_text}"
     else:
         fix = (
             f"no single fix found; likely causes: the joint angle unit ({hints.angle.format(unit='deg|rad')}), "

@@ -126,7 +126,8 @@ def seen_mask(points: np.ndarray, *, row_names=None) -> np.ndarray:
             f"{name(i)}, column {empty[0]!r}: target t{t + 1} is partly empty ({', '.join(given)} given, "
             f"{', '.join(empty)} empty): give all three coordinates, or leave all three empty if it was not seen"
         )
-    seen = ~nan.all(axis=2)
+    # np.all, not nan.all: numpy's stub types the method's result as "a bool or an array" whatever the shape
+    seen = ~np.all(nan, axis=2)
     if p.shape[1] and (blind := np.flatnonzero(~seen.any(axis=1))).size:
         raise DatasetError(
             f"{name(int(blind[0]))}: no target seen (every target column empty): a row needs at least one measured "

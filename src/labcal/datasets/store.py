@@ -697,10 +697,14 @@ class SessionStore:
         checked: list[str] = []
         notes: list[str] = []
         for p in sorted(d.iterdir()):
-            n = p.name
-            if n in (JOURNAL_NAME, VERSIONS_LOG) or n.startswith(".tmp-") or (p.is_dir() and _VERSION_DIR.match(n)):
+            fname = p.name
+            if (
+                fname in (JOURNAL_NAME, VERSIONS_LOG)
+                or fname.startswith(".tmp-")
+                or (p.is_dir() and _VERSION_DIR.match(fname))
+            ):
                 continue
-            notes.append(f"{n}: foreign {'folder' if p.is_dir() else 'file'} (not written by labcal), skipped")
+            notes.append(f"{fname}: foreign {'folder' if p.is_dir() else 'file'} (not written by labcal), skipped")
         versions = self.versions(session_id)
         manifests: dict[int, dict | None] = {}
         for v in versions:
@@ -714,9 +718,9 @@ class SessionStore:
                 missing[v] = f"{version_name(versions[-1])} exists and versions are numbered in order"
         log = d / VERSIONS_LOG
         if log.is_file():
-            entries, lp, ln = _read_versions_log(log)
-            problems += lp
-            notes += ln
+            entries, log_problems, log_notes = _read_versions_log(log)
+            problems += log_problems
+            notes += log_notes
             checked.append(VERSIONS_LOG)
             logged = set()
             for e in entries:
@@ -730,10 +734,10 @@ class SessionStore:
                 logged.add(v)
                 if v not in manifests:
                     missing[v] = f"published {e.get('time', '?')}, listed in {VERSIONS_LOG}"
-                elif manifests[v] is not None and manifests[v].get("manifest_sha256") != e.get("manifest_sha256"):
+                elif (man := manifests[v]) is not None and man.get("manifest_sha256") != e.get("manifest_sha256"):
                     problems.append(
                         f"{version_name(v)}/{MANIFEST}: not the manifest that was published (sha256 "
-                        f"{e.get('manifest_sha256')} in {VERSIONS_LOG}, {manifests[v].get('manifest_sha256')} now): "
+                        f"{e.get('manifest_sha256')} in {VERSIONS_LOG}, {man.get('manifest_sha256')} now): "
                         f"restore {version_name(v)} from a backup"
                     )
             for v in versions:
@@ -811,8 +815,8 @@ class SessionStore:
             also = [version_name(w) for w, _ in damaged[1:]]
             also_text = f" (so did the parts sealed into {', '.join(also)})" if also else ""
             problems.append(f"{JOURNAL_NAME}: {what}{also_text}")
-            if contents.start is not None and manifests.get(v):
-                if session_meta_from_start(contents.start) != manifests[v].get("session"):
+            if contents.start is not None and (man := manifests.get(v)):
+                if session_meta_from_start(contents.start) != man.get("session"):
                     problems.append(
                         f"{JOURNAL_NAME}: line 1: the start document differs from the copy in {version_name(v)}'s "
                         f"manifest; the versions use their own copy"

@@ -157,7 +157,7 @@ def from_urdf(text: str, tip_link: str | None = None, name: str | None = None) -
         tuple(types),
         np.array(twists),
         np.array(limits),
-        name or root.get("name", ""),
+        name or root.get("name") or "",
         tuple(names),
     )
 
@@ -171,7 +171,7 @@ def _urdf_chain(root, tip_link: str | None) -> list:
         if jname is None or parent is None or child is None:
             raise ValueError("every URDF <joint> needs a name, a <parent link> and a <child link>")
         joints[jname] = el
-    children = {}
+    children: dict[str | None, list] = {}  # parent link -> its <joint> elements (checked above to have both)
     for el in joints.values():
         children.setdefault(el.find("parent").get("link"), []).append(el)
     child_links = {el.find("child").get("link") for el in joints.values()}

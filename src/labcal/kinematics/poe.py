@@ -32,6 +32,7 @@ Worked example (a planar 2R arm, 1 m links)::
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass, field
 
@@ -170,6 +171,13 @@ class LocalPOEModel:
     limits: np.ndarray
     name: str = ""
     joint_names: tuple[str, ...] = field(default=())
+    # Derived in __post_init__ (not arguments): the kernels' dispatch and, for all-z-revolute chains only, the
+    # adjoint chain's parts. Declared so that they are typed; excluded from repr and from replace().
+    _revolute_mask: np.ndarray = field(init=False, repr=False)
+    _z_joint: tuple[bool, ...] = field(init=False, repr=False)
+    _all_revolute_z: bool = field(init=False, repr=False)
+    _adjoint_parts: np.ndarray = field(init=False, repr=False)
+    _adjoint_base: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         n = len(self.joint_types)
@@ -567,16 +575,7 @@ class LocalPOEModel:
 
     def replace(self, **changes) -> LocalPOEModel:
         """A copy with some fields replaced (frames, twists, limits, name …)."""
-        fields = dict(
-            frames=self.frames,
-            joint_types=self.joint_types,
-            twists=self.twists,
-            limits=self.limits,
-            name=self.name,
-            joint_names=self.joint_names,
-        )
-        fields.update(changes)
-        return LocalPOEModel(**fields)
+        return dataclasses.replace(self, **changes)
 
     def with_tool(self, T_flange_tool) -> LocalPOEModel:
         """A copy whose tool frame is moved by T_flange_tool (4, 4), expressed in the current tool frame."""
