@@ -50,6 +50,7 @@ import numpy as np
 from labcal.kinematics import se3
 from labcal.robots import RobotSpec
 
+from ._util import jsonable
 from .checks import CHECKS
 from .errors import DatasetError
 from .targets import LENGTH_UNITS as LENGTH_FACTORS
@@ -145,7 +146,7 @@ class SanityReport:
         return {
             "allowed": [f.as_dict() for f in self.allowed],
             "notes": list(self.notes),
-            "stats": _jsonable(self.stats),
+            "stats": jsonable(self.stats, finite=True),
         }
 
     def message(self) -> str:
@@ -161,18 +162,6 @@ class SanityReport:
     def raise_if_failed(self) -> None:
         if self.failures:
             raise SanityError(self, self.message())
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def check_names(allow: Iterable[str] | None) -> frozenset[str]:
