@@ -514,6 +514,8 @@ class Observability:
     rows: float
 
 
+# Numeric indices of a set of configurations; labcal.calibration.metrics.observability is another concept: the
+# orientation claims a target set supports (words for a fit's report).
 def observability(
     model: LocalPOEModel, q, targets, *, basis: np.ndarray | None = None, seen=None, dropout=None
 ) -> Observability:
