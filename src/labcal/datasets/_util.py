@@ -181,7 +181,9 @@ def jsonable(obj: Any, *, finite: bool = False) -> Any:
     """Convert numpy arrays/scalars and tuples inside ``obj`` to plain JSON types (floats kept exact).
 
     ``finite=True`` turns NaN and ±inf into None, for reports whose statistics may be undefined (the import
-    checks'); documents keep them, so that :func:`canonical_json` refuses a NaN instead of storing a null.
+    checks'); documents keep them, so that :func:`canonical_json` refuses a NaN instead of storing a null. (The
+    compensator's ``io._canonical`` differs on purpose: every number a float, so a payload hashes alike as JSON
+    and NPZ; the CLI's ``plain`` writes any other object as its text.)
     """
     import numpy as np
 
