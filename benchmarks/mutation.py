@@ -313,8 +313,8 @@ MUTATIONS: list[Mutation] = [
       "tests/drivers/test_read_timeout.py", "tests/drivers/test_serial_link.py"),
     M("other (issue 26)", "cli/fit.py", '"std": "std_m"}', '"std": "std"}', "the --json key cv.std_m renamed",
       "tests/cli/test_json_keys.py"),
-    M("other (issue 26)", "calibration/cv.py", 'np.einsum("ab,kmb->kma", R, pred)', 'np.einsum("ba,kmb->kma", R, pred)',
-      "point_residuals applies the tracker rotation transposed", T_GATES),
+    M("other (issue 26)", "calibration/metrics.py", 'np.einsum("ab,kmb->kma", R, pred)',
+      'np.einsum("ba,kmb->kma", R, pred)', "point_residuals applies the tracker rotation transposed", T_GATES),
     # ------------------------------------------------------------------------------------------------------------
     # Batch 2: written after batch 1 was all killed, and run before any test was added for them, to see how well
     # the suite catches bugs nobody wrote a test for (benchmarks/results/mutation.txt gives both batches).

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from labcal.calibration import Observations, fit
-from labcal.calibration.cv import point_errors, point_residuals
+from labcal.calibration.metrics import point_errors, point_residuals
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import se3
 from labcal.robots import load

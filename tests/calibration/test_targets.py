@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from labcal.calibration import Observations, fit
-from labcal.calibration.cv import point_errors as row_errors
+from labcal.calibration.cv import row_errors
 from labcal.calibration.equivalent import joint_error_observations
 from labcal.calibration.local_poe import expected_rank, fit_local_poe, register
 from labcal.calibration.metrics import observability, point_errors, split_table

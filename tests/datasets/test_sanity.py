@@ -341,3 +341,14 @@ def test_targets_in_another_tool_frame_are_named(tmp_path):
     on_tool = (offset[:3, :3] @ sc.TARGETS.T).T + offset[:3, 3]
     scn = sc.good("ur10", 40, seed=6, targets=on_tool)
     _refused(tmp_path, scn.q, scn.points, sc.TARGETS, "nominal", "another frame than the robot file's tool frame")
+
+
+def test_the_report_stores_undefined_statistics_as_null_and_documents_refuse_nan():
+    from labcal.datasets._util import canonical_json, jsonable
+    from labcal.datasets.sanity import SanityReport
+
+    report = SanityReport(stats={"ratio": float("nan"), "worst": np.float64(np.inf), "mm": np.array([1.5, np.nan])})
+    assert report.as_dict()["stats"] == {"ratio": None, "worst": None, "mm": [1.5, None]}
+    assert canonical_json(report.as_dict())  # what the import's provenance stores
+    with pytest.raises(ValueError):  # a document keeps the NaN, so the store refuses it instead of writing a null
+        canonical_json(jsonable({"x": np.float64(np.nan)}))

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labcal.drivers.serial.matching import side_lengths
+from labcal.datasets.targets import pair_distances
 from labcal.drivers.serial_tracker import NDIProfile, load_profile, open_tracker
 
 pytestmark = [pytest.mark.hardware, pytest.mark.timeout(120)]
@@ -43,7 +43,7 @@ def test_real_tracker_measures_the_three_targets(device):
     assert np.all(m.spread < 0.5e-3), m.spread
     profile = load_profile(profile_path)
     tol = profile.match_tolerance if isinstance(profile, NDIProfile) else (profile.triangle_tolerance or 2e-3)
-    np.testing.assert_allclose(side_lengths(m.points), side_lengths(nominal), atol=tol)
+    np.testing.assert_allclose(pair_distances(m.points), pair_distances(nominal), atol=tol)
 
 
 def test_real_tracker_can_be_reopened(device):

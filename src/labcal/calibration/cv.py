@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from labcal.calibration.local_poe import IdentificationError, fit_local_poe, register
+from labcal.calibration.metrics import point_errors
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics.poe import LocalPOEModel
@@ -94,19 +95,12 @@ def fold_plan(obs: Observations, seed: int = 0) -> tuple[list[np.ndarray], str]:
     return [np.flatnonzero(fold_of_row == f) for f in range(k)], scheme
 
 
-def point_residuals(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
-    """(k, m, 3) measured minus predicted target points (m), observation frame; NaN where a target was not seen."""
-    pred = robot.predict_points(obs.q, obs.targets)
-    R, t = robot.T_tracker_base[:3, :3], robot.T_tracker_base[:3, 3]
-    return obs.points - (np.einsum("ab,kmb->kma", R, pred) + t)
-
-
-def point_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
+def row_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
     """(k,) mean distance (m) between measured and predicted target points of each row (over the targets the row
-    saw), observation frame."""
+    saw), observation frame: the row means of :func:`labcal.calibration.metrics.point_errors`."""
     if obs.k == 0:
         return np.zeros(0)
-    d = np.linalg.norm(point_residuals(robot, obs), axis=2)
+    d = point_errors(robot, obs)
     if obs.complete:
         return np.mean(d, axis=1)
     return np.sum(np.where(obs.seen, d, 0.0), axis=1) / obs.seen.sum(axis=1)
@@ -262,7 +256,7 @@ def cross_validate(
             except ObservationError as err:
                 res.failures.setdefault(name, f"fold {f + 1}: {err}")
         for name, robot in fold_robots.items():
-            rows[name][held] = point_errors(robot, test)
+            rows[name][held] = row_errors(robot, test)
         say(
             f"cross-validation fold {f + 1}/{len(folds)}: "
             + ", ".join(f"{n} {np.mean(rows[n][held]) * 1e3:.4f} mm" for n in ORDER if n in fold_robots)

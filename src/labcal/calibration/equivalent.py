@@ -150,12 +150,7 @@ class JointErrorObservations:
 def point_matrix(points: np.ndarray) -> np.ndarray:
     """P of eq. (18): predicted points (k, m, 3) in the base frame → (k, 3m, 6), δp = P δy with δy = (δv, δω)."""
     points = np.asarray(points, dtype=float)
-    k, m = points.shape[0], points.shape[1]
-    P = np.zeros((k, 3 * m, 6))
-    for i in range(m):
-        P[:, 3 * i : 3 * i + 3, :3] = np.eye(3)
-        P[:, 3 * i : 3 * i + 3, 3:] = se3.skew(-points[:, i])  # r_i = −p̂_i: from target i to the K0 origin
-    return P
+    return se3.point_jacobian(points).reshape(points.shape[0], -1, 6)  # the m (3, 6) blocks stacked per row
 
 
 def equivalent_joints(n: int) -> int:

@@ -461,7 +461,7 @@ def _network_info(chosen_key: str, info: dict) -> dict | None:
 
 def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, seed, notes) -> list[dict]:
     """The blocking findings of a fit (module docstring); appends non-blocking ones to ``notes``."""
-    from labcal.calibration.cv import point_errors
+    from labcal.calibration.cv import row_errors
 
     warnings: list[dict] = []
     distinct = len(np.unique(fit_obs.q, axis=0))
@@ -495,7 +495,7 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
                 + "; ".join(lines[:4])
                 + (f"; … ({len(lines) - 4} more)" if len(lines) > 4 else "")
             )
-    in_sample = float(np.mean(point_errors(robot, fit_obs)))
+    in_sample = float(np.mean(row_errors(robot, fit_obs)))
     if cv is not None and not cv.available(chosen_key):
         notes.append(
             f"no cross-validated error for {chosen_key}: {cv.failures.get(chosen_key, 'no fold could fit it')}"
@@ -600,7 +600,7 @@ def _frame_jump(robot, obs) -> str | None:
     better than the nominal, and makes the robot worse. Robot errors depend on the configuration, not on when it
     was measured, so in a session of spread poses they leave no such step.
     """
-    from labcal.calibration.cv import point_residuals
+    from labcal.calibration.metrics import point_residuals
 
     if obs.k < 2 * FRAME_JUMP_BLOCK:
         return None

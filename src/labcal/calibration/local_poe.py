@@ -159,18 +159,13 @@ def _residual_and_jacobian(
     blocks = []
     if frames:
         # dp_i = [I, −p̂_i] δy in the base frame, rotated into the measurement frame.
-        G = np.zeros((k, m, 3, 6))
-        G[..., :3] = np.eye(3)
-        G[..., 3:] = -se3.skew(p_base)
-        G = np.einsum("ab,kmbc->kmac", R_tb, G)
+        G = np.einsum("ab,kmbc->kmac", R_tb, se3.point_jacobian(p_base))
         Ad = se3.adjoint(initial[:, frames])  # (k, f, 6, 6)
         Jf = np.einsum("kmac,kfcd->kmafd", G, Ad).reshape(k, m, 3, 6 * len(frames))
         blocks.append(Jf.reshape(3 * m * k, -1) if seen is None else Jf[seen].reshape(-1, 6 * len(frames)))
     if estimate_base:
         # Left perturbation exp(δβ̂)·T_tb moves a point m by δβ_v + δβ_ω × m.
-        Gb = np.zeros((k, m, 3, 6))
-        Gb[..., :3] = np.eye(3)
-        Gb[..., 3:] = -se3.skew(p_meas_frame)
+        Gb = se3.point_jacobian(p_meas_frame)
         blocks.append(Gb.reshape(3 * m * k, 6) if seen is None else Gb[seen].reshape(-1, 6))
     return residual, np.concatenate(blocks, axis=1)
 

@@ -72,21 +72,26 @@ def prediction_errors(robot: CalibratedRobot, obs: Observations) -> tuple[np.nda
     return pos, ori
 
 
+def point_residuals(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
+    """(k, m, 3) measured minus predicted target points (m), observation frame; NaN where a target was not seen."""
+    pred = robot.predict_points(obs.q, obs.targets)
+    R, t = robot.T_tracker_base[:3, :3], robot.T_tracker_base[:3, 3]
+    return obs.points - (np.einsum("ab,kmb->kma", R, pred) + t)
+
+
 def point_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
     """(k, m) distance (m) between each predicted target point and the measured one, per configuration and target.
 
     Unlike :func:`prediction_errors` this does not go through the pose fitted to the measured points, so a targets
     file that does not match the data (swapped, mis-measured targets) shows up here as large residuals even when
     the pose error is small. Tracker-frame data are compared in the tracker frame. A measured point that is NaN
-    (a target the tracker did not see) gives NaN for that target only; the summaries skip it.
+    (a target the tracker did not see) gives NaN for that target only; the summaries skip it. The norms of
+    :func:`point_residuals`; a row's mean over its seen targets is :func:`labcal.calibration.cv.row_errors`.
     """
-    points = np.asarray(obs.points, dtype=float)
     if obs.k == 0:
+        points = np.asarray(obs.points, dtype=float)
         return np.zeros((0, points.shape[1] if points.ndim == 3 else 3))
-    predicted = robot.predict_points(obs.q, obs.targets)  # (k, m, 3) base frame
-    T = np.asarray(robot.T_tracker_base, dtype=float)
-    predicted = np.einsum("ab,kmb->kma", T[:3, :3], predicted) + T[:3, 3]
-    return np.linalg.norm(points - predicted, axis=-1)
+    return np.linalg.norm(point_residuals(robot, obs), axis=-1)
 
 
 def summarize_points(d: np.ndarray) -> dict:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 import os
 import shutil
 import sys
@@ -176,18 +177,26 @@ def software_versions() -> dict[str, str]:
     return out
 
 
-def jsonable(obj: Any) -> Any:
-    """Convert numpy arrays/scalars and tuples inside ``obj`` to plain JSON types (floats kept exact)."""
+def jsonable(obj: Any, *, finite: bool = False) -> Any:
+    """Convert numpy arrays/scalars and tuples inside ``obj`` to plain JSON types (floats kept exact).
+
+    ``finite=True`` turns NaN and ±inf into None, for reports whose statistics may be undefined (the import
+    checks'); documents keep them, so that :func:`canonical_json` refuses a NaN instead of storing a null. (The
+    compensator's ``io._canonical`` differs on purpose: every number a float, so a payload hashes alike as JSON
+    and NPZ; the CLI's ``plain`` writes any other object as its text.)
+    """
     import numpy as np
 
     if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
+        return jsonable(obj.tolist(), finite=finite)
     if isinstance(obj, np.generic):
-        return obj.item()
+        obj = obj.item()
     if isinstance(obj, Mapping):
-        return {str(k): jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v, finite=finite) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [jsonable(v) for v in obj]
+        return [jsonable(v, finite=finite) for v in obj]
     if isinstance(obj, Path):
         return str(obj)
+    if finite and isinstance(obj, float) and not math.isfinite(obj):
+        return None
     return obj

@@ -50,10 +50,11 @@ import numpy as np
 from labcal.kinematics import se3
 from labcal.robots import RobotSpec
 
+from ._util import jsonable
 from .checks import CHECKS
 from .errors import DatasetError
 from .targets import LENGTH_UNITS as LENGTH_FACTORS
-from .targets import target_layout
+from .targets import pair_distances, target_layout, target_pairs
 
 #: Every check, with what it guards against (shown by ``labcal session import --help``).
 
@@ -82,7 +83,7 @@ DUPLICATE_TOL = 1e-6
 #: Rows used to test alternative explanations (units, frame, joint coupling) for a failed nominal check.
 HYPOTHESIS_ROWS = 400
 
-_PAIRS = ((0, 1), (0, 2), (1, 2))
+_PAIRS = target_pairs(3)
 
 
 class SanityError(DatasetError, ValueError):
@@ -145,7 +146,7 @@ class SanityReport:
         return {
             "allowed": [f.as_dict() for f in self.allowed],
             "notes": list(self.notes),
-            "stats": _jsonable(self.stats),
+            "stats": jsonable(self.stats, finite=True),
         }
 
     def message(self) -> str:
@@ -161,18 +162,6 @@ class SanityReport:
     def raise_if_failed(self) -> None:
         if self.failures:
             raise SanityError(self, self.message())
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def check_names(allow: Iterable[str] | None) -> frozenset[str]:
@@ -314,10 +303,6 @@ def _row_mean(dist: np.ndarray) -> np.ndarray:
     return dist.mean(axis=1)
 
 
-def _pairs(m: int) -> tuple[tuple[int, int], ...]:
-    return _PAIRS if m == 3 else tuple(itertools.combinations(range(m), 2))
-
-
 # --------------------------------------------------------------------------------------------------------------
 # The checks
 
@@ -358,9 +343,9 @@ def _unit_slip(ratio: float, used: str, hints: Hints, what: str) -> str | None:
 def _seen_pair_distances(points, targets):
     """(pairs, file distances, (rows, pairs) measured distances, rows used) for the target pairs seen together in
     at least one row; rows seeing no pair are left out. NaN marks a pair not seen together in a row."""
-    pairs = _pairs(len(targets))
-    d_file = np.array([np.linalg.norm(targets[a] - targets[b]) for a, b in pairs])
-    d = np.stack([np.linalg.norm(points[:, a] - points[:, b], axis=1) for a, b in pairs], axis=1) if pairs else None
+    pairs = target_pairs(len(targets))
+    d_file = pair_distances(targets, pairs)
+    d = pair_distances(points, pairs) if pairs else None
     if d is None or not np.isnan(d).any():
         return pairs, d_file, d, np.ones(len(points), bool)
     together = ~np.isnan(d).all(axis=0)
@@ -404,7 +389,7 @@ def _check_target_distances(points, targets, length_unit, hints, report, allow) 
         for perm in itertools.permutations(range(3)) if pairs == _PAIRS else ():
             if perm == (0, 1, 2):
                 continue
-            fp = np.array([np.linalg.norm(targets[perm[a]] - targets[perm[b]]) for a, b in _PAIRS])
+            fp = pair_distances(targets[list(perm)])
             err = float(np.max(np.abs(med - fp) - tol))
             if err < best_err:
                 best, best_err = perm, err

@@ -16,7 +16,9 @@ reports.
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -98,6 +100,30 @@ def target_layout(targets: np.ndarray, tol: float = MIN_TARGET_HEIGHT) -> str:
     if spread[1] < tol:
         return "line"
     return "plane" if len(s) < 3 or spread[2] < tol else "solid"
+
+
+def target_pairs(m: int) -> tuple[tuple[int, int], ...]:
+    """Every pair (a, b), a < b, of m targets (0-based) in the order t1t2, t1t3, …, t2t3, …: the pairs whose
+    distances :func:`pair_distances` gives by default. ``target_pairs(3) == ((0, 1), (0, 2), (1, 2))``."""
+    return tuple(itertools.combinations(range(m), 2))
+
+
+def pair_distances(points: np.ndarray, pairs: Sequence[tuple[int, int]] | None = None) -> np.ndarray:
+    """(..., P) distances between the target points of ``points`` (..., m, 3) for each pair (a, b) of ``pairs``
+    (default :func:`target_pairs`), in the points' unit; NaN where either point is NaN (a target not seen).
+
+    Leading axes (rows of a session) are kept. For three points: |t1t2|, |t1t3|, |t2t3|.
+
+    >>> import numpy as np
+    >>> pair_distances(np.array([[0.0, 0, 0], [3, 0, 0], [0, 4, 0]])).tolist()
+    [3.0, 4.0, 5.0]
+    """
+    import numpy as np
+
+    p = np.asarray(points, dtype=float)
+    pairs = target_pairs(p.shape[-2]) if pairs is None else pairs
+    a, b = [i for i, _ in pairs], [j for _, j in pairs]
+    return np.linalg.norm(p[..., a, :] - p[..., b, :], axis=-1)
 
 
 def _points_problem(points: object) -> str | None:

@@ -163,6 +163,17 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def point_jacobian(p: np.ndarray) -> np.ndarray:
+    """(..., 3) points → (..., 3, 6) ``[I, −p̂]``: a point p of a frame moved by a small twist δy = (δv, δω) moves by
+    ``δp = δv + δω × p = [I, −p̂] δy`` (paper eq. 18, one point). For p = (0, 0, 1) m the δω_x column is
+    (0, −1, 0): a rotation about x moves the point along −y."""
+    p = np.asarray(p, dtype=float)
+    out = np.zeros((*p.shape[:-1], 3, 6))
+    out[..., :3] = np.eye(3)
+    out[..., 3:] = -skew(p)
+    return out
+
+
 def pose_from_adjoint(Ad: np.ndarray) -> np.ndarray:
     """(..., 6, 6) adjoint ``[[R, p̂R], [0, R]]`` → (..., 4, 4) pose: the inverse of :func:`adjoint`.
 

@@ -62,7 +62,7 @@ import numpy as np
 from labcal.drivers.base import SafetyLimits
 from labcal.drivers.workspace import Workspace
 from labcal.kinematics.poe import LocalPOEModel
-from labcal.kinematics.se3 import skew
+from labcal.kinematics.se3 import point_jacobian
 from labcal.robots.joint_map import JointMap
 from labcal.sessions.plans import move_time
 
@@ -472,11 +472,8 @@ def identification_jacobian(model: LocalPOEModel, q, targets, length_scale: floa
     L = model.reach() if length_scale is None else float(length_scale)
     p = model.target_points(q2, t)  # (k, m, 3)
     k, m = p.shape[:2]
-    P = np.zeros((k, m, 3, 6))
-    P[..., :3] = np.eye(3)
-    P[..., 3:] = -skew(p.reshape(-1, 3)).reshape(k, m, 3, 3)
     A = model.frame_jacobian(q2)  # (k, 6, 6(n+1))
-    G = np.einsum("kmab,kbc->kmac", P, A).reshape(k, 3 * m, -1)
+    G = np.einsum("kmab,kbc->kmac", point_jacobian(p), A).reshape(k, 3 * m, -1)
     scale = np.tile([1.0, 1.0, 1.0, 1.0 / L, 1.0 / L, 1.0 / L], model.n + 1)
     return G * scale
 
@@ -517,6 +514,8 @@ class Observability:
     rows: float
 
 
+# Numeric indices of a set of configurations; labcal.calibration.metrics.observability is another concept: the
+# orientation claims a target set supports (words for a fit's report).
 def observability(
     model: LocalPOEModel, q, targets, *, basis: np.ndarray | None = None, seen=None, dropout=None
 ) -> Observability:

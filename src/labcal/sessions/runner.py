@@ -53,7 +53,6 @@ Example::
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import signal
 import time
 from collections.abc import Callable, Mapping
@@ -64,6 +63,7 @@ import numpy as np
 
 from labcal.datasets import Journal, JournalError, MeasurementDoc, SessionHeader, SessionStore, StartDoc
 from labcal.datasets.sanity import Hints, check_measurements, check_names
+from labcal.datasets.targets import pair_distances, target_pairs
 from labcal.drivers.base import (
     DriverError,
     DriverTimeout,
@@ -200,6 +200,7 @@ def device_identity(device: object) -> dict:
         return {"notes": [f"{type(device).__name__} did not report its identity: {e}"]}
 
 
+# Decides the unit when recording; labcal.cli.ops.common.session_unit reads back the one a stored version recorded.
 def session_unit(unit: str | None, robot_identity: Mapping[str, Any]) -> tuple[str | None, list[str]]:
     """(the session's unit id, notes): the operator's ``unit`` when given, else the robot's serial number, else None.
 
@@ -230,28 +231,22 @@ class _Outcome:
     refused: bool = False  # the driver refused the motion (the plan's fault, not the measurement's)
 
 
-def _pairs(m: int) -> list[tuple[int, int]]:
+def _pairs(m: int) -> tuple[tuple[int, int], ...]:
     """Target pairs whose distances are checked: the triangle's sides t1t2, t2t3, t3t1 for three targets (the order
-    of :func:`triangle_sides`), every pair otherwise."""
-    if m == 3:
-        return [(0, 1), (1, 2), (2, 0)]
-    return list(itertools.combinations(range(m), 2))
+    of :func:`triangle_sides`), every pair otherwise (:func:`~labcal.datasets.targets.target_pairs`)."""
+    # Not target_pairs(3): callers from before 1..k targets pass the nominal sides (1-D) in this order.
+    return ((0, 1), (1, 2), (2, 0)) if m == 3 else target_pairs(m)
 
 
 def triangle_sides(points: np.ndarray) -> np.ndarray:
     """(3, 3) points → (3,) side lengths |t1t2|, |t2t3|, |t3t1| in the points' unit."""
-    p = np.asarray(points, dtype=float)
-    return np.linalg.norm(p - np.roll(p, -1, axis=0), axis=1)
+    return pair_distances(points, _pairs(3))
 
 
 def target_distances(points: np.ndarray) -> np.ndarray:
     """(m, 3) points → distances of the target pairs (:func:`_pairs`; for m = 3 exactly :func:`triangle_sides`),
     NaN where either target is not seen (a NaN row). ``(0,)`` for one target."""
-    p = np.asarray(points, dtype=float)
-    if p.shape == (3, 3):
-        return triangle_sides(p)
-    pairs = _pairs(len(p))
-    return np.array([np.linalg.norm(p[a] - p[b]) for a, b in pairs], dtype=float).reshape(len(pairs))
+    return pair_distances(points, _pairs(len(points)))
 
 
 def check_measurement(m: Measurement, nominal: np.ndarray, validation: Validation) -> tuple[str, float | None]:

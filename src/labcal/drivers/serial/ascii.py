@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from labcal.datasets.targets import pair_distances
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
 from labcal.drivers.serial.crc import crc16_arc, xor8
 from labcal.drivers.serial.link import SerialLink
-from labcal.drivers.serial.matching import pair_distances
 from labcal.drivers.serial.profiles import AXES, AsciiProfile
 
 

@@ -30,24 +30,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from labcal.datasets.targets import pair_distances, target_pairs
 from labcal.drivers.base import MeasurementRejected
 
-_PAIRS = ((0, 1), (0, 2), (1, 2))
-
-
-def pair_distances(points: np.ndarray) -> np.ndarray:
-    """Distances (m(m-1)/2,) between the rows of ``points`` (m, 3), pairs in order (1,2), (1,3), … (2,3), …
-
-    NaN for a pair with an unseen (NaN) point. For three points: |p1-p2|, |p1-p3|, |p2-p3|.
-    """
-    p = np.asarray(points, dtype=float)
-    return np.array([np.linalg.norm(p[i] - p[j]) for i, j in itertools.combinations(range(len(p)), 2)])
-
-
-def side_lengths(points: np.ndarray) -> np.ndarray:
-    """Side lengths (3,) of the triangle of ``points`` (3, 3), ordered |p1-p2|, |p1-p3|, |p2-p3|, same unit."""
-    p = np.asarray(points, dtype=float)
-    return np.array([np.linalg.norm(p[i] - p[j]) for i, j in _PAIRS])
+_PAIRS = target_pairs(3)
 
 
 def check_scalene(targets: np.ndarray, tolerance: float) -> np.ndarray:
@@ -59,7 +45,7 @@ def check_scalene(targets: np.ndarray, tolerance: float) -> np.ndarray:
     t = np.asarray(targets, dtype=float)
     if t.shape != (3, 3) or not np.all(np.isfinite(t)):
         raise ValueError(f"targets must be a finite (3, 3) array in metres, got shape {t.shape}")
-    sides = side_lengths(t)
+    sides = pair_distances(t)
     names = ("t1-t2", "t1-t3", "t2-t3")
     if np.min(sides) < 4 * tolerance:
         raise ValueError(f"targets are (nearly) coincident: side lengths {np.round(sides * 1e3, 3)} mm")
@@ -94,7 +80,7 @@ def check_targets(targets: np.ndarray, tolerance: float) -> np.ndarray:
         )
     if m == 3:
         return check_scalene(t, tolerance)
-    pairs = list(itertools.combinations(range(m), 2))
+    pairs = target_pairs(m)
     d = pair_distances(t)
     if np.min(d) < 4 * tolerance:
         i, j = pairs[int(np.argmin(d))]
