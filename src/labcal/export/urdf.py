@@ -128,6 +128,34 @@ def urdf_text(
         )
     if unknown_dynamics not in ("refuse", "zero"):
         raise ValueError(f"unknown_dynamics must be 'refuse' or 'zero', got {unknown_dynamics!r}")
+    model = _urdf_frames(robot, ur_names)
+    note = refuse_or_note(robot, "URDF", geometry_only)
+    n = model.n
+    vel, vel_unknown = _dynamics(velocity, n, "velocity", unknown_dynamics)
+    eff, eff_unknown = _dynamics(effort, n, "effort", unknown_dynamics)
+    notes = _notes(robot, model, note, vel_unknown or eff_unknown, masses is not None, provenance)
+
+    root = ET.Element("robot", name=printable(f"{robot.nominal.name or 'robot'}_calibrated"))
+    # An XML comment may not hold "--" (nor end in "-": the spaces around it see to that).
+    root.append(ET.Comment(" " + printable("; ".join(map(str, notes))).replace("--", "- -") + " "))
+    links, joint_names = _link_and_joint_names(model, ur_names)
+    elements = {}
+    for name in (["base_link"] if ur_names else []) + links + (["flange", "tool0", "base"] if ur_names else ["tool0"]):
+        elements[name] = ET.SubElement(root, "link", name=name)
+    if masses is not None and coms is not None:
+        _inertials(model, elements, links, masses, coms)
+    if ur_names:
+        _fixed(
+            root, "base_link-base_link_inertia", "base_link", "base_link_inertia", se3.pose([0, 0, 0], [0, 0, np.pi])
+        )
+    _joints(root, robot, model, links, joint_names, vel, eff)
+    _tool_joints(root, robot, model, links, ur_names)
+    ET.indent(root, space="  ")
+    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
+def _urdf_frames(robot: CalibratedRobot, ur_names: bool) -> LocalPOEModel:
+    """robot.model in URDF form (:func:`urdf_model`), in ur_description's frame layout with ``ur_names``."""
     model = urdf_model(robot.model)
     if ur_names:
         from labcal.export.ros import check_ur, ur_frames
@@ -135,11 +163,18 @@ def urdf_text(
         check_ur(robot, "URDF with UR link names")
         origins, tool = ur_frames(robot)  # ur_description's layout: wrist_3_link at the flange
         model = model.replace(frames=np.concatenate([origins, tool[None]]))
-    note = refuse_or_note(robot, "URDF", geometry_only)
-    n = model.n
-    vel, vel_unknown = _dynamics(velocity, n, "velocity", unknown_dynamics)
-    eff, eff_unknown = _dynamics(effort, n, "effort", unknown_dynamics)
+    return model
 
+
+def _notes(
+    robot: CalibratedRobot,
+    model: LocalPOEModel,
+    note: str | None,
+    dynamics_unknown: bool,
+    inertials: bool,
+    provenance: dict | None,
+) -> list[str]:
+    """The file's leading comment: what it is, what it leaves out, and the provenance."""
     notes = [
         f"labcal calibrated URDF: method {robot.method}",
         f"nominal robot {robot.nominal.name or '?'} sha256 {model_hash(robot.nominal)}",
@@ -148,15 +183,15 @@ def urdf_text(
     ]
     if note:
         notes.append(note)
-    if vel_unknown or eff_unknown:
+    if dynamics_unknown:
         notes.append("joint effort/velocity UNKNOWN (the robot file gives none): written as 0, do not simulate with it")
-    if masses is not None:
+    if inertials:
         notes.append("inertials: point masses from the robot file (no inertia tensors are known)")
-    notes += [f"{k}: {v}" for k, v in sorted((provenance or {}).items())]
+    return notes + [f"{k}: {v}" for k, v in sorted((provenance or {}).items())]
 
-    root = ET.Element("robot", name=printable(f"{robot.nominal.name or 'robot'}_calibrated"))
-    # An XML comment may not hold "--" (nor end in "-": the spaces around it see to that).
-    root.append(ET.Comment(" " + printable("; ".join(map(str, notes))).replace("--", "- -") + " "))
+
+def _link_and_joint_names(model: LocalPOEModel, ur_names: bool) -> tuple[list[str], list[str]]:
+    """(links base..link n, joint names): ur_description's, or generic links and the model's (unique) joint names."""
     if ur_names:
         links = ["base_link_inertia", *UR_LINKS]
         joint_names = [
@@ -167,43 +202,45 @@ def urdf_text(
             "wrist_2_joint",
             "wrist_3_joint",
         ]
-    else:
-        links = ["base_link", *[f"link_{j + 1}" for j in range(n)]]
-        joint_names = [printable(name) for name in model.joint_names]
-        twice = duplicate(joint_names)
-        if twice is not None:
-            raise ValueError(
-                f"joints {twice[0] + 1} and {twice[1] + 1} are both named {joint_names[twice[1]]!r}: a URDF addresses "
-                "joints by name, so they must be unique (rename one in the robot file)"
-            )
-    elements = {}
-    for name in (["base_link"] if ur_names else []) + links + (["flange", "tool0", "base"] if ur_names else ["tool0"]):
-        elements[name] = ET.SubElement(root, "link", name=name)
+        return links, joint_names
+    links = ["base_link", *[f"link_{j + 1}" for j in range(model.n)]]
+    joint_names = [printable(name) for name in model.joint_names]
+    twice = duplicate(joint_names)
+    if twice is not None:
+        raise ValueError(
+            f"joints {twice[0] + 1} and {twice[1] + 1} are both named {joint_names[twice[1]]!r}: a URDF addresses "
+            "joints by name, so they must be unique (rename one in the robot file)"
+        )
+    return links, joint_names
 
-    # Inertials: link j + 1 (the one joint j moves) carries mass j; the tool payload sits on tool0.
-    if masses is not None and coms is not None:
-        frames0 = model.link_frames(np.zeros(n))[0]  # (n+1, 4, 4) joint frames in K0 at q = 0
-        for j in range(n + 1):
-            m = float(masses[j])
-            if m <= 0:
-                continue
-            link = elements[links[j + 1]] if j < n else elements["tool0"]
-            T_link = frames0[j] if j < n else model.fk(np.zeros(n))
-            com = se3.inv(T_link) @ np.append(np.asarray(coms[j], dtype=float), 1.0)
-            inertial = ET.SubElement(link, "inertial")
-            ET.SubElement(inertial, "origin", xyz=_fmt(com[:3]), rpy="0.0 0.0 0.0")
-            ET.SubElement(inertial, "mass", value=_fmt(m))
-            ET.SubElement(inertial, "inertia", ixx="0.0", ixy="0.0", ixz="0.0", iyy="0.0", iyz="0.0", izz="0.0")
 
-    def fixed(name: str, parent: str, child: str, T: np.ndarray) -> None:
-        joint = ET.SubElement(root, "joint", name=name, type="fixed")
-        ET.SubElement(joint, "parent", link=parent)
-        ET.SubElement(joint, "child", link=child)
-        _origin(joint, T)
+def _inertials(model: LocalPOEModel, elements: dict, links: list[str], masses, coms) -> None:
+    """Point-mass inertials: link j + 1 (the one joint j moves) carries mass j; the tool payload sits on tool0."""
+    n = model.n
+    frames0 = model.link_frames(np.zeros(n))[0]  # (n+1, 4, 4) joint frames in K0 at q = 0
+    for j in range(n + 1):
+        m = float(masses[j])
+        if m <= 0:
+            continue
+        link = elements[links[j + 1]] if j < n else elements["tool0"]
+        T_link = frames0[j] if j < n else model.fk(np.zeros(n))
+        com = se3.inv(T_link) @ np.append(np.asarray(coms[j], dtype=float), 1.0)
+        inertial = ET.SubElement(link, "inertial")
+        ET.SubElement(inertial, "origin", xyz=_fmt(com[:3]), rpy="0.0 0.0 0.0")
+        ET.SubElement(inertial, "mass", value=_fmt(m))
+        ET.SubElement(inertial, "inertia", ixx="0.0", ixy="0.0", ixz="0.0", iyy="0.0", iyz="0.0", izz="0.0")
 
-    if ur_names:
-        fixed("base_link-base_link_inertia", "base_link", "base_link_inertia", se3.pose([0, 0, 0], [0, 0, np.pi]))
-    for j in range(n):
+
+def _fixed(root: ET.Element, name: str, parent: str, child: str, T: np.ndarray) -> None:
+    joint = ET.SubElement(root, "joint", name=name, type="fixed")
+    ET.SubElement(joint, "parent", link=parent)
+    ET.SubElement(joint, "child", link=child)
+    _origin(joint, T)
+
+
+def _joints(root: ET.Element, robot: CalibratedRobot, model: LocalPOEModel, links, joint_names, vel, eff) -> None:
+    """One revolute / prismatic joint per model joint: identified origin and axis, the robot file's limits."""
+    for j in range(model.n):
         kind = "prismatic" if model.joint_types[j] == PRISMATIC else "revolute"
         joint = ET.SubElement(root, "joint", name=joint_names[j], type=kind)
         ET.SubElement(joint, "parent", link=links[j])
@@ -214,20 +251,23 @@ def urdf_text(
         lo, hi = robot.nominal.limits[j]
         ET.SubElement(joint, "limit", lower=_fmt(lo), upper=_fmt(hi), effort=_fmt(eff[j]), velocity=_fmt(vel[j]))
     assert all(t in (REVOLUTE, PRISMATIC) for t in model.joint_types)
+
+
+def _tool_joints(root: ET.Element, robot: CalibratedRobot, model: LocalPOEModel, links, ur_names: bool) -> None:
+    """The fixed joints after the last link: to tool0 (via ur_description's flange), and the measurement tool."""
+    n = model.n
     T_tool = model.frames[n]
     if ur_names:
         flange = se3.pose([0, 0, 0], _UR_FLANGE_RPY)
-        fixed("wrist_3-flange", links[n], "flange", T_tool @ flange)
-        fixed("flange-tool0", "flange", "tool0", se3.inv(flange))
-        fixed("base_link-base_fixed_joint", "base_link", "base", se3.pose([0, 0, 0], [0, 0, np.pi]))
+        _fixed(root, "wrist_3-flange", links[n], "flange", T_tool @ flange)
+        _fixed(root, "flange-tool0", "flange", "tool0", se3.inv(flange))
+        _fixed(root, "base_link-base_fixed_joint", "base_link", "base", se3.pose([0, 0, 0], [0, 0, np.pi]))
     else:
-        fixed("tool_fixed", links[n], "tool0", T_tool)
+        _fixed(root, "tool_fixed", links[n], "tool0", T_tool)
     if robot.measurement_tool is not None:
         # Robot and tool apart: the fixture the calibration measured through, beside the robot (tool0 stays on tool0)
         ET.SubElement(root, "link", name="measurement_tool")
-        fixed("tool0-measurement_tool", "tool0", "measurement_tool", robot.measurement_tool)
-    ET.indent(root, space="  ")
-    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+        _fixed(root, "tool0-measurement_tool", "tool0", "measurement_tool", robot.measurement_tool)
 
 
 def write_urdf(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:

@@ -377,6 +377,12 @@ def _solve_function(n: int, budget: _Budget) -> list[str]:
         "  end",
         "  return x",
         "end",
+        *_abs_function(),
+    ]
+
+
+def _abs_function() -> list[str]:
+    return [
         "def lc_abs(v):",
         "  if v < 0.0:",
         "    return -v",
@@ -669,10 +675,21 @@ def _attempt_function(robot: CalibratedRobot, kin: ZAxisForm, iterations: int, m
     not contracting or not finite (a (near-)singular configuration, where correct() would damp); −4.0 (six joints):
     ``‖J_s⁻¹‖∞ · RESIDUAL_ROUNDING · ε`` above AGREEMENT (the arithmetic's rounding could move q_cmd that far).
     """
-    n, net = robot.n, robot.network
+    n = robot.n
+    err, solve = _attempt_error_and_solve(robot)
+    lines = _attempt_locals(n) + _attempt_residual(n, robot.network is not None)
+    lines += _attempt_step(n, err, solve, iterations)
+    lines += _attempt_verdict(n, max_correction)
+    lines += _amax_function(n)
+    if n >= 6:
+        lines += _inv_norm_function(n, float(robot.length_scale)) + _eps_function()
+    return lines
+
+
+def _attempt_locals(n: int) -> list[str]:
+    """lc_attempt's opening: the nominal target pose (Rt, pt), its locals, and the head of the Newton loop."""
     last = 12 * n
-    scale = 1.0 / float(robot.length_scale)
-    lines = [
+    return [
         "def lc_attempt(q):",
         "  local T = lc_chain(lc_nA, lc_nlin, q)",
         "  local Rt = [" + ", ".join(f"T[{last + 4 * a + b}]" for a in range(3) for b in range(3)) + "]",
@@ -695,39 +712,54 @@ def _attempt_function(robot: CalibratedRobot, kin: ZAxisForm, iterations: int, m
         "    F = lc_chain(lc_A, lc_lin, qc)",
         "    J = lc_twists(F, lc_rev, lc_pitch)",
     ]
+
+
+def _attempt_residual(n: int, learned: bool) -> list[str]:
+    """The residual r of one Newton step: log of the pose error, less J ρ(q) when there is a learned term."""
+    last = 12 * n
     # dR = Rt Rmᵀ, dp = pt − dR pm
     dR = []
     for a in range(3):
         for b in range(3):
             dR.append(" + ".join(f"Rt[{3 * a + k}] * F[{last + 4 * b + k}]" for k in range(3)))
-    lines.append("    dR = [" + ", ".join(dR) + "]")
+    lines = ["    dR = [" + ", ".join(dR) + "]"]
     dp = [
         f"pt[{a}] - (" + " + ".join(f"dR[{3 * a + k}] * F[{last + 4 * k + 3}]" for k in range(3)) + ")"
         for a in range(3)
     ]
     lines.append("    dp = [" + ", ".join(dp) + "]")
     lines.append("    r = lc_log(dR, dp)")
-    if net is not None:
+    if learned:
         lines.append("    rho = lc_rho(qc, F)")
         dy = [" + ".join(f"J[{6 * a + k}] * rho[{k}]" for k in range(6)) for a in range(6)]
         lines.append("    r = [" + ", ".join(f"r[{a}] - ({dy[a]})" for a in range(6)) + "]")
+    return lines
+
+
+def _attempt_error_and_solve(robot: CalibratedRobot) -> tuple[str, str]:
+    """(the residual size expression, the step's solve statement): square J solved directly, fewer joints in least
+    squares."""
+    n = robot.n
     if n >= 6:
         # the residual in the length-scaled metric (L1, so that a NaN anywhere makes every test below false)
+        scale = 1.0 / float(robot.length_scale)
         err = " + ".join(f"lc_abs(r[{a}])" + (f" * {_num(scale)}" if a < 3 else "") for a in range(6))
-        solve = "      st = lc_solve(J, r)"
-    else:
-        # least squares: the residual at the solution is not zero, its projection is the step (checked below)
-        err = "0.0"
-        L = float(robot.length_scale)
-        w = [1.0 / L**2] * 3 + [1.0] * 3
-        JtJ = [
-            " + ".join(f"{_num(w[a])} * J[{a * n + i}] * J[{a * n + k}]" for a in range(6))
-            for i in range(n)
-            for k in range(n)
-        ]
-        Jtr = [" + ".join(f"{_num(w[a])} * J[{a * n + i}] * r[{a}]" for a in range(6)) for i in range(n)]
-        solve = "      st = lc_solve([" + ", ".join(JtJ) + "], [" + ", ".join(Jtr) + "])"
-    lines += [
+        return err, "      st = lc_solve(J, r)"
+    # least squares: the residual at the solution is not zero, its projection is the step (checked below)
+    L = float(robot.length_scale)
+    w = [1.0 / L**2] * 3 + [1.0] * 3
+    JtJ = [
+        " + ".join(f"{_num(w[a])} * J[{a * n + i}] * J[{a * n + k}]" for a in range(6))
+        for i in range(n)
+        for k in range(n)
+    ]
+    Jtr = [" + ".join(f"{_num(w[a])} * J[{a * n + i}] * r[{a}]" for a in range(6)) for i in range(n)]
+    return "0.0", "      st = lc_solve([" + ", ".join(JtJ) + "], [" + ", ".join(Jtr) + "])"
+
+
+def _attempt_step(n: int, err: str, solve: str, iterations: int) -> list[str]:
+    """The rest of the Newton loop: the convergence test, the step and correct()'s verdict on it."""
+    return [
         f"    err = {err}",
         f"    if it > 0 and prev < {_num(CONVERGED_STEP)} and err < {_num(RESIDUAL_TOL)}:",
         "      status = 1.0",
@@ -753,6 +785,12 @@ def _attempt_function(robot: CalibratedRobot, kin: ZAxisForm, iterations: int, m
         "      end",
         "    end",
         "  end",
+    ]
+
+
+def _attempt_verdict(n: int, max_correction: float) -> list[str]:
+    """After the loop: refuse a correction above max_correction (and, six joints, one rounding could move), return."""
+    lines = [
         "  if status > 0.0:",
         f"    st = [{', '.join(f'qc[{j}] - q[{j}]' for j in range(n))}]",
         f"    if not (lc_amax(st) <= {_num(max_correction)}):",
@@ -774,9 +812,11 @@ def _attempt_function(robot: CalibratedRobot, kin: ZAxisForm, iterations: int, m
             "    end",
             "  end",
         ]
-    lines += [
-        f"  return [{', '.join(f'qc[{j}]' for j in range(n))}, status]",
-        "end",
+    return [*lines, f"  return [{', '.join(f'qc[{j}]' for j in range(n))}, status]", "end"]
+
+
+def _amax_function(n: int) -> list[str]:
+    return [
         "def lc_amax(v):",
         "  local out = 0.0",
         "  local j = 0",
@@ -789,37 +829,43 @@ def _attempt_function(robot: CalibratedRobot, kin: ZAxisForm, iterations: int, m
         "  return out",
         "end",
     ]
-    if n >= 6:
-        w = [float(robot.length_scale)] * 3 + [1.0] * (n - 3)
-        lines += [
-            "# ‖J_s⁻¹‖∞ of the length-scaled J_s = diag(1/L, 1/L, 1/L, 1, 1, 1) J: the largest row sum of",
-            "# |J⁻¹ diag(L, L, L, 1, 1, 1)|, column by column (J x = L e_k for a translation, e_k for a rotation)",
-            "def lc_inv_norm(J):",
-            f"  local w = {_list(w)}",
-            f"  local e = {_zeros(n)}",
-            f"  local c = {_zeros(n)}",
-            f"  local s = {_zeros(n)}",
-            "  local k = 0",
-            f"  while k < {n}:",
-            f"    e = {_zeros(n)}",
-            "    e[k] = w[k]",
-            "    c = lc_solve(J, e)",
-            f"    s = [{', '.join(f's[{j}] + lc_abs(c[{j}])' for j in range(n))}]",
-            "    k = k + 1",
-            "  end",
-            "  return lc_amax(s)",
-            "end",
-            "# the arithmetic's machine epsilon (2^-23 on a controller computing in float32, 2^-52 in float64)",
-            "def lc_eps():",
-            "  sync()",
-            "  local u = 1.0",
-            "  while 1.0 + 0.5 * u > 1.0:",
-            "    u = 0.5 * u",
-            "  end",
-            "  return u",
-            "end",
-        ]
-    return lines
+
+
+def _inv_norm_function(n: int, length_scale: float) -> list[str]:
+    w = [length_scale] * 3 + [1.0] * (n - 3)
+    return [
+        "# ‖J_s⁻¹‖∞ of the length-scaled J_s = diag(1/L, 1/L, 1/L, 1, 1, 1) J: the largest row sum of",
+        "# |J⁻¹ diag(L, L, L, 1, 1, 1)|, column by column (J x = L e_k for a translation, e_k for a rotation)",
+        "def lc_inv_norm(J):",
+        f"  local w = {_list(w)}",
+        f"  local e = {_zeros(n)}",
+        f"  local c = {_zeros(n)}",
+        f"  local s = {_zeros(n)}",
+        "  local k = 0",
+        f"  while k < {n}:",
+        f"    e = {_zeros(n)}",
+        "    e[k] = w[k]",
+        "    c = lc_solve(J, e)",
+        f"    s = [{', '.join(f's[{j}] + lc_abs(c[{j}])' for j in range(n))}]",
+        "    k = k + 1",
+        "  end",
+        "  return lc_amax(s)",
+        "end",
+    ]
+
+
+def _eps_function() -> list[str]:
+    return [
+        "# the arithmetic's machine epsilon (2^-23 on a controller computing in float32, 2^-52 in float64)",
+        "def lc_eps():",
+        "  sync()",
+        "  local u = 1.0",
+        "  while 1.0 + 0.5 * u > 1.0:",
+        "    u = 0.5 * u",
+        "  end",
+        "  return u",
+        "end",
+    ]
 
 
 def _correct_function(
