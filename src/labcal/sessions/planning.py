@@ -304,6 +304,42 @@ def random_configurations(
     """
     if isinstance(count, bool) or not isinstance(count, int | np.integer) or count < 1:
         raise PlanningError(f"count must be a positive integer, got {count!r}")
+    ranges, draw_lo, draw_hi, through_map = _sampling_box(model, limits, range_fraction, safety, joint_map)
+    box = _check_region(region)
+    if max_condition is not None and not max_condition >= 1:
+        raise PlanningError(f"max_condition must be >= 1 (or None), got {max_condition!r}")
+    pts = _check_target_options(min_target_distance, tracker, targets, facing)
+    workspace = _check_workspace(model, workspace)
+    max_tries = max(10_000, 200 * int(count)) if max_tries is None else int(max_tries)
+    if max_tries < count:
+        raise PlanningError(f"max_tries ({max_tries}) is smaller than count ({count})")
+    screen = _Screen(
+        model, ranges, joint_map if through_map else None, safety, joint_map, workspace, facing, box, tracker,
+        min_target_distance, max_condition, pts,
+    )  # fmt: skip
+
+    rng = np.random.default_rng(seed)
+    chosen: list[np.ndarray] = []
+    have, drawn = 0, 0
+    batch = max(256, 4 * int(count))
+    while have < count and drawn < max_tries:
+        size = min(batch, max_tries - drawn)
+        q = rng.uniform(draw_lo, draw_hi, size=(size, model.n))
+        drawn += size
+        chosen.append(screen.passing(q))
+        have += len(chosen[-1])
+    if have < count:
+        why = ", ".join(f"{k}: {v}" for k, v in screen.rejected.items() if v) or "none"
+        hint = f" (e.g. {', '.join(screen.example)})" if screen.example else ""
+        raise PlanningError(
+            f"only {have} of {count} configurations passed after {drawn} draws (max_tries); rejected by {why}{hint}. "
+            "Loosen max_condition, the workspace, the region or the tracker cone, or raise max_tries."
+        )
+    return np.concatenate(chosen)[:count]
+
+
+def _sampling_box(model: LocalPOEModel, limits, range_fraction: float, safety, joint_map):
+    """(model joint ranges (n, 2), draw low (n,), draw high (n,), whether draws go through the joint map)."""
     box_limits = cell_limits(model, safety, joint_map)
     if limits is not None:
         lim = joint_ranges(model, limits)  # checked against the model's limits before narrowing
@@ -319,12 +355,12 @@ def random_configurations(
     if through_map:
         ctrl = np.asarray(safety.joint_limits, dtype=float)
         mid, half = ctrl.mean(axis=1), 0.5 * (ctrl[:, 1] - ctrl[:, 0]) * range_fraction
-        draw_lo, draw_hi = mid - half, mid + half
-    else:
-        draw_lo, draw_hi = ranges[:, 0], ranges[:, 1]
-    box = _check_region(region)
-    if max_condition is not None and not max_condition >= 1:
-        raise PlanningError(f"max_condition must be >= 1 (or None), got {max_condition!r}")
+        return ranges, mid - half, mid + half, True
+    return ranges, ranges[:, 0], ranges[:, 1], False
+
+
+def _check_target_options(min_target_distance, tracker, targets, facing) -> np.ndarray:
+    """The target points (m, 3) in the tool frame (the tool origin without targets), the tracker options checked."""
     if min_target_distance is not None:
         if tracker is None:
             raise PlanningError("min_target_distance needs a tracker (LineOfSight): it is measured across its rays")
@@ -335,94 +371,110 @@ def random_configurations(
         raise PlanningError(f"targets must be a finite (m, 3) array in m (tool frame), got shape {pts.shape}")
     if facing is not None and (targets is None or facing.normals.shape[0] != pts.shape[0]):
         raise PlanningError(f"facing has {facing.normals.shape[0]} normals; give targets with as many points")
-    if workspace is not None and not workspace.bounds_motion:
-        workspace = None
-    if workspace is not None:
-        # The base frame's origin never moves: a keep-out box around it (a table drawn up to z = 0) refuses every
-        # pose, which is worth saying outright instead of after thousands of draws.
-        base = model.link_frames(np.zeros((1, model.n)))[:, :1, :3, 3]
-        if not workspace.admits(base)[0]:
-            raise PlanningError(
-                f"the workspace refuses the robot's base (link 1 origin {np.round(base[0, 0], 4).tolist()} m): "
-                f"{', '.join(workspace.offenders(base[0]))}; a keep-out box must leave the base out (e.g. a "
-                "table's top just below it)"
-            )
-    max_tries = max(10_000, 200 * int(count)) if max_tries is None else int(max_tries)
-    if max_tries < count:
-        raise PlanningError(f"max_tries ({max_tries}) is smaller than count ({count})")
+    return pts
 
-    rng = np.random.default_rng(seed)
-    chosen: list[np.ndarray] = []
-    have, drawn = 0, 0
-    rejected = {
-        "joint limits": 0,
-        "workspace": 0,
-        "facing away": 0,
-        "condition": 0,
-        "region": 0,
-        "line of sight": 0,
-        "target separation": 0,
-    }
-    example: list[str] = []  # what the first pose the workspace refused ran into, for the error message
-    batch = max(256, 4 * int(count))
-    while have < count and drawn < max_tries:
-        size = min(batch, max_tries - drawn)
-        q = rng.uniform(draw_lo, draw_hi, size=(size, model.n))
-        drawn += size
-        ok = np.ones(size, dtype=bool)
-        if through_map:
-            q = joint_map.to_model(q)
-            inside = np.all((q >= ranges[:, 0]) & (q <= ranges[:, 1]), axis=1)
+
+def _check_workspace(model: LocalPOEModel, workspace: Workspace | None) -> Workspace | None:
+    """The workspace to check draws against (None when it bounds nothing); refused when it refuses the base."""
+    if workspace is None or not workspace.bounds_motion:
+        return None
+    # The base frame's origin never moves: a keep-out box around it (a table drawn up to z = 0) refuses every
+    # pose, which is worth saying outright instead of after thousands of draws.
+    base = model.link_frames(np.zeros((1, model.n)))[:, :1, :3, 3]
+    if not workspace.admits(base)[0]:
+        raise PlanningError(
+            f"the workspace refuses the robot's base (link 1 origin {np.round(base[0, 0], 4).tolist()} m): "
+            f"{', '.join(workspace.offenders(base[0]))}; a keep-out box must leave the base out (e.g. a "
+            "table's top just below it)"
+        )
+    return workspace
+
+
+@dataclass
+class _Screen:
+    """The checks of :func:`random_configurations`, in order (cheap ones first), with what each rejected so far.
+
+    through_map: the joint map the draws (controller joints) go through, or None when they are model joints.
+    """
+
+    model: LocalPOEModel
+    ranges: np.ndarray
+    through_map: JointMap | None
+    safety: SafetyLimits | None
+    joint_map: JointMap | None
+    workspace: Workspace | None
+    facing: TargetFacing | None
+    box: np.ndarray | None
+    tracker: LineOfSight | None
+    min_target_distance: float | None
+    max_condition: float | None
+    pts: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.rejected = {
+            "joint limits": 0,
+            "workspace": 0,
+            "facing away": 0,
+            "condition": 0,
+            "region": 0,
+            "line of sight": 0,
+            "target separation": 0,
+        }
+        self.example: list[str] = []  # what the first pose the workspace refused ran into, for the error message
+
+    def passing(self, q: np.ndarray) -> np.ndarray:
+        """The drawn configurations (model joints) that pass every check, counting the rejections."""
+        model, rejected = self.model, self.rejected
+        ok = np.ones(len(q), dtype=bool)
+        if self.through_map is not None:
+            q = self.through_map.to_model(q)
+            inside = np.all((q >= self.ranges[:, 0]) & (q <= self.ranges[:, 1]), axis=1)
             rejected["joint limits"] += int(np.sum(~inside))
             ok &= inside
-        if safety is not None:
-            accepted = runner_accepts(q, safety, joint_map)
+        if self.safety is not None:
+            accepted = runner_accepts(q, self.safety, self.joint_map)
             rejected["joint limits"] += int(np.sum(~accepted))
             ok &= accepted
-        if workspace is not None and ok.any():
+        if self.workspace is not None and ok.any():
             idx = np.flatnonzero(ok)
-            points = checked_points(model, q[idx], pts)
-            inside = workspace.admits(points)
+            points = checked_points(model, q[idx], self.pts)
+            inside = self.workspace.admits(points)
             rejected["workspace"] += int(np.sum(~inside))
-            if not example and not inside.all():
-                example = workspace.offenders(points[np.flatnonzero(~inside)[0]])
+            if not self.example and not inside.all():
+                self.example = self.workspace.offenders(points[np.flatnonzero(~inside)[0]])
             ok[idx[~inside]] = False
-        if facing is not None and ok.any():
+        if self.facing is not None and ok.any():
             idx = np.flatnonzero(ok)
-            seen = facing.visible(model, q[idx], pts).all(axis=1)
+            seen = self.facing.visible(model, q[idx], self.pts).all(axis=1)
             rejected["facing away"] += int(np.sum(~seen))
             ok[idx[~seen]] = False
-        if box is not None:
+        if self.box is not None:
             p = model.fk(q)[:, :3, 3]
-            inside = np.all((p >= box[0]) & (p <= box[1]), axis=1)
+            inside = np.all((p >= self.box[0]) & (p <= self.box[1]), axis=1)
             rejected["region"] += int(np.sum(ok & ~inside))
             ok &= inside
-        if tracker is not None and ok.any():
+        if self.tracker is not None and ok.any():
+            self._line_of_sight(q, ok)
+        if self.max_condition is not None and ok.any():
             idx = np.flatnonzero(ok)
-            points = model.target_points(q[idx], pts)
-            seen = tracker.visible(points).all(axis=1)
-            rejected["line of sight"] += int(np.sum(~seen))
-            ok[idx[~seen]] = False
-            if min_target_distance is not None and pts.shape[0] > 1:
-                clear = _line_of_sight_clearance(points, tracker) >= min_target_distance
-                bad = seen & ~clear
-                rejected["target separation"] += int(np.sum(bad))
-                ok[idx[bad]] = False
-        if max_condition is not None and ok.any():
-            idx = np.flatnonzero(ok)
-            good = length_scaled_condition(model, q[idx]) <= max_condition
+            good = length_scaled_condition(model, q[idx]) <= self.max_condition
             rejected["condition"] += int(np.sum(~good))
             ok[idx[~good]] = False
-        chosen.append(q[ok])
-        have += int(ok.sum())
-    if have < count:
-        why = ", ".join(f"{k}: {v}" for k, v in rejected.items() if v) or "none"
-        hint = f" (e.g. {', '.join(example)})" if example else ""
-        raise PlanningError(
-            f"only {have} of {count} configurations passed after {drawn} draws (max_tries); rejected by {why}{hint}. "
-            "Loosen max_condition, the workspace, the region or the tracker cone, or raise max_tries."
-        )
-    return np.concatenate(chosen)[:count]
+        return q[ok]
+
+    def _line_of_sight(self, q: np.ndarray, ok: np.ndarray) -> None:
+        """Clear ok where a target is out of the tracker's cone, or too near another target's line of sight."""
+        assert self.tracker is not None
+        idx = np.flatnonzero(ok)
+        points = self.model.target_points(q[idx], self.pts)
+        seen = self.tracker.visible(points).all(axis=1)
+        self.rejected["line of sight"] += int(np.sum(~seen))
+        ok[idx[~seen]] = False
+        if self.min_target_distance is not None and self.pts.shape[0] > 1:
+            clear = _line_of_sight_clearance(points, self.tracker) >= self.min_target_distance
+            bad = seen & ~clear
+            self.rejected["target separation"] += int(np.sum(bad))
+            ok[idx[bad]] = False
 
 
 # --------------------------------------------------------------------------------------------------------------
