@@ -175,3 +175,97 @@ def read_program(
     else:
         factors = joint_factors(joint_types, length_unit, angle_unit)
     return ProgramTable(raw * factors, np.asarray(table.lines), separator, decimal, header)
+
+
+def parse_numbers(text: str | None, count: int, option: str) -> list[float] | None:
+    """``count`` comma- (or ';'-) separated numbers of an option, None when the option is not given."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.replace(";", ",").split(",") if v.strip()]
+    except ValueError:
+        raise UserError(f"{option} must be {count} comma-separated numbers, got {text!r}") from None
+    if len(values) != count:
+        raise UserError(f"{option} must be {count} comma-separated numbers, got {len(values)}")
+    return values
+
+
+def load_calibration(calibration: str, fit_id: str | None, store: Path | None):
+    """The calibrated robot of a compensator export (.json / .npz) or of a stored fit (SESSION[@vN], --fit)."""
+    path = Path(calibration)
+    if path.suffix.lower() in (".json", ".npz"):
+        from labcal.compensator import CompensatorFileError, load
+
+        try:
+            return load(path).robot
+        except (OSError, CompensatorFileError) as e:
+            raise UserError(f"--calibration {path}: {e}") from None
+    from labcal.cli.common import open_store
+    from labcal.cli.ops import split_ref
+    from labcal.cli.ops.fitting import load_stored_fit
+
+    return load_stored_fit(open_store(store, create=False), split_ref(calibration), fit_id).robot
+
+
+def check_filter_outputs(out: Path, script: Path | None, force: bool) -> None:
+    """Refuse, before any work, outputs that are not (new or, with force, existing) regular files, or one file
+    given twice."""
+    from labcal import atomicio
+    from labcal.cli.ops.exporting import check_output
+
+    outputs = [("--out", out)] + ([("--script", script)] if script is not None else [])
+    for flag, path in outputs:  # a device, symlink or folder is refused before any work, --force or not
+        try:
+            atomicio.check_target(path)
+        except atomicio.UnsafeTargetError as e:
+            raise UserError(f"{flag} {e}") from None
+        check_output(path, force=force)
+    if script is not None and out.resolve() == script.resolve():
+        raise UserError(f"--out and --script name the same file {out}: give two paths")
+
+
+def check_filterable(robot, script: Path | None) -> None:
+    """Refuse a robot filter cannot correct (a joint map), and --script for a robot that is not a 6-joint UR."""
+    if robot.joint_map is not None:
+        raise UserError("this calibration's robot has a joint map: filter works in model joints only (UR arms)")
+    if script is not None and robot.n != 6:
+        raise UserError(
+            f"--script writes a URScript movej program for a UR controller (6 joints); this robot has {robot.n} "
+            "joints: leave out --script and send the corrected joints (--out) with the robot's own controller"
+        )
+
+
+def filter_program_file(
+    program: Path,
+    kind: str,
+    robot,
+    *,
+    length_unit: str,
+    angle_unit: str,
+    tcp: str | None,
+    seed_joints: str | None,
+):
+    """(FilteredProgram, ProgramTable): the program file read and corrected; a refused row names its file line."""
+    from labcal.export import program as prog
+
+    types = robot.nominal.joint_types
+    table = read_program(program, kind, n=robot.n, joint_types=types, length_unit=length_unit, angle_unit=angle_unit)
+    offset = parse_numbers(tcp, 6, "--tcp")
+    if offset is not None:
+        offset = np.asarray(offset) * np.array(
+            [prog.LENGTH_UNITS[length_unit]] * 3 + [prog.ANGLE_UNITS[angle_unit]] * 3
+        )
+    try:
+        if kind == "joints":
+            tcp4 = None if offset is None else prog.pose_matrix(offset)[0]
+            result = prog.filter_joints(robot, table.values, angle_unit=angle_unit, tcp=tcp4)
+        else:
+            seed = parse_numbers(seed_joints, robot.n, "--seed-joints")
+            if seed is None:
+                raise UserError("a pose program needs --seed-joints (joints near its first row: they pick the branch)")
+            seed = np.asarray(seed) * prog.joint_factors(types, length_unit, angle_unit)
+            result = prog.filter_poses(robot, table.values, seed, tcp=offset, angle_unit=angle_unit)
+    except prog.ProgramError as e:  # the message names the row; the file line helps find it
+        line = table.line_of(e.row)
+        raise UserError(f"{program}{f' line {line}' if line is not None else ''}: {e}") from None
+    return result, table
