@@ -695,16 +695,7 @@ class SessionStore:
         d = self._require_session(session_id)
         problems: list[str] = []
         checked: list[str] = []
-        notes: list[str] = []
-        for p in sorted(d.iterdir()):
-            fname = p.name
-            if (
-                fname in (JOURNAL_NAME, VERSIONS_LOG)
-                or fname.startswith(".tmp-")
-                or (p.is_dir() and _VERSION_DIR.match(fname))
-            ):
-                continue
-            notes.append(f"{fname}: foreign {'folder' if p.is_dir() else 'file'} (not written by labcal), skipped")
+        notes = _foreign_entry_notes(d)
         versions = self.versions(session_id)
         manifests: dict[int, dict | None] = {}
         for v in versions:
@@ -718,34 +709,8 @@ class SessionStore:
                 missing[v] = f"{version_name(versions[-1])} exists and versions are numbered in order"
         log = d / VERSIONS_LOG
         if log.is_file():
-            entries, log_problems, log_notes = _read_versions_log(log)
-            problems += log_problems
-            notes += log_notes
             checked.append(VERSIONS_LOG)
-            logged = set()
-            for e in entries:
-                try:
-                    from .ids import parse_version
-
-                    v = parse_version(e["version"])
-                except DatasetError:
-                    problems.append(f"{VERSIONS_LOG}: names an invalid version {e['version']!r}")
-                    continue
-                logged.add(v)
-                if v not in manifests:
-                    missing[v] = f"published {e.get('time', '?')}, listed in {VERSIONS_LOG}"
-                elif (man := manifests[v]) is not None and man.get("manifest_sha256") != e.get("manifest_sha256"):
-                    problems.append(
-                        f"{version_name(v)}/{MANIFEST}: not the manifest that was published (sha256 "
-                        f"{e.get('manifest_sha256')} in {VERSIONS_LOG}, {man.get('manifest_sha256')} now): "
-                        f"restore {version_name(v)} from a backup"
-                    )
-            for v in versions:
-                if v not in logged:
-                    notes.append(
-                        f"{version_name(v)}: not listed in {VERSIONS_LOG} (written by an older labcal, or a seal "
-                        "interrupted after the version was complete)"
-                    )
+            _check_versions_log(log, versions, manifests, missing, problems, notes)
         for v, why in sorted(missing.items()):
             problems.append(
                 f"{version_name(v)}: missing ({why}): restore {d / version_name(v)} from a backup; the other versions "
@@ -764,63 +729,7 @@ class SessionStore:
             return VerifyReport(session_id, problems, checked, notes)
         contents = read_journal(jpath)
         checked.append(JOURNAL_NAME)
-        cmd = f"`labcal session seal {session_id} --valid-prefix`"
-        keep = "the versions keep their own copies and stay usable"
-        if contents.start is None:
-            fix = (f"{keep}; {cmd} seals what was recorded after the damage" if sealed else
-                   "no version holds a copy of it: restore the journal from a backup")  # fmt: skip
-            problems.append(f"{JOURNAL_NAME}: line 1: the start document is damaged or missing: {fix}")
-        through = max((int(info.get("bytes", 0)) for _, info in sealed), default=0)
-        sealed_lines = _lines_in(jpath, through)
-        # Damage a later `seal --valid-prefix` already sealed around (and recorded): running it again adds nothing.
-        handled: dict[int, str] = {}
-        handled_prefix: dict[int, str] = {}
-        for v, info in sealed:
-            vp = info.get("valid_prefix") or {}
-            for skip in vp.get("skipped") or []:
-                if isinstance(skip, dict) and isinstance(skip.get("line"), int):
-                    handled.setdefault(skip["line"], version_name(v))
-            if vp.get("sealed_part_damage"):
-                for w, _ in sealed:
-                    if w < v:
-                        handled_prefix.setdefault(w, version_name(v))
-        after = "record the remaining poses in a new session"
-        for ln in contents.corrupt_lines:
-            if ln == 1 and contents.start is None:
-                continue  # the start document: said above, with the fix that applies to it
-            why = contents.corrupt_reasons.get(ln, "corrupt")
-            if ln in handled:
-                fix = f"left out and recorded by {handled[ln]}'s seal --valid-prefix; {keep}; {after}"
-            elif ln <= sealed_lines:
-                fix = f"it lies in the part already sealed: {keep}; {cmd} seals what was recorded after that part"
-            else:
-                fix = f"{cmd} seals the measurements before it and records what it left out"
-            problems.append(f"{JOURNAL_NAME}: line {ln}: {why}: {fix}")
-        damaged = []
-        for v, info in sealed:
-            n = int(info.get("bytes", 0))
-            if contents.size < n:
-                what = (
-                    f"shorter ({contents.size} bytes) than when {version_name(v)} was sealed ({n} bytes): its end was "
-                    f"cut off; {keep}; record the remaining poses in a new session"
-                )
-                damaged.append((v, what))
-            elif sha256_file(jpath, limit=n) != info.get("sha256"):
-                fix = (f"recorded by {handled_prefix[v]}'s seal --valid-prefix; {after}" if v in handled_prefix
-                       else f"{cmd} seals what was recorded after them")  # fmt: skip
-                what = f"the first {n} bytes, sealed into {version_name(v)}, changed since it was sealed; {keep}; {fix}"
-                damaged.append((v, what))
-        if damaged:
-            v, what = damaged[0]
-            also = [version_name(w) for w, _ in damaged[1:]]
-            also_text = f" (so did the parts sealed into {', '.join(also)})" if also else ""
-            problems.append(f"{JOURNAL_NAME}: {what}{also_text}")
-            if contents.start is not None and (man := manifests.get(v)):
-                if session_meta_from_start(contents.start) != man.get("session"):
-                    problems.append(
-                        f"{JOURNAL_NAME}: line 1: the start document differs from the copy in {version_name(v)}'s "
-                        f"manifest; the versions use their own copy"
-                    )
+        problems += _journal_problems(session_id, jpath, contents, sealed, manifests)
         return VerifyReport(session_id, problems, checked, notes)
 
     def check_before_recording(self, session_id: str) -> None:
@@ -1345,6 +1254,132 @@ class SessionStore:
                     return self.load_fit(Ref(s, v), fit_id)
         known = [p.parent.name for s in self.session_ids() for p in self.session_dir(s).glob(f"v*/{FITS}/*/{FIT_JSON}")]
         raise UnknownVersion(f"no fit {fit_id!r} in store {self.root}{_did_you_mean(fit_id, known)}")
+
+
+def _foreign_entry_notes(session_dir: Path) -> list[str]:
+    """A note per entry of a session folder that labcal did not write (skipped by the checks)."""
+    notes = []
+    for p in sorted(session_dir.iterdir()):
+        fname = p.name
+        if (
+            fname in (JOURNAL_NAME, VERSIONS_LOG)
+            or fname.startswith(".tmp-")
+            or (p.is_dir() and _VERSION_DIR.match(fname))
+        ):
+            continue
+        notes.append(f"{fname}: foreign {'folder' if p.is_dir() else 'file'} (not written by labcal), skipped")
+    return notes
+
+
+def _check_versions_log(
+    log: Path,
+    versions: list[int],
+    manifests: dict[int, dict | None],
+    missing: dict[int, str],
+    problems: list[str],
+    notes: list[str],
+) -> None:
+    """The versions log against the version folders: adds to missing the published versions that are gone, to
+    problems a damaged log or a manifest that is not the published one, to notes the versions it does not list."""
+    from .ids import parse_version
+
+    entries, log_problems, log_notes = _read_versions_log(log)
+    problems += log_problems
+    notes += log_notes
+    logged = set()
+    for e in entries:
+        try:
+            v = parse_version(e["version"])
+        except DatasetError:
+            problems.append(f"{VERSIONS_LOG}: names an invalid version {e['version']!r}")
+            continue
+        logged.add(v)
+        if v not in manifests:
+            missing[v] = f"published {e.get('time', '?')}, listed in {VERSIONS_LOG}"
+        elif (man := manifests[v]) is not None and man.get("manifest_sha256") != e.get("manifest_sha256"):
+            problems.append(
+                f"{version_name(v)}/{MANIFEST}: not the manifest that was published (sha256 "
+                f"{e.get('manifest_sha256')} in {VERSIONS_LOG}, {man.get('manifest_sha256')} now): "
+                f"restore {version_name(v)} from a backup"
+            )
+    for v in versions:
+        if v not in logged:
+            notes.append(
+                f"{version_name(v)}: not listed in {VERSIONS_LOG} (written by an older labcal, or a seal "
+                "interrupted after the version was complete)"
+            )
+
+
+def _handled_damage(sealed: list[tuple[int, dict]]) -> tuple[dict[int, str], dict[int, str]]:
+    """Damage a later `seal --valid-prefix` already sealed around (and recorded), where running it again adds
+    nothing: (journal line → the version that skipped it, version whose sealed part changed → the later version)."""
+    handled: dict[int, str] = {}
+    handled_prefix: dict[int, str] = {}
+    for v, info in sealed:
+        vp = info.get("valid_prefix") or {}
+        for skip in vp.get("skipped") or []:
+            if isinstance(skip, dict) and isinstance(skip.get("line"), int):
+                handled.setdefault(skip["line"], version_name(v))
+        if vp.get("sealed_part_damage"):
+            for w, _ in sealed:
+                if w < v:
+                    handled_prefix.setdefault(w, version_name(v))
+    return handled, handled_prefix
+
+
+def _journal_problems(
+    session_id: str, jpath: Path, contents, sealed: list[tuple[int, dict]], manifests: dict[int, dict | None]
+) -> list[str]:
+    """The journal's problems: its start document, its corrupt lines (with the fix that applies where each lies)
+    and the parts sealed into versions that changed or were cut off since."""
+    problems = []
+    cmd = f"`labcal session seal {session_id} --valid-prefix`"
+    keep = "the versions keep their own copies and stay usable"
+    if contents.start is None:
+        fix = (f"{keep}; {cmd} seals what was recorded after the damage" if sealed else
+               "no version holds a copy of it: restore the journal from a backup")  # fmt: skip
+        problems.append(f"{JOURNAL_NAME}: line 1: the start document is damaged or missing: {fix}")
+    through = max((int(info.get("bytes", 0)) for _, info in sealed), default=0)
+    sealed_lines = _lines_in(jpath, through)
+    handled, handled_prefix = _handled_damage(sealed)
+    after = "record the remaining poses in a new session"
+    for ln in contents.corrupt_lines:
+        if ln == 1 and contents.start is None:
+            continue  # the start document: said above, with the fix that applies to it
+        why = contents.corrupt_reasons.get(ln, "corrupt")
+        if ln in handled:
+            fix = f"left out and recorded by {handled[ln]}'s seal --valid-prefix; {keep}; {after}"
+        elif ln <= sealed_lines:
+            fix = f"it lies in the part already sealed: {keep}; {cmd} seals what was recorded after that part"
+        else:
+            fix = f"{cmd} seals the measurements before it and records what it left out"
+        problems.append(f"{JOURNAL_NAME}: line {ln}: {why}: {fix}")
+    damaged = []
+    for v, info in sealed:
+        n = int(info.get("bytes", 0))
+        if contents.size < n:
+            what = (
+                f"shorter ({contents.size} bytes) than when {version_name(v)} was sealed ({n} bytes): its end was "
+                f"cut off; {keep}; record the remaining poses in a new session"
+            )
+            damaged.append((v, what))
+        elif sha256_file(jpath, limit=n) != info.get("sha256"):
+            fix = (f"recorded by {handled_prefix[v]}'s seal --valid-prefix; {after}" if v in handled_prefix
+                   else f"{cmd} seals what was recorded after them")  # fmt: skip
+            what = f"the first {n} bytes, sealed into {version_name(v)}, changed since it was sealed; {keep}; {fix}"
+            damaged.append((v, what))
+    if damaged:
+        v, what = damaged[0]
+        also = [version_name(w) for w, _ in damaged[1:]]
+        also_text = f" (so did the parts sealed into {', '.join(also)})" if also else ""
+        problems.append(f"{JOURNAL_NAME}: {what}{also_text}")
+        if contents.start is not None and (man := manifests.get(v)):
+            if session_meta_from_start(contents.start) != man.get("session"):
+                problems.append(
+                    f"{JOURNAL_NAME}: line 1: the start document differs from the copy in {version_name(v)}'s "
+                    f"manifest; the versions use their own copy"
+                )
+    return problems
 
 
 def _lines_in(path: Path, n: int) -> int:
