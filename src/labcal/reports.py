@@ -697,8 +697,22 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
             unreadable.append(f"- fit {fid} is left out: it cannot be read ({e})")
     if not fits:
         raise ValueError(f"no fit of {r} can be read:\n" + "\n".join(unreadable))
-    ds = store.load(r)
-    lines = [
+    lines = _intro_lines(r, store.load(r))
+    metrics_of = {data["fit_id"]: _metrics_of(data) for data in fits}
+    lines += _warnings_section(store, r, fits, metrics_of, unreadable)
+    for data in fits:
+        lines += _fit_section(store, r, data, metrics_of[data["fit_id"]], plt, out)
+    hpng = "histogram.png"
+    _plot_histograms(plt, fits, out / hpng)
+    lines += ["## Position error after calibration, per method", "", f"![histograms]({hpng})", ""]
+    path = out / "report.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def _intro_lines(r, ds) -> list[str]:
+    """The report's title and what its errors are."""
+    return [
         f"# labcal calibration report — {r}",
         "",
         f"Robot model **{ds.robot.get('name')}** (sha256 `{ds.robot.get('hash', '')[:16]}…`), "
@@ -711,11 +725,14 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
         f"Measured with: {device_line(ds.manifest.get('session') or {})}.",
         "",
     ]
+
+
+def _warnings_section(store, r, fits: list[dict], metrics_of: dict, unreadable: list[str]) -> list[str]:
+    """Every fit's warnings and held-out notes up front, the fits left out, and what `labcal export` refuses."""
     summary = [line for data in fits for line in _warning_lines(data["meta"], data["fit_id"])]
-    metrics_of = {data["fit_id"]: _metrics_of(data) for data in fits}
     summary += [line for data in fits for line in _held_out_lines(store, str(r), data, metrics_of[data["fit_id"]])]
     blocked = [d["fit_id"] for d in fits if (d["meta"].get("warnings") or [])]
-    lines += ["## Warnings", ""]
+    lines = ["## Warnings", ""]
     if unreadable:
         lines += [*unreadable, ""]
     if summary:
@@ -728,78 +745,92 @@ def write_session_report(store, ref: str, out_dir, fit_ids: list[str] | None = N
             ]
     else:
         lines += ["None: no fit in this report has warnings or notes.", ""]
-    for data in fits:
-        meta, fid = data["meta"], data["fit_id"]
-        metrics = metrics_of[fid]
+    return lines
+
+
+def _fit_section(store, r, data: dict, metrics: dict, plt, out: Path) -> list[str]:
+    """One fit: heading, its warnings, inputs and what the data let it claim, error tables (the primary figures
+    first), cross-validation, plots, what it kept, its parameters and its stored evaluations."""
+    meta, fid = data["meta"], data["fit_id"]
+    lines = [
+        f"## Fit {fid}: {meta.get('chosen', data['robot'].method)} "
+        f"(asked: {meta.get('method')}, seed {meta.get('seed')})",
+        "",
+    ]
+    own = _warning_lines(meta, fid, heading=False) + _held_out_lines(store, str(r), data, metrics, heading=False)
+    if own:
+        lines += [*own, ""]
+    lines += [
+        f"Inputs: {', '.join(str(x) for x in (meta.get('inputs') or [])) or r}. Rows: "
+        + ", ".join(f"{k} {v}" for k, v in (meta.get("rows") or {}).items())
+        + ".",
+        "",
+    ]
+    inputs = [str(x) for x in (meta.get("inputs") or [])]
+    if inputs and inputs != [str(r)]:
+        lines += ["Units of the inputs:", "", *[f"- {line}" for line in _devices_of(store, inputs)], ""]
+    claim = observability_lines(meta.get("observability"), data["obs"])
+    if claim:
+        lines += [*claim, ""]
+    if _primary(metrics) == "points":
+        # Fewer than three targets seen somewhere: the points are what was measured, so they lead (15.3).
         lines += [
-            f"## Fit {fid}: {meta.get('chosen', data['robot'].method)} "
-            f"(asked: {meta.get('method')}, seed {meta.get('seed')})",
+            "Primary figures: the per-target point errors (fewer than three non-collinear targets were seen in "
+            "some poses). The pose columns of the table after them cover only the poses that fix a full pose "
+            "(n = their count; — when none does).",
+            "",
+            *_md_targets(metrics),
+            "",
+            *_md_metrics(metrics),
             "",
         ]
-        own = _warning_lines(meta, fid, heading=False) + _held_out_lines(store, str(r), data, metrics, heading=False)
-        if own:
-            lines += [*own, ""]
+    else:
+        lines += [*_md_metrics(metrics), "", *_md_targets(metrics), ""]
+    lines += [*_cv_lines(meta.get("cv"))]
+    lines += _fit_plots(plt, data, out)
+    info = meta.get("info") or {}
+    lines += _choice_lines(info)
+    lines += [*_parameter_lines(info, data), ""]
+    lines += _measurement_tool_lines(info, data)
+    return [*lines, *_evaluation_lines(store, str(r), fid), ""]
+
+
+def _fit_plots(plt, data: dict, out: Path) -> list[str]:
+    """A fit's plots written into out (errors per configuration, per target, the training curve if it has one)
+    and the lines that show them."""
+    fid = data["fit_id"]
+    png = f"errors-{fid}.png"
+    _plot_per_configuration(plt, data, out / png)
+    lines = [f"![error per configuration]({png})", ""]
+    tpng = f"targets-{fid}.png"
+    _plot_targets(plt, data, out / tpng)
+    lines += [f"![per-target point error]({tpng})", ""]
+    info = data["meta"].get("info") or {}
+    curve = _find(info, "curve")
+    if curve and curve.get("train"):
+        cpng = f"training-{fid}.png"
+        title = f"network training ({fid})"
+        trained = _owner(info, "curve") or {}
+        _plot_curve(plt, curve, trained.get("stopped_at"), out / cpng, title, trained.get("loss"))
+        lines += [f"![training curve]({cpng})", ""]
+    return lines
+
+
+def _choice_lines(info: dict) -> list[str]:
+    """What a hybrid kept and what auto compared, when the fit says."""
+    lines = []
+    kept = _find(info, "kept")
+    if kept:
         lines += [
-            f"Inputs: {', '.join(str(x) for x in (meta.get('inputs') or [])) or r}. Rows: "
-            + ", ".join(f"{k} {v}" for k, v in (meta.get("rows") or {}).items())
+            f"Hybrid: kept **{kept}** (cross-validation decides which learned stage, if any, stays).",
+            "",
+        ]
+    cands = _find(info, "candidates")
+    if isinstance(cands, dict):
+        lines += [
+            "Auto: validation mean position error "
+            + ", ".join(f"{k} {v * 1e3:.4f} mm" for k, v in cands.items() if isinstance(v, int | float))
             + ".",
             "",
         ]
-        inputs = [str(x) for x in (meta.get("inputs") or [])]
-        if inputs and inputs != [str(r)]:
-            lines += ["Units of the inputs:", "", *[f"- {line}" for line in _devices_of(store, inputs)], ""]
-        claim = observability_lines(meta.get("observability"), data["obs"])
-        if claim:
-            lines += [*claim, ""]
-        if _primary(metrics) == "points":
-            # Fewer than three targets seen somewhere: the points are what was measured, so they lead (15.3).
-            lines += [
-                "Primary figures: the per-target point errors (fewer than three non-collinear targets were seen in "
-                "some poses). The pose columns of the table after them cover only the poses that fix a full pose "
-                "(n = their count; — when none does).",
-                "",
-                *_md_targets(metrics),
-                "",
-                *_md_metrics(metrics),
-                "",
-            ]
-        else:
-            lines += [*_md_metrics(metrics), "", *_md_targets(metrics), ""]
-        lines += [*_cv_lines(meta.get("cv"))]
-        png = f"errors-{fid}.png"
-        _plot_per_configuration(plt, data, out / png)
-        lines += [f"![error per configuration]({png})", ""]
-        tpng = f"targets-{fid}.png"
-        _plot_targets(plt, data, out / tpng)
-        lines += [f"![per-target point error]({tpng})", ""]
-        info = meta.get("info") or {}
-        curve = _find(info, "curve")
-        if curve and curve.get("train"):
-            cpng = f"training-{fid}.png"
-            title = f"network training ({fid})"
-            trained = _owner(info, "curve") or {}
-            _plot_curve(plt, curve, trained.get("stopped_at"), out / cpng, title, trained.get("loss"))
-            lines += [f"![training curve]({cpng})", ""]
-        kept = _find(info, "kept")
-        if kept:
-            lines += [
-                f"Hybrid: kept **{kept}** (cross-validation decides which learned stage, if any, stays).",
-                "",
-            ]
-        cands = _find(info, "candidates")
-        if isinstance(cands, dict):
-            lines += [
-                "Auto: validation mean position error "
-                + ", ".join(f"{k} {v * 1e3:.4f} mm" for k, v in cands.items() if isinstance(v, int | float))
-                + ".",
-                "",
-            ]
-        lines += [*_parameter_lines(info, data), ""]
-        lines += _measurement_tool_lines(info, data)
-        lines += [*_evaluation_lines(store, str(r), fid), ""]
-    hpng = "histogram.png"
-    _plot_histograms(plt, fits, out / hpng)
-    lines += ["## Position error after calibration, per method", "", f"![histograms]({hpng})", ""]
-    path = out / "report.md"
-    path.write_text("\n".join(lines))
-    return path
+    return lines

@@ -985,7 +985,6 @@ class SessionStore:
         ``valid_prefix`` the measurements recorded after that part are sealed (up to the first corrupt line after
         it), the session metadata taken from the version's manifest, and the damage recorded in the provenance.
         """
-        from .documents import MeasurementDoc
         from .journal import read_journal
         from .schema import normalize_table
 
@@ -997,67 +996,19 @@ class SessionStore:
         parent_ds = self.load(Ref(session_id, parent)) if parent else None  # its own files only
         latest = f"{session_id}@{version_name(parent)}" if parent else None
         through = int(parent_ds.manifest.get("journal_seq_through", 0)) if parent_ds is not None else 0
-        pj = ((parent_ds.manifest.get("provenance") or {}).get("journal") if parent_ds is not None else None) or {}
-        sealed_bytes = int(pj.get("bytes", 0))
-        damage = None  # what happened to the part of the journal the latest version sealed
-        if sealed_bytes and contents.size < sealed_bytes:
-            damage = f"the journal is shorter ({contents.size} bytes) than when {latest} was sealed ({sealed_bytes})"
-        elif sealed_bytes and sha256_file(jpath, limit=sealed_bytes) != pj.get("sha256"):
-            damage = f"the first {sealed_bytes} bytes of the journal, sealed into {latest}, changed since"
-        sealed_lines = _lines_in(jpath, min(sealed_bytes, contents.size))
-        reasons = contents.corrupt_reasons
+        damage, sealed_bytes, sealed_lines = _sealed_part_damage(jpath, contents, parent_ds, latest)
         old = [ln for ln in contents.corrupt_lines if ln <= sealed_lines]
         tail = [ln for ln in contents.corrupt_lines if ln > sealed_lines]
         if old and damage is None:  # cannot happen with intact bytes, but a line judged corrupt is damage all the same
             damage = f"line(s) {old} of the part sealed into {latest} cannot be read"
-        cmd = f"`labcal session seal {session_id} --valid-prefix`"
-        if damage is not None and not valid_prefix:
-            truncated = contents.size < sealed_bytes
-            fix = ("nothing recorded after it can be placed: record the remaining poses in a new session" if truncated
-                   else f"{cmd} seals the measurements recorded after it and records the damage")  # fmt: skip
-            raise JournalCorrupted(
-                f"journal of {session_id!r}: {damage}; {latest} keeps its own copy of those measurements and stays "
-                f"usable; refusing to seal ({fix})"
-            )
-        if tail and not valid_prefix:
-            why = "; ".join(f"line {ln}: {reasons.get(ln, 'corrupt')}" for ln in tail)
-            raise JournalCorrupted(
-                f"journal of {session_id!r} has corrupt line(s) {tail} ({why}); refusing to seal ({cmd} seals the "
-                f"measurements before line {tail[0]} and records what it left out)"
-            )
-        start = contents.start
-        if damage is not None and parent_ds is not None:
-            meta = dict(parent_ds.manifest["session"])  # the version's verified copy of the start document
-        elif start is not None:
-            meta = session_meta_from_start(start)
-        else:
-            raise JournalCorrupted(
-                f"journal of {session_id!r}: line 1, the start document, is damaged or missing and no version holds "
-                "a copy of it: the measurements cannot be tied to their robot and targets; restore the journal "
-                "from a backup"
-            )
+        if not valid_prefix:
+            _refuse_damaged_journal(session_id, contents, contents.size < sealed_bytes, latest, damage, tail)
+        meta = _seal_session_meta(session_id, contents, parent_ds, damage)
         n_joints, n_targets = int(meta["robot"]["n_joints"]), len(meta["targets"])
         first_bad = tail[0] if tail else None
-        after = sealed_lines if damage is not None else 0
-        skipped: list[dict] = [
-            {"line": ln, "reason": f"{reasons.get(ln, 'corrupt')} (in the part sealed into {latest}, which keeps its "
-                                   "own copy)"}
-            for ln in old
-        ]  # fmt: skip
-        skipped += [{"line": ln, "reason": reasons.get(ln, "corrupt")} for ln in tail]
-        measurements: list[MeasurementDoc] = []
-        for ln, doc in zip(contents.document_lines, contents.documents, strict=True):
-            if doc["type"] != "measurement" or ln <= after:
-                continue
-            if first_bad is not None and ln > first_bad:
-                # after an unexplained corruption the order and completeness of the later documents cannot be trusted
-                skipped.append(
-                    {"line": ln, "seq": doc["seq"], "pose_index": doc["pose_index"], "status": doc["status"],
-                     "reason": f"after the corrupt line {first_bad}"}
-                )  # fmt: skip
-                continue
-            measurements.append(MeasurementDoc.from_json(doc))
-        skipped.sort(key=lambda x: x["line"])
+        measurements, skipped = _measurements_to_seal(
+            contents, sealed_lines if damage is not None else 0, old, tail, latest
+        )
         new = [m for m in measurements if m.seq > through and m.valid]
         if not new:
             where = f"since {latest}" if latest else "in the journal"
@@ -1380,6 +1331,88 @@ def _journal_problems(
                     f"manifest; the versions use their own copy"
                 )
     return problems
+
+
+def _sealed_part_damage(
+    jpath: Path, contents, parent_ds: Dataset | None, latest: str | None
+) -> tuple[str | None, int, int]:
+    """(what happened to the part of the journal the latest version sealed, or None; that part's size in bytes;
+    the journal lines in that part that are still there)."""
+    pj = ((parent_ds.manifest.get("provenance") or {}).get("journal") if parent_ds is not None else None) or {}
+    sealed_bytes = int(pj.get("bytes", 0))
+    damage = None
+    if sealed_bytes and contents.size < sealed_bytes:
+        damage = f"the journal is shorter ({contents.size} bytes) than when {latest} was sealed ({sealed_bytes})"
+    elif sealed_bytes and sha256_file(jpath, limit=sealed_bytes) != pj.get("sha256"):
+        damage = f"the first {sealed_bytes} bytes of the journal, sealed into {latest}, changed since"
+    return damage, sealed_bytes, _lines_in(jpath, min(sealed_bytes, contents.size))
+
+
+def _refuse_damaged_journal(
+    session_id: str, contents, truncated: bool, latest: str | None, damage: str | None, tail: list[int]
+) -> None:
+    """Without --valid-prefix: :class:`JournalCorrupted` for damage to the sealed part, then for corrupt lines
+    after it, each with the fix."""
+    cmd = f"`labcal session seal {session_id} --valid-prefix`"
+    if damage is not None:
+        fix = ("nothing recorded after it can be placed: record the remaining poses in a new session" if truncated
+               else f"{cmd} seals the measurements recorded after it and records the damage")  # fmt: skip
+        raise JournalCorrupted(
+            f"journal of {session_id!r}: {damage}; {latest} keeps its own copy of those measurements and stays "
+            f"usable; refusing to seal ({fix})"
+        )
+    if tail:
+        reasons = contents.corrupt_reasons
+        why = "; ".join(f"line {ln}: {reasons.get(ln, 'corrupt')}" for ln in tail)
+        raise JournalCorrupted(
+            f"journal of {session_id!r} has corrupt line(s) {tail} ({why}); refusing to seal ({cmd} seals the "
+            f"measurements before line {tail[0]} and records what it left out)"
+        )
+
+
+def _seal_session_meta(session_id: str, contents, parent_ds: Dataset | None, damage: str | None) -> dict:
+    """The session metadata of the new version: the latest version's verified copy when the sealed part is
+    damaged, else the journal's start document."""
+    if damage is not None and parent_ds is not None:
+        return dict(parent_ds.manifest["session"])  # the version's verified copy of the start document
+    if contents.start is not None:
+        return session_meta_from_start(contents.start)
+    raise JournalCorrupted(
+        f"journal of {session_id!r}: line 1, the start document, is damaged or missing and no version holds "
+        "a copy of it: the measurements cannot be tied to their robot and targets; restore the journal "
+        "from a backup"
+    )
+
+
+def _measurements_to_seal(
+    contents, after: int, old: list[int], tail: list[int], latest: str | None
+) -> tuple[list[MeasurementDoc], list[dict]]:
+    """(the measurement documents after journal line ``after`` and before the first corrupt line after it, the
+    journal lines left out with why, by line)."""
+    from .documents import MeasurementDoc
+
+    reasons = contents.corrupt_reasons
+    first_bad = tail[0] if tail else None
+    skipped: list[dict] = [
+        {"line": ln, "reason": f"{reasons.get(ln, 'corrupt')} (in the part sealed into {latest}, which keeps its "
+                               "own copy)"}
+        for ln in old
+    ]  # fmt: skip
+    skipped += [{"line": ln, "reason": reasons.get(ln, "corrupt")} for ln in tail]
+    measurements: list[MeasurementDoc] = []
+    for ln, doc in zip(contents.document_lines, contents.documents, strict=True):
+        if doc["type"] != "measurement" or ln <= after:
+            continue
+        if first_bad is not None and ln > first_bad:
+            # after an unexplained corruption the order and completeness of the later documents cannot be trusted
+            skipped.append(
+                {"line": ln, "seq": doc["seq"], "pose_index": doc["pose_index"], "status": doc["status"],
+                 "reason": f"after the corrupt line {first_bad}"}
+            )  # fmt: skip
+            continue
+        measurements.append(MeasurementDoc.from_json(doc))
+    skipped.sort(key=lambda x: x["line"])
+    return measurements, skipped
 
 
 def _lines_in(path: Path, n: int) -> int:
