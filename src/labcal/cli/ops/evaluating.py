@@ -148,42 +148,9 @@ def evaluate_fit(
     else:
         ref = str(store.resolve(split_ref(data)))
     obs, datasets = load_observations(store, [ref], robot, with_spec=True)[:2]
-    ds = datasets[0]
-    fit_hash = (stored.meta.get("robot") or {}).get("hash")
-    if fit_hash and ds.robot.get("hash") != fit_hash:
-        raise UserError(
-            f"{ref} was recorded with robot model {ds.robot.get('name')!r} (hash {str(ds.robot.get('hash'))[:12]}…), "
-            f"fit {fit_id} with {(stored.meta.get('robot') or {}).get('name')!r} (hash {fit_hash[:12]}…): "
-            "a fit can only score data of the robot model it was fitted for"
-        )
-    fit_obs_targets = store.load(stored.inputs[0]).targets
-    if not np.allclose(obs.targets, fit_obs_targets, atol=1e-9):
-        raise UserError(
-            f"{ref} has different targets from the data of fit {fit_id}: the fitted tool frame belongs to the fit's "
-            "targets; evaluate with the same targets file"
-        )
+    _check_same_robot_and_targets(store, stored, fit_id, ref, obs, datasets[0])
     obs = dataclasses.replace(obs, split=np.full(obs.k, "test", dtype=object))
-    registration: dict = {"frame": obs.frame}
-    if obs.frame == "tracker":
-        T_after, rms_after = register_base(stored.robot, obs)
-        T_before, rms_before = register_base(stored.before, obs)
-        after = dataclasses.replace(stored.robot, T_tracker_base=T_after)
-        before = dataclasses.replace(stored.before, T_tracker_base=T_before)
-        registration.update(
-            fitted="T_tracker_base only (6 parameters: rigid least-squares fit of the predicted to the measured "
-            "points, separately for before and after); nothing of the calibration is refitted",
-            parameters=6,
-            numbers=int(np.isfinite(obs.points).all(axis=2).sum() * 3),
-            T_tracker_base_after=T_after,
-            T_tracker_base_before=T_before,
-            rms_after=rms_after,
-            rms_before=rms_before,
-        )
-    else:
-        # Base-frame data are already in the robot's frame: score the stored models as they are.
-        after = dataclasses.replace(stored.robot, T_tracker_base=np.eye(4))
-        before = dataclasses.replace(stored.before, T_tracker_base=np.eye(4))
-        registration.update(fitted="nothing (base-frame data are scored as they are)", parameters=0)
+    before, after, registration = _registered(stored, obs)
     table = split_table(before, after, obs)
     from labcal.calibration.metrics import observability
 
@@ -226,3 +193,48 @@ def evaluate_fit(
     }
     evaluation["evaluation_id"], path = store.save_evaluation(stored.ref, fit_id, plain(evaluation))
     return EvaluationOutcome(plain(evaluation), path, ref, imported)
+
+
+def _check_same_robot_and_targets(store: SessionStore, stored, fit_id: str, ref: str, obs, ds) -> None:
+    """Refuse data of another robot model than the fit's, or with other targets (the fitted tool frame is theirs)."""
+    fit_hash = (stored.meta.get("robot") or {}).get("hash")
+    if fit_hash and ds.robot.get("hash") != fit_hash:
+        raise UserError(
+            f"{ref} was recorded with robot model {ds.robot.get('name')!r} (hash {str(ds.robot.get('hash'))[:12]}…), "
+            f"fit {fit_id} with {(stored.meta.get('robot') or {}).get('name')!r} (hash {fit_hash[:12]}…): "
+            "a fit can only score data of the robot model it was fitted for"
+        )
+    fit_obs_targets = store.load(stored.inputs[0]).targets
+    if not np.allclose(obs.targets, fit_obs_targets, atol=1e-9):
+        raise UserError(
+            f"{ref} has different targets from the data of fit {fit_id}: the fitted tool frame belongs to the fit's "
+            "targets; evaluate with the same targets file"
+        )
+
+
+def _registered(stored, obs):
+    """(before, after, registration): the nominal and the calibrated robot placed in the data's frame, and how.
+
+    Tracker-frame data: T_tracker_base fitted to them, for each robot separately (nothing else is refitted)."""
+    registration: dict = {"frame": obs.frame}
+    if obs.frame == "tracker":
+        T_after, rms_after = register_base(stored.robot, obs)
+        T_before, rms_before = register_base(stored.before, obs)
+        after = dataclasses.replace(stored.robot, T_tracker_base=T_after)
+        before = dataclasses.replace(stored.before, T_tracker_base=T_before)
+        registration.update(
+            fitted="T_tracker_base only (6 parameters: rigid least-squares fit of the predicted to the measured "
+            "points, separately for before and after); nothing of the calibration is refitted",
+            parameters=6,
+            numbers=int(np.isfinite(obs.points).all(axis=2).sum() * 3),
+            T_tracker_base_after=T_after,
+            T_tracker_base_before=T_before,
+            rms_after=rms_after,
+            rms_before=rms_before,
+        )
+    else:
+        # Base-frame data are already in the robot's frame: score the stored models as they are.
+        after = dataclasses.replace(stored.robot, T_tracker_base=np.eye(4))
+        before = dataclasses.replace(stored.before, T_tracker_base=np.eye(4))
+        registration.update(fitted="nothing (base-frame data are scored as they are)", parameters=0)
+    return before, after, registration
