@@ -401,65 +401,21 @@ class _Run:
         """Run the remaining poses; return (exit_status, reason). Writes the stop document (not for a crash)."""
         robot, journal = self.robot, self.journal
         pose: int | None = None
-        silent = 0  # consecutive poses without a single tracker answer
-        failed = 0  # consecutive rejected poses (motion refusals aside)
+        self.silent = 0  # consecutive poses without a single tracker answer
+        self.failed = 0  # consecutive rejected poses (motion refusals aside)
         valid_now = 0
         try:
             for step in self.plan.poses():
                 if step.index in self.done:
                     continue
                 pose = step.index
-                q_command = self.joints.to_controller(step.q)
-                outcome = self.measure_pose(step, q_command)
-                m = outcome.measurement
-                journal.append_measurement(
-                    pose_index=step.index,
-                    q_commanded=q_command,
-                    q_actual=outcome.q_actual,
-                    points=None if m is None else m.points,
-                    spread=_spread_of(m),
-                    samples=0 if m is None else int(m.samples),
-                    status=outcome.status,
-                    reason=outcome.reason,
-                    extra={
-                        "attempts": outcome.attempts,
-                        "triangle_error": outcome.residual,
-                        "quality": ",".join(m.quality) if m is not None else "",
-                    },
-                )
-                self.measured += 1
-                self.done.add(step.index)
+                outcome = self.record(step)
                 valid_now += outcome.status == "valid"
-                self.emit(step.index, outcome.status, outcome.residual, outcome.reason)
-                if outcome.status == "valid":
-                    self.rows.append((step.index, np.asarray(outcome.q_actual).tolist(), np.asarray(m.points)))
-                    # Checked after the measurement is journaled (nothing recorded is lost) and before the next
-                    # motion: a wrong robot model, targets file, unit or frame stops the run early.
-                    why = self.sanity()
-                    if why:
-                        _safe_stop(robot)
-                        journal.stop("failed", why)
-                        return "failed", why
-                silent = silent + 1 if outcome.silent else 0
-                if not outcome.refused:
-                    failed = failed + 1 if outcome.status == "rejected" else 0
-                # a silent tracker is named as such first: its poses are rejected poses too
-                if self.retry.max_silent_poses and silent >= self.retry.max_silent_poses:
+                why = self.stop_reason(outcome, pose)
+                if why:
                     _safe_stop(robot)
-                    reason = (
-                        f"the tracker did not answer on {silent} consecutive poses (every attempt timed out, last "
-                        f"at pose {pose}): check its cable, power and profile, then resume"
-                    )
-                    journal.stop("failed", reason)
-                    return "failed", reason
-                if self.retry.max_failed_poses and failed >= self.retry.max_failed_poses:
-                    _safe_stop(robot)
-                    reason = (
-                        f"{failed} consecutive poses rejected (last at pose {pose}: {outcome.reason}): check the "
-                        "tracker (line of sight, targets, profile), then resume"
-                    )
-                    journal.stop("failed", reason)
-                    return "failed", reason
+                    journal.stop("failed", why)
+                    return "failed", why
         except ProtectiveStop as e:
             _safe_stop(robot)
             reason = f"protective stop at pose {pose}: {e}"
@@ -486,6 +442,64 @@ class _Run:
             reason = f"{type(e).__name__} at pose {pose}: {e}"
             journal.stop("failed", reason)
             return "failed", reason
+        return self.finish(valid_now)
+
+    def record(self, step: PoseStep) -> _Outcome:
+        """Measure one pose and journal it (whatever its status), then count it and report it."""
+        q_command = self.joints.to_controller(step.q)
+        outcome = self.measure_pose(step, q_command)
+        m = outcome.measurement
+        self.journal.append_measurement(
+            pose_index=step.index,
+            q_commanded=q_command,
+            q_actual=outcome.q_actual,
+            points=None if m is None else m.points,
+            spread=_spread_of(m),
+            samples=0 if m is None else int(m.samples),
+            status=outcome.status,
+            reason=outcome.reason,
+            extra={
+                "attempts": outcome.attempts,
+                "triangle_error": outcome.residual,
+                "quality": ",".join(m.quality) if m is not None else "",
+            },
+        )
+        self.measured += 1
+        self.done.add(step.index)
+        self.emit(step.index, outcome.status, outcome.residual, outcome.reason)
+        if outcome.status == "valid":
+            self.rows.append((step.index, np.asarray(outcome.q_actual).tolist(), np.asarray(m.points)))
+        return outcome
+
+    def stop_reason(self, outcome: _Outcome, pose: int) -> str:
+        """Why the run must stop after this journaled pose ("" to go on): the record-time sanity check, a silent
+        tracker, too many rejected poses in a row."""
+        if outcome.status == "valid":
+            # Checked after the measurement is journaled (nothing recorded is lost) and before the next
+            # motion: a wrong robot model, targets file, unit or frame stops the run early.
+            why = self.sanity()
+            if why:
+                return why
+        self.silent = self.silent + 1 if outcome.silent else 0
+        if not outcome.refused:
+            self.failed = self.failed + 1 if outcome.status == "rejected" else 0
+        # a silent tracker is named as such first: its poses are rejected poses too
+        if self.retry.max_silent_poses and self.silent >= self.retry.max_silent_poses:
+            return (
+                f"the tracker did not answer on {self.silent} consecutive poses (every attempt timed out, last "
+                f"at pose {pose}): check its cable, power and profile, then resume"
+            )
+        if self.retry.max_failed_poses and self.failed >= self.retry.max_failed_poses:
+            return (
+                f"{self.failed} consecutive poses rejected (last at pose {pose}: {outcome.reason}): check the "
+                "tracker (line of sight, targets, profile), then resume"
+            )
+        return ""
+
+    def finish(self, valid_now: int) -> tuple[str, str]:
+        """The end of a run that went through every pose: failed when it kept none or the data fail the sanity
+        check, else success."""
+        journal = self.journal
         if self.measured and not valid_now:
             # A run that measured poses and kept none is not a success, whatever the cause (dead tracker, wrong
             # targets file, robot never reaching the poses): say why instead of sealing nothing quietly.
