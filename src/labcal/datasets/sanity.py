@@ -370,50 +370,57 @@ def _check_target_distances(points, targets, length_unit, hints, report, allow) 
         "ratio": round(ratio, 6),
     }
     tol = np.maximum(TARGET_ABS_TOL, TARGET_REL_TOL * d_file)
-    listing = "; ".join(
-        f"t{a + 1}–t{b + 1} {_mm(m)} measured vs {_mm(f)} in the file"
-        for (a, b), m, f in zip(pairs, med, d_file, strict=True)
-    )
-    finding = None
-    if np.all(np.abs(med - d_file) <= tol):
-        finding = None
-    elif not ratio > 0:  # every measured triangle collapsed to a point (zeros, one reflector reported thrice)
-        finding = Finding("target-distances", f"the measured targets coincide ({listing}): the target columns do not "
-                          f"hold distinct measured points")  # fmt: skip
-    elif (slip := _unit_slip(ratio, length_unit, hints, "the measured distances between the targets")) and np.all(
-        np.abs(med / d_file / ratio - 1) < UNIT_RATIO_TOL - 1
-    ):
-        finding = Finding("target-distances", f"{slip} (median over {len(points)} rows: {listing})")
-    else:
-        best, best_err = None, np.inf
-        for perm in itertools.permutations(range(3)) if pairs == _PAIRS else ():
-            if perm == (0, 1, 2):
-                continue
-            fp = pair_distances(targets[list(perm)])
-            err = float(np.max(np.abs(med - fp) - tol))
-            if err < best_err:
-                best, best_err = perm, err
-        if best is not None and best_err <= 0:
-            finding = Finding(
-                "target-distances",
-                f"targets look swapped: {_perm_text(best)} — the measured distances match the targets file with "
-                f"the targets in that order ({listing}); reorder the points in the targets file or the CSV's "
-                f"target columns",
-            )
-        else:
-            finding = Finding(
-                "target-distances",
-                f"the targets file's {'triangle does' if pairs == _PAIRS else 'distances do'} not match the data "
-                f"({listing}; median over {len(points)} rows, "
-                f"tolerance {_mm(float(tol.min()))}): check that the targets file describes the targets that were "
-                f"measured, in the same order and unit",
-            )
+    finding = _target_distance_finding(pairs, med, d_file, ratio, tol, len(points), targets, length_unit, hints)
     if finding is not None:
         _add(report, finding, allow)
         if "target-distances" not in allow:
             return  # per-row outliers mean nothing against the wrong triangle
-    # Rows against the data's own median distances: equal to the file's when the check above passed, and still
-    # meaningful when a scale mismatch was allowed.
+    _check_target_outlier_rows(pairs, d, med, d_file, hints, report, allow)
+
+
+def _target_distance_finding(pairs, med, d_file, ratio, tol, n_rows, targets, length_unit, hints) -> Finding | None:
+    """What the median measured pair distances say against the file's: None (they match), coinciding targets, a
+    unit slip, swapped targets, or a triangle that does not match."""
+    listing = "; ".join(
+        f"t{a + 1}–t{b + 1} {_mm(m)} measured vs {_mm(f)} in the file"
+        for (a, b), m, f in zip(pairs, med, d_file, strict=True)
+    )
+    if np.all(np.abs(med - d_file) <= tol):
+        return None
+    if not ratio > 0:  # every measured triangle collapsed to a point (zeros, one reflector reported thrice)
+        return Finding("target-distances", f"the measured targets coincide ({listing}): the target columns do not "
+                       f"hold distinct measured points")  # fmt: skip
+    if (slip := _unit_slip(ratio, length_unit, hints, "the measured distances between the targets")) and np.all(
+        np.abs(med / d_file / ratio - 1) < UNIT_RATIO_TOL - 1
+    ):
+        return Finding("target-distances", f"{slip} (median over {n_rows} rows: {listing})")
+    best, best_err = None, np.inf
+    for perm in itertools.permutations(range(3)) if pairs == _PAIRS else ():
+        if perm == (0, 1, 2):
+            continue
+        fp = pair_distances(targets[list(perm)])
+        err = float(np.max(np.abs(med - fp) - tol))
+        if err < best_err:
+            best, best_err = perm, err
+    if best is not None and best_err <= 0:
+        return Finding(
+            "target-distances",
+            f"targets look swapped: {_perm_text(best)} — the measured distances match the targets file with "
+            f"the targets in that order ({listing}); reorder the points in the targets file or the CSV's "
+            f"target columns",
+        )
+    return Finding(
+        "target-distances",
+        f"the targets file's {'triangle does' if pairs == _PAIRS else 'distances do'} not match the data "
+        f"({listing}; median over {n_rows} rows, "
+        f"tolerance {_mm(float(tol.min()))}): check that the targets file describes the targets that were "
+        f"measured, in the same order and unit",
+    )
+
+
+def _check_target_outlier_rows(pairs, d, med, d_file, hints, report, allow) -> None:
+    """Rows against the data's own median distances: equal to the file's when the distance check passed, and still
+    meaningful when a scale mismatch was allowed."""
     gap = np.abs(d - med)
     dev = np.nanmax(gap, axis=1) if np.isnan(gap).any() else gap.max(axis=1)
     sigma = 1.4826 * float(np.nanmedian(gap) if np.isnan(gap).any() else np.median(gap))
@@ -685,27 +692,10 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
         )
     if mean <= NOMINAL_MEAN_LIMIT and not len(reach_bad):
         return
-    # Which reading of the input would make the data agree with the model? Test on a spread subset of rows.
-    idx = np.unique(np.linspace(0, len(q) - 1, min(len(q), HYPOTHESIS_ROWS)).astype(int))
-    probe_poses = _kabsch_batch(targets, points[idx]) if form == "probe" else None
-    scored = []
-    for h in _hypotheses(q[idx], points[idx], targets, robot, angle_unit=angle_unit, length_unit=length_unit,
-                         frame=frame, form=form, probe_poses=probe_poses, hints=hints,
-                         unit_ratio=_known_unit_ratio(report.stats)):  # fmt: skip
-        try:
-            m = _robust_mean(registered_residuals(robot, h.q, h.points, h.targets, frame=h.frame,
-                                                  tool_known=tool_known and not h.free_tool))[0]  # fmt: skip
-        except (np.linalg.LinAlgError, ValueError):
-            continue
-        if np.isfinite(m):
-            scored.append((h, m))
-    best, best_mean = None, np.inf
-    if scored:
-        lowest = min(m for _, m in scored)
-        # Among the readings about as good as the best one, name the one that changes least (a registration
-        # absorbs a little noise, so "--length-unit mm and --frame tracker" may score a hair under "--length-unit mm").
-        near = [(h, m) for h, m in scored if m <= max(1.5 * lowest, lowest + 2e-3)]
-        best, best_mean = min(near, key=lambda hm: (hm[0].cost, hm[1]))
+    best, best_mean = _best_reading(
+        q, points, targets, robot, frame=frame, form=form, angle_unit=angle_unit, length_unit=length_unit,
+        hints=hints, report=report,
+    )  # fmt: skip
     explained = best is not None and best_mean <= NOMINAL_MEAN_LIMIT and best_mean < 0.5 * mean
     best_text = "" if best is None else best.text  # said only when explained (best is then not None)
     if explained:
@@ -757,6 +747,35 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
         ),
         allow,
     )
+
+
+def _best_reading(q, points, targets, robot, *, frame, form, angle_unit, length_unit, hints, report):
+    """(the alternative reading of the input (:func:`_hypotheses`) that brings the data nearest the nominal model,
+    among those about as near as the nearest one the one that changes least; its robust mean residual), or
+    (None, inf) when none can be scored."""
+    tool_known = form == "targets"
+    # Which reading of the input would make the data agree with the model? Test on a spread subset of rows.
+    idx = np.unique(np.linspace(0, len(q) - 1, min(len(q), HYPOTHESIS_ROWS)).astype(int))
+    probe_poses = _kabsch_batch(targets, points[idx]) if form == "probe" else None
+    scored = []
+    for h in _hypotheses(q[idx], points[idx], targets, robot, angle_unit=angle_unit, length_unit=length_unit,
+                         frame=frame, form=form, probe_poses=probe_poses, hints=hints,
+                         unit_ratio=_known_unit_ratio(report.stats)):  # fmt: skip
+        try:
+            m = _robust_mean(registered_residuals(robot, h.q, h.points, h.targets, frame=h.frame,
+                                                  tool_known=tool_known and not h.free_tool))[0]  # fmt: skip
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        if np.isfinite(m):
+            scored.append((h, m))
+    best, best_mean = None, np.inf
+    if scored:
+        lowest = min(m for _, m in scored)
+        # Among the readings about as good as the best one, name the one that changes least (a registration
+        # absorbs a little noise, so "--length-unit mm and --frame tracker" may score a hair under "--length-unit mm").
+        near = [(h, m) for h, m in scored if m <= max(1.5 * lowest, lowest + 2e-3)]
+        best, best_mean = min(near, key=lambda hm: (hm[0].cost, hm[1]))
+    return best, best_mean
 
 
 def _robust_mean(per_row: np.ndarray, share: float = 0.1) -> tuple[float, np.ndarray]:
