@@ -169,22 +169,7 @@ def export_fit(
             f"fit {stored.fit_id} has {len(warnings)} warning(s) and is not exported: {listed}. "
             "Fix the data or the fit, or pass --force to export it anyway (recorded in the export's provenance)"
         )
-    provenance = {
-        "session": stored.ref,
-        "fit_id": stored.fit_id,
-        "inputs": ", ".join(i["ref"] for i in record.inputs),
-        "data_sha256": ", ".join(i["manifest_sha256"] for i in record.inputs),
-        "method": stored.robot.method,
-        **device_serials(store, [i["ref"] for i in record.inputs]),
-    }
-    if warnings:
-        provenance["forced"] = True
-        if fmt in ("json", "npz"):
-            provenance["warnings"] = [
-                {"code": printable(w.get("code")), "message": printable(w.get("message"))} for w in warnings
-            ]
-        else:
-            provenance["warnings"] = _one_line(" | ".join(f"[{w.get('code')}] {w.get('message')}" for w in warnings))
+    provenance = _provenance(store, stored, record, fmt, warnings)
     options = dict(options or {})
     if fmt == "urdf":
         # Unknown effort/velocity: written as 0 with a note in the file and a warning, unless the caller refuses.
@@ -204,16 +189,45 @@ def export_fit(
             raise UserError(f"--out {printable(e)}") from None
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    if on_warning is not None and fmt in GEOMETRY_FORMATS and options.get("geometry_only"):
+    if on_warning is not None:
+        _warn_about_written(out, fmt, stored.robot, options, on_warning)
+    return out
+
+
+def _provenance(store: SessionStore, stored, record, fmt: str, warnings: list[dict]) -> dict:
+    """What an export records of where it came from: session, fit, input data and their hashes, devices, and a
+    forced export's warnings."""
+    provenance = {
+        "session": stored.ref,
+        "fit_id": stored.fit_id,
+        "inputs": ", ".join(i["ref"] for i in record.inputs),
+        "data_sha256": ", ".join(i["manifest_sha256"] for i in record.inputs),
+        "method": stored.robot.method,
+        **device_serials(store, [i["ref"] for i in record.inputs]),
+    }
+    if warnings:
+        provenance["forced"] = True
+        if fmt in ("json", "npz"):
+            provenance["warnings"] = [
+                {"code": printable(w.get("code")), "message": printable(w.get("message"))} for w in warnings
+            ]
+        else:
+            provenance["warnings"] = _one_line(" | ".join(f"[{w.get('code')}] {w.get('message')}" for w in warnings))
+    return provenance
+
+
+def _warn_about_written(out: Path, fmt: str, robot, options: dict, on_warning: Callable[[str], None]) -> None:
+    """What the user must know about the file written: a learned term --geometry-only left out (with its size),
+    joint effort/velocity written as 0."""
+    if fmt in GEOMETRY_FORMATS and options.get("geometry_only"):
         from labcal.export.learned import dropped_learned_term
 
-        dropped = dropped_learned_term(stored.robot)
+        dropped = dropped_learned_term(robot)
         if dropped is not None:
             on_warning(f"--geometry-only: {out} leaves out the learned term: {dropped.describe()}")
     dynamics = (options.get("velocity") or []) + (options.get("effort") or [])
-    if on_warning is not None and fmt == "urdf" and (not dynamics or None in dynamics):
+    if fmt == "urdf" and (not dynamics or None in dynamics):
         on_warning(
             f"{out}: the robot file gives no joint effort/velocity, written as 0 (add 'velocity' and 'effort' to its "
             "[[joints]] tables, or pass --unknown-dynamics refuse to stop instead)"
         )
-    return out
