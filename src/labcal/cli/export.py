@@ -8,34 +8,38 @@ import typer
 
 from labcal.cli.common import ExportFormat, StoreOption, UnknownDynamics, err, open_store, user_errors
 
+_FORMAT = typer.Option(
+    ...,
+    "--format",
+    case_sensitive=False,
+    help="json | npz (the compensator) | urscript (function file for a Script node) | urscript-program (def "
+    "program for the script port 30002) | urdf | ur-kinematics (ur_description's calibration YAML).",
+)
+_GEOMETRY_ONLY = typer.Option(
+    False,
+    "--geometry-only",
+    help="urdf / ur-kinematics of a hybrid or ann fit: write the identified frames alone (refused without "
+    "this flag, because the learned term is dropped; its size is printed).",
+)
+_UNKNOWN_DYNAMICS = typer.Option(
+    "zero",
+    "--unknown-dynamics",
+    case_sensitive=False,
+    help="urdf when the robot file gives no joint effort/velocity: zero (default: write 0, with a warning and a "
+    "note in the file) or refuse.",
+)
+
 
 @user_errors
 def export(
     session: str = typer.Argument(..., help="SESSION or SESSION@vN the fit is stored under."),
-    fmt: ExportFormat = typer.Option(
-        ...,
-        "--format",
-        case_sensitive=False,
-        help="json | npz (the compensator) | urscript (function file for a Script node) | urscript-program (def "
-        "program for the script port 30002) | urdf | ur-kinematics (ur_description's calibration YAML).",
-    ),
+    fmt: ExportFormat = _FORMAT,
     out: Path = typer.Option(..., "--out", help="Output file (.json / .npz for the compensator)."),
-    geometry_only: bool = typer.Option(
-        False,
-        "--geometry-only",
-        help="urdf / ur-kinematics of a hybrid or ann fit: write the identified frames alone (refused without "
-        "this flag, because the learned term is dropped; its size is printed).",
-    ),
+    geometry_only: bool = _GEOMETRY_ONLY,
     ur_link_names: bool = typer.Option(
         False, "--ur-link-names", help="urdf: ur_description's link and joint names (base_link turned by pi)."
     ),
-    unknown_dynamics: UnknownDynamics = typer.Option(
-        "zero",
-        "--unknown-dynamics",
-        case_sensitive=False,
-        help="urdf when the robot file gives no joint effort/velocity: zero (default: write 0, with a warning and a "
-        "note in the file) or refuse.",
-    ),
+    unknown_dynamics: UnknownDynamics = _UNKNOWN_DYNAMICS,
     statements_per_sync: int = typer.Option(
         1000, "--statements-per-sync", help="urscript: at most this many statements between two sync() calls."
     ),
@@ -68,18 +72,17 @@ def export(
     """
     from labcal.cli.common import print_gates
     from labcal.cli.ops import export_fit, split_ref
-    from labcal.cli.ops.exporting import stored_warnings
+    from labcal.cli.ops.exporting import format_options, stored_warnings
     from labcal.cli.ops.fitting import load_stored_fit
 
     st = open_store(store, create=False)
-    if fmt in ("urdf", "ur-kinematics"):
-        options: dict = {"geometry_only": geometry_only}
-        if fmt == "urdf":
-            options.update(ur_names=ur_link_names, unknown_dynamics=unknown_dynamics)
-    elif fmt in ("urscript", "urscript-program"):
-        options = {"statements_per_sync": statements_per_sync}
-    else:
-        options = {}
+    options = format_options(
+        fmt,
+        geometry_only=geometry_only,
+        ur_names=ur_link_names,
+        unknown_dynamics=unknown_dynamics,
+        statements_per_sync=statements_per_sync,
+    )
     path = export_fit(
         st,
         split_ref(session),

@@ -123,6 +123,20 @@ def device_serials(store: SessionStore, refs: list[str]) -> dict[str, str]:
     return {"arm_serial": ", ".join(arms) or "unknown", "tracker_serial": ", ".join(trackers) or "unknown"}
 
 
+def format_options(
+    fmt: str, *, geometry_only: bool, ur_names: bool, unknown_dynamics: str, statements_per_sync: int
+) -> dict:
+    """The options of `labcal export` that apply to the format (the writer's keyword arguments)."""
+    if fmt in ("urdf", "ur-kinematics"):
+        options: dict = {"geometry_only": geometry_only}
+        if fmt == "urdf":
+            options.update(ur_names=ur_names, unknown_dynamics=unknown_dynamics)
+        return options
+    if fmt in ("urscript", "urscript-program"):
+        return {"statements_per_sync": statements_per_sync}
+    return {}
+
+
 def export_fit(
     store: SessionStore,
     ref: str,
