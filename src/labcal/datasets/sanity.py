@@ -718,8 +718,14 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
             ),
             allow,
         )
-    if mean <= NOMINAL_MEAN_LIMIT:
-        return
+    if mean > NOMINAL_MEAN_LIMIT:
+        drop = f"the mean drops to {_mm(best_mean)} {best_text}" if explained else None
+        _add(report, _nominal_mismatch(q, per_row, mean, robot, frame, tool_known, hints, drop), allow)
+
+
+def _nominal_mismatch(q, per_row, mean, robot, frame, tool_known, hints, fix: str | None) -> Finding:
+    """The data as a whole are far from the nominal model: how far, where, the worst rows, and the fix (the
+    reading of the input that explains it, else the likely causes)."""
     where = {
         ("base", True): "in the base frame as given",
         ("tracker", True): "after the best rigid tracker → base registration",
@@ -728,24 +734,18 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
     }[(frame, tool_known)]
     worst = np.argsort(per_row)[::-1][:3]
     worst_text = ", ".join(f"{hints.row_text(int(i))} {_mm(float(per_row[i]))}" for i in worst)
-    if explained:
-        fix = f"the mean drops to {_mm(best_mean)} {best_text}"
-    else:
+    if fix is None:
         fix = (
             f"no single fix found; likely causes: the joint angle unit ({hints.angle.format(unit='deg|rad')}), "
             f"controller joints that are not the model's joints (coupled or reversed joints: the robot file's "
             f"[joint_map]), the frame of the points ({hints.frame.format(frame='base|tracker')}), the targets file, "
             f"or the wrong robot file"
         )
-    _add(
-        report,
-        Finding(
-            "nominal",
-            f"the measured points are {_mm(mean)} (mean over {len(q)} rows) from where the nominal "
-            f"{robot.name} model puts them {where}; a robot matching its model is within a few mm (limit "
-            f"{_mm(NOMINAL_MEAN_LIMIT)}); worst {worst_text}: {fix}",
-        ),
-        allow,
+    return Finding(
+        "nominal",
+        f"the measured points are {_mm(mean)} (mean over {len(q)} rows) from where the nominal "
+        f"{robot.name} model puts them {where}; a robot matching its model is within a few mm (limit "
+        f"{_mm(NOMINAL_MEAN_LIMIT)}); worst {worst_text}: {fix}",
     )
 
 
