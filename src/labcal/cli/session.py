@@ -122,15 +122,36 @@ class _RunProgress:
             self._bar.console.print(f"  {where}{p.status} {p.message}", markup=False)
 
 
+_TARGETS = typer.Option(
+    ..., "--targets", help="Targets TOML: unit and the points in the tool frame (1 or more; one for a single SMR)."
+)
+_SIM_SEED = typer.Option(
+    None, "--sim-seed", help="Seed of the simulated robot's errors (default --seed): measure the same robot again."
+)
+_SIM_DROPOUT = typer.Option(
+    0.0, "--sim-dropout", help="Sim tracker: probability (0 to <1) that a target is not seen in a pose."
+)
+_UNIT = typer.Option(
+    None,
+    "--unit",
+    help="Id of the robot unit (recorded as the session's unit; default: the controller's serial number, "
+    "sim-<seed> on the sim rig).",
+)
+_MAX_FAILED_POSES = typer.Option(
+    5,
+    "--max-failed-poses",
+    help="Stop the run (failed, resumable) after this many consecutive rejected poses (0: never); a pose the "
+    "robot refuses to move to does not count.",
+)
+
+
 @app.command("new")
 @user_errors
 def new(
     robot: str = typer.Option(
         ..., "--robot", help="Robot model: built-in name or TOML/URDF path.", autocompletion=complete_robot
     ),
-    targets: Path = typer.Option(
-        ..., "--targets", help="Targets TOML: unit and the points in the tool frame (1 or more; one for a single SMR)."
-    ),
+    targets: Path = _TARGETS,
     poses: int = typer.Option(..., "--poses", help="Number of configurations to measure."),
     robot_driver: RobotDriver = typer.Option("sim", "--robot-driver", help="sim | ur", case_sensitive=False),
     tracker_driver: TrackerDriver = typer.Option("sim", "--tracker-driver", help="sim | serial", case_sensitive=False),
@@ -142,27 +163,13 @@ def new(
     sim_errors: SimErrors = typer.Option(
         "default", "--sim-errors", help="Sim robot errors: paper | default | none.", case_sensitive=False
     ),
-    sim_seed: int | None = typer.Option(
-        None, "--sim-seed", help="Seed of the simulated robot's errors (default --seed): measure the same robot again."
-    ),
-    sim_dropout: float = typer.Option(
-        0.0, "--sim-dropout", help="Sim tracker: probability (0 to <1) that a target is not seen in a pose."
-    ),
+    sim_seed: int | None = _SIM_SEED,
+    sim_dropout: float = _SIM_DROPOUT,
     allow: list[str] = typer.Option([], "--allow", help=ALLOW_HELP),
-    unit: str | None = typer.Option(
-        None,
-        "--unit",
-        help="Id of the robot unit (recorded as the session's unit; default: the controller's serial number, "
-        "sim-<seed> on the sim rig).",
-    ),
+    unit: str | None = _UNIT,
     robot_host: str | None = typer.Option(None, "--robot-host", help=ROBOT_HOST_HELP),
     tracker_port: str | None = typer.Option(None, "--tracker-port", help=TRACKER_PORT_HELP),
-    max_failed_poses: int = typer.Option(
-        5,
-        "--max-failed-poses",
-        help="Stop the run (failed, resumable) after this many consecutive rejected poses (0: never); a pose the "
-        "robot refuses to move to does not count.",
-    ),
+    max_failed_poses: int = _MAX_FAILED_POSES,
     store: Path | None = StoreOption,
 ) -> None:
     """Plan and record a new session; prints the new SESSION@vNNN last.
