@@ -71,6 +71,17 @@ def evaluate(
         out.print(metrics_table(ev["metrics"], title))
         if per_target is not None:
             out.print(per_target)
+    _print_notes(ev)
+    for w in ev.get("warnings") or []:
+        err.print(f"WARNING [{w['code']}] {w['message']}", markup=False, style="bold yellow")
+    out.print(f"stored at {outcome.path}", markup=False)
+    print(ev["evaluation_id"])
+
+
+def _print_notes(ev: dict) -> None:
+    """What the evaluation lets the numbers claim: orientation, what was fitted on the data, overlap with the fit's
+    own data, rows outside the calibrated ranges."""
+    d = ev["data"]
     claim = (ev.get("observability") or {}).get("claim")
     if claim:
         out.print(f"orientation: {claim}", markup=False)
@@ -91,10 +102,6 @@ def evaluate(
             "ranges (the model extrapolates there; the compensator refuses them without extrapolate)",
             markup=False,
         )
-    for w in ev.get("warnings") or []:
-        err.print(f"WARNING [{w['code']}] {w['message']}", markup=False, style="bold yellow")
-    out.print(f"stored at {outcome.path}", markup=False)
-    print(ev["evaluation_id"])
 
 
 def _counts_as_integers(doc):

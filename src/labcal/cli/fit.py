@@ -94,22 +94,30 @@ def fit(
     per_target = targets_table(metrics)
     if per_target is not None:
         out.print(per_target)
-    cv = (outcome.gates or {}).get("cv")
-    if isinstance(cv, dict) and cv.get("errors"):
-        parts = []
-        for name, errs in cv["errors"].items():
-            e = [x for x in errs or [] if x is not None]
-            if e:
-                m = sum(e) / len(e)
-                sd = (sum((x - m) ** 2 for x in e) / len(e)) ** 0.5
-                parts.append(f"{name} {m * 1e3:.4f} ± {sd * 1e3:.4f} mm")
-            else:
-                parts.append(f"{name} (no fold scored)")
-        head = f"cross-validation ({cv.get('folds')} folds, {cv.get('scheme')})"
-        out.print(f"{head}: {', '.join(parts)}; chose {cv.get('chosen')}", markup=False)
+    cv = cv_line((outcome.gates or {}).get("cv"))
+    if cv is not None:
+        out.print(cv, markup=False)
     print_gates(outcome.gates, what=f"fit {outcome.fit_id}")
     out.print(f"stored under {outcome.ref}", markup=False)
     print(outcome.fit_id)
+
+
+def cv_line(cv) -> str | None:
+    """The cross-validation summary: mean ± std of the fold errors per method (mm) and the method chosen; None
+    without fold errors."""
+    if not (isinstance(cv, dict) and cv.get("errors")):
+        return None
+    parts = []
+    for name, errs in cv["errors"].items():
+        e = [x for x in errs or [] if x is not None]
+        if e:
+            m = sum(e) / len(e)
+            sd = (sum((x - m) ** 2 for x in e) / len(e)) ** 0.5
+            parts.append(f"{name} {m * 1e3:.4f} ± {sd * 1e3:.4f} mm")
+        else:
+            parts.append(f"{name} (no fold scored)")
+    head = f"cross-validation ({cv.get('folds')} folds, {cv.get('scheme')})"
+    return f"{head}: {', '.join(parts)}; chose {cv.get('chosen')}"
 
 
 _CV_KEYS = {"errors": "fold_errors_m", "mean": "mean_m", "std": "std_m"}  # per method, metres
