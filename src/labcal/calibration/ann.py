@@ -561,7 +561,7 @@ def _check_options(
     max_iter: int | None,
     patience: int | None,
     lr: float | None,
-) -> tuple[int, int, float]:
+) -> tuple[int, int, float | None]:
     """Refuse unknown trainers and losses and impossible counts; the trainer's defaults filled in."""
     if trainer not in TRAINERS:
         raise ValueError(f"trainer must be one of {TRAINERS}, got {trainer!r}")
@@ -582,7 +582,7 @@ def _check_options(
 
 def _loss_for(jeo: JointErrorObservations, k: int, loss: str) -> tuple[str, str | None]:
     """The loss these observations define, and a note when it is not the one asked for."""
-    if not (jeo.partial and loss == "joint"):
+    if not (jeo.partial and loss == "joint") or jeo.rank is None:  # partial: the rank is known
         return loss, None
     # Where a row's points see fewer than six joint-error directions its eq. (21) "observation" is only the
     # part of δρ they see (minimum norm), not δρ: a joint-space fit would learn that projection. Eq. (20)

@@ -498,7 +498,7 @@ def _checks(ctx: FitContext, table: Candidates, outcome: Outcome, robot: Calibra
         warnings.extend(_warn("overfit", text) for text in net.get("warnings", []) if "over-fitting" in text)
     for code, message in (
         ("poor-fit", _poor_fit(in_sample)),
-        ("point-residuals", point_residual_warning(metrics.get("all"))),
+        ("point-residuals", point_residual_warning(metrics.get("all") or {})),
         ("large-correction", _large_correction(robot, fit_obs.q, ctx.seed, lp)),
         ("narrow-joint", _narrow_joints(robot, fit_obs.q)),
         ("frame-jump", _frame_jump(robot, ctx.obs)),

@@ -167,5 +167,5 @@ def data_ranges(q: np.ndarray) -> np.ndarray:
 def _ranges(q: np.ndarray, robot: CalibratedRobot) -> np.ndarray:
     """Joint ranges of the fitting rows for a learned model; a purely geometric one keeps the robot's limits."""
     if robot.network is None:
-        return robot.joint_ranges
+        return np.asarray(robot.joint_ranges)  # CalibratedRobot fills them in (the limits): the same array
     return data_ranges(q)

@@ -235,8 +235,9 @@ def _gauss_newton(
         cand_model, cand_T = _apply(model, T_tb, step, frames, estimate_base)
         r_c, J_c = _residual_and_jacobian(cand_model, cand_T, q, targets, measured, frames, estimate_base, seen)
         cost_c = float(r_c @ r_c)
-        offset_c = None if offset is None else offset + step / scale
+        offset_c = None
         if offset is not None:
+            offset_c = offset + step / scale
             cost_c += mu * float(offset_c @ offset_c)
         step_size = float(np.linalg.norm(step / scale))
         if cost_c <= cost * (1 + 1e-12) or step_size < tol:
@@ -458,14 +459,14 @@ def target_null(
                 w = np.eye(3)[a]
                 tilt[c : c + 3, a], tilt[c + 3 : c + 6, a] = -np.cross(w, p), w
             basis = np.concatenate([basis, tilt], axis=1)
-            n = model.n
+            last = model.n
             words.append(
-                f"the tilt of joint {n}'s axis about target {names[0]} (2 directions): the target sits "
-                f"{off * 1e3:.1f} mm from that axis, so turning joint {n} hardly moves it; the axis stays nominal "
-                f"(moving the target ≥ {AXIS_TOL * 1e3:g} mm off the axis of joint {n} lets the data see it)"
+                f"the tilt of joint {last}'s axis about target {names[0]} (2 directions): the target sits "
+                f"{off * 1e3:.1f} mm from that axis, so turning joint {last} hardly moves it; the axis stays nominal "
+                f"(moving the target ≥ {AXIS_TOL * 1e3:g} mm off the axis of joint {last} lets the data see it)"
             )
-    tilt = basis.shape[1] - STRUCTURAL[kind]  # the axis tilts, the last columns (and the last line of words)
-    return {"geometry": kind, "count": basis.shape[1], "words": words, "basis": basis, "tilt": tilt}
+    tilts = basis.shape[1] - STRUCTURAL[kind]  # the axis tilts, the last columns (and the last line of words)
+    return {"geometry": kind, "count": basis.shape[1], "words": words, "basis": basis, "tilt": tilts}
 
 
 def _without(null: np.ndarray, known: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -608,7 +609,7 @@ def fit_local_poe(
     _check(obs, nominal, rows, needed, f"local-POE identification of {nominal.name or 'the robot'}")
     L = float(length_scale or nominal.reach())
     model0, T0 = _start(obs, nominal, rows, start, estimate_base)
-    fit_args = (obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base)
+    fit_args: _FitArgs = (obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base)
     options: dict[str, Any] = dict(
         length_scale=L,
         max_iter=max_iter,
@@ -623,20 +624,25 @@ def fit_local_poe(
     return _identified(nominal, obs.q[rows], out, structural, labels, fit_args, options, noise, error_bound)
 
 
+# _gauss_newton's data arguments: q (k, n), targets (m, 3), measured points (k, m, 3), frames, estimate_base
+_FitArgs = tuple[np.ndarray, np.ndarray, np.ndarray, list[int], bool]
+
+
 def _identified(
     nominal: LocalPOEModel,
     q: np.ndarray,
     out: dict,
     structural: dict,
     labels: list[str],
-    fit_args: tuple,
+    fit_args: _FitArgs,
     options: dict[str, Any],
     noise: float,
     error_bound: float,
 ) -> tuple[CalibratedRobot, dict]:
     """fit_local_poe's robot and info from the fit ``out``: the chain split into robot and measurement tool, the
     standard deviations of the split chain, the identification in words."""
-    frames, estimate_base, L = fit_args[3], fit_args[4], options["length_scale"]
+    _, _, _, frames, estimate_base = fit_args
+    L = options["length_scale"]
     n, needed = nominal.n, expected_rank(nominal) - structural["count"]
     robot_model, X, T_split = split_robot(nominal, out["model"], out["T_tb"] if estimate_base else None, q)
     T_tb = out["T_tb"] if T_split is None else T_split
@@ -677,7 +683,7 @@ def _iterate(
     nominal: LocalPOEModel,
     model0: LocalPOEModel,
     T0: np.ndarray,
-    fit_args: tuple,
+    fit_args: _FitArgs,
     options: dict[str, Any],
     structural: dict,
 ) -> tuple[dict, dict]:
