@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from labcal.calibration.candidates import NETWORKS, ORDER
+from labcal.calibration.candidates import BY_NAME, NETWORKS, ORDER
 from labcal.calibration.local_poe import IdentificationError, fit_local_poe, register
 from labcal.calibration.metrics import point_errors
 from labcal.calibration.observations import ObservationError, Observations
@@ -280,9 +280,9 @@ def _fold_bases(
 ) -> tuple[CalibratedRobot | None, CalibratedRobot | None]:
     """The registered nominal and the local-POE robot of a fold's training rows, each when a candidate needs it."""
     before = stage1 = None
-    if active & {"nominal", "ann"}:
+    if any(BY_NAME[c].base == "registered" for c in active):
         before = register(train, options.nominal, estimate_tool=options.register_tool)[0]  # as fit()'s registration
-    if active & {"local-poe", "hybrid+series", "hybrid+ann"}:
+    if any(c == "local-poe" or BY_NAME[c].hybrid for c in active):
         lp_opts = options.local_poe_options
         stage1, lp_info = fit_local_poe(train, options.nominal, start=options.start, **lp_opts)
         if lp_info["rank"] < lp_info["expected_rank"]:

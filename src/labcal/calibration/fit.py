@@ -101,7 +101,7 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from labcal.calibration.candidates import BY_NAME, NETWORKS, STAGE2, Candidates, FitContext, Outcome, Stage
+from labcal.calibration.candidates import BY_NAME, NETWORKS, STAGE2, TABLE, Candidates, FitContext, Outcome, Stage
 from labcal.calibration.cv import CVResult, choose, cross_validate, fold_plan, row_errors
 from labcal.calibration.hybrid import data_ranges, finish_hybrid, prefit_series, series_fixed
 from labcal.calibration.local_poe import fit_local_poe, register
@@ -302,7 +302,7 @@ def _candidate_names(method: str, stage2: tuple[str, ...]) -> tuple[str, ...]:
         return ("nominal", "local-poe")
     if method == "ann":
         return ("nominal", "ann")
-    learned = tuple(STAGE2[s] for s in ("series", "ann") if s in stage2)
+    learned = tuple(m.name for m in TABLE if m.hybrid and m.learned in stage2)
     return ("nominal", "local-poe", *learned, *(("ann",) if method == "auto" else ()))
 
 

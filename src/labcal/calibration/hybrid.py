@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from labcal.calibration.candidates import BY_NAME, STAGE2, Candidates, FitContext, Outcome, Stage
+from labcal.calibration.candidates import BY_NAME, TABLE, Candidates, FitContext, Outcome, Stage
 from labcal.calibration.cv import CVResult, choose
 from labcal.calibration.metrics import primary_error
 from labcal.calibration.observations import ObservationError, Observations
@@ -142,7 +142,7 @@ def _hybrid_info(
 ) -> dict[str, Any]:
     """The hybrid's info (saved with a fit: its keys do not change), without the kept stage's own info."""
     assert table.stage1 is not None
-    errors = {name: table.cv_error(STAGE2[name]) for name in ("series", "ann") if STAGE2[name] in table.hybrid_names}
+    errors = {m.learned: table.cv_error(m.name) for m in TABLE if m.hybrid and m.learned and m.name in table.names}
     finite = {k: v for k, v in errors.items() if math.isfinite(v)}
     cv = table.cv
     return {
