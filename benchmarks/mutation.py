@@ -278,7 +278,7 @@ MUTATIONS: list[Mutation] = [
     M("calibration/fit gates", F, 'warnings.append(_warn("rows-dropped", text + "; the kept network never saw them"))',
       'notes.append("rows-dropped: " + text + "; the kept network never saw them")',
       "rows-dropped demoted from a warning to a note", T_GATES),
-    M("calibration/fit gates", F, "if distinct < MIN_POSES_PER_JOINT * fit_obs.n:", "if distinct < fit_obs.n:",
+    M("calibration/fit gates", F, "if distinct < MIN_POSES_PER_JOINT * n:", "if distinct < n:",
       "few-poses only below one pose per joint", T_GATES,
       f"{T_CV}::test_fewer_than_two_poses_per_joint_block_the_export_even_when_the_fit_looks_good"),
     M("calibration/fit gates", F, 'if lp["rank"] < lp["expected_rank"]:', 'if lp["rank"] < lp["expected_rank"] - 1:',
@@ -287,7 +287,7 @@ MUTATIONS: list[Mutation] = [
     M("calibration/fit gates", F, "POOR_FIT = 5e-3", "POOR_FIT = 5e-2", "poor-fit 10× looser", T_GATES),
     M("calibration/fit gates", F, "OVERFIT_RATIO = 10.0", "OVERFIT_RATIO = 100.0", "overfit 10× looser", T_GATES,
       f"{T_CV}::test_five_poses_are_flagged_as_overfitted_and_ten_get_a_note"),
-    M("calibration/fit gates", F, "            if e_c >= e_n:\n", "            if e_c > e_n + 1e-3:\n",
+    M("calibration/fit gates", F, "        if e_c >= e_n:\n", "        if e_c > e_n + 1e-3:\n",
       "worse-than-nominal only when a mm worse", T_GATES),
     M("calibration/fit gates", F, "if span[j] < least and claimed[j, 1] - claimed[j, 0] > span[j] + least:",
       "if span[j] < least:", "narrow-joint flags a joint whose claimed range is its data's", T_GATES),
@@ -374,7 +374,8 @@ MUTATIONS: list[Mutation] = [
     M("calibration/fit gates", F, "MIN_POSES_PER_JOINT = 2", "MIN_POSES_PER_JOINT = 1",
       "few-poses at one pose per joint", T_GATES,
       f"{T_CV}::test_fewer_than_two_poses_per_joint_block_the_export_even_when_the_fit_looks_good", batch=2),
-    M("calibration/fit gates", F, "    if points:\n        warnings.append(points)\n", "",
+    M("calibration/fit gates", F,
+      '        ("point-residuals", point_residual_warning(metrics.get("all") or {})),\n', "",
       "the point-residuals warning is dropped", T_GATES, T_GATES_CLI, batch=2),
 ]
 # fmt: on

@@ -45,7 +45,8 @@ def _dropped(count: int, rows: int, kept_network: bool):
     net = {"dropped_causes": [{"cause": "joint 5 near a singular value", "rows": count}],
            "observations": {"dropped": count}} if kept_network else None  # fmt: skip
     warnings, notes = [], []
-    fit_module._dropped(None, None, SimpleNamespace(k=rows), None, None, "hybrid+ann", net, warnings, notes)
+    table = SimpleNamespace(cv=None)  # no cross-validation record: only the kept network speaks
+    fit_module._dropped(table, SimpleNamespace(k=rows), "hybrid+ann", net, warnings, notes)
     return [w["code"] for w in warnings], notes
 
 

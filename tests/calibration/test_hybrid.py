@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from labcal.calibration import Observations
-from labcal.calibration.hybrid import fit_hybrid
+from labcal.calibration.fit import fit_hybrid
 from labcal.calibration.local_poe import fit_local_poe, register
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate

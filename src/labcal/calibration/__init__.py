@@ -11,8 +11,8 @@ The public API::
 ``fit_ann`` is resolved on first access so that importing this package does not import torch.
 """
 
-from labcal.calibration.fit import METHODS, FitResult, fit
-from labcal.calibration.hybrid import fit_hybrid, validation_error
+from labcal.calibration.fit import METHODS, FitResult, fit, fit_hybrid
+from labcal.calibration.hybrid import validation_error
 from labcal.calibration.local_poe import IdentificationError, expected_rank, fit_local_poe, register
 from labcal.calibration.metrics import prediction_errors, reduction, split_table, summarize
 from labcal.calibration.observations import ObservationError, Observations, rigid_fit

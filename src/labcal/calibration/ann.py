@@ -241,15 +241,12 @@ class _Job:
 def _train_one(torch, job: _Job, theta0: np.ndarray, restart: int):
     """One initialisation. Returns (best θ (np), curve train, curve val, best iteration, iterations run)."""
     shapes, train, val, opts = job.shapes, job.train, job.val, job.options
-    trainer, weight_decay, max_iter, patience, lr, progress = (
-        opts.trainer, opts.weight_decay, opts.max_iter, opts.patience, opts.lr, opts.progress
-    )  # fmt: skip
     wmask = torch.as_tensor(_weight_mask(shapes))
-    sqrt_wd = math.sqrt(weight_decay)
+    sqrt_wd = math.sqrt(opts.weight_decay)
 
     def full_residual(theta):
         r = train.residual(theta, shapes)
-        if weight_decay > 0:
+        if opts.weight_decay > 0:
             r = torch.cat([r, sqrt_wd * theta[wmask]])
         return r
 
@@ -263,62 +260,80 @@ def _train_one(torch, job: _Job, theta0: np.ndarray, restart: int):
     tr, va = losses(theta)
     curve_t, curve_v = [tr], [va]
     best_theta, best_val, best_it = theta.clone(), va, 0
-    if progress is not None:
-        progress(restart, 0, tr, va)
-
-    if trainer == "lm":
-        if len(shapes) == 2:  # one hidden layer: the Jacobian in closed form
-
-            def jac(theta):
-                J = train.jacobian(theta, shapes)
-                if weight_decay > 0:
-                    J = torch.cat([J, sqrt_wd * torch.eye(theta.numel(), dtype=theta.dtype)[wmask]])
-                return J
-        else:
-            jac = torch.func.jacfwd(full_residual)  # few weights, many residuals: forward mode
-        mu = _MU0
-        eye = torch.eye(theta.numel(), dtype=torch.float64)
+    if opts.progress is not None:
+        opts.progress(restart, 0, tr, va)
+    if opts.trainer == "lm":
+        step = _lm_step(torch, job, full_residual, wmask, sqrt_wd, theta.numel())
     else:
-        param = torch.nn.Parameter(theta.clone())
-        opt = torch.optim.Adam([param], lr=lr) if trainer == "adam" else torch.optim.SGD([param], lr=lr)
-
+        step = _gradient_step(torch, opts, full_residual, theta)
     it = 0
-    for it in range(1, max_iter + 1):
-        if trainer == "lm":
-            r = full_residual(theta).detach()
-            J = jac(theta).detach()
-            g, H = J.T @ r, J.T @ J
-            cost = float(r @ r)
-            stepped = False
-            while mu <= _MU_MAX:
-                step = torch.linalg.solve(H + mu * eye, -g)
-                cand = theta + step
-                with torch.no_grad():
-                    rc = full_residual(cand)
-                if float(rc @ rc) < cost:
-                    theta, mu, stepped = cand, max(mu * 0.1, 1e-15), True
-                    break
-                mu *= 10.0
-            if not stepped:  # no damping lowers the loss: a (local) minimum
-                break
-        else:
-            opt.zero_grad()
-            r = full_residual(param)
-            (r @ r).backward()
-            opt.step()
-            theta = param.detach().clone()
+    for it in range(1, opts.max_iter + 1):
+        stepped = step(theta)
+        if stepped is None:  # no damping lowers the loss: a (local) minimum
+            break
+        theta = stepped
         tr, va = losses(theta)
         curve_t.append(tr)
         curve_v.append(va)
-        if progress is not None:
-            progress(restart, it, tr, va)
+        if opts.progress is not None:
+            opts.progress(restart, it, tr, va)
         if not (math.isfinite(tr) and math.isfinite(va)):
             break
         if va < best_val:
             best_theta, best_val, best_it = theta.clone(), va, it
-        elif it - best_it >= patience:
+        elif it - best_it >= opts.patience:
             break
     return best_theta.numpy().copy(), curve_t, curve_v, best_it, it
+
+
+def _lm_step(torch, job: _Job, full_residual, wmask, sqrt_wd: float, size: int):
+    """Levenberg-Marquardt: a function θ → the next θ (the damping μ carried between calls), None when no
+    damping lowers the loss."""
+    shapes, train, weight_decay = job.shapes, job.train, job.options.weight_decay
+    if len(shapes) == 2:  # one hidden layer: the Jacobian in closed form
+
+        def jac(theta):
+            J = train.jacobian(theta, shapes)
+            if weight_decay > 0:
+                J = torch.cat([J, sqrt_wd * torch.eye(theta.numel(), dtype=theta.dtype)[wmask]])
+            return J
+    else:
+        jac = torch.func.jacfwd(full_residual)  # few weights, many residuals: forward mode
+    mu = _MU0
+    eye = torch.eye(size, dtype=torch.float64)
+
+    def step(theta):
+        nonlocal mu
+        r = full_residual(theta).detach()
+        J = jac(theta).detach()
+        g, H = J.T @ r, J.T @ J
+        cost = float(r @ r)
+        while mu <= _MU_MAX:
+            cand = theta + torch.linalg.solve(H + mu * eye, -g)
+            with torch.no_grad():
+                rc = full_residual(cand)
+            if float(rc @ rc) < cost:
+                mu = max(mu * 0.1, 1e-15)
+                return cand
+            mu *= 10.0
+        return None
+
+    return step
+
+
+def _gradient_step(torch, opts: TrainOptions, full_residual, theta0):
+    """Adam or plain gradient descent: a function θ → the next θ (the optimiser's state carried between calls)."""
+    param = torch.nn.Parameter(theta0.clone())
+    opt = torch.optim.Adam([param], lr=opts.lr) if opts.trainer == "adam" else torch.optim.SGD([param], lr=opts.lr)
+
+    def step(_theta):
+        opt.zero_grad()
+        r = full_residual(param)
+        (r @ r).backward()
+        opt.step()
+        return param.detach().clone()
+
+    return step
 
 
 def _standardise(a: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -432,6 +447,122 @@ def fit_ann(
     """
     obs.check_robot(base.n)
     features = check_features(features)
+    max_iter, patience, lr = _check_options(trainer, loss, restarts, weight_decay, max_iter, patience, lr)
+    if not 0.0 < stop_fraction < 1.0:
+        raise ValueError(f"stop_fraction must be in (0, 1), got {stop_fraction}")
+    if max_rows is not None and int(max_rows) < MIN_TRAIN_ROWS:
+        raise ValueError(f"max_rows must be >= {MIN_TRAIN_ROWS} or None, got {max_rows}")
+    settings = _Settings(
+        TrainOptions(trainer, weight_decay, max_iter, patience, lr, progress),
+        features, hidden, loss, int(restarts), seed, max_condition, soft_condition, stop_fraction, max_rows,
+    )  # fmt: skip
+    return _fit_network(obs, base, settings)
+
+
+@dataclass(frozen=True)
+class _Settings:
+    """fit_ann's checked options."""
+
+    train: TrainOptions
+    features: tuple[str, ...]
+    hidden: int | tuple[int, ...] | None
+    loss: str
+    restarts: int
+    seed: int
+    max_condition: float | None
+    soft_condition: float | None
+    stop_fraction: float
+    max_rows: int | None
+
+
+def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> tuple[CalibratedRobot, dict]:
+    """fit_ann after its options are checked: observations, rows, training, the exported network, its info."""
+    used = obs.subset(np.isin(obs.split, ["train", "", "val"]))
+    if used.k == 0:
+        raise NetworkDataError(f"no training rows: all {obs.k} rows are labelled 'test'", [])
+    jeo = joint_error_observations(used, base, max_condition=opts.max_condition, soft_condition=opts.soft_condition)
+    loss, loss_note = _loss_for(jeo, used.k, opts.loss)
+    causes = jeo.causes(base) if not jeo.kept.all() else []
+    rows, stopping, n_subsampled = _training_rows(used, jeo, causes, opts.seed, opts.stop_fraction, opts.max_rows)
+    warnings: list[str] = []
+    if obs.frame == "tracker" and np.allclose(base.T_tracker_base, np.eye(4)):
+        warnings.append("tracker-frame data with an identity T_tracker_base: register the base first (hybrid)")
+    data = _Scaled.of(jeo, input_features(jeo.q, opts.features, base.model), rows["train"])
+    n_out = equivalent_joints(base.n)
+    shapes = _layer_shapes(data.x.shape[1], _check_hidden(opts.hidden, data.x.shape[1], n_out), n_out)
+    n_params = _n_params(shapes)
+    if n_params > n_out * rows["train"].size:
+        warnings.append(
+            f"the network has {n_params} weights for {n_out * rows['train'].size} training numbers: expect over-fitting"
+        )
+    runs, val_losses, best = _train_restarts(jeo, data, rows, shapes, loss, opts.train, opts.seed, opts.restarts)
+    theta, curve_t, curve_v, stopped_at, iterations = runs[best]
+    network = _network(theta, shapes, opts.features, data)
+    export_diff = _export_difference(network, jeo.q[rows["train"]], base)
+    train = opts.train
+    info = {
+        "method": "ann",
+        "observations": jeo.summary(),
+        "dropped_causes": causes,
+        "early_stopping": stopping,
+        "subsampled_from": n_subsampled,
+        "max_condition": opts.max_condition,
+        "soft_condition": opts.soft_condition,
+        "train_rows": int(rows["train"].size),
+        "val_rows": int(rows["val"].size),
+        "features": list(opts.features),
+        "inputs": int(data.x.shape[1]),
+        "hidden": list(network.hidden),
+        "weights": n_params,
+        "trainer": train.trainer,
+        "loss": loss,
+        "loss_note": loss_note,
+        "weight_decay": train.weight_decay,
+        "max_iter": train.max_iter,
+        "patience": train.patience,
+        "lr": train.lr,
+        "seed": opts.seed,
+        "restarts": opts.restarts,
+        "restart_val_losses": val_losses,
+        "chosen_restart": best,
+        "curve": {"train": curve_t, "val": curve_v},
+        "stopped_at": int(stopped_at),
+        "iterations": int(iterations),
+        "train_loss": float(curve_t[stopped_at]),
+        "val_loss": float(curve_v[stopped_at]),
+        "export_max_abs_diff": export_diff,
+        "warnings": warnings,
+    }
+    return _network_robot(base, network, used.q), info
+
+
+def _network_robot(base: CalibratedRobot, network: Network, q: np.ndarray) -> CalibratedRobot:
+    """``base`` with the network, calibrated over the joint ranges of q: every row the fit was given, including
+    the ones the condition filter kept out of training — the ranges say where the calibration data lie, and the
+    network is smooth across the dropped (singular) points."""
+    return CalibratedRobot(
+        nominal=base.nominal,
+        model=base.model,
+        network=network,
+        T_tracker_base=base.T_tracker_base,
+        measurement_tool=base.measurement_tool,
+        measurement_tool_std=base.measurement_tool_std,
+        joint_ranges=np.stack([q.min(axis=0), q.max(axis=0)], axis=1),
+        length_scale=base.length_scale,
+        method="ann",
+    )
+
+
+def _check_options(
+    trainer: str,
+    loss: str,
+    restarts: int,
+    weight_decay: float,
+    max_iter: int | None,
+    patience: int | None,
+    lr: float | None,
+) -> tuple[int, int, float | None]:
+    """Refuse unknown trainers and losses and impossible counts; the trainer's defaults filled in."""
     if trainer not in TRAINERS:
         raise ValueError(f"trainer must be one of {TRAINERS}, got {trainer!r}")
     if loss not in LOSSES:
@@ -446,27 +577,32 @@ def fit_ann(
     lr = d_lr if lr is None else float(lr)
     if max_iter < 1 or patience < 1:
         raise ValueError(f"max_iter and patience must be >= 1, got {max_iter}, {patience}")
+    return max_iter, patience, lr
 
-    if not 0.0 < stop_fraction < 1.0:
-        raise ValueError(f"stop_fraction must be in (0, 1), got {stop_fraction}")
-    if max_rows is not None and int(max_rows) < MIN_TRAIN_ROWS:
-        raise ValueError(f"max_rows must be >= {MIN_TRAIN_ROWS} or None, got {max_rows}")
 
-    used = obs.subset(np.isin(obs.split, ["train", "", "val"]))
-    if used.k == 0:
-        raise NetworkDataError(f"no training rows: all {obs.k} rows are labelled 'test'", [])
-    jeo = joint_error_observations(used, base, max_condition=max_condition, soft_condition=soft_condition)
-    loss_note = None
-    if jeo.partial and loss == "joint":
-        # Where a row's points see fewer than six joint-error directions its eq. (21) "observation" is only the
-        # part of δρ they see (minimum norm), not δρ: a joint-space fit would learn that projection. Eq. (20)
-        # compares the network with the points themselves, so it is the one loss these data define.
-        loss_note = (
-            f"{int(np.sum(jeo.rank < 6))} of {used.k} rows see fewer than six joint-error directions (fewer than "
-            "three non-collinear targets): trained on the point loss of eq. (20) instead of eq. (21)"
-        )
-        loss = "task"
-    causes = jeo.causes(base) if not jeo.kept.all() else []
+def _loss_for(jeo: JointErrorObservations, k: int, loss: str) -> tuple[str, str | None]:
+    """The loss these observations define, and a note when it is not the one asked for."""
+    if not (jeo.partial and loss == "joint") or jeo.rank is None:  # partial: the rank is known
+        return loss, None
+    # Where a row's points see fewer than six joint-error directions its eq. (21) "observation" is only the
+    # part of δρ they see (minimum norm), not δρ: a joint-space fit would learn that projection. Eq. (20)
+    # compares the network with the points themselves, so it is the one loss these data define.
+    return "task", (
+        f"{int(np.sum(jeo.rank < 6))} of {k} rows see fewer than six joint-error directions (fewer than "
+        "three non-collinear targets): trained on the point loss of eq. (20) instead of eq. (21)"
+    )
+
+
+def _training_rows(
+    used: Observations,
+    jeo: JointErrorObservations,
+    causes: list[dict],
+    seed: int,
+    stop_fraction: float,
+    max_rows: int | None,
+) -> tuple[dict[str, np.ndarray], str, int]:
+    """The training and early-stopping rows (the caller's "val" rows, else an inner split), at most ``max_rows``
+    training rows (seeded); how early stopping is done; the training row count before subsampling (0: none)."""
     fit_rows = np.isin(used.split, ["train", ""])
     if np.any(used.split == "val"):
         stopping = "the 'val' rows"
@@ -485,115 +621,92 @@ def fit_ann(
         if rows["val"].size > cap:
             pick = np.random.default_rng([seed, 130363]).choice(rows["val"].size, cap, replace=False)
             rows["val"] = np.sort(rows["val"][pick])
+    return rows, stopping, n_subsampled
 
-    warnings: list[str] = []
-    if obs.frame == "tracker" and np.allclose(base.T_tracker_base, np.eye(4)):
-        warnings.append("tracker-frame data with an identity T_tracker_base: register the base first (hybrid)")
 
-    feats = input_features(jeo.q, features, base.model)
+@dataclass(frozen=True)
+class _Scaled:
+    """The network's standardised inputs x and joint-error targets y (rows the filter dropped: y = 0), and the
+    means and scales that undo it, taken from the training rows."""
+
+    x: np.ndarray
+    y: np.ndarray
+    in_mean: np.ndarray
+    in_scale: np.ndarray
+    out_mean: np.ndarray
+    out_scale: np.ndarray
+
+    @classmethod
+    def of(cls, jeo: JointErrorObservations, feats: np.ndarray, tr: np.ndarray) -> _Scaled:
+        in_mean, in_scale = _standardise(feats[tr])
+        out_mean, out_scale = _standardise(jeo.delta_rho[tr], jeo.weight[tr])  # noisy rows count less
+        y = np.zeros_like(jeo.delta_rho)
+        ok = np.all(np.isfinite(jeo.delta_rho), axis=1)
+        y[ok] = (jeo.delta_rho[ok] - out_mean) / out_scale
+        return cls((feats - in_mean) / in_scale, y, in_mean, in_scale, out_mean, out_scale)
+
+
+def _problem(torch, jeo: JointErrorObservations, data: _Scaled, idx: np.ndarray, tr: np.ndarray, loss: str):
+    """The training problem of rows idx: eq. (21) on the standardised joint errors, or eq. (20) on the points."""
+    if loss == "joint":
+        return _Problem(torch, data.x[idx], data.y[idx], jeo.weight[idx])
+    # eq. (20) on standardised outputs: δp − PJ (s ⊙ N + m), scaled to unit RMS on the training rows.
+    if jeo.seen is None:
+        unit = math.sqrt(np.mean(jeo.delta_p[tr] ** 2)) or 1.0
+    else:  # over the coordinates the rows measured (unseen targets are zero rows)
+        unit = math.sqrt(np.sum(jeo.delta_p[tr] ** 2) / (3.0 * np.sum(jeo.seen[tr]))) or 1.0
+    A = jeo.PJ[idx] * data.out_scale / unit
+    b = (jeo.delta_p[idx] - jeo.PJ[idx] @ data.out_mean) / unit
+    return _Problem(torch, data.x[idx], None, jeo.weight[idx], A, b)
+
+
+def _train_restarts(
+    jeo: JointErrorObservations,
+    data: _Scaled,
+    rows: dict[str, np.ndarray],
+    shapes,
+    loss: str,
+    options: TrainOptions,
+    seed: int,
+    restarts: int,
+) -> tuple[list, list[float], int]:
+    """Every restart trained; their validation losses and the best one. Raises if every restart diverged."""
     tr, va = rows["train"], rows["val"]
-    in_mean, in_scale = _standardise(feats[tr])
-    out_mean, out_scale = _standardise(jeo.delta_rho[tr], jeo.weight[tr])  # noisy rows count less
-    x = (feats - in_mean) / in_scale
-    y = np.zeros_like(jeo.delta_rho)
-    ok = np.all(np.isfinite(jeo.delta_rho), axis=1)
-    y[ok] = (jeo.delta_rho[ok] - out_mean) / out_scale
-
-    n_out = equivalent_joints(base.n)
-    shapes = _layer_shapes(x.shape[1], _check_hidden(hidden, x.shape[1], n_out), n_out)
-    n_params = _n_params(shapes)
-    if n_params > n_out * tr.size:
-        warnings.append(
-            f"the network has {n_params} weights for {n_out * tr.size} training numbers: expect over-fitting"
-        )
-
-    def problem(torch, idx):
-        if loss == "joint":
-            return _Problem(torch, x[idx], y[idx], jeo.weight[idx])
-        # eq. (20) on standardised outputs: δp − PJ (s ⊙ N + m), scaled to unit RMS on the training rows.
-        if jeo.seen is None:
-            unit = math.sqrt(np.mean(jeo.delta_p[tr] ** 2)) or 1.0
-        else:  # over the coordinates the rows measured (unseen targets are zero rows)
-            unit = math.sqrt(np.sum(jeo.delta_p[tr] ** 2) / (3.0 * np.sum(jeo.seen[tr]))) or 1.0
-        A = jeo.PJ[idx] * out_scale / unit
-        b = (jeo.delta_p[idx] - jeo.PJ[idx] @ out_mean) / unit
-        return _Problem(torch, x[idx], None, jeo.weight[idx], A, b)
-
     runs = []
-    options = TrainOptions(trainer, weight_decay, max_iter, patience, lr, progress)
     with _deterministic_torch(seed) as torch:
-        job = _Job(shapes, problem(torch, tr), problem(torch, va), options)
-        for r in range(int(restarts)):
+        job = _Job(shapes, _problem(torch, jeo, data, tr, tr, loss), _problem(torch, jeo, data, va, tr, loss), options)
+        for r in range(restarts):
             runs.append(_train_one(torch, job, _init_params(shapes, seed, r), r))
     val_losses = [float(run[2][run[3]]) for run in runs]
     finite = [v if math.isfinite(v) else math.inf for v in val_losses]
     best = int(np.argmin(finite))
-    theta, curve_t, curve_v, stopped_at, iterations = runs[best]
     if not math.isfinite(finite[best]):
         raise RuntimeError("every training restart diverged (non-finite loss); lower lr or use trainer='lm'")
+    return runs, val_losses, best
 
+
+def _network(theta: np.ndarray, shapes, features: tuple[str, ...], data: _Scaled) -> Network:
+    """The trained weights as the exported network."""
     layers = _unflatten(theta, shapes)
-    network = Network(
+    return Network(
         features=features,
         weights=tuple(np.array(W) for W, _ in layers),
         biases=tuple(np.array(b) for _, b in layers),
-        in_mean=in_mean,
-        in_scale=in_scale,
-        out_mean=out_mean,
-        out_scale=out_scale,
+        in_mean=data.in_mean,
+        in_scale=data.in_scale,
+        out_mean=data.out_mean,
+        out_scale=data.out_scale,
     )
-    # The export must be the trained model, not an approximation of it.
-    check = torch_predict(network, jeo.q[tr], base.model)
-    export_diff = float(np.max(np.abs(check - network(jeo.q[tr], base.model))))
+
+
+def _export_difference(network: Network, q: np.ndarray, base: CalibratedRobot) -> float:
+    """The largest difference between the exported network and the torch model on q; raises beyond round-off:
+    the export must be the trained model, not an approximation of it."""
+    check = torch_predict(network, q, base.model)
+    export_diff = float(np.max(np.abs(check - network(q, base.model))))
     if not export_diff <= 1e-12 * max(1.0, float(np.max(np.abs(check)))):
         raise RuntimeError(f"exported network differs from the torch model by {export_diff:.3g}")
-    robot = CalibratedRobot(
-        nominal=base.nominal,
-        model=base.model,
-        network=network,
-        T_tracker_base=base.T_tracker_base,
-        measurement_tool=base.measurement_tool,
-        measurement_tool_std=base.measurement_tool_std,
-        # Every row the fit was given, including the ones the condition filter kept out of training: the ranges
-        # say where the calibration data lie, and the network is smooth across the dropped (singular) points.
-        joint_ranges=np.stack([used.q.min(axis=0), used.q.max(axis=0)], axis=1),
-        length_scale=base.length_scale,
-        method="ann",
-    )
-    info = {
-        "method": "ann",
-        "observations": jeo.summary(),
-        "dropped_causes": causes,
-        "early_stopping": stopping,
-        "subsampled_from": n_subsampled,
-        "max_condition": max_condition,
-        "soft_condition": soft_condition,
-        "train_rows": int(tr.size),
-        "val_rows": int(va.size),
-        "features": list(features),
-        "inputs": int(x.shape[1]),
-        "hidden": list(network.hidden),
-        "weights": n_params,
-        "trainer": trainer,
-        "loss": loss,
-        "loss_note": loss_note,
-        "weight_decay": weight_decay,
-        "max_iter": max_iter,
-        "patience": patience,
-        "lr": lr,
-        "seed": seed,
-        "restarts": int(restarts),
-        "restart_val_losses": val_losses,
-        "chosen_restart": best,
-        "curve": {"train": curve_t, "val": curve_v},
-        "stopped_at": int(stopped_at),
-        "iterations": int(iterations),
-        "train_loss": float(curve_t[stopped_at]),
-        "val_loss": float(curve_v[stopped_at]),
-        "export_max_abs_diff": export_diff,
-        "warnings": warnings,
-    }
-    return robot, info
+    return export_diff
 
 
 def torch_predict(network: Network, q: np.ndarray, model) -> np.ndarray:

@@ -49,14 +49,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from labcal.calibration.candidates import BY_NAME, NETWORKS, ORDER
 from labcal.calibration.local_poe import IdentificationError, fit_local_poe, register
 from labcal.calibration.metrics import point_errors
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics.poe import LocalPOEModel
 
-ORDER = ("nominal", "local-poe", "hybrid+series", "hybrid+ann", "ann")  # simplest first
-NETWORKS = ("hybrid+ann", "ann")
+__all__ = ["NETWORKS", "ORDER", "CVResult", "choose", "cross_validate", "fold_plan", "row_errors"]
 NEAR_TIE = 0.01  # relative: a gain below 1 % of the error is never worth a more complex model
 PRUNE_MARGIN = 0.10  # a network > 10 % worse than the best other candidate after two folds is not pursued
 CV_RESTARTS = 1  # network restarts inside a fold (the final refit uses the caller's, default 3)
@@ -178,6 +178,19 @@ def choose(result: CVResult, candidates: tuple[str, ...]) -> str:
     return best
 
 
+@dataclass(frozen=True)
+class FoldOptions:
+    """What every fold fits with (:func:`cross_validate`'s arguments, the network's with the fold budget)."""
+
+    nominal: LocalPOEModel
+    seed: int
+    start: CalibratedRobot | None
+    local_poe_options: dict
+    series_options: dict
+    network_options: dict
+    register_tool: bool
+
+
 def cross_validate(
     obs: Observations,
     nominal: LocalPOEModel,
@@ -210,51 +223,25 @@ def cross_validate(
     k = obs.k
     rows = {c: np.full(k, np.nan) for c in candidates}
     res = CVResult(folds, scheme, rows)
-    lp_opts = dict(local_poe_options or {})
-    net_opts = _fold_network_options(ann_options)
+    options = FoldOptions(
+        nominal=nominal,
+        seed=seed,
+        start=start,
+        local_poe_options=dict(local_poe_options or {}),
+        series_options={**(series_options or {}), **(series_fixed or {})},
+        network_options=_fold_network_options(ann_options),
+        register_tool=register_tool,
+    )
     active = set(candidates)
     train_split = np.full(k, "train", dtype=object)
     for f, held in enumerate(folds):
         mask = np.ones(k, bool)
         mask[held] = False
         train = obs.subset(mask).with_split(train_split[mask])
-        test = obs.subset(held)
-        fold_robots: dict[str, CalibratedRobot] = {}
-        stage1 = before = None
-        try:
-            if active & {"nominal", "ann"}:
-                before = register(train, nominal, estimate_tool=register_tool)[0]  # as fit()'s registration
-            if active & {"local-poe", "hybrid+series", "hybrid+ann"}:
-                stage1, lp_info = fit_local_poe(train, nominal, start=start, **lp_opts)
-                if lp_info["rank"] < lp_info["expected_rank"]:
-                    # Directions the fold's rows do not identify keep their starting values; started from the
-                    # all-rows fit those would carry the held-out rows into the fold model. Start from the nominal.
-                    stage1 = fit_local_poe(train, nominal, **lp_opts)[0]
-        except (IdentificationError, ObservationError) as err:
-            for c in active:
-                res.failures.setdefault(c, f"fold {f + 1}: {err}")
+        fold_robots = _fold_models(train, active, options, res, f)
+        if fold_robots is None:
             continue
-        if "nominal" in active:
-            fold_robots["nominal"] = before
-        if "local-poe" in active:
-            fold_robots["local-poe"] = stage1
-        if "hybrid+series" in active:
-            from labcal.calibration.joint_series import fit_joint_series
-
-            try:
-                opts = {**(series_options or {}), **(series_fixed or {})}
-                fold_robots["hybrid+series"] = fit_joint_series(train, stage1, seed=seed, **opts)[0]
-            except ObservationError as err:
-                res.failures.setdefault("hybrid+series", f"fold {f + 1}: {err}")
-        for name, base, extra in (("hybrid+ann", stage1, {"loss": "task"}), ("ann", before, {})):
-            if name not in active:
-                continue
-            from labcal.calibration.ann import fit_ann  # torch only when a network is fitted
-
-            try:
-                fold_robots[name] = fit_ann(train, base, seed=seed, **{**extra, **net_opts})[0]
-            except ObservationError as err:
-                res.failures.setdefault(name, f"fold {f + 1}: {err}")
+        test = obs.subset(held)
         for name, robot in fold_robots.items():
             rows[name][held] = row_errors(robot, test)
         say(
@@ -264,6 +251,69 @@ def cross_validate(
         if f >= 1 and len(folds) >= 4:
             _prune(res, active, f + 1)
     return res
+
+
+def _fold_models(
+    train: Observations, active: set[str], options: FoldOptions, res: CVResult, f: int
+) -> dict[str, CalibratedRobot] | None:
+    """Every active candidate fitted on one fold's training rows; a candidate that cannot be fitted is recorded in
+    ``res.failures``. None when the fold's registration or identification fails (then every candidate is)."""
+    try:
+        before, stage1 = _fold_bases(train, active, options)
+    except (IdentificationError, ObservationError) as err:
+        for c in active:
+            res.failures.setdefault(c, f"fold {f + 1}: {err}")
+        return None
+    robots: dict[str, CalibratedRobot] = {}
+    for name in ORDER:
+        if name not in active:
+            continue
+        try:
+            robots[name] = fold_model(name, train, before, stage1, options)
+        except ObservationError as err:
+            res.failures.setdefault(name, f"fold {f + 1}: {err}")
+    return robots
+
+
+def _fold_bases(
+    train: Observations, active: set[str], options: FoldOptions
+) -> tuple[CalibratedRobot | None, CalibratedRobot | None]:
+    """The registered nominal and the local-POE robot of a fold's training rows, each when a candidate needs it."""
+    before = stage1 = None
+    if any(BY_NAME[c].base == "registered" for c in active):
+        before = register(train, options.nominal, estimate_tool=options.register_tool)[0]  # as fit()'s registration
+    if any(c == "local-poe" or BY_NAME[c].hybrid for c in active):
+        lp_opts = options.local_poe_options
+        stage1, lp_info = fit_local_poe(train, options.nominal, start=options.start, **lp_opts)
+        if lp_info["rank"] < lp_info["expected_rank"]:
+            # Directions the fold's rows do not identify keep their starting values; started from the
+            # all-rows fit those would carry the held-out rows into the fold model. Start from the nominal.
+            stage1 = fit_local_poe(train, options.nominal, **lp_opts)[0]
+    return before, stage1
+
+
+def fold_model(
+    name: str,
+    train: Observations,
+    before: CalibratedRobot | None,
+    stage1: CalibratedRobot | None,
+    options: FoldOptions,
+) -> CalibratedRobot:
+    """One candidate fitted on a fold's training rows, on its base (the registered nominal or local POE)."""
+    if name == "nominal" and before is not None:
+        return before
+    if name == "local-poe" and stage1 is not None:
+        return stage1
+    if name == "hybrid+series" and stage1 is not None:
+        from labcal.calibration.joint_series import fit_joint_series
+
+        return fit_joint_series(train, stage1, seed=options.seed, **options.series_options)[0]
+    base, extra = (stage1, {"loss": "task"}) if name == "hybrid+ann" else (before, {})
+    if name in NETWORKS and base is not None:
+        from labcal.calibration.ann import fit_ann  # torch only when a network is fitted
+
+        return fit_ann(train, base, seed=options.seed, **{**extra, **options.network_options})[0]
+    raise ValueError(f"no fold fit for candidate {name!r}")
 
 
 def _fold_network_options(ann_options: dict | None) -> dict:

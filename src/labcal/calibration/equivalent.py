@@ -66,6 +66,7 @@ small there). A smaller target triangle raises every condition number: with targ
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -165,7 +166,13 @@ def equivalent_joints(n: int) -> int:
 def metric_scale(base: CalibratedRobot) -> np.ndarray:
     """(N,) column scaling S of the length-scaled metric (N = max(n, 6)): L for prismatic actuated joints, 1
     otherwise."""
-    return metric.joint_weights(base.model.joint_types, base.length_scale, size=equivalent_joints(base.n))
+    return metric.joint_weights(base.model.joint_types, _length_scale(base), size=equivalent_joints(base.n))
+
+
+def _length_scale(base: CalibratedRobot) -> float:
+    """The robot's metres per radian (CalibratedRobot always sets it: the nominal's reach unless given)."""
+    assert base.length_scale is not None
+    return base.length_scale
 
 
 def condition_numbers(PJ: np.ndarray, scale: np.ndarray, rank: np.ndarray | None = None) -> np.ndarray:
@@ -325,10 +332,10 @@ def dropped_causes(jeo: JointErrorObservations, base: CalibratedRobot) -> list[d
     if jeo.targets is None:
         raise ValueError("these observations carry no targets; build them with joint_error_observations")
     for j in range(n):
-        step = _PROBE_STEP * (base.length_scale if base.model.joint_types[j] == "prismatic" else 1.0)
+        step = _PROBE_STEP * (_length_scale(base) if base.model.joint_types[j] == "prismatic" else 1.0)
         moved = q.copy()
         moved[:, j] += step
-        if jeo.rank is None:
+        if jeo.rank is None or jeo.seen is None:  # the rank comes with the seen cells (points missing)
             pts = base.predict_points(moved, jeo.targets)
             PJ = np.einsum("kab,kbc->kac", point_matrix(pts), base.equivalent_jacobian(moved))
             cond = condition_numbers(PJ, scale)
@@ -340,7 +347,7 @@ def dropped_causes(jeo: JointErrorObservations, base: CalibratedRobot) -> list[d
         better = gain > np.maximum(best_gain, 2.0)
         best_gain[better], culprit[better] = gain[better], j + 1
     lost_sets = [np.flatnonzero(null[i] > 0.3 * null[i].max()) + 1 for i in range(dropped.size)]
-    out = []
+    out: list[dict[str, Any]] = []
     for joint in sorted(set(culprit.tolist())):
         rows = np.flatnonzero(culprit == joint)
         counts = np.bincount(np.concatenate([lost_sets[i] for i in rows]), minlength=equivalent_joints(n) + 1)

@@ -94,18 +94,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from labcal.calibration.candidates import BY_NAME, NETWORKS, STAGE2, TABLE, Candidates, FitContext, Outcome, Stage
+from labcal.calibration.cv import CVResult, choose, cross_validate, fold_plan, row_errors
+from labcal.calibration.hybrid import data_ranges, finish_hybrid, prefit_series, series_fixed
 from labcal.calibration.local_poe import fit_local_poe, register
-from labcal.calibration.metrics import observability, point_residual_warning, split_table
+from labcal.calibration.metrics import observability, point_residual_warning, point_residuals, split_table
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.calibration.tool import tool_lines
 from labcal.compensator import CalibratedRobot
+from labcal.compensator.validity import ValidityRegion
 from labcal.kinematics import se3
 from labcal.kinematics.poe import LocalPOEModel
 
@@ -169,7 +173,7 @@ def fit(
     progress: Callable[[str], None] | None = None,
     local_poe_options: dict | None = None,
     register_tool: bool = False,
-    **options,
+    **options: Any,
 ) -> FitResult:
     """Fit one method (or choose one with "auto"), measure it against the registered nominal, and check it.
 
@@ -190,170 +194,203 @@ def fit(
         return _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options, register_tool)
 
 
-def _fit(
-    obs, nominal, method, seed, val_fraction, progress, local_poe_options, options, register_tool=False
-) -> FitResult:
-    from labcal.calibration.cv import cross_validate, fold_plan
+def fit_hybrid(
+    obs: Observations,
+    nominal: LocalPOEModel,
+    *,
+    seed: int = 0,
+    local_poe_options: dict | None = None,
+    stage2: tuple[str, ...] = ("ann", "series"),
+    series_options: dict | None = None,
+    progress: Callable[[str], None] | None = None,
+    **ann_options: Any,
+) -> tuple[CalibratedRobot, dict]:
+    """Local POE on every fitting row, then the learned term that cross-validation supports, refitted on all rows.
 
+    ``fit(obs, nominal, "hybrid", …)`` without its metrics and checks: (robot, info). Fitting rows: "train" and
+    unassigned; "val" rows are only measured (``val_error`` in the info), "test" rows ignored. stage2: the learned
+    terms to try ("ann", "series"). ann_options go to ``fit_ann`` (hidden, features, trainer, restarts, loss —
+    default "task" here); series_options to ``fit_joint_series``.
+
+    Returns the kept robot (method "hybrid"; the local-POE robot relabelled when no learned term helped) and
+    info: ``kept`` ("local-poe+ann", "local-poe+series" or "local-poe"), ``val_error_local_poe`` and
+    ``val_error_hybrid`` (cross-validated error of local POE and of the best stage-2 candidate, m — the names
+    predate cross-validation), ``val_errors`` per stage-2 candidate (CV, m; NaN when it could not run),
+    ``cv`` (:meth:`CVResult.summary`), ``skipped`` {candidate: why}, ``notes``, ``local_poe`` and the kept
+    stage's info (:mod:`labcal.calibration.hybrid`).
+    """
+    result = fit(
+        obs, nominal, "hybrid", seed=seed, progress=progress, local_poe_options=local_poe_options, stage2=stage2,
+        series_options=series_options, **ann_options,
+    )  # fmt: skip
+    return result.robot, {**result.info, "notes": list(result.notes)}
+
+
+def _fit(
+    obs: Observations,
+    nominal: LocalPOEModel,
+    method: str,
+    seed: int,
+    val_fraction: float,
+    progress: Callable[[str], None] | None,
+    local_poe_options: dict | None,
+    options: dict[str, Any],
+    register_tool: bool = False,
+) -> FitResult:
+    """fit() inside its BLAS limit: the context, the registered nominal, the candidates, the method, the checks."""
+    ctx = _context(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options, register_tool)
+    counts = {s: int(np.sum(ctx.obs.split == s)) for s in ("train", "val", "test")}
+    ctx.say("registering the nominal model")
+    before = Stage(*ctx.timed("nominal", lambda: register(ctx.obs, nominal, estimate_tool=register_tool)))
+    if method == "nominal":
+        outcome = Outcome(before.robot, {"register": before.info}, "nominal", "nominal")
+        return _result(ctx, outcome, before.robot, None, counts, [], None)
+    table = _candidates(ctx, before)
+    outcome = _run_method(ctx, table)
+    robot = _with_validity(outcome.robot, ctx.fit_obs.q)
+    info_cv = None if table.cv is None else table.cv.summary(outcome.candidate)
+    metrics = split_table(before.robot, robot, ctx.obs)
+    warnings = _checks(ctx, table, outcome, robot, metrics)
+    if "no_network" in outcome.info:
+        warnings.insert(0, {"code": "no-network", "message": outcome.info["no_network"] + ": use local-poe or hybrid"})
+    for w in warnings:
+        ctx.say(f"warning [{w['code']}]: {w['message']}")
+    return _result(ctx, dataclasses.replace(outcome, robot=robot), before.robot, table.stage1, counts, warnings,
+                   info_cv, metrics)  # fmt: skip
+
+
+def _context(
+    obs: Observations,
+    nominal: LocalPOEModel,
+    method: str,
+    seed: int,
+    val_fraction: float,
+    progress: Callable[[str], None] | None,
+    local_poe_options: dict | None,
+    options: dict[str, Any],
+    register_tool: bool,
+) -> FitContext:
+    """The checked arguments of one fit: the rows split, the hybrid's options taken out of the network's."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     obs.check_robot(nominal.n)
-    say = progress or (lambda _msg: None)
     obs = obs.with_splits(val_fraction, seed)
-    counts = {s: int(np.sum(obs.split == s)) for s in ("train", "val", "test")}
-    if counts["train"] == 0:
+    if not np.any(obs.split == "train"):
         raise ValueError("no fitting rows: every row is labelled val or test")
-    lp_opts = dict(local_poe_options or {})
     hybrid_opts = {key: options.pop(key) for key in ("stage2", "series_options") if key in options}
     stage2 = tuple(hybrid_opts.get("stage2", ("ann", "series")))
-    if not stage2 or any(name not in ("ann", "series") for name in stage2):
+    if not stage2 or any(name not in STAGE2 for name in stage2):
         raise ValueError(f"stage2 must name 'ann' and/or 'series', got {stage2!r}")
-    series_opts = hybrid_opts.get("series_options")
-    fit_obs = obs.where("train")
-    seconds: dict[str, float] = {}
-    notes: list[str] = []
+    return FitContext(
+        obs=obs,
+        fit_obs=obs.where("train"),
+        nominal=nominal,
+        method=method,
+        seed=seed,
+        options=options,
+        local_poe_options=dict(local_poe_options or {}),
+        series_options=hybrid_opts.get("series_options"),
+        stage2=stage2,
+        register_tool=register_tool,
+        say=progress or (lambda _msg: None),
+    )
 
-    def timed(name, fn):
-        t = time.perf_counter()
-        out = fn()
-        seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t
-        return out
 
-    say("registering the nominal model")
-    before, reg_info = timed("nominal", lambda: register(obs, nominal, estimate_tool=register_tool))
-    if method == "nominal":
-        return _result(
-            method, "nominal", before, before, {"register": reg_info}, obs, counts, seed, seconds, [], [], None
-        )
+def _candidate_names(method: str, stage2: tuple[str, ...]) -> tuple[str, ...]:
+    """The candidates a method compares, simplest first (labcal.calibration.candidates.TABLE)."""
+    if method == "local-poe":
+        return ("nominal", "local-poe")
+    if method == "ann":
+        return ("nominal", "ann")
+    learned = tuple(m.name for m in TABLE if m.hybrid and m.learned in stage2)
+    return ("nominal", "local-poe", *learned, *(("ann",) if method == "auto" else ()))
 
+
+def _candidates(ctx: FitContext, before: Stage) -> Candidates:
+    """Local POE and the joint series on all fitting rows, then every candidate cross-validated."""
+    fit_obs, method = ctx.fit_obs, ctx.method
     stage1 = None
     if method != "ann":
-        say("fitting local-poe on every fitting row")
-        stage1 = timed("local-poe", lambda: fit_local_poe(fit_obs, nominal, **{**lp_opts, **(
-            options if method == "local-poe" else {})}))  # fmt: skip
-    if method == "local-poe":
-        candidates: tuple[str, ...] = ("nominal", "local-poe")
-    elif method == "ann":
-        candidates = ("nominal", "ann")
-    else:
-        learned = tuple(c for c, s in (("hybrid+series", "series"), ("hybrid+ann", "ann")) if s in stage2)
-        candidates = ("nominal", "local-poe", *learned)
-        if method == "auto":
-            candidates = (*candidates, "ann")
-    folds, scheme = fold_plan(fit_obs, seed)
-    series_full = None
-    if "hybrid+series" in candidates:
-        from labcal.calibration.hybrid import prefit_series
-
-        series_full, skipped = timed(
-            "series", lambda: prefit_series(fit_obs, stage1[0], candidates, seed, series_opts, say)
-        )
-        notes += skipped
-        if series_full is None:
-            candidates = tuple(c for c in candidates if c != "hybrid+series")
+        ctx.say("fitting local-poe on every fitting row")
+        lp_opts = {**ctx.local_poe_options, **(ctx.options if method == "local-poe" else {})}
+        stage1 = Stage(*ctx.timed("local-poe", lambda: fit_local_poe(fit_obs, ctx.nominal, **lp_opts)))
+    names = _candidate_names(method, ctx.stage2)
+    series = None
+    if "hybrid+series" in names and stage1 is not None:
+        series = ctx.timed("series", lambda: prefit_series(ctx, stage1.robot))
+        if series is None:
+            names = tuple(c for c in names if c != "hybrid+series")
+    folds, scheme = fold_plan(fit_obs, ctx.seed)
     cv = None
     if folds:
-        from labcal.calibration.hybrid import series_fixed
-
-        say(f"cross-validation: {len(folds)} folds ({scheme}) over {fit_obs.k} rows")
-        ann_opts = {k: v for k, v in options.items()} if method != "local-poe" else {}
-        cv = timed(
-            "cross-validation",
-            lambda: cross_validate(
-                fit_obs,
-                nominal,
-                candidates,
-                folds,
-                scheme,
-                seed=seed,
-                start=None if stage1 is None else stage1[0],
-                local_poe_options=lp_opts if method != "local-poe" else {**lp_opts, **options},
-                series_options=series_opts,
-                register_tool=register_tool,
-                series_fixed=series_fixed(series_full),
-                ann_options=ann_opts,
-                progress=say,
-            ),
-        )
+        ctx.say(f"cross-validation: {len(folds)} folds ({scheme}) over {fit_obs.k} rows")
+        local = method == "local-poe"
+        cv = ctx.timed("cross-validation", lambda: cross_validate(
+            fit_obs, ctx.nominal, names, folds, scheme, seed=ctx.seed,
+            start=None if stage1 is None else stage1.robot,
+            local_poe_options={**ctx.local_poe_options, **ctx.options} if local else ctx.local_poe_options,
+            series_options=ctx.series_options, register_tool=ctx.register_tool, series_fixed=series_fixed(series),
+            ann_options={} if local else dict(ctx.options), progress=ctx.say,
+        ))  # fmt: skip
     else:
-        notes.append(
+        ctx.notes.append(
             f"no cross-validation: {fit_obs.k} fitting rows hold fewer than 3 distinct poses (or groups); "
             "nothing was held out, so no error below is an honest estimate"
         )
-
-    info: dict
-    if method == "local-poe":
-        robot, info, chosen = stage1[0], stage1[1], "local-poe"
-    elif method == "ann":
-        robot, info = timed("ann", lambda: _fit_ann_or_nominal(fit_obs, before, seed, options))
-        chosen = "ann"
-    else:
-        from labcal.calibration.hybrid import STAGE2, finish_hybrid
-
-        hybrid_cands = tuple(c for c in candidates if c in ("local-poe", *STAGE2.values()))
-        if method == "hybrid":
-            robot, info = timed("hybrid", lambda: finish_hybrid(
-                fit_obs, obs, stage1, cv, hybrid_cands, seed=seed, series_full=series_full, ann_options=options,
-                say=say))  # fmt: skip
-            chosen = "hybrid"
-            notes += info["notes"]
-        else:
-            robot, info, chosen = _auto(
-                fit_obs,
-                obs,
-                nominal,
-                before,
-                stage1,
-                cv,
-                candidates,
-                hybrid_cands,
-                seed,
-                series_full,
-                options,
-                say,
-                notes,
-                timed,
-            )
-    if cv is not None:
-        chosen_key = _cv_key(chosen, info)
-        info_cv = cv.summary(chosen_key)
-    else:
-        chosen_key, info_cv = chosen, None
-    robot = _with_validity(robot, fit_obs.q)
-    metrics = split_table(before, robot, obs)
-    warnings = _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, seed, notes)
-    if "no_network" in info:
-        warnings.insert(0, {"code": "no-network", "message": info["no_network"] + ": use local-poe or hybrid"})
-    for w in warnings:
-        say(f"warning [{w['code']}]: {w['message']}")
-    return _result(method, chosen, robot, before, info, obs, counts, seed, seconds, warnings, notes, info_cv, metrics)
+    return Candidates(names=names, before=before, stage1=stage1, series=series, cv=cv)
 
 
-def _result(method, chosen, robot, before, info, obs, counts, seed, seconds, warnings, notes, cv, metrics=None):
+def _run_method(ctx: FitContext, table: Candidates) -> Outcome:
+    """The asked method's model on all fitting rows (auto and hybrid: the candidate cross-validation chose)."""
+    if ctx.method == "local-poe":
+        assert table.stage1 is not None
+        return Outcome(table.stage1.robot, table.stage1.info, "local-poe", "local-poe")
+    if ctx.method == "ann":
+        robot, info = ctx.timed("ann", lambda: _fit_ann_or_nominal(ctx.fit_obs, table.before.robot, ctx.seed,
+                                                                    ctx.options))  # fmt: skip
+        return Outcome(robot, info, "ann", "ann", network=info)
+    if ctx.method == "hybrid":
+        outcome = ctx.timed("hybrid", lambda: finish_hybrid(ctx, table))
+        ctx.notes.extend(outcome.info["notes"])
+        return outcome
+    return _auto(ctx, table)
+
+
+def _result(
+    ctx: FitContext,
+    outcome: Outcome,
+    before: CalibratedRobot,
+    stage1: Stage | None,
+    counts: dict[str, int],
+    warnings: list[dict],
+    cv: dict | None,
+    metrics: dict | None = None,
+) -> FitResult:
+    """The FitResult, with the notes on what the targets cannot show and on the measurement tool."""
+    obs, robot, notes = ctx.obs, outcome.robot, ctx.notes
     seen = obs.seen[obs.split == "train"]
     unseen = ", ".join(f"t{i + 1}" for i in np.flatnonzero(~seen.any(axis=0))) if seen.size else ""
     if unseen:
         notes.append(f"targets never seen in the fitting rows: {unseen} (they add nothing to this fit)")
     # The identification's own words when it ran (they include a point beside the last joint's axis), else the
     # target geometry's.
-    lp = next((d for d in (info, info.get("local-poe"), info.get("local_poe")) if isinstance(d, dict) and
-               "unobservable" in d), None)  # fmt: skip
-    claims = observability(obs, None if lp is None else lp["unobservable"])
+    words = stage1.info.get("unobservable") if stage1 is not None else None
+    claims = observability(obs, words)
     notes.extend(f"unobservable: {text}" for text in claims["unobservable"])
     if robot.measurement_tool is not None:  # robot and tool apart: the fixture is reported, not corrected
         notes.append(" ".join(line.strip() for line in tool_lines(robot.measurement_tool, robot.measurement_tool_std)))
     return FitResult(
-        method=method,
-        chosen=chosen,
+        method=ctx.method,
+        chosen=outcome.chosen,
         robot=robot,
         before=before,
         metrics=split_table(before, robot, obs) if metrics is None else metrics,
-        info=info,
-        seed=seed,
+        info=outcome.info,
+        seed=ctx.seed,
         n_train=counts["train"],
         n_val=counts["val"],
         n_test=counts["test"],
-        fit_seconds=seconds,
+        fit_seconds=ctx.seconds,
         obs=obs,
         warnings=warnings,
         notes=notes,
@@ -362,163 +399,182 @@ def _result(method, chosen, robot, before, info, obs, counts, seed, seconds, war
     )
 
 
-def _cv_key(chosen: str, info: dict) -> str:
-    """The cross-validation candidate that the returned model is."""
-    if chosen == "hybrid":
-        kept = info.get("kept") or info.get("hybrid", {}).get("kept", "local-poe")
-        return "local-poe" if kept == "local-poe" else "hybrid+" + kept.split("+")[1]
-    return chosen
-
-
-def _fit_ann_or_nominal(fit_obs, before, seed, options):
+def _fit_ann_or_nominal(
+    fit_obs: Observations, before: CalibratedRobot, seed: int, options: dict[str, Any]
+) -> tuple[CalibratedRobot, dict]:
     """The paper's network on the registered nominal; where too few rows can train it (a singular wrist in most
     poses …), the registered nominal itself, with the reason in ``info["no_network"]`` (a blocking warning): the
     method runs on any data, and what it could not learn is said, not exported by accident."""
-    from labcal.calibration.ann import fit_ann
+    from labcal.calibration.ann import fit_ann  # torch only when a network is fitted
 
     try:
         robot, info = fit_ann(fit_obs, before, seed=seed, **options)
     except ObservationError as err:  # NetworkDataError: too few usable rows, the message names the cause
         reason = f"the paper's network could not be trained: {err}; this fit is the registered nominal (no correction)"
         return dataclasses.replace(before, method="ann"), {"method": "ann", "no_network": reason}
-    return dataclasses.replace(robot, joint_ranges=_data_ranges(fit_obs.q)), info
+    return dataclasses.replace(robot, joint_ranges=data_ranges(fit_obs.q)), info
 
 
 def _with_validity(robot: CalibratedRobot, q: np.ndarray) -> CalibratedRobot:
     """The robot with its validity region: the neighbourhood of the fitted configurations (scaled joint space)."""
-    from labcal.compensator.validity import ValidityRegion
-
     return dataclasses.replace(robot, validity=ValidityRegion.from_configurations(q))
 
 
-def _data_ranges(q: np.ndarray) -> np.ndarray:
-    return np.stack([q.min(axis=0), q.max(axis=0)], axis=1)
-
-
-def _auto(fit_obs, obs, nominal, before, stage1, cv, candidates, hybrid_cands, seed, series_full, options, say,
-          notes, timed):  # fmt: skip
-    """auto: choose among every candidate by cross-validation and refit the chosen one on all rows."""
-    from labcal.calibration.cv import choose
-    from labcal.calibration.hybrid import finish_hybrid
-
-    pick = [c for c in candidates if c != "nominal"]
+def _auto_choice(ctx: FitContext, table: Candidates, pick: list[str]) -> str:
+    """The candidate auto refits: cross-validation's choice, local POE when it cannot choose (noted)."""
+    cv, notes = table.cv, ctx.notes
     if cv is None or not cv.available("local-poe"):
-        choice = "local-poe"
         why = "too few distinct poses" if cv is None else "too few poses in a fold to identify local POE"
         notes.append(f"auto fell back to local-poe: {why} to cross-validate the learned stages")
-    else:
-        choice = choose(cv, tuple(pick))
-        skipped = [c for c in pick if not cv.available(c)]
-        for c in skipped:
-            notes.append(f"stage-skipped: {c}: {cv.failures.get(c, 'not evaluated')}")
-        if choice == "local-poe" and skipped and all(cv.available(c) is False for c in pick if c != "local-poe"):
-            notes.append("auto fell back to local-poe: no learned stage could be fitted (see the notes above)")
-    errors = {name: (cv.mean(name) if cv is not None and name in cv.rows else float("nan")) for name in pick}
+        return "local-poe"
+    choice = choose(cv, tuple(pick))
+    skipped = [c for c in pick if not cv.available(c)]
+    for c in skipped:
+        notes.append(f"stage-skipped: {c}: {cv.failures.get(c, 'not evaluated')}")
+    if choice == "local-poe" and skipped and all(cv.available(c) is False for c in pick if c != "local-poe"):
+        notes.append("auto fell back to local-poe: no learned stage could be fitted (see the notes above)")
+    return choice
+
+
+def _auto(ctx: FitContext, table: Candidates) -> Outcome:
+    """auto: choose among every candidate by cross-validation and refit the chosen one on all rows."""
+    assert table.stage1 is not None
+    stage1 = table.stage1
+    pick = [c for c in table.names if c != "nominal"]
+    choice = _auto_choice(ctx, table, pick)
+    errors = {name: table.cv_error(name) for name in pick}
     candidates_info = {
         "local-poe": errors.get("local-poe", float("nan")),
-        "hybrid": min((errors[c] for c in pick if c.startswith("hybrid+") and math.isfinite(errors[c])),
+        "hybrid": min((errors[c] for c in pick if BY_NAME[c].hybrid and math.isfinite(errors[c])),
                       default=float("nan")),
     }  # fmt: skip
     if "ann" in pick:
         candidates_info["ann"] = errors["ann"]
-    info = {"candidates": candidates_info, "cv_errors": errors, "local-poe": stage1[1]}
+    info: dict[str, Any] = {"candidates": candidates_info, "cv_errors": errors, "local-poe": stage1.info}
+    outcome = Outcome(stage1.robot, info, "local-poe", "local-poe")
     if choice == "ann":
-        robot, ann_info = timed("ann", lambda: _fit_ann_or_nominal(fit_obs, before, seed, options))
+        robot, ann_info = ctx.timed("ann", lambda: _fit_ann_or_nominal(ctx.fit_obs, table.before.robot, ctx.seed,
+                                                                        ctx.options))  # fmt: skip
         info["ann"] = ann_info
-        chosen = "ann"
         if "no_network" in ann_info:  # it cross-validated, yet the refit on all rows found too few usable rows
-            notes.append(f"auto fell back to local-poe: {ann_info.pop('no_network')}")
-            robot, chosen = stage1[0], "local-poe"
-    elif choice == "local-poe":
-        robot, chosen = stage1[0], "local-poe"
-    else:
-        robot, h_info = timed("hybrid", lambda: finish_hybrid(
-            fit_obs, obs, stage1, cv, hybrid_cands, seed=seed, series_full=series_full, ann_options=options,
-            say=say, choice=choice))  # fmt: skip
-        info["hybrid"] = h_info
-        chosen = "hybrid" if h_info["kept"] != "local-poe" else "local-poe"
-        if chosen == "local-poe":
-            robot = stage1[0]
+            ctx.notes.append(f"auto fell back to local-poe: {ann_info.pop('no_network')}")
+        else:
+            outcome = Outcome(robot, info, "ann", "ann", network=ann_info)
+    elif choice != "local-poe":
+        hybrid = ctx.timed("hybrid", lambda: finish_hybrid(ctx, table, choice=choice))
+        info["hybrid"] = hybrid.info
+        if hybrid.candidate != "local-poe":
+            outcome = Outcome(hybrid.robot, info, "hybrid", hybrid.candidate, network=hybrid.network)
     if "hybrid" not in info:
-        info["hybrid"] = {"kept": choice.replace("hybrid+", "local-poe+") if "+" in choice else "local-poe"}
-    say("auto: cross-validated mean point error " + ", ".join(f"{m} {e * 1e3:.4f} mm" for m, e in errors.items()))
-    say(f"auto: chose {chosen}")
-    return robot, info, chosen
+        info["hybrid"] = {"kept": BY_NAME[choice].kept if BY_NAME[choice].hybrid else "local-poe"}
+    ctx.say("auto: cross-validated mean point error " + ", ".join(f"{m} {e * 1e3:.4f} mm" for m, e in errors.items()))
+    ctx.say(f"auto: chose {outcome.chosen}")
+    return outcome
 
 
 def _warn(code: str, message: str) -> dict:
     return {"code": code, "message": message}
 
 
-def _network_info(chosen_key: str, info: dict) -> dict | None:
-    """The info dict of the network in the returned model, if it has one."""
-    if chosen_key == "ann":
-        return info.get("ann", info) if "ann" in info and isinstance(info["ann"], dict) else info
-    if chosen_key == "hybrid+ann":
-        return info.get("ann") or info.get("hybrid", {}).get("ann")
+def _checks(ctx: FitContext, table: Candidates, outcome: Outcome, robot: CalibratedRobot, metrics: dict) -> list[dict]:
+    """The blocking findings of a fit (module docstring); appends non-blocking ones to ``ctx.notes``."""
+    fit_obs, notes, key = ctx.fit_obs, ctx.notes, outcome.candidate
+    warnings: list[dict] = []
+    distinct = len(np.unique(fit_obs.q, axis=0))
+    few = _few_poses(distinct, fit_obs.n)
+    if few:
+        warnings.append(few)
+    lp = table.stage1.info if table.stage1 is not None and key != "ann" else None
+    if lp is not None:
+        _identification_checks(lp, distinct, warnings, notes)
+    in_sample = float(np.mean(row_errors(robot, fit_obs)))
+    if table.cv is not None:
+        _cv_checks(table.cv, key, in_sample, warnings, notes)
+    _holdout_checks(metrics, warnings)
+    net = outcome.network
+    if net and net.get("loss_note"):
+        notes.append(f"network: {net['loss_note']}")
+    if net:
+        warnings.extend(_warn("overfit", text) for text in net.get("warnings", []) if "over-fitting" in text)
+    for code, message in (
+        ("poor-fit", _poor_fit(in_sample)),
+        ("point-residuals", point_residual_warning(metrics.get("all") or {})),
+        ("large-correction", _large_correction(robot, fit_obs.q, ctx.seed, lp)),
+        ("narrow-joint", _narrow_joints(robot, fit_obs.q)),
+        ("frame-jump", _frame_jump(robot, ctx.obs)),
+    ):
+        if isinstance(message, dict):  # point_residual_warning returns the finished warning
+            warnings.append(message)
+        elif message:
+            warnings.append(_warn(code, message))
+    _dropped(table, fit_obs, key, net, warnings, notes)
+    return warnings
+
+
+def _few_poses(distinct: int, n: int) -> dict | None:
+    """few-poses: fewer than MIN_POSES_PER_JOINT distinct poses per joint."""
+    if distinct < MIN_POSES_PER_JOINT * n:
+        return _warn(
+            "few-poses",
+            f"only {distinct} distinct pose(s) for a robot with {n} joints (fewer than "
+            f"{MIN_POSES_PER_JOINT} per joint, the least the import checks accept): whatever the errors say, so few "
+            f"poses pin down little of the robot; measure at least {MIN_POSES_PER_JOINT * n} spread poses",
+        )
     return None
 
 
-def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, seed, notes) -> list[dict]:
-    """The blocking findings of a fit (module docstring); appends non-blocking ones to ``notes``."""
-    from labcal.calibration.cv import row_errors
-
-    warnings: list[dict] = []
-    distinct = len(np.unique(fit_obs.q, axis=0))
-    if distinct < MIN_POSES_PER_JOINT * fit_obs.n:
+def _identification_checks(lp: dict, distinct: int, warnings: list[dict], notes: list[str]) -> None:
+    """rank-deficient (a warning) and weak (a note) from local POE's info."""
+    if lp["rank"] < lp["expected_rank"]:
+        lines = lp.get("null_directions", [])
+        shown = "; ".join(lines[:8]) + (f"; … ({len(lines) - 8} more)" if len(lines) > 8 else "")
         warnings.append(_warn(
-            "few-poses",
-            f"only {distinct} distinct pose(s) for a robot with {fit_obs.n} joints (fewer than "
-            f"{MIN_POSES_PER_JOINT} per joint, the least the import checks accept): whatever the errors say, so few "
-            f"poses pin down little of the robot; measure at least {MIN_POSES_PER_JOINT * fit_obs.n} spread poses",
+            "rank-deficient",
+            f"local POE identified numerical rank {lp['rank']} of {lp['expected_rank']} identifiable parameters "
+            f"from {lp['rows']} rows ({distinct} distinct poses): "
+            f"{lp['expected_rank'] - lp['rank']} identifiable direction(s) are not excited by the data and "
+            f"were left at the nominal. Unidentifiable parameter combinations (largest components): {shown}. "
+            "Measure more, better spread configurations (every joint moved, not only single-joint sweeps)",
         ))  # fmt: skip
-    uses_stage1 = stage1 is not None and chosen_key != "ann"
-    if uses_stage1:
-        lp = stage1[1]
-        if lp["rank"] < lp["expected_rank"]:
-            lines = lp.get("null_directions", [])
-            shown = "; ".join(lines[:8]) + (f"; … ({len(lines) - 8} more)" if len(lines) > 8 else "")
-            warnings.append(_warn(
-                "rank-deficient",
-                f"local POE identified numerical rank {lp['rank']} of {lp['expected_rank']} identifiable parameters "
-                f"from {lp['rows']} rows ({distinct} distinct poses): "
-                f"{lp['expected_rank'] - lp['rank']} identifiable direction(s) are not excited by the data and "
-                f"were left at the nominal. Unidentifiable parameter combinations (largest components): {shown}. "
-                "Measure more, better spread configurations (every joint moved, not only single-joint sweeps)",
-            ))  # fmt: skip
-        if lp.get("weak"):
-            lines = lp.get("weak_directions", [])
-            notes.append(
-                f"weak: {lp['weak']} of {lp['rank']} identifiable direction(s) are held at the nominal — the data "
-                f"determine them worse than ±{lp['error_bound'] * 1e3:g} mm at {lp['noise'] * 1e3:g} mm tracker "
-                f"noise, so the calibration corrects nothing along them ({lp['identified']} identified): "
-                + "; ".join(lines[:4])
-                + (f"; … ({len(lines) - 4} more)" if len(lines) > 4 else "")
-            )
-    in_sample = float(np.mean(row_errors(robot, fit_obs)))
-    if cv is not None and not cv.available(chosen_key):
+    if lp.get("weak"):
+        lines = lp.get("weak_directions", [])
         notes.append(
-            f"no cross-validated error for {chosen_key}: {cv.failures.get(chosen_key, 'no fold could fit it')}"
+            f"weak: {lp['weak']} of {lp['rank']} identifiable direction(s) are held at the nominal — the data "
+            f"determine them worse than ±{lp['error_bound'] * 1e3:g} mm at {lp['noise'] * 1e3:g} mm tracker "
+            f"noise, so the calibration corrects nothing along them ({lp['identified']} identified): "
+            + "; ".join(lines[:4])
+            + (f"; … ({len(lines) - 4} more)" if len(lines) > 4 else "")
         )
-    if cv is not None and chosen_key in cv.rows:
-        e_cv = cv.mean(chosen_key)
-        common = np.isfinite(cv.rows.get("nominal", np.nan)) & np.isfinite(cv.rows[chosen_key])
-        if np.any(common):
-            e_c, e_n = float(np.mean(cv.rows[chosen_key][common])), float(np.mean(cv.rows["nominal"][common]))
-            if e_c >= e_n:
-                warnings.append(_warn(
-                    "worse-than-nominal",
-                    f"the cross-validated mean target-point error of {chosen_key} is {e_c * 1e3:.4g} mm, not below "
-                    f"the registered nominal's {e_n * 1e3:.4g} mm: the calibration does not generalise "
-                    "(too few or too similar poses, or data that do not match the robot/targets)",
-                ))  # fmt: skip
-        text = f"{chosen_key} fits its own rows to {in_sample * 1e3:.4g} mm but cross-validates to {e_cv * 1e3:.4g} mm"
-        if not math.isfinite(e_cv):
-            pass  # every fold failed for the chosen model (its notes say why): nothing to compare
-        elif e_cv > OVERFIT_RATIO * in_sample and e_cv - in_sample > 1e-5:
-            warnings.append(_warn("overfit", f"{text} (over {OVERFIT_RATIO:g}×): it interpolates too few poses"))
-        elif e_cv > OVERFIT_NOTE_RATIO * in_sample and e_cv - in_sample > 1e-5:
-            notes.append(f"overfit-risk: {text}; trust the cross-validated error, not the fit error")
+
+
+def _cv_checks(cv: CVResult, key: str, in_sample: float, warnings: list[dict], notes: list[str]) -> None:
+    """worse-than-nominal (cross-validated), overfit (a warning) and overfit-risk (a note)."""
+    if not cv.available(key):
+        notes.append(f"no cross-validated error for {key}: {cv.failures.get(key, 'no fold could fit it')}")
+    if key not in cv.rows:
+        return
+    e_cv = cv.mean(key)
+    common = np.isfinite(cv.rows.get("nominal", np.nan)) & np.isfinite(cv.rows[key])
+    if np.any(common):
+        e_c, e_n = float(np.mean(cv.rows[key][common])), float(np.mean(cv.rows["nominal"][common]))
+        if e_c >= e_n:
+            warnings.append(_warn(
+                "worse-than-nominal",
+                f"the cross-validated mean target-point error of {key} is {e_c * 1e3:.4g} mm, not below "
+                f"the registered nominal's {e_n * 1e3:.4g} mm: the calibration does not generalise "
+                "(too few or too similar poses, or data that do not match the robot/targets)",
+            ))  # fmt: skip
+    text = f"{key} fits its own rows to {in_sample * 1e3:.4g} mm but cross-validates to {e_cv * 1e3:.4g} mm"
+    if not math.isfinite(e_cv):
+        pass  # every fold failed for the chosen model (its notes say why): nothing to compare
+    elif e_cv > OVERFIT_RATIO * in_sample and e_cv - in_sample > 1e-5:
+        warnings.append(_warn("overfit", f"{text} (over {OVERFIT_RATIO:g}×): it interpolates too few poses"))
+    elif e_cv > OVERFIT_NOTE_RATIO * in_sample and e_cv - in_sample > 1e-5:
+        notes.append(f"overfit-risk: {text}; trust the cross-validated error, not the fit error")
+
+
+def _holdout_checks(metrics: dict, warnings: list[dict]) -> None:
+    """worse-than-nominal on the held-out "val" / "test" rows (once: not after the cross-validated one)."""
     for part in ("val", "test"):
         if part in metrics and not any(w["code"] == "worse-than-nominal" for w in warnings):
             entry = metrics[part]
@@ -532,34 +588,17 @@ def _checks(robot, before, fit_obs, obs, stage1, cv, chosen_key, info, metrics, 
                     f"on the held-out {part!r} rows the mean {what} error is {after * 1e3:.4g} mm after "
                     f"calibration against {bef * 1e3:.4g} mm for the registered nominal",
                 ))  # fmt: skip
-    net = _network_info(chosen_key, info)
-    if net and net.get("loss_note"):
-        notes.append(f"network: {net['loss_note']}")
-    if net:
-        for text in net.get("warnings", []):
-            if "over-fitting" in text:
-                warnings.append(_warn("overfit", text))
+
+
+def _poor_fit(in_sample: float) -> str | None:
+    """poor-fit: the model leaves a mean target-point error above POOR_FIT on its own fitting rows."""
     if in_sample > POOR_FIT:
-        warnings.append(_warn(
-            "poor-fit",
+        return (
             f"the calibrated model leaves a mean target-point error of {in_sample * 1e3:.4g} mm on the very rows it "
             f"was fitted to (above {POOR_FIT * 1e3:g} mm): no robot calibration explains these data — check the "
-            "length and angle units, the targets file (order of t1, t2, t3) and the frame (base/tracker)",
-        ))  # fmt: skip
-    points = point_residual_warning(metrics.get("all"))
-    if points:
-        warnings.append(points)
-    big = _large_correction(robot, fit_obs.q, seed, stage1[1] if uses_stage1 else None)
-    if big:
-        warnings.append(_warn("large-correction", big))
-    narrow = _narrow_joints(robot, fit_obs.q)
-    if narrow:
-        warnings.append(_warn("narrow-joint", narrow))
-    jump = _frame_jump(robot, obs)
-    if jump:
-        warnings.append(_warn("frame-jump", jump))
-    _dropped(robot, before, fit_obs, stage1, cv, chosen_key, net, warnings, notes)
-    return warnings
+            "length and angle units, the targets file (order of t1, t2, t3) and the frame (base/tracker)"
+        )
+    return None
 
 
 def _narrow_joints(robot, q: np.ndarray) -> str | None:
@@ -600,8 +639,6 @@ def _frame_jump(robot, obs) -> str | None:
     better than the nominal, and makes the robot worse. Robot errors depend on the configuration, not on when it
     was measured, so in a session of spread poses they leave no such step.
     """
-    from labcal.calibration.metrics import point_residuals
-
     if obs.k < 2 * FRAME_JUMP_BLOCK:
         return None
     seen = obs.seen[:, :, None]  # every row saw a target (Observations refuses rows that saw none)
@@ -740,14 +777,18 @@ def _correction_cause(robot, at_data: float, lp: dict | None) -> str:
     )
 
 
-def _dropped(robot, before, fit_obs, stage1, cv, chosen_key, net, warnings, notes) -> None:
+def _dropped(
+    table: Candidates, fit_obs: Observations, key: str, net: dict | None, warnings: list[dict], notes: list[str]
+) -> None:
     """rows-dropped: a warning when a kept network misses > DROPPED_SHARE of the rows, else a note."""
+    cv = table.cv
     if net is not None and "dropped_causes" in net:
         count, causes = int(net["observations"]["dropped"]), net["dropped_causes"]
-    elif cv is not None and any(c in cv.rows for c in ("hybrid+ann", "ann")):
+    elif cv is not None and any(c in cv.rows for c in NETWORKS):
         from labcal.calibration.equivalent import joint_error_observations
 
-        base = stage1[0] if stage1 is not None and "hybrid+ann" in cv.rows else before
+        on_stage1 = table.stage1 is not None and "hybrid+ann" in cv.rows
+        base = table.stage1.robot if on_stage1 and table.stage1 is not None else table.before.robot
         jeo = joint_error_observations(fit_obs, base)
         count = int(np.sum(~jeo.kept))
         causes = jeo.causes(base) if count else []

@@ -21,19 +21,24 @@ residuals, so sessions with one or two targets, or targets missing in some rows,
 terms see only the joint-error directions the points show; the rest stays at the identified robot's). When the
 condition filter leaves too few rows for the network (most poses at a singular wrist) the network is skipped and
 the series still competes; torch is imported only when the ANN candidate runs.
+
+:func:`labcal.calibration.fit.fit_hybrid` runs the method (``fit(…, "hybrid")`` without its checks); this module
+holds its steps, which :mod:`labcal.calibration.fit` calls (never the reverse).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 
+from labcal.calibration.candidates import BY_NAME, TABLE, Candidates, FitContext, Outcome, Stage
+from labcal.calibration.cv import CVResult, choose
 from labcal.calibration.metrics import primary_error
-from labcal.calibration.observations import Observations
+from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot
-from labcal.kinematics.poe import LocalPOEModel
 
 
 def validation_error(robot: CalibratedRobot, obs: Observations) -> float:
@@ -46,128 +51,121 @@ def validation_error(robot: CalibratedRobot, obs: Observations) -> float:
     return primary_error(robot, obs.subset(mask))[0]
 
 
-STAGE2 = {"series": "hybrid+series", "ann": "hybrid+ann"}
-
-
-def fit_hybrid(
-    obs: Observations,
-    nominal: LocalPOEModel,
-    *,
-    seed: int = 0,
-    local_poe_options: dict | None = None,
-    stage2: tuple[str, ...] = ("ann", "series"),
-    series_options: dict | None = None,
-    progress=None,
-    **ann_options,
-) -> tuple[CalibratedRobot, dict]:
-    """Local POE on every fitting row, then the learned term that cross-validation supports, refitted on all rows.
-
-    ``fit(obs, nominal, "hybrid", …)`` without its metrics and checks: (robot, info). Fitting rows: "train" and
-    unassigned; "val" rows are only measured (``val_error`` in the info), "test" rows ignored. stage2: the learned
-    terms to try ("ann", "series"). ann_options go to ``fit_ann`` (hidden, features, trainer, restarts, loss —
-    default "task" here); series_options to ``fit_joint_series``.
-
-    Returns the kept robot (method "hybrid"; the local-POE robot relabelled when no learned term helped) and
-    info: ``kept`` ("local-poe+ann", "local-poe+series" or "local-poe"), ``val_error_local_poe`` and
-    ``val_error_hybrid`` (cross-validated error of local POE and of the best stage-2 candidate, m — the names
-    predate cross-validation), ``val_errors`` per stage-2 candidate (CV, m; NaN when it could not run),
-    ``cv`` (:meth:`CVResult.summary`), ``skipped`` {candidate: why}, ``notes``, ``local_poe`` and the kept
-    stage's info.
-    """
-    from labcal.calibration.fit import fit  # fit() runs the hybrid's stages; this is its (robot, info) view
-
-    result = fit(
-        obs, nominal, "hybrid", seed=seed, progress=progress, local_poe_options=local_poe_options, stage2=stage2,
-        series_options=series_options, **ann_options,
-    )  # fmt: skip
-    return result.robot, {**result.info, "notes": list(result.notes)}
-
-
-def prefit_series(fit_obs, robot1, candidates, seed, series_options, say):
+def prefit_series(ctx: FitContext, robot1: CalibratedRobot) -> Stage | None:
     """The joint series on all fitting rows (its order is then fixed in the folds), or None with a note."""
-    if "hybrid+series" not in candidates:
-        return None, []
     from labcal.calibration.joint_series import fit_joint_series
-    from labcal.calibration.observations import ObservationError
 
-    say("hybrid: joint series on every fitting row (chooses its order)")
+    ctx.say("hybrid: joint series on every fitting row (chooses its order)")
     try:
-        return fit_joint_series(fit_obs, robot1, seed=seed, **(series_options or {})), []
+        return Stage(*fit_joint_series(ctx.fit_obs, robot1, seed=ctx.seed, **(ctx.series_options or {})))
     except ObservationError as err:
-        return None, [f"stage-skipped: hybrid+series: {err}"]
-
-
-def series_fixed(series_full) -> dict | None:
-    """The order and gravity switch the folds reuse (see labcal.calibration.cv.cross_validate)."""
-    if series_full is None or not {"harmonics", "gravity"} <= set(series_full[1]):
+        ctx.notes.append(f"stage-skipped: hybrid+series: {err}")
         return None
-    info = series_full[1]
-    return {"harmonics": int(info["harmonics"]), "gravity": bool(info["gravity"])}
 
 
-def finish_hybrid(fit_obs, obs, stage1, cv, candidates, *, seed, series_full, ann_options, say, choice=None):
-    """Choose (unless ``choice`` is given) among the hybrid's candidates; the kept one fitted on all rows."""
-    from labcal.calibration.cv import choose
+def series_fixed(series: Stage | None) -> dict | None:
+    """The order and gravity switch the folds reuse (see labcal.calibration.cv.cross_validate)."""
+    if series is None or not {"harmonics", "gravity"} <= set(series.info):
+        return None
+    return {"harmonics": int(series.info["harmonics"]), "gravity": bool(series.info["gravity"])}
 
-    robot1, info1 = stage1
+
+def finish_hybrid(ctx: FitContext, table: Candidates, choice: str | None = None) -> Outcome:
+    """Choose (unless ``choice`` is given) among the hybrid's candidates; the kept one fitted on all rows.
+
+    The outcome's info is the hybrid's (:func:`labcal.calibration.fit.fit_hybrid`), its candidate the kept one.
+    """
+    assert table.stage1 is not None
+    candidates = table.hybrid_names
     notes: list[str] = []
-    skipped: dict[str, str] = {}
-    if cv is None:
+    if table.cv is None:
         notes.append(
             f"stage-skipped: the learned stages need cross-validation, which needs at least 3 distinct poses "
-            f"(or groups); {fit_obs.k} rows give fewer: kept local POE"
+            f"(or groups); {ctx.fit_obs.k} rows give fewer: kept local POE"
         )
         skipped = {c: "too few distinct poses to cross-validate" for c in candidates if c != "local-poe"}
         kept = "local-poe"
     else:
-        for c in candidates:
-            if c != "local-poe" and not cv.available(c):
-                skipped[c] = cv.failures.get(c, "not evaluated")
-                notes.append(f"stage-skipped: {c}: {skipped[c]}")
-        if cv.available("local-poe"):
-            kept = choice or choose(cv, candidates)
-        else:  # not even local POE could be fitted on a fold's rows: nothing to compare a learned stage with
-            notes.append(f"stage-skipped: no fold could fit local POE ({cv.failures.get('local-poe', '')}): kept it")
-            kept = "local-poe"
-    robot, stage_info = robot1, {}
-    if kept == "hybrid+series":
-        robot, stage_info = series_full
-    elif kept == "hybrid+ann":
-        from labcal.calibration.ann import fit_ann
-        from labcal.calibration.observations import ObservationError
+        skipped, kept = _cv_choice(table.cv, candidates, choice, notes)
+    kept, stage = _refit_kept(ctx, table, kept, notes)
+    # Every row the fit used, not only those a learned stage kept (issue 13.3).
+    robot = dataclasses.replace(stage.robot, method="hybrid", joint_ranges=_ranges(ctx.fit_obs.q, stage.robot))
+    info = _hybrid_info(ctx, table, kept, robot, skipped, notes)
+    learned = BY_NAME[kept].learned
+    if learned is not None:
+        info[learned] = stage.info
+    summary = ", ".join(f"{name} {e * 1e3:.4f} mm" for name, e in info["val_errors"].items())
+    ctx.say(
+        f"hybrid: cross-validated mean point error local-poe {info['val_error_local_poe'] * 1e3:.4f} mm, {summary}; "
+        f"kept {info['kept']}"
+    )
+    network = stage.info if BY_NAME[kept].network else None
+    return Outcome(robot, info, "hybrid", kept, network=network)
+
+
+def _cv_choice(
+    cv: CVResult, candidates: tuple[str, ...], choice: str | None, notes: list[str]
+) -> tuple[dict[str, str], str]:
+    """The learned candidates cross-validation could not run ({name: why}, noted) and the one to keep."""
+    skipped: dict[str, str] = {}
+    for c in candidates:
+        if c != "local-poe" and not cv.available(c):
+            skipped[c] = cv.failures.get(c, "not evaluated")
+            notes.append(f"stage-skipped: {c}: {skipped[c]}")
+    if cv.available("local-poe"):
+        return skipped, choice or choose(cv, candidates)
+    # not even local POE could be fitted on a fold's rows: nothing to compare a learned stage with
+    notes.append(f"stage-skipped: no fold could fit local POE ({cv.failures.get('local-poe', '')}): kept it")
+    return skipped, "local-poe"
+
+
+def _refit_kept(ctx: FitContext, table: Candidates, kept: str, notes: list[str]) -> tuple[str, Stage]:
+    """The kept candidate on all fitting rows (the series is already fitted there); local POE when the network
+    cannot be trained on all rows (the folds could)."""
+    assert table.stage1 is not None
+    if kept == "hybrid+series" and table.series is not None:
+        return kept, table.series
+    if kept == "hybrid+ann":
+        from labcal.calibration.ann import fit_ann  # torch only when a network is fitted
 
         try:
-            robot, stage_info = fit_ann(fit_obs, robot1, seed=seed, **{"loss": "task", **(ann_options or {})})
+            options = {"loss": "task", **(ctx.options or {})}
+            return kept, Stage(*fit_ann(ctx.fit_obs, table.stage1.robot, seed=ctx.seed, **options))
         except ObservationError as err:  # too few usable rows on all rows (the folds could): keep local POE
             notes.append(f"stage-skipped: hybrid+ann on all rows: {err}")
-            kept, robot = "local-poe", robot1
-    # Every row the fit used, not only those a learned stage kept (issue 13.3).
-    robot = dataclasses.replace(robot, method="hybrid", joint_ranges=_ranges(fit_obs.q, robot))
-    errors = {name: (cv.mean(STAGE2[name]) if cv is not None and STAGE2[name] in cv.rows else float("nan"))
-              for name in ("series", "ann") if STAGE2[name] in candidates}  # fmt: skip
-    e1 = cv.mean("local-poe") if cv is not None else float("nan")
+            return "local-poe", Stage(table.stage1.robot, {})
+    return kept, Stage(table.stage1.robot, {})
+
+
+def _hybrid_info(
+    ctx: FitContext, table: Candidates, kept: str, robot: CalibratedRobot, skipped: dict, notes: list[str]
+) -> dict[str, Any]:
+    """The hybrid's info (saved with a fit: its keys do not change), without the kept stage's own info."""
+    assert table.stage1 is not None
+    errors = {m.learned: table.cv_error(m.name) for m in TABLE if m.hybrid and m.learned and m.name in table.names}
     finite = {k: v for k, v in errors.items() if math.isfinite(v)}
-    info = {
-        "kept": "local-poe" if kept == "local-poe" else "local-poe+" + kept.split("+")[1],
+    cv = table.cv
+    return {
+        "kept": BY_NAME[kept].kept,
         "selection": "cross-validation" if cv is not None else "none (too few poses)",
-        "val_error_local_poe": e1,
+        "val_error_local_poe": cv.mean("local-poe") if cv is not None else float("nan"),
         "val_error_hybrid": min(finite.values()) if finite else float("nan"),
         "val_errors": errors,
-        "val_error": validation_error(robot, obs),
+        "val_error": validation_error(robot, ctx.obs),
         "cv": None if cv is None else cv.summary("hybrid" if kept != "local-poe" else "local-poe"),
         "skipped": skipped,
         "notes": notes,
-        "local_poe": info1,
+        "local_poe": table.stage1.info,
     }
-    if kept != "local-poe":
-        info[kept.split("+")[1]] = stage_info
-    summary = ", ".join(f"{name} {e * 1e3:.4f} mm" for name, e in errors.items())
-    say(f"hybrid: cross-validated mean point error local-poe {e1 * 1e3:.4f} mm, {summary}; kept {info['kept']}")
-    return robot, info
+
+
+def data_ranges(q: np.ndarray) -> np.ndarray:
+    """(n, 2) the smallest and largest value of each joint over the rows q (k, n)."""
+    return np.stack([q.min(axis=0), q.max(axis=0)], axis=1)
 
 
 def _ranges(q: np.ndarray, robot: CalibratedRobot) -> np.ndarray:
     """Joint ranges of the fitting rows for a learned model; a purely geometric one keeps the robot's limits."""
     if robot.network is None:
-        return robot.joint_ranges
-    return np.stack([q.min(axis=0), q.max(axis=0)], axis=1)
+        return np.asarray(robot.joint_ranges)  # CalibratedRobot fills them in (the limits): the same array
+    return data_ranges(q)

@@ -51,6 +51,7 @@ Example (not a doctest: it needs a data set)::
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -171,92 +172,22 @@ def fit_joint_series(
     if base.network is not None:
         raise ValueError("base already has a learned term; fit the joint series on a network-free robot")
     cands, lams = _check_options(harmonics, penalty_power, lambdas, folds)
-    n = base.n
-    types, limits = base.model.joint_types, base.model.limits
     fit_mask = np.isin(obs.split, ("train", ""))
     k_fit = int(fit_mask.sum())
-    h_max = max(cands)
-    m_max = 1 + 3 * n + 2 * h_max
     if k_fit < 2 * folds:
         raise ObservationError(
             f"the joint series needs at least {2 * folds} training configurations for {folds}-fold "
             f"cross-validation, got {k_fit}"
         )
     train = obs.subset(fit_mask)
-    jeo = joint_error_observations(train, base, max_condition=None)
-    n_grav = 3 * n
-    grav = input_features(train.q, ("gravity",), base.model)  # (k, 3n), the same for every joint
-    basis = np.concatenate(
-        [
-            np.ones((k_fit, n, 1)),
-            np.broadcast_to(grav[:, None, :], (k_fit, n, n_grav)),
-            feature_lib.harmonics(train.q, h_max, types, limits).reshape(k_fit, n, 2 * h_max),
-        ],
-        axis=2,
-    )
-    design = _Design(jeo.PJ, jeo.delta_p, basis, None if train.complete else train.seen.sum(axis=1))
-
-    order = np.random.default_rng(seed).permutation(k_fit)
-    fold_rows = [np.sort(f) for f in np.array_split(order, int(folds))]
-    everything = np.arange(k_fit)
-    # Normal equations at the largest order once; every candidate H is a sub-block of them.
-    G_max, b_max = design.normal(everything, m_max)
-    fold_normals = [design.normal(rows, m_max) for rows in fold_rows]
-
-    def columns(H: int, with_gravity: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Selected unknowns (joint-major) and their penalty weights for a model (H, gravity)."""
-        per_joint = [0, *(range(1, 1 + n_grav) if with_gravity else ()), *range(1 + n_grav, 1 + n_grav + 2 * H)]
-        sel = (np.arange(n)[:, None] * m_max + np.array(per_joint)[None, :]).reshape(-1)
-        orders = np.concatenate([np.ones(1 + (n_grav if with_gravity else 0)), np.repeat(np.arange(1.0, H + 1), 2)])
-        return sel, np.tile(orders**penalty_power, n)
-
-    def cross_validate(sel: np.ndarray, pen: np.ndarray) -> list[float]:
-        G_all, b_all = G_max[np.ix_(sel, sel)], b_max[sel]
-        scale = float(np.mean(np.diag(G_all))) or 1.0
-        sums = np.zeros(len(lams))
-        for rows, (G_f, b_f) in zip(fold_rows, fold_normals, strict=True):
-            G_tr, b_tr = G_all - G_f[np.ix_(sel, sel)], b_all - b_f[sel]
-            for i, w in enumerate(_solve_path(G_tr, b_tr, pen, scale, lams)):
-                sums[i] += float(np.sum(design.residual_score(rows, design.rho_sel(rows, w, sel))))
-        return (sums / k_fit).tolist()
-
-    first = (False,) if gravity is None else (bool(gravity),)
-    cv: dict[tuple[int, bool], list[float]] = {(H, g): cross_validate(*columns(H, g)) for H in cands for g in first}
-    # The smallest CV error; ties go to fewer harmonics and then to the stronger penalty (the smoother series).
-    best = min((v[i], H, -lams[i]) for (H, _), v in cv.items() for i in range(len(lams)))
-    H = best[1]
-    if gravity is None:  # then let cross-validation decide on the gravity terms at that order
-        cv[(H, True)] = cross_validate(*columns(H, True))
-    best = min((v[i], h, g, -lams[i]) for (h, g), v in cv.items() if h == H for i in range(len(lams)))
-    cv_error, H, use_gravity, lam = best[0], best[1], best[2], -best[3]
-    sel, pen = columns(H, use_gravity)
-    G_sel = G_max[np.ix_(sel, sel)]
-    coef = _solve_path(G_sel, b_max[sel], pen, float(np.mean(np.diag(G_sel))) or 1.0, [lam])[0]
-    m = 1 + (n_grav if use_gravity else 0) + 2 * H
-    coef = coef.reshape(n, m)
-    g_cols = n_grav if use_gravity else 0
-
-    N = equivalent_joints(n)
-    W = np.zeros((N, g_cols + 2 * n * H))
-    for j in range(n):
-        W[j, :g_cols] = coef[j, 1 : 1 + g_cols]
-        W[j, g_cols + 2 * H * j : g_cols + 2 * H * (j + 1)] = coef[j, 1 + g_cols :]
-    bias = np.zeros(N)
-    bias[:n] = coef[:, 0]
-    f = W.shape[1]
-    network = Network(
-        features=(("gravity",) if use_gravity else ()) + (f"{feature_lib.HARMONICS}:{H}",),
-        weights=(W,),
-        biases=(bias,),
-        in_mean=np.zeros(f),
-        in_scale=np.ones(f),
-        out_mean=np.zeros(N),
-        out_scale=np.ones(N),
-    )
+    search = _OrderSearch.of(train, base, max(cands), penalty_power, lams, folds, seed)
+    cv, cv_error, H, use_gravity, lam = search.choose(cands, gravity)
+    coef = search.coefficients(H, use_gravity, lam)
+    g_cols = 3 * base.n if use_gravity else 0
     robot = CalibratedRobot(
         nominal=base.nominal,
         model=base.model,
-        network=network,
+        network=_series_network(coef, H, use_gravity),
         T_tracker_base=base.T_tracker_base,
         measurement_tool=base.measurement_tool,
         measurement_tool_std=base.measurement_tool_std,
@@ -286,6 +217,115 @@ def fit_joint_series(
         "error_metric": kind,
         "amplitudes": amplitudes,
         "constants": coef[:, 0].copy(),
-        "virtual_joints": "not modelled (zero)" if n < 6 else "none",
+        "virtual_joints": "not modelled (zero)" if base.n < 6 else "none",
     }
     return robot, info
+
+
+@dataclass(frozen=True)
+class _OrderSearch:
+    """The series' normal equations at the largest order H_max, once for all rows and once per fold; every
+    candidate (H, gravity) is a sub-block of them. Unknowns per joint: a constant, the 3n gravity terms, 2 H_max
+    harmonics (joint-major)."""
+
+    design: _Design
+    k: int  # rows
+    n: int
+    h_max: int
+    penalty_power: float
+    lams: tuple[float, ...]
+    fold_rows: list[np.ndarray]
+    G_max: np.ndarray
+    b_max: np.ndarray
+    fold_normals: list[tuple[np.ndarray, np.ndarray]]
+
+    @property
+    def m_max(self) -> int:
+        return 1 + 3 * self.n + 2 * self.h_max
+
+    @classmethod
+    def of(cls, train: Observations, base: CalibratedRobot, h_max: int, penalty_power: float, lams: tuple[float, ...],
+           folds: int, seed: int) -> _OrderSearch:  # fmt: skip
+        n, k_fit = base.n, train.k
+        jeo = joint_error_observations(train, base, max_condition=None)
+        grav = input_features(train.q, ("gravity",), base.model)  # (k, 3n), the same for every joint
+        types, limits = base.model.joint_types, base.model.limits
+        basis = np.concatenate(
+            [
+                np.ones((k_fit, n, 1)),
+                np.broadcast_to(grav[:, None, :], (k_fit, n, 3 * n)),
+                feature_lib.harmonics(train.q, h_max, types, limits).reshape(k_fit, n, 2 * h_max),
+            ],
+            axis=2,
+        )
+        design = _Design(jeo.PJ, jeo.delta_p, basis, None if train.complete else train.seen.sum(axis=1))
+        order = np.random.default_rng(seed).permutation(k_fit)
+        fold_rows = [np.sort(f) for f in np.array_split(order, int(folds))]
+        m_max = 1 + 3 * n + 2 * h_max
+        G_max, b_max = design.normal(np.arange(k_fit), m_max)
+        fold_normals = [design.normal(rows, m_max) for rows in fold_rows]
+        return cls(design, k_fit, n, h_max, penalty_power, lams, fold_rows, G_max, b_max, fold_normals)
+
+    def columns(self, H: int, with_gravity: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Selected unknowns (joint-major) and their penalty weights for a model (H, gravity)."""
+        n, n_grav, m_max = self.n, 3 * self.n, self.m_max
+        per_joint = [0, *(range(1, 1 + n_grav) if with_gravity else ()), *range(1 + n_grav, 1 + n_grav + 2 * H)]
+        sel = (np.arange(n)[:, None] * m_max + np.array(per_joint)[None, :]).reshape(-1)
+        orders = np.concatenate([np.ones(1 + (n_grav if with_gravity else 0)), np.repeat(np.arange(1.0, H + 1), 2)])
+        return sel, np.tile(orders**self.penalty_power, n)
+
+    def scores(self, H: int, with_gravity: bool) -> list[float]:
+        """The cross-validated score of every λ for the model (H, gravity)."""
+        sel, pen = self.columns(H, with_gravity)
+        G_all, b_all = self.G_max[np.ix_(sel, sel)], self.b_max[sel]
+        scale = float(np.mean(np.diag(G_all))) or 1.0
+        sums = np.zeros(len(self.lams))
+        for rows, (G_f, b_f) in zip(self.fold_rows, self.fold_normals, strict=True):
+            G_tr, b_tr = G_all - G_f[np.ix_(sel, sel)], b_all - b_f[sel]
+            for i, w in enumerate(_solve_path(G_tr, b_tr, pen, scale, self.lams)):
+                sums[i] += float(np.sum(self.design.residual_score(rows, self.design.rho_sel(rows, w, sel))))
+        return (sums / self.k).tolist()
+
+    def choose(
+        self, cands: tuple[int, ...], gravity: bool | None
+    ) -> tuple[dict[tuple[int, bool], list[float]], float, int, bool, float]:
+        """The scores of every model tried; the chosen CV error, H, gravity switch and λ."""
+        lams = self.lams
+        first = (False,) if gravity is None else (bool(gravity),)
+        cv = {(H, g): self.scores(H, g) for H in cands for g in first}
+        # The smallest CV error; ties go to fewer harmonics and then to the stronger penalty (the smoother series).
+        H = min((v[i], h, -lams[i]) for (h, _), v in cv.items() for i in range(len(lams)))[1]
+        if gravity is None:  # then let cross-validation decide on the gravity terms at that order
+            cv[(H, True)] = self.scores(H, True)
+        best = min((v[i], h, g, -lams[i]) for (h, g), v in cv.items() if h == H for i in range(len(lams)))
+        return cv, best[0], best[1], best[2], -best[3]
+
+    def coefficients(self, H: int, use_gravity: bool, lam: float) -> np.ndarray:
+        """(n, m) the series' coefficients on all rows: constant, gravity terms (if used), harmonics."""
+        sel, pen = self.columns(H, use_gravity)
+        G_sel = self.G_max[np.ix_(sel, sel)]
+        coef = _solve_path(G_sel, self.b_max[sel], pen, float(np.mean(np.diag(G_sel))) or 1.0, [lam])[0]
+        return coef.reshape(self.n, 1 + (3 * self.n if use_gravity else 0) + 2 * H)
+
+
+def _series_network(coef: np.ndarray, H: int, use_gravity: bool) -> Network:
+    """The series as a one-layer linear network over the gravity and harmonic features (the exported form)."""
+    n = coef.shape[0]
+    g_cols = 3 * n if use_gravity else 0
+    N = equivalent_joints(n)
+    W = np.zeros((N, g_cols + 2 * n * H))
+    for j in range(n):
+        W[j, :g_cols] = coef[j, 1 : 1 + g_cols]
+        W[j, g_cols + 2 * H * j : g_cols + 2 * H * (j + 1)] = coef[j, 1 + g_cols :]
+    bias = np.zeros(N)
+    bias[:n] = coef[:, 0]
+    f = W.shape[1]
+    return Network(
+        features=(("gravity",) if use_gravity else ()) + (f"{feature_lib.HARMONICS}:{H}",),
+        weights=(W,),
+        biases=(bias,),
+        in_mean=np.zeros(f),
+        in_scale=np.ones(f),
+        out_mean=np.zeros(N),
+        out_scale=np.ones(N),
+    )

@@ -66,6 +66,7 @@ hold-out a caller chose (:func:`labcal.calibration.fit.fit` makes none by defaul
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -223,9 +224,7 @@ def _gauss_newton(
     r, J = _residual_and_jacobian(model, T_tb, q, targets, measured, frames, estimate_base, seen)
     cost = float(r @ r)
     history = [cost]
-    lam = damping
-    converged = False
-    iterations = 0
+    lam, converged, iterations = damping, False, 0
     mu, offset = (s_min**2, np.zeros(n_params)) if prior else (0.0, None)  # the prior's weight, scaled offset
     truncate = 0.0 if prior else s_min
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is reported
@@ -236,8 +235,9 @@ def _gauss_newton(
         cand_model, cand_T = _apply(model, T_tb, step, frames, estimate_base)
         r_c, J_c = _residual_and_jacobian(cand_model, cand_T, q, targets, measured, frames, estimate_base, seen)
         cost_c = float(r_c @ r_c)
-        offset_c = None if offset is None else offset + step / scale
+        offset_c = None
         if offset is not None:
+            offset_c = offset + step / scale
             cost_c += mu * float(offset_c @ offset_c)
         step_size = float(np.linalg.norm(step / scale))
         if cost_c <= cost * (1 + 1e-12) or step_size < tol:
@@ -251,32 +251,38 @@ def _gauss_newton(
             lam = max(lam * 10, 1e-9)
             if lam > 1e6:
                 break
-    # Final linearisation: rank, null space and parameter covariance at the solution.
-    lam_k, V, keep = _eig(scaled(J), rank_rtol, truncate)
+    return dict(
+        model=model,
+        T_tb=T_tb,
+        **_at_solution(scaled(J), r, cost, scale, rank_rtol, truncate),
+        iterations=iterations,
+        converged=converged,
+        cost_history=history,
+        residual=r,
+    )
+
+
+def _at_solution(
+    Js: np.ndarray, r: np.ndarray, cost: float, scale: np.ndarray, rank_rtol: float, truncate: float
+) -> dict[str, Any]:
+    """The final linearisation (scaled Jacobian Js, residual r): numerical rank, null and weak spaces (SI units),
+    singular values and the parameter standard deviations at the solution (:func:`_gauss_newton`)."""
+    lam_k, V, keep = _eig(Js, rank_rtol, truncate)
     numeric = np.sqrt(lam_k) > rank_rtol * np.sqrt(lam_k[-1])  # the rank-revealing threshold alone
     weak = numeric & ~keep
-    rank = int(numeric.sum())
     dof = max(r.size - int(keep.sum()), 1)
     sigma2 = cost / dof
     Vk = V[:, keep] / np.sqrt(lam_k[keep])
     cov_scaled = sigma2 * (Vk @ Vk.T)
-    std = np.sqrt(np.clip(np.diag(cov_scaled), 0, None)) * scale
-    s = np.sqrt(np.clip(lam_k, 0, None))[::-1]
     return dict(
-        model=model,
-        T_tb=T_tb,
-        rank=rank,
-        singular_values=s,
-        std=std,
+        rank=int(numeric.sum()),
+        singular_values=np.sqrt(np.clip(lam_k, 0, None))[::-1],
+        std=np.sqrt(np.clip(np.diag(cov_scaled), 0, None)) * scale,
         sigma=math.sqrt(sigma2),
         null_space=V[:, ~numeric] * scale[:, None],
         weak=int(weak.sum()),
         weak_space=V[:, weak] * scale[:, None],
         weak_singular_values=np.sqrt(np.clip(lam_k[weak], 0, None)),
-        iterations=iterations,
-        converged=converged,
-        cost_history=history,
-        residual=r,
     )
 
 
@@ -453,14 +459,14 @@ def target_null(
                 w = np.eye(3)[a]
                 tilt[c : c + 3, a], tilt[c + 3 : c + 6, a] = -np.cross(w, p), w
             basis = np.concatenate([basis, tilt], axis=1)
-            n = model.n
+            last = model.n
             words.append(
-                f"the tilt of joint {n}'s axis about target {names[0]} (2 directions): the target sits "
-                f"{off * 1e3:.1f} mm from that axis, so turning joint {n} hardly moves it; the axis stays nominal "
-                f"(moving the target ≥ {AXIS_TOL * 1e3:g} mm off the axis of joint {n} lets the data see it)"
+                f"the tilt of joint {last}'s axis about target {names[0]} (2 directions): the target sits "
+                f"{off * 1e3:.1f} mm from that axis, so turning joint {last} hardly moves it; the axis stays nominal "
+                f"(moving the target ≥ {AXIS_TOL * 1e3:g} mm off the axis of joint {last} lets the data see it)"
             )
-    tilt = basis.shape[1] - STRUCTURAL[kind]  # the axis tilts, the last columns (and the last line of words)
-    return {"geometry": kind, "count": basis.shape[1], "words": words, "basis": basis, "tilt": tilt}
+    tilts = basis.shape[1] - STRUCTURAL[kind]  # the axis tilts, the last columns (and the last line of words)
+    return {"geometry": kind, "count": basis.shape[1], "words": words, "basis": basis, "tilt": tilts}
 
 
 def _without(null: np.ndarray, known: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -602,17 +608,9 @@ def fit_local_poe(
     needed = expected_rank(nominal) - structural["count"]
     _check(obs, nominal, rows, needed, f"local-POE identification of {nominal.name or 'the robot'}")
     L = float(length_scale or nominal.reach())
-    model0 = nominal
-    if start is not None:
-        if start.model.n != n:
-            raise ValueError(f"start has {start.model.n} joints, the nominal {n}")
-        model0, T0 = start.measurement_model, np.asarray(start.T_tracker_base, float)
-    elif estimate_base:
-        T0 = _initial_base(obs, nominal, rows)
-    else:
-        T0 = np.eye(4)
-    fit_args = (obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base)
-    options = dict(
+    model0, T0 = _start(obs, nominal, rows, start, estimate_base)
+    fit_args: _FitArgs = (obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base)
+    options: dict[str, Any] = dict(
         length_scale=L,
         max_iter=max_iter,
         tol=tol,
@@ -622,53 +620,136 @@ def fit_local_poe(
         s_min=_weak_threshold(noise, error_bound),
         prior=_prior(weak_rule),
     )
+    out, structural = _iterate(nominal, model0, T0, fit_args, options, structural)
+    return _identified(nominal, obs.q[rows], out, structural, labels, fit_args, options, noise, error_bound)
+
+
+# _gauss_newton's data arguments: q (k, n), targets (m, 3), measured points (k, m, 3), frames, estimate_base
+_FitArgs = tuple[np.ndarray, np.ndarray, np.ndarray, list[int], bool]
+
+
+def _identified(
+    nominal: LocalPOEModel,
+    q: np.ndarray,
+    out: dict,
+    structural: dict,
+    labels: list[str],
+    fit_args: _FitArgs,
+    options: dict[str, Any],
+    noise: float,
+    error_bound: float,
+) -> tuple[CalibratedRobot, dict]:
+    """fit_local_poe's robot and info from the fit ``out``: the chain split into robot and measurement tool, the
+    standard deviations of the split chain, the identification in words."""
+    _, _, _, frames, estimate_base = fit_args
+    L = options["length_scale"]
+    n, needed = nominal.n, expected_rank(nominal) - structural["count"]
+    robot_model, X, T_split = split_robot(nominal, out["model"], out["T_tb"] if estimate_base else None, q)
+    T_tb = out["T_tb"] if T_split is None else T_split
+    model = robot_model.replace(frames=np.concatenate([robot_model.frames[:-1], (nominal.frames[-1] @ X)[None]]))
+    _, J_split = _residual_and_jacobian(model, T_tb, *fit_args, options["seen"])
+    scale = metric.parameter_weights(len(labels) // 6, L)
+    X_std = tool_std(J_split, scale, len(frames), out["sigma"], X, structural["basis"], options["rank_rtol"])
+    std, split_std = _split_std(J_split, scale, out, frames, n)
+    info = _identification_info(out, structural, labels, scale, noise, error_bound, needed)
+    info.update({
+        # the last row: the measurement tool in tool0
+        "delta_zeta": se3.log_se3(se3.inv(nominal.frames) @ model.frames),
+        "std": std,
+        "T_tracker_base": T_tb,
+        "T_tracker_base_std": split_std[-6:] if estimate_base else np.zeros(6),
+        "sigma": out["sigma"],
+        "iterations": out["iterations"],
+        "converged": out["converged"],
+        "cost_history": out["cost_history"],
+        "rows": int(q.shape[0]),
+        "residual_rms": float(np.sqrt(np.mean(out["residual"] ** 2))),
+        "length_scale": L,
+        "warnings": [],
+    })  # fmt: skip
+    if out["rank"] < needed:
+        info["warning"] = (
+            f"numerical rank {out['rank']} < {needed} identifiable parameters: the configurations do not excite "
+            "every identifiable direction; measure more, better spread configurations"
+        )
+        info["warnings"] = [info["warning"]]  # the key the CLI's stored diagnostics keep
+    info["measurement_tool"], info["measurement_tool_std"] = X, X_std
+    robot = CalibratedRobot(nominal=nominal, model=robot_model, T_tracker_base=T_tb, method="local-poe",
+                            measurement_tool=X, measurement_tool_std=X_std)  # fmt: skip
+    return robot, info
+
+
+def _iterate(
+    nominal: LocalPOEModel,
+    model0: LocalPOEModel,
+    T0: np.ndarray,
+    fit_args: _FitArgs,
+    options: dict[str, Any],
+    structural: dict,
+) -> tuple[dict, dict]:
+    """Gauss-Newton from (model0, T0) holding the directions the targets cannot show; a 7+ joint arm whose data
+    do measure the tool's tilts (from the start, or once the fit moved the target off the axis) frees them.
+    Returns the fit (:func:`_gauss_newton`) and the structural record it ended with."""
 
     def measured_tilts(at: dict) -> bool:  # MEASURED_TILT_MIN_JOINTS: only arms of 7+ joints ask
         return (
             bool(structural["tilt"])
-            and n >= MEASURED_TILT_MIN_JOINTS
-            and _tilts_measured(at, fit_args, options["seen"], structural, L, rank_rtol, options["s_min"])
-        )
+            and nominal.n >= MEASURED_TILT_MIN_JOINTS
+            and _tilts_measured(at, fit_args, options["seen"], structural, options["length_scale"],
+                                options["rank_rtol"], options["s_min"])
+        )  # fmt: skip
 
     if measured_tilts({"model": model0, "T_tb": T0}):  # seen from the start: never held
         structural = _free_tilts(structural)
-        needed = expected_rank(nominal) - structural["count"]
     out = _gauss_newton(model0, T0, *fit_args, fixed=structural["basis"], **options)
     if measured_tilts(out):
         # Measured once the target sits where the data put it (the targets file had it on the axis): go on from
         # the fit that held them, with them free.
         structural = _free_tilts(structural)
-        needed = expected_rank(nominal) - structural["count"]
         held = out
         out = _gauss_newton(held["model"], held["T_tb"], *fit_args, fixed=structural["basis"], **options)
         out["iterations"] += held["iterations"]
         out["cost_history"] = held["cost_history"] + out["cost_history"][1:]
-    robot_model, X, T_tb = split_robot(nominal, out["model"], out["T_tb"] if estimate_base else None, obs.q[rows])
-    T_tb = out["T_tb"] if T_tb is None else T_tb
-    model = robot_model.replace(frames=np.concatenate([robot_model.frames[:-1], (nominal.frames[-1] @ X)[None]]))
-    delta = se3.log_se3(se3.inv(nominal.frames) @ model.frames)  # the last row: the measurement tool in tool0
-    seen = _seen_rows(obs, rows)
-    _, J_split = _residual_and_jacobian(
-        model, T_tb, obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base, seen
-    )
-    scale_p = metric.parameter_weights(len(labels) // 6, L)
-    X_std = tool_std(J_split, scale_p, len(frames), out["sigma"], X, structural["basis"], rank_rtol)
+    return out, structural
+
+
+def _start(
+    obs: Observations, nominal: LocalPOEModel, rows: np.ndarray, start: CalibratedRobot | None, estimate_base: bool
+) -> tuple[LocalPOEModel, np.ndarray]:
+    """Where the iteration starts: ``start``'s chain to the fixture, else the nominal (with a first T_tracker_base
+    from a rigid fit when it is estimated)."""
+    if start is not None:
+        if start.model.n != nominal.n:
+            raise ValueError(f"start has {start.model.n} joints, the nominal {nominal.n}")
+        return start.measurement_model, np.asarray(start.T_tracker_base, float)
+    return nominal, _initial_base(obs, nominal, rows) if estimate_base else np.eye(4)
+
+
+def _split_std(
+    J_split: np.ndarray, scale: np.ndarray, out: dict, frames: list[int], n: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(n+1, 6) standard deviations of the split chain's frame parameters (A_n and the tool moved; NaN where not
+    estimated) and all of them flat: σ² (JᵀJ)⁺ on the fit's rank."""
     std = np.full((n + 1, 6), np.nan)
-    # The standard deviations of the split chain's parameters (A_n and the tool moved): σ² (JᵀJ)⁺ on the fit's rank
-    Js = J_split * scale_p
+    Js = J_split * scale
     lam_s, V_s = np.linalg.eigh(Js.T @ Js)
     Vk = V_s[:, lam_s.size - out["rank"] :] / np.sqrt(lam_s[lam_s.size - out["rank"] :])
-    split_std = np.sqrt(np.einsum("ij,ij->i", Vk, Vk)) * out["sigma"] * scale_p
+    split_std = np.sqrt(np.einsum("ij,ij->i", Vk, Vk)) * out["sigma"] * scale
     std[frames] = split_std[: 6 * len(frames)].reshape(len(frames), 6)
-    scale = metric.parameter_weights(len(labels) // 6, L)
+    return std, split_std
+
+
+def _identification_info(
+    out: dict, structural: dict, labels: list[str], scale: np.ndarray, noise: float, error_bound: float, needed: int
+) -> dict[str, Any]:
+    """fit_local_poe's info on what was identified: rank, weak and null directions in words, observability."""
     null_lines = _describe_null(_without(out["null_space"], structural["basis"], scale), labels)
-    n_params = len(labels)
     weak_words = _describe_null(out["weak_space"], labels, 3, rotate=False)
     weak_lines = [
         f"{line} (the noise alone would move it by ±{noise / sv * 1e3:.3g} mm)"
         for line, sv in zip(weak_words, out["weak_singular_values"], strict=True)
     ]
-    info = {
+    return {
         "rank": out["rank"],
         "weak": out["weak"],
         "identified": out["rank"] - out["weak"],
@@ -678,8 +759,8 @@ def fit_local_poe(
         "noise": float(noise),
         "error_bound": float(error_bound),
         "expected_rank": needed,
-        "n_params": n_params,
-        "unidentifiable": n_params - out["rank"],
+        "n_params": len(labels),
+        "unidentifiable": len(labels) - out["rank"],
         "null_directions": null_lines,
         "null_space": out["null_space"],
         "param_labels": labels,
@@ -687,33 +768,4 @@ def fit_local_poe(
         "target_geometry": structural["geometry"],
         "unobservable": structural["words"],
         "singular_values": out["singular_values"],
-        "delta_zeta": delta,
-        "std": std,
-        "T_tracker_base": T_tb,
-        "T_tracker_base_std": split_std[-6:] if estimate_base else np.zeros(6),
-        "sigma": out["sigma"],
-        "iterations": out["iterations"],
-        "converged": out["converged"],
-        "cost_history": out["cost_history"],
-        "rows": int(rows.sum()),
-        "residual_rms": float(np.sqrt(np.mean(out["residual"] ** 2))),
-        "length_scale": L,
     }
-    info["warnings"] = []
-    if out["rank"] < needed:
-        info["warning"] = (
-            f"numerical rank {out['rank']} < {needed} identifiable parameters: the configurations do not excite "
-            "every identifiable direction; measure more, better spread configurations"
-        )
-        info["warnings"] = [info["warning"]]  # the key the CLI's stored diagnostics keep
-    info["measurement_tool"] = X
-    info["measurement_tool_std"] = X_std
-    robot = CalibratedRobot(
-        nominal=nominal,
-        model=robot_model,
-        T_tracker_base=T_tb,
-        method="local-poe",
-        measurement_tool=X,
-        measurement_tool_std=X_std,
-    )
-    return robot, info

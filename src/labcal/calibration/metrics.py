@@ -24,6 +24,8 @@ Example::
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from labcal.calibration.observations import Observations
@@ -113,7 +115,7 @@ def summarize_points(d: np.ndarray) -> dict:
             "max": float(np.max(e)),
         }
 
-    out = stats(d.ravel())
+    out: dict[str, Any] = dict(stats(d.ravel()))
     out["per_target"] = [stats(d[:, i]) for i in range(d.shape[1])]
     return out
 

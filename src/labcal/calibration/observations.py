@@ -24,6 +24,7 @@ Example::
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
@@ -53,8 +54,10 @@ class Observations:
     points: np.ndarray
     targets: np.ndarray
     frame: str = "base"
-    split: np.ndarray = field(default=None)  # type: ignore[assignment]
+    split: np.ndarray = field(default=None)  # type: ignore[arg-type]  # None: every row unlabelled ("")
     group: np.ndarray | None = None
+    if TYPE_CHECKING:  # (k, m) bool, set by __post_init__: derived from points, so not a dataclass field
+        _seen: ClassVar[np.ndarray]
 
     def __post_init__(self) -> None:
         q = np.asarray(self.q, dtype=float)

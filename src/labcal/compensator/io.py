@@ -34,7 +34,7 @@ import numpy as np
 
 from labcal import features as feature_lib
 from labcal.atomicio import write_bytes, write_text
-from labcal.compensator.model import CalibratedRobot, Network
+from labcal.compensator.model import CalibratedRobot, Network, register_writer
 from labcal.compensator.validity import MAX_CENTRES, ValidityRegion
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
@@ -276,98 +276,128 @@ def check_payload(data: dict, source: str, *, error: type[Exception] = Compensat
     provenance as short printable text nested at most :data:`MAX_PROVENANCE_DEPTH` deep. Checksums cannot stand in
     for this: whoever writes a file can recompute them. One line naming ``source`` and the field.
     """
+    check = _FieldCheck(source, error)
+    types = _check_models(check, data)
+    n = len(types)
+    _check_ranges(check, data, types)
+    _check_frames(check, data)
+    jm = data.get("joint_map")
+    if jm is not None:
+        jm = check.table("joint_map", jm)
+        for key, shape in (("matrix", (n, n)), ("offsets", (n,))):
+            try:
+                check.numbers(key, jm.get(key), shape)
+            except error as err:
+                check.fail("joint_map", f"is not a valid joint map for {n} joints: {str(err).split(': ', 1)[1]}")
+    if data.get("network") is not None:
+        _check_network(check.table("network", data["network"]), check.fail, check.numbers, max(n, 6))
+    _check_golden_fields(check, check.table("golden", data.get("golden")), n)
+    _check_provenance(data.get("provenance", {}), "provenance", 0, check.fail)
+    checksums = data.get("checksums")
+    if checksums is not None and not (
+        isinstance(checksums, dict) and all(isinstance(v, str) and len(v) <= 128 for v in checksums.values())
+    ):
+        check.fail("checksums", "must map each field to a hex digest")
 
-    def fail(field: str, problem: str) -> NoReturn:
-        raise error(f"{source}: {field} {problem}")
 
-    def table(field: str, value) -> dict:
+class _FieldCheck:
+    """:func:`check_payload`'s refusals: one error line naming the source and the field."""
+
+    def __init__(self, source: str, error: type[Exception]) -> None:
+        self.source, self.error = source, error
+
+    def fail(self, field: str, problem: str) -> NoReturn:
+        raise self.error(f"{self.source}: {field} {problem}")
+
+    def table(self, field: str, value) -> dict:
         if not isinstance(value, dict):
-            fail(field, f"must be a table, got {type(value).__name__}")
+            self.fail(field, f"must be a table, got {type(value).__name__}")
         return value
 
-    def numbers(field: str, value, shape: tuple) -> np.ndarray:
+    def numbers(self, field: str, value, shape: tuple) -> np.ndarray:
         try:
             a = np.asarray(value, dtype=float)
         except (TypeError, ValueError, RecursionError):
             a = None
         if a is None or a.shape != shape:
             got = "ragged or not numbers" if a is None else f"shape {a.shape}"
-            fail(field, f"must be numbers of shape {shape}, got {got}")
+            self.fail(field, f"must be numbers of shape {shape}, got {got}")
         if not np.isfinite(a).all():
-            fail(field, "must be finite numbers (it holds NaN or infinity)")
+            self.fail(field, "must be finite numbers (it holds NaN or infinity)")
         return a
 
-    types = table("robot", data.get("robot")).get("joint_types")
+
+def _check_models(check: _FieldCheck, data: dict) -> list:
+    """The robot's and the model's joint types (the same for both), names, frames, twists and limits; the types."""
+    types = check.table("robot", data.get("robot")).get("joint_types")
     if not isinstance(types, list) or not 1 <= len(types) <= MAX_JOINTS:
-        fail("robot.joint_types", f"must list 1 to {MAX_JOINTS} joints")
+        check.fail("robot.joint_types", f"must list 1 to {MAX_JOINTS} joints")
     n = len(types)
     for part in ("robot", "model"):
-        d = table(part, data.get(part))
+        d = check.table(part, data.get(part))
         if d.get("joint_types") != types or any(t not in (REVOLUTE, PRISMATIC) for t in types):
-            fail(f"{part}.joint_types", f"must be {n} of {REVOLUTE!r} / {PRISMATIC!r}, the same for robot and model")
+            check.fail(
+                f"{part}.joint_types", f"must be {n} of {REVOLUTE!r} / {PRISMATIC!r}, the same for robot and model"
+            )
         name = d.get("name", "")
         if name != "" and (problem := name_problem(name)):
-            fail(f"{part}.name", problem)
+            check.fail(f"{part}.name", problem)
         names = d.get("joint_names", [])
         if not isinstance(names, list) or len(names) not in (0, n):
-            fail(f"{part}.joint_names", f"must list the {n} joints' names")
+            check.fail(f"{part}.joint_names", f"must list the {n} joints' names")
         for j, joint in enumerate(names):
             if problem := name_problem(joint):
-                fail(f"{part}.joint_names[{j + 1}]", problem)
+                check.fail(f"{part}.joint_names[{j + 1}]", problem)
         if (twice := duplicate(names)) is not None:
-            fail(f"{part}.joint_names", f"repeats {names[twice[1]]!r} (joints {twice[0] + 1} and {twice[1] + 1})")
-        numbers(f"{part}.frames", d.get("frames"), (n + 1, 4, 4))
-        numbers(f"{part}.twists", d.get("twists"), (n, 6))
-        numbers(f"{part}.limits", d.get("limits"), (n, 2))
-    ranges = numbers("joint_ranges", data.get("joint_ranges"), (n, 2))
+            check.fail(f"{part}.joint_names", f"repeats {names[twice[1]]!r} (joints {twice[0] + 1} and {twice[1] + 1})")
+        check.numbers(f"{part}.frames", d.get("frames"), (n + 1, 4, 4))
+        check.numbers(f"{part}.twists", d.get("twists"), (n, 6))
+        check.numbers(f"{part}.limits", d.get("limits"), (n, 2))
+    return types
+
+
+def _check_ranges(check: _FieldCheck, data: dict, types: list) -> None:
+    """The calibrated joint ranges: within what a robot file may declare for each joint's type."""
+    ranges = check.numbers("joint_ranges", data.get("joint_ranges"), (len(types), 2))
     for j, (lo, hi) in enumerate(ranges):
         bound = MAX_RANGE[types[j]]
         if lo > hi or max(abs(lo), abs(hi)) > bound:
             unit = "rad" if types[j] == REVOLUTE else "m"
-            fail(
+            check.fail(
                 f"joint_ranges[{j + 1}]",
                 f"= [{lo:.6g}, {hi:.6g}] is not a range of a {types[j]} joint (lo <= hi, within ±{bound:.4g} {unit}, "
                 "what a robot file may declare): a wider range would switch off the out-of-range guard",
             )
-    numbers("T_tracker_base", data.get("T_tracker_base"), (4, 4))
+
+
+def _check_frames(check: _FieldCheck, data: dict) -> None:
+    """The tracker frame, the measurement tool (rigid), the length scale and the method's name."""
+    check.numbers("T_tracker_base", data.get("T_tracker_base"), (4, 4))
     if data.get("measurement_tool") is not None:
-        X = numbers("measurement_tool", data["measurement_tool"], (4, 4))
+        X = check.numbers("measurement_tool", data["measurement_tool"], (4, 4))
         if not (np.allclose(X[3], [0, 0, 0, 1]) and np.allclose(X[:3, :3].T @ X[:3, :3], np.eye(3), atol=1e-9)):
-            fail("measurement_tool", "must be a rigid transform (rotation + translation, last row 0 0 0 1)")
+            check.fail("measurement_tool", "must be a rigid transform (rotation + translation, last row 0 0 0 1)")
     scale = data.get("length_scale")
     if not (isinstance(scale, int | float) and not isinstance(scale, bool) and 0 < scale <= MAX_LENGTH_SCALE):
-        fail("length_scale", f"must be a number of metres per radian in (0, {MAX_LENGTH_SCALE:g}], got {scale!r}")
+        check.fail("length_scale", f"must be a number of metres per radian in (0, {MAX_LENGTH_SCALE:g}], got {scale!r}")
     if problem := name_problem(data.get("method")):
-        fail("method", problem)
-    jm = data.get("joint_map")
-    if jm is not None:
-        jm = table("joint_map", jm)
-        for key, shape in (("matrix", (n, n)), ("offsets", (n,))):
-            try:
-                numbers(key, jm.get(key), shape)
-            except error as err:
-                fail("joint_map", f"is not a valid joint map for {n} joints: {str(err).split(': ', 1)[1]}")
-    if data.get("network") is not None:
-        _check_network(table("network", data["network"]), fail, numbers, max(n, 6))
-    golden = table("golden", data.get("golden"))
+        check.fail("method", problem)
+
+
+def _check_golden_fields(check: _FieldCheck, golden: dict, n: int) -> None:
+    """The golden vectors' count and shapes and the correction method they were made with."""
     q = golden.get("q")
     k = len(q) if isinstance(q, list | np.ndarray) else 0
     if not 1 <= k <= MAX_GOLDEN:
-        fail(
+        check.fail(
             "golden.q",
             f"holds {k} configurations: no golden vectors to verify the file against, or more than {MAX_GOLDEN}",
         )
-    numbers("golden.q", q, (k, n))
-    numbers("golden.q_cmd", golden.get("q_cmd"), (k, n))
-    numbers("golden.pose", golden.get("pose"), (k, 4, 4))
+    check.numbers("golden.q", q, (k, n))
+    check.numbers("golden.q_cmd", golden.get("q_cmd"), (k, n))
+    check.numbers("golden.pose", golden.get("pose"), (k, 4, 4))
     if problem := name_problem(golden.get("correct_method", "newton")):
-        fail("golden.correct_method", problem)
-    _check_provenance(data.get("provenance", {}), "provenance", 0, fail)
-    checksums = data.get("checksums")
-    if checksums is not None and not (
-        isinstance(checksums, dict) and all(isinstance(v, str) and len(v) <= 128 for v in checksums.values())
-    ):
-        fail("checksums", "must map each field to a hex digest")
+        check.fail("golden.correct_method", problem)
 
 
 def _check_network(
@@ -536,6 +566,8 @@ def save(robot: CalibratedRobot, path, provenance: dict | None = None) -> Path:
         write_bytes(path, buffer.getvalue())
     return path
 
+
+register_writer(save)  # CalibratedRobot.save writes through this module, which model.py does not import
 
 _ARRAY_KEYS = {"frames", "twists", "limits", "in_mean", "in_scale", "out_mean", "out_scale", "joint_ranges"}
 _ARRAY_KEYS |= {"T_tracker_base", "q", "q_cmd", "pose", "matrix", "offsets", "measurement_tool"}
