@@ -2,7 +2,7 @@
 
 Run: ``.venv/bin/python benchmarks/compensator_tail.py [--calls 20000] [--size 150] [--export PATH] [--tols 1e-9,1e-7]``
 
-The export: the real UR10 tracker data (:mod:`labcal.bench.real_ur10`: imported through the shipped mapping),
+The export: the real UR10 tracker data (``benchmarks/real_ur10.py``: imported through the shipped mapping),
 ``--size`` random poses (seed 0) registered and fitted with ``method="hybrid"`` (local POE, then the learned term
 the cross-validation keeps: on these data the per-joint series), saved as JSON and loaded back with
 :meth:`Compensator.load`, as a controller-side process would. ``--export PATH`` reuses (or first writes) that file.
@@ -41,9 +41,9 @@ _FALLBACKS = (
 
 def fit_export(path: Path, size: int) -> Path:
     """Fit the real UR10 data with hybrid (``size`` poses, seed 0) and save the export at ``path``."""
-    from labcal.bench.real_ur10 import load_observations, locate_data, split_for
     from labcal.calibration import Observations, fit, register
     from labcal.robots import load
+    from real_ur10 import load_observations, locate_data, split_for
 
     with tempfile.TemporaryDirectory() as tmp:
         obs_all, _ = load_observations(locate_data(), Path(tmp) / "store")

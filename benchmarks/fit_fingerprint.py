@@ -48,7 +48,7 @@ def _cases():
         return build
 
     def real():
-        from labcal.bench.real_ur10 import load_observations, locate_data
+        from real_ur10 import load_observations, locate_data
 
         with tempfile.TemporaryDirectory() as tmp:
             obs, _ = load_observations(locate_data(), Path(tmp) / "store")

@@ -14,7 +14,6 @@ import time
 
 import numpy as np
 
-from labcal.bench.paper import MAX_CONDITION, TARGETS
 from labcal.calibration import Observations
 from labcal.calibration.local_poe import fit_local_poe
 from labcal.kinematics import se3
@@ -27,6 +26,7 @@ from labcal.sessions.planning import (
     random_configurations,
 )
 from labcal.simulation import ErrorSpec, simulate
+from paper import MAX_CONDITION, TARGETS
 
 
 def main(argv: list[str] | None = None) -> None:

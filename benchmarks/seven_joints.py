@@ -8,11 +8,11 @@ deflection, 0.05 mrad gears, 0.05 mm tracker noise), base frame, in two families
 - ``three-targets``: three targets on the flange (the CLI tests' nest: 120 / 117 / 117 mm off the axis).
 
 Protocol (as ``benchmarks/robustness.py``): for split s = 0 … S−1 a true robot (seed s + 1) and ``--poses`` random
-non-singular configurations over the full joint ranges (:func:`labcal.bench.paper.sample_configurations`) are drawn
+non-singular configurations over the full joint ranges (``sample_configurations`` of benchmarks/paper.py) are drawn
 and a random third of them is held out. Every method is fitted on the other two thirds with
 ``labcal.calibration.fit(obs, nominal, method, seed=s)`` and no other option and scored on the held-out poses: the
 mean distance (mm) between predicted and measured target points; beside it the ratio to the independent plain
-least-squares fit (:mod:`labcal.bench.plain_lsq`: global POE and scipy, no labcal calibration code) on the same
+least-squares fit (``benchmarks/plain_lsq.py``: global POE and scipy, no labcal calibration code) on the same
 rows. A method that refuses (or fails) is a row ``refused: <message>``.
 
 Exports without --force, per split: ``labcal export`` refuses a fit with blocking warnings (``FitResult.warnings``)
@@ -41,15 +41,15 @@ from pathlib import Path
 
 import numpy as np
 
-from labcal.bench import paper
-from labcal.bench.plain_lsq import fit_plain
-from labcal.bench.robustness import HOLD_OUT, _first_line, _table, point_error
+import paper
 from labcal.calibration import Observations, fit
 from labcal.compensator import Compensator
 from labcal.export import export
 from labcal.export.program import filter_joints
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
+from plain_lsq import fit_plain
+from robustness import HOLD_OUT, _first_line, _table, point_error
 
 METHODS = ("local-poe", "hybrid", "auto")
 FORMATS = ("json", "npz", "urdf", "filter")

@@ -5,7 +5,7 @@ drawn uniformly over the full joint ranges (non-singular, :func:`labcal.simulati
 frame, 0.05 mm tracker noise. Target sets: one reflector 200 mm from the flange axis, one 15 mm from it (a nest on
 the flange), one the targets file puts on the axis while it really sits 17.5 mm beside it, and three targets.
 For split s = 0 … S−1 the true robot and its poses are drawn with seed s, a third of the poses is held out, and
-``fit_local_poe`` (default options) and :mod:`labcal.bench.plain_lsq` are fitted on the other two thirds.
+``fit_local_poe`` (default options) and ``benchmarks/plain_lsq.py`` are fitted on the other two thirds.
 
 Printed per target set: the ratio local POE / plain LSQ of the training RMS (per coordinate over every seen point)
 and of the held-out mean point error (min … max over splits), each fit's rank (local POE: ``info["rank"]``; plain
@@ -25,12 +25,12 @@ import time
 
 import numpy as np
 
-from labcal.bench.plain_lsq import fit_plain
 from labcal.calibration import Observations
 from labcal.calibration.local_poe import fit_local_poe
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
 from labcal.simulation import scenarios as S
+from plain_lsq import fit_plain
 
 # (name, true targets (m, 3) in the tool frame, the targets file's (m, 3))
 SETS = [

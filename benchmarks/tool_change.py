@@ -3,7 +3,7 @@
     python benchmarks/tool_change.py [--no-real] > benchmarks/results/tool_change.txt
 
 The last section (unless ``--no-real``): the real UR10 data (../shared/data/ipa-robot-accuracy-ur10, a 6-DOF probe on
-a ~93 mm mount, imported as ``labcal bench real-ur10`` does) fitted with local POE on all poses from the robot
+a ~93 mm mount, imported as ``benchmarks/real_ur10.py`` does) fitted with local POE on all poses from the robot
 file's model (the mount not described): the identified measurement tool, and where tool0 of the robot and of the
 ur-kinematics export sits against the nominal flange.
 
@@ -147,10 +147,10 @@ def main() -> None:
 
 def real_ur10() -> None:
     """The real UR10 (a 6-DOF probe on a ~93 mm mount): the identified tool and where tool0 of the exports sits."""
-    from labcal.bench.real_ur10 import DataNotFound, load_observations, locate_data
     from labcal.calibration.fit import fit
     from labcal.calibration.tool import tool_lines
     from labcal.export.ros import ur_kinematics_text
+    from real_ur10 import DataNotFound, load_observations, locate_data
 
     try:
         data = locate_data()

@@ -12,11 +12,11 @@ import warnings
 
 import numpy as np
 
-from labcal.bench.plain_lsq import fit_plain
 from labcal.calibration.fit import fit
 from labcal.calibration.observations import Observations
 from labcal.robots import load
 from labcal.simulation import scenarios as S
+from plain_lsq import fit_plain
 
 warnings.filterwarnings("ignore")
 

@@ -4,7 +4,7 @@
 
 Exports (default options): a local-POE and a hybrid fit of the simulated UR10 (``scenarios.good``, 200 poses,
 ``ErrorSpec.default()``, seed 1, fit seed 0), and a local-POE fit of the real UR10 data (all 1,000 poses of
-../shared/data/ipa-robot-accuracy-ur10, imported as ``labcal bench real-ur10`` does), unless ``--no-real``.
+../shared/data/ipa-robot-accuracy-ur10, imported as ``benchmarks/real_ur10.py`` does), unless ``--no-real``.
 For each export, ``4 × --configs`` configurations: uniform in the compensator's validity region and joint ranges
 (:meth:`~labcal.compensator.validity.ValidityRegion.sample`: where ``correct()`` answers without extrapolating),
 uniform in the compensator's joint ranges (clipped to ±π, which
@@ -78,7 +78,7 @@ def exports(real: bool) -> dict:
         "sim hybrid": fit(obs, nominal, "hybrid", seed=0).robot,
     }
     if real:
-        from labcal.bench.real_ur10 import DataNotFound, load_observations, locate_data
+        from real_ur10 import DataNotFound, load_observations, locate_data
 
         try:
             data = locate_data()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labcal.bench import paper
+import paper
 from labcal.robots import load
 
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labcal.bench.plain_lsq import fit_plain, seen_points
 from labcal.robots import load
 from labcal.simulation import ErrorSpec
 from labcal.simulation import scenarios as S
+from plain_lsq import fit_plain, seen_points
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labcal.bench import real_ur10 as bench
+import real_ur10 as bench
 
 REPO = Path(__file__).resolve().parents[2]
 DATA_DIRS = [REPO.parent / "shared" / "data" / bench.DATA_NAME, Path("/work/shared/data") / bench.DATA_NAME]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labcal.bench import targets as T
+import targets as T
 
 
 @pytest.fixture(scope="module")
@@ -95,15 +95,3 @@ def test_a_tiny_run_prints_every_table_and_the_plot(tmp_path, capsys):
     assert png.stat().st_size > 1000
     with pytest.raises(SystemExit):
         T.main(["--families", "paper-C"])
-
-
-def test_labcal_bench_targets_runs_the_benchmark_and_passes_its_arguments(monkeypatch):
-    from typer.testing import CliRunner
-
-    from labcal.cli.app import app
-
-    seen = {}
-    monkeypatch.setattr(T, "main", lambda argv: seen.setdefault("argv", argv) and 0)
-    result = CliRunner().invoke(app, ["bench", "targets", "--quick", "--families", "paper-A"])
-    assert result.exit_code == 0, result.output
-    assert seen["argv"] == ["--quick", "--families", "paper-A"]

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from labcal.bench.data_speak import narrow
+from data_speak import narrow
 from labcal.calibration import Observations
 from labcal.calibration.fit import _large_correction
 from labcal.calibration.local_poe import fit_local_poe
@@ -37,7 +37,7 @@ def test_narrow_data_hold_weak_directions_at_the_nominal_and_name_them(narrow_da
     box = np.random.default_rng(3).uniform(obs.q.min(0), obs.q.max(0), (50, 6))
     free_dq = np.abs(free.correct(box, extrapolate=True) - box).max()
     assert free_dq > 0.05 > 0.02 > np.abs(held.correct(box, extrapolate=True) - box).max()
-    from labcal.bench.data_speak import point_error
+    from data_speak import point_error
 
     assert point_error(held, qh, truth) <= 1.01 * point_error(free, qh, truth)
 

@@ -1,5 +1,5 @@
 """Local POE on a simulated 7-joint arm (Franka Panda, geometric + compliance + gear errors) matches an independent
-least-squares fit (:mod:`labcal.bench.plain_lsq`): the same training residual and the same rank, with one reflector
+least-squares fit (``benchmarks/plain_lsq.py``): the same training residual and the same rank, with one reflector
 (far from or close to joint 7's axis, or placed on the axis by a targets file while it sits beside it) and with
 three targets (issue 28). A 6-joint arm keeps holding the tilts of its last axis for a reflector within
 ``AXIS_TOL`` of it, so that its fits do not change."""
@@ -9,12 +9,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labcal.bench.plain_lsq import fit_plain
 from labcal.calibration import Observations
 from labcal.calibration.local_poe import AXIS_TOL, fit_local_poe
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
 from labcal.simulation import scenarios as S
+from plain_lsq import fit_plain
 
 SETS = {  # the true targets (tool frame, m) and the targets file's
     "reflector-far": ([[0.2, 0.0, 0.05]], None),

@@ -44,7 +44,7 @@ def world(tmp_path_factory):
     "cmd",
     [
         *([], ["session"], ["session", "new"], ["session", "import"], ["fit"], ["export"], ["report"], ["demo"]),
-        *(["bench"], ["filter"], ["evaluate"], ["refit"]),
+        *(["filter"], ["evaluate"], ["refit"]),
     ],
 )
 def test_help_everywhere_with_examples(cmd):
@@ -208,12 +208,6 @@ def test_corrupt_version_is_refused(world, tmp_path):
     r = invoke("session", "verify", world["ref"], store=store)
     assert r.exit_code == 1 and "measurements.parquet" in r.stdout
     assert_user_error(invoke("fit", world["ref"], "--method", "local-poe", store=store))
-
-
-def test_bench_real_ur10_forwards_its_arguments_to_the_benchmark():
-    r = invoke("bench", "real-ur10", "--", "--help")
-    assert r.exit_code == 0, r.stdout + r.stderr
-    assert "usage: real-ur10" in r.stdout and "--sizes" in r.stdout
 
 
 @pytest.mark.slow

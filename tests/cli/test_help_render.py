@@ -25,7 +25,7 @@ def help_text(argv: list[str], *, preload_real: bool) -> str:
 @pytest.mark.parametrize(
     "argv",
     [["--help"], ["session", "--help"], ["session", "list", "--help"], ["fit", "--help"], ["export", "--help"],
-     ["bench", "--help"], ["session"], ["bench"]],
+     ["filter", "--help"], ["session"]],
 )  # fmt: skip
 def test_help_is_the_same_with_the_stand_ins(argv):
     assert help_text(argv, preload_real=False) == help_text(argv, preload_real=True)

@@ -25,7 +25,7 @@ import typer
 from typer._click import exceptions as click_exceptions  # typer vendors click; its exceptions live here
 from typer.core import TyperGroup
 
-from labcal.cli import bench, coercion, helprender, session
+from labcal.cli import coercion, helprender, session
 from labcal.cli.common import TERMINATED_BY, interruption
 from labcal.cli.demo import demo
 from labcal.cli.evaluate import evaluate
@@ -130,7 +130,6 @@ def _root(
 
 
 app.add_typer(session.app, name="session")
-app.add_typer(bench.app, name="bench")
 app.command("fit")(fit)
 app.command("refit")(refit)
 app.command("export")(export)

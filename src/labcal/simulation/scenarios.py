@@ -22,8 +22,8 @@ Two kinds of generator:
   as ``--frame base`` is the mistake).
 
 The layering keeps ``labcal.calibration`` above this module, so a scenario gives arrays;
-``Observations(**scn.arrays())`` builds the calibration input. The paper's scenarios A and B live in
-:mod:`labcal.bench.paper`.
+``Observations(**scn.arrays())`` builds the calibration input. The paper's scenarios A and B live in the
+benchmark benchmarks/paper.py (not part of the package).
 
 Example::
 
