@@ -23,7 +23,7 @@ on the registered nominal), ``series`` (local POE, then per-joint Fourier series
 :mod:`labcal.calibration.joint_series`), ``hybrid`` (local POE, then the learned term — network or series,
 whichever has the lower validation error — kept only if it lowers the validation error), ``auto`` (the lowest
 validation error of local-poe, ann, series, hybrid; ties to the simpler). When the library's
-:func:`~labcal.calibration.hybrid.fit_hybrid` already lets the series compete (it takes ``series_options``),
+:func:`~labcal.calibration.fit.fit_hybrid` already lets the series compete (it takes ``series_options``),
 hybrid and auto are :func:`labcal.calibration.fit`'s own; otherwise this module composes them from the same
 pieces with the same rules (the output says which).
 
