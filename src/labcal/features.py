@@ -319,6 +319,32 @@ def harmonics_by_recurrence(cos_theta: np.ndarray, sin_theta: np.ndarray, order:
     return x
 
 
+def harmonics_of_joints(cos_theta: np.ndarray, sin_theta: np.ndarray, order: int) -> np.ndarray:
+    """:func:`harmonics_by_recurrence` for a batch, joint-major and complex: cos θ and sin θ (n, k) → (n, order, k)
+    complex ``sin h θ_j + i cos h θ_j`` (= i e^{−i h θ_j}) at order h = 1 … order of joint j, configuration i.
+
+    The same running product ``i e^{−i h θ} = i e^{−i (h−1) θ} · e^{−iθ}`` (the same complex products, so the same
+    numbers), one order at a time over all (n, k) angles: for a batch the accumulate along the short last axis of
+    :func:`harmonics_by_recurrence` costs five times more, as numpy runs it one configuration at a time. A runtime
+    with real weights a (sin) and b (cos) per order gets ``Σ_h a_h sin h θ + b_h cos h θ`` as the real part of
+    ``(a − i b) @ out[j]``: one product per joint.
+
+    Example::
+
+        >>> theta = np.array([[0.3, 0.5], [-1.2, 2.0]])  # (n = 2, k = 2)
+        >>> x = harmonics_of_joints(np.cos(theta), np.sin(theta), 3)
+        >>> x.shape, bool(np.isclose(x[1, 2, 0].real, np.sin(3 * -1.2))), bool(np.isclose(x[0, 1, 1].imag, np.cos(1.0)))
+        ((2, 3, 2), True, True)
+    """
+    out = np.empty((cos_theta.shape[0], order, cos_theta.shape[1]), dtype=complex)
+    out[:, 0].real, out[:, 0].imag = sin_theta, cos_theta  # i e^{−iθ} = sin θ + i cos θ
+    step = np.empty(cos_theta.shape, dtype=complex)
+    step.real, step.imag = cos_theta, -sin_theta  # the factor e^{−iθ}
+    for h in range(1, order):
+        np.multiply(out[:, h - 1], step, out=out[:, h])
+    return out
+
+
 def _revolute(joint_types, n: int) -> np.ndarray | None:
     """(n,) bool revolute mask, or None when every joint is revolute (the common case: no np.where needed)."""
     if joint_types is None:
