@@ -323,11 +323,11 @@ def harmonics_of_joints(cos_theta: np.ndarray, sin_theta: np.ndarray, order: int
     """:func:`harmonics_by_recurrence` for a batch, joint-major and complex: cos θ and sin θ (n, k) → (n, order, k)
     complex ``sin h θ_j + i cos h θ_j`` (= i e^{−i h θ_j}) at order h = 1 … order of joint j, configuration i.
 
-    The same running product ``i e^{−i h θ} = i e^{−i (h−1) θ} · e^{−iθ}`` (the same complex products, so the same
-    numbers), one order at a time over all (n, k) angles: for a batch the accumulate along the short last axis of
-    :func:`harmonics_by_recurrence` costs five times more, as numpy runs it one configuration at a time. A runtime
-    with real weights a (sin) and b (cos) per order gets ``Σ_h a_h sin h θ + b_h cos h θ`` as the real part of
-    ``(a − i b) @ out[j]``: one product per joint.
+    The same running product ``i e^{−i h θ} = i e^{−i (h−1) θ} · e^{−iθ}`` (equal within a few ulps: numpy's
+    vectorised complex product may round differently from its accumulate), one order at a time over all (n, k)
+    angles: for a batch the accumulate along the short last axis of :func:`harmonics_by_recurrence` costs five times
+    more, as numpy runs it one configuration at a time. A runtime with real weights a (sin) and b (cos) per order
+    gets ``Σ_h a_h sin h θ + b_h cos h θ`` as the real part of ``(a − i b) @ out[j]``: one product per joint.
 
     Example::
 
