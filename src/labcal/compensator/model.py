@@ -551,7 +551,7 @@ class CalibratedRobot:
         own = [np.concatenate([blocks[j, :, :6], blocks[j, :, 6 + 6 * j : 12 + 6 * j]], 1) for j in range(n)]
         joint_W = np.stack([(b[0 : 2 * H : 2] - 1j * b[1 : 2 * H : 2]).T for b in own])  # (n, 12, H)
         gravity_W = blocks[:, 2 * H :, :6].reshape(n * G, 6)
-        chunk = 2048  # configurations per product: their harmonics (n · H · chunk complex) stay in the cache
+        chunk = 2048  # configurations per product: bounds the harmonics in memory (n · H · chunk complex, 6 MB)
 
         def batch(q, frames) -> tuple[np.ndarray, np.ndarray]:  # the same terms for (k, n) q and their link frames
             k = q.shape[0]
