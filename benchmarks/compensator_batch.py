@@ -14,7 +14,9 @@ Models:
   its validity region (seed 1), inside its joint ranges, with length-scaled cond(J_ρ) < 1000, so ``correct(q)`` with
   its defaults accepts them all. ``--export PATH`` reuses (or first writes) that file.
 
-Each number is ``--batch`` / (the best of ``--repeats`` calls of ``robot.correct(q)`` on the whole batch).
+Each number is ``--batch`` / (the best of ``--repeats`` calls of ``robot.correct(q)`` on the whole batch), timed
+by the wall clock and by the process's CPU time (one thread: OPENBLAS_NUM_THREADS=1), which other jobs on a shared
+machine inflate less.
 ``--src DIR`` (repeatable) times the labcal whose sources are in DIR (e.g. ``/work/main/src`` beside a worktree's
 ``src``) in a child process with that PYTHONPATH, the trees taking turns for ``--rounds`` rounds so the machine's
 drift hits them alike; the table shows each tree's best, and how far every tree's corrections are from the first
@@ -74,16 +76,17 @@ def cases(export: Path, batch: int) -> dict:
 
 
 def measure(export: Path, batch: int, repeats: int, save: Path | None = None) -> dict:
-    """model name → configurations/s (best of ``repeats``); the corrections go to ``save`` (.npz) when given."""
+    """model name → [configurations per wall-clock second, per CPU second] (each the best of ``repeats``); the
+    corrections go to ``save`` (.npz) when given."""
     rates, corrections = {}, {}
     for name, (robot, q) in cases(export, batch).items():
         robot.correct(q[:10])  # cached kernels and weights are built outside the timing
-        best = float("inf")
+        wall = cpu = float("inf")
         for _ in range(repeats):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             q_cmd = robot.correct(q)
-            best = min(best, time.perf_counter() - t0)
-        rates[name] = len(q) / best
+            wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
+        rates[name] = [len(q) / wall, len(q) / cpu]
         r, _ = robot.residual(q_cmd, robot.nominal.fk(q), jacobian=False)
         corrections[name], corrections[name + "/reached"] = q_cmd, np.abs(r).max(axis=1) < 1e-9
     if save is not None:
@@ -102,7 +105,7 @@ def ensure_export(path: Path | None, tmp: Path) -> Path:
 
 def compare_trees(sources: list[str], export: Path, args, tmp: Path) -> None:
     """Time every tree in a child process, round by round; print the table and the corrections' agreement."""
-    best = {src: dict.fromkeys(MODELS, 0.0) for src in sources}
+    best = {src: {name: [0.0, 0.0] for name in MODELS} for src in sources}
     for round_ in range(args.rounds):
         for i, src in enumerate(sources):
             env = dict(os.environ, PYTHONPATH=src, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
@@ -110,15 +113,19 @@ def compare_trees(sources: list[str], export: Path, args, tmp: Path) -> None:
             cmd = [sys.executable, __file__, "--worker", str(save), "--export", str(export)]
             cmd += ["--batch", str(args.batch), "--repeats", str(args.repeats)]
             out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
-            for name, rate in json.loads(out.stdout.strip().splitlines()[-1]).items():
-                best[src][name] = max(best[src][name], rate)
+            for name, rates in json.loads(out.stdout.strip().splitlines()[-1]).items():
+                best[src][name] = [max(a, b) for a, b in zip(best[src][name], rates, strict=True)]
         print(f"round {round_ + 1}/{args.rounds} done, load {os.getloadavg()[0]:.2f}", file=sys.stderr)
     print_header(args, f"trees (PYTHONPATH): {', '.join(sources)}; best of {args.rounds} rounds")
-    print("| model | " + " | ".join(f"`{s}` (configs/s)" for s in sources) + " | ratio last / first |")
-    print("|---|" + "---:|" * (len(sources) + 1))
+    print("configurations per second of wall-clock time / per second of CPU time (the process's own: other jobs on")
+    print("the machine slow it less); ratio: last tree over first")
+    print("| model | " + " | ".join(f"`{s}` (wall / CPU)" for s in sources) + " | ratio wall | ratio CPU |")
+    print("|---|" + "---:|" * (len(sources) + 2))
     for name in MODELS:
         rates = [best[src][name] for src in sources]
-        print(f"| {name} | " + " | ".join(f"{r:,.0f}" for r in rates) + f" | {rates[-1] / rates[0]:.2f}× |")
+        cells = " | ".join(f"{wall:,.0f} / {cpu:,.0f}" for wall, cpu in rates)
+        ratios = " | ".join(f"{rates[-1][i] / rates[0][i]:.2f}×" for i in range(2))
+        print(f"| {name} | {cells} | {ratios} |")
     first = np.load(tmp / "tree0.npz")
     for i, src in enumerate(sources[1:], start=1):
         other = np.load(tmp / f"tree{i}.npz")
@@ -159,9 +166,9 @@ def main(argv: list[str] | None = None) -> None:
             return
         rates = measure(export, args.batch, args.repeats)
         print_header(args, "the importable labcal")
-        print("| model | correct() batched (configs/s) |\n|---|---:|")
-        for name, rate in rates.items():
-            print(f"| {name} | {rate:,.0f} |")
+        print("| model | correct() batched (configs per wall-clock s) | (per CPU s) |\n|---|---:|---:|")
+        for name, (wall, cpu) in rates.items():
+            print(f"| {name} | {wall:,.0f} | {cpu:,.0f} |")
 
 
 if __name__ == "__main__":
