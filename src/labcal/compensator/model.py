@@ -270,11 +270,11 @@ def _bracket(J: np.ndarray, dy: np.ndarray, e: np.ndarray) -> np.ndarray:
     the twists after it) plus the first-order term of d log(E)/dq at the pose error e = log(E), for joint twists
     J = (ξ_i) and dy = (δρ_j ξ_j), both (6, n), and e (6,); leading batch axes pass through ((k, 6, n), (k, 6))."""
     n = J.shape[-1]
-    # matmul and einsum, not ndarray.dot and a stacked matmul of 6 × 6 matrices by vectors: on a batch those run
-    # five to twenty times slower, at one configuration all cost the same
+    # matmul and einsum on contiguous rows, not ndarray.dot and a stacked matmul of 6 × 6 matrices by strided
+    # vectors: on a batch those run five to twenty times slower, at one configuration all cost the same
     z = dy @ _after(n) - 0.5 * e[..., None]  # (…, 6, n) Σ_{j>i} δρ_j ξ_j − e/2
     ad = (J.swapaxes(-1, -2) @ _AD).reshape(*J.shape[:-2], n, 6, 6)  # ad(ξ_i) of every joint
-    return np.einsum("...iab,...bi->...ai", ad, z)
+    return np.einsum("...iab,...ib->...ai", ad, np.ascontiguousarray(z.swapaxes(-1, -2)))
 
 
 @functools.lru_cache(maxsize=8)
