@@ -143,6 +143,20 @@ def test_the_one_configuration_recurrence_is_the_registry_harmonics(order):
         np.testing.assert_array_equal(row, features.harmonics_by_recurrence(np.cos(theta), np.sin(theta), order))
 
 
+@pytest.mark.parametrize("order", [1, 2, 32])
+def test_the_batch_recurrence_is_the_one_configuration_recurrence_joint_major(order):
+    theta = np.random.default_rng(order).uniform(-np.pi, np.pi, (7, 6))  # (k, n)
+    x = features.harmonics_of_joints(np.cos(theta.T), np.sin(theta.T), order)  # (n, order, k) sin + i cos
+    assert x.shape == (6, order, 7)
+    layout = np.stack([x.real, x.imag], axis=2).reshape(6, 2 * order, 7).transpose(2, 0, 1)  # (k, n, 2·order)
+    # the same running product (numpy's vectorised complex product and its accumulate may round differently), and
+    # both round about linearly in h, as the registry's sin h θ does
+    tol = order * np.pi * 2.3e-16 + 1e-15
+    one_at_a_time = features.harmonics_by_recurrence(np.cos(theta), np.sin(theta), order)
+    np.testing.assert_allclose(layout, one_at_a_time, rtol=0, atol=tol)
+    np.testing.assert_allclose(layout.reshape(7, -1), features.harmonics(theta, order), rtol=0, atol=tol)
+
+
 @pytest.mark.parametrize(
     "names", [("sincos", "gravity"), ("q",), ("sincos2", "q"), ("harmonics:7", "gravity"), ("gravity", "sincos")]
 )
