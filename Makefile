@@ -8,7 +8,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: install demo test lint contracts pytest bench clean
+.PHONY: install demo test lint contracts pytest pytest-suite pytest-acceptance bench clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -31,8 +31,16 @@ lint: $(STAMP)
 contracts: $(STAMP)
 	$(BIN)/lint-imports
 
+# The bad-input acceptance cases (tests/acceptance) spend most of their time in `labcal` processes of their own;
+# they run beside the rest of the suite, one per core, each target's output printed whole when it ends.
 pytest: $(STAMP)
-	$(BIN)/python -m pytest -q -p no:cacheprovider
+	$(MAKE) --no-print-directory -j2 --output-sync=target pytest-suite pytest-acceptance
+
+pytest-suite: $(STAMP)
+	$(BIN)/python -m pytest -q -p no:cacheprovider --ignore=tests/acceptance
+
+pytest-acceptance: $(STAMP)
+	$(BIN)/python -m pytest -q -p no:cacheprovider tests/acceptance
 
 test: lint contracts pytest
 
