@@ -27,6 +27,8 @@ import numpy as np
 OP_Q, OP_ZERO, OP_SIN, OP_COS, OP_GRAVITY = 0, 1, 2, 3, 4
 # network modes
 NET_NONE, NET_SERIES, NET_LAYERS = 0, 1, 2
+# runs of a linear series' columns (kernel.py builds them from the network's features)
+RUN_HARMONICS, RUN_GRAVITY, RUN_Q = 0, 1, 2
 # status of correct_one
 DONE, OUTSIDE = 0, 1
 
@@ -161,6 +163,79 @@ def _network(x, weights, layers, buf, out):
 
 
 @_jit
+def _series(q, T, runs, weights, rho, S, slope):
+    """A one-layer network on ``harmonics:H``, ``gravity`` and ``q`` (the definition's linear series) at q: δρ into
+    rho (6,) and, with ``slope``, S (6, n) = dδρ/dq without the gravity columns' part (as the definition's).
+
+    weights: ``Network._folded``'s Wt (f, 6) row-major, then b. runs (R, 4): (RUN_HARMONICS, joint j, first column,
+    H): columns sin h q_j, cos h q_j for h = 1 … H; (RUN_GRAVITY, link, first column, 3): −R_link[2, :];
+    (RUN_Q, joint, column, 1). One pass: sin h q and cos h q by the angle-addition recurrence in registers (no
+    table), δρ and each run's slope summed in scalars (every weight read once, no sum waiting on memory)."""
+    F = (weights.shape[0] - 6) // 6
+    r0, r1, r2 = weights[6 * F], weights[6 * F + 1], weights[6 * F + 2]  # the bias
+    r3, r4, r5 = weights[6 * F + 3], weights[6 * F + 4], weights[6 * F + 5]
+    if slope:
+        S[:] = 0.0
+    for k in range(runs.shape[0]):
+        kind, j, o = runs[k, 0], runs[k, 1], 6 * runs[k, 2]
+        if kind == RUN_HARMONICS:
+            c, s = math.cos(q[j]), math.sin(q[j])
+            sh, ch = s, c
+            s0 = s1 = s2 = s3 = s4 = s5 = 0.0
+            for h in range(1, runs[k, 3] + 1):
+                # columns sin h q (row o) and cos h q (row o + 6); d/dq: h cos h q and −h sin h q
+                a0, a1, a2 = weights[o], weights[o + 1], weights[o + 2]
+                a3, a4, a5 = weights[o + 3], weights[o + 4], weights[o + 5]
+                b0, b1, b2 = weights[o + 6], weights[o + 7], weights[o + 8]
+                b3, b4, b5 = weights[o + 9], weights[o + 10], weights[o + 11]
+                r0 += sh * a0 + ch * b0
+                r1 += sh * a1 + ch * b1
+                r2 += sh * a2 + ch * b2
+                r3 += sh * a3 + ch * b3
+                r4 += sh * a4 + ch * b4
+                r5 += sh * a5 + ch * b5
+                if slope:
+                    ds, dc = h * ch, -h * sh
+                    s0 += ds * a0 + dc * b0
+                    s1 += ds * a1 + dc * b1
+                    s2 += ds * a2 + dc * b2
+                    s3 += ds * a3 + dc * b3
+                    s4 += ds * a4 + dc * b4
+                    s5 += ds * a5 + dc * b5
+                sh, ch = sh * c + ch * s, ch * c - sh * s
+                o += 12
+            if slope:
+                S[0, j] += s0
+                S[1, j] += s1
+                S[2, j] += s2
+                S[3, j] += s3
+                S[4, j] += s4
+                S[5, j] += s5
+        elif kind == RUN_GRAVITY:
+            for a in range(3):
+                x = -T[j, 2, a]
+                r0 += x * weights[o]
+                r1 += x * weights[o + 1]
+                r2 += x * weights[o + 2]
+                r3 += x * weights[o + 3]
+                r4 += x * weights[o + 4]
+                r5 += x * weights[o + 5]
+                o += 6
+        else:  # RUN_Q
+            x = q[j]
+            r0 += x * weights[o]
+            r1 += x * weights[o + 1]
+            r2 += x * weights[o + 2]
+            r3 += x * weights[o + 3]
+            r4 += x * weights[o + 4]
+            r5 += x * weights[o + 5]
+            if slope:
+                for a in range(6):
+                    S[a, j] += weights[o + a]
+    rho[0], rho[1], rho[2], rho[3], rho[4], rho[5] = r0, r1, r2, r3, r4, r5
+
+
+@_jit
 def _residual(qc, jacobian, target, point, has_point, model, mode, cols, weights, layers, T, r, J, x, dx, work):
     """CalibratedRobot.residual at qc (n,) into r (6,) and, with ``jacobian``, J (6, n); target: the nominal pose.
 
@@ -174,7 +249,9 @@ def _residual(qc, jacobian, target, point, has_point, model, mode, cols, weights
     e, rho, z, tail = vec[0], vec[1], vec[2], vec[3]
     _log_pose(target, T[n], e)
     rho[:] = 0.0
-    if mode != NET_NONE:
+    if mode == NET_SERIES:
+        _series(qc, T, cols, weights, rho, S, jacobian)  # cols: the series' runs
+    elif mode == NET_LAYERS:
         _features(qc, T, cols, trig, x, dx)
         _network(x, weights, layers, buf, rho)
     for a in range(6):
@@ -184,13 +261,6 @@ def _residual(qc, jacobian, target, point, has_point, model, mode, cols, weights
         r[a] = e[a] - acc
     if jacobian:
         if mode == NET_SERIES:
-            # S (6, n): column j = Σ over joint j's feature columns of dx_f · Wt[f] (one layer, f × 6 at offset 0)
-            S[:] = 0.0
-            for f in range(cols.shape[0]):
-                if dx[f] != 0.0:
-                    j = cols[f, 1]
-                    for a in range(6):
-                        S[a, j] += dx[f] * weights[f * 6 + a]
             # bracket column i: ad(ξ_i) z_i with z_i = Σ_{j>i} δρ_j ξ_j − e/2 and ad(v, ω) = [[ω̂, v̂], [0, ω̂]]
             tail[:] = 0.0  # Σ_{j>i} δρ_j ξ_j, from the last joint back
             for i in range(n - 1, -1, -1):
@@ -378,14 +448,18 @@ def _inside(q, ranges, centres, scale, radius, has_region):
             return False, False
     if not has_region:
         return True, True
-    best = np.inf
-    for c in range(centres.shape[0]):
+    x = np.empty(n)
+    for j in range(n):
+        x[j] = q[j] * scale[j]
+    r2 = radius * radius
+    for c in range(centres.shape[0]):  # any centre within the radius (min ≤ r², stopping at the first)
         d2 = 0.0
         for j in range(n):
-            d = centres[c, j] - q[j] * scale[j]
+            d = centres[c, j] - x[j]
             d2 += d * d
-        best = min(best, d2)
-    return True, best <= radius * radius
+        if d2 <= r2:
+            return True, True
+    return True, False
 
 
 @_jit

@@ -79,6 +79,26 @@ def _feature_table(robot: CalibratedRobot) -> np.ndarray:
     return np.array(rows, dtype=np.int64).reshape(-1, 3)
 
 
+def _series_runs(robot: CalibratedRobot) -> np.ndarray:
+    """(R, 4) int rows (kind, joint or link, first column, length) of a linear series' feature columns
+    (``harmonics:H``, ``gravity``, ``q``; the registry's layouts): what :func:`labcal.compensator._jit._series`
+    walks."""
+    assert robot.network is not None
+    n, start, runs = robot.n, 0, []
+    for name in robot.network.features:
+        feature = feature_lib.get(name)
+        if feature.kind == "harmonics":  # joint j: sin h q_j, cos h q_j for h = 1 … H
+            runs += [(0, j, start + 2 * feature.order * j, feature.order) for j in range(n)]
+        elif feature.kind == "gravity":  # link j: −R_j[2, 0 … 2]
+            runs += [(1, j, start + 3 * (j - 1), 3) for j in range(1, n + 1)]
+        elif feature.kind == "q":
+            runs += [(2, j, start + j, 1) for j in range(n)]
+        else:
+            raise ValueError(f"feature {name!r} is not a series feature")
+        start += feature.size(n)
+    return np.array(runs, dtype=np.int64).reshape(-1, 4)
+
+
 def _layers(robot: CalibratedRobot) -> tuple[np.ndarray, np.ndarray]:
     """The network's folded layers (``Network._folded``) packed flat: (weights, (L, 4) in, out, W offset, b
     offset)."""
@@ -109,6 +129,8 @@ def build(robot: CalibratedRobot) -> Kernel | None:
             return None
         weights, layers = _layers(robot)
         mode = 1 if robot._linear_series is not None else 2  # the definition's choice of Jacobian
+        if mode == 1:
+            cols = _series_runs(robot)
     jit = compiled()
     if jit is None:
         return None
@@ -122,15 +144,23 @@ def build(robot: CalibratedRobot) -> Kernel | None:
     nominal, model = (np.ascontiguousarray(m.frames, dtype=float) for m in (robot.nominal, robot.model))
     w = np.ascontiguousarray(robot._twist_weights, dtype=float)
     no_tcp = np.eye(4)
+    no_tcp.setflags(write=False)  # typed as a checked tcp is (read-only): one compiled signature for both
+    static = (nominal, model, mode, cols, weights, layers, w, ranges, centres, scale, radius, has_region)
     run = jit.correct_one
+    # Compile (or load) now, and call the compiled entry point directly from then on: numba's dispatcher would type
+    # every argument of every call to choose among signatures, about a microsecond of a single correction. Only a
+    # C-contiguous float64 q (the checked common case) takes it; anything else goes through the dispatcher.
+    probe = (np.zeros(n), np.empty(n), *static, no_tcp, False, True, 1, 1e-11, 0, _CONSTS)
+    run(*probe)
+    entry = run.overloads[tuple(jit.numba.typeof(a) for a in probe)].entry_point
 
     def kernel(q, extrapolate, iterations, tol, damped_iterations, tcp) -> np.ndarray | None:
         out = np.empty(n)
         budget = solver.DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
-        status = run(
-            q, out, nominal, model, mode, cols, weights, layers, w, ranges, centres, scale, radius, has_region,
-            no_tcp if tcp is None else tcp, tcp is not None, bool(extrapolate), int(iterations), float(tol), budget,
-            _CONSTS,
+        call = entry if q.flags.c_contiguous else run
+        status = call(
+            q, out, *static, no_tcp if tcp is None else tcp, tcp is not None, bool(extrapolate), int(iterations),
+            float(tol), budget, _CONSTS,
         )  # fmt: skip
         return out if status == 0 else None
 
