@@ -12,12 +12,13 @@ DH FK call, for local POE and for a real hybrid export.
   loaded with :meth:`Compensator.load` (benchmarks/compensator_tail.py's ``fit_export``; ``--export PATH`` reuses or
   first writes that file). **Local POE**: the same export's identified frames and validity region without the
   learned term.
-- **Calls**: ``--calls`` (at most; those inside the validity region) configurations inside the export's joint ranges and validity region with a well-conditioned
-  Jacobian (compensator_tail's ``configurations``), corrected one at a time in a loop as a control loop does
+- **Calls**: up to ``--calls`` configurations inside the export's joint ranges and validity region with a
+  well-conditioned Jacobian (compensator_tail's ``configurations``),
+  corrected one at a time in a loop as a control loop does
   (garbage collector on, no warm-up between calls), through ``Compensator.correct``; the reference is timed in the
   same loop over the same configurations, interleaved with the corrections in blocks so that the machine's load
   falls on both alike; ``--rounds`` times, and every row reports its quietest round (least median: other jobs on
-  the machine only ever add time). p99.9 over one round of 5,000 calls is its 5 slowest calls: on a shared
+  the machine only ever add time). p99.9 over one round of a few thousand calls is its few slowest: on a shared
   machine, preemption; the reference's own p99.9 shows how much.
 - Rows ``numpy path``: the same calls with the compiled kernel switched off (what a labcal without numba runs: the
   batched definition with a batch of one), in the same run. On a labcal without :mod:`labcal.compensator.kernel`
@@ -42,9 +43,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from compensator_tail import configurations, fit_export  # noqa: E402
-
-from labcal.compensator import Compensator  # noqa: E402
+from compensator_tail import configurations, fit_export
+from labcal.compensator import Compensator
 
 # UR10 nominal DH parameters (Universal Robots' published values): d, a, α per joint
 UR10_D = np.array([0.1273, 0.0, 0.0, 0.163941, 0.1157, 0.0922])

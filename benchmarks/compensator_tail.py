@@ -12,8 +12,9 @@ equivalent Jacobian is well conditioned (length-scaled condition < 1000: away fr
 step is expected), corrected one at a time as a control loop does (garbage collector on, no warm-up between
 calls). Printed: median, p99, p99.9 and max latency, the calls over a 500 Hz cycle (2 ms), and how many calls
 took the damped fallback (counted in a second, untimed pass through whichever fallback function the installed
-labcal has). Rows with a looser solver tolerance (``--tols``) show what it buys, and how far their answers move from
-the defaults'. Whatever else runs on the machine shows in the tail: run it on an idle machine.
+labcal has, on the numpy definition with a batch of one). Rows with a looser solver tolerance (``--tols``) show
+what it buys, and how far their answers move from the defaults'. Whatever else runs on the machine shows in the
+tail: run it on an idle machine.
 """
 
 from __future__ import annotations
@@ -74,7 +75,10 @@ def configurations(comp: Compensator, count: int, seed: int = 3, max_cond: float
 
 
 def count_fallbacks(comp: Compensator, q: np.ndarray) -> tuple[np.ndarray, str]:
-    """Indices of the single corrections over q that entered the damped fallback, and the function counted."""
+    """Indices of the single corrections over q that entered the damped fallback, and the function counted.
+
+    Counted on the numpy definition with a batch of one (``correct(q[None])``): a compiled single call
+    (labcal.compensator.kernel) takes the same steps, but its fallback is not a Python function to count."""
     import importlib
 
     for module, owner, attr in _FALLBACKS:
@@ -97,7 +101,7 @@ def count_fallbacks(comp: Compensator, q: np.ndarray) -> tuple[np.ndarray, str]:
             calls = []
             for i, row in enumerate(q):
                 before = hits[0]
-                comp.correct(row)
+                comp.correct(row[None])
                 if hits[0] > before:
                     calls.append(i)
         finally:

@@ -35,9 +35,12 @@ DONE, OUTSIDE = 0, 1
 _SMALL = 1e-2  # rad: series below this, as kinematics.se3 and model._log_small
 
 
-def _jit(fn):
+def _jit(fn=None, **extra):
     """numba.njit with an on-disk cache when numba can place one (a read-only install compiles per process)."""
-    options = {"nogil": True, "error_model": "numpy"}  # numpy's error model: a singular pivot gives inf, not raise
+    if fn is None:
+        return lambda f: _jit(f, **extra)
+    # numpy's error model: a singular pivot gives inf, not an exception
+    options = {"nogil": True, "error_model": "numpy", **extra}
     try:
         return numba.njit(cache=True, **options)(fn)
     except RuntimeError:  # numba found no writable cache directory
@@ -162,7 +165,9 @@ def _network(x, weights, layers, buf, out):
                 g[c] = math.tanh(g[c])
 
 
-@_jit
+# Fused multiply-adds (contraction only: no reassociation, so the same input still gives the same bits): the series'
+# sums are most of a hybrid correction's arithmetic.
+@_jit(fastmath={"contract"})
 def _series(q, T, runs, weights, rho, S, slope):
     """A one-layer network on ``harmonics:H``, ``gravity`` and ``q`` (the definition's linear series) at q: δρ into
     rho (6,) and, with ``slope``, S (6, n) = dδρ/dq without the gravity columns' part (as the definition's).
