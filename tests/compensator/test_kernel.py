@@ -187,6 +187,20 @@ def test_the_kernel_answers_single_calls_itself(monkeypatch):
         robot.correct(q[None])
 
 
+def test_strided_and_read_only_configurations_take_the_kernel_too():
+    robot = make_robot("series")
+    q = robot.validity.sample(1, np.random.default_rng(1))[0]
+    want = robot.correct(q)
+    strided = np.empty((6, 2))
+    strided[:, 0] = q
+    frozen = q.copy()
+    frozen.setflags(write=False)
+    compiled = len(kernel.compiled().correct_one.signatures)
+    for other in (strided[:, 0], frozen):
+        np.testing.assert_array_equal(robot.correct(other), want)
+    assert len(kernel.compiled().correct_one.signatures) == compiled  # no second compilation for them
+
+
 def test_the_kernel_is_deterministic():
     robot = make_robot("series")
     qs = configurations(robot, seed=4)
@@ -223,6 +237,21 @@ def test_without_numba_single_calls_take_the_batched_path(monkeypatch):
         assert robot._kernel is None
         for q in configurations(robot, seed=5)[::4]:
             np.testing.assert_array_equal(robot.correct(q, extrapolate=True), definition(robot, q, extrapolate=True))
+
+
+def test_a_python_without_numba_gets_no_kernel_and_the_batched_answer():
+    code = (
+        "import sys; sys.modules['numba'] = None\n"  # import numba now raises ImportError
+        "import numpy as np\n"
+        "from labcal.compensator import CalibratedRobot, kernel\n"
+        "from labcal.robots import load\n"
+        "m = load('ur10').model\n"
+        "robot = CalibratedRobot(m, m.perturbed(np.full((7, 6), 1e-4)), method='local-poe')\n"
+        "q = np.array([0.1, -1.2, 1.0, -1.4, -1.5, 0.2])\n"
+        "assert kernel.compiled() is None and robot._kernel is None\n"
+        "assert np.array_equal(robot.correct(q), robot.correct(q[None])[0])\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
 
 
 def test_robots_the_kernel_does_not_cover_take_the_batched_path():

@@ -148,8 +148,9 @@ def build(robot: CalibratedRobot) -> Kernel | None:
     static = (nominal, model, mode, cols, weights, layers, w, ranges, centres, scale, radius, has_region)
     run = jit.correct_one
     # Compile (or load) now, and call the compiled entry point directly from then on: numba's dispatcher would type
-    # every argument of every call to choose among signatures, about a microsecond of a single correction. Only a
-    # C-contiguous float64 q (the checked common case) takes it; anything else goes through the dispatcher.
+    # every argument of every call to choose among signatures, about a microsecond of a single correction. The
+    # arguments always have the probe's types (correct() checked q's dtype and shape; a strided q is copied: the
+    # dispatcher would compile a second signature for it, a minute's pause in a control loop).
     probe = (np.zeros(n), np.empty(n), *static, no_tcp, False, True, 1, 1e-11, 0, _CONSTS)
     run(*probe)
     entry = run.overloads[tuple(jit.numba.typeof(a) for a in probe)].entry_point
@@ -157,8 +158,9 @@ def build(robot: CalibratedRobot) -> Kernel | None:
     def kernel(q, extrapolate, iterations, tol, damped_iterations, tcp) -> np.ndarray | None:
         out = np.empty(n)
         budget = solver.DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
-        call = entry if q.flags.c_contiguous else run
-        status = call(
+        if not q.flags.c_contiguous:
+            q = np.ascontiguousarray(q)
+        status = entry(
             q, out, *static, no_tcp if tcp is None else tcp, tcp is not None, bool(extrapolate), int(iterations),
             float(tol), budget, _CONSTS,
         )  # fmt: skip
