@@ -358,17 +358,34 @@ def _cost(r, w):
 
 
 @_jit
+def _lm_step(jac, err, lam, A, rhs, piv, step):
+    """solve.damped_step before its clip: step = (JᵀJ + λ μ I)⁻¹ Jᵀ r, μ the mean of JᵀJ's diagonal."""
+    n = jac.shape[1]
+    sq = 0.0
+    for a in range(6):
+        for j in range(n):
+            sq += jac[a, j] * jac[a, j]
+    mu = lam * sq / n
+    for j in range(n):
+        for k in range(n):
+            acc = 0.0
+            for a in range(6):
+                acc += jac[a, j] * jac[a, k]
+            A[j, k] = acc
+        A[j, j] += mu
+        acc = 0.0
+        for a in range(6):
+            acc += jac[a, j] * err[a]
+        rhs[j] = acc
+    _lu(A, piv)
+    _lu_solve(A, piv, rhs, step)
+
+
+@_jit
 def _damped(q0, q_init, r0, J0, bound, has_bound, w, budget, tol, consts, ctx):
     """solve._damped for one row: damped steps from q_init (r0, J0 evaluated there), kept where they do not raise
     |W r|, Nielsen's λ rule, stopped below tol, at λ > LAMBDA_GIVE_UP or on a stall from half the budget."""
-    damped_max, lam_start, lam_min, lam_give_up, stall_window, stall_fall = (
-        consts[3],
-        consts[4],
-        consts[5],
-        consts[6],
-        int(consts[7]),
-        consts[8],
-    )
+    damped_max, lam_min, lam_give_up, stall_window, stall_fall = consts[3], consts[5], consts[6], consts[7], consts[8]
     n = q0.shape[0]
     out = q_init.copy()
     err, jac = np.empty(6), np.empty((6, n))
@@ -379,30 +396,13 @@ def _damped(q0, q_init, r0, J0, bound, has_bound, w, budget, tol, consts, ctx):
     cost = 0.0
     for a in range(6):
         cost += err[a] * err[a]
-    lam, grow = lam_start, 2.0
+    lam, grow = consts[4], 2.0  # LAMBDA_START
     history = np.empty(budget + 1)
     history[0] = cost
     A, rhs, step, piv = np.empty((n, n)), np.empty(n), np.empty(n), np.empty(n, dtype=np.int64)
     cand, rc, Jc = np.empty(n), np.empty(6), np.empty((6, n))
     for i in range(1, budget + 1):
-        sq = 0.0
-        for a in range(6):
-            for j in range(n):
-                sq += jac[a, j] * jac[a, j]
-        mu = lam * sq / n  # λ times the mean of JᵀJ's diagonal
-        for j in range(n):
-            for k in range(n):
-                acc = 0.0
-                for a in range(6):
-                    acc += jac[a, j] * jac[a, k]
-                A[j, k] = acc
-            A[j, j] += mu
-            acc = 0.0
-            for a in range(6):
-                acc += jac[a, j] * err[a]
-            rhs[j] = acc
-        _lu(A, piv)
-        _lu_solve(A, piv, rhs, step)
+        _lm_step(jac, err, lam, A, rhs, piv, step)
         size = 0.0
         for j in range(n):
             s = min(max(step[j], -damped_max), damped_max)
@@ -419,9 +419,7 @@ def _damped(q0, q_init, r0, J0, bound, has_bound, w, budget, tol, consts, ctx):
         for j in range(n):
             cand[j] = out[j] + step[j]
         _eval(cand, True, rc, Jc, ctx)
-        cost_c = 0.0
-        for a in range(6):
-            cost_c += (rc[a] * w[a]) ** 2
+        cost_c = _cost(rc, w)
         kept = cost_c <= cost
         gain = (cost - cost_c) / predicted if predicted > 0 else 0.0
         if kept:
@@ -438,7 +436,7 @@ def _damped(q0, q_init, r0, J0, bound, has_bound, w, budget, tol, consts, ctx):
         history[i] = cost
         if size < tol or lam > lam_give_up:
             break
-        if 2 * i >= budget and cost > stall_fall * history[max(i - stall_window, 0)]:
+        if 2 * i >= budget and cost > stall_fall * history[max(i - int(stall_window), 0)]:
             break
     return out
 
@@ -468,47 +466,16 @@ def _inside(q, ranges, centres, scale, radius, has_region):
 
 
 @_jit
-def correct_one(
-    q0, out, nominal, model, mode, cols, weights, layers, w, ranges, centres, scale, radius, has_region,
-    tcp, has_tcp, extrapolate, iterations, tol, budget, consts,
-):  # fmt: skip
-    """CalibratedRobot.correct(q0, method="newton") of one configuration into out (n,); returns DONE, or OUTSIDE
-    when q0 is not finite, outside the ranges or outside the validity region without ``extrapolate`` (the caller
-    then takes the batched path, which names what is wrong). consts: solve.py's (GN_MAX_STEP, REUSE_BELOW,
-    NOISE_FLOOR, DAMPED_MAX_STEP, LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP, STALL_WINDOW, STALL_FALL,
-    MAX_CORRECTION)."""
+def _gauss_newton(q0, out, iterations, tol, consts, r, J, r0, J0, ctx):
+    """solve.solve's Gauss-Newton mode for one row from q0 into out: full steps J⁻¹ r, judged by solve.verdict; once
+    a step was below REUSE_BELOW the next reuse the kept J (its factors). r0, J0: the residual at q0 (where a failed
+    row's damped mode starts). Returns True when the row failed."""
     n = q0.shape[0]
-    for j in range(n):
-        if not math.isfinite(q0[j]):
-            return OUTSIDE
-    in_ranges, in_region = _inside(q0, ranges, centres, scale, radius, has_region)
-    if not extrapolate and not (in_ranges and in_region):
-        return OUTSIDE
-    # correct()'s bound: inside the validity region (every row without extrapolate, its own test with it)
-    bounded = has_region and (in_region if extrapolate else True)
-    gn_max, reuse_below, noise_floor, bound = consts[0], consts[1], consts[2], consts[9]
-    T = np.empty((n + 1, 4, 4))
-    target = np.empty((4, 4))
-    _walk(nominal, q0, T, np.empty((6, n)))
-    target[:] = T[n]
-    point = np.zeros(3)
-    if has_tcp:  # the TCP's nominal position: (T_target · tcp)[:3, 3]
-        for a in range(3):
-            point[a] = target[a, 0] * tcp[0, 3] + target[a, 1] * tcp[1, 3] + target[a, 2] * tcp[2, 3] + target[a, 3]
-    f, width, H = cols.shape[0], 1, 0
-    for li in range(layers.shape[0]):
-        width = max(width, layers[li, 1])
-    for c in range(f):
-        if cols[c, 0] == OP_SIN or cols[c, 0] == OP_COS:
-            H = max(H, cols[c, 2])
-    work = (np.empty((n, H + 1, 2)), np.empty((2, width)), np.empty((6, n)), np.empty((6, n)), np.empty((4, 6)))
-    ctx = (target, point, has_tcp, model, mode, cols, weights, layers, T, np.empty(f), np.empty(f), work)
-    r, J, r0, J0 = np.empty(6), np.empty((6, n)), np.empty(6), np.empty((6, n))
+    gn_max, reuse_below, noise_floor = consts[0], consts[1], consts[2]
     LU, piv, step = np.empty((n, n)), np.empty(n, dtype=np.int64), np.empty(n)
     for j in range(n):
         out[j] = q0[j]
     prev = -1.0  # no step yet
-    failed = False
     for i in range(max(iterations, 1)):
         fresh = not (prev >= 0.0 and prev < reuse_below)  # settled: reuse the last J (solve's simplified Newton)
         _eval(out, fresh, r, J, ctx)
@@ -535,13 +502,53 @@ def correct_one(
             bad = not size <= min(gn_max, 0.5 * prev)
             done = size * ratio / (1 - ratio) < tol or size < 1e-3 * tol
         if bad:
-            failed = True
-            break
+            return True
         for j in range(n):
             out[j] += step[j]
         prev = size
         if done:
             break
+    return False
+
+
+@_jit
+def correct_one(
+    q0, out, nominal, model, mode, cols, weights, layers, w, ranges, centres, scale, radius, has_region,
+    tcp, has_tcp, extrapolate, iterations, tol, budget, consts,
+):  # fmt: skip
+    """CalibratedRobot.correct(q0, method="newton") of one configuration into out (n,); returns DONE, or OUTSIDE
+    when q0 is not finite, outside the ranges or outside the validity region without ``extrapolate`` (the caller
+    then takes the batched path, which names what is wrong). consts: solve.py's (GN_MAX_STEP, REUSE_BELOW,
+    NOISE_FLOOR, DAMPED_MAX_STEP, LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP, STALL_WINDOW, STALL_FALL,
+    MAX_CORRECTION)."""
+    n = q0.shape[0]
+    for j in range(n):
+        if not math.isfinite(q0[j]):
+            return OUTSIDE
+    in_ranges, in_region = _inside(q0, ranges, centres, scale, radius, has_region)
+    if not extrapolate and not (in_ranges and in_region):
+        return OUTSIDE
+    # correct()'s bound: inside the validity region (every row without extrapolate, its own test with it)
+    bounded = has_region and (in_region if extrapolate else True)
+    bound = consts[9]
+    T = np.empty((n + 1, 4, 4))
+    target = np.empty((4, 4))
+    _walk(nominal, q0, T, np.empty((6, n)))
+    target[:] = T[n]
+    point = np.zeros(3)
+    if has_tcp:  # the TCP's nominal position: (T_target · tcp)[:3, 3]
+        for a in range(3):
+            point[a] = target[a, 0] * tcp[0, 3] + target[a, 1] * tcp[1, 3] + target[a, 2] * tcp[2, 3] + target[a, 3]
+    f, width, H = cols.shape[0], 1, 0
+    for li in range(layers.shape[0]):
+        width = max(width, layers[li, 1])
+    for c in range(f):
+        if cols[c, 0] == OP_SIN or cols[c, 0] == OP_COS:
+            H = max(H, cols[c, 2])
+    work = (np.empty((n, H + 1, 2)), np.empty((2, width)), np.empty((6, n)), np.empty((6, n)), np.empty((4, 6)))
+    ctx = (target, point, has_tcp, model, mode, cols, weights, layers, T, np.empty(f), np.empty(f), work)
+    r, J, r0, J0 = np.empty(6), np.empty((6, n)), np.empty(6), np.empty((6, n))
+    failed = _gauss_newton(q0, out, iterations, tol, consts, r, J, r0, J0, ctx)
     if bounded and not failed:
         far = False
         for j in range(n):
