@@ -30,7 +30,8 @@ def _network(model, features, hidden, seed, out=1e-3) -> Network:
     """A network of random weights: hidden = () is a linear series (the hybrid's learned term)."""
     rng = np.random.default_rng(seed)
     f = input_features(np.zeros((1, model.n)), features, model).shape[1]
-    sizes = [f, *hidden, 6]
+    N = max(model.n, 6)
+    sizes = [f, *hidden, N]
     weights = tuple(rng.normal(size=(b, a)) / np.sqrt(a) for a, b in itertools.pairwise(sizes))
     return Network(
         features=tuple(features),
@@ -38,8 +39,8 @@ def _network(model, features, hidden, seed, out=1e-3) -> Network:
         biases=tuple(rng.normal(size=b) * 0.1 for b in sizes[1:]),
         in_mean=rng.normal(size=f) * 0.1,
         in_scale=rng.uniform(0.5, 2.0, size=f),
-        out_mean=rng.normal(size=6) * 1e-4,
-        out_scale=np.full(6, out),
+        out_mean=rng.normal(size=N) * 1e-4,
+        out_scale=np.full(N, out),
     )
 
 
@@ -254,14 +255,29 @@ def test_a_python_without_numba_gets_no_kernel_and_the_batched_answer():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+@pytest.mark.parametrize("name", ["kuka-iiwa14-r820", "franka-panda"])
+@pytest.mark.parametrize("learned", [False, True])
+def test_a_redundant_arm_takes_the_definitions_least_change_steps(name, learned):
+    nominal = load(name).model
+    rng = np.random.default_rng(7)
+    model = nominal.perturbed(rng.normal(size=(nominal.n + 1, 6)) * 0.5e-3)
+    network = _network(model, ("q", "sincos", "gravity"), (8,), 1) if learned else None
+    lo, hi = nominal.limits[:, 0], nominal.limits[:, 1]
+    centre = 0.5 * (lo + hi) + 0.2
+    data = centre + rng.uniform(-0.5, 0.5, size=(300, nominal.n))
+    robot = CalibratedRobot(nominal, model, network, method="hybrid", validity=ValidityRegion.from_configurations(data))
+    assert robot._kernel is not None
+    anywhere = lo + (hi - lo) * rng.uniform(0.1, 0.9, size=(40, nominal.n))
+    for q in np.concatenate([robot.validity.sample(40, rng), anywhere]):
+        assert_agree(robot, q, extrapolate=True)
+
+
 def test_robots_the_kernel_does_not_cover_take_the_batched_path():
     nominal = load("ur10").model
     tilted = nominal.replace(twists=np.tile([0, 0, 0, 0, np.sin(1e-3), np.cos(1e-3)], (6, 1)))
-    seven = load("kuka-iiwa14-r820").model  # 7 joints: the numpy path (the kernel is for 6-joint arms)
     scara = load("scara4").model  # 4 joints, virtual joints: the numpy path
     robots = [
         CalibratedRobot(nominal, tilted, method="local-poe"),
-        CalibratedRobot(seven, seven.perturbed(np.full((8, 6), 1e-4)), method="local-poe"),
         CalibratedRobot(scara, scara.perturbed(np.full((5, 6), 1e-4)), method="local-poe"),
     ]
     for robot in robots:

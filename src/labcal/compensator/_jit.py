@@ -1,5 +1,5 @@
 """The compiled single-configuration correction (numba): the steps of :func:`labcal.compensator.solve.solve` over
-:meth:`labcal.compensator.model.CalibratedRobot.residual`, for one configuration of a 6-joint z-revolute arm.
+:meth:`labcal.compensator.model.CalibratedRobot.residual`, for one configuration of a z-revolute arm of n ≥ 6 joints.
 
 Imported only by :mod:`labcal.compensator.kernel`, and only when a single ``correct()`` first needs it (importing
 numba and compiling cost seconds: ``labcal --help`` must not pay them). Every function here mirrors a step of the
@@ -472,20 +472,42 @@ def _gauss_newton(q0, out, iterations, tol, consts, r, J, r0, J0, ctx):
     row's damped mode starts). Returns True when the row failed."""
     n = q0.shape[0]
     gn_max, reuse_below, noise_floor = consts[0], consts[1], consts[2]
-    LU, piv, step = np.empty((n, n)), np.empty(n, dtype=np.int64), np.empty(n)
+    LU, piv, step = np.empty((6, 6)), np.empty(6, dtype=np.int64), np.empty(n)
+    target, y = np.empty(6), np.empty(6)
     for j in range(n):
         out[j] = q0[j]
     prev = -1.0  # no step yet
     for i in range(max(iterations, 1)):
-        fresh = not (prev >= 0.0 and prev < reuse_below)  # settled: reuse the last J (solve's simplified Newton)
+        # settled: reuse the last J (solve's simplified Newton; n = 6 only: a redundant arm's least change moves
+        # with J)
+        fresh = n != 6 or not (prev >= 0.0 and prev < reuse_below)
         _eval(out, fresh, r, J, ctx)
         if i == 0:
             r0[:] = r
             J0[:] = J
-        if fresh:
-            LU[:] = J
+        if n == 6:
+            if fresh:
+                LU[:] = J
+                _lu(LU, piv)
+            _lu_solve(LU, piv, r, step)
+        else:  # n > 6: the step to the least total change, Jᵀ (J Jᵀ)⁻¹ (r + J (q − q0)) − (q − q0)
+            for a in range(6):
+                acc = r[a]
+                for j in range(n):
+                    acc += J[a, j] * (out[j] - q0[j])
+                target[a] = acc
+                for b in range(6):
+                    acc = 0.0
+                    for j in range(n):
+                        acc += J[a, j] * J[b, j]
+                    LU[a, b] = acc
             _lu(LU, piv)
-        _lu_solve(LU, piv, r, step)
+            _lu_solve(LU, piv, target, y)
+            for j in range(n):
+                acc = 0.0
+                for a in range(6):
+                    acc += J[a, j] * y[a]
+                step[j] = acc - (out[j] - q0[j])
         size = 0.0
         for j in range(n):
             size = max(size, abs(step[j]))
@@ -545,7 +567,7 @@ def correct_one(
     for c in range(f):
         if cols[c, 0] == OP_SIN or cols[c, 0] == OP_COS:
             H = max(H, cols[c, 2])
-    work = (np.empty((n, H + 1, 2)), np.empty((2, width)), np.empty((6, n)), np.empty((6, n)), np.empty((4, 6)))
+    work = (np.empty((n, H + 1, 2)), np.empty((2, width)), np.empty((6, n)), np.empty((6, n)), np.empty((4, max(n, 6))))
     ctx = (target, point, has_tcp, model, mode, cols, weights, layers, T, np.empty(f), np.empty(f), work)
     r, J, r0, J0 = np.empty(6), np.empty((6, n)), np.empty(6), np.empty((6, n))
     failed = _gauss_newton(q0, out, iterations, tol, consts, r, J, r0, J0, ctx)

@@ -10,12 +10,13 @@ tcp (4, 4) or None) → q_cmd (n,) or None`` that takes the same steps as the de
 "take the batched path": q is not finite, or outside the calibrated ranges or validity region (the batched path
 then raises the error that names it).
 
-What it covers: 6-joint arms whose joints all turn about their local z axis (nominal and identified model), without
-a network (local POE) or with one on 6 outputs whose features are ``q``, ``sincos``, ``sincos2``, ``gravity`` and
-``harmonics:H`` (the ANN and hybrid methods; a one-layer linear series takes the definition's Newton Jacobian).
-Anything else (7-joint and other redundant arms, n < 6 with virtual joints, prismatic or tilted joint axes) gets
-None from :func:`build` and takes the batched numpy path with a batch of one, as does every robot when numba is not
-importable (numba is a default dependency, but labcal runs without it).
+What it covers: arms of 6 or more joints that all turn about their local z axis (nominal and identified model),
+without a network (local POE) or with one on max(n, 6) outputs whose features are ``q``, ``sincos``, ``sincos2``,
+``gravity`` and ``harmonics:H`` (the ANN and hybrid methods; a 6-joint one-layer linear series takes the
+definition's Newton Jacobian; a redundant arm, n > 6, the step to the least total change). Anything else (n < 6
+with virtual joints, prismatic or tilted joint axes) gets None from :func:`build` and takes the batched numpy path
+with a batch of one, as does every robot when numba is not importable (numba is a default dependency, but labcal
+runs without it).
 
 Compilation is lazy: numba is imported and the kernel compiled (or loaded from numba's on-disk cache, when its
 directory is writable) at the first single correction, never when labcal is imported.
@@ -115,13 +116,13 @@ def _layers(robot: CalibratedRobot) -> tuple[np.ndarray, np.ndarray]:
 def build(robot: CalibratedRobot) -> Kernel | None:
     """The compiled single correction of ``robot`` (module docstring), or None when it takes the numpy path."""
     n = robot.n
-    if n != 6 or not (robot.nominal._all_revolute_z and robot.model._all_revolute_z):
+    if n < 6 or not (robot.nominal._all_revolute_z and robot.model._all_revolute_z):
         return None
     network = robot.network
     if network is None:
         mode, cols, weights, layers = 0, np.zeros((0, 3), dtype=np.int64), np.zeros(1), np.zeros((1, 4), np.int64)
     else:
-        if network.outputs != 6:
+        if network.outputs != n:
             return None
         try:
             cols = _feature_table(robot)
