@@ -88,31 +88,6 @@ def best_time(fn, repeats: int) -> float:
     return best
 
 
-def pose_error_kernel(robot: CalibratedRobot, repeats: int) -> None:
-    """One pose error log(T_target T⁻¹) at one configuration: the Python-float kernel the single-configuration
-    residual uses, against the same small-angle logarithm in numpy (what the batched residual runs)."""
-    try:
-        from labcal.compensator.model import _log_small, _pose_error_one, _pose_lists
-    except ImportError:  # a labcal without the kernel
-        return
-    from labcal.kinematics import se3
-
-    q = well_conditioned(robot, 200, seed=5)
-    walks = [robot.model.runtime_walk(x)[0][-1] for x in q]
-    targets = [_pose_lists(robot.nominal.runtime_walk(x)[0][-1]) for x in q]
-    T_targets = robot.nominal.fk(q)
-
-    def numpy_error(i: int) -> np.ndarray:
-        T = se3.pose_from_adjoint(walks[i])
-        dR = T_targets[i, :3, :3] @ T[:3, :3].T
-        return _log_small(dR[None], (T_targets[i, :3, 3] - dR @ T[:3, 3])[None])[0]
-
-    idx = list(range(len(q)))
-    floats = median_call(lambda i: _pose_error_one(targets[i], walks[i]), idx, repeats)
-    arrays = median_call(numpy_error, idx, repeats)
-    print(f"one pose error at one configuration (µs): Python floats {floats * 1e6:.1f}, numpy {arrays * 1e6:.1f}")
-
-
 def main(argv: list[str] | None = None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robot", default="ur10")
@@ -161,7 +136,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
         )
     print("goal (hybrid): ≤ 200 µs single, ≥ 50,000 configurations/s batched, ≤ 1e-9 rad")
 
-    pose_error_kernel(make_models(args.robot)["hybrid"], args.repeats)
     hybrid = make_models(args.robot)["hybrid"]
     q = well_conditioned(hybrid, args.loop, seed=3)
     ts = np.empty(len(q))

@@ -9,11 +9,13 @@ the cross-validation keeps: on these data the per-joint series), saved as JSON a
 
 The calls: ``--calls`` configurations drawn uniformly inside the export's joint ranges (seed 3), keeping those whose
 equivalent Jacobian is well conditioned (length-scaled condition < 1000: away from singularities, where a damped
-step is expected), corrected one at a time as a control loop does (garbage collector on, no warm-up between
+step is expected) and that lie inside the export's validity region (correct() refuses the others), corrected one
+at a time as a control loop does (garbage collector on, no warm-up between
 calls). Printed: median, p99, p99.9 and max latency, the calls over a 500 Hz cycle (2 ms), and how many calls
 took the damped fallback (counted in a second, untimed pass through whichever fallback function the installed
-labcal has). Rows with a looser solver tolerance (``--tols``) show what it buys, and how far their answers move from
-the defaults'. Whatever else runs on the machine shows in the tail: run it on an idle machine.
+labcal has, on the numpy definition with a batch of one). Rows with a looser solver tolerance (``--tols``) show
+what it buys, and how far their answers move from the defaults'. Whatever else runs on the machine shows in the
+tail: run it on an idle machine.
 """
 
 from __future__ import annotations
@@ -74,7 +76,10 @@ def configurations(comp: Compensator, count: int, seed: int = 3, max_cond: float
 
 
 def count_fallbacks(comp: Compensator, q: np.ndarray) -> tuple[np.ndarray, str]:
-    """Indices of the single corrections over q that entered the damped fallback, and the function counted."""
+    """Indices of the single corrections over q that entered the damped fallback, and the function counted.
+
+    Counted on the numpy definition with a batch of one (``correct(q[None])``): a compiled single call
+    (labcal.compensator.kernel) takes the same steps, but its fallback is not a Python function to count."""
     import importlib
 
     for module, owner, attr in _FALLBACKS:
@@ -97,7 +102,7 @@ def count_fallbacks(comp: Compensator, q: np.ndarray) -> tuple[np.ndarray, str]:
             calls = []
             for i, row in enumerate(q):
                 before = hits[0]
-                comp.correct(row)
+                comp.correct(row[None])
                 if hits[0] > before:
                     calls.append(i)
         finally:
@@ -145,7 +150,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
             fit_export(path, args.size)
         comp = Compensator.load(path)
     net = comp.robot.network
-    q = configurations(comp, args.calls)
+    q = configurations(comp, 4 * args.calls)
+    if comp.robot.validity is not None:  # correct() refuses configurations outside the region (issue 27)
+        q = q[comp.robot.validity.inside(q)]
+    q = q[: args.calls]
     settings = [("Compensator.correct(q) (defaults)", comp.correct)]
     if "damped_iterations" in inspect.signature(comp.robot.correct).parameters:
         bounded = functools.partial(comp.robot.correct, damped_iterations=args.bounded)

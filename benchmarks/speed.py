@@ -69,7 +69,6 @@ def sections(robot_name: str, seed: int = 0) -> tuple[list[Section], int]:
         definition = [
             Section("FK, definition", lambda q: poe_link_frames(model.frames, model.twists, q)[:, -1]),
             Section("FK + twists, definition", lambda q: poe_joint_twists(model.frames, model.twists, q)),
-            Section("one walk, runtime_walk", model.runtime_walk, mode="single"),
             Section("one walk, definition", lambda q: poe_joint_twists(model.frames, model.twists, q), mode="single"),
         ]
     return [

@@ -105,20 +105,6 @@ def test_fast_kernels_match_the_kinematics_reference(name, odd):
     np.testing.assert_allclose(initial, poe_link_frames(robot.model.frames, robot.model.twists, q), atol=1e-13)
 
 
-@pytest.mark.parametrize("angle", [1e-7, 3e-3, 5.01e-3, 0.02, 0.2, 0.52, 2.5, np.pi - 1e-4])
-def test_the_one_pose_error_kernel_is_the_logarithm_of_the_pose_difference(angle):
-    from labcal.compensator.model import _pose_error_one, _pose_lists
-
-    rng = np.random.default_rng(int(angle * 1e7) % 1000)
-    for _ in range(20):
-        T = se3.exp_se3(rng.normal(size=6))
-        xi = rng.normal(size=6)
-        xi[3:] *= angle / np.linalg.norm(xi[3:])
-        T_target = se3.exp_se3(xi * np.r_[1e-3, 1e-3, 1e-3, 1, 1, 1]) @ T
-        got = _pose_error_one(_pose_lists(se3.adjoint(T_target)), se3.adjoint(T))
-        np.testing.assert_allclose(got, se3.log_se3(T_target @ se3.inv(T)), rtol=0, atol=1e-13)
-
-
 @pytest.mark.parametrize("name", ["ur10", "fanuc-m1000ia"])
 def test_correct_reaches_the_nominal_pose_and_matches_the_converged_solution(name):
     robot = hybrid(name)
@@ -290,8 +276,9 @@ def test_near_singular_configurations_take_damped_steps_that_never_make_the_pose
         q = sample(robot, 12, seed=4, max_cond=1e9)
         q[:, 4] = rng.normal(size=len(q)) * 0.05  # near the wrist singularity (q5 = 0 on these arms)
         for row in q:
-            q_cmd = robot.correct(row, extrapolate=True)
-            assert np.all(np.isfinite(q_cmd)) and _pose_error(robot, row, q_cmd) <= _pose_error(robot, row, row)
+            # the compiled single call and the numpy definition (a batch of one, whose damped steps are counted)
+            for q_cmd in (robot.correct(row, extrapolate=True), robot.correct(row[None], extrapolate=True)[0]):
+                assert np.all(np.isfinite(q_cmd)) and _pose_error(robot, row, q_cmd) <= _pose_error(robot, row, row)
     assert len(calls) >= 5  # the damped steps really ran
 
 
@@ -302,29 +289,25 @@ def test_a_linear_learned_term_gives_the_network_and_its_slope_and_newton_jacobi
     h = 1e-6
     steps = np.eye(6) * h
     for q in sample(robot, 4, seed=8):
-        adjoints, J, cos_q, sin_q = robot.model.runtime_walk(q)
-        rho, slope = robot._linear_series(q, cos_q, sin_q, adjoints)
+        rho_b, slope_b = robot._linear_series(q[None], robot.model.link_frames(q[None]))
+        rho, slope = rho_b[0], slope_b[0]
         np.testing.assert_allclose(rho, robot.network(q[None], robot.model)[0], rtol=0, atol=1e-14)
-        # the batch terms are the same function (gravity included)
-        rho_b, slope_b = robot._linear_series.batch(np.stack([q, q]), robot.model.link_frames(np.stack([q, q])))
-        np.testing.assert_allclose(rho_b[1], rho, rtol=0, atol=1e-14)
-        np.testing.assert_allclose(slope_b[1], slope, rtol=0, atol=1e-12)
         if "gravity" in features:
             continue  # the slope leaves gravity's part out (see _linear_series)
         numeric = (robot.network(q + steps, robot.model) - robot.network(q - steps, robot.model)).T / (2 * h)
         np.testing.assert_allclose(slope, numeric, rtol=0, atol=1e-8)
         # the residual's Jacobian is −(the returned J) up to O(|r|, |e|²): compare at a point off the solution
-        residual = robot._one_configuration_residual(q)
-        residual(q[None], None)  # the solver's first call is at q (its walk is prepared)
+        target = robot.nominal.fk(q[None])
+
+        def residual(qc, target=target):
+            return robot.residual(qc[None], target)
+
         q1 = robot.correct(q) + 1e-5
-        _, J1 = residual(q1[None], None)
-        numeric = np.stack([residual((q1 + s)[None], None)[0][0] - residual((q1 - s)[None], None)[0][0] for s in steps])
+        _, J1 = residual(q1)
+        numeric = np.stack([residual(q1 + s)[0][0] - residual(q1 - s)[0][0] for s in steps])
         np.testing.assert_allclose(-J1[0], numeric.T / (2 * h), rtol=0, atol=2e-5)
+        J = robot.model.joint_twists(q1[None])[0]
         assert np.abs(-J - numeric.T / (2 * h)).max() > 2e-4  # the twists alone are not the Jacobian
-        # the batched residual is the same function: same r, same Newton Jacobian
-        r_batch, J_batch = robot.residual(np.stack([q, q1]), robot.nominal.fk(np.stack([q, q])))
-        np.testing.assert_allclose(J_batch[1], J1[0], rtol=0, atol=1e-12)
-        np.testing.assert_allclose(r_batch[1], residual(q1[None], None)[0][0], rtol=0, atol=1e-14)
 
 
 def test_one_configuration_and_a_batch_take_the_same_steps_near_a_singularity():
@@ -466,14 +449,9 @@ def test_a_bounded_damped_budget_limits_the_residual_evaluations_and_stays_no_wo
     robot = hybrid("ur10", features=("sincos", "gravity"))
     q = np.array([0.3, -1.2, 1.1, -1.3, 0.0, 0.4])  # wrist singular: the damped steps run
     calls = []
-    real = CalibratedRobot._one_configuration_residual
-
-    def counted(self, q1):
-        residual = real(self, q1)
-        return lambda *a: calls.append(1) or residual(*a)
-
-    monkeypatch.setattr(CalibratedRobot, "_one_configuration_residual", counted)
-    q_cmd = robot.correct(q, damped_iterations=2)
+    real = CalibratedRobot.residual
+    monkeypatch.setattr(CalibratedRobot, "residual", lambda *a: calls.append(1) or real(*a))
+    q_cmd = robot.correct(q[None], damped_iterations=2)[0]  # the numpy definition (the kernel: test_kernel.py)
     assert len(calls) <= 10 + 1 + 2  # Gauss-Newton budget, the damped start, two damped steps
     assert _pose_error(robot, q, q_cmd) <= _pose_error(robot, q, q)
 
@@ -485,10 +463,11 @@ def test_single_configuration_input_checks():
     )
     q = np.array([0.1, -1.2, 1.0, -1.4, -1.5, 0.2])
     expected = robot.correct(q)
-    np.testing.assert_array_equal(robot.correct(list(q)), expected)  # lists take the general path, same answer
-    np.testing.assert_allclose(robot.correct(q[None])[0], expected, rtol=0, atol=1e-15)
+    # lists take the batched path: the same answer to rounding (the compiled kernel answers float arrays)
+    np.testing.assert_allclose(robot.correct(list(q)), expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(robot.correct(q[None])[0], expected, rtol=0, atol=1e-12)
     assert robot.correct(np.array([0, -1, 1, -1, -1, 0])).shape == (6,)  # integers are converted
-    np.testing.assert_array_equal(robot.correct(q.astype(">f8")), expected)  # other float64 layouts: same answer
+    np.testing.assert_allclose(robot.correct(q.astype(">f8")), expected, rtol=0, atol=1e-12)  # other layouts
     with pytest.raises(ValueError, match=r"shape \(6,\) or \(k, 6\)"):
         robot.correct(q[:5])
     bad = q.copy()

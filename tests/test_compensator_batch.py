@@ -1,4 +1,4 @@
-"""The batched joint-series terms of a hybrid (``CalibratedRobot._linear_series.batch``: the block-sparse slope
+"""The batched joint-series terms of a hybrid (``CalibratedRobot._linear_series``: the block-sparse slope
 product and the harmonics one order at a time) and the Newton bracket, against their plain definitions: the network
 itself, the dense derivative of its features, a finite difference, and ad(ξ) as a 6 × 6 matrix."""
 
@@ -50,7 +50,7 @@ def test_batch_series_is_the_network_and_the_dense_slope(names):
     series = robot._linear_series
     assert series is not None  # a linear network of harmonics (+ gravity, q): the series path
     q = np.random.default_rng(4).uniform(-np.pi, np.pi, (5000, 6))  # more than one chunk of the batch form
-    rho, slope = series.batch(q, robot.model.link_frames(q))
+    rho, slope = series(q, robot.model.link_frames(q))
     np.testing.assert_allclose(rho, robot.network(q, robot.model), rtol=0, atol=1e-15)
     expected = _slope_definition(robot, q)
     assert np.abs(expected).max() > 1e-4  # ten orders above the tolerance: a wrong or missing block shows

@@ -157,41 +157,6 @@ def test_the_batch_recurrence_is_the_one_configuration_recurrence_joint_major(or
     np.testing.assert_allclose(layout.reshape(7, -1), features.harmonics(theta, order), rtol=0, atol=tol)
 
 
-@pytest.mark.parametrize(
-    "names", [("sincos", "gravity"), ("q",), ("sincos2", "q"), ("harmonics:7", "gravity"), ("gravity", "sincos")]
-)
-def test_one_configuration_features_are_a_row_of_the_batch_evaluator(names):
-    """The runtime's one-configuration form, fed with a walk's cos q, sin q and link frames, gives the batch
-    evaluator's row, column for column (harmonics by recurrence: a few ulps per order)."""
-    from labcal.robots import load
-
-    model = load("ur10").model
-    rng = np.random.default_rng(5)
-    one = features.one_configuration(names, model.joint_types, model.limits)
-    assert one.needs_frames == any(n == "gravity" for n in names)
-    for q in rng.uniform(-3, 3, size=(20, model.n)):
-        frames = model.link_frames(q[None])
-        expected = features.compute_all(q[None], names, model.joint_types, model.limits, frames)[0]
-        got = one(q, np.cos(q), np.sin(q), frames[0])
-        assert got.shape == expected.shape
-        np.testing.assert_allclose(got, expected, rtol=0, atol=7 * np.pi * 2.3e-16 + 1e-15)
-
-
-def test_one_configuration_features_of_a_prismatic_robot_are_the_batch_row():
-    joint_types, limits = ("revolute", "prismatic"), np.array([[-3.0, 3.0], [0.1, 0.3]])
-    names = ("harmonics:2", "sincos")
-    one = features.one_configuration(names, joint_types, limits)
-    q = np.array([0.4, 0.25])
-    expected = features.compute_all(q[None], names, joint_types, limits)[0]
-    np.testing.assert_array_equal(one(q, np.cos(q), np.sin(q), None), expected)
-
-
-def test_one_configuration_gravity_without_frames_is_a_clear_error():
-    q = np.zeros(2)
-    with pytest.raises(ValueError, match=r"gravity.*link frames"):
-        features.one_configuration(("gravity",))(q, np.cos(q), np.sin(q), None)
-
-
 def test_a_kind_without_a_computation_fails_loudly_instead_of_computing_another(monkeypatch):
     # a newcomer who adds a name to the registry but no branch must get an error, never sincos2 or empty columns
     monkeypatch.setattr(features, "SIMPLE", (*features.SIMPLE, "made_up"))
@@ -206,8 +171,6 @@ def test_a_kind_without_a_computation_fails_loudly_instead_of_computing_another(
         ):
             with pytest.raises(ValueError, match="'made_up' has no computation"):
                 call()
-        with pytest.raises(ValueError, match="'made_up' has no computation in one_configuration"):
-            features.one_configuration(("made_up",))  # its own check, not the batch evaluator's
         with pytest.raises(ValueError, match="'made_up' has no computation"):
             features.compute_all(q, ("made_up",))
     finally:

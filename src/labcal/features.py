@@ -233,52 +233,6 @@ def evaluator(names: tuple[str, ...], joint_types=None, limits=None):
     return run
 
 
-def one_configuration(names: tuple[str, ...], joint_types=None, limits=None):
-    """The features ``names`` at one configuration, from what a chain walk already has: a function
-    ``(q (n,), cos q (n,), sin q (n,), link frames or their adjoints (n+1, d, d)) → (f,)``, a row of
-    :func:`evaluator` (equal to a few ulps: the walk's sines and cosines, harmonics by
-    :func:`harmonics_by_recurrence`).
-
-    A runtime's solver calls it at every step of a single correction, where numpy's per-call cost is the price:
-    the columns are joined by one concatenation. A robot with a prismatic joint gets :func:`evaluator`'s row.
-
-    Example::
-
-        >>> q, names = np.array([0.3, -1.2]), ("sincos", "gravity")
-        >>> frames = np.broadcast_to(np.eye(4), (3, 4, 4))
-        >>> x = one_configuration(names)(q, np.cos(q), np.sin(q), frames)
-        >>> bool(np.allclose(x, compute_all(q, names, frames=frames[None])))
-        True
-    """
-    kinds = [(get(name).kind, get(name).order) for name in names]
-    for kind, _ in kinds:  # the kinds `one` computes below: a kind added to the registry alone must not pass
-        if kind not in ("sincos", "gravity", HARMONICS, "q", "sincos2"):
-            raise ValueError(_unknown_kind(kind, "one_configuration"))
-    run = evaluator(tuple(names), joint_types, limits)
-    if joint_types is not None and _prismatic(tuple(joint_types)).any():
-        return lambda q, cos_q, sin_q, frames: run(q[None], None if frames is None else frames[None])[0]
-
-    def one(q: np.ndarray, cos_q: np.ndarray, sin_q: np.ndarray, frames: np.ndarray | None) -> np.ndarray:
-        parts = []
-        for kind, order in kinds:
-            if kind == "sincos":
-                parts += (sin_q, cos_q)
-            elif kind == "gravity":
-                if frames is None:
-                    raise ValueError("feature 'gravity' needs the link frames at q")
-                parts.append(np.negative(frames[1:, 2, :3]))
-            elif kind == HARMONICS:
-                parts.append(harmonics_by_recurrence(cos_q, sin_q, order))
-            elif kind == "q":
-                parts.append(q)
-            else:  # sincos2 (checked above): sin 2q = 2 sin q cos q, cos 2q = cos² q − sin² q
-                parts += (2 * sin_q * cos_q, cos_q * cos_q - sin_q * sin_q)
-        return np.concatenate(parts, axis=None)
-
-    one.needs_frames = run.needs_frames
-    return one
-
-
 def _gravity(name: str, q: np.ndarray, frames) -> np.ndarray:
     if frames is None:
         raise ValueError(f"feature {name!r} needs the link frames at q (frames=model.link_frames(q))")

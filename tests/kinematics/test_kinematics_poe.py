@@ -26,7 +26,6 @@ from labcal.kinematics.poe import (
     poe_fk,
     poe_joint_twists,
     poe_link_frames,
-    runtime_walk_pair,
 )
 from labcal.robots import BUILTINS, load
 
@@ -316,42 +315,6 @@ def test_every_kernel_result_equals_the_product_of_exponentials(k):
         np.testing.assert_allclose(model.fk(q[0]), T[0], rtol=0, atol=1e-12)
 
 
-# --------------------------------------------------------------------------------------------------------------
-# the runtime's one-configuration walk (adjoint representation)
-
-
-def _models_for_runtime():
-    ur10 = load("ur10").model
-    perturbed = ur10.perturbed(np.random.default_rng(4).normal(size=(7, 6)) * 1e-3)
-    return [load(r).model for r in BUILTINS] + [perturbed, general_model(), general_model(seed=3, n=6)]
-
-
-@pytest.mark.parametrize("model", _models_for_runtime(), ids=lambda m: m.name or "general")
-def test_runtime_walk_equals_adjoints_of_link_frames_and_joint_twists(model):
-    for q in random_q(model, 20, seed=21):
-        adjoints, twists, c, s = model.runtime_walk(q)
-        frames = poe_link_frames(model.frames, model.twists, q)[0]
-        np.testing.assert_allclose(adjoints, se3.adjoint(frames), rtol=0, atol=1e-13)
-        np.testing.assert_allclose(se3.pose_from_adjoint(adjoints[-1]), frames[-1], rtol=0, atol=1e-13)
-        np.testing.assert_allclose(twists, poe_joint_twists(model.frames, model.twists, q)[0], rtol=0, atol=1e-13)
-        np.testing.assert_array_equal(c, np.cos(q))
-        np.testing.assert_array_equal(s, np.sin(q))
-
-
-@pytest.mark.parametrize("n", range(1, 10))
-def test_runtime_walk_scan_matches_a_left_to_right_walk_for_any_chain_length(n):
-    # ⌈log2(n+1)⌉ scan steps: the last one is easy to drop where n is a power of two (1, 2, 4 and 8 joints).
-    rng = np.random.default_rng(8 + n)
-    frames = se3.exp_se3(rng.normal(size=(n + 1, 6)) * 0.5)
-    model = LocalPOEModel.from_frames(frames, (REVOLUTE,) * n)
-    assert model._all_revolute_z
-    for q in random_q(model, 5, seed=2):
-        adjoints, twists, _, _ = model.runtime_walk(q)
-        frames = poe_link_frames(model.frames, model.twists, q)[0]
-        np.testing.assert_allclose(adjoints, se3.adjoint(frames), rtol=0, atol=1e-13)
-        np.testing.assert_allclose(twists, poe_joint_twists(model.frames, model.twists, q)[0], rtol=0, atol=1e-13)
-
-
 def test_twists_from_frames_single_and_batched():
     for model in (load("ur10").model, load("scara4").model, general_model()):
         q = random_q(model, 4, seed=5)
@@ -360,17 +323,3 @@ def test_twists_from_frames_single_and_batched():
         np.testing.assert_array_equal(model.twists_from_frames(frames[2]), model.joint_twists(q)[2])
         with pytest.raises(ValueError, match="frames must have shape"):
             model.twists_from_frames(frames[:, :-1])
-
-
-def test_runtime_walk_pair_walks_both_models_as_their_definitions():
-    ur10 = load("ur10").model
-    calibrated = ur10.perturbed(np.random.default_rng(1).normal(size=(7, 6)) * 1e-3)
-    for first, second in [(ur10, calibrated), (general_model(n=6), ur10), (calibrated, general_model(n=6))]:
-        for q in random_q(ur10, 6, seed=9):
-            adjoints_first, (adjoints, twists, c, s) = runtime_walk_pair(first, second, q)
-            for model, got in ((first, adjoints_first), (second, adjoints)):
-                want = se3.adjoint(poe_link_frames(model.frames, model.twists, q)[0])
-                np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
-            np.testing.assert_allclose(twists, poe_joint_twists(second.frames, second.twists, q)[0], atol=1e-13)
-            np.testing.assert_array_equal(c, np.cos(q))
-            np.testing.assert_array_equal(s, np.sin(q))

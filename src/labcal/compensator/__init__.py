@@ -1,4 +1,5 @@
-"""The compensator runtime: a calibrated robot model that predicts poses and corrects joint commands. Numpy only.
+"""The compensator runtime: a calibrated robot model that predicts poses and corrects joint commands. Numpy only
+(a single correction runs compiled when numba is installed: :mod:`labcal.compensator.kernel`).
 
 - :mod:`~labcal.compensator.model`: :class:`CalibratedRobot` (identified frames + learned joint motion errors:
   ``predict_pose``, ``correct``), :class:`Network`, :func:`input_features` (the :mod:`labcal.features` registry);

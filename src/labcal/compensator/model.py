@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import functools
 import math
-import operator
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,10 +47,11 @@ from pathlib import Path
 import numpy as np
 
 from labcal import features as feature_lib
+from labcal.compensator import kernel as kernel_lib
 from labcal.compensator import solve as solver
 from labcal.compensator.validity import ValidityRegion
 from labcal.kinematics import metric, se3
-from labcal.kinematics.poe import LocalPOEModel, runtime_walk_pair
+from labcal.kinematics.poe import LocalPOEModel
 from labcal.robots.joint_map import JointMap
 
 _FLOAT64 = np.dtype(np.float64)  # numpy's one float64 descriptor: an identity test is the cheapest dtype check
@@ -147,7 +147,6 @@ _ANTI9 = np.zeros((9, 4))  # R.ravel() @ _ANTI9 = (2 · unskew(R), trace(R))
 _ANTI9[7, 0], _ANTI9[5, 0], _ANTI9[2, 1], _ANTI9[6, 1], _ANTI9[3, 2], _ANTI9[1, 2] = 1, -1, 1, -1, 1, -1
 _ANTI9[0, 3] = _ANTI9[4, 3] = _ANTI9[8, 3] = 1.0
 _SMALL = 1e-2  # rad: below this the series are exact to rounding (as in kinematics.se3)
-_SIN_LARGE = 0.5  # sin θ from which _pose_error_one hands over to kinematics.se3 (θ > 30°: never a correction)
 
 
 def _exp_small(xi: np.ndarray) -> np.ndarray:
@@ -195,67 +194,6 @@ def _pose_log(T_target: np.ndarray, T: np.ndarray) -> np.ndarray:
     Rm, pm = T[:, :3, :3], T[:, :3, 3]
     dR = T_target[:, :3, :3] @ Rm.transpose(0, 2, 1)
     return _log_small(dR, T_target[:, :3, 3] - (dR @ pm[:, :, None])[:, :, 0])
-
-
-# One configuration's pose error, in Python floats: at one pose a dozen numpy calls cost far more than the arithmetic
-# (benchmarks/compensator_speed.py prints both); tested against se3.log_se3 in tests/test_compensator.py.
-def _pose_lists(Ad: np.ndarray) -> tuple[list, list]:
-    """(6, 6) adjoint [[R, p̂R], [0, R]] → (rows of R, p) as Python floats; p from p̂ = (p̂R) Rᵀ."""
-    (r00, r01, r02, a00, a01, a02), (r10, r11, r12, a10, a11, a12), (r20, r21, r22, a20, a21, a22) = Ad[:3].tolist()
-    p = [a20 * r10 + a21 * r11 + a22 * r12, a00 * r20 + a01 * r21 + a02 * r22, a10 * r00 + a11 * r01 + a12 * r02]
-    return [[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]], p
-
-
-def _pose_error_one(target: tuple[list, list], Ad: np.ndarray) -> np.ndarray:
-    """log(T_target · T⁻¹) for one pose T given by its adjoint (6, 6), as a (6,) twist, in Python floats: a dozen
-    numpy calls cost more than the math.
-
-    target: (rows of R, p) of T_target as from _pose_lists. Series as in _log_small for rotations below _SMALL
-    (the case in every Gauss-Newton step), the closed forms up to 30° (a damped step's candidates near a
-    singularity), else the batched code.
-    """
-    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = target[0]
-    tx, ty, tz = target[1]
-    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = (pose := _pose_lists(Ad))[0]
-    bx, by, bz = pose[1]
-    # dR = R_target R_Tᵀ and dp = p_target − dR p_T
-    r00, r01, r02 = (
-        a00 * b00 + a01 * b01 + a02 * b02,
-        a00 * b10 + a01 * b11 + a02 * b12,
-        a00 * b20 + a01 * b21 + a02 * b22,
-    )
-    r10, r11, r12 = (
-        a10 * b00 + a11 * b01 + a12 * b02,
-        a10 * b10 + a11 * b11 + a12 * b12,
-        a10 * b20 + a11 * b21 + a12 * b22,
-    )
-    r20, r21, r22 = (
-        a20 * b00 + a21 * b01 + a22 * b02,
-        a20 * b10 + a21 * b11 + a22 * b12,
-        a20 * b20 + a21 * b21 + a22 * b22,
-    )
-    px = tx - (r00 * bx + r01 * by + r02 * bz)
-    py = ty - (r10 * bx + r11 * by + r12 * bz)
-    pz = tz - (r20 * bx + r21 * by + r22 * bz)
-    ax, ay, az = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)  # sin θ times the rotation axis
-    s2 = ax * ax + ay * ay + az * az
-    cos_theta = 0.5 * (r00 + r11 + r22 - 1.0)
-    if not (s2 < _SIN_LARGE**2 and cos_theta > 0):  # towards θ = π the axis is lost in sin θ: the general logarithm
-        dR = np.array([[r00, r01, r02], [r10, r11, r12], [r20, r21, r22]])
-        return _log_small(dR[None], np.array([[px, py, pz]]))[0]
-    theta = math.atan2(math.sqrt(s2), cos_theta)
-    t2 = theta * theta
-    if s2 < (0.5 * _SMALL) ** 2:  # the series, exact to rounding here (as in _log_small)
-        a = 1 - t2 / 6 * (1 - t2 / 20 * (1 - t2 / 42))
-        d = 1 / 12 + t2 / 720 + t2 * t2 / 30240
-    else:  # a damped step's candidate far from the target: the closed forms, well conditioned at these angles
-        a = math.sin(theta) / theta
-        d = (1 - theta * math.sin(theta) / (2 * (1 - math.cos(theta)))) / t2
-    wx, wy, wz = ax / a, ay / a, az / a
-    # V⁻¹ p = p − ½ w × p + d w × (w × p)
-    cx, cy, cz = wy * pz - wz * py, wz * px - wx * pz, wx * py - wy * px
-    ccx, ccy, ccz = wy * cz - wz * cy, wz * cx - wx * cz, wx * cy - wy * cx
-    return np.array([px - 0.5 * cx + d * ccx, py - 0.5 * cy + d * ccy, pz - 0.5 * cz + d * ccz, wx, wy, wz])
 
 
 # ad(ξ) of a twist ξ = (v, ω), [[ω̂, v̂], [0, ω̂]], as a linear map: ξ @ _AD = ad(ξ).ravel()
@@ -441,25 +379,10 @@ class CalibratedRobot:
             "measure poses near it, or pass extrapolate=True to correct it anyway"
         )
 
-    def _valid_single(self, q, extrapolate: bool) -> bool:
-        """True for a finite float (n,) array inside the calibrated ranges (or extrapolate): nothing to report.
-        Anything else goes through _batch / _check_range, which name what is wrong."""
-        if not (type(q) is np.ndarray and q.dtype is _FLOAT64 and q.ndim == 1):
-            return False
-        values = q.tolist()
-        lo, hi = self._range_lists
-        if len(values) != len(lo) or not math.isfinite(sum(values)):
-            return False
-        if extrapolate:
-            return True
-        if not (all(map(operator.le, lo, values)) and all(map(operator.le, values, hi))):
-            return False
-        return self.validity is None or self.validity.contains(q)
-
     @functools.cached_property
-    def _range_lists(self) -> tuple[list, list]:
-        lo, hi = self._ranges
-        return lo.tolist(), hi.tolist()
+    def _kernel(self):
+        """The compiled single correction (:func:`labcal.compensator.kernel.build`), None for the numpy path."""
+        return kernel_lib.build(self)
 
     # the dataclass is frozen; cached_property writes __dict__ directly
     @functools.cached_property
@@ -479,19 +402,12 @@ class CalibratedRobot:
         return _feature_evaluator(tuple(self.network.features), self.model)
 
     @functools.cached_property
-    def _one_configuration_inputs(self):
-        """The network's input features at one configuration of a walk (:func:`labcal.features.one_configuration`;
-        a ValueError names an unknown feature)."""
-        return feature_lib.one_configuration(tuple(self.network.features), self.model.joint_types, self.model.limits)
-
-    @functools.cached_property
     def _linear_series(self):
         """δρ and its slope of a 6-joint z-revolute arm whose network is linear in one ``harmonics:H`` and
-        optionally ``gravity`` and ``q`` (the joint series and the hybrid's learned term): a function ``(q, cos q,
-        sin q (n,), link-frame adjoints (n+1, 6, 6)) → (δρ (6,), S (6, n))``, whose ``batch(q (k, n), link frames
-        (k, n+1, 4, 4)) → (δρ (k, 6), S (k, 6, n))`` gives the same terms for a batch; None for any other network.
-        The features are the registry's (:mod:`labcal.features`; the harmonics by its recurrence, at one
-        configuration from the walk's cos q and sin q), so δρ equals the network up to rounding. S is
+        optionally ``gravity`` and ``q`` (the joint series and the hybrid's learned term): a function ``(q (k, n),
+        link frames (k, n+1, 4, 4)) → (δρ (k, 6), S (k, 6, n))``; None for any other network. The features are the
+        registry's (:mod:`labcal.features`; the harmonics by :func:`~labcal.features.harmonics_of_joints`), so δρ
+        equals the network up to rounding. S is
         dδρ/dq without the gravity terms' part (gravity features turn slowly with q: their slope saved a tenth of a
         Gauss-Newton step per call and cost more, benchmarks/compensator_tail.py).
 
@@ -532,18 +448,7 @@ class CalibratedRobot:
         K = K.reshape(n * F, 6 + 6 * n)  # one product of the joints' feature rows side by side gives all
         K.setflags(write=False)
 
-        def series(q, cos_q, sin_q, adjoints) -> tuple[np.ndarray, np.ndarray]:
-            x = np.empty((n, F))
-            feature_lib.harmonics_by_recurrence(cos_q, sin_q, H, out=x[:, : 2 * H])
-            if gravity_of is not None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
-                x[:, 2 * H :] = gravity_of(q[None], adjoints[None]).reshape(n, 3)
-            out = x.reshape(-1).dot(K)
-            rho, slope = bias + out[:6], out[6:].reshape(n, 6).T
-            if linear is not None:
-                rho, slope = rho + q.dot(linear), slope + linear.T
-            return rho, slope
-
-        # The batch form multiplies only K's non-zero blocks, not the dense (k, n·F) @ (n·F, 6 + 6n) product: joint
+        # Only K's non-zero blocks are multiplied, not the dense (k, n·F) @ (n·F, 6 + 6n) product: joint
         # j's harmonics reach δρ and joint j's own slope column, nothing else, so per joint one (2H, 12) block (δρ's
         # columns, then the slope's) acts on its harmonics, and the gravity rows act on δρ alone. The harmonics come
         # as complex sin h q + i cos h q (features.harmonics_of_joints), so a block's sin and cos rows a, b become one
@@ -571,8 +476,7 @@ class CalibratedRobot:
                 rho, slope = rho + q @ linear, slope + linear.T
             return rho, slope
 
-        series.batch = batch
-        return series
+        return batch
 
     # -- the calibrated forward model ----------------------------------------------------------------------------
     def _evaluate(self, q2: np.ndarray, need_twists: bool = True):
@@ -641,15 +545,15 @@ class CalibratedRobot:
         r = log(T_target T_model⁻¹) − J_ρ δρ: zero exactly when exp(J_ρ δρ) T_model = T_target, and it needs no
         exponential of the network's correction. J is the model's joint twists, −dr/dq up to O(|r| + |dδρ/dq|), so
         Gauss-Newton gains a few digits per step; for the joint series (:attr:`_linear_series`) it is the Newton
-        Jacobian that the one-configuration form returns (see there), so one configuration and a batch take the
-        same steps (``jacobian=False``, a settled step that reuses the last J: its Newton terms are skipped and J is
-        None). For n < 6 (a least-squares problem) r is the exact log(T_target T_real⁻¹), whose minimiser is what
-        the length-scaled metric defines (the difference form has the same zero but not the same minimum).
+        Jacobian J + J dδρ/dq + the twists' turn under δρ + the log's first-order term (:func:`_bracket`)
+        (``jacobian=False``, a settled step that reuses the last J: its Newton terms are skipped and J is None).
+        For n < 6 (a least-squares problem) r is the exact log(T_target T_real⁻¹), whose minimiser is what the
+        length-scaled metric defines (the difference form has the same zero but not the same minimum).
         """
         series = None if self.network is None else self._linear_series
         if series is not None:
             frames, J = self.model.frames_and_twists(qc)
-            rho, slope = series.batch(qc, frames)
+            rho, slope = series(qc, frames)
             e = _pose_log(T_target, frames[:, -1])
             dy = J * rho[:, None, :]  # (k, 6, n): column j is δρ_j ξ_j
             if not jacobian:
@@ -703,16 +607,23 @@ class CalibratedRobot:
         that must bound its worst-case time lowers it (near-singular configurations then stop earlier, no worse
         than at q).
         """
+        if method == "newton" and type(q) is np.ndarray and q.dtype is _FLOAT64 and q.shape == (self.n,):
+            # one configuration (a control loop's call): the compiled kernel checks the ranges and the validity
+            # region itself and takes the definition's steps; None (no kernel, or q not finite / outside: the
+            # batched path below names what is wrong) falls through
+            kernel = self._kernel
+            if kernel is not None:
+                pose = None if tcp is None else _check_pose(tcp, "tcp")
+                out1 = kernel(q, extrapolate, iterations, tol, damped_iterations, pose)
+                if out1 is not None:
+                    return out1
         if method not in ("newton", "paper", "fixed-point"):
             raise ValueError(f"method must be 'newton', 'paper' or 'fixed-point', got {method!r}")
         if method != "newton" and (why := self.network_only_error(method)):
             raise ValueError(why)
-        if self._valid_single(q, extrapolate):
-            q2, single = q[None], True  # a control loop's call, checked in Python floats (no array round trips)
-        else:
-            q2, single = self._batch(q)
-            if not extrapolate:
-                self._check_range(q2)
+        q2, single = self._batch(q)
+        if not extrapolate:
+            self._check_range(q2)
         if q2.shape[0] == 0:
             return q2.copy()  # nothing to correct: an empty (0, n) answer, like the input
         if method == "newton":
@@ -742,8 +653,9 @@ class CalibratedRobot:
         tcp: np.ndarray | None = None,
         bounded: np.ndarray | bool = False,
     ) -> np.ndarray:
-        """method="newton": the solver over :meth:`residual`, or over its one-configuration form for one command
-        of a 6-joint arm; with a tcp, residual and Jacobian are twists about the TCP's nominal position. bounded:
+        """method="newton": the solver over :meth:`residual` (the definition; :mod:`labcal.compensator.kernel`
+        takes the same steps compiled); with a tcp, residual and Jacobian are twists about the TCP's nominal position.
+        bounded:
         the rows (a (k,) mask, or True / False for all) whose correction is held within MAX_CORRECTION."""
         if not isinstance(bounded, bool):
             if bounded.all() or not bounded.any():
@@ -753,18 +665,13 @@ class CalibratedRobot:
                 for rows, bound in ((bounded, True), (~bounded, False)):
                     out[rows] = self._newton(q2[rows], iterations, tol, damped_iterations, tcp, bound)
                 return out
-        if q2.shape[0] == 1 and self.n == 6:
-            residual = self._one_configuration_residual(q2[0])
-            if tcp is not None:
-                residual = _about_point(residual, (self.nominal.fk(q2) @ tcp)[:, :3, 3])
-        else:
-            T_target = self.nominal.fk(q2)
+        T_target = self.nominal.fk(q2)
 
-            def residual(qc: np.ndarray, rows: np.ndarray, jacobian: bool = True):
-                return self.residual(qc, T_target[rows], jacobian)
+        def residual(qc: np.ndarray, rows: np.ndarray, jacobian: bool = True):
+            return self.residual(qc, T_target[rows], jacobian)
 
-            if tcp is not None:
-                residual = _about_point(residual, (T_target @ tcp)[:, :3, 3])
+        if tcp is not None:
+            residual = _about_point(residual, (T_target @ tcp)[:, :3, 3])
         weights, budget = self._twist_weights, damped_iterations
         # Inside the validity region a correction is bounded as the URScript bounds it (issue 27): there the data
         # speak, and beyond 0.1 rad only an ill-conditioned configuration amplifying the model's noise asks for
@@ -790,39 +697,6 @@ class CalibratedRobot:
             if done:
                 break
         return out
-
-    def _one_configuration_residual(self, q: np.ndarray):
-        """:meth:`residual` for the solver at one configuration of a 6-joint arm (the control-loop call), equal to
-        it up to rounding: the chain is walked in the adjoint representation (:meth:`LocalPOEModel.runtime_walk`:
-        frames and joint twists from one scan) and the pose error is taken in Python floats (:func:`_pose_error_one`),
-        because at one configuration numpy's per-call cost, not the arithmetic, is the price.
-        """
-        nominal_adjoints, first_walk = runtime_walk_pair(self.nominal, self.model, q)
-        target = _pose_lists(nominal_adjoints[-1])
-        walk, network = self.model.runtime_walk, self.network
-        series = None if network is None else self._linear_series
-        # the series has its own features
-        inputs = None if network is None or series is not None else self._one_configuration_inputs
-        pending = [first_walk]  # the solver's first evaluation is at q itself: that walk is done already
-
-        def residual(qc: np.ndarray, rows: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-            adjoints, J, cos_q, sin_q = pending.pop() if pending else walk(qc[0])
-            e = _pose_error_one(target, adjoints[-1])
-            if network is None:
-                return e[None], J[None]
-            if series is None:  # the adjoints' rotation blocks are the link frames' (gravity reads only those)
-                assert inputs is not None  # set whenever the network has no series
-                rho = network.forward_features(inputs(qc[0], cos_q, sin_q, adjoints))
-                return (e - J.dot(rho))[None], J[None]
-            rho, slope = series(qc[0], cos_q, sin_q, adjoints)
-            if not jacobian:
-                return (e - J.dot(rho))[None], None
-            dy = J * rho  # (6, n): column j is δρ_j ξ_j
-            # dr/dq = −(J + J dδρ/dq + the twists' turn under δρ + the log's first-order term) up to O(|r|, |e|²)
-            # (and gravity's slope): close to Newton's step, where −J alone converges at the rate |dδρ/dq| + |e|
-            return (e - dy.sum(axis=1))[None], (J + J.dot(slope) + _bracket(J, dy, e))[None]
-
-        return residual
 
     def network_only_error(self, method: str = "paper") -> str | None:
         """Why ``method`` ("paper" / "fixed-point": q − δρ_a, the network alone) cannot correct this robot, or None.

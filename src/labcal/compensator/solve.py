@@ -30,7 +30,8 @@ once, given a function that returns the residual r (m, 6) and the joint twists J
   part of such an answer raises its pose error), and the pose is not reached exactly anyway.
 
 Both modes are one loop each over the same residual function, so a single configuration (k = 1) takes exactly the
-path a batch takes; only the residual function may be specialised for it (:mod:`labcal.compensator.model`).
+path a batch takes. This is the definition: :mod:`labcal.compensator.kernel` takes the same steps for one
+configuration in compiled code (tested against this module with a batch of one).
 
 Example (six "joints" whose twists are the unit twists, so r = target − q)::
 
@@ -166,9 +167,9 @@ def solve(
     max_correction: a bound on ``max |q − q0|`` (e.g. :data:`MAX_CORRECTION`): a Gauss-Newton answer beyond it is
     solved again in the damped mode, whose steps stay within it (None: no bound).
     """
-    k, n = q0.shape
+    n = q0.shape[1]
     w = _ONES6 if weights is None else np.asarray(weights, dtype=float)
-    rows = _OneRow(q0, tol) if k == 1 else _Rows(q0, tol)
+    rows = _Rows(q0, tol)
     # A step with an older J still heads for r = 0; a least-squares step's zero moves with J, and so does a
     # redundant arm's least total change (its self-motion is J's null space at the answer): n = 6 only
     reuse = n == 6
@@ -179,13 +180,13 @@ def solve(
             r, J = residual(q, active, fresh)
             J = rows.jacobians(J if fresh else None)  # the last one kept once settled, even if the residual has one
             if i == 0:  # every row's, at q0: where a failed row's damped mode starts (_Rows writes into its J later)
-                at_q0 = r, (J if k == 1 else J.copy())
+                at_q0 = r, J.copy()
             if not rows.advance(rows.step(r, J, w if n < 6 else None)):
                 break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
         out, failed = rows.out, rows.failed()
         budget = DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
-        if max_correction is not None and not (k == 1 and failed.size == 0 and _within(out[0], q0[0], max_correction)):
+        if max_correction is not None:
             far = np.setdiff1d(np.flatnonzero(~(np.abs(out - q0).max(axis=1) <= max_correction)), failed)
             if far.size:
                 # A Gauss-Newton answer beyond the box: the damped mode starts from it clipped into the box (the
@@ -208,11 +209,6 @@ def solve(
             start = (at_q0[0][failed], at_q0[1][failed])
             out[failed] = _damped(residual, q0[failed], failed, w, budget, tol, start, max_correction)
     return out
-
-
-def _within(q: np.ndarray, q0: np.ndarray, bound: float) -> bool:
-    """max |q − q0| ≤ bound for one row, in Python floats (a control loop's call)."""
-    return max(map(abs, map(float.__sub__, q.tolist(), q0.tolist()))) <= bound
 
 
 class _Rows:
@@ -281,60 +277,10 @@ class _Rows:
         return np.flatnonzero(self.bad)
 
 
-class _OneRow:
-    """:class:`_Rows` for one configuration (a control loop's call): the same rule, :func:`verdict` itself, on
-    Python floats, because at one row numpy's per-call cost is the price of every bookkeeping step."""
-
-    _ROWS = np.zeros(1, dtype=int)
-
-    def __init__(self, q0: np.ndarray, tol: float) -> None:
-        self.out, self.tol, self.q0 = q0.copy(), tol, q0
-        self.prev: float | None = None
-        self.J: np.ndarray | None = None
-        self.J_inv: np.ndarray | None = None  # of the kept J when it is square, once a step needed it
-        self.bad = False
-
-    def active(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.out, self._ROWS
-
-    def settled(self) -> bool:
-        return self.prev is not None and self.prev < REUSE_BELOW
-
-    def jacobians(self, new: np.ndarray | None) -> np.ndarray:
-        if new is not None:
-            self.J, self.J_inv = new, None
-        assert self.J is not None  # the first call (at q0) always brings new Jacobians
-        return self.J
-
-    def step(self, r: np.ndarray, J: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
-        """:func:`gauss_newton_step` with the kept J; a square one is inverted instead, so that the steps which
-        reuse it cost a product: numpy's wrapper around one 6×6 LAPACK call, not the maths, is a solve's price."""
-        if weights is not None or J.shape[1] != J.shape[2]:
-            return gauss_newton_step(r, J, weights, self.out - self.q0 if J.shape[2] > 6 else None)
-        if self.J_inv is None:
-            try:
-                self.J_inv = np.linalg.inv(J[0])
-            except np.linalg.LinAlgError:
-                return np.full(r.shape, np.nan)
-        return self.J_inv.dot(r[0])[None]
-
-    def advance(self, step: np.ndarray) -> bool:
-        values = step[0].tolist()
-        size = max(map(abs, values)) if math.isfinite(sum(values)) else math.nan  # a singular J: a NaN step
-        self.bad, done = verdict(size, self.prev, self.tol)
-        if self.bad:
-            return False
-        self.out += step
-        self.prev = size
-        return not done
-
-    def failed(self) -> np.ndarray:
-        return self._ROWS if self.bad else self._ROWS[:0]
-
-
 def verdict(size: float, prev: float | None, tol: float) -> tuple[bool, bool]:
     """The Gauss-Newton rule for one row: (failed, converged) after a step of max-norm ``size`` that followed one of
-    max-norm ``prev`` (None: the first step). See the module docstring."""
+    max-norm ``prev`` (None: the first step). See the module docstring; :func:`_verdicts` applies it to a batch
+    (and the URScript exporter and :mod:`labcal.compensator._jit` write it in their languages)."""
     if prev is None:  # no previous step: ρ = 1/2, so the estimated distance is the step itself
         return not size <= GN_MAX_STEP, size < tol
     if size < NOISE_FLOOR:
@@ -351,14 +297,6 @@ def _verdicts(size: np.ndarray, prev: np.ndarray | None, tol: float) -> tuple[np
     floor = size < NOISE_FLOOR
     bad = ~(size <= np.minimum(GN_MAX_STEP, 0.5 * prev)) & ~floor
     return bad, (size * ratio / (1 - ratio) < tol) | (size < 1e-3 * tol) | floor
-
-
-def lambda_after(kept: bool, gain: float, lam: float, grow: float) -> tuple[float, float]:
-    """Nielsen's damping rule for one row: (λ, its growth factor) after a kept step of gain ratio ``gain`` (actual
-    over predicted fall of the cost) or after a refused one."""
-    if kept:
-        return max(lam * max(1 / 3, 1 - (2 * gain - 1) ** 3), LAMBDA_MIN), 2.0
-    return lam * grow, 2 * grow
 
 
 def _damped(
@@ -381,8 +319,6 @@ def _damped(
     ``|q − q0| ≤ bound`` (None: no bound). q_init: where the steps start (within the bound; default q0), with
     ``start`` evaluated there.
     """
-    if len(q0) == 1:
-        return _damped_one(residual, q0, rows, w, budget, tol, start, bound, q_init)
     box = math.inf if bound is None else bound
     out = (q0 if q_init is None else q_init).copy()
     r, J = residual(out, rows) if start is None else start
@@ -417,42 +353,3 @@ def _damped(
         if not going.any():
             break
     return out
-
-
-def _damped_one(
-    residual: Residual, q0, rows, w: np.ndarray, budget: int, tol: float, start=None, bound=None, q_init=None
-):
-    """:func:`_damped` for one row (a control loop's call): the same steps and stopping rule, with the bookkeeping
-    in Python floats and the 2-D solve, because at one row numpy's per-call cost is the price of every step."""
-    n = q0.shape[1]
-    out = (q0 if q_init is None else q_init).copy()
-    r, J = residual(out, rows) if start is None else start
-    assert J is not None  # called with jacobian=True (Residual's contract)
-    w_col = w[:, None]
-    err, jac = r[0] * w, J[0] * w_col
-    cost, lam, grow = float(err @ err), LAMBDA_START, 2.0
-    history = [cost]  # the best cost after each step
-    box = None if bound is None else (q0[0] - bound, q0[0] + bound)
-    for i in range(1, budget + 1):
-        step = damped_step(err[None], jac[None], lam)[0]
-        if box is not None:
-            step = np.clip(step, box[0] - out[0], box[1] - out[0])
-        size = max(map(abs, step.tolist()))
-        model = err - jac @ step
-        predicted = cost - float(model @ model)
-        cand = out + step
-        r, J = residual(cand, rows)
-        assert J is not None  # called with jacobian=True (Residual's contract)
-        err_c = r[0] * w
-        cost_c = float(err_c @ err_c)
-        kept = cost_c <= cost
-        gain = (cost - cost_c) / predicted if predicted > 0 else 0.0
-        if kept:
-            out, err, jac, cost = cand, err_c, J[0] * w_col, cost_c
-        lam, grow = lambda_after(kept, gain, lam, grow)
-        history.append(cost)
-        if size < tol or lam > LAMBDA_GIVE_UP:
-            break
-        if 2 * i >= budget and cost > STALL_FALL * history[max(i - STALL_WINDOW, 0)]:
-            break
-    return out.reshape(1, n)

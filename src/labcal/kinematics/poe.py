@@ -14,9 +14,10 @@ because ``benchmarks/speed.py`` shows what it earns against the definition, each
 
 - ``_walk``: a batch, batch axis last (whole-array multiply-adds: throughput), below ``_SMALL_BATCH``
   configurations handing over to
-- ``_walk_small``: a few configurations, one 4×4 matmul per joint (few numpy calls);
-- :meth:`LocalPOEModel.runtime_walk`: one configuration in the adjoint representation, with a scan
-  (``_chain_one``): what a compensator's solver step needs, from one walk.
+- ``_walk_small``: a few configurations, one 4×4 matmul per joint (few numpy calls).
+
+A compensator's single correction walks the chain in compiled code (:mod:`labcal.compensator._jit`), tested against
+these through the compensator's batched definition.
 
 Fits have always run on these kernels, so their rounding is what the fits' bit-for-bit reproducibility rests on.
 
@@ -33,7 +34,6 @@ Worked example (a planar 2R arm, 1 m links)::
 from __future__ import annotations
 
 import dataclasses
-import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -113,42 +113,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-def _cos_sin_one(q1: np.ndarray) -> np.ndarray:
-    """(n,) joint values → (n, 1, 3) rows (cos q_j, sin q_j, 1): the weights of the step parts (see _chain_one)."""
-    cs1 = _ones_rows(q1.shape[0]).copy()  # a copy costs a quarter of np.ones, which is Python code
-    np.cos(q1, out=cs1[:, 0, 0])
-    np.sin(q1, out=cs1[:, 0, 1])
-    return cs1
-
-
-@functools.lru_cache(maxsize=8)
-def _ones_rows(n: int) -> np.ndarray:
-    out = np.ones((n, 1, 3))
-    out.setflags(write=False)
-    return out
-
-
-def _chain_one(first: np.ndarray, cs1: np.ndarray, parts: np.ndarray) -> np.ndarray:
-    """Link frames (or their adjoints) of a z-revolute chain at one configuration: (n+1, d, d), or (n+1, m, d, d)
-    for m chains side by side.
-
-    first: (d, d) or (m, d, d) base frames A_1(0) (or adjoints); cs1: (n, 1, 3) from _cos_sin_one; parts:
-    (n, 3, m·d²) step parts,
-    so that ``cs1 @ parts`` is every step ``Rz(q_j) · A_{j+1}(0)`` at once. The running products come from a
-    Hillis-Steele scan: ⌈log2(n+1)⌉ stacked matmuls instead of n single ones (3 instead of 6 for a 6-axis arm),
-    associated differently from a left-to-right walk, which changes them only by rounding.
-    """
-    n = cs1.shape[0]
-    X = np.empty((n + 1, *first.shape))
-    np.matmul(cs1, parts, out=X[1:].reshape(n, 1, -1))
-    X[0] = first
-    d = 1
-    while d <= n:
-        X[d:] = X[:-d] @ X[d:]
-        d *= 2
-    return X
-
-
 def _readonly(a: np.ndarray) -> np.ndarray:
     a = np.array(a, dtype=float)
     a.setflags(write=False)
@@ -171,13 +135,11 @@ class LocalPOEModel:
     limits: np.ndarray
     name: str = ""
     joint_names: tuple[str, ...] = field(default=())
-    # Derived in __post_init__ (not arguments): the kernels' dispatch and, for all-z-revolute chains only, the
-    # adjoint chain's parts. Declared so that they are typed; excluded from repr and from replace().
+    # Derived in __post_init__ (not arguments): the kernels' dispatch. Declared so that they are typed; excluded
+    # from repr and from replace().
     _revolute_mask: np.ndarray = field(init=False, repr=False)
     _z_joint: tuple[bool, ...] = field(init=False, repr=False)
     _all_revolute_z: bool = field(init=False, repr=False)
-    _adjoint_parts: np.ndarray = field(init=False, repr=False)
-    _adjoint_base: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         n = len(self.joint_types)
@@ -214,17 +176,6 @@ class LocalPOEModel:
         )
         all_revolute_z = all(self._z_joint) and bool(self._revolute_mask.all())
         object.__setattr__(self, "_all_revolute_z", all_revolute_z)
-        if all_revolute_z:
-            # Every step of runtime_walk's adjoint chain is linear in (cos q, sin q, 1):
-            # Ad(Rz(q) A_{j+1}(0)) = (cos q · D_c + sin q · D_s + D_1) Ad(A_{j+1}(0)), stored flat as (n, 3, 36).
-            D = np.zeros((3, 6, 6))
-            for o in (0, 3):
-                D[0, o, o] = D[0, o + 1, o + 1] = 1.0
-                D[1, o, o + 1], D[1, o + 1, o] = -1.0, 1.0
-                D[2, o + 2, o + 2] = 1.0
-            ad_parts = D[None] @ se3.adjoint(frames[1:])[:, None]  # (n, 3, 6, 6)
-            object.__setattr__(self, "_adjoint_parts", _readonly(ad_parts.reshape(n, 3, 36)))
-            object.__setattr__(self, "_adjoint_base", _readonly(se3.adjoint(frames[0])))
 
     @classmethod
     def from_frames(
@@ -356,23 +307,6 @@ class LocalPOEModel:
                 G = se3.exp_se3(self.twists[j] * qj[:, None]) @ F
             T = frames[:, j + 1] = T @ G
         return frames
-
-    def runtime_walk(self, q1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Everything a runtime's inner loop needs at one configuration, from one walk: the adjoints Ad(K_j) of the
-        link frames (n+1, 6, 6) (``se3.adjoint(link_frames(q))``; the tool pose is ``se3.pose_from_adjoint`` of the
-        last), the joint twists (6, n), cos q (n,) and sin q (n,).
-
-        The chain is walked in the adjoint representation because a joint twist is ``Ad(K_j) ξ_j``: for z-axis
-        revolute joints the twists are the last columns of the products, free, where the 4×4 walk needs a cross
-        product per joint; at one configuration numpy's per-call cost, not the flops, is the price. q1 must be a
-        float (n,) array: it is not validated (the runtime checked the command it iterates from).
-        """
-        if not self._all_revolute_z:
-            frames = self._walk_small(q1[None])[0]
-            return se3.adjoint(frames), self.twists_from_frames(frames), np.cos(q1), np.sin(q1)
-        cs1 = _cos_sin_one(q1)
-        adjoints = _chain_one(self._adjoint_base, cs1, self._adjoint_parts)
-        return adjoints, adjoints[: self.n, :, 5].T, cs1[:, 0, 0], cs1[:, 0, 1]
 
     @staticmethod
     def _to_matrices(top: np.ndarray) -> np.ndarray:
@@ -593,24 +527,3 @@ class LocalPOEModel:
         """(k,) bool: every joint inside [lo + margin, hi − margin]."""
         q2, _ = self._as_batch(q)
         return np.all((q2 >= self.limits[:, 0] + margin) & (q2 <= self.limits[:, 1] - margin), axis=1)
-
-
-def runtime_walk_pair(first: LocalPOEModel, second: LocalPOEModel, q1: np.ndarray):
-    """At one configuration: the adjoints (n+1, 6, 6) of ``first``'s link frames and ``second.runtime_walk(q1)``,
-    from one stacked scan when both are z-revolute chains of the same length (a compensator's nominal target and
-    calibrated model: the two walks cost about one), else from two walks. q1: a float (n,) array, not validated.
-    """
-    if not (first._all_revolute_z and second._all_revolute_z and first.n == second.n):
-        return first.runtime_walk(q1)[0], second.runtime_walk(q1)
-    base, parts = _stacked_adjoint_parts(first, second)
-    cs1 = _cos_sin_one(q1)
-    X = _chain_one(base, cs1, parts)  # (n+1, 2, 6, 6)
-    adjoints = X[:, 1]
-    return X[:, 0], (adjoints, adjoints[: second.n, :, 5].T, cs1[:, 0, 0], cs1[:, 0, 1])
-
-
-@functools.lru_cache(maxsize=16)
-def _stacked_adjoint_parts(first: LocalPOEModel, second: LocalPOEModel) -> tuple[np.ndarray, np.ndarray]:
-    """(2, 6, 6) base adjoints and (n, 3, 72) step parts of two chains side by side (models hash by identity)."""
-    base = np.stack([first._adjoint_base, second._adjoint_base])
-    return _readonly(base), _readonly(np.concatenate([first._adjoint_parts, second._adjoint_parts], axis=2))
