@@ -126,35 +126,16 @@ def test_module_imports_numpy_only():
 
 
 @pytest.mark.parametrize("order", [1, 2, 32, 128])
-def test_the_one_configuration_recurrence_is_the_registry_harmonics(order):
+def test_the_batch_recurrence_is_the_registry_harmonics_joint_major(order):
     rng = np.random.default_rng(order)
-    for theta in (rng.uniform(-np.pi, np.pi, 6), np.array([0.0, np.pi / 2, -np.pi, 1e-9, 3.0, -2.9])):
-        expected = features.harmonics(theta[None], order).reshape(len(theta), 2 * order)
-        got = features.harmonics_by_recurrence(np.cos(theta), np.sin(theta), order)
-        # both round about linearly in h: a running product of unit complex numbers, and sin of h θ (|θ| ≤ π)
-        np.testing.assert_allclose(got, expected, rtol=0, atol=order * np.pi * 2.3e-16 + 1e-15)
-        buffer = np.full((len(theta), 2 * order + 3), 7.0)  # writing into a strided block leaves the rest alone
-        features.harmonics_by_recurrence(np.cos(theta), np.sin(theta), order, out=buffer[:, : 2 * order])
-        np.testing.assert_array_equal(buffer[:, : 2 * order], got)
-        assert (buffer[:, 2 * order :] == 7.0).all()
-    batch = rng.uniform(-np.pi, np.pi, (5, 6))  # leading batch axes: each row is its own one-configuration call
-    stacked = features.harmonics_by_recurrence(np.cos(batch), np.sin(batch), order)
-    for row, theta in zip(stacked, batch, strict=True):
-        np.testing.assert_array_equal(row, features.harmonics_by_recurrence(np.cos(theta), np.sin(theta), order))
-
-
-@pytest.mark.parametrize("order", [1, 2, 32])
-def test_the_batch_recurrence_is_the_one_configuration_recurrence_joint_major(order):
-    theta = np.random.default_rng(order).uniform(-np.pi, np.pi, (7, 6))  # (k, n)
+    edges = np.array([[0.0, np.pi / 2, -np.pi, 1e-9, 3.0, -2.9]])
+    theta = np.concatenate([rng.uniform(-np.pi, np.pi, (7, 6)), edges])  # (k, n)
     x = features.harmonics_of_joints(np.cos(theta.T), np.sin(theta.T), order)  # (n, order, k) sin + i cos
-    assert x.shape == (6, order, 7)
-    layout = np.stack([x.real, x.imag], axis=2).reshape(6, 2 * order, 7).transpose(2, 0, 1)  # (k, n, 2·order)
-    # the same running product (numpy's vectorised complex product and its accumulate may round differently), and
-    # both round about linearly in h, as the registry's sin h θ does
+    assert x.shape == (6, order, 8)
+    layout = np.stack([x.real, x.imag], axis=2).reshape(6, 2 * order, 8).transpose(2, 0, 1)  # (k, n, 2·order)
+    # a running product of unit complex numbers rounds about linearly in h, as the registry's sin h θ (|θ| ≤ π) does
     tol = order * np.pi * 2.3e-16 + 1e-15
-    one_at_a_time = features.harmonics_by_recurrence(np.cos(theta), np.sin(theta), order)
-    np.testing.assert_allclose(layout, one_at_a_time, rtol=0, atol=tol)
-    np.testing.assert_allclose(layout.reshape(7, -1), features.harmonics(theta, order), rtol=0, atol=tol)
+    np.testing.assert_allclose(layout.reshape(8, -1), features.harmonics(theta, order), rtol=0, atol=tol)
 
 
 def test_a_kind_without_a_computation_fails_loudly_instead_of_computing_another(monkeypatch):

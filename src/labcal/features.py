@@ -248,39 +248,14 @@ def _harmonics_of_angles(theta: np.ndarray, order: int) -> np.ndarray:
     return out.reshape(theta.shape[0], -1)
 
 
-def harmonics_by_recurrence(cos_theta: np.ndarray, sin_theta: np.ndarray, order: int, out=None) -> np.ndarray:
-    """:func:`harmonics` of one configuration from cos θ and sin θ (n,) → (n, 2·order): row j is joint j's block
-    of the layout above (sin h θ_j, cos h θ_j for h = 1 … order), equal to it within a few ulps per order. Leading
-    batch axes pass through: (k, n) → (k, n, 2·order).
-
-    The running product ``i e^{−i h θ} = i e^{−i (h−1) θ} · e^{−iθ}``, whose real and imaginary parts are
-    sin h θ and cos h θ, replaces 2·n·order sines and cosines by one complex product per column: the runtime's
-    form at one configuration, where a chain walk already has cos θ and sin θ. ``out``: an (n, 2·order) float
-    array (rows may be strided, the columns contiguous) to write into.
-
-    Example::
-
-        >>> theta = np.array([0.3, -1.2])
-        >>> x = harmonics_by_recurrence(np.cos(theta), np.sin(theta), 3)
-        >>> bool(np.allclose(x.reshape(1, -1), harmonics(theta[None], 3), rtol=0, atol=1e-15))
-        True
-    """
-    x = np.empty((*cos_theta.shape, 2 * order)) if out is None else out
-    x[..., 0], x[..., 1] = sin_theta, cos_theta  # i e^{−iθ} = sin θ + i cos θ
-    x[..., 2::2], x[..., 3::2] = cos_theta[..., None], -sin_theta[..., None]  # the factor e^{−iθ}
-    powers = x.view(complex)
-    np.multiply.accumulate(powers, axis=-1, out=powers)
-    return x
-
-
 def harmonics_of_joints(cos_theta: np.ndarray, sin_theta: np.ndarray, order: int) -> np.ndarray:
-    """:func:`harmonics_by_recurrence` for a batch, joint-major and complex: cos θ and sin θ (n, k) → (n, order, k)
+    """:func:`harmonics` by a running product, joint-major and complex: cos θ and sin θ (n, k) → (n, order, k)
     complex ``sin h θ_j + i cos h θ_j`` (= i e^{−i h θ_j}) at order h = 1 … order of joint j, configuration i.
 
     The running product by doubling: with orders 1 … m known, ``i e^{−i (h+m) θ} = i e^{−i h θ} · e^{−i m θ}`` gives
     orders m+1 … 2m in one vectorised product, and e^{−i 2m θ} = (e^{−i m θ})². Six products for 32 orders instead
-    of :func:`harmonics_by_recurrence`'s accumulate along the short last axis, which numpy runs one configuration at
-    a time (five times slower on a batch). Rounding grows with the order as in that recurrence (a few ulps). A
+    of 2·n·32 sines and cosines, or of an accumulate along the short order axis, which numpy runs one configuration
+    at a time (five times slower on a batch). Rounding grows about linearly with the order (a few ulps). A
     runtime with real weights a (sin) and b (cos) per order gets ``Σ_h a_h sin h θ + b_h cos h θ`` as the real part
     of ``(a − i b) @ out[j]``: one product per joint.
 
