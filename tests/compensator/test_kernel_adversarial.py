@@ -1,0 +1,234 @@
+"""The compiled single correction accepts, refuses and answers exactly as the batched definition, at the edges.
+
+What a single ``correct(q)`` returns goes to a robot, so a disagreement in what is accepted is a safety bug: the
+kernel must never answer where the definition (``correct(q[None])[0]``) raises, never exceed the 0.1 rad bound
+inside the validity region, and raise the definition's error. tests/compensator/test_kernel.py compares answers
+over the workspace; these cases sit where two implementations part: the validity region's boundary (its distances
+summed in other orders), extrapolated configurations beyond a learned fit's joint ranges but inside its region,
+the joint ranges' last ulp, option values of odd types, the order of the errors, files, and other processes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from test_kernel import _data, assert_agree, definition, make_robot
+
+from labcal.compensator import CalibratedRobot, Compensator
+from labcal.compensator import solve as solver
+
+pytest.importorskip("numba")
+
+BOUND = solver.MAX_CORRECTION + 1e-15  # the damped box's last rounding, as test_kernel's
+
+
+def outcome(call):
+    """What a call gives: its answer, or (error class, message)."""
+    try:
+        return call()
+    except Exception as err:  # any error: the single call must raise the definition's
+        return type(err), str(err)
+
+
+def assert_same_outcome(robot: CalibratedRobot, q, **kw) -> None:
+    """The single call refuses with the definition's error, or answers as it does (test_kernel.assert_agree)."""
+    single = outcome(lambda: robot.correct(q, **kw))
+    batch = outcome(lambda: definition(robot, np.asarray(q), **kw))
+    if isinstance(batch, tuple) or isinstance(single, tuple):
+        assert single == batch, f"at {np.asarray(q).tolist()} {kw}"
+    else:
+        assert_agree(robot, q, **kw)
+
+
+def learned_fit(kind: str = "series", region: bool = True) -> CalibratedRobot:
+    """As a learned fit exports it: the joint ranges are its data's (calibration.hybrid._ranges), so the validity
+    region's balls around the edge configurations reach beyond them."""
+    robot = make_robot(kind, region=region)
+    data = _data(0)
+    return dataclasses.replace(robot, joint_ranges=np.stack([data.min(axis=0), data.max(axis=0)], axis=1))
+
+
+def boundary(robot: CalibratedRobot, seed: int, count: int, judge) -> np.ndarray:
+    """(2 count, n) pairs of configurations a ray apart by its last bisection step, on either side of the region's
+    boundary as ``judge(q) → inside`` sees it (rays from random centres in random directions)."""
+    region = robot.validity
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        c = region.centres[rng.integers(len(region.centres))]
+        u = rng.normal(size=robot.n)
+        u /= np.linalg.norm(u)
+        a, b = 0.0, 3 * region.radius
+        for _ in range(60):
+            m = 0.5 * (a + b)
+            a, b = (m, b) if judge((c + m * u) / region.weights) else (a, m)
+        out += [(c + a * u) / region.weights, (c + b * u) / region.weights]
+    return np.array(out)
+
+
+def test_the_region_boundary_is_refused_as_the_definition_refuses_it():
+    """ValidityRegion.distance (the refusal) sums |x|² − 2 x·c + |c|², the kernel |c − x|²: a ulp apart at the
+    boundary the kernel answered where the definition refused (94 of 600 boundary configurations)."""
+    robot = make_robot("local-poe")
+    region = robot.validity
+
+    def judge(q):
+        return region.distance(q[None])[0] <= region.radius
+
+    qs = boundary(robot, seed=1, count=150, judge=judge)
+    refused = 0
+    for q in qs:
+        single, batch = outcome(lambda: robot.correct(q)), outcome(lambda: definition(robot, q))  # noqa: B023
+        if isinstance(batch, tuple):
+            refused += 1
+            assert single == batch, f"the kernel answered at {q.tolist()}, where the definition says {batch}"
+        else:
+            assert not isinstance(single, tuple), single
+            np.testing.assert_allclose(single, batch, rtol=0, atol=1e-9)
+    assert refused >= 150  # every pair has a refused side (the bisection's outer end)
+
+
+def test_extrapolated_boundary_configurations_are_bounded_as_the_definition_bounds_them():
+    """With extrapolate=True the definition bounds a configuration by ValidityRegion.contains; near the wrist
+    singularity, where the unbounded answer exceeds 0.1 rad, the kernel's verdict must be the same at the
+    boundary's last ulp."""
+    robot = make_robot("local-poe")
+    region = robot.validity
+    rng = np.random.default_rng(5)
+    base = region.sample(40, rng)
+    base[:, 4] = 3e-4  # near q5 = 0: Gauss-Newton's answer lies far beyond the box
+    qs = []
+    for q in base:
+        u = np.r_[rng.normal(size=4), 0.0, rng.normal()]  # q5 kept
+        a, b = 0.0, 4.0
+        for _ in range(60):
+            m = 0.5 * (a + b)
+            a, b = (m, b) if region.contains(q + m * u / np.linalg.norm(u)) else (a, m)
+        qs += [q + a * u / np.linalg.norm(u), q + b * u / np.linalg.norm(u)]
+    for q in qs:
+        got = robot.correct(q, extrapolate=True)
+        if region.contains(q):
+            assert np.abs(got - q).max() <= BOUND, f"{np.abs(got - q).max()} rad inside the region at {q.tolist()}"
+        assert_agree(robot, q, extrapolate=True)
+
+
+def test_extrapolated_configurations_beyond_the_joint_ranges_inside_the_region_keep_the_bound():
+    """A learned fit's joint ranges are its data's; the region reaches beyond them. extrapolate=True there: the
+    definition bounds the correction (the region holds q); the kernel used to skip the region test outside the
+    ranges and returned up to 0.19 rad."""
+    robot = learned_fit()
+    lo, hi = robot._ranges
+    rng = np.random.default_rng(0)
+    qs = robot.validity.sample(3000, rng)
+    beyond = qs[((qs < lo) | (qs > hi)).any(axis=1)]
+    beyond = beyond[[robot.validity.contains(q) for q in beyond]]
+    beyond = beyond[np.argsort(np.abs(beyond[:, 4]))[:60]]  # nearest the wrist singularity: the largest answers
+    assert len(beyond) == 60
+    held = 0
+    for q in beyond:
+        got = robot.correct(q, extrapolate=True)
+        assert np.abs(got - q).max() <= BOUND, f"{np.abs(got - q).max()} rad inside the region at {q.tolist()}"
+        held += np.abs(robot._newton(q[None], 10, 1e-11, None)[0] - q).max() > solver.MAX_CORRECTION
+        assert_agree(robot, q, extrapolate=True)
+    assert held >= 5  # the bound was needed at some of them
+    # without extrapolate they are refused with the definition's range error
+    assert_same_outcome(robot, beyond[0])
+
+
+@pytest.mark.parametrize("region", [True, False])
+def test_the_joint_ranges_last_ulp(region):
+    """At the calibrated range's ends (and its 1e-12 margin) and one ulp beyond: refused or answered alike."""
+    robot = learned_fit(region=region)
+    ranges = robot.joint_ranges
+    lo, hi = robot._ranges
+    q0 = _data(3, 1)[0]
+    for j in range(robot.n):
+        for edge in (ranges[j, 0], ranges[j, 1], lo[j], hi[j]):
+            for value in (edge, np.nextafter(edge, -np.inf), np.nextafter(edge, np.inf)):
+                q = q0.copy()
+                q[j] = value
+                assert_same_outcome(robot, q)
+    for j in (0, 4):  # −0.0 (q5 = −0.0: exactly the wrist singularity)
+        q = q0.copy()
+        q[j] = -0.0
+        assert_same_outcome(robot, q, extrapolate=True)
+
+
+SINGULAR = np.array([0.2, -0.75, 0.76, -0.8, 1e-7, 0.2])  # q5 ≈ 0: the damped mode runs
+
+
+HYPOTHESIS = settings(max_examples=60, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+
+
+@pytest.mark.parametrize("kind", ["local-poe", "series-q", "network"])
+def test_random_configurations_over_and_beyond_the_ranges(kind):
+    """Property: anywhere (inside the data, beyond a learned fit's ranges, beyond ±2π, near a singularity), with
+    and without extrapolate, the single call and the definition agree on accept/refuse and the answer."""
+    robot = learned_fit(kind)
+    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
+    joint = st.floats(-1.0, 2.0, allow_nan=False)  # fraction of each joint's range: 0 … 1 inside
+    wide = st.floats(-10.0, 10.0, allow_nan=False, allow_subnormal=True)
+
+    @HYPOTHESIS
+    @given(
+        st.lists(joint, min_size=6, max_size=6),
+        st.sampled_from([None, 0, 4]),
+        wide,
+        st.booleans(),
+        st.sampled_from([None, 1e-3, 0.0]),
+    )
+    def check(fractions, which, value, extrapolate, wrist):
+        q = lo + (hi - lo) * np.array(fractions)
+        if which is not None:
+            q[which] = value  # far beyond the ranges (or a tiny value: hypothesis shrinks towards 0)
+        if wrist is not None:
+            q[4] = wrist
+        assert_same_outcome(robot, q, extrapolate=extrapolate)
+        if extrapolate and robot.validity.contains(q):
+            assert np.abs(robot.correct(q, extrapolate=True) - q).max() <= BOUND
+
+    check()
+
+
+@pytest.mark.parametrize("suffix", [".json", ".npz"])
+def test_a_loaded_compensator_answers_as_the_robot_it_was_saved_from(tmp_path, suffix):
+    robot = learned_fit("series")
+    path = robot.save(tmp_path / f"c{suffix}")
+    loaded = Compensator.load(path)
+    assert loaded.robot._kernel is not None
+    rng = np.random.default_rng(4)
+    for q in np.concatenate([robot.validity.sample(20, rng), SINGULAR[None]]):
+        for extrapolate in (False, True):
+            want = outcome(lambda: robot.correct(q, extrapolate=extrapolate))  # noqa: B023
+            got = outcome(lambda: loaded.correct(q, extrapolate=extrapolate))  # noqa: B023
+            if isinstance(want, tuple):
+                assert got == want
+            else:
+                np.testing.assert_array_equal(got, want)  # the same numbers: the same bits
+                assert_agree(loaded.robot, q, extrapolate=extrapolate)
+
+
+def test_another_process_with_the_cached_kernel_gives_the_same_bits():
+    """numba's on-disk cache (written by this process's compile, or an earlier one) is what a second process runs:
+    its answers are bit-identical to this one's."""
+    robot = make_robot("series")
+    qs = np.concatenate([robot.validity.sample(10, np.random.default_rng(6)), SINGULAR[None]])
+    here = np.array([robot.correct(q, extrapolate=True) for q in qs])
+    assert np.array_equal(here, np.array([robot.correct(q, extrapolate=True) for q in qs]))  # the same call twice
+    code = (
+        "import sys, numpy as np\n"
+        f"sys.path.insert(0, {str(__import__('pathlib').Path(__file__).parent)!r})\n"
+        "from test_kernel import make_robot\n"
+        "robot = make_robot('series')\n"
+        "qs = np.frombuffer(bytes.fromhex(sys.argv[1])).reshape(-1, 6)\n"
+        "print(np.array([robot.correct(q.copy(), extrapolate=True) for q in qs]).tobytes().hex())\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code, qs.tobytes().hex()], check=True, capture_output=True, text=True)
+    there = np.frombuffer(bytes.fromhex(run.stdout.strip())).reshape(here.shape)
+    np.testing.assert_array_equal(there, here)
