@@ -22,6 +22,7 @@ from test_kernel import _data, assert_agree, definition, make_robot
 
 from labcal.compensator import CalibratedRobot, Compensator
 from labcal.compensator import solve as solver
+from labcal.kinematics import se3
 
 pytest.importorskip("numba")
 
@@ -161,6 +162,63 @@ def test_the_joint_ranges_last_ulp(region):
 
 
 SINGULAR = np.array([0.2, -0.75, 0.76, -0.8, 1e-7, 0.2])  # q5 ≈ 0: the damped mode runs
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"damped_iterations": -1},  # the definition indexes an empty history (IndexError); compiled: out of bounds
+        {"damped_iterations": -5},
+        {"damped_iterations": 2**70},
+        {"damped_iterations": 2.7},
+        {"damped_iterations": "3"},
+        {"iterations": 2.5},
+        {"iterations": "3"},
+        {"iterations": np.float64(3.0)},
+        {"iterations": None},
+        {"iterations": 2**70},
+        {"iterations": np.int64(3)},
+        {"iterations": True},
+        {"iterations": -3},
+        {"tol": "1e-6"},
+        {"tol": None},
+        {"tol": np.float32(1e-6)},  # float32 arithmetic in the definition's 1e-3 · tol
+        {"tol": 0},
+        {"tol": -1.0},
+        {"tol": float("nan")},
+        {"tol": np.inf},
+        {"extrapolate": np.bool_(True)},
+        {"extrapolate": 1},
+        {"extrapolate": np.array([True, False])},
+        {"method": "paper"},
+        {"method": "Newton"},
+    ],
+    ids=repr,
+)
+def test_options_are_accepted_or_refused_as_the_definition_does(options):
+    robot = make_robot("series")
+    regular = robot.validity.sample(1, np.random.default_rng(2))[0]
+    for q in (SINGULAR, regular):
+        assert_same_outcome(robot, q, **({"extrapolate": True} | options))
+    assert_same_outcome(robot, np.r_[regular[:5], np.nan], **options)  # the definition's first error wins
+
+
+def test_a_bad_tcp_is_named_after_the_errors_the_definition_names_first():
+    robot = make_robot("local-poe")
+    inside = robot.validity.sample(1, np.random.default_rng(0))[0]
+    far = inside.copy()
+    far[0] += 2.0
+    not_rigid = np.eye(4)
+    not_rigid[0, 0] = 1.01
+    nan_pose = np.eye(4)
+    nan_pose[0, 3] = np.nan
+    for tcp in (not_rigid, nan_pose, np.eye(3), "tool"):
+        for q in (np.r_[inside[:5], np.nan], far, np.r_[inside[:5], 7.0], inside):
+            assert_same_outcome(robot, q, tcp=tcp)
+    far_tcp = se3.exp_se3(np.array([0.5, -0.3, 2.0, 0.3, -0.2, 0.1]))  # 2 m out: a long tool, still rigid
+    for tcp in (np.eye(4), far_tcp, far_tcp.tolist()):
+        for q in (inside, SINGULAR):
+            assert_same_outcome(robot, q, tcp=tcp, extrapolate=True)
 
 
 HYPOTHESIS = settings(max_examples=60, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])

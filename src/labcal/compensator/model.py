@@ -612,8 +612,14 @@ class CalibratedRobot:
             # region itself and takes the definition's steps; None (no kernel, or q not finite / outside: the
             # batched path below names what is wrong) falls through
             kernel = self._kernel
+            if kernel is not None and tcp is not None:
+                try:
+                    pose = _check_pose(tcp, "tcp")
+                except ValueError:  # the batched path raises it, after the errors it names first (q's)
+                    kernel = None
+            else:
+                pose = None
             if kernel is not None:
-                pose = None if tcp is None else _check_pose(tcp, "tcp")
                 out1 = kernel(q, extrapolate, iterations, tol, damped_iterations, pose)
                 if out1 is not None:
                     return out1
