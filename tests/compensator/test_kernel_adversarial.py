@@ -161,6 +161,29 @@ def test_the_joint_ranges_last_ulp(region):
         assert_same_outcome(robot, q, extrapolate=True)
 
 
+def test_configurations_of_other_kinds_get_the_definitions_answer():
+    """Only a plain native float64 (n,) array reaches the compiled entry point (which refuses another dtype with
+    numba's TypeError); every other kind of q is converted or refused by the batched path, or (strided, unaligned)
+    read as the same numbers."""
+    robot = make_robot("series")
+    q = robot.validity.sample(1, np.random.default_rng(8))[0]
+    want = robot.correct(q)
+    assert_agree(robot, q)
+    q32 = q.astype(np.float32)
+    unaligned = np.frombuffer(bytearray(q.nbytes + 1), dtype=float, offset=1, count=6)
+    unaligned[:] = q
+    strided = np.repeat(q, 2)[::2]
+    same = [list(q), tuple(q), q.astype(">f8"), unaligned, strided, np.ma.masked_array(q), q[::-1][::-1]]
+    for other in same:
+        np.testing.assert_allclose(robot.correct(other), want, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(robot.correct(q32), definition(robot, q32.astype(float)))
+    np.testing.assert_array_equal(robot.correct(q[None]), definition(robot, q)[None])
+    for wrong in (q[:5], np.r_[q, 0.0], q.astype(int) + 0j, q.astype(str), np.ma.masked_array(q, mask=q > 0)):
+        with pytest.raises(ValueError, match="q "):
+            robot.correct(wrong)
+    assert_same_outcome(robot, np.round(q).astype(int), extrapolate=True)
+
+
 SINGULAR = np.array([0.2, -0.75, 0.76, -0.8, 1e-7, 0.2])  # q5 ≈ 0: the damped mode runs
 
 
