@@ -96,8 +96,8 @@ def test_the_region_boundary_is_refused_as_the_definition_refuses_it():
 
 
 def test_extrapolated_boundary_configurations_are_bounded_as_the_definition_bounds_them():
-    """With extrapolate=True the definition bounds a configuration by ValidityRegion.contains; near the wrist
-    singularity, where the unbounded answer exceeds 0.1 rad, the kernel's verdict must be the same at the
+    """With extrapolate=True the definition bounds a configuration inside the region (ValidityRegion.inside); near
+    the wrist singularity, where the unbounded answer exceeds 0.1 rad, the kernel's verdict must be the same at the
     boundary's last ulp."""
     robot = make_robot("local-poe")
     region = robot.validity
@@ -110,13 +110,41 @@ def test_extrapolated_boundary_configurations_are_bounded_as_the_definition_boun
         a, b = 0.0, 4.0
         for _ in range(60):
             m = 0.5 * (a + b)
-            a, b = (m, b) if region.contains(q + m * u / np.linalg.norm(u)) else (a, m)
+            a, b = (m, b) if region.inside((q + m * u / np.linalg.norm(u))[None])[0] else (a, m)
         qs += [q + a * u / np.linalg.norm(u), q + b * u / np.linalg.norm(u)]
     for q in qs:
         got = robot.correct(q, extrapolate=True)
-        if region.contains(q):
+        if region.inside(q[None])[0]:
             assert np.abs(got - q).max() <= BOUND, f"{np.abs(got - q).max()} rad inside the region at {q.tolist()}"
         assert_agree(robot, q, extrapolate=True)
+
+
+def test_a_configuration_accepted_without_extrapolate_stays_bounded_with_it():
+    """The definition refused by ValidityRegion.distance but bounded extrapolated rows by .contains, which at the
+    boundary's last ulp disagree: a configuration correct(q) accepts as inside (bounded to 0.0998 rad) got 0.169
+    rad from correct(q, extrapolate=True), what Compensator.correct does for a robot with a joint map after its
+    own range check. Near the wrist singularity, bisected on the refusal's distance."""
+    robot = make_robot("local-poe")
+    region = robot.validity
+    rng = np.random.default_rng(5)
+    base = region.sample(300, rng)
+    base[:, 4] = 3e-4
+    parted = needed = 0
+    for q in base:
+        u = np.r_[rng.normal(size=4), 0.0, rng.normal()]  # q5 kept
+        u /= np.linalg.norm(u)
+        a, b = 0.0, 4.0
+        for _ in range(60):
+            m = 0.5 * (a + b)
+            a, b = (m, b) if region.distance((q + m * u)[None])[0] <= region.radius else (a, m)
+        inner = q + a * u  # accepted by correct(inner)
+        if region.contains(inner):
+            continue
+        parted += 1
+        needed += np.abs(robot._newton(inner[None], 10, 1e-11, None)[0] - inner).max() > solver.MAX_CORRECTION
+        for got in (robot.correct(inner[None], extrapolate=True)[0], robot.correct(inner, extrapolate=True)):
+            assert np.abs(got - inner).max() <= BOUND, f"{np.abs(got - inner).max()} rad at {inner.tolist()}"
+    assert parted >= 5 and needed >= 1  # the two tests parted, and the bound mattered at some
 
 
 def test_extrapolated_configurations_beyond_the_joint_ranges_inside_the_region_keep_the_bound():
@@ -128,7 +156,7 @@ def test_extrapolated_configurations_beyond_the_joint_ranges_inside_the_region_k
     rng = np.random.default_rng(0)
     qs = robot.validity.sample(3000, rng)
     beyond = qs[((qs < lo) | (qs > hi)).any(axis=1)]
-    beyond = beyond[[robot.validity.contains(q) for q in beyond]]
+    beyond = beyond[robot.validity.inside(beyond)]
     beyond = beyond[np.argsort(np.abs(beyond[:, 4]))[:60]]  # nearest the wrist singularity: the largest answers
     assert len(beyond) == 60
     held = 0
@@ -271,7 +299,7 @@ def test_random_configurations_over_and_beyond_the_ranges(kind):
         if wrist is not None:
             q[4] = wrist
         assert_same_outcome(robot, q, extrapolate=extrapolate)
-        if extrapolate and robot.validity.contains(q):
+        if extrapolate and robot.validity.inside(q[None])[0]:
             assert np.abs(robot.correct(q, extrapolate=True) - q).max() <= BOUND
 
     check()

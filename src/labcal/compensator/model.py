@@ -646,8 +646,8 @@ class CalibratedRobot:
             return False
         if not extrapolate:
             return True  # correct() refused every row outside the region
-        if q2.shape[0] == 1:
-            return self.validity.contains(q2[0])
+        # the refusal's own distances (_check_validity): a row correct() accepts without extrapolate is bounded with
+        # it too (ValidityRegion.contains, summed otherwise, parts from them at the boundary's last ulp)
         return self.validity.inside(q2)
 
     def _newton(
