@@ -9,8 +9,9 @@ batched numpy definition, which is what the tests compare it with (tests/compens
 - :func:`_log_pose`: ``log(T_target T⁻¹)``, series below 1e-2 rad as ``model._log_small``, closed forms above;
 - :func:`_residual`: ``CalibratedRobot.residual``: e (local POE), e − J δρ (a network), or for a linear series the
   Newton Jacobian ``J + J S + bracket`` (``model._bracket``); twists about the TCP when one is given;
-- :func:`correct_one`: the range and validity checks, Gauss-Newton with its verdicts and J reuse, the
-  ``max_correction`` box and the damped (Levenberg-Marquardt) fallback with Nielsen's rule and the stall stop.
+- :func:`correct_one`: the range and validity checks (the region's boundary, within rounding, left to the
+  definition), Gauss-Newton with its verdicts and J reuse, the ``max_correction`` box and the damped
+  (Levenberg-Marquardt) fallback with Nielsen's rule and the stall stop.
 
 The constants are solve.py's, passed in by the caller (one definition). No fastmath and no parallelism: the same
 input gives the same bits on every call.
@@ -442,27 +443,47 @@ def _damped(q0, q_init, r0, J0, bound, has_bound, w, budget, tol, consts, ctx):
 
 
 @_jit
-def _inside(q, ranges, centres, scale, radius, has_region):
-    """The calibrated joint ranges (ranges (2, n): lo, hi with CalibratedRobot._ranges' 1e-12 margin) and the
-    validity region's ball test (ValidityRegion.contains): (inside the ranges, inside the region)."""
-    n = q.shape[0]
-    for j in range(n):
+def _in_ranges(q, ranges):
+    """Whether q lies in the calibrated joint ranges (ranges (2, n): lo, hi with CalibratedRobot._ranges' 1e-12
+    margin): the definition's comparisons on the same numbers."""
+    for j in range(q.shape[0]):
         if not (ranges[0, j] <= q[j] <= ranges[1, j]):
-            return False, False
-    if not has_region:
-        return True, True
+            return False
+    return True
+
+
+# Relative width of the shell about the validity region's boundary where the kernel leaves the verdict to the
+# definition: ValidityRegion.distance sums |x|² − 2 x·c + |c|² (rounding error ≈ n ε (|x|² + |c|²), ε = 2.2e-16)
+# and ValidityRegion.contains |c − x|² (≈ n ε |c − x|²); 1e-12 is a hundredfold that for any arm.
+_REGION_SHELL = 1e-12
+
+
+@_jit
+def _in_region(q, centres, scale, radius):
+    """The validity region's ball test: (inside, sure). Inside when a centre is within the radius (the scaled
+    |c − x|² ≤ radius²). sure is False when q lies within rounding of the boundary, where the definition's own
+    distances (ValidityRegion.distance to refuse, .contains to bound), summed in other orders, may judge it the
+    other way: the caller then leaves the verdict to the definition."""
+    n = q.shape[0]
     x = np.empty(n)
+    xx = 0.0
     for j in range(n):
         x[j] = q[j] * scale[j]
+        xx += x[j] * x[j]
     r2 = radius * radius
-    for c in range(centres.shape[0]):  # any centre within the radius (min ≤ r², stopping at the first)
+    # near the boundary |c| ≤ |x| + radius, so |x|² + |c|² ≤ 3 (|x|² + radius²): one slack for every centre
+    slack = _REGION_SHELL * 3.0 * (xx + r2)
+    sure = True
+    for c in range(centres.shape[0]):  # any centre within the radius, stopping at the first surely within
         d2 = 0.0
         for j in range(n):
             d = centres[c, j] - x[j]
             d2 += d * d
-        if d2 <= r2:
+        if d2 <= r2 - slack:
             return True, True
-    return True, False
+        if d2 <= r2 + slack:  # not NaN-safe on purpose: an overflowed |x|² (inf slack) is never sure
+            sure = False
+    return False, sure
 
 
 @_jit
@@ -539,19 +560,30 @@ def correct_one(
     tcp, has_tcp, extrapolate, iterations, tol, budget, consts,
 ):  # fmt: skip
     """CalibratedRobot.correct(q0, method="newton") of one configuration into out (n,); returns DONE, or OUTSIDE
-    when q0 is not finite, outside the ranges or outside the validity region without ``extrapolate`` (the caller
-    then takes the batched path, which names what is wrong). consts: solve.py's (GN_MAX_STEP, REUSE_BELOW,
+    when q0 is not finite, outside the ranges or outside the validity region without ``extrapolate``, or within
+    rounding of the region's boundary (the caller then takes the batched path, which names what is wrong or, at
+    the boundary, decides). consts: solve.py's (GN_MAX_STEP, REUSE_BELOW,
     NOISE_FLOOR, DAMPED_MAX_STEP, LAMBDA_START, LAMBDA_MIN, LAMBDA_GIVE_UP, STALL_WINDOW, STALL_FALL,
     MAX_CORRECTION)."""
     n = q0.shape[0]
     for j in range(n):
         if not math.isfinite(q0[j]):
             return OUTSIDE
-    in_ranges, in_region = _inside(q0, ranges, centres, scale, radius, has_region)
-    if not extrapolate and not (in_ranges and in_region):
+    in_ranges = _in_ranges(q0, ranges)
+    if not (in_ranges or extrapolate):
+        return OUTSIDE
+    # The region decides both the refusal and, under extrapolate, the bound: outside the joint ranges too (the
+    # region's balls reach beyond a learned fit's ranges, which are its data's). Near its boundary the definition
+    # decides.
+    in_region = True
+    if has_region:
+        in_region, sure = _in_region(q0, centres, scale, radius)
+        if not sure:
+            return OUTSIDE
+    if not (extrapolate or in_region):
         return OUTSIDE
     # correct()'s bound: inside the validity region (every row without extrapolate, its own test with it)
-    bounded = has_region and (in_region if extrapolate else True)
+    bounded = has_region and in_region
     bound = consts[9]
     T = np.empty((n + 1, 4, 4))
     target = np.empty((4, 4))

@@ -8,7 +8,8 @@ whose correction it implements, a function ``(q (n,) float array, extrapolate, i
 tcp (4, 4) or None) → q_cmd (n,) or None`` that takes the same steps as the definition on compiled code
 (:mod:`labcal.compensator._jit`), tested against it to 1e-12 rad (tests/compensator/test_kernel.py). None means
 "take the batched path": q is not finite, or outside the calibrated ranges or validity region (the batched path
-then raises the error that names it).
+then raises the error that names it), or within rounding of the region's boundary, or an option is not a plain
+bool, int or float count the compiled code reads as the definition does (the batched path decides them).
 
 What it covers: arms of 6 or more joints that all turn about their local z axis (nominal and identified model),
 without a network (local POE) or with one on max(n, 6) outputs whose features are ``q``, ``sincos``, ``sincos2``,
@@ -63,6 +64,7 @@ _CONSTS = np.array(
     ]
 )  # fmt: skip
 _CONSTS.setflags(write=False)
+_MAX_COUNT = 2**31  # iteration counts the kernel takes (int64 in compiled code; a damped budget is allocated)
 
 
 def _feature_table(robot: CalibratedRobot) -> np.ndarray:
@@ -157,13 +159,26 @@ def build(robot: CalibratedRobot) -> Kernel | None:
     entry = run.overloads[tuple(jit.numba.typeof(a) for a in probe)].entry_point
 
     def kernel(q, extrapolate, iterations, tol, damped_iterations, tcp) -> np.ndarray | None:
+        # Options the compiled code would read otherwise than the definition does, or could not hold (a float or
+        # text iteration count, a tol in float32 arithmetic, a negative or int64-overflowing count), take the
+        # batched path, which answers or refuses them its own way: the kernel never answers where it raises.
+        if damped_iterations is None:
+            budget = solver.DAMPED_BUDGET
+        elif type(damped_iterations) is int and 0 <= damped_iterations <= _MAX_COUNT:
+            budget = damped_iterations
+        else:
+            return None
+        if not (
+            type(iterations) is int and -_MAX_COUNT <= iterations <= _MAX_COUNT
+            and isinstance(tol, float) and type(extrapolate) is bool
+        ):  # fmt: skip
+            return None
         out = np.empty(n)
-        budget = solver.DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
         if not q.flags.c_contiguous:
             q = np.ascontiguousarray(q)
         status = entry(
-            q, out, *static, no_tcp if tcp is None else tcp, tcp is not None, bool(extrapolate), int(iterations),
-            float(tol), budget, _CONSTS,
+            q, out, *static, no_tcp if tcp is None else tcp, tcp is not None, extrapolate, iterations, tol, budget,
+            _CONSTS,
         )  # fmt: skip
         return out if status == 0 else None
 

@@ -612,8 +612,14 @@ class CalibratedRobot:
             # region itself and takes the definition's steps; None (no kernel, or q not finite / outside: the
             # batched path below names what is wrong) falls through
             kernel = self._kernel
+            if kernel is not None and tcp is not None:
+                try:
+                    pose = _check_pose(tcp, "tcp")
+                except ValueError:  # the batched path raises it, after the errors it names first (q's)
+                    kernel = None
+            else:
+                pose = None
             if kernel is not None:
-                pose = None if tcp is None else _check_pose(tcp, "tcp")
                 out1 = kernel(q, extrapolate, iterations, tol, damped_iterations, pose)
                 if out1 is not None:
                     return out1
@@ -640,8 +646,8 @@ class CalibratedRobot:
             return False
         if not extrapolate:
             return True  # correct() refused every row outside the region
-        if q2.shape[0] == 1:
-            return self.validity.contains(q2[0])
+        # the refusal's own distances (_check_validity): a row correct() accepts without extrapolate is bounded with
+        # it too (ValidityRegion.contains, summed otherwise, parts from them at the boundary's last ulp)
         return self.validity.inside(q2)
 
     def _newton(
