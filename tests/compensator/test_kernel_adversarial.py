@@ -341,3 +341,22 @@ def test_another_process_with_the_cached_kernel_gives_the_same_bits():
     run = subprocess.run([sys.executable, "-c", code, qs.tobytes().hex()], check=True, capture_output=True, text=True)
     there = np.frombuffer(bytes.fromhex(run.stdout.strip())).reshape(here.shape)
     np.testing.assert_array_equal(there, here)
+
+
+@pytest.mark.parametrize(
+    ("options", "field"),
+    [
+        ({"damped_iterations": -1}, "damped_iterations"),
+        ({"damped_iterations": 2.7}, "damped_iterations"),
+        ({"iterations": "3"}, "iterations"),
+        ({"iterations": np.float64(3.0)}, "iterations"),
+        ({"tol": "1e-6"}, "tol"),
+        ({"tol": None}, "tol"),
+    ],
+    ids=repr,
+)
+def test_solver_options_of_the_wrong_kind_are_refused_by_name_single_and_batched(options, field):
+    robot = make_robot("series")
+    for q in (SINGULAR, SINGULAR[None]):
+        with pytest.raises(ValueError, match=f"^{field} must be"):
+            robot.correct(q, extrapolate=True, **options)

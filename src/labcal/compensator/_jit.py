@@ -123,7 +123,7 @@ def _log_pose(Tt, T, e):
 def _features(q, T, cols, trig, x, dx):
     """Network inputs x (f,) at q from the link frames T, and dx (f,): each column's derivative by its own joint
     (gravity columns 0: the definition's series slope leaves them out). trig (n, H + 1, 2): workspace for
-    sin h q_j, cos h q_j by the angle-addition recurrence (features.harmonics_by_recurrence's)."""
+    sin h q_j, cos h q_j by the angle-addition recurrence (features.harmonics_of_joints' running product)."""
     n, H = q.shape[0], trig.shape[1] - 1
     for j in range(n):
         c, s = math.cos(q[j]), math.sin(q[j])

@@ -224,6 +224,19 @@ def _after(n: int) -> np.ndarray:
     return out
 
 
+def _check_solver_options(iterations, tol, damped_iterations) -> None:
+    """Refuse solver options of the wrong kind by name (before, a string or a negative budget surfaced as a
+    TypeError or an IndexError deep in the solver)."""
+    if not isinstance(iterations, int | np.integer):
+        raise ValueError(f"iterations must be a whole number, got {iterations!r}")
+    if damped_iterations is not None and not (
+        isinstance(damped_iterations, int | np.integer) and damped_iterations >= 0
+    ):
+        raise ValueError(f"damped_iterations must be None or a whole number >= 0, got {damped_iterations!r}")
+    if not isinstance(tol, int | float | np.integer | np.floating) or isinstance(tol, bool):
+        raise ValueError(f"tol must be a number (rad), got {tol!r}")
+
+
 def _check_pose(T, what: str) -> np.ndarray:
     """A (4, 4) rigid transform as a read-only float array, or a ValueError naming ``what``."""
     try:
@@ -607,6 +620,7 @@ class CalibratedRobot:
         that must bound its worst-case time lowers it (near-singular configurations then stop earlier, no worse
         than at q).
         """
+        _check_solver_options(iterations, tol, damped_iterations)
         if method == "newton" and type(q) is np.ndarray and q.dtype is _FLOAT64 and q.shape == (self.n,):
             # one configuration (a control loop's call): the compiled kernel checks the ranges and the validity
             # region itself and takes the definition's steps; None (no kernel, or q not finite / outside: the
