@@ -227,6 +227,8 @@ def _after(n: int) -> np.ndarray:
 def _check_solver_options(iterations, tol, damped_iterations) -> None:
     """Refuse solver options of the wrong kind by name (before, a string or a negative budget surfaced as a
     TypeError or an IndexError deep in the solver)."""
+    if type(iterations) is int and type(tol) is float and damped_iterations is None:
+        return  # the defaults' kinds: a control loop's call pays no more (numpy's abstract classes cost ~1 µs)
     if not isinstance(iterations, int | np.integer):
         raise ValueError(f"iterations must be a whole number, got {iterations!r}")
     if damped_iterations is not None and not (
