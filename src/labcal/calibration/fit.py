@@ -185,13 +185,12 @@ def fit(
     register_tool: the registered nominal ("before", and the base of the paper's ANN method) also estimates the
     measurement tool (probe data: the probe's mount is the tool, not a robot error the network should learn).
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     # One BLAS thread: the fits multiply many small and medium matrices, where OpenBLAS's threads were measured
     # 3-20x slower on a loaded 2-core machine (local POE at 1,000 rows: 4.0 s threaded, 1.1 s single), and one
     # thread keeps the summation order, so the bits of a fit, independent of the core count.
     with threadpool_limits(limits=1, user_api="blas"):
-        return _fit(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options, register_tool)
+        return _fit(_context(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options,
+                             register_tool))  # fmt: skip
 
 
 def fit_hybrid(
@@ -226,23 +225,12 @@ def fit_hybrid(
     return result.robot, {**result.info, "notes": list(result.notes)}
 
 
-def _fit(
-    obs: Observations,
-    nominal: LocalPOEModel,
-    method: str,
-    seed: int,
-    val_fraction: float,
-    progress: Callable[[str], None] | None,
-    local_poe_options: dict | None,
-    options: dict[str, Any],
-    register_tool: bool = False,
-) -> FitResult:
-    """fit() inside its BLAS limit: the context, the registered nominal, the candidates, the method, the checks."""
-    ctx = _context(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options, register_tool)
+def _fit(ctx: FitContext) -> FitResult:
+    """fit() inside its BLAS limit: the registered nominal, the candidates, the method, the checks."""
     counts = {s: int(np.sum(ctx.obs.split == s)) for s in ("train", "val", "test")}
     ctx.say("registering the nominal model")
-    before = Stage(*ctx.timed("nominal", lambda: register(ctx.obs, nominal, estimate_tool=register_tool)))
-    if method == "nominal":
+    before = Stage(*ctx.timed("nominal", lambda: register(ctx.obs, ctx.nominal, estimate_tool=ctx.register_tool)))
+    if ctx.method == "nominal":
         outcome = Outcome(before.robot, {"register": before.info}, "nominal", "nominal")
         return _result(ctx, outcome, before.robot, None, counts, [], None)
     table = _candidates(ctx, before)
