@@ -50,7 +50,7 @@ UR10 fit, q = [1.6962, 0.7805, −0.0283, −1.0017, 1.5547, 0.5462]). So a six-
 Strings: every text the exporter writes into a comment or a string literal (robot name, method, provenance, popup
 messages) goes through :func:`_text`, which keeps printable ASCII and writes every other character, the quote,
 the backslash, ``%`` and ``#`` as %XX escapes, so no name or provenance value can end a comment or a string.
-Rules the emitted script keeps (checked on every emitted script by ``labcal.testing.urscript_subset.check``):
+Rules the emitted script keeps (the tests check every emitted script with ``benchmarks/urscript_subset.py``):
 
 - **List capacity.** Since PolyScope 5.15 a list can only be assigned to an existing list of greater or equal
   capacity, and a list literal's capacity is its length. Every list is created at its full size (``[0.0, …]`` of
