@@ -95,7 +95,6 @@ assumes a residual rotation below π/2 (corrections are milliradians).
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import numpy as np
 
@@ -1079,19 +1078,3 @@ def _inv_norm(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
         inv = np.linalg.inv(J) * w  # J⁻¹ diag(L, L, L, 1, 1, 1) = J_s⁻¹
     out = np.abs(inv).sum(axis=2).max(axis=1)
     return np.where(np.isfinite(out), out, np.inf)
-
-
-def write_urscript(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:
-    path = Path(path)
-    from labcal.atomicio import write_text  # whole or absent, never over a device or a symlink
-
-    write_text(path, urscript_text(robot, provenance=provenance, **options))
-    return path
-
-
-def write_urscript_program(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:
-    path = Path(path)
-    from labcal.atomicio import write_text  # whole or absent, never over a device or a symlink
-
-    write_text(path, urscript_program_text(robot, provenance=provenance, **options))
-    return path
