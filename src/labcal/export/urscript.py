@@ -150,6 +150,11 @@ def _zeros(m: int) -> str:
     return "[" + ", ".join(["0.0"] * m) + "]"
 
 
+def _locals(value: str, *names: str) -> list[str]:
+    """A function's declarations ``local name = value``, one line each (URScript declares one name per statement)."""
+    return [f"  local {name} = {value}" for name in names]
+
+
 class _Budget:
     """How many loop iterations fit between two sync() calls: half the budget per chunk, so that a chunk plus the
     straight-line code after it (up to the next phase's sync) stays within the budget."""
@@ -232,14 +237,8 @@ def _twists_function(n: int) -> list[str]:
         "def lc_twists(F, rev, pitch):",
         "  sync()",
         f"  local J = {_zeros(6 * n)}",
-        "  local j = 0",
-        "  local b = 0",
-        "  local zx = 0.0",
-        "  local zy = 0.0",
-        "  local zz = 0.0",
-        "  local px = 0.0",
-        "  local py = 0.0",
-        "  local pz = 0.0",
+        *_locals("0", "j", "b"),
+        *_locals("0.0", "zx", "zy", "zz", "px", "py", "pz"),
         f"  while j < {n}:",
         "    b = 12 * j",
         "    zx = F[b + 2]",
@@ -312,15 +311,8 @@ def _solve_function(n: int, budget: _Budget) -> list[str]:
         "  sync()",
         f"  local A = {_zeros(n * n)}",
         f"  local x = {_zeros(n)}",
-        "  local i = 0",
-        "  local r = 0",
-        "  local k = 0",
-        "  local p = 0",
-        "  local cnt = 0",
-        "  local rc = 0",
-        "  local best = 0.0",
-        "  local t = 0.0",
-        "  local f = 0.0",
+        *_locals("0", "i", "r", "k", "p", "cnt", "rc"),
+        *_locals("0.0", "best", "t", "f"),
         "  A = [" + ", ".join(f"M[{k}]" for k in range(n * n)) + "]",
         "  x = [" + ", ".join(f"y[{k}]" for k in range(n)) + "]",
         f"  while i < {n}:",
@@ -614,10 +606,8 @@ def _region_function(region, budget: _Budget) -> list[str]:
         "def lc_region_d2(q):",
         "  sync()",
         "  local best = -1.0",
-        "  local d = 0.0",
-        "  local e = 0.0",
-        "  local c = 0",
-        "  local s = 0",
+        *_locals("0.0", "d", "e"),
+        *_locals("0", "c", "s"),
         f"  while c < {count}:",
         f"    e = q[0] * {_num(region.weights[0])} - lc_vc0[c]",
         "    d = e * e",
@@ -698,15 +688,10 @@ def _attempt_locals(n: int) -> list[str]:
         f"  local J = {_zeros(6 * n)}",
         f"  local dR = {_zeros(9)}",
         f"  local dp = {_zeros(3)}",
-        f"  local r = {_zeros(6)}",
-        f"  local rho = {_zeros(6)}",
+        *_locals(_zeros(6), "r", "rho"),
         f"  local st = {_zeros(n)}",
         "  local it = 0",
-        "  local size = 0.0",
-        "  local prev = 0.0",
-        "  local tot = 0.0",
-        "  local err = 0.0",
-        "  local status = 0.0",
+        *_locals("0.0", "size", "prev", "tot", "err", "status"),
         "  while status == 0.0:",
         "    F = lc_chain(lc_A, lc_lin, qc)",
         "    J = lc_twists(F, lc_rev, lc_pitch)",
@@ -837,9 +822,7 @@ def _inv_norm_function(n: int, length_scale: float) -> list[str]:
         "# |J⁻¹ diag(L, L, L, 1, 1, 1)|, column by column (J x = L e_k for a translation, e_k for a rotation)",
         "def lc_inv_norm(J):",
         f"  local w = {_list(w)}",
-        f"  local e = {_zeros(n)}",
-        f"  local c = {_zeros(n)}",
-        f"  local s = {_zeros(n)}",
+        *_locals(_zeros(n), "e", "c", "s"),
         "  local k = 0",
         f"  while k < {n}:",
         f"    e = {_zeros(n)}",
