@@ -149,29 +149,22 @@ def _canonical(value):
     return value
 
 
-def _checked_fields(payload: dict) -> tuple[str, ...]:
-    """The checked fields of a payload's schema version (version 2 had no measurement tool)."""
-    if payload.get("schema_version") == 2:
-        return tuple(name for name in CHECKED_FIELDS if name != "measurement_tool")
-    return CHECKED_FIELDS
+# Fields added after schema 2 was published: checked when the file has them (or their checksum), so files written
+# before them still load (a compensator without a validity region falls back to the joint ranges).
+OPTIONAL_CHECKED_FIELDS = ("validity",)
 
 
-def field_checksums(payload: dict) -> dict[str, str]:
-    """sha256 of each checked field's canonical JSON (floats written exactly): {field: hex}."""
-    return _optional_checksums(payload, _checked_fields(payload))
-
-
-def _optional_checksums(payload: dict, names) -> dict[str, str]:
+def field_checksums(payload: dict, also=()) -> dict[str, str]:
+    """sha256 of each checked field's canonical JSON (floats written exactly): {field: hex}. The checked fields of
+    the payload's schema version (version 2 had no measurement tool), then the optional ones it holds or ``also``
+    names (a stored checksum of a field the file no longer holds)."""
+    names = [name for name in CHECKED_FIELDS if payload.get("schema_version") != 2 or name != "measurement_tool"]
+    names += [name for name in OPTIONAL_CHECKED_FIELDS if name in payload or name in also]
     out = {}
     for name in names:
         text = json.dumps(_canonical(payload.get(name)), sort_keys=True, separators=(",", ":"))
         out[name] = hashlib.sha256(text.encode()).hexdigest()
     return out
-
-
-# Fields added after schema 2 was published: checked when the file has them (or their checksum), so files written
-# before them still load (a compensator without a validity region falls back to the joint ranges).
-OPTIONAL_CHECKED_FIELDS = ("validity",)
 
 
 def _check_checksums(data: dict, source: str) -> None:
@@ -180,11 +173,8 @@ def _check_checksums(data: dict, source: str) -> None:
         raise CompensatorFileError(
             f"{source}: no checksums field: the file was damaged or edited — refusing to load it"
         )
-    got = field_checksums(data)
-    optional = tuple(name for name in OPTIONAL_CHECKED_FIELDS if name in data or name in stored)
-    got.update(_optional_checksums(data, optional))
-    for name in _checked_fields(data) + optional:
-        if stored.get(name) != got[name]:
+    for name, digest in field_checksums(data, also=stored).items():
+        if stored.get(name) != digest:
             raise CompensatorFileError(
                 f"{source}: {name} does not match its checksum: the file was edited or damaged — refusing to load it "
                 "(export the fit again rather than editing a compensator file)"
@@ -233,8 +223,6 @@ def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
     if robot.validity is not None:
         payload["validity"] = robot.validity.as_dict()
     payload["checksums"] = field_checksums(payload)
-    if robot.validity is not None:
-        payload["checksums"].update(_optional_checksums(payload, OPTIONAL_CHECKED_FIELDS))
     return payload
 
 
