@@ -181,6 +181,9 @@ def _check_checksums(data: dict, source: str) -> None:
             )
 
 
+_NETWORK_SCALES = ("in_mean", "in_scale", "out_mean", "out_scale")  # a network's standardisation of inputs and outputs
+
+
 def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
     """Everything an export holds, as JSON-ready Python data (lists and numbers), with its field checksums."""
     q = golden_configurations(robot)
@@ -198,10 +201,7 @@ def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
             "features": list(net.features),
             "weights": [np.asarray(W, float).tolist() for W in net.weights],
             "biases": [np.asarray(b, float).tolist() for b in net.biases],
-            "in_mean": np.asarray(net.in_mean, float).tolist(),
-            "in_scale": np.asarray(net.in_scale, float).tolist(),
-            "out_mean": np.asarray(net.out_mean, float).tolist(),
-            "out_scale": np.asarray(net.out_scale, float).tolist(),
+            **{key: np.asarray(getattr(net, key), float).tolist() for key in _NETWORK_SCALES},
         },
         "length_scale": float(robot.length_scale),
         "joint_ranges": np.asarray(robot.joint_ranges, float).tolist(),
@@ -480,7 +480,7 @@ def _robot_from(data: dict, source: str, legacy: bool) -> CalibratedRobot:
     nd = data.get("network")
     net = None
     if nd is not None:
-        arrays = {key: np.asarray(nd[key], dtype=float) for key in ("in_mean", "in_scale", "out_mean", "out_scale")}
+        arrays = {key: np.asarray(nd[key], dtype=float) for key in _NETWORK_SCALES}
         net = Network(
             features=tuple(nd["features"]),
             weights=tuple(np.asarray(W, dtype=float) for W in nd["weights"]),
