@@ -106,7 +106,6 @@ from labcal.kinematics import se3
 from labcal.kinematics.metric import scaled_condition
 from labcal.robots import model_hash
 
-BUILTINS = ("sin", "cos", "sqrt", "atan2", "pow", "sync", "popup", "textmsg", "str_cat", "halt", "movej")
 STATEMENTS_PER_SYNC = 1000  # default budget of statements between two sync() calls (see the module docstring)
 FLOAT32_BOUND = 2e-5  # rad: |script in float32 − correct()| on configurations with scaled condition ≤ 100
 AGREEMENT = 1e-4  # rad: |script − correct()| wherever the script returns (float64 or float32)
