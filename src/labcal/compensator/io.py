@@ -26,7 +26,6 @@ import io
 import json
 import math
 import zipfile
-from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn
 
@@ -278,7 +277,7 @@ def check_payload(data: dict, source: str, *, error: type[Exception] = Compensat
             except error as err:
                 check.fail("joint_map", f"is not a valid joint map for {n} joints: {str(err).split(': ', 1)[1]}")
     if data.get("network") is not None:
-        _check_network(check.table("network", data["network"]), check.fail, check.numbers, max(n, 6))
+        _check_network(check, check.table("network", data["network"]), max(n, 6))
     _check_golden_fields(check, check.table("golden", data.get("golden")), n)
     _check_provenance(data.get("provenance", {}), "provenance", 0, check.fail)
     checksums = data.get("checksums")
@@ -388,39 +387,37 @@ def _check_golden_fields(check: _FieldCheck, golden: dict, n: int) -> None:
         check.fail("golden.correct_method", problem)
 
 
-def _check_network(
-    net: dict, fail: Callable[[str, str], NoReturn], numbers: Callable[..., np.ndarray], outputs: int
-) -> None:
+def _check_network(check: _FieldCheck, net: dict, outputs: int) -> None:
     """Features known to the registry, layer shapes that chain, sizes within the bounds, finite numbers; outputs:
     the equivalent robot's joint motion errors, max(n, 6) for an n-joint robot."""
     features = net.get("features")
     if not isinstance(features, list) or not features:
-        fail("network.features", "must list the network's input features")
+        check.fail("network.features", "must list the network's input features")
     for i, name in enumerate(features):
         if label_problem(name, 64) or not feature_lib.is_feature(name):
             known = ", ".join(feature_lib.NAMES)
-            fail(f"network.features[{i + 1}]", f"must be one of {known}, got {printable(name, 80)!r}")
+            check.fail(f"network.features[{i + 1}]", f"must be one of {known}, got {printable(name, 80)!r}")
     weights, biases = net.get("weights"), net.get("biases")
     if not (isinstance(weights, list) and isinstance(biases, list) and 1 <= len(weights) == len(biases) <= MAX_LAYERS):
-        fail("network.weights", f"must be 1 to {MAX_LAYERS} layers, each with its biases")
+        check.fail("network.weights", f"must be 1 to {MAX_LAYERS} layers, each with its biases")
     in_mean = net.get("in_mean")
     width = len(in_mean) if isinstance(in_mean, list | np.ndarray) else 0
     if not 1 <= width <= MAX_WIDTH:
-        fail("network.in_mean", f"must hold 1 to {MAX_WIDTH} numbers (one per network input)")
-    numbers("network.in_mean", in_mean, (width,))
-    numbers("network.in_scale", net.get("in_scale"), (width,))
-    numbers("network.out_mean", net.get("out_mean"), (outputs,))
-    numbers("network.out_scale", net.get("out_scale"), (outputs,))
+        check.fail("network.in_mean", f"must hold 1 to {MAX_WIDTH} numbers (one per network input)")
+    check.numbers("network.in_mean", in_mean, (width,))
+    check.numbers("network.in_scale", net.get("in_scale"), (width,))
+    check.numbers("network.out_mean", net.get("out_mean"), (outputs,))
+    check.numbers("network.out_scale", net.get("out_scale"), (outputs,))
     total = 0
     for i, (W, b) in enumerate(zip(weights, biases, strict=True)):
         rows = outputs if i == len(weights) - 1 else (len(W) if isinstance(W, list | np.ndarray) else 0)
         if not 1 <= rows <= MAX_WIDTH:
-            fail(f"network.weights.{i}", f"must have 1 to {MAX_WIDTH} rows")
+            check.fail(f"network.weights.{i}", f"must have 1 to {MAX_WIDTH} rows")
         total += rows * (width + 1)
         if total > MAX_NETWORK_VALUES:
-            fail("network.weights", f"hold more than {MAX_NETWORK_VALUES} numbers: more than a compensator holds")
-        numbers(f"network.weights.{i}", W, (rows, width))
-        numbers(f"network.biases.{i}", b, (rows,))
+            check.fail("network.weights", f"hold more than {MAX_NETWORK_VALUES} numbers: more than a compensator holds")
+        check.numbers(f"network.weights.{i}", W, (rows, width))
+        check.numbers(f"network.biases.{i}", b, (rows,))
         width = rows
 
 
