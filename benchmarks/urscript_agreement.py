@@ -9,7 +9,7 @@ For each export, ``4 × --configs`` configurations: uniform in the compensator's
 (:meth:`~labcal.compensator.validity.ValidityRegion.sample`: where ``correct()`` answers without extrapolating),
 uniform in the compensator's joint ranges (clipped to ±π, which
 hold every pose of a ±2π joint), the same with the wrist q5 uniform in ±0.05 rad, and with the elbow q3 uniform in
-±0.05 rad. Each runs through ``labcal_correct`` in the URScript interpreter of :mod:`labcal.testing.urscript_subset`
+±0.05 rad. Each runs through ``labcal_correct`` in the URScript interpreter of :mod:`urscript_subset` (this folder)
 in float64 and in float32 (the controller's precision) and is sorted into:
 
 - **agree**: returned, within 1e-4 rad of ``correct()`` (max over joints);
@@ -24,7 +24,7 @@ in float64 and in float32 (the controller's precision) and is sorted into:
   are exact (weighted residual L1 < 1e-8 rad: the rest leave a residual, a least-squares compromise).
 
 The exporter and the fits come from whatever ``labcal`` is on the path, the interpreter always from this file's
-repository, so the code before a change is measured by pointing PYTHONPATH at a worktree of it:
+folder, so the code before a change is measured by pointing PYTHONPATH at a worktree of it:
 
     git worktree add /tmp/urs-before 5770eeb
     PYTHONPATH=/tmp/urs-before/src python benchmarks/urscript_agreement.py \
@@ -34,8 +34,6 @@ repository, so the code before a change is measured by pointing PYTHONPATH at a 
 from __future__ import annotations
 
 import argparse
-import importlib.util
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -43,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 import labcal
+import urscript_subset
 from labcal.calibration import Observations
 from labcal.calibration.fit import fit
 from labcal.export.urscript import urscript_text
@@ -51,21 +50,9 @@ from labcal.robots import load
 from labcal.simulation.actual import ErrorSpec
 from labcal.simulation.scenarios import good
 
-ROOT = Path(__file__).resolve().parents[1]
 AGREE = 1e-4  # rad
 NEAR = 0.05  # rad from the singular value of the wrist (q5) and the elbow (q3)
 MAX_CORRECTION = 0.1  # rad: the exporter's default bound on |q_cmd - q| (the code before had none)
-
-
-def _interpreter():
-    """labcal.testing.urscript_subset of this repository, whichever labcal is imported (the one before a change
-    has no interpreter under src/)."""
-    path = ROOT / "src" / "labcal" / "testing" / "urscript_subset.py"
-    spec = importlib.util.spec_from_file_location("urscript_subset_bench", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
 
 
 def exports(real: bool) -> dict:
@@ -145,7 +132,6 @@ def main() -> None:
     ap.add_argument("--configs", type=int, default=1000, help="configurations per set (three sets per export)")
     ap.add_argument("--no-real", action="store_true", help="skip the real UR10 data")
     args = ap.parse_args()
-    subset = _interpreter()
     t0 = time.perf_counter()
     print(f"exporter: {Path(labcal.__file__).parent}; agreement bound {AGREE:g} rad; configurations per set "
           f"{args.configs}")  # fmt: skip
@@ -169,7 +155,7 @@ def main() -> None:
                 damped = damped > 1e-12
                 r, _ = robot.residual(expected, robot.nominal.fk(q), jacobian=False)
                 exact = np.sum(np.abs(r) * np.array([1 / robot.length_scale] * 3 + [1.0] * 3), axis=1) < 1e-8
-                got, stopped = run(subset, script, q, precision == "float32")
+                got, stopped = run(urscript_subset, script, q, precision == "float32")
                 with np.errstate(invalid="ignore"):
                     err = np.max(np.abs(got - expected), axis=1)
                     none = np.max(np.abs(q - expected), axis=1)

@@ -17,16 +17,17 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))  # urscript_subset
 
 from export_fixtures import sample
 
+import urscript_subset
 from labcal.calibration import Observations
 from labcal.calibration.fit import fit
 from labcal.export.urscript import FLOAT32_BOUND, urscript_text
 from labcal.robots import load
 from labcal.simulation.actual import ErrorSpec
 from labcal.simulation.scenarios import good
-from labcal.testing import urscript_subset
 
 OLD = "5770eeb:src/labcal/export/urscript.py"
 

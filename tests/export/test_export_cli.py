@@ -17,10 +17,10 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "cli"))
 from cli_testutil import TARGETS, invoke, last_line
 from test_ur_kinematics import parse_yaml, rotation_vector_pose, yaml_fk
 
+import urscript_subset
 from labcal.compensator import Compensator
 from labcal.kinematics import se3
 from labcal.robots import load
-from labcal.testing import urscript_subset
 
 
 @pytest.fixture(scope="module")

@@ -13,13 +13,13 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from export_fixtures import hybrid, make_network, sample
 
+import urscript_subset
 from labcal.compensator import CalibratedRobot, Compensator
 from labcal.export import SUFFIXES, export
 from labcal.export.urscript import urscript_text
 from labcal.kinematics import se3
 from labcal.kinematics.poe import REVOLUTE, LocalPOEModel
 from labcal.robots import load
-from labcal.testing import urscript_subset
 
 
 def redundant_robot(seed=3) -> CalibratedRobot:

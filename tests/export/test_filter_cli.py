@@ -15,11 +15,11 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from export_fixtures import hybrid, sample
 
+import urscript_subset
 from labcal.cli.filter import filter_program
 from labcal.compensator import save
 from labcal.export.program import filter_joints, filter_poses
 from labcal.kinematics import se3
-from labcal.testing import urscript_subset
 
 app = typer.Typer()
 app.command("filter")(filter_program)

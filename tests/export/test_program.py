@@ -13,6 +13,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
+import urscript_subset
 from labcal.calibration import Observations
 from labcal.calibration.fit import fit
 from labcal.compensator import CalibratedRobot
@@ -30,7 +31,6 @@ from labcal.kinematics.metric import scaled_condition
 from labcal.robots import load
 from labcal.simulation.actual import ErrorSpec
 from labcal.simulation.scenarios import good, joint_box
-from labcal.testing import urscript_subset
 
 
 @pytest.fixture(scope="module")

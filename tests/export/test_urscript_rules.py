@@ -15,10 +15,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from export_fixtures import hybrid, make_network, sample
 
+import urscript_subset
 from labcal.compensator import CalibratedRobot
 from labcal.export.urscript import FLOAT32_BOUND, urscript_program_text, urscript_text
 from labcal.robots import load
-from labcal.testing import urscript_subset
 
 ROOT = Path(__file__).parents[2]
 

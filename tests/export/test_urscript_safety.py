@@ -15,10 +15,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from export_fixtures import hybrid
 
+import urscript_subset
 from labcal.compensator import CalibratedRobot, golden_configurations
 from labcal.export.urscript import urscript_program_text, urscript_text
 from labcal.robots import load
-from labcal.testing import urscript_subset
 
 AGREE = 1e-4  # rad: the promise, written here rather than imported from the exporter
 LOCAL, HYBRID = None, ("q", "sincos", "sincos2", "gravity")

@@ -26,7 +26,6 @@ import io
 import json
 import math
 import zipfile
-from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn
 
@@ -149,29 +148,22 @@ def _canonical(value):
     return value
 
 
-def _checked_fields(payload: dict) -> tuple[str, ...]:
-    """The checked fields of a payload's schema version (version 2 had no measurement tool)."""
-    if payload.get("schema_version") == 2:
-        return tuple(name for name in CHECKED_FIELDS if name != "measurement_tool")
-    return CHECKED_FIELDS
+# Fields added after schema 2 was published: checked when the file has them (or their checksum), so files written
+# before them still load (a compensator without a validity region falls back to the joint ranges).
+OPTIONAL_CHECKED_FIELDS = ("validity",)
 
 
-def field_checksums(payload: dict) -> dict[str, str]:
-    """sha256 of each checked field's canonical JSON (floats written exactly): {field: hex}."""
-    return _optional_checksums(payload, _checked_fields(payload))
-
-
-def _optional_checksums(payload: dict, names) -> dict[str, str]:
+def field_checksums(payload: dict, also=()) -> dict[str, str]:
+    """sha256 of each checked field's canonical JSON (floats written exactly): {field: hex}. The checked fields of
+    the payload's schema version (version 2 had no measurement tool), then the optional ones it holds or ``also``
+    names (a stored checksum of a field the file no longer holds)."""
+    names = [name for name in CHECKED_FIELDS if payload.get("schema_version") != 2 or name != "measurement_tool"]
+    names += [name for name in OPTIONAL_CHECKED_FIELDS if name in payload or name in also]
     out = {}
     for name in names:
         text = json.dumps(_canonical(payload.get(name)), sort_keys=True, separators=(",", ":"))
         out[name] = hashlib.sha256(text.encode()).hexdigest()
     return out
-
-
-# Fields added after schema 2 was published: checked when the file has them (or their checksum), so files written
-# before them still load (a compensator without a validity region falls back to the joint ranges).
-OPTIONAL_CHECKED_FIELDS = ("validity",)
 
 
 def _check_checksums(data: dict, source: str) -> None:
@@ -180,15 +172,15 @@ def _check_checksums(data: dict, source: str) -> None:
         raise CompensatorFileError(
             f"{source}: no checksums field: the file was damaged or edited — refusing to load it"
         )
-    got = field_checksums(data)
-    optional = tuple(name for name in OPTIONAL_CHECKED_FIELDS if name in data or name in stored)
-    got.update(_optional_checksums(data, optional))
-    for name in _checked_fields(data) + optional:
-        if stored.get(name) != got[name]:
+    for name, digest in field_checksums(data, also=stored).items():
+        if stored.get(name) != digest:
             raise CompensatorFileError(
                 f"{source}: {name} does not match its checksum: the file was edited or damaged — refusing to load it "
                 "(export the fit again rather than editing a compensator file)"
             )
+
+
+_NETWORK_SCALES = ("in_mean", "in_scale", "out_mean", "out_scale")  # a network's standardisation of inputs and outputs
 
 
 def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
@@ -208,10 +200,7 @@ def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
             "features": list(net.features),
             "weights": [np.asarray(W, float).tolist() for W in net.weights],
             "biases": [np.asarray(b, float).tolist() for b in net.biases],
-            "in_mean": np.asarray(net.in_mean, float).tolist(),
-            "in_scale": np.asarray(net.in_scale, float).tolist(),
-            "out_mean": np.asarray(net.out_mean, float).tolist(),
-            "out_scale": np.asarray(net.out_scale, float).tolist(),
+            **{key: np.asarray(getattr(net, key), float).tolist() for key in _NETWORK_SCALES},
         },
         "length_scale": float(robot.length_scale),
         "joint_ranges": np.asarray(robot.joint_ranges, float).tolist(),
@@ -233,8 +222,6 @@ def to_payload(robot: CalibratedRobot, provenance: dict | None = None) -> dict:
     if robot.validity is not None:
         payload["validity"] = robot.validity.as_dict()
     payload["checksums"] = field_checksums(payload)
-    if robot.validity is not None:
-        payload["checksums"].update(_optional_checksums(payload, OPTIONAL_CHECKED_FIELDS))
     return payload
 
 
@@ -290,7 +277,7 @@ def check_payload(data: dict, source: str, *, error: type[Exception] = Compensat
             except error as err:
                 check.fail("joint_map", f"is not a valid joint map for {n} joints: {str(err).split(': ', 1)[1]}")
     if data.get("network") is not None:
-        _check_network(check.table("network", data["network"]), check.fail, check.numbers, max(n, 6))
+        _check_network(check, check.table("network", data["network"]), max(n, 6))
     _check_golden_fields(check, check.table("golden", data.get("golden")), n)
     _check_provenance(data.get("provenance", {}), "provenance", 0, check.fail)
     checksums = data.get("checksums")
@@ -400,39 +387,37 @@ def _check_golden_fields(check: _FieldCheck, golden: dict, n: int) -> None:
         check.fail("golden.correct_method", problem)
 
 
-def _check_network(
-    net: dict, fail: Callable[[str, str], NoReturn], numbers: Callable[..., np.ndarray], outputs: int
-) -> None:
+def _check_network(check: _FieldCheck, net: dict, outputs: int) -> None:
     """Features known to the registry, layer shapes that chain, sizes within the bounds, finite numbers; outputs:
     the equivalent robot's joint motion errors, max(n, 6) for an n-joint robot."""
     features = net.get("features")
     if not isinstance(features, list) or not features:
-        fail("network.features", "must list the network's input features")
+        check.fail("network.features", "must list the network's input features")
     for i, name in enumerate(features):
         if label_problem(name, 64) or not feature_lib.is_feature(name):
             known = ", ".join(feature_lib.NAMES)
-            fail(f"network.features[{i + 1}]", f"must be one of {known}, got {printable(name, 80)!r}")
+            check.fail(f"network.features[{i + 1}]", f"must be one of {known}, got {printable(name, 80)!r}")
     weights, biases = net.get("weights"), net.get("biases")
     if not (isinstance(weights, list) and isinstance(biases, list) and 1 <= len(weights) == len(biases) <= MAX_LAYERS):
-        fail("network.weights", f"must be 1 to {MAX_LAYERS} layers, each with its biases")
+        check.fail("network.weights", f"must be 1 to {MAX_LAYERS} layers, each with its biases")
     in_mean = net.get("in_mean")
     width = len(in_mean) if isinstance(in_mean, list | np.ndarray) else 0
     if not 1 <= width <= MAX_WIDTH:
-        fail("network.in_mean", f"must hold 1 to {MAX_WIDTH} numbers (one per network input)")
-    numbers("network.in_mean", in_mean, (width,))
-    numbers("network.in_scale", net.get("in_scale"), (width,))
-    numbers("network.out_mean", net.get("out_mean"), (outputs,))
-    numbers("network.out_scale", net.get("out_scale"), (outputs,))
+        check.fail("network.in_mean", f"must hold 1 to {MAX_WIDTH} numbers (one per network input)")
+    check.numbers("network.in_mean", in_mean, (width,))
+    check.numbers("network.in_scale", net.get("in_scale"), (width,))
+    check.numbers("network.out_mean", net.get("out_mean"), (outputs,))
+    check.numbers("network.out_scale", net.get("out_scale"), (outputs,))
     total = 0
     for i, (W, b) in enumerate(zip(weights, biases, strict=True)):
         rows = outputs if i == len(weights) - 1 else (len(W) if isinstance(W, list | np.ndarray) else 0)
         if not 1 <= rows <= MAX_WIDTH:
-            fail(f"network.weights.{i}", f"must have 1 to {MAX_WIDTH} rows")
+            check.fail(f"network.weights.{i}", f"must have 1 to {MAX_WIDTH} rows")
         total += rows * (width + 1)
         if total > MAX_NETWORK_VALUES:
-            fail("network.weights", f"hold more than {MAX_NETWORK_VALUES} numbers: more than a compensator holds")
-        numbers(f"network.weights.{i}", W, (rows, width))
-        numbers(f"network.biases.{i}", b, (rows,))
+            check.fail("network.weights", f"hold more than {MAX_NETWORK_VALUES} numbers: more than a compensator holds")
+        check.numbers(f"network.weights.{i}", W, (rows, width))
+        check.numbers(f"network.biases.{i}", b, (rows,))
         width = rows
 
 
@@ -492,7 +477,7 @@ def _robot_from(data: dict, source: str, legacy: bool) -> CalibratedRobot:
     nd = data.get("network")
     net = None
     if nd is not None:
-        arrays = {key: np.asarray(nd[key], dtype=float) for key in ("in_mean", "in_scale", "out_mean", "out_scale")}
+        arrays = {key: np.asarray(nd[key], dtype=float) for key in _NETWORK_SCALES}
         net = Network(
             features=tuple(nd["features"]),
             weights=tuple(np.asarray(W, dtype=float) for W in nd["weights"]),

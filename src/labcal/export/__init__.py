@@ -13,8 +13,10 @@ Numpy only (import-linter: "The compensator runtime is numpy-only"). Example::
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
+from labcal.atomicio import write_text
 from labcal.compensator import CalibratedRobot
 from labcal.compensator import save as save_compensator
 
@@ -27,6 +29,14 @@ SUFFIXES = {
     "urdf": ".urdf",
     "ur-kinematics": ".yaml",
 }
+# The text formats: format → (module, function giving the file's text from (robot, provenance=…, **options)).
+# Imported when used, so that `import labcal.export` stays light.
+TEXT_WRITERS = {
+    "urscript": ("labcal.export.urscript", "urscript_text"),
+    "urscript-program": ("labcal.export.urscript", "urscript_program_text"),
+    "urdf": ("labcal.export.urdf", "urdf_text"),
+    "ur-kinematics": ("labcal.export.ros", "ur_kinematics_text"),
+}
 
 
 def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = None, **options) -> Path:
@@ -36,7 +46,8 @@ def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = Non
     ``labcal_correct(q)`` for a Script node, urscript-program: the ``def`` program for the script port (options of
     both: method, iterations, function_name, statements_per_sync); urdf: the identified frames (options: velocity,
     effort, masses, coms, ur_names, geometry_only, unknown_dynamics); ur-kinematics: ur_description's calibration
-    YAML (option: geometry_only).
+    YAML (option: geometry_only). Every file is written atomically (:mod:`labcal.atomicio`): whole or absent,
+    never over a device or a symbolic link.
     """
     path = Path(path)
     if fmt not in FORMATS:
@@ -45,24 +56,13 @@ def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = Non
         if path.suffix.lower() != SUFFIXES[fmt]:
             raise ValueError(f"a {fmt} export must be written to a path ending in {SUFFIXES[fmt]}, got {path.name!r}")
         return save_compensator(robot, path, provenance)
-    if fmt == "urscript":
-        from labcal.export.urscript import write_urscript
-
-        return write_urscript(robot, path, provenance, **options)
-    if fmt == "urscript-program":
-        from labcal.export.urscript import write_urscript_program
-
-        return write_urscript_program(robot, path, provenance, **options)
-    if fmt == "ur-kinematics":
-        from labcal.export.ros import write_ur_kinematics
-
-        return write_ur_kinematics(robot, path, provenance, **options)
-    if fmt == "urdf":
-        from labcal.export.urdf import write_urdf
-
-        return write_urdf(robot, path, provenance, **options)
-    # a name added to FORMATS without its branch here must not fall through to another format's writer
-    raise NotImplementedError(f"export format {fmt!r} is listed in FORMATS but has no writer in export.export()")
+    if fmt not in TEXT_WRITERS:
+        # a name added to FORMATS without its writer here must not fall through to another format's writer
+        raise NotImplementedError(f"export format {fmt!r} is listed in FORMATS but has no writer in export.export()")
+    module, function = TEXT_WRITERS[fmt]
+    text = getattr(importlib.import_module(module), function)(robot, provenance=provenance, **options)
+    write_text(path, text)
+    return path
 
 
 __all__ = ["FORMATS", "SUFFIXES", "export"]

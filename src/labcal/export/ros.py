@@ -67,11 +67,9 @@ from __future__ import annotations
 
 import hashlib
 import json
-from pathlib import Path
 
 import numpy as np
 
-from labcal.atomicio import write_text
 from labcal.compensator import CalibratedRobot
 from labcal.export.learned import refuse_or_note
 from labcal.export.zform import ZAxisForm
@@ -179,16 +177,3 @@ def ur_kinematics_text(robot: CalibratedRobot, provenance: dict | None = None, g
 def _pose6(T: np.ndarray) -> np.ndarray:
     """x, y, z, rx, ry, rz (rotation vector) of a pose, as a UR pendant writes a TCP."""
     return np.concatenate([T[:3, 3], se3.log_so3(T[:3, :3])])
-
-
-def tcp_in_tool0(robot: CalibratedRobot) -> np.ndarray:
-    """(4, 4) the identified tool frame in ur_description's tool0 (identity for a nominal robot)."""
-    return ur_frames(robot)[1]
-
-
-def write_ur_kinematics(
-    robot: CalibratedRobot, path, provenance: dict | None = None, geometry_only: bool = False
-) -> Path:
-    path = Path(path)
-    write_text(path, ur_kinematics_text(robot, provenance, geometry_only))
-    return path

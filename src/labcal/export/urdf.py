@@ -32,20 +32,19 @@ the size in a comment.
 
 Example::
 
-    from labcal.export.urdf import write_urdf
-    write_urdf(fit.robot, "ur10-calibrated.urdf", velocity=[2.09] * 6, effort=[330, 330, 150, 56, 56, 56])
+    from labcal.export import export
+    export(fit.robot, "urdf", "ur10-calibrated.urdf", velocity=[2.09] * 6, effort=[330, 330, 150, 56, 56, 56])
 """
 
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 import numpy as np
 
-from labcal.atomicio import write_text
 from labcal.compensator import CalibratedRobot
 from labcal.export.learned import refuse_or_note
+from labcal.export.ros import UR_JOINT_NAMES, check_ur, ur_frames
 from labcal.export.zform import ZAxisForm
 from labcal.kinematics import se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel, default_twist
@@ -158,8 +157,6 @@ def _urdf_frames(robot: CalibratedRobot, ur_names: bool) -> LocalPOEModel:
     """robot.model in URDF form (:func:`urdf_model`), in ur_description's frame layout with ``ur_names``."""
     model = urdf_model(robot.model)
     if ur_names:
-        from labcal.export.ros import check_ur, ur_frames
-
         check_ur(robot, "URDF with UR link names")
         origins, tool = ur_frames(robot)  # ur_description's layout: wrist_3_link at the flange
         model = model.replace(frames=np.concatenate([origins, tool[None]]))
@@ -194,15 +191,7 @@ def _link_and_joint_names(model: LocalPOEModel, ur_names: bool) -> tuple[list[st
     """(links base..link n, joint names): ur_description's, or generic links and the model's (unique) joint names."""
     if ur_names:
         links = ["base_link_inertia", *UR_LINKS]
-        joint_names = [
-            "shoulder_pan_joint",
-            "shoulder_lift_joint",
-            "elbow_joint",
-            "wrist_1_joint",
-            "wrist_2_joint",
-            "wrist_3_joint",
-        ]
-        return links, joint_names
+        return links, list(UR_JOINT_NAMES)
     links = ["base_link", *[f"link_{j + 1}" for j in range(model.n)]]
     joint_names = [printable(name) for name in model.joint_names]
     twice = duplicate(joint_names)
@@ -268,9 +257,3 @@ def _tool_joints(root: ET.Element, robot: CalibratedRobot, model: LocalPOEModel,
         # Robot and tool apart: the fixture the calibration measured through, beside the robot (tool0 stays on tool0)
         ET.SubElement(root, "link", name="measurement_tool")
         _fixed(root, "tool0-measurement_tool", "tool0", "measurement_tool", robot.measurement_tool)
-
-
-def write_urdf(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:
-    path = Path(path)
-    write_text(path, urdf_text(robot, provenance, **options))
-    return path

@@ -50,7 +50,7 @@ UR10 fit, q = [1.6962, 0.7805, −0.0283, −1.0017, 1.5547, 0.5462]). So a six-
 Strings: every text the exporter writes into a comment or a string literal (robot name, method, provenance, popup
 messages) goes through :func:`_text`, which keeps printable ASCII and writes every other character, the quote,
 the backslash, ``%`` and ``#`` as %XX escapes, so no name or provenance value can end a comment or a string.
-Rules the emitted script keeps (checked on every emitted script by ``labcal.testing.urscript_subset.check``):
+Rules the emitted script keeps (the tests check every emitted script with ``benchmarks/urscript_subset.py``):
 
 - **List capacity.** Since PolyScope 5.15 a list can only be assigned to an existing list of greater or equal
   capacity, and a list literal's capacity is its length. Every list is created at its full size (``[0.0, …]`` of
@@ -95,7 +95,6 @@ assumes a residual rotation below π/2 (corrections are milliradians).
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import numpy as np
 
@@ -107,7 +106,6 @@ from labcal.kinematics import se3
 from labcal.kinematics.metric import scaled_condition
 from labcal.robots import model_hash
 
-BUILTINS = ("sin", "cos", "sqrt", "atan2", "pow", "sync", "popup", "textmsg", "str_cat", "halt", "movej")
 STATEMENTS_PER_SYNC = 1000  # default budget of statements between two sync() calls (see the module docstring)
 FLOAT32_BOUND = 2e-5  # rad: |script in float32 − correct()| on configurations with scaled condition ≤ 100
 AGREEMENT = 1e-4  # rad: |script − correct()| wherever the script returns (float64 or float32)
@@ -149,6 +147,11 @@ def _bools(values) -> str:
 
 def _zeros(m: int) -> str:
     return "[" + ", ".join(["0.0"] * m) + "]"
+
+
+def _locals(value: str, *names: str) -> list[str]:
+    """A function's declarations ``local name = value``, one line each (URScript declares one name per statement)."""
+    return [f"  local {name} = {value}" for name in names]
 
 
 class _Budget:
@@ -233,14 +236,8 @@ def _twists_function(n: int) -> list[str]:
         "def lc_twists(F, rev, pitch):",
         "  sync()",
         f"  local J = {_zeros(6 * n)}",
-        "  local j = 0",
-        "  local b = 0",
-        "  local zx = 0.0",
-        "  local zy = 0.0",
-        "  local zz = 0.0",
-        "  local px = 0.0",
-        "  local py = 0.0",
-        "  local pz = 0.0",
+        *_locals("0", "j", "b"),
+        *_locals("0.0", "zx", "zy", "zz", "px", "py", "pz"),
         f"  while j < {n}:",
         "    b = 12 * j",
         "    zx = F[b + 2]",
@@ -313,15 +310,8 @@ def _solve_function(n: int, budget: _Budget) -> list[str]:
         "  sync()",
         f"  local A = {_zeros(n * n)}",
         f"  local x = {_zeros(n)}",
-        "  local i = 0",
-        "  local r = 0",
-        "  local k = 0",
-        "  local p = 0",
-        "  local cnt = 0",
-        "  local rc = 0",
-        "  local best = 0.0",
-        "  local t = 0.0",
-        "  local f = 0.0",
+        *_locals("0", "i", "r", "k", "p", "cnt", "rc"),
+        *_locals("0.0", "best", "t", "f"),
         "  A = [" + ", ".join(f"M[{k}]" for k in range(n * n)) + "]",
         "  x = [" + ", ".join(f"y[{k}]" for k in range(n)) + "]",
         f"  while i < {n}:",
@@ -615,10 +605,8 @@ def _region_function(region, budget: _Budget) -> list[str]:
         "def lc_region_d2(q):",
         "  sync()",
         "  local best = -1.0",
-        "  local d = 0.0",
-        "  local e = 0.0",
-        "  local c = 0",
-        "  local s = 0",
+        *_locals("0.0", "d", "e"),
+        *_locals("0", "c", "s"),
         f"  while c < {count}:",
         f"    e = q[0] * {_num(region.weights[0])} - lc_vc0[c]",
         "    d = e * e",
@@ -699,15 +687,10 @@ def _attempt_locals(n: int) -> list[str]:
         f"  local J = {_zeros(6 * n)}",
         f"  local dR = {_zeros(9)}",
         f"  local dp = {_zeros(3)}",
-        f"  local r = {_zeros(6)}",
-        f"  local rho = {_zeros(6)}",
+        *_locals(_zeros(6), "r", "rho"),
         f"  local st = {_zeros(n)}",
         "  local it = 0",
-        "  local size = 0.0",
-        "  local prev = 0.0",
-        "  local tot = 0.0",
-        "  local err = 0.0",
-        "  local status = 0.0",
+        *_locals("0.0", "size", "prev", "tot", "err", "status"),
         "  while status == 0.0:",
         "    F = lc_chain(lc_A, lc_lin, qc)",
         "    J = lc_twists(F, lc_rev, lc_pitch)",
@@ -838,9 +821,7 @@ def _inv_norm_function(n: int, length_scale: float) -> list[str]:
         "# |J⁻¹ diag(L, L, L, 1, 1, 1)|, column by column (J x = L e_k for a translation, e_k for a rotation)",
         "def lc_inv_norm(J):",
         f"  local w = {_list(w)}",
-        f"  local e = {_zeros(n)}",
-        f"  local c = {_zeros(n)}",
-        f"  local s = {_zeros(n)}",
+        *_locals(_zeros(n), "e", "c", "s"),
         "  local k = 0",
         f"  while k < {n}:",
         f"    e = {_zeros(n)}",
@@ -1079,19 +1060,3 @@ def _inv_norm(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
         inv = np.linalg.inv(J) * w  # J⁻¹ diag(L, L, L, 1, 1, 1) = J_s⁻¹
     out = np.abs(inv).sum(axis=2).max(axis=1)
     return np.where(np.isfinite(out), out, np.inf)
-
-
-def write_urscript(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:
-    path = Path(path)
-    from labcal.atomicio import write_text  # whole or absent, never over a device or a symlink
-
-    write_text(path, urscript_text(robot, provenance=provenance, **options))
-    return path
-
-
-def write_urscript_program(robot: CalibratedRobot, path, provenance: dict | None = None, **options) -> Path:
-    path = Path(path)
-    from labcal.atomicio import write_text  # whole or absent, never over a device or a symlink
-
-    write_text(path, urscript_program_text(robot, provenance=provenance, **options))
-    return path

@@ -5,5 +5,4 @@ tests, benchmarks and simulated set-ups import them explicitly:
 
     from labcal.testing.fakes import FakeNDIDevice, ScriptedTransport
     from labcal.testing.rtde_fake import FakeRTDEServer
-    from labcal.testing import urscript_subset  # the URScript subset: rule checker and interpreter
 """
