@@ -49,7 +49,7 @@ from labcal.export.urscript import urscript_text
 from labcal.kinematics.metric import scaled_condition
 from labcal.robots import load
 from labcal.simulation.actual import ErrorSpec
-from labcal.simulation.scenarios import good
+from scenarios import good
 
 ROOT = Path(__file__).resolve().parents[1]
 AGREE = 1e-4  # rad

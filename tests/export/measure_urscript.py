@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+# The scenario generators live with the benchmarks (pytest puts benchmarks/ on the path; a script must).
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from export_fixtures import sample
 
@@ -25,8 +27,8 @@ from labcal.calibration.fit import fit
 from labcal.export.urscript import FLOAT32_BOUND, urscript_text
 from labcal.robots import load
 from labcal.simulation.actual import ErrorSpec
-from labcal.simulation.scenarios import good
 from labcal.testing import urscript_subset
+from scenarios import good
 
 OLD = "5770eeb:src/labcal/export/urscript.py"
 
