@@ -6,8 +6,6 @@ Sessions talk to the driver *ports* (:mod:`labcal.drivers.base`) only; the CLI p
 from labcal.sessions.planning import (
     CRITERIA,
     DEFAULT_MAX_CONDITION,
-    LineOfSight,
-    Observability,
     PlanningError,
     exchange_i_optimal,
     greedy_d_optimal,
@@ -15,9 +13,7 @@ from labcal.sessions.planning import (
     identification_jacobian,
     joint_ranges,
     length_scaled_condition,
-    observability,
     optimal_configurations,
-    prediction_variance,
     random_configurations,
 )
 from labcal.sessions.plans import Measure, Move, Plan, PlanError, PoseStep, Settle, make_plan
@@ -37,10 +33,8 @@ from labcal.sessions.runner import (
 __all__ = [
     "CRITERIA",
     "DEFAULT_MAX_CONDITION",
-    "LineOfSight",
     "Measure",
     "Move",
-    "Observability",
     "Plan",
     "PlanError",
     "PlanningError",
@@ -60,9 +54,7 @@ __all__ = [
     "joint_ranges",
     "length_scaled_condition",
     "make_plan",
-    "observability",
     "optimal_configurations",
-    "prediction_variance",
     "random_configurations",
     "resume",
     "run",
