@@ -338,13 +338,6 @@ def test_ordering_lowers_motion_time_and_is_deterministic(ur10):
             assert D[flipped[:-1], flipped[1:]].sum() >= path - 1e-9
 
 
-def test_ordering_from_a_start_begins_near_it(ur10):
-    q = random_configurations(ur10, 30, seed=9)
-    start = q[17] + 0.01
-    order = order_for_motion(q, 0.5, 0.8, start=start)
-    assert order[0] == 17
-
-
 # --------------------------------------------------------------------------------------------------------------
 # `session new` on hardware profiles: the plan is drawn inside the robot's own limits, ordered, at its caps
 

@@ -598,9 +598,8 @@ def move_time_matrix(a, b, speed, acceleration) -> np.ndarray:
     return out
 
 
-def _path_time(D: np.ndarray, order: np.ndarray, start: np.ndarray | None) -> float:
-    total = float(D[order[:-1], order[1:]].sum())
-    return total + (float(start[order[0]]) if start is not None else 0.0)
+def _path_time(D: np.ndarray, order: np.ndarray) -> float:
+    return float(D[order[:-1], order[1:]].sum())
 
 
 def _nearest_neighbour(D: np.ndarray, first: int) -> np.ndarray:
@@ -617,9 +616,8 @@ def _nearest_neighbour(D: np.ndarray, first: int) -> np.ndarray:
     return order
 
 
-def _two_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_passes: int) -> np.ndarray:
-    """Reverse segments of an open path while that shortens it (D symmetric). The path begins at ``start`` (times
-    from it to each pose) when given; otherwise its first pose is free too."""
+def _two_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
+    """Reverse segments of an open path while that shortens it (D symmetric); its first pose is free too."""
     order = order.copy()
     k = len(order)
     for _ in range(max_passes):
@@ -631,8 +629,6 @@ def _two_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_pas
             if i > 0:
                 before_old = D[order[i - 1], p]
                 before_new = D[order[i - 1], q]
-            elif start is not None:
-                before_old, before_new = start[p], start[q]
             else:
                 before_old, before_new = 0.0, np.zeros(len(j))
             nxt = np.minimum(j + 1, k - 1)
@@ -649,18 +645,14 @@ def _two_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_pas
     return order
 
 
-def _or_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_passes: int) -> np.ndarray:
+def _or_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
     """Move segments of 1 to 3 poses (as they are or reversed) to the place in the path where they cost least,
-    while that shortens it. Position -1 stands for the path's beginning (after ``start`` when given)."""
+    while that shortens it. Position -1 stands for the path's (free) beginning."""
     order = order.copy()
     k = len(order)
 
-    def edge(a, b):  # time of the edge a → b; a = -1 is the start (free without one), b = -1 the open end
-        if b == -1:
-            return 0.0
-        if a == -1:
-            return float(start[b]) if start is not None else 0.0
-        return float(D[a, b])
+    def edge(a, b):  # time of the edge a → b; a = -1 is the beginning, b = -1 the open end: both free
+        return 0.0 if a == -1 or b == -1 else float(D[a, b])
 
     for _ in range(max_passes):
         improved = False
@@ -670,15 +662,15 @@ def _or_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_pass
                 seg = order[i : i + length]
                 prev = order[i - 1] if i > 0 else -1
                 nxt = order[i + length] if i + length < k else -1
-                removed = edge(prev, seg[0]) + edge(seg[-1], nxt) - (edge(prev, nxt) if nxt != -1 else 0.0)
+                removed = edge(prev, seg[0]) + edge(seg[-1], nxt) - edge(prev, nxt)
                 rest = np.concatenate([order[:i], order[i + length :]])
-                # insert between rest[g-1] and rest[g] (g = 0 … len(rest)); rest[-1] before 0 is the start
-                # old_link[g]: the edge rest[g-1] → rest[g] that an insertion at g replaces (none at the end)
-                old_link = np.concatenate([[start[rest[0]] if start is not None else 0.0], D[rest[:-1], rest[1:]], [0]])
+                # insert between rest[g-1] and rest[g] (g = 0 … len(rest)); before 0 is the free beginning
+                # old_link[g]: the edge rest[g-1] → rest[g] that an insertion at g replaces (none at the ends)
+                old_link = np.concatenate([[0.0], D[rest[:-1], rest[1:]], [0]])
                 best_gain, best = 1e-9, None
                 for piece in (seg, seg[::-1]):
                     head, tail = piece[0], piece[-1]
-                    into = np.concatenate([[start[head] if start is not None else 0.0], D[rest, head]])
+                    into = np.concatenate([[0.0], D[rest, head]])
                     into[:-1] += D[tail, rest]
                     gain = removed - (into - old_link)
                     g = int(np.argmax(gain))
@@ -694,12 +686,12 @@ def _or_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_pass
     return order
 
 
-def order_for_motion(q, speed, acceleration, *, start=None, max_passes: int = 200, starts: int = 4) -> np.ndarray:
+def order_for_motion(q, speed, acceleration, *, max_passes: int = 200, starts: int = 4) -> np.ndarray:
     """(k,) permutation of the configurations q (k, n) that shortens the total motion time of visiting them.
 
     Move times: :func:`move_time_matrix` at ``speed`` / ``acceleration`` (the robot profile's caps). Nearest
-    neighbour from every pose (or from ``start`` (n,), the robot's joints when the plan begins), the shortest
-    kept, then 2-opt (segment reversals) until no reversal shortens the path or ``max_passes``. No randomness
+    neighbour from every pose, the ``starts`` shortest kept, then 2-opt (segment reversals) and or-opt (segment
+    moves) until neither shortens the path or ``max_passes``. No randomness
     and ties go to the lowest index: the same configurations give the same order.
 
     >>> order_for_motion(np.array([[0.0], [3.0], [1.0], [2.0]]), 0.5, 1.0).tolist()
@@ -708,24 +700,20 @@ def order_for_motion(q, speed, acceleration, *, start=None, max_passes: int = 20
     q = np.asarray(q, dtype=float)
     if q.ndim != 2 or len(q) == 0 or not np.all(np.isfinite(q)):
         raise PlanningError(f"q must be a finite (k, n) array of configurations, got shape {q.shape}")
-    if len(q) < 3 and start is None:
+    if len(q) < 3:
         return np.arange(len(q))
     D = move_time_matrix(q, q, speed, acceleration)
-    s = None if start is None else move_time_matrix(np.reshape(start, (1, -1)), q, speed, acceleration)[0]
-    if s is not None:
-        candidates = [_nearest_neighbour(D, int(np.argmin(s)))]
-    else:
-        candidates = [_nearest_neighbour(D, first) for first in range(len(q))]
-    times = np.array([_path_time(D, c, s) for c in candidates])
+    candidates = [_nearest_neighbour(D, first) for first in range(len(q))]
+    times = np.array([_path_time(D, c) for c in candidates])
     best: np.ndarray | None = None
     for c in np.argsort(times, kind="stable")[:starts]:
         order = candidates[int(c)]
         for _ in range(max_passes):  # alternate until neither improves
-            before = _path_time(D, order, s)
-            order = _or_opt(D, _two_opt(D, order, s, max_passes), s, max_passes)
-            if _path_time(D, order, s) >= before - 1e-9:
+            before = _path_time(D, order)
+            order = _or_opt(D, _two_opt(D, order, max_passes), max_passes)
+            if _path_time(D, order) >= before - 1e-9:
                 break
-        if best is None or _path_time(D, order, s) < _path_time(D, best, s) - 1e-9:
+        if best is None or _path_time(D, order) < _path_time(D, best) - 1e-9:
             best = order
     return best
 
