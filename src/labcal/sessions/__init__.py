@@ -27,7 +27,6 @@ from labcal.sessions.runner import (
     check_measurement,
     resume,
     run,
-    target_distances,
 )
 
 __all__ = [
@@ -58,5 +57,4 @@ __all__ = [
     "random_configurations",
     "resume",
     "run",
-    "target_distances",
 ]

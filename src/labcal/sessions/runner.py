@@ -231,33 +231,12 @@ class _Outcome:
     refused: bool = False  # the driver refused the motion (the plan's fault, not the measurement's)
 
 
-def _pairs(m: int) -> tuple[tuple[int, int], ...]:
-    """Target pairs whose distances are checked: the triangle's sides t1t2, t2t3, t3t1 for three targets (the order
-    of :func:`triangle_sides`), every pair otherwise (:func:`~labcal.datasets.targets.target_pairs`)."""
-    # Not target_pairs(3): callers from before 1..k targets pass the nominal sides (1-D) in this order.
-    return ((0, 1), (1, 2), (2, 0)) if m == 3 else target_pairs(m)
-
-
-def triangle_sides(points: np.ndarray) -> np.ndarray:
-    """(3, 3) points → (3,) side lengths |t1t2|, |t2t3|, |t3t1| in the points' unit."""
-    return pair_distances(points, _pairs(3))
-
-
-def target_distances(points: np.ndarray) -> np.ndarray:
-    """(m, 3) points → distances of the target pairs (:func:`_pairs`; for m = 3 exactly :func:`triangle_sides`),
-    NaN where either target is not seen (a NaN row). ``(0,)`` for one target."""
-    return pair_distances(points, _pairs(len(points)))
-
-
 def check_measurement(m: Measurement, nominal: np.ndarray, validation: Validation) -> tuple[str, float | None]:
     """("" if acceptable else the reason, largest distance error in m, or None when fewer than two targets were
-    seen). ``nominal``: the targets (m, 3) in the tool frame (or, for three targets, their :func:`triangle_sides`).
-    See :class:`Validation`."""
+    seen). ``nominal``: the targets (m, 3) in the tool frame; the distances of every pair of them
+    (:func:`~labcal.datasets.targets.pair_distances`) are checked. See :class:`Validation`."""
     nominal = np.asarray(nominal, dtype=float)
-    if nominal.ndim == 1:  # the triangle's sides, as callers before 1..k targets passed them
-        n_targets, sides = 3, nominal
-    else:
-        n_targets, sides = len(nominal), target_distances(nominal)
+    n_targets, sides = len(nominal), pair_distances(nominal)
     points = np.asarray(m.points, dtype=float)
     if points.shape != (n_targets, 3):
         return f"tracker returned points of shape {points.shape}, expected ({n_targets}, 3)", None
@@ -272,10 +251,10 @@ def check_measurement(m: Measurement, nominal: np.ndarray, validation: Validatio
         if not seen.any():
             return "no target seen", None
         return f"missing target(s) {', '.join(missing)} ({int(seen.sum())} seen, {validation.min_targets} needed)", None
-    together = np.array([seen[a] and seen[b] for a, b in _pairs(n_targets)], dtype=bool)
+    together = np.array([seen[a] and seen[b] for a, b in target_pairs(n_targets)], dtype=bool)
     if not together.any():
         return "", None
-    measured = target_distances(points)
+    measured = pair_distances(points)
     error = float(np.max(np.abs(measured[together] - sides[together])))
     spread = np.asarray(m.spread, dtype=float)
     spread_seen = spread[seen] if spread.shape == (n_targets,) else spread
@@ -297,8 +276,7 @@ class RunOptions:
     frame: "tracker", or "base" if the tracker reports in the robot base frame; validation, retry: see
     :class:`Validation`, :class:`RetryPolicy`; allow: record-time sanity checks to override (names of
     :data:`labcal.datasets.sanity.CHECKS`); progress: callable taking :class:`Progress`; session_id: None = a new
-    id; tracker_info / robot_info: identity of the drivers for the start document (default :func:`describe`);
-    metadata: the caller's (sim seeds, profiles …); sleep: how to wait for settling (tests pass a no-op); seal:
+    id; metadata: the caller's (sim seeds, profiles …); sleep: how to wait for settling (tests pass a no-op); seal:
     make a version at the end; unit: the robot unit's id (default: the serial number the robot driver reports in
     ``device_identity()``, see :func:`session_unit`).
     """
@@ -309,8 +287,6 @@ class RunOptions:
     allow: tuple[str, ...] = ()
     progress: ProgressCallback | None = None
     session_id: str | None = None
-    tracker_info: Mapping[str, Any] | None = None
-    robot_info: Mapping[str, Any] | None = None
     metadata: Mapping[str, Any] | None = None
     sleep: Callable[[float], None] = time.sleep
     seal: bool = True
@@ -669,8 +645,8 @@ def run(
         robot=spec.record(),
         targets=targets,
         frame=opts.frame,
-        tracker=dict(opts.tracker_info) if opts.tracker_info is not None else describe(tracker),
-        robot_driver=dict(opts.robot_info) if opts.robot_info is not None else describe(robot),
+        tracker=describe(tracker),
+        robot_driver=describe(robot),
         plan=plan.pose_documents(),
         extra_units=EXTRA_UNITS,
         metadata={"runner": runner_settings, "robot_source": spec.source, **dict(opts.metadata or {})},
@@ -818,6 +794,4 @@ __all__ = [
     "resume",
     "run",
     "session_unit",
-    "target_distances",
-    "triangle_sides",
 ]
