@@ -43,16 +43,6 @@ def test_configurations_stay_inside_the_shrunk_joint_ranges(ur10):
     assert np.all(q.max(axis=0) - q.min(axis=0) > 1.5 * half)
 
 
-def test_explicit_limits_are_respected_and_must_lie_inside_the_model(ur10):
-    limits = np.array(ur10.limits)
-    limits[1] = [-1.0, -0.5]
-    q = random_configurations(ur10, 50, seed=1, limits=limits, max_condition=None)
-    assert np.all((q[:, 1] >= -1.0) & (q[:, 1] <= -0.5))
-    limits[2] = [-10.0, 0.0]
-    with pytest.raises(PlanningError, match=r"row 2 \(joint 3\)"):
-        random_configurations(ur10, 5, seed=1, limits=limits)
-
-
 def test_every_configuration_meets_the_conditioning_threshold(ur10):
     for bound in (DEFAULT_MAX_CONDITION, 20.0):
         q = random_configurations(ur10, 100, seed=2, max_condition=bound)
@@ -98,7 +88,7 @@ def test_lower_mobility_robot_is_planned_too():
 
 def test_joint_ranges_rejects_a_bad_fraction(ur10):
     with pytest.raises(PlanningError, match="range_fraction"):
-        joint_ranges(ur10, range_fraction=0.0)
+        joint_ranges(ur10.limits, range_fraction=0.0)
 
 
 # ------------------------------------------------------------------------------------------------------------

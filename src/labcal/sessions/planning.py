@@ -121,30 +121,6 @@ class TargetFacing:
 # The cell: joint limits the runner checks, the workspace
 
 
-def cell_limits(model: LocalPOEModel, safety: SafetyLimits | None = None, joint_map: JointMap | None = None):
-    """(n, 2) model-joint box to sample: the model's limits, narrowed by the runner's ``safety.joint_limits``
-    where those are model joints (the safety limits carry the joint map, or controller and model joints agree).
-
-    joint_map: model → controller joints as the runner commands them (``spec.joints``). Limits on controller
-    joints through a non-identity map are not a box in model joints: they are applied by the per-pose check
-    (:func:`runner_accepts`) alone.
-    """
-    lim = np.array(model.limits, dtype=float)
-    if safety is None:
-        return lim
-    sl = np.asarray(safety.joint_limits, dtype=float)
-    if sl.shape != lim.shape:
-        raise PlanningError(f"the robot's joint limits are for {sl.shape[0]} joints, the model has {model.n}")
-    if safety.joint_map is not None or joint_map is None or joint_map.is_identity:
-        lim = np.stack([np.maximum(lim[:, 0], sl[:, 0]), np.minimum(lim[:, 1], sl[:, 1])], axis=1)
-        for j in np.flatnonzero(lim[:, 0] > lim[:, 1]):
-            raise PlanningError(
-                f"joint {j + 1}: the robot's limits [{sl[j, 0]:.6f}, {sl[j, 1]:.6f}] rad and the model's "
-                f"[{model.limits[j, 0]:.6f}, {model.limits[j, 1]:.6f}] rad do not overlap; fix the robot profile"
-            )
-    return lim
-
-
 def runner_accepts(q, safety: SafetyLimits, joint_map: JointMap | None = None) -> np.ndarray:
     """(k, n) model joints → (k,) bool: the robot driver's own limit check (``safety.within``) accepts the
     controller joints the runner would command."""
@@ -165,25 +141,6 @@ def checked_points(model: LocalPOEModel, q, targets) -> np.ndarray:
 # Sampling
 
 
-def joint_ranges(model: LocalPOEModel, limits=None, range_fraction: float = 1.0) -> np.ndarray:
-    """(n, 2) sampling ranges: ``limits`` (default model.limits) shrunk to ``range_fraction`` about their middle."""
-    lim = model.limits if limits is None else np.asarray(limits, dtype=float)
-    if lim.shape != (model.n, 2) or not np.all(np.isfinite(lim)):
-        raise PlanningError(f"limits must be a finite ({model.n}, 2) array [lo, hi] per joint, got shape {lim.shape}")
-    for j, (lo, hi) in enumerate(lim):
-        if lo > hi:
-            raise PlanningError(f"limits row {j} (joint {j + 1}): lo {lo} > hi {hi}")
-        mlo, mhi = model.limits[j]
-        if lo < mlo - 1e-12 or hi > mhi + 1e-12:
-            raise PlanningError(
-                f"limits row {j} (joint {j + 1}): [{lo}, {hi}] leaves the model's joint limits [{mlo}, {mhi}]"
-            )
-    if not (0 < range_fraction <= 1):
-        raise PlanningError(f"range_fraction must be in (0, 1], got {range_fraction!r}")
-    mid, half = lim.mean(axis=1), 0.5 * (lim[:, 1] - lim[:, 0]) * range_fraction
-    return np.stack([mid - half, mid + half], axis=1)
-
-
 def length_scaled_condition(model: LocalPOEModel, q, length_scale: float | None = None) -> np.ndarray:
     """(k,) condition numbers of ``diag(1/L,1/L,1/L,1,1,1) · J_ρ(q)`` (L = ``length_scale``, default reach).
 
@@ -198,7 +155,6 @@ def random_configurations(
     count: int,
     *,
     seed: int,
-    limits=None,
     range_fraction: float = 1.0,
     max_condition: float | None = DEFAULT_MAX_CONDITION,
     targets=None,
@@ -217,16 +173,15 @@ def random_configurations(
     its allowed box and out of its keep-out boxes. facing: every target's normal within its acceptance angle of
     the direction to the tracker (:class:`TargetFacing`; needs ``targets``).
 
-    limits: (n, 2) rad (m) sampling limits inside the model's, default ``model.limits``; range_fraction: keep
-    this fraction of each range about its middle. max_condition: bound on :func:`length_scaled_condition` (None:
-    no check). targets: (m, 3) m in the tool frame, used by the workspace and facing checks (default: the tool
-    origin). max_tries: most configurations drawn
-    (default max(10 000, 200·count)); :class:`PlanningError`, with the rejection counts, if too few pass.
+    range_fraction: keep this fraction of each joint range about its middle. max_condition: bound on
+    :func:`length_scaled_condition` (None: no check). targets: (m, 3) m in the tool frame, used by the workspace and
+    facing checks (default: the tool origin). max_tries: most configurations drawn (default max(10 000,
+    200·count)); :class:`PlanningError`, with the rejection counts, if too few pass.
     Same arguments and seed ⇒ the same configurations.
     """
     if isinstance(count, bool) or not isinstance(count, int | np.integer) or count < 1:
         raise PlanningError(f"count must be a positive integer, got {count!r}")
-    ranges, draw_lo, draw_hi, through_map = _sampling_box(model, limits, range_fraction, safety, joint_map)
+    ranges, draw_lo, draw_hi, through_map = _sampling_box(model, range_fraction, safety, joint_map)
     if max_condition is not None and not max_condition >= 1:
         raise PlanningError(f"max_condition must be >= 1 (or None), got {max_condition!r}")
     pts = _check_targets(targets, facing)
@@ -258,24 +213,42 @@ def random_configurations(
     return np.concatenate(chosen)[:count]
 
 
-def _sampling_box(model: LocalPOEModel, limits, range_fraction: float, safety, joint_map):
-    """(model joint ranges (n, 2), draw low (n,), draw high (n,), whether draws go through the joint map)."""
-    box_limits = cell_limits(model, safety, joint_map)
-    if limits is not None:
-        lim = joint_ranges(model, limits)  # checked against the model's limits before narrowing
-        box_limits = np.stack([np.maximum(lim[:, 0], box_limits[:, 0]), np.minimum(lim[:, 1], box_limits[:, 1])], 1)
-        if np.any(box_limits[:, 0] > box_limits[:, 1]):
-            raise PlanningError("limits and the robot's joint limits do not overlap")
-    ranges = joint_ranges(model, box_limits, range_fraction)
-    # Limits on controller joints through a coupling joint map are a slanted box in model joints: draw uniformly in
-    # the controller box instead (a linear map keeps a uniform density uniform) and check the model's ranges.
+def joint_ranges(limits, range_fraction: float = 1.0) -> np.ndarray:
+    """(n, 2) sampling ranges: ``limits`` (n, 2) [lo, hi] per joint shrunk to ``range_fraction`` about their middle."""
+    if not (0 < range_fraction <= 1):
+        raise PlanningError(f"range_fraction must be in (0, 1], got {range_fraction!r}")
+    lim = np.asarray(limits, dtype=float)
+    mid, half = lim.mean(axis=1), 0.5 * (lim[:, 1] - lim[:, 0]) * range_fraction
+    return np.stack([mid - half, mid + half], axis=1)
+
+
+def _sampling_box(model: LocalPOEModel, range_fraction: float, safety, joint_map):
+    """(model joint ranges (n, 2), draw low (n,), draw high (n,), whether draws go through the joint map).
+
+    The model's limits, narrowed by the runner's ``safety.joint_limits`` where those are model joints (the safety
+    limits carry the joint map, or controller and model joints agree). joint_map: model → controller joints as the
+    runner commands them (``spec.joints``). Limits on controller joints through a coupling map are a slanted box in
+    model joints: the draws are uniform in the controller box instead (a linear map keeps a uniform density
+    uniform), then checked against the model's ranges and by the per-pose check (:func:`runner_accepts`).
+    """
+    lim = np.array(model.limits, dtype=float)
     through_map = (
         safety is not None and safety.joint_map is None and joint_map is not None and not joint_map.is_identity
     )
-    if through_map:
-        ctrl = np.asarray(safety.joint_limits, dtype=float)
-        mid, half = ctrl.mean(axis=1), 0.5 * (ctrl[:, 1] - ctrl[:, 0]) * range_fraction
-        return ranges, mid - half, mid + half, True
+    if safety is not None:
+        sl = np.asarray(safety.joint_limits, dtype=float)
+        if sl.shape != lim.shape:
+            raise PlanningError(f"the robot's joint limits are for {sl.shape[0]} joints, the model has {model.n}")
+        if through_map:
+            ctrl = joint_ranges(sl, range_fraction)
+            return joint_ranges(lim, range_fraction), ctrl[:, 0], ctrl[:, 1], True
+        lim = np.stack([np.maximum(lim[:, 0], sl[:, 0]), np.minimum(lim[:, 1], sl[:, 1])], axis=1)
+        for j in np.flatnonzero(lim[:, 0] > lim[:, 1]):
+            raise PlanningError(
+                f"joint {j + 1}: the robot's limits [{sl[j, 0]:.6f}, {sl[j, 1]:.6f}] rad and the model's "
+                f"[{model.limits[j, 0]:.6f}, {model.limits[j, 1]:.6f}] rad do not overlap; fix the robot profile"
+            )
+    ranges = joint_ranges(lim, range_fraction)
     return ranges, ranges[:, 0], ranges[:, 1], False
 
 
@@ -554,7 +527,7 @@ def optimal_configurations(
     and its spread between simulated robots); the numbers live there and in the README.
 
     The pool is ``pool`` (k, n) if given, else ``candidates`` configurations from :func:`random_configurations`
-    (``seed`` and the ``sampling`` keyword arguments: limits, range_fraction, max_condition, max_tries, safety,
+    (``seed`` and the ``sampling`` keyword arguments: range_fraction, max_condition, max_tries, safety,
     joint_map, workspace, facing — so every chosen configuration passed the same checks). targets: (m, 3) m
     in the tool frame. dropout: probability that the tracker loses a target (scalar or (m,)): the selection then
     maximises the expected information of the points that will be measured.
@@ -723,7 +696,6 @@ __all__ = [
     "DEFAULT_MAX_CONDITION",
     "PlanningError",
     "TargetFacing",
-    "cell_limits",
     "checked_points",
     "exchange_i_optimal",
     "greedy_d_optimal",
