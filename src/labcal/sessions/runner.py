@@ -133,12 +133,10 @@ class RetryPolicy:
     max_failed_poses: int = 5
 
     def __post_init__(self) -> None:
-        if isinstance(self.max_attempts, bool) or not isinstance(self.max_attempts, int) or self.max_attempts < 1:
-            raise ValueError(f"RetryPolicy.max_attempts must be an integer >= 1, got {self.max_attempts!r}")
-        for name in ("max_silent_poses", "max_failed_poses"):
+        for name, least in (("max_attempts", 1), ("max_silent_poses", 0), ("max_failed_poses", 0)):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"RetryPolicy.{name} must be an integer >= 0, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"RetryPolicy.{name} must be an integer >= {least}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -176,13 +174,11 @@ ProgressCallback = Callable[[Progress], None]
 
 
 def describe(device: object) -> dict:
-    """Identity of a driver for the start document: its ``identity()`` dict if it has one, else its class."""
+    """Identity of a driver for the start document: its class and what its ``identity()`` method (if any) says."""
     ident = getattr(device, "identity", None)
     info = {"class": f"{type(device).__module__}.{type(device).__qualname__}"}
     if callable(ident):
         info.update(dict(ident()))
-    elif isinstance(ident, Mapping):
-        info.update(dict(ident))
     return info
 
 
