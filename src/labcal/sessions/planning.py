@@ -689,25 +689,3 @@ def order_for_motion(q, speed, acceleration, *, max_passes: int = 200, starts: i
         if best is None or _path_time(D, order) < _path_time(D, best) - 1e-9:
             best = order
     return best
-
-
-__all__ = [
-    "CRITERIA",
-    "DEFAULT_MAX_CONDITION",
-    "PlanningError",
-    "TargetFacing",
-    "checked_points",
-    "exchange_i_optimal",
-    "greedy_d_optimal",
-    "identifiable_basis",
-    "identification_jacobian",
-    "joint_ranges",
-    "length_scaled_condition",
-    "move_time_matrix",
-    "optimal_configurations",
-    "order_for_motion",
-    "random_configurations",
-    "runner_accepts",
-    "target_weights",
-    "weighted_rows",
-]

@@ -313,20 +313,3 @@ def make_plan(
         except PlanError as e:
             raise PlanError(f"configuration {i}: {e}") from None
     return Plan(tuple(commands))
-
-
-__all__ = [
-    "PLAN_FORMAT",
-    "Command",
-    "Measure",
-    "Move",
-    "Plan",
-    "PlanError",
-    "PoseStep",
-    "Settle",
-    "command_from_dict",
-    "command_to_dict",
-    "make_plan",
-    "motion_time",
-    "move_time",
-]

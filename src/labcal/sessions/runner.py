@@ -773,21 +773,3 @@ def _check_same_unit(session_id: str, start: StartDoc, robot: Robot) -> None:
             f"session {session_id} was recorded on the robot with serial number {recorded!r}, this controller "
             f"reports {now!r}: resume it on the same arm, or record a new session for this one"
         )
-
-
-__all__ = [
-    "EXTRA_UNITS",
-    "Progress",
-    "ProgressCallback",
-    "RetryPolicy",
-    "RunOptions",
-    "RunSummary",
-    "SessionError",
-    "Validation",
-    "check_measurement",
-    "describe",
-    "device_identity",
-    "resume",
-    "run",
-    "session_unit",
-]
