@@ -488,13 +488,10 @@ class _Run:
         journal.stop("success", f"{self.plan.n_poses} poses done")
         return "success", ""
 
-    def measure_pose(self, step: PoseStep, q_command: np.ndarray | None = None) -> _Outcome:
-        """Move, settle, measure and validate one pose with bounded retries. ProtectiveStop propagates.
-
-        q_command: the pose in controller joints (default: the plan's joints, i.e. an identity joint map).
-        """
+    def measure_pose(self, step: PoseStep, q_cmd: np.ndarray) -> _Outcome:
+        """Move to ``q_cmd`` (the pose in controller joints), settle, measure and validate with bounded retries.
+        ProtectiveStop propagates."""
         robot, tracker, v = self.robot, self.tracker, self.validation
-        q_cmd = np.asarray(step.q if q_command is None else q_command, dtype=float)
         timeouts = 0
         reasons: list[str] = []
         moved = False
