@@ -386,14 +386,12 @@ class _Run:
                 why = self.stop_reason(outcome, pose)
                 if why:
                     _safe_stop(robot)
-                    journal.stop("failed", why)
-                    return "failed", why
+                    return self.stopped("failed", why)
         except ProtectiveStop as e:
             _safe_stop(robot)
             reason = f"protective stop at pose {pose}: {e}"
             journal.pause(reason)
-            journal.stop("paused", reason)
-            return "paused", reason
+            return self.stopped("paused", reason)
         except KeyboardInterrupt as e:
             _safe_stop(robot)
             # counted in the journal, not a plan index: "at pose 92" read as 92 recorded or as the 92nd, depending on
@@ -402,19 +400,20 @@ class _Run:
             # labcal's entry point turns SIGTERM / SIGHUP into a KeyboardInterrupt carrying the signal's number
             signum = e.args[0] if e.args and isinstance(e.args[0], int) else None
             by = "by the operator (Ctrl-C)" if signum is None else f"by {signal.Signals(signum).name}"
-            reason = f"interrupted {by} with {valid} of {self.plan.n_poses} poses recorded valid"
-            journal.stop("aborted", reason)
-            return "aborted", reason
+            return self.stopped("aborted", f"interrupted {by} with {valid} of {self.plan.n_poses} poses recorded valid")
         except JournalError:
             # The journal cannot record any more: stop the robot and let the caller see why.
             _safe_stop(robot)
             raise
         except DriverError as e:
             _safe_stop(robot)
-            reason = f"{type(e).__name__} at pose {pose}: {e}"
-            journal.stop("failed", reason)
-            return "failed", reason
+            return self.stopped("failed", f"{type(e).__name__} at pose {pose}: {e}")
         return self.finish(valid_now)
+
+    def stopped(self, status: str, reason: str) -> tuple[str, str]:
+        """Write the stop document and return (exit_status, reason) as :meth:`execute` does."""
+        self.journal.stop(status, reason)
+        return status, reason
 
     def record(self, step: PoseStep) -> _Outcome:
         """Measure one pose and journal it (whatever its status), then count it and report it."""
@@ -478,13 +477,10 @@ class _Run:
             contents = journal.read()
             last = next((d.reason for d in reversed(contents.measurements) if not d.valid), "")
             reason = f"no valid measurement: all {self.measured} pose(s) measured in this run were rejected"
-            reason += f" (last reason: {last})" if last else ""
-            journal.stop("failed", reason)
-            return "failed", reason
+            return self.stopped("failed", reason + (f" (last reason: {last})" if last else ""))
         why = self.sanity(at_end=True)  # a short session still gets checked once
         if why:
-            journal.stop("failed", why)
-            return "failed", why
+            return self.stopped("failed", why)
         journal.stop("success", f"{self.plan.n_poses} poses done")
         return "success", ""
 
