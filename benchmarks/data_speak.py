@@ -21,9 +21,9 @@ from labcal.calibration.local_poe import fit_local_poe
 from labcal.kinematics import se3
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
-from labcal.simulation.scenarios import TARGETS
 from paper import _ik
 from plain_lsq import fit_plain
+from scenarios import TARGETS
 
 Q0 = np.array([0.3, -1.3, 1.6, -1.9, -1.57, 0.4])  # rad: the cube's centre pose (elbow up, wrist down)
 T_TRACKER = se3.pose(np.array([3.0, 1.0, -0.5]))
@@ -104,7 +104,7 @@ def _timing() -> None:
     import dataclasses
     import timeit
 
-    from labcal.simulation import scenarios
+    import scenarios
 
     scn = scenarios.good("ur10", 600, seed=0)
     robot = fit(Observations(**scn.arrays()), load("ur10").model, "local-poe").robot
@@ -154,7 +154,7 @@ def _narrow_table(title: str, kwargs: dict) -> None:
 
 
 def _wide() -> None:
-    from labcal.simulation import scenarios
+    import scenarios
 
     print("\nwide UR10 data (scenarios.good, 60 random poses, seeds 0-2): the rule against no rule")
     for seed in range(3):
@@ -189,7 +189,7 @@ def _position_only(robot, q: np.ndarray, point: np.ndarray, fixture: np.ndarray,
 def _single_reflector() -> None:
     import dataclasses
 
-    from labcal.simulation import scenarios
+    import scenarios
 
     scn = scenarios.with_targets(scenarios.good("ur10", 60, seed=0), [0])
     reflector = scn.targets[0]

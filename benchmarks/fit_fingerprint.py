@@ -28,13 +28,13 @@ from pathlib import Path
 
 import numpy as np
 
+import scenarios
 from labcal.calibration.fit import fit
 from labcal.calibration.local_poe import register
 from labcal.calibration.observations import Observations
 from labcal.compensator import to_payload
 from labcal.kinematics import metric, se3
 from labcal.robots import load
-from labcal.simulation import scenarios
 
 
 def _cases():

@@ -1,7 +1,7 @@
 """Benchmark ``fit-time``: wall time and peak memory of ``fit()`` vs the number of poses N, for every method.
 
 Data: N random non-singular poses of a simulated ``ur10`` with geometric + non-geometric errors
-(``ErrorSpec.default``, :func:`labcal.simulation.scenarios.good`, seed 0), base frame, default fit options
+(``ErrorSpec.default``, ``scenarios.good``, seed 0), base frame, default fit options
 (``fit(obs, nominal, method, seed=0)``).
 
 Each (method, N) cell runs in its own Python process, so one cell's memory never shows in another's: the child
@@ -57,7 +57,7 @@ def cell(method: str, n: int, seed: int = 0) -> dict:
     from labcal.calibration import Observations, fit
     from labcal.robots import load
     from labcal.simulation import ErrorSpec
-    from labcal.simulation.scenarios import good
+    from scenarios import good
 
     if method in _TORCH:
         import torch  # noqa: F401  (imported before the baseline so the import is not counted as fit memory)

@@ -42,10 +42,10 @@ from pathlib import Path
 import numpy as np
 
 import paper
+import scenarios as S
 from labcal.calibration import Observations, fit, register
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
-from labcal.simulation import scenarios as S
 from plain_lsq import fit_plain
 
 FAMILIES = ("sweeps-ur10", "sweeps-fanuc", "paper-A", "paper-B", "ur10-real-50", "ur10-real-150")

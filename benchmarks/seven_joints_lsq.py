@@ -1,7 +1,7 @@
 """Local POE against an independent least-squares fit on a simulated 7-joint arm (issue 28).
 
 A simulated Franka Panda (``franka-panda``) with geometric, compliance and gear errors (``ErrorSpec.default``), poses
-drawn uniformly over the full joint ranges (non-singular, :func:`labcal.simulation.scenarios.nonsingular`), base
+drawn uniformly over the full joint ranges (non-singular, ``scenarios.nonsingular``), base
 frame, 0.05 mm tracker noise. Target sets: one reflector 200 mm from the flange axis, one 15 mm from it (a nest on
 the flange), one the targets file puts on the axis while it really sits 17.5 mm beside it, and three targets.
 For split s = 0 … S−1 the true robot and its poses are drawn with seed s, a third of the poses is held out, and
@@ -25,11 +25,11 @@ import time
 
 import numpy as np
 
+import scenarios as S
 from labcal.calibration import Observations
 from labcal.calibration.local_poe import fit_local_poe
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
-from labcal.simulation import scenarios as S
 from plain_lsq import fit_plain
 
 # (name, true targets (m, 3) in the tool frame, the targets file's (m, 3))

@@ -12,10 +12,10 @@ import warnings
 
 import numpy as np
 
+import scenarios as S
 from labcal.calibration.fit import fit
 from labcal.calibration.observations import Observations
 from labcal.robots import load
-from labcal.simulation import scenarios as S
 from plain_lsq import fit_plain
 
 warnings.filterwarnings("ignore")

@@ -48,7 +48,7 @@ from labcal.export.urscript import urscript_text
 from labcal.kinematics.metric import scaled_condition
 from labcal.robots import load
 from labcal.simulation.actual import ErrorSpec
-from labcal.simulation.scenarios import good
+from scenarios import good
 
 AGREE = 1e-4  # rad
 NEAR = 0.05  # rad from the singular value of the wrist (q5) and the elbow (q3)

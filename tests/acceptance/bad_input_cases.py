@@ -15,8 +15,8 @@ through, a pass case was stopped, a clean-error case printed a traceback or exit
 case got through).
 
 Data: a simulated ``ur10`` (``ErrorSpec.default``) measured at 60 random non-singular poses, three targets
-(:data:`labcal.simulation.scenarios.TARGETS`) in a targets TOML in mm, CSV in metres and radians unless the case
-says otherwise; the corruptions come from :mod:`labcal.simulation.scenarios`.
+(``TARGETS`` of benchmarks/scenarios.py) in a targets TOML in mm, CSV in metres and radians unless the case
+says otherwise; the corruptions come from benchmarks/scenarios.py.
 
 The acceptance suite (tests/acceptance/test_bad_inputs.py) runs each case as one test that fails unless the verdict
 is ``ok``; ``python benchmarks/bad_inputs.py [--cases NAME …] [--method auto] [--out FILE]`` prints them as one
@@ -41,9 +41,9 @@ from pathlib import Path
 
 import numpy as np
 
+import scenarios as S
 from labcal.robots import builtin_path
 from labcal.simulation import ErrorSpec
-from labcal.simulation import scenarios as S
 
 TIMEOUT = 900.0  # s per command: fit with auto on a loaded machine
 MEMORY_LIMIT = 3 * 1024**3  # bytes of address space for a child that might try to allocate without bound
@@ -462,7 +462,7 @@ def _coupled_controller(mapped: bool) -> S.Scenario:
 
         q_ctrl = load(str(path)).joints.to_controller(scn.q)
     else:  # the example file is not there yet: the plain coupled elbow (model J3 = J2 + J3)
-        q_ctrl = scn.q @ np.linalg.inv(S.COUPLED_ELBOW).T
+        q_ctrl = scn.q @ np.linalg.inv(S.coupled_map(6)).T
     return scn.changed("coupled", "controller joints", q_controller=q_ctrl)
 
 

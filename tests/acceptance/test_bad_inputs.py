@@ -14,7 +14,7 @@ import bad_input_cases as B
 import numpy as np
 import pytest
 
-from labcal.simulation import scenarios as S
+import scenarios as S
 
 
 @pytest.mark.slow

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import scenarios as S
 from labcal.robots import load
 from labcal.simulation import ErrorSpec
-from labcal.simulation import scenarios as S
 from plain_lsq import fit_plain, seen_points
 
 

@@ -10,10 +10,10 @@ import pytest
 import fit_time
 import plain_lsq
 import robustness as R
+import scenarios as S
 from labcal.kinematics import se3
 from labcal.robots import load
 from labcal.simulation import ErrorSpec
-from labcal.simulation import scenarios as S
 from plain_lsq import GlobalPOE, fit_plain, kabsch
 
 

@@ -8,11 +8,11 @@ import re
 import numpy as np
 import pytest
 
+import scenarios as S
 from labcal.calibration import Observations, fit
 from labcal.calibration.cv import CVResult, choose, cross_validate, fold_count, fold_plan
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
-from labcal.simulation import scenarios as S
 
 TARGETS = np.array([[0.12, 0.0, 0.05], [-0.06, 0.15, 0.05], [-0.07, -0.11, 0.04]])
 UR10 = load("ur10")
@@ -320,7 +320,7 @@ def test_four_poses_every_method_runs_and_says_what_it_could_not_do():
 def test_a_good_fit_of_singular_wrist_sweeps_is_not_a_large_correction():
     """Near q5 ≈ 0 a milliradian of orientation error needs tenths of a radian at joints 4 and 6, but the tool
     hardly moves: that is the wrist's geometry, not a unit slip, and must not block the export."""
-    from labcal.simulation import scenarios
+    import scenarios
 
     scn = scenarios.sweeps("ur10", 36, 4, singular_wrist=True, seed=4)
     obs = Observations(scn.q, scn.points, scn.targets)
@@ -339,8 +339,8 @@ def test_the_correction_bound_holds_inside_the_validity_region_and_is_lifted_out
     """Inside the region no correction exceeds solve.MAX_CORRECTION; a configuration outside it that extrapolate=True
     lets through gets the model's unbounded answer (the caller asked for the extrapolation), row by row in a batch
     that mixes both, and on the single-configuration path."""
+    import scenarios
     from labcal.compensator.solve import MAX_CORRECTION
-    from labcal.simulation import scenarios
 
     scn = scenarios.sweeps("ur10", 36, 4, singular_wrist=True, seed=4)
     robot = fit(Observations(scn.q, scn.points, scn.targets), UR10.model, "local-poe").robot

@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+import scenarios
 from data_speak import narrow
 from labcal.calibration import Observations
 from labcal.calibration.fit import _large_correction
@@ -17,7 +18,6 @@ from labcal.compensator import CalibratedRobot
 from labcal.compensator.io import from_payload, to_payload
 from labcal.compensator.validity import ValidityRegion
 from labcal.robots import load
-from labcal.simulation import scenarios
 
 
 @pytest.fixture(scope="module")

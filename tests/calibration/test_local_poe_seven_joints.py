@@ -9,11 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import scenarios as S
 from labcal.calibration import Observations
 from labcal.calibration.local_poe import AXIS_TOL, fit_local_poe
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
-from labcal.simulation import scenarios as S
 from plain_lsq import fit_plain
 
 SETS = {  # the true targets (tool frame, m) and the targets file's

@@ -8,8 +8,8 @@ import pandas as pd
 import pytest
 from cli_testutil import invoke, last_line
 
+import scenarios as sc
 from labcal.datasets import SessionStore
-from labcal.simulation import scenarios as sc
 
 
 @pytest.fixture(scope="module")

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from cli_testutil import invoke, last_line
 
+import scenarios
 from labcal.compensator import Compensator
 from labcal.robots import load
-from labcal.simulation import scenarios
 
 ONE = np.array([[0.0, 0.0, 0.1]])  # a single reflector 100 mm out along the flange axis
 THREE = np.array([[0.12, 0.0, 0.06], [-0.06, 0.1, 0.06], [-0.06, -0.1, 0.09]])

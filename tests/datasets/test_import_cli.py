@@ -10,10 +10,10 @@ import pytest
 from datasets_testutil import shared_data_dir
 from typer.testing import CliRunner
 
+import scenarios as sc
 from labcal.cli.app import app
 from labcal.datasets import SessionStore, load_version
 from labcal.datasets.sanity import CHECKS
-from labcal.simulation import scenarios as sc
 
 runner = CliRunner()
 

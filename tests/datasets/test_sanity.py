@@ -1,7 +1,7 @@
 """Sanity checks at import (issue 12.1): every mistake a new user makes is refused with the check's name, the bad
 rows and the fix, nothing is written, and only ``allow=[CHECK]`` (``--allow CHECK``) lets it through, on record.
 
-The data are simulated (``labcal.simulation.scenarios``) and go through the real import path: a CSV on disk,
+The data are simulated (``benchmarks/scenarios.py``) and go through the real import path: a CSV on disk,
 ``import_targets_csv`` / ``import_probe_csv`` with the robot spec, as ``labcal session import`` calls them.
 """
 
@@ -12,11 +12,11 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
+import scenarios as sc
 from labcal.datasets import DatasetError, SessionStore, import_probe_csv, import_targets_csv, load_version
 from labcal.datasets.sanity import CHECKS, SanityError, check_measurements, registered_residuals
 from labcal.kinematics import se3
 from labcal.robots import load
-from labcal.simulation import scenarios as sc
 
 UR10 = load("ur10")
 

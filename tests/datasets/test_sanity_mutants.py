@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import scenarios as sc
 from labcal.datasets.sanity import check_measurements
 from labcal.robots import load
-from labcal.simulation import scenarios as sc
 
 UR10 = load("ur10")
 

@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+# The scenario generators live with the benchmarks (pytest puts benchmarks/ on the path; a script must).
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from export_fixtures import hybrid
 from test_program import program_poses
@@ -30,7 +32,7 @@ from labcal.kinematics import se3
 from labcal.kinematics.metric import scaled_condition
 from labcal.robots import load
 from labcal.simulation.actual import ErrorSpec
-from labcal.simulation.scenarios import good
+from scenarios import good
 
 
 def main() -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))  # urscript_subset
+sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))  # urscript_subset, scenarios
 
 from export_fixtures import sample
 
@@ -27,7 +27,7 @@ from labcal.calibration.fit import fit
 from labcal.export.urscript import FLOAT32_BOUND, urscript_text
 from labcal.robots import load
 from labcal.simulation.actual import ErrorSpec
-from labcal.simulation.scenarios import good
+from scenarios import good
 
 OLD = "5770eeb:src/labcal/export/urscript.py"
 

@@ -30,7 +30,7 @@ from labcal.kinematics import se3
 from labcal.kinematics.metric import scaled_condition
 from labcal.robots import load
 from labcal.simulation.actual import ErrorSpec
-from labcal.simulation.scenarios import good, joint_box
+from scenarios import good, joint_box
 
 
 @pytest.fixture(scope="module")

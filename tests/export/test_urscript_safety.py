@@ -195,8 +195,8 @@ def test_script_corrects_only_inside_the_validity_region():
     """Where correct() refuses without extrapolate (inside the joint ranges, but far from every measured
     configuration) the script stops with a popup naming the region; at the measured configurations it answers as
     correct() does."""
+    import scenarios
     from labcal.calibration import Observations, fit
-    from labcal.simulation import scenarios
 
     scn = scenarios.good("ur10", 40, seed=0)
     robot = fit(Observations(scn.q, scn.points, scn.targets), load("ur10").model, "local-poe").robot
@@ -220,8 +220,8 @@ def test_program_self_test_runs_inside_the_validity_region_of_a_fit_with_wide_jo
     """A local-POE fit keeps the robot's ±2π ranges while its data fill a fraction of them: the self test must
     pick configurations where the script answers (the golden ones span the ranges and left the region: the export
     failed with correct()'s 'validity radius' refusal)."""
+    import scenarios
     from labcal.calibration import Observations, fit
-    from labcal.simulation import scenarios
 
     scn = scenarios.good("ur10", 40, seed=0)
     robot = fit(Observations(scn.q, scn.points, scn.targets), load("ur10").model, "local-poe").robot

@@ -134,6 +134,6 @@ def test_a_short_session_of_the_wrong_robot_fails_its_sanity_check_at_the_end(sp
 
 
 def test_range_fraction_above_one_is_refused(spec):
-    assert np.allclose(joint_ranges(spec.model, range_fraction=1.0), spec.model.limits)
+    assert np.allclose(joint_ranges(spec.model.limits, range_fraction=1.0), spec.model.limits)
     with pytest.raises(PlanningError, match=r"range_fraction must be in \(0, 1\]"):
-        joint_ranges(spec.model, range_fraction=2.0)
+        joint_ranges(spec.model.limits, range_fraction=2.0)

@@ -1,15 +1,15 @@
 """Any number of targets in the simulator: m ≥ 1 targets, a seeded drop-out per cell (NaN rows), one reflector
-(t1 alone) and the tool origin alone."""
+(t1 alone)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+import scenarios as S
 from labcal.kinematics import se3
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, drop_unseen, seen_mask, simulate
-from labcal.simulation import scenarios as S
 
 NOISE = ErrorSpec.default().tracker_noise
 
@@ -96,20 +96,6 @@ def test_with_dropout_is_seeded_and_loses_whole_targets(base):
     # Dropping more from an already incomplete set never brings a target back.
     again = S.with_dropout(d, 0.2, seed=3, exact=False)
     assert not (again.seen & ~d.seen).any()
-
-
-def test_probe_origin_measures_the_tool_origin_of_the_same_robot_and_poses(base):
-    p = S.probe_origin(base)
-    assert p.m == 1 and np.array_equal(p.targets, np.zeros((1, 3))) and np.array_equal(p.q, base.q)
-    true = base.actual.true_pose(base.q)[:, :3, 3]
-    assert np.abs(p.points[:, 0] - true).max() < 6 * NOISE
-    assert np.abs(p.points[:, 0] - true).max() > 0  # measured, with noise
-    tracker = S.in_tracker_frame(base)
-    pt = S.probe_origin(tracker)
-    T = tracker.T_tracker_base
-    np.testing.assert_allclose(pt.points[:, 0], p.points[:, 0] @ T[:3, :3].T + T[:3, 3], atol=1e-12)
-    with pytest.raises(ValueError, match="no robot produced these data"):
-        S.probe_origin(S.pure_noise(base))
 
 
 def test_corruptions_that_need_targets_say_so(base):

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import scenarios as S
 from labcal.drivers.base import MotionRejected
 from labcal.drivers.sim import SimRig
 from labcal.robots import load
 from labcal.robots.joint_map import JointMap
 from labcal.simulation import ErrorSpec, simulate
-from labcal.simulation import scenarios as S
 
 NOISE = ErrorSpec.default().tracker_noise
 SEVEN = ("franka-panda", "kuka-iiwa14-r820")

@@ -214,13 +214,7 @@ def _check_urdf_names(model: LocalPOEModel, source: str) -> None:
     for j, name in enumerate(model.joint_names):
         if problem := name_problem(name):
             raise RobotFileError(f"{source}: joint {j + 1} name {problem}", source)
-    twice = duplicate(model.joint_names)
-    if twice is not None:
-        raise RobotFileError(
-            f"{source}: joint {twice[1] + 1} name {model.joint_names[twice[1]]!r} repeats joint {twice[0] + 1}'s: "
-            "joint names must be unique",
-            source,
-        )
+    # Repeated names cannot reach here: the chain's joints are <joint>s, refused when repeated before it was built.
 
 
 def _lo_below_hi(lim: list[float]) -> str | None:
@@ -360,10 +354,9 @@ def _joint_map(table: dict, model: LocalPOEModel, units_checked: bool, fail) -> 
     offsets = np.array(table.get("offsets", [0.0] * n))
     if not units_checked:
         for j, (value, jtype) in enumerate(zip(offsets, model.joint_types, strict=True)):
-            if jtype == REVOLUTE and abs(value) > MAX_ANGLE:
-                raise fail(_degrees_message(f"joint_map.offsets[{j + 1}]", value))
-            if jtype != REVOLUTE and abs(value) > MAX_LENGTH:
-                raise fail(_millimetres_message(f"joint_map.offsets[{j + 1}]", value))
+            revolute = jtype == REVOLUTE
+            if abs(value) > (MAX_ANGLE if revolute else MAX_LENGTH):
+                raise fail(_unit_message(f"joint_map.offsets[{j + 1}]", value, angle=revolute))
     if abs(np.linalg.det(matrix)) < 1e-9:
         raise fail(
             "joint_map.matrix is singular: every model joint must follow from the controller joints and back "
@@ -372,17 +365,15 @@ def _joint_map(table: dict, model: LocalPOEModel, units_checked: bool, fail) -> 
     return JointMap(matrix, offsets)
 
 
-def _degrees_message(field: str, value: float) -> str:
+def _unit_message(field: str, value: float, angle: bool) -> str:
+    """Why ``field = value`` is refused: it looks like degrees (an ``angle``) or millimetres (a length)."""
+    if angle:
+        looks, unit, converted = "degrees", "radians", f"{value:g}° = {np.radians(value):.6g} rad"
+    else:
+        looks, unit, converted = "millimetres", "metres", f"{value:g} mm = {value / 1000:.6g} m"
     return (
-        f"{field} = {value:g} looks like degrees; robot files are in radians ({value:g}° = {np.radians(value):.6g} "
-        "rad). If the value is right, add units_checked = true at the top of the file"
-    )
-
-
-def _millimetres_message(field: str, value: float) -> str:
-    return (
-        f"{field} = {value:g} looks like millimetres; robot files are in metres ({value:g} mm = {value / 1000:.6g} "
-        "m). If the value is right, add units_checked = true at the top of the file"
+        f"{field} = {value:g} looks like {looks}; robot files are in {unit} ({converted}). If the value is right, "
+        "add units_checked = true at the top of the file"
     )
 
 
@@ -396,19 +387,13 @@ def _check_units(kind: str, joints: list, tool: dict, fail) -> None:
         return [(suffix, x) for suffix, x in items if _is_number(x)]
 
     def check(where: str, row: dict, angles: tuple, lengths: tuple, revolute: bool) -> None:
-        for key in angles:
+        # (key, is an angle, largest plausible |value|): the angles, the lengths, then the limits
+        bounds = [(key, True, MAX_ANGLE) for key in angles] + [(key, False, MAX_LENGTH) for key in lengths]
+        bounds.append(("limits", revolute, MAX_REVOLUTE_LIMIT if revolute else MAX_LENGTH))
+        for key, angle, bound in bounds:
             for suffix, x in numbers(row, key):
-                if abs(x) > MAX_ANGLE:
-                    raise fail(_degrees_message(f"{where}.{key}{suffix}", x))
-        for key in lengths:
-            for suffix, x in numbers(row, key):
-                if abs(x) > MAX_LENGTH:
-                    raise fail(_millimetres_message(f"{where}.{key}{suffix}", x))
-        for suffix, x in numbers(row, "limits"):
-            if revolute and abs(x) > MAX_REVOLUTE_LIMIT:
-                raise fail(_degrees_message(f"{where}.limits{suffix}", x))
-            if not revolute and abs(x) > MAX_LENGTH:
-                raise fail(_millimetres_message(f"{where}.limits{suffix}", x))
+                if abs(x) > bound:
+                    raise fail(_unit_message(f"{where}.{key}{suffix}", x, angle))
 
     dh = kind in ("dh", "mdh")
     for j, row in enumerate(joints, start=1):

@@ -1,26 +1,12 @@
 """Measurement sessions: configuration planning, plans as data, and the runner that records them.
 
-Sessions talk to the driver *ports* (:mod:`labcal.drivers.base`) only; the CLI picks concrete drivers.
+Sessions talk to the driver *ports* (:mod:`labcal.drivers.base`) only; the CLI picks concrete drivers. The package
+names what a caller records a session with; the rest (plan commands, the planner's criteria and Jacobians) is
+imported from :mod:`labcal.sessions.planning`, :mod:`labcal.sessions.plans` and :mod:`labcal.sessions.runner`.
 """
 
-from labcal.sessions.planning import (
-    CRITERIA,
-    DEFAULT_MAX_CONDITION,
-    LineOfSight,
-    Observability,
-    PlanningError,
-    exchange_i_optimal,
-    greedy_d_optimal,
-    identifiable_basis,
-    identification_jacobian,
-    joint_ranges,
-    length_scaled_condition,
-    observability,
-    optimal_configurations,
-    prediction_variance,
-    random_configurations,
-)
-from labcal.sessions.plans import Measure, Move, Plan, PlanError, PoseStep, Settle, make_plan
+from labcal.sessions.planning import optimal_configurations, random_configurations
+from labcal.sessions.plans import Plan, make_plan
 from labcal.sessions.runner import (
     Progress,
     RetryPolicy,
@@ -31,40 +17,20 @@ from labcal.sessions.runner import (
     check_measurement,
     resume,
     run,
-    target_distances,
 )
 
 __all__ = [
-    "CRITERIA",
-    "DEFAULT_MAX_CONDITION",
-    "LineOfSight",
-    "Measure",
-    "Move",
-    "Observability",
     "Plan",
-    "PlanError",
-    "PlanningError",
-    "PoseStep",
     "Progress",
     "RetryPolicy",
     "RunOptions",
     "RunSummary",
     "SessionError",
-    "Settle",
     "Validation",
     "check_measurement",
-    "exchange_i_optimal",
-    "greedy_d_optimal",
-    "identifiable_basis",
-    "identification_jacobian",
-    "joint_ranges",
-    "length_scaled_condition",
     "make_plan",
-    "observability",
     "optimal_configurations",
-    "prediction_variance",
     "random_configurations",
     "resume",
     "run",
-    "target_distances",
 ]

@@ -12,11 +12,6 @@ Two planners:
     are divided by the robot's reach L (``model.reach()``, m) so that both halves of the twist are
     dimensionless. Default threshold :data:`DEFAULT_MAX_CONDITION` = 100: it rejects configurations near a
     singularity (e.g. a 6R wrist near q5 = 0) and keeps the typical ones (``benchmarks/planning.py`` counts them);
-  * **task-space region** — the tool origin (base frame, m) inside an axis-aligned box;
-  * **tracker line of sight** — every target inside the tracker's viewing cone (:class:`LineOfSight`), and,
-    optionally, no target closer than ``min_target_distance`` (m) to another target's line of sight (the ray
-    from the tracker through it), so the tracker sees three separate markers.
-
   and the cell a real robot will accept (``safety``: the robot driver's own :class:`SafetyLimits`, checked with
   the same ``SafetyLimits.within`` its moves are checked with; ``workspace``: the allowed and keep-out boxes of
   the robot profile, on the targets, the tool origin and every link origin; ``facing``: every target's normal
@@ -27,7 +22,7 @@ Two planners:
   D-optimality (maximise log det of the information matrix on the identifiable subspace) with rank-3m Woodbury updates,
   followed by exchange passes. For a fixed number of configurations this also maximises the O1 index
   (Borm & Menq): ``O1 = (σ_1 ⋯ σ_L)^(1/L) / √m``. By default it then exchanges configurations to minimise the
-  average prediction variance over the workspace (I-optimality, :func:`prediction_variance`): a large
+  average prediction variance over the workspace (I-optimality; benchmarks/planning.py measures both indices): a large
   determinant alone did not lower the held-out error much; the prediction variance is what held-out error
   measures.
 
@@ -61,6 +56,7 @@ import numpy as np
 
 from labcal.drivers.base import SafetyLimits
 from labcal.drivers.workspace import Workspace
+from labcal.kinematics.metric import parameter_weights, scaled_condition
 from labcal.kinematics.poe import LocalPOEModel
 from labcal.kinematics.se3 import point_jacobian
 from labcal.robots.joint_map import JointMap
@@ -72,44 +68,6 @@ DEFAULT_MAX_CONDITION = 100.0
 
 class PlanningError(ValueError):
     """The planner cannot satisfy the request (too few configurations pass the checks, bad argument)."""
-
-
-@dataclass(frozen=True)
-class LineOfSight:
-    """A tracker's viewing cone in the robot base frame.
-
-    position: (3,) tracker origin, m; axis: (3,) viewing direction (normalised here); half_angle: rad, in
-    (0, π/2]; max_range: optional largest tracker-to-target distance, m.
-    """
-
-    position: tuple[float, float, float]
-    axis: tuple[float, float, float]
-    half_angle: float
-    max_range: float | None = None
-
-    def __post_init__(self) -> None:
-        pos = np.asarray(self.position, dtype=float)
-        axis = np.asarray(self.axis, dtype=float)
-        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
-            raise PlanningError(f"LineOfSight.position must be 3 finite numbers (m), got {self.position!r}")
-        if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) < 1e-12:
-            raise PlanningError(f"LineOfSight.axis must be a non-zero 3-vector, got {self.axis!r}")
-        if not (0 < self.half_angle <= np.pi / 2):
-            raise PlanningError(f"LineOfSight.half_angle must be in (0, π/2] rad, got {self.half_angle!r}")
-        if self.max_range is not None and not self.max_range > 0:
-            raise PlanningError(f"LineOfSight.max_range must be > 0 m, got {self.max_range!r}")
-        object.__setattr__(self, "position", tuple(float(x) for x in pos))
-        object.__setattr__(self, "axis", tuple(float(x) for x in axis / np.linalg.norm(axis)))
-
-    def visible(self, points: np.ndarray) -> np.ndarray:
-        """points (..., 3) m in the base frame → (...) bool: inside the cone (and the range)."""
-        d = np.asarray(points, dtype=float) - np.asarray(self.position)
-        dist = np.linalg.norm(d, axis=-1)
-        cos = (d @ np.asarray(self.axis)) / np.maximum(dist, 1e-15)
-        ok = cos >= np.cos(self.half_angle)
-        if self.max_range is not None:
-            ok &= dist <= self.max_range
-        return ok
 
 
 @dataclass(frozen=True, eq=False)
@@ -163,30 +121,6 @@ class TargetFacing:
 # The cell: joint limits the runner checks, the workspace
 
 
-def cell_limits(model: LocalPOEModel, safety: SafetyLimits | None = None, joint_map: JointMap | None = None):
-    """(n, 2) model-joint box to sample: the model's limits, narrowed by the runner's ``safety.joint_limits``
-    where those are model joints (the safety limits carry the joint map, or controller and model joints agree).
-
-    joint_map: model → controller joints as the runner commands them (``spec.joints``). Limits on controller
-    joints through a non-identity map are not a box in model joints: they are applied by the per-pose check
-    (:func:`runner_accepts`) alone.
-    """
-    lim = np.array(model.limits, dtype=float)
-    if safety is None:
-        return lim
-    sl = np.asarray(safety.joint_limits, dtype=float)
-    if sl.shape != lim.shape:
-        raise PlanningError(f"the robot's joint limits are for {sl.shape[0]} joints, the model has {model.n}")
-    if safety.joint_map is not None or joint_map is None or joint_map.is_identity:
-        lim = np.stack([np.maximum(lim[:, 0], sl[:, 0]), np.minimum(lim[:, 1], sl[:, 1])], axis=1)
-        for j in np.flatnonzero(lim[:, 0] > lim[:, 1]):
-            raise PlanningError(
-                f"joint {j + 1}: the robot's limits [{sl[j, 0]:.6f}, {sl[j, 1]:.6f}] rad and the model's "
-                f"[{model.limits[j, 0]:.6f}, {model.limits[j, 1]:.6f}] rad do not overlap; fix the robot profile"
-            )
-    return lim
-
-
 def runner_accepts(q, safety: SafetyLimits, joint_map: JointMap | None = None) -> np.ndarray:
     """(k, n) model joints → (k,) bool: the robot driver's own limit check (``safety.within``) accepts the
     controller joints the runner would command."""
@@ -207,63 +141,13 @@ def checked_points(model: LocalPOEModel, q, targets) -> np.ndarray:
 # Sampling
 
 
-def joint_ranges(model: LocalPOEModel, limits=None, range_fraction: float = 1.0) -> np.ndarray:
-    """(n, 2) sampling ranges: ``limits`` (default model.limits) shrunk to ``range_fraction`` about their middle."""
-    lim = model.limits if limits is None else np.asarray(limits, dtype=float)
-    if lim.shape != (model.n, 2) or not np.all(np.isfinite(lim)):
-        raise PlanningError(f"limits must be a finite ({model.n}, 2) array [lo, hi] per joint, got shape {lim.shape}")
-    for j, (lo, hi) in enumerate(lim):
-        if lo > hi:
-            raise PlanningError(f"limits row {j} (joint {j + 1}): lo {lo} > hi {hi}")
-        mlo, mhi = model.limits[j]
-        if lo < mlo - 1e-12 or hi > mhi + 1e-12:
-            raise PlanningError(
-                f"limits row {j} (joint {j + 1}): [{lo}, {hi}] leaves the model's joint limits [{mlo}, {mhi}]"
-            )
-    if not (0 < range_fraction <= 1):
-        raise PlanningError(f"range_fraction must be in (0, 1], got {range_fraction!r}")
-    mid, half = lim.mean(axis=1), 0.5 * (lim[:, 1] - lim[:, 0]) * range_fraction
-    return np.stack([mid - half, mid + half], axis=1)
-
-
 def length_scaled_condition(model: LocalPOEModel, q, length_scale: float | None = None) -> np.ndarray:
     """(k,) condition numbers of ``diag(1/L,1/L,1/L,1,1,1) · J_ρ(q)`` (L = ``length_scale``, default reach).
 
     Infinite for a singular J_ρ.
     """
     L = model.reach() if length_scale is None else float(length_scale)
-    J = model.equivalent_jacobian(q, length_scale=L)
-    D = np.array([1.0 / L] * 3 + [1.0] * 3)
-    s = np.linalg.svd(D[None, :, None] * J, compute_uv=False)
-    with np.errstate(divide="ignore"):
-        return np.where(s[:, -1] > 0, s[:, 0] / np.where(s[:, -1] > 0, s[:, -1], 1.0), np.inf)
-
-
-def _check_region(region) -> np.ndarray | None:
-    if region is None:
-        return None
-    box = np.asarray(region, dtype=float)
-    if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] > box[1]):
-        raise PlanningError(
-            f"region must be [[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] in m with lo <= hi, got {region!r}"
-        )
-    return box
-
-
-def _line_of_sight_clearance(points: np.ndarray, tracker: LineOfSight) -> np.ndarray:
-    """(k, m, 3) points → (k,) smallest distance of any point from another point's tracker ray, m."""
-    d = points - np.asarray(tracker.position)
-    u = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-15)
-    m = points.shape[1]
-    best = np.full(points.shape[0], np.inf)
-    for i in range(m):
-        for j in range(m):
-            if i == j:
-                continue
-            along = np.einsum("ka,ka->k", d[:, j], u[:, i])
-            perp = d[:, j] - along[:, None] * u[:, i]
-            best = np.minimum(best, np.linalg.norm(perp, axis=-1))
-    return best
+    return scaled_condition(model.equivalent_jacobian(q, length_scale=L), L)
 
 
 def random_configurations(
@@ -271,13 +155,9 @@ def random_configurations(
     count: int,
     *,
     seed: int,
-    limits=None,
     range_fraction: float = 1.0,
-    region=None,
     max_condition: float | None = DEFAULT_MAX_CONDITION,
     targets=None,
-    min_target_distance: float | None = None,
-    tracker: LineOfSight | None = None,
     max_tries: int | None = None,
     safety: SafetyLimits | None = None,
     joint_map: JointMap | None = None,
@@ -293,30 +173,25 @@ def random_configurations(
     its allowed box and out of its keep-out boxes. facing: every target's normal within its acceptance angle of
     the direction to the tracker (:class:`TargetFacing`; needs ``targets``).
 
-    limits: (n, 2) rad (m) sampling limits inside the model's, default ``model.limits``; range_fraction: keep
-    this fraction of each range about its middle. region: ``[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]]`` m, box
-    for the tool origin in the base frame. max_condition: bound on :func:`length_scaled_condition` (None: no
-    check). targets: (m, 3) m in the tool frame, used by the tracker checks (default: the tool origin).
-    tracker: the viewing cone every target must be in. min_target_distance: m, smallest allowed distance of a
-    target from another target's line of sight (needs ``tracker``). max_tries: most configurations drawn
-    (default max(10 000, 200·count)); :class:`PlanningError`, with the rejection counts, if too few pass.
+    range_fraction: keep this fraction of each joint range about its middle. max_condition: bound on
+    :func:`length_scaled_condition` (None: no check). targets: (m, 3) m in the tool frame, used by the workspace and
+    facing checks (default: the tool origin). max_tries: most configurations drawn (default max(10 000,
+    200·count)); :class:`PlanningError`, with the rejection counts, if too few pass.
     Same arguments and seed ⇒ the same configurations.
     """
     if isinstance(count, bool) or not isinstance(count, int | np.integer) or count < 1:
         raise PlanningError(f"count must be a positive integer, got {count!r}")
-    ranges, draw_lo, draw_hi, through_map = _sampling_box(model, limits, range_fraction, safety, joint_map)
-    box = _check_region(region)
+    ranges, draw_lo, draw_hi, through_map = _sampling_box(model, range_fraction, safety, joint_map)
     if max_condition is not None and not max_condition >= 1:
         raise PlanningError(f"max_condition must be >= 1 (or None), got {max_condition!r}")
-    pts = _check_target_options(min_target_distance, tracker, targets, facing)
+    pts = _check_targets(targets, facing)
     workspace = _check_workspace(model, workspace)
     max_tries = max(10_000, 200 * int(count)) if max_tries is None else int(max_tries)
     if max_tries < count:
         raise PlanningError(f"max_tries ({max_tries}) is smaller than count ({count})")
     screen = _Screen(
-        model, ranges, joint_map if through_map else None, safety, joint_map, workspace, facing, box, tracker,
-        min_target_distance, max_condition, pts,
-    )  # fmt: skip
+        model, ranges, joint_map if through_map else None, safety, joint_map, workspace, facing, max_condition, pts
+    )
 
     rng = np.random.default_rng(seed)
     chosen: list[np.ndarray] = []
@@ -333,39 +208,52 @@ def random_configurations(
         hint = f" (e.g. {', '.join(screen.example)})" if screen.example else ""
         raise PlanningError(
             f"only {have} of {count} configurations passed after {drawn} draws (max_tries); rejected by {why}{hint}. "
-            "Loosen max_condition, the workspace, the region or the tracker cone, or raise max_tries."
+            "Loosen max_condition or the workspace, or raise max_tries."
         )
     return np.concatenate(chosen)[:count]
 
 
-def _sampling_box(model: LocalPOEModel, limits, range_fraction: float, safety, joint_map):
-    """(model joint ranges (n, 2), draw low (n,), draw high (n,), whether draws go through the joint map)."""
-    box_limits = cell_limits(model, safety, joint_map)
-    if limits is not None:
-        lim = joint_ranges(model, limits)  # checked against the model's limits before narrowing
-        box_limits = np.stack([np.maximum(lim[:, 0], box_limits[:, 0]), np.minimum(lim[:, 1], box_limits[:, 1])], 1)
-        if np.any(box_limits[:, 0] > box_limits[:, 1]):
-            raise PlanningError("limits and the robot's joint limits do not overlap")
-    ranges = joint_ranges(model, box_limits, range_fraction)
-    # Limits on controller joints through a coupling joint map are a slanted box in model joints: draw uniformly in
-    # the controller box instead (a linear map keeps a uniform density uniform) and check the model's ranges.
+def joint_ranges(limits, range_fraction: float = 1.0) -> np.ndarray:
+    """(n, 2) sampling ranges: ``limits`` (n, 2) [lo, hi] per joint shrunk to ``range_fraction`` about their middle."""
+    if not (0 < range_fraction <= 1):
+        raise PlanningError(f"range_fraction must be in (0, 1], got {range_fraction!r}")
+    lim = np.asarray(limits, dtype=float)
+    mid, half = lim.mean(axis=1), 0.5 * (lim[:, 1] - lim[:, 0]) * range_fraction
+    return np.stack([mid - half, mid + half], axis=1)
+
+
+def _sampling_box(model: LocalPOEModel, range_fraction: float, safety, joint_map):
+    """(model joint ranges (n, 2), draw low (n,), draw high (n,), whether draws go through the joint map).
+
+    The model's limits, narrowed by the runner's ``safety.joint_limits`` where those are model joints (the safety
+    limits carry the joint map, or controller and model joints agree). joint_map: model → controller joints as the
+    runner commands them (``spec.joints``). Limits on controller joints through a coupling map are a slanted box in
+    model joints: the draws are uniform in the controller box instead (a linear map keeps a uniform density
+    uniform), then checked against the model's ranges and by the per-pose check (:func:`runner_accepts`).
+    """
+    lim = np.array(model.limits, dtype=float)
     through_map = (
         safety is not None and safety.joint_map is None and joint_map is not None and not joint_map.is_identity
     )
-    if through_map:
-        ctrl = np.asarray(safety.joint_limits, dtype=float)
-        mid, half = ctrl.mean(axis=1), 0.5 * (ctrl[:, 1] - ctrl[:, 0]) * range_fraction
-        return ranges, mid - half, mid + half, True
+    if safety is not None:
+        sl = np.asarray(safety.joint_limits, dtype=float)
+        if sl.shape != lim.shape:
+            raise PlanningError(f"the robot's joint limits are for {sl.shape[0]} joints, the model has {model.n}")
+        if through_map:
+            ctrl = joint_ranges(sl, range_fraction)
+            return joint_ranges(lim, range_fraction), ctrl[:, 0], ctrl[:, 1], True
+        lim = np.stack([np.maximum(lim[:, 0], sl[:, 0]), np.minimum(lim[:, 1], sl[:, 1])], axis=1)
+        for j in np.flatnonzero(lim[:, 0] > lim[:, 1]):
+            raise PlanningError(
+                f"joint {j + 1}: the robot's limits [{sl[j, 0]:.6f}, {sl[j, 1]:.6f}] rad and the model's "
+                f"[{model.limits[j, 0]:.6f}, {model.limits[j, 1]:.6f}] rad do not overlap; fix the robot profile"
+            )
+    ranges = joint_ranges(lim, range_fraction)
     return ranges, ranges[:, 0], ranges[:, 1], False
 
 
-def _check_target_options(min_target_distance, tracker, targets, facing) -> np.ndarray:
-    """The target points (m, 3) in the tool frame (the tool origin without targets), the tracker options checked."""
-    if min_target_distance is not None:
-        if tracker is None:
-            raise PlanningError("min_target_distance needs a tracker (LineOfSight): it is measured across its rays")
-        if not min_target_distance >= 0:
-            raise PlanningError(f"min_target_distance must be >= 0 m, got {min_target_distance!r}")
+def _check_targets(targets, facing) -> np.ndarray:
+    """The target points (m, 3) in the tool frame (the tool origin without targets), checked against ``facing``."""
     pts = np.zeros((1, 3)) if targets is None else np.asarray(targets, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
         raise PlanningError(f"targets must be a finite (m, 3) array in m (tool frame), got shape {pts.shape}")
@@ -404,9 +292,6 @@ class _Screen:
     joint_map: JointMap | None
     workspace: Workspace | None
     facing: TargetFacing | None
-    box: np.ndarray | None
-    tracker: LineOfSight | None
-    min_target_distance: float | None
     max_condition: float | None
     pts: np.ndarray
 
@@ -416,9 +301,6 @@ class _Screen:
             "workspace": 0,
             "facing away": 0,
             "condition": 0,
-            "region": 0,
-            "line of sight": 0,
-            "target separation": 0,
         }
         self.example: list[str] = []  # what the first pose the workspace refused ran into, for the error message
 
@@ -448,13 +330,6 @@ class _Screen:
             seen = self.facing.visible(model, q[idx], self.pts).all(axis=1)
             rejected["facing away"] += int(np.sum(~seen))
             ok[idx[~seen]] = False
-        if self.box is not None:
-            p = model.fk(q)[:, :3, 3]
-            inside = np.all((p >= self.box[0]) & (p <= self.box[1]), axis=1)
-            rejected["region"] += int(np.sum(ok & ~inside))
-            ok &= inside
-        if self.tracker is not None and ok.any():
-            self._line_of_sight(q, ok)
         if self.max_condition is not None and ok.any():
             idx = np.flatnonzero(ok)
             good = length_scaled_condition(model, q[idx]) <= self.max_condition
@@ -462,28 +337,13 @@ class _Screen:
             ok[idx[~good]] = False
         return q[ok]
 
-    def _line_of_sight(self, q: np.ndarray, ok: np.ndarray) -> None:
-        """Clear ok where a target is out of the tracker's cone, or too near another target's line of sight."""
-        assert self.tracker is not None
-        idx = np.flatnonzero(ok)
-        points = self.model.target_points(q[idx], self.pts)
-        seen = self.tracker.visible(points).all(axis=1)
-        self.rejected["line of sight"] += int(np.sum(~seen))
-        ok[idx[~seen]] = False
-        if self.min_target_distance is not None and self.pts.shape[0] > 1:
-            clear = _line_of_sight_clearance(points, self.tracker) >= self.min_target_distance
-            bad = seen & ~clear
-            self.rejected["target separation"] += int(np.sum(bad))
-            ok[idx[bad]] = False
-
 
 # --------------------------------------------------------------------------------------------------------------
 # Observability
 
 
-def target_weights(m: int, dropout=None, seen=None, k: int | None = None) -> np.ndarray:
-    """(k, m) weight of each target's information in each configuration: 1 − p for a drop-out probability p
-    (scalar or (m,)), times 0 where ``seen`` (k, m) says the target was not measured. ``(1, m)`` ones by default.
+def target_weights(m: int, dropout=None) -> np.ndarray:
+    """(1, m) weight of each target's information: 1 − p for a drop-out probability p (scalar or (m,)), else ones.
 
     >>> target_weights(2, dropout=[0.0, 0.5]).tolist()
     [[1.0, 0.5]]
@@ -494,16 +354,12 @@ def target_weights(m: int, dropout=None, seen=None, k: int | None = None) -> np.
         if not np.all((p >= 0) & (p < 1)):
             raise PlanningError(f"dropout must be probabilities in [0, 1) (one, or one per target), got {dropout!r}")
         w = w * (1.0 - p)
-    if seen is not None:
-        mask = np.asarray(seen, dtype=bool)
-        if mask.ndim != 2 or mask.shape[1] != m or (k is not None and mask.shape[0] != k):
-            raise PlanningError(f"seen must be a ({k if k is not None else 'rows'}, {m}) bool array, got {mask.shape}")
-        w = w * mask
     return w
 
 
-def _weighted(G: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(k, 3m, r) Jacobian rows scaled by √weight of their target, so GᵀG is the expected information."""
+def weighted_rows(G: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(k, 3m, r) Jacobian rows scaled by √weight (weights (k, m) or (1, m)) of their target, so GᵀG is the expected
+    information."""
     k, rows, r = G.shape
     m = rows // 3
     root = np.sqrt(np.broadcast_to(weights, (k, m)))
@@ -514,8 +370,8 @@ def identification_jacobian(model: LocalPOEModel, q, targets, length_scale: floa
     """(k, 3m, 6(n+1)) d(target positions)/d(δζ) for targets (m, 3) m in the tool frame.
 
     Rows: t1 x,y,z, t2 x,y,z … (m). Columns: δζ_1 … δζ_{n+1} as (v, ω); the ω columns are divided by L
-    (``length_scale``, default reach) so all parameters are lengths. (Rows of targets not seen are dropped by the
-    callers: :func:`observability` with ``seen``.)
+    (``length_scale``, default reach) so all parameters are lengths. (Rows of targets not seen: the callers weigh
+    them, :func:`weighted_rows`.)
     """
     q2 = np.atleast_2d(np.asarray(q, dtype=float))
     t = np.asarray(targets, dtype=float)
@@ -526,8 +382,7 @@ def identification_jacobian(model: LocalPOEModel, q, targets, length_scale: floa
     k, m = p.shape[:2]
     A = model.frame_jacobian(q2)  # (k, 6, 6(n+1))
     G = np.einsum("kmab,kbc->kmac", point_jacobian(p), A).reshape(k, 3 * m, -1)
-    scale = np.tile([1.0, 1.0, 1.0, 1.0 / L, 1.0 / L, 1.0 / L], model.n + 1)
-    return G * scale
+    return G * parameter_weights(model.n + 1, L)
 
 
 def identifiable_basis(
@@ -549,61 +404,6 @@ def identifiable_basis(
     return V[:, keep][:, ::-1]
 
 
-@dataclass(frozen=True)
-class Observability:
-    """Observability of the identifiable frame errors from a set of configurations.
-
-    o1: (σ_1⋯σ_r)^(1/r)/√rows, m (Borm & Menq O1; 0 if rank-deficient); log_det: log det(GᵀG) on the
-    identifiable subspace (−inf if singular); min_singular: σ_r, m; rank: numerical rank of the reduced G;
-    parameters: r; rows: the measured coordinates, 3 per target seen (expected, with a drop-out probability).
-    """
-
-    o1: float
-    log_det: float
-    min_singular: float
-    rank: int
-    parameters: int
-    rows: float
-
-
-# Numeric indices of a set of configurations; labcal.calibration.metrics.observability is another concept: the
-# orientation claims a target set supports (words for a fit's report).
-def observability(
-    model: LocalPOEModel, q, targets, *, basis: np.ndarray | None = None, seen=None, dropout=None
-) -> Observability:
-    """O1 and log-det indices of the configurations q (k, n) for targets (m, 3), on ``basis`` (default
-    :func:`identifiable_basis` with its default seed, so indices of different sets are comparable).
-
-    ``seen``: (k, m) bool, the targets actually measured in each configuration (only their rows count);
-    ``dropout``: probability that a target is lost (scalar or (m,)): the expected information and row count."""
-    basis = identifiable_basis(model, targets) if basis is None else np.asarray(basis, dtype=float)
-    G = identification_jacobian(model, q, targets)
-    rows: float = float(G.shape[0] * G.shape[1])
-    if seen is not None or dropout is not None:
-        w = np.broadcast_to(target_weights(G.shape[1] // 3, dropout, seen, G.shape[0]), (G.shape[0], G.shape[1] // 3))
-        rows = float(3 * w.sum())
-        keep = np.repeat(w > 0, 3, axis=1)
-        R = (_weighted(G, w) @ basis)[keep]
-    else:
-        R = (G @ basis).reshape(-1, basis.shape[1])
-    s = np.linalg.svd(R, compute_uv=False) if R.size else np.zeros(0)
-    r = basis.shape[1]
-    if s.size < r:
-        s = np.concatenate([s, np.zeros(r - s.size)])
-    rank = int(np.sum(s > 1e-12 * max(s[0], 1e-300)))
-    with np.errstate(divide="ignore"):
-        logs = np.log(s)
-    full = rank == r
-    return Observability(
-        o1=float(np.exp(logs.mean()) / np.sqrt(rows)) if full else 0.0,
-        log_det=float(2 * logs.sum()) if full else float("-inf"),
-        min_singular=float(s[-1]),
-        rank=rank,
-        parameters=r,
-        rows=int(rows) if rows == int(rows) else rows,
-    )
-
-
 def greedy_d_optimal(jacobians: np.ndarray, count: int, *, exchange_passes: int = 2) -> np.ndarray:
     """Indices (count,) of the rows-blocks of ``jacobians`` (k, m, r) whose stacked information ΣGᵀG has the
     largest log det: greedy additions with Woodbury updates, then exchange passes (swap a chosen block for the
@@ -613,9 +413,7 @@ def greedy_d_optimal(jacobians: np.ndarray, count: int, *, exchange_passes: int 
     k, m, r = G.shape
     if not 1 <= count <= k:
         raise PlanningError(f"cannot choose {count} of {k} candidates")
-    # A tiny ridge makes the first, still rank-deficient, steps well defined; it is far below any real info.
-    ridge = 1e-9 * float(np.einsum("kmr,kmr->", G, G)) / (k * r)
-    Finv = np.eye(r) / ridge
+    Finv = np.eye(r) / _ridge(G)
     chosen: list[int] = []
     free = np.ones(k, dtype=bool)
     eye = np.eye(m)
@@ -626,23 +424,11 @@ def greedy_d_optimal(jacobians: np.ndarray, count: int, *, exchange_passes: int 
         Finv = _woodbury(Finv, G[best], +1.0)
         chosen.append(best)
         free[best] = False
-    for _ in range(exchange_passes):
-        improved = False
-        for pos in range(count):
-            out = chosen[pos]
-            Fminus = _woodbury(Finv, G[out], -1.0)
-            gain = _logdet_gains(G, Fminus, eye)
-            gain[~free] = -np.inf
-            stay = _logdet_gains(G[out : out + 1], Fminus, eye)[0]
-            best = int(np.argmax(gain))
-            if gain[best] > stay + 1e-9:
-                chosen[pos] = best
-                free[out], free[best] = True, False
-                Finv = _woodbury(Fminus, G[best], +1.0)
-                improved = True
-        if not improved:
-            break
-    return np.array(chosen)
+
+    def gains(Fminus: np.ndarray, out: int) -> tuple[np.ndarray, float]:
+        return _logdet_gains(G, Fminus, eye), _logdet_gains(G[out : out + 1], Fminus, eye)[0] + 1e-9
+
+    return _exchange(G, Finv, chosen, free, exchange_passes, gains)
 
 
 def exchange_i_optimal(jacobians: np.ndarray, weight: np.ndarray, start, *, passes: int = 3) -> np.ndarray:
@@ -658,24 +444,40 @@ def exchange_i_optimal(jacobians: np.ndarray, weight: np.ndarray, start, *, pass
     chosen = [int(i) for i in start]
     if len(set(chosen)) != len(chosen) or not all(0 <= i < k for i in chosen):
         raise PlanningError(f"start must be distinct indices into {k} candidates, got {chosen}")
-    ridge = 1e-9 * float(np.einsum("kmr,kmr->", G, G)) / (k * r)
-    Finv = np.linalg.inv(np.einsum("kmr,kms->rs", G[chosen], G[chosen]) + ridge * np.eye(r))
+    Finv = np.linalg.inv(np.einsum("kmr,kms->rs", G[chosen], G[chosen]) + _ridge(G) * np.eye(r))
     free = np.ones(k, dtype=bool)
     free[chosen] = False
     eye = np.eye(m)
+
+    def gains(Fminus: np.ndarray, out: int) -> tuple[np.ndarray, float]:
+        # Adding block g lowers trace(F⁻¹W) by trace(S⁻¹ g F⁻¹WF⁻¹ gᵀ), S = I + g F⁻¹ gᵀ.
+        S = eye + (G @ Fminus) @ G.transpose(0, 2, 1)
+        N = (G @ (Fminus @ W @ Fminus)) @ G.transpose(0, 2, 1)
+        gain = np.trace(np.linalg.solve(S, N), axis1=1, axis2=2)
+        return gain, gain[out] * (1 + 1e-9)
+
+    return _exchange(G, Finv, chosen, free, passes, gains)
+
+
+def _ridge(G: np.ndarray) -> float:
+    """A tiny ridge (far below any real information) that makes a still rank-deficient F invertible."""
+    k, _, r = G.shape
+    return 1e-9 * float(np.einsum("kmr,kmr->", G, G)) / (k * r)
+
+
+def _exchange(G: np.ndarray, Finv: np.ndarray, chosen: list[int], free: np.ndarray, passes: int, gains) -> np.ndarray:
+    """Exchange passes over a selection: swap chosen block ``out`` for the free block of largest gain when that gain
+    beats the threshold, ``gains(F⁻¹ without out, out)`` → (gain per block (k,), threshold). Stops after ``passes``
+    passes or a pass without a swap; updates ``chosen`` and ``free`` in place and returns the indices."""
     for _ in range(passes):
         improved = False
         for pos in range(len(chosen)):
             out = chosen[pos]
             Fminus = _woodbury(Finv, G[out], -1.0)
-            # Adding block g lowers trace(F⁻¹W) by trace(S⁻¹ g F⁻¹WF⁻¹ gᵀ), S = I + g F⁻¹ gᵀ.
-            S = eye + (G @ Fminus) @ G.transpose(0, 2, 1)
-            N = (G @ (Fminus @ W @ Fminus)) @ G.transpose(0, 2, 1)
-            gain = np.trace(np.linalg.solve(S, N), axis1=1, axis2=2)
-            stay = gain[out]
+            gain, threshold = gains(Fminus, out)
             gain[~free] = -np.inf
             best = int(np.argmax(gain))
-            if gain[best] > stay * (1 + 1e-9):
+            if gain[best] > threshold:
                 chosen[pos] = best
                 free[out], free[best] = True, False
                 Finv = _woodbury(Fminus, G[best], +1.0)
@@ -700,24 +502,6 @@ def _woodbury(Finv: np.ndarray, g: np.ndarray, sign: float) -> np.ndarray:
     return 0.5 * (out + out.T)
 
 
-def prediction_variance(model: LocalPOEModel, q, targets, workspace, *, basis: np.ndarray | None = None) -> float:
-    """Average prediction variance of the target positions over ``workspace`` (k_w, n) configurations after
-    identifying the frame errors from q (k, n): ``trace(F⁻¹ W)`` in units of the tracker noise variance per
-    coordinate (m² / m²), F the information of q, W the mean information of one workspace configuration, both
-    on the identifiable subspace (``basis``, default :func:`identifiable_basis`). ``inf`` if q cannot identify
-    every direction. The I-optimality criterion: lower is better; the expected mean squared prediction error of
-    one target coordinate is σ² · this / (3 · targets).
-    """
-    basis = identifiable_basis(model, targets) if basis is None else np.asarray(basis, dtype=float)
-    G = identification_jacobian(model, q, targets) @ basis
-    H = identification_jacobian(model, workspace, targets) @ basis
-    F = np.einsum("kmr,kms->rs", G, G)
-    W = np.einsum("kmr,kms->rs", H, H) / H.shape[0]
-    if np.linalg.matrix_rank(F) < F.shape[0]:
-        return float("inf")
-    return float(np.trace(np.linalg.solve(F, W)))
-
-
 CRITERIA = ("d", "i")
 
 
@@ -738,13 +522,13 @@ def optimal_configurations(
 
     criterion ``"d"``: D-optimal (greedy + exchange on log det, i.e. the O1 index). ``"i"`` (default):
     start from the D-optimal set, then exchange to minimise the average prediction variance over the pool
-    (:func:`prediction_variance`, the pool standing for the workspace), which is what held-out accuracy
+    (``trace(F⁻¹ W)``, the pool standing for the workspace), which is what held-out accuracy
     measures. ``benchmarks/planning.py`` compares both with random sets on the paper's Scenario A (held-out error
     and its spread between simulated robots); the numbers live there and in the README.
 
     The pool is ``pool`` (k, n) if given, else ``candidates`` configurations from :func:`random_configurations`
-    (``seed`` and the ``sampling`` keyword arguments: limits, range_fraction, region, max_condition, tracker,
-    min_target_distance, max_tries — so every chosen configuration passed the same checks). targets: (m, 3) m
+    (``seed`` and the ``sampling`` keyword arguments: range_fraction, max_condition, max_tries, safety,
+    joint_map, workspace, facing — so every chosen configuration passed the same checks). targets: (m, 3) m
     in the tool frame. dropout: probability that the tracker loses a target (scalar or (m,)): the selection then
     maximises the expected information of the points that will be measured.
     """
@@ -763,7 +547,7 @@ def optimal_configurations(
     basis = identifiable_basis(model, t, seed=seed)
     G = identification_jacobian(model, pool, t)
     if dropout is not None:
-        G = _weighted(G, target_weights(len(t), dropout))
+        G = weighted_rows(G, target_weights(len(t), dropout))
     G = G @ basis
     idx = greedy_d_optimal(G, count, exchange_passes=exchange_passes)
     if criterion == "i":
@@ -787,9 +571,8 @@ def move_time_matrix(a, b, speed, acceleration) -> np.ndarray:
     return out
 
 
-def _path_time(D: np.ndarray, order: np.ndarray, start: np.ndarray | None) -> float:
-    total = float(D[order[:-1], order[1:]].sum())
-    return total + (float(start[order[0]]) if start is not None else 0.0)
+def _path_time(D: np.ndarray, order: np.ndarray) -> float:
+    return float(D[order[:-1], order[1:]].sum())
 
 
 def _nearest_neighbour(D: np.ndarray, first: int) -> np.ndarray:
@@ -806,9 +589,8 @@ def _nearest_neighbour(D: np.ndarray, first: int) -> np.ndarray:
     return order
 
 
-def _two_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_passes: int) -> np.ndarray:
-    """Reverse segments of an open path while that shortens it (D symmetric). The path begins at ``start`` (times
-    from it to each pose) when given; otherwise its first pose is free too."""
+def _two_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
+    """Reverse segments of an open path while that shortens it (D symmetric); its first pose is free too."""
     order = order.copy()
     k = len(order)
     for _ in range(max_passes):
@@ -820,8 +602,6 @@ def _two_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_pas
             if i > 0:
                 before_old = D[order[i - 1], p]
                 before_new = D[order[i - 1], q]
-            elif start is not None:
-                before_old, before_new = start[p], start[q]
             else:
                 before_old, before_new = 0.0, np.zeros(len(j))
             nxt = np.minimum(j + 1, k - 1)
@@ -838,18 +618,14 @@ def _two_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_pas
     return order
 
 
-def _or_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_passes: int) -> np.ndarray:
+def _or_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
     """Move segments of 1 to 3 poses (as they are or reversed) to the place in the path where they cost least,
-    while that shortens it. Position -1 stands for the path's beginning (after ``start`` when given)."""
+    while that shortens it. Position -1 stands for the path's (free) beginning."""
     order = order.copy()
     k = len(order)
 
-    def edge(a, b):  # time of the edge a → b; a = -1 is the start (free without one), b = -1 the open end
-        if b == -1:
-            return 0.0
-        if a == -1:
-            return float(start[b]) if start is not None else 0.0
-        return float(D[a, b])
+    def edge(a, b):  # time of the edge a → b; a = -1 is the beginning, b = -1 the open end: both free
+        return 0.0 if a == -1 or b == -1 else float(D[a, b])
 
     for _ in range(max_passes):
         improved = False
@@ -859,15 +635,15 @@ def _or_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_pass
                 seg = order[i : i + length]
                 prev = order[i - 1] if i > 0 else -1
                 nxt = order[i + length] if i + length < k else -1
-                removed = edge(prev, seg[0]) + edge(seg[-1], nxt) - (edge(prev, nxt) if nxt != -1 else 0.0)
+                removed = edge(prev, seg[0]) + edge(seg[-1], nxt) - edge(prev, nxt)
                 rest = np.concatenate([order[:i], order[i + length :]])
-                # insert between rest[g-1] and rest[g] (g = 0 … len(rest)); rest[-1] before 0 is the start
-                # old_link[g]: the edge rest[g-1] → rest[g] that an insertion at g replaces (none at the end)
-                old_link = np.concatenate([[start[rest[0]] if start is not None else 0.0], D[rest[:-1], rest[1:]], [0]])
+                # insert between rest[g-1] and rest[g] (g = 0 … len(rest)); before 0 is the free beginning
+                # old_link[g]: the edge rest[g-1] → rest[g] that an insertion at g replaces (none at the ends)
+                old_link = np.concatenate([[0.0], D[rest[:-1], rest[1:]], [0]])
                 best_gain, best = 1e-9, None
                 for piece in (seg, seg[::-1]):
                     head, tail = piece[0], piece[-1]
-                    into = np.concatenate([[start[head] if start is not None else 0.0], D[rest, head]])
+                    into = np.concatenate([[0.0], D[rest, head]])
                     into[:-1] += D[tail, rest]
                     gain = removed - (into - old_link)
                     g = int(np.argmax(gain))
@@ -883,12 +659,12 @@ def _or_opt(D: np.ndarray, order: np.ndarray, start: np.ndarray | None, max_pass
     return order
 
 
-def order_for_motion(q, speed, acceleration, *, start=None, max_passes: int = 200, starts: int = 4) -> np.ndarray:
+def order_for_motion(q, speed, acceleration, *, max_passes: int = 200, starts: int = 4) -> np.ndarray:
     """(k,) permutation of the configurations q (k, n) that shortens the total motion time of visiting them.
 
     Move times: :func:`move_time_matrix` at ``speed`` / ``acceleration`` (the robot profile's caps). Nearest
-    neighbour from every pose (or from ``start`` (n,), the robot's joints when the plan begins), the shortest
-    kept, then 2-opt (segment reversals) until no reversal shortens the path or ``max_passes``. No randomness
+    neighbour from every pose, the ``starts`` shortest kept, then 2-opt (segment reversals) and or-opt (segment
+    moves) until neither shortens the path or ``max_passes``. No randomness
     and ties go to the lowest index: the same configurations give the same order.
 
     >>> order_for_motion(np.array([[0.0], [3.0], [1.0], [2.0]]), 0.5, 1.0).tolist()
@@ -897,49 +673,19 @@ def order_for_motion(q, speed, acceleration, *, start=None, max_passes: int = 20
     q = np.asarray(q, dtype=float)
     if q.ndim != 2 or len(q) == 0 or not np.all(np.isfinite(q)):
         raise PlanningError(f"q must be a finite (k, n) array of configurations, got shape {q.shape}")
-    if len(q) < 3 and start is None:
+    if len(q) < 3:
         return np.arange(len(q))
     D = move_time_matrix(q, q, speed, acceleration)
-    s = None if start is None else move_time_matrix(np.reshape(start, (1, -1)), q, speed, acceleration)[0]
-    if s is not None:
-        candidates = [_nearest_neighbour(D, int(np.argmin(s)))]
-    else:
-        candidates = [_nearest_neighbour(D, first) for first in range(len(q))]
-    times = np.array([_path_time(D, c, s) for c in candidates])
+    candidates = [_nearest_neighbour(D, first) for first in range(len(q))]
+    times = np.array([_path_time(D, c) for c in candidates])
     best: np.ndarray | None = None
     for c in np.argsort(times, kind="stable")[:starts]:
         order = candidates[int(c)]
         for _ in range(max_passes):  # alternate until neither improves
-            before = _path_time(D, order, s)
-            order = _or_opt(D, _two_opt(D, order, s, max_passes), s, max_passes)
-            if _path_time(D, order, s) >= before - 1e-9:
+            before = _path_time(D, order)
+            order = _or_opt(D, _two_opt(D, order, max_passes), max_passes)
+            if _path_time(D, order) >= before - 1e-9:
                 break
-        if best is None or _path_time(D, order, s) < _path_time(D, best, s) - 1e-9:
+        if best is None or _path_time(D, order) < _path_time(D, best) - 1e-9:
             best = order
     return best
-
-
-__all__ = [
-    "CRITERIA",
-    "DEFAULT_MAX_CONDITION",
-    "LineOfSight",
-    "Observability",
-    "PlanningError",
-    "TargetFacing",
-    "cell_limits",
-    "checked_points",
-    "exchange_i_optimal",
-    "greedy_d_optimal",
-    "identifiable_basis",
-    "identification_jacobian",
-    "joint_ranges",
-    "length_scaled_condition",
-    "move_time_matrix",
-    "observability",
-    "optimal_configurations",
-    "order_for_motion",
-    "prediction_variance",
-    "random_configurations",
-    "runner_accepts",
-    "target_weights",
-]

@@ -270,19 +270,16 @@ def move_time(distance, speed, acceleration) -> np.ndarray:
     return np.where(full, d / v + v / a, 2.0 * np.sqrt(d / a))
 
 
-def motion_time(plan: Plan, start=None) -> float:
+def motion_time(plan: Plan) -> float:
     """Seconds the plan's moves take (the longest joint of each move, at each Move's speed and acceleration), from
-    ``start`` (n,) joints (default: the first pose, so its first move is free). Settling and measuring excluded.
+    the first pose (its move is free). Settling and measuring excluded.
 
     >>> motion_time(make_plan([[0.0, 0.0], [2.0, 0.1], [2.0, 0.0]], speed=0.5, acceleration=1.0))
     5.132455532033676
     """
     q = plan.configurations
     moves = [c for c in plan.commands if isinstance(c, Move)]
-    begin = q[:1] if start is None else np.asarray(start, dtype=float).reshape(1, -1)
-    if begin.shape[1] != q.shape[1]:
-        raise PlanError(f"start has {begin.shape[1]} joint values, the plan has {q.shape[1]}")
-    steps = np.abs(np.diff(np.concatenate([begin, q]), axis=0))  # (k, n)
+    steps = np.abs(np.diff(np.concatenate([q[:1], q]), axis=0))  # (k, n): the first move is from where it ends
     speed = np.array([m.speed for m in moves])[:, None]
     acceleration = np.array([m.acceleration for m in moves])[:, None]
     return float(move_time(steps, speed, acceleration).max(axis=1).sum())
@@ -313,20 +310,3 @@ def make_plan(
         except PlanError as e:
             raise PlanError(f"configuration {i}: {e}") from None
     return Plan(tuple(commands))
-
-
-__all__ = [
-    "PLAN_FORMAT",
-    "Command",
-    "Measure",
-    "Move",
-    "Plan",
-    "PlanError",
-    "PoseStep",
-    "Settle",
-    "command_from_dict",
-    "command_to_dict",
-    "make_plan",
-    "motion_time",
-    "move_time",
-]

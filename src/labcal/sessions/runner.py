@@ -133,12 +133,10 @@ class RetryPolicy:
     max_failed_poses: int = 5
 
     def __post_init__(self) -> None:
-        if isinstance(self.max_attempts, bool) or not isinstance(self.max_attempts, int) or self.max_attempts < 1:
-            raise ValueError(f"RetryPolicy.max_attempts must be an integer >= 1, got {self.max_attempts!r}")
-        for name in ("max_silent_poses", "max_failed_poses"):
+        for name, least in (("max_attempts", 1), ("max_silent_poses", 0), ("max_failed_poses", 0)):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"RetryPolicy.{name} must be an integer >= 0, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"RetryPolicy.{name} must be an integer >= {least}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -176,13 +174,11 @@ ProgressCallback = Callable[[Progress], None]
 
 
 def describe(device: object) -> dict:
-    """Identity of a driver for the start document: its ``identity()`` dict if it has one, else its class."""
+    """Identity of a driver for the start document: its class and what its ``identity()`` method (if any) says."""
     ident = getattr(device, "identity", None)
     info = {"class": f"{type(device).__module__}.{type(device).__qualname__}"}
     if callable(ident):
         info.update(dict(ident()))
-    elif isinstance(ident, Mapping):
-        info.update(dict(ident))
     return info
 
 
@@ -231,33 +227,12 @@ class _Outcome:
     refused: bool = False  # the driver refused the motion (the plan's fault, not the measurement's)
 
 
-def _pairs(m: int) -> tuple[tuple[int, int], ...]:
-    """Target pairs whose distances are checked: the triangle's sides t1t2, t2t3, t3t1 for three targets (the order
-    of :func:`triangle_sides`), every pair otherwise (:func:`~labcal.datasets.targets.target_pairs`)."""
-    # Not target_pairs(3): callers from before 1..k targets pass the nominal sides (1-D) in this order.
-    return ((0, 1), (1, 2), (2, 0)) if m == 3 else target_pairs(m)
-
-
-def triangle_sides(points: np.ndarray) -> np.ndarray:
-    """(3, 3) points → (3,) side lengths |t1t2|, |t2t3|, |t3t1| in the points' unit."""
-    return pair_distances(points, _pairs(3))
-
-
-def target_distances(points: np.ndarray) -> np.ndarray:
-    """(m, 3) points → distances of the target pairs (:func:`_pairs`; for m = 3 exactly :func:`triangle_sides`),
-    NaN where either target is not seen (a NaN row). ``(0,)`` for one target."""
-    return pair_distances(points, _pairs(len(points)))
-
-
 def check_measurement(m: Measurement, nominal: np.ndarray, validation: Validation) -> tuple[str, float | None]:
     """("" if acceptable else the reason, largest distance error in m, or None when fewer than two targets were
-    seen). ``nominal``: the targets (m, 3) in the tool frame (or, for three targets, their :func:`triangle_sides`).
-    See :class:`Validation`."""
+    seen). ``nominal``: the targets (m, 3) in the tool frame; the distances of every pair of them
+    (:func:`~labcal.datasets.targets.pair_distances`) are checked. See :class:`Validation`."""
     nominal = np.asarray(nominal, dtype=float)
-    if nominal.ndim == 1:  # the triangle's sides, as callers before 1..k targets passed them
-        n_targets, sides = 3, nominal
-    else:
-        n_targets, sides = len(nominal), target_distances(nominal)
+    n_targets, sides = len(nominal), pair_distances(nominal)
     points = np.asarray(m.points, dtype=float)
     if points.shape != (n_targets, 3):
         return f"tracker returned points of shape {points.shape}, expected ({n_targets}, 3)", None
@@ -272,10 +247,10 @@ def check_measurement(m: Measurement, nominal: np.ndarray, validation: Validatio
         if not seen.any():
             return "no target seen", None
         return f"missing target(s) {', '.join(missing)} ({int(seen.sum())} seen, {validation.min_targets} needed)", None
-    together = np.array([seen[a] and seen[b] for a, b in _pairs(n_targets)], dtype=bool)
+    together = np.array([seen[a] and seen[b] for a, b in target_pairs(n_targets)], dtype=bool)
     if not together.any():
         return "", None
-    measured = target_distances(points)
+    measured = pair_distances(points)
     error = float(np.max(np.abs(measured[together] - sides[together])))
     spread = np.asarray(m.spread, dtype=float)
     spread_seen = spread[seen] if spread.shape == (n_targets,) else spread
@@ -297,8 +272,7 @@ class RunOptions:
     frame: "tracker", or "base" if the tracker reports in the robot base frame; validation, retry: see
     :class:`Validation`, :class:`RetryPolicy`; allow: record-time sanity checks to override (names of
     :data:`labcal.datasets.sanity.CHECKS`); progress: callable taking :class:`Progress`; session_id: None = a new
-    id; tracker_info / robot_info: identity of the drivers for the start document (default :func:`describe`);
-    metadata: the caller's (sim seeds, profiles …); sleep: how to wait for settling (tests pass a no-op); seal:
+    id; metadata: the caller's (sim seeds, profiles …); sleep: how to wait for settling (tests pass a no-op); seal:
     make a version at the end; unit: the robot unit's id (default: the serial number the robot driver reports in
     ``device_identity()``, see :func:`session_unit`).
     """
@@ -309,8 +283,6 @@ class RunOptions:
     allow: tuple[str, ...] = ()
     progress: ProgressCallback | None = None
     session_id: str | None = None
-    tracker_info: Mapping[str, Any] | None = None
-    robot_info: Mapping[str, Any] | None = None
     metadata: Mapping[str, Any] | None = None
     sleep: Callable[[float], None] = time.sleep
     seal: bool = True
@@ -414,14 +386,12 @@ class _Run:
                 why = self.stop_reason(outcome, pose)
                 if why:
                     _safe_stop(robot)
-                    journal.stop("failed", why)
-                    return "failed", why
+                    return self.stopped("failed", why)
         except ProtectiveStop as e:
             _safe_stop(robot)
             reason = f"protective stop at pose {pose}: {e}"
             journal.pause(reason)
-            journal.stop("paused", reason)
-            return "paused", reason
+            return self.stopped("paused", reason)
         except KeyboardInterrupt as e:
             _safe_stop(robot)
             # counted in the journal, not a plan index: "at pose 92" read as 92 recorded or as the 92nd, depending on
@@ -430,19 +400,20 @@ class _Run:
             # labcal's entry point turns SIGTERM / SIGHUP into a KeyboardInterrupt carrying the signal's number
             signum = e.args[0] if e.args and isinstance(e.args[0], int) else None
             by = "by the operator (Ctrl-C)" if signum is None else f"by {signal.Signals(signum).name}"
-            reason = f"interrupted {by} with {valid} of {self.plan.n_poses} poses recorded valid"
-            journal.stop("aborted", reason)
-            return "aborted", reason
+            return self.stopped("aborted", f"interrupted {by} with {valid} of {self.plan.n_poses} poses recorded valid")
         except JournalError:
             # The journal cannot record any more: stop the robot and let the caller see why.
             _safe_stop(robot)
             raise
         except DriverError as e:
             _safe_stop(robot)
-            reason = f"{type(e).__name__} at pose {pose}: {e}"
-            journal.stop("failed", reason)
-            return "failed", reason
+            return self.stopped("failed", f"{type(e).__name__} at pose {pose}: {e}")
         return self.finish(valid_now)
+
+    def stopped(self, status: str, reason: str) -> tuple[str, str]:
+        """Write the stop document and return (exit_status, reason) as :meth:`execute` does."""
+        self.journal.stop(status, reason)
+        return status, reason
 
     def record(self, step: PoseStep) -> _Outcome:
         """Measure one pose and journal it (whatever its status), then count it and report it."""
@@ -506,23 +477,17 @@ class _Run:
             contents = journal.read()
             last = next((d.reason for d in reversed(contents.measurements) if not d.valid), "")
             reason = f"no valid measurement: all {self.measured} pose(s) measured in this run were rejected"
-            reason += f" (last reason: {last})" if last else ""
-            journal.stop("failed", reason)
-            return "failed", reason
+            return self.stopped("failed", reason + (f" (last reason: {last})" if last else ""))
         why = self.sanity(at_end=True)  # a short session still gets checked once
         if why:
-            journal.stop("failed", why)
-            return "failed", why
+            return self.stopped("failed", why)
         journal.stop("success", f"{self.plan.n_poses} poses done")
         return "success", ""
 
-    def measure_pose(self, step: PoseStep, q_command: np.ndarray | None = None) -> _Outcome:
-        """Move, settle, measure and validate one pose with bounded retries. ProtectiveStop propagates.
-
-        q_command: the pose in controller joints (default: the plan's joints, i.e. an identity joint map).
-        """
+    def measure_pose(self, step: PoseStep, q_cmd: np.ndarray) -> _Outcome:
+        """Move to ``q_cmd`` (the pose in controller joints), settle, measure and validate with bounded retries.
+        ProtectiveStop propagates."""
         robot, tracker, v = self.robot, self.tracker, self.validation
-        q_cmd = np.asarray(step.q if q_command is None else q_command, dtype=float)
         timeouts = 0
         reasons: list[str] = []
         moved = False
@@ -669,8 +634,8 @@ def run(
         robot=spec.record(),
         targets=targets,
         frame=opts.frame,
-        tracker=dict(opts.tracker_info) if opts.tracker_info is not None else describe(tracker),
-        robot_driver=dict(opts.robot_info) if opts.robot_info is not None else describe(robot),
+        tracker=describe(tracker),
+        robot_driver=describe(robot),
         plan=plan.pose_documents(),
         extra_units=EXTRA_UNITS,
         metadata={"runner": runner_settings, "robot_source": spec.source, **dict(opts.metadata or {})},
@@ -801,23 +766,3 @@ def _check_same_unit(session_id: str, start: StartDoc, robot: Robot) -> None:
             f"session {session_id} was recorded on the robot with serial number {recorded!r}, this controller "
             f"reports {now!r}: resume it on the same arm, or record a new session for this one"
         )
-
-
-__all__ = [
-    "EXTRA_UNITS",
-    "Progress",
-    "ProgressCallback",
-    "RetryPolicy",
-    "RunOptions",
-    "RunSummary",
-    "SessionError",
-    "Validation",
-    "check_measurement",
-    "describe",
-    "device_identity",
-    "resume",
-    "run",
-    "session_unit",
-    "target_distances",
-    "triangle_sides",
-]

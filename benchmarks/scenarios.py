@@ -14,16 +14,16 @@ Two kinds of generator:
   them), :func:`singular_wrist` (random poses, most with q5 ≈ 0), :func:`coupled_elbow` (controller joints whose
   elbow is measured from the horizontal: model elbow = J2 + J3), :func:`identical_poses`, :func:`few_poses`;
 - **fewer targets seen** than the set was measured with: :func:`with_targets` (keep some targets, e.g. t1 alone:
-  one reflector), :func:`probe_origin` (the tool origin alone, measured afresh), :func:`with_dropout` (a seeded
-  drop-out per cell: NaN target rows, every row keeps one);
+  one reflector), :func:`with_dropout` (a seeded drop-out per cell: NaN target rows, every row keeps one);
 - **corruptions of a good set** that must be refused or flagged, not fitted: :func:`unit_slip` (points ×1000,
   ×0.001, ×25.4), :func:`degrees_as_radians`, :func:`swapped_targets`, :func:`wrong_targets`,
   :func:`pure_noise`, :func:`shuffled_rows`, :func:`in_tracker_frame` (points in a tracker frame; importing them
   as ``--frame base`` is the mistake).
 
-The layering keeps ``labcal.calibration`` above this module, so a scenario gives arrays;
-``Observations(**scn.arrays())`` builds the calibration input. The paper's scenarios A and B live in the
-benchmark benchmarks/paper.py (not part of the package).
+Not part of the package: tests and benchmarks import it as ``scenarios`` (pytest and a benchmark script have
+benchmarks/ on their path; tests/bench/test_scenarios.py runs the examples below). A scenario gives arrays;
+``Observations(**scn.arrays())`` builds the calibration input. The paper's scenarios A and B live in
+benchmarks/paper.py.
 
 Example::
 
@@ -55,25 +55,10 @@ from labcal.simulation.actual import ActualRobot, ErrorSpec, drop_unseen, seen_m
 #: A scalene target triangle (m, tool frame) 50 mm in front of the flange: sides 224, 269, 335 mm (the paper
 #: benchmark's triangle, so a scenario and a paper run use the same tool).
 TARGETS = np.array([[0.20, 0.00, 0.05], [-0.10, 0.15, 0.05], [0.00, -0.10, 0.05]])
-#: The wrist joint whose zero is singular on the built-in 6R arms (q5 = 0 lines up the axes of joints 4 and 6);
-#: :func:`wrist_joint` finds it on any arm (q6 on the 7R Panda and iiwa).
-WRIST = 4
 #: |q5| below this counts as "singular wrist" (rad): the controller reports a value this close to zero.
 WRIST_TOL = 1e-3
 #: Length-scaled cond(J_ρ) above which a pose counts as singular (the paper benchmark's bound).
 MAX_CONDITION = 500.0
-#: The coupled-elbow map on a 6R arm: model elbow (J3) = controller J2 + controller J3 (any n: :func:`coupled_map`).
-COUPLED_ELBOW = np.array(
-    [
-        [1, 0, 0, 0, 0, 0],
-        [0, 1, 0, 0, 0, 0],
-        [0, 1, 1, 0, 0, 0],
-        [0, 0, 0, 1, 0, 0],
-        [0, 0, 0, 0, 1, 0],
-        [0, 0, 0, 0, 0, 1],
-    ],
-    dtype=float,
-)
 INCH = 25.4
 
 
@@ -156,8 +141,8 @@ def joint_box(model: LocalPOEModel, fraction: float = 0.5) -> tuple[np.ndarray, 
 def coupled_map(n: int) -> np.ndarray:
     """(n, n) the coupled-elbow map of an n-joint arm (n ≥ 3): the identity but model J3 = controller J2 + J3.
 
-    >>> bool(np.array_equal(coupled_map(6), COUPLED_ELBOW)), coupled_map(7)[2].tolist()
-    (True, [0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0])
+    >>> coupled_map(7)[2].tolist()
+    [0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]
     """
     if n < 3:
         raise ValueError(f"a coupled elbow needs at least 3 joints, got {n}")
@@ -341,7 +326,7 @@ def coupled_elbow(
     """Good poses recorded by a controller whose elbow is measured from the horizontal: model J3 = J2 + J3.
 
     ``q`` are the model joints the measurements belong to, ``q_controller = M⁻¹ q`` what the controller (and a
-    CSV) reports, ``joint_map = M`` (:func:`coupled_map`, :data:`COUPLED_ELBOW` on a 6R arm). Importing
+    CSV) reports, ``joint_map = M`` (:func:`coupled_map`). Importing
     ``q_controller`` as model joints is the mistake; converting through the map gives ``q`` back exactly.
     """
     scn = good(robot, k, errors=errors, seed=seed, targets=targets)
@@ -385,24 +370,6 @@ def with_targets(scn: Scenario, index) -> Scenario:
         f"{scn.name}-{names}", f"{scn.description}; only {names} measured", points=scn.points[:, idx],
         targets=scn.targets[idx],
     )  # fmt: skip
-
-
-def probe_origin(scn: Scenario) -> Scenario:
-    """The tool origin alone, measured afresh on the same true robot and poses (a single reflector at the tool
-    point, or a 6-DOF probe read as a point): ``targets`` = [[0, 0, 0]]. Keeps the scenario's frame.
-
-    Its noise comes from its own stream, so it is not the 3-target set's noise at the origin.
-    """
-    if scn.actual is None:
-        raise ValueError(f"{scn.name}: no robot produced these data, so the tool origin cannot be measured")
-    origin = np.zeros((1, 3))
-    points = scn.actual.measure(scn.q, origin, np.random.default_rng([scn.seed, 7919, 1]))
-    if scn.frame == "tracker" and scn.T_tracker_base is not None:
-        T = scn.T_tracker_base
-        points = np.einsum("ab,kmb->kma", T[:3, :3], points) + T[:3, 3]
-    return scn.changed(
-        f"{scn.name}-probe-origin", f"{scn.description}; the tool origin alone", points=points, targets=origin
-    )
 
 
 def with_dropout(scn: Scenario, dropout, *, seed: int = 0, exact: bool = True) -> Scenario:
@@ -510,17 +477,3 @@ def _rot_z(angle: float) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = se3.exp_so3(np.array([0.0, 0.0, angle]))
     return T
-
-
-#: The corruptions of a good set, by name: each takes a Scenario and returns the corrupted one.
-CORRUPTIONS = {
-    "unit-slip-x1000": lambda s: unit_slip(s, 1000.0),
-    "unit-slip-x0.001": lambda s: unit_slip(s, 0.001),
-    "unit-slip-x25.4": lambda s: unit_slip(s, INCH),
-    "degrees-as-radians": degrees_as_radians,
-    "swapped-t1-t2": swapped_targets,
-    "wrong-targets": wrong_targets,
-    "pure-noise": pure_noise,
-    "pure-noise-rigid": lambda s: pure_noise(s, rigid=True),
-    "shuffled-rows": shuffled_rows,
-}
