@@ -38,7 +38,6 @@ import functools
 import json
 import math
 import os
-import re
 import time as _time
 import uuid
 from collections.abc import Mapping
@@ -55,6 +54,7 @@ from .documents import (
     SessionHeader,
     StartDoc,
     StopDoc,
+    is_extra_key,
     measured_points,
     measured_spread,
     robot_document,
@@ -84,7 +84,6 @@ __all__ = [
     "read_journal",
     "robot_document",
 ]
-_EXTRA_KEY = re.compile(r"^[A-Za-z0-9_]{1,64}$")
 
 
 @dataclass(frozen=True)
@@ -216,6 +215,12 @@ def read_journal(path: str | Path) -> JournalContents:
     torn: list[int] = []
     corrupt: list[int] = []
     reasons: dict[int, str] = {}
+
+    def reject(ln: int, why: str, warning: str) -> None:
+        corrupt.append(ln)
+        reasons[ln] = why
+        warnings.append(f"{path}: line {ln} ignored: {warning}")
+
     for ln, why in bad:
         if ln > last_good:
             torn.append(ln)
@@ -223,23 +228,18 @@ def read_journal(path: str | Path) -> JournalContents:
         elif ln in repaired:
             warnings.append(f"{path}: line {ln} ignored: torn write, repaired later ({why})")
         else:
-            corrupt.append(ln)
-            reasons[ln] = why
-            warnings.append(f"{path}: line {ln} ignored: CORRUPT ({why})")
+            reject(ln, why, f"CORRUPT ({why})")
     docs: list[dict] = []
     doc_lines: list[int] = []
     last_seq = 0
     for ln, d in parsed:
         if d["type"] == "start" and docs:
-            corrupt.append(ln)
-            reasons[ln] = "a second start document"
-            warnings.append(f"{path}: line {ln} ignored: a second start document")
+            reject(ln, "a second start document", "a second start document")
             continue
         if d["type"] == "measurement":
             if d["seq"] <= last_seq:
-                corrupt.append(ln)
-                reasons[ln] = f"seq {d['seq']} does not follow {last_seq}"
-                warnings.append(f"{path}: line {ln} ignored: seq {d['seq']} does not follow {last_seq}")
+                why = f"seq {d['seq']} does not follow {last_seq}"
+                reject(ln, why, why)
                 continue
             last_seq = d["seq"]
         docs.append(d)
@@ -350,13 +350,8 @@ class Journal:
             if contents.start is None:
                 raise JournalCorrupted(f"{path}: no start document on the first line")
             if contents.needs_newline or contents.torn_lines:
-                repair = {
-                    "type": "repair",
-                    "uid": str(uuid.uuid4()),
-                    "time": _time.time(),
-                    "torn_lines": contents.torn_lines,
-                    "reason": "the previous writer stopped in the middle of a line (crash or kill)",
-                }
+                why = "the previous writer stopped in the middle of a line (crash or kill)"
+                repair = _document("repair", torn_lines=contents.torn_lines, reason=why)
                 _write_all(fd, (b"\n" if contents.needs_newline else b"") + _encode(repair))
                 os.fsync(fd)
                 contents = read_journal(path)
@@ -447,7 +442,7 @@ class Journal:
         n = self.n_joints
         extra_doc: dict[str, Any] = {}
         for k, v in (extra or {}).items():
-            if not isinstance(k, str) or not _EXTRA_KEY.match(k):
+            if not is_extra_key(k):
                 raise JournalError(f"extra field name {k!r} must match [A-Za-z0-9_]+")
             v = jsonable(v)
             if isinstance(v, float) and not math.isfinite(v):
@@ -483,13 +478,13 @@ class Journal:
         """Record a pause (protective stop, Ctrl-C …); measurements need :meth:`resume` afterwards."""
         if self._state != "running":
             raise JournalError(f"cannot pause: the run is {self._state}")
-        doc = self._append({"type": "pause", "uid": str(uuid.uuid4()), "time": _time.time(), "reason": str(reason)})
+        doc = self._append(_document("pause", reason=str(reason)))
         self._state = "paused"
         return doc
 
     def resume(self, reason: str = "") -> dict:
         """Record that measuring continues (after a pause, a stop with exit_status "paused", or a crash)."""
-        doc = self._append({"type": "resume", "uid": str(uuid.uuid4()), "time": _time.time(), "reason": str(reason)})
+        doc = self._append(_document("resume", reason=str(reason)))
         self._state = "running"
         return doc
 
@@ -524,6 +519,11 @@ class Journal:
                 f"{fix} `labcal session resume {self.session_id}` continues after the last one"
             ) from e
         return doc
+
+
+def _document(kind: str, **fields: Any) -> dict:
+    """A pause, resume or repair document: its type, a new uid, the time and ``fields``."""
+    return {"type": kind, "uid": str(uuid.uuid4()), "time": _time.time(), **fields}
 
 
 def _encode(doc: dict) -> bytes:
