@@ -98,20 +98,6 @@ if TYPE_CHECKING:
     from .journal import Journal, JournalContents
 
 
-def _schema_version() -> int:
-    from .schema import SCHEMA_VERSION
-
-    return SCHEMA_VERSION
-
-
-def _pandas():
-    """pandas, imported when a table is built or read: listing and showing sessions (manifests and journals) never
-    needs it, and importing it costs more than the rest of `labcal session list`."""
-    import pandas
-
-    return pandas
-
-
 class StoreWriteError(DatasetError, OSError):
     """Writing to the session store failed (read-only, full, permissions). A DatasetError, so the CLI prints its one
     line, and still an OSError, so callers that handle OS errors keep working; the original error is chained."""
@@ -371,9 +357,6 @@ class FitRecord:
             )
         return data
 
-    def read_json(self, name: str) -> Any:
-        return json.loads(self.read(name).decode("utf-8"))
-
 
 # --------------------------------------------------------------------------------------------------------------
 
@@ -393,11 +376,9 @@ def _read_parquet(data: bytes) -> pd.DataFrame:
     return pq.read_table(io.BytesIO(data)).to_pandas()
 
 
-def _plan_summary(plan: Sequence[Any], *, plain: bool = False) -> dict:
-    """Length and sha256 of a plan. ``plain``: the plan was parsed from JSON, so it holds JSON types already and
-    the conversion (slow for a long plan, and the identity on such data) is skipped."""
-    doc = list(plan) if plain else jsonable(list(plan))
-    return {"length": len(plan), "sha256": sha256_bytes(canonical_json(doc).encode("utf-8"))}
+def _plan_summary(plan: Sequence[Any]) -> dict:
+    """Length and sha256 of a plan (JSON types: as read from a journal)."""
+    return {"length": len(plan), "sha256": sha256_bytes(canonical_json(list(plan)).encode("utf-8"))}
 
 
 def with_robot_record(meta: dict) -> dict:
@@ -434,7 +415,7 @@ def session_meta_from_start(start: StartDoc) -> dict:
         "frame": start.frame,
         "tracker": start.tracker,
         "robot_driver": start.robot_driver,
-        "plan": _plan_summary(start.plan, plain=True),  # read from the journal: JSON types only
+        "plan": _plan_summary(start.plan),
         "extra_units": dict(start.extra_units),
         "metadata": start.metadata,
     }
@@ -819,10 +800,6 @@ class SessionStore:
                 problems.append(f"{where}: evaluates fit {ep.parent.name}, which is not stored under {r}")
         return VerifyReport(str(r), problems, checked, notes)
 
-    def verify_session(self, session_id: str) -> list[VerifyReport]:
-        """:meth:`verify` of every version, then :meth:`check_session` (the last report, ``ref`` = the session id)."""
-        return [*(self.verify(Ref(session_id, v)) for v in self.versions(session_id)), self.check_session(session_id)]
-
     def load(self, ref: str | Ref) -> Dataset:
         """Load a version after verifying its hashes; raises :class:`DatasetCorrupted` on any mismatch."""
         r = self.resolve(ref)
@@ -840,57 +817,62 @@ class SessionStore:
         return Dataset(str(r), table, manifest)
 
     def _write_version(
-        self, session_dir: Path, number: int, table: pd.DataFrame, manifest: dict, *, parent_dir: Path | None = None
-    ) -> None:
-        """Write table + manifest into a temp dir in ``parent_dir`` (default ``session_dir``), then rename."""
-        where = parent_dir or session_dir
-        tmp = make_temp_dir(where, version_name(number))
+        self,
+        where: Path,
+        session_id: str,
+        parent_ds: Dataset | None,
+        rows: pd.DataFrame,
+        meta: dict,
+        *,
+        source: str,
+        provenance: dict,
+        journal_seq_through: int,
+    ) -> str:
+        """Publish the version after ``parent_ds`` (None: v001) in the session folder ``where``: the parent's rows
+        plus ``rows``, checked (:func:`~labcal.datasets.schema.normalize_table`), and its manifest (``meta`` is its
+        ``session`` block). Written into a temporary folder, then renamed; returns the new ``SESSION@vNNN``."""
+        import pandas as pd
+
+        from .schema import SCHEMA_VERSION, column_units, normalize_table
+
+        table = rows if parent_ds is None else pd.concat([parent_ds.table, rows], ignore_index=True)
+        table = normalize_table(table, int(meta["robot"]["n_joints"]), len(meta["targets"]))
+        parent = None if parent_ds is None else parse_ref(parent_ds.ref).version
+        name = version_name((parent or 0) + 1)
+        tmp = make_temp_dir(where, name)
         try:
             data = _parquet_bytes(table)
             write_file_durable(tmp / MEASUREMENTS, data)
-            manifest = {**manifest, "files": {MEASUREMENTS: {"sha256": sha256_bytes(data), "bytes": len(data)}}}
+            manifest = {
+                "kind": "labcal.dataset.version",
+                "schema_version": SCHEMA_VERSION,
+                "session_id": session_id,
+                "version": name,
+                "ref": f"{session_id}@{name}",
+                "created": iso(utc_now()),
+                "parent": version_name(parent) if parent else None,
+                "source": source,
+                "session": meta,
+                "software": software_versions(),
+                "row_count": len(table),
+                "columns": list(table.columns),
+                "units": column_units(
+                    list(table.columns), {f"x_{k}": u for k, u in (meta.get("extra_units") or {}).items()}
+                ),
+                "journal_seq_through": journal_seq_through,
+                "provenance": jsonable(provenance),
+                "files": {MEASUREMENTS: {"sha256": sha256_bytes(data), "bytes": len(data)}},
+            }
             sealed = _dump_sealed(manifest, "manifest_sha256")
             write_file_durable(tmp / MANIFEST, sealed)
-            publish_dir(tmp, where / version_name(number))
+            publish_dir(tmp, where / name)
         except BaseException:
             remove_tree(tmp)
             raise
         # After the rename: a crash in between leaves a complete version the log does not list yet, which
         # check_session notes; the other order would list a version that was never published.
-        _log_version(where, version_name(number), json.loads(sealed)["manifest_sha256"], manifest.get("parent"))
-
-    def _manifest(
-        self,
-        session_id: str,
-        number: int,
-        table: pd.DataFrame,
-        meta: dict,
-        *,
-        parent: int | None,
-        source: str,
-        provenance: dict,
-        journal_seq_through: int,
-    ) -> dict:
-        from .schema import SCHEMA_VERSION, column_units
-
-        extra_units = {f"x_{k}": u for k, u in (meta.get("extra_units") or {}).items()}
-        return {
-            "kind": "labcal.dataset.version",
-            "schema_version": SCHEMA_VERSION,
-            "session_id": session_id,
-            "version": version_name(number),
-            "ref": f"{session_id}@{version_name(number)}",
-            "created": iso(utc_now()),
-            "parent": version_name(parent) if parent else None,
-            "source": source,
-            "session": meta,
-            "software": software_versions(),
-            "row_count": len(table),
-            "columns": list(table.columns),
-            "units": column_units(list(table.columns), extra_units),
-            "journal_seq_through": journal_seq_through,
-            "provenance": jsonable(provenance),
-        }
+        _log_version(where, name, json.loads(sealed)["manifest_sha256"], manifest["parent"])
+        return f"{session_id}@{name}"
 
     def _check_compatible(self, session_id: str, meta: dict, new: dict) -> None:
         """Refuse to mix data of another robot, target set or frame into a session."""
@@ -914,62 +896,39 @@ class SessionStore:
         ``meta`` describes the new rows (same robot hash, n_joints, frame and targets as the session).
         Returns the new ref ``SESSION@vNNN``.
         """
-        from .schema import normalize_table
-
         d = self._require_session(session_id)
         versions = self.versions(session_id)
         session = self.session_meta(session_id)
         meta = with_robot_record(meta)
         self._check_compatible(session_id, session, meta)
-        n = int(session["robot"]["n_joints"])
-        if versions:
-            parent_ds = self.load(Ref(session_id, versions[-1]))
-            through = int(parent_ds.manifest.get("journal_seq_through", 0))
-            table = _pandas().concat([parent_ds.table, rows], ignore_index=True)
-        else:
-            through = 0
-            table = rows
-        table = normalize_table(table, n, len(session["targets"]))
-        number = (versions[-1] if versions else 0) + 1
+        parent_ds = self.load(Ref(session_id, versions[-1])) if versions else None
+        through = int(parent_ds.manifest.get("journal_seq_through", 0)) if parent_ds is not None else 0
         merged = {**session, "extra_units": {**meta.get("extra_units", {}), **session.get("extra_units", {})}}
-        manifest = self._manifest(
-            session_id,
-            number,
-            table,
-            merged,
-            parent=versions[-1] if versions else None,
-            source=source,
-            provenance=provenance,
-            journal_seq_through=through,
+        return self._write_version(
+            d, session_id, parent_ds, rows, merged, source=source, provenance=provenance, journal_seq_through=through
         )
-        self._write_version(d, number, table, manifest)
-        return f"{session_id}@{version_name(number)}"
 
     @_writes("write the imported session")
     def create_imported_session(
         self, rows: pd.DataFrame, meta: dict, *, source: str, provenance: dict, session_id: str | None = None
     ) -> str:
         """Create a session holding only ``v001`` (no journal), atomically: it appears complete or not at all."""
-        from .schema import normalize_table
-
         session_id = validate_id(session_id) if session_id else new_session_id(meta["robot"]["name"])
         meta = with_robot_record({**meta, "session_id": session_id})
         make_dirs_durable(self.root)
         final = self.root / session_id
         if final.exists():
             raise DatasetError(f"session {session_id!r} already exists in {self.root}")
-        table = normalize_table(rows, int(meta["robot"]["n_joints"]), len(meta["targets"]))
-        manifest = self._manifest(
-            session_id, 1, table, meta, parent=None, source=source, provenance=provenance, journal_seq_through=0
-        )
         tmp = make_temp_dir(self.root, f"session-{session_id}")
         try:
-            self._write_version(tmp, 1, table, manifest)
+            ref = self._write_version(
+                tmp, session_id, None, rows, meta, source=source, provenance=provenance, journal_seq_through=0
+            )
             publish_dir(tmp, final)
         except BaseException:
             remove_tree(tmp)
             raise
-        return f"{session_id}@v001"
+        return ref
 
     @_writes("seal the journal into a version")
     def seal(self, session_id: str, *, valid_prefix: bool = False) -> SealResult:
@@ -986,7 +945,6 @@ class SessionStore:
         it), the session metadata taken from the version's manifest, and the damage recorded in the provenance.
         """
         from .journal import read_journal
-        from .schema import normalize_table
 
         d = self._require_session(session_id)
         jpath = d / JOURNAL_NAME
@@ -1004,7 +962,6 @@ class SessionStore:
         if not valid_prefix:
             _refuse_damaged_journal(session_id, contents, contents.size < sealed_bytes, latest, damage, tail)
         meta = _seal_session_meta(session_id, contents, parent_ds, damage)
-        n_joints, n_targets = int(meta["robot"]["n_joints"]), len(meta["targets"])
         first_bad = tail[0] if tail else None
         measurements, skipped = _measurements_to_seal(
             contents, sealed_lines if damage is not None else 0, old, tail, latest
@@ -1014,9 +971,6 @@ class SessionStore:
             where = f"since {latest}" if latest else "in the journal"
             why = f"; {damage}, and {latest} keeps its own copy" if damage else ""
             return SealResult(latest, False, 0, f"nothing new to seal {where} (no new valid measurements){why}")
-        rows = journal_rows(new, n_joints, n_targets)
-        table = _pandas().concat([parent_ds.table, rows], ignore_index=True) if parent_ds is not None else rows
-        table = normalize_table(table, n_joints, n_targets)
         seq_through = max(m.seq for m in measurements)
         provenance = {
             "journal": {
@@ -1033,19 +987,17 @@ class SessionStore:
                 "skipped": skipped,
                 **({"sealed_part_damage": damage} if damage is not None else {}),
             }
-        number = (parent or 0) + 1
-        manifest = self._manifest(
+        rows = journal_rows(new, int(meta["robot"]["n_joints"]), len(meta["targets"]))
+        ref = self._write_version(
+            d,
             session_id,
-            number,
-            table,
+            parent_ds,
+            rows,
             meta,
-            parent=parent,
             source="journal",
             provenance=provenance,
             journal_seq_through=seq_through,
         )
-        self._write_version(d, number, table, manifest)
-        ref = f"{session_id}@{version_name(number)}"
         left_out = f"; left out {len(skipped)} journal line(s) from line {skipped[0]['line']} on" if skipped else ""
         if damage is not None:
             left_out += f" ({damage}: sealed only what was recorded after it)"
@@ -1068,6 +1020,8 @@ class SessionStore:
         JSON-able (method, seed, metrics …). fit.json records each input's resolved ref, manifest sha256 and
         data sha256, plus the sha256 of every fit file. Inputs are verified first.
         """
+        from .schema import SCHEMA_VERSION
+
         ref_list = [refs] if isinstance(refs, str | Ref) else list(refs)
         if not ref_list:
             raise DatasetError("a fit needs at least one input version")
@@ -1106,7 +1060,7 @@ class SessionStore:
                 recorded[name] = {"sha256": sha256_bytes(data), "bytes": len(data)}
             meta = {
                 "kind": "labcal.fit",
-                "schema_version": _schema_version(),
+                "schema_version": SCHEMA_VERSION,
                 "fit_id": fit_id,
                 "created": iso(utc_now()),
                 "stored_under": str(resolved[0]),
@@ -1234,7 +1188,7 @@ def _check_versions_log(
     problems a damaged log or a manifest that is not the published one, to notes the versions it does not list."""
     from .ids import parse_version
 
-    entries, log_problems, log_notes = _read_versions_log(log)
+    entries, log_problems, log_notes = _read_versions_log(log.read_bytes())
     problems += log_problems
     notes += log_notes
     logged = set()
@@ -1440,7 +1394,7 @@ def _log_version(session_dir: Path, name: str, manifest_sha256: str, parent: str
         tail = os.pread(fd, size, 0).rsplit(b"\n", 1)[-1] if size else b""
         data = (line + "\n").encode("utf-8")
         if tail:
-            entries, _, _ = _read_versions_log_bytes(tail + b"\n")
+            entries, _, _ = _read_versions_log(tail + b"\n")
             if entries:
                 data = b"\n" + data
             else:
@@ -1455,12 +1409,8 @@ def _log_version(session_dir: Path, name: str, manifest_sha256: str, parent: str
         fsync_dir(session_dir)
 
 
-def _read_versions_log(path: Path) -> tuple[list[dict], list[str], list[str]]:
+def _read_versions_log(data: bytes) -> tuple[list[dict], list[str], list[str]]:
     """(entries, problems, notes) of a versions log; an unfinished last line (a crash mid-append) is a note."""
-    return _read_versions_log_bytes(path.read_bytes())
-
-
-def _read_versions_log_bytes(data: bytes) -> tuple[list[dict], list[str], list[str]]:
     entries: list[dict] = []
     problems: list[str] = []
     notes: list[str] = []
@@ -1518,6 +1468,7 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
     A target written as ``null`` (not seen) becomes NaN in its three columns and its spread.
     """
     import numpy as np
+    import pandas as pd
 
     from .schema import spread_columns
 
@@ -1541,7 +1492,7 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
         for k, v in m.extra.items():
             rec[f"x_{k}"] = np.nan if v is None else v
         recs.append(rec)
-    table = _pandas().DataFrame.from_records(recs)
+    table = pd.DataFrame.from_records(recs)
     table["pose"] = table["pose"].astype(np.int64)
     return table
 
