@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ._util import canonical_json, fsync_dir, jsonable
+from ._util import canonical_json, fsync_dir, jsonable, write_all
 from .documents import (
     EXIT_STATUSES,
     MEASUREMENT_UNITS,
@@ -321,7 +321,7 @@ class Journal:
             raise JournalError(f"journal {path} already exists; use Journal.open to append") from None
         try:
             _lock(fd, path)
-            _write_all(fd, line)
+            write_all(fd, line)
             os.fsync(fd)
             fsync_dir(path.parent)
             # Read back before anyone records: the robot must not move for a session whose start document (robot,
@@ -352,7 +352,7 @@ class Journal:
             if contents.needs_newline or contents.torn_lines:
                 why = "the previous writer stopped in the middle of a line (crash or kill)"
                 repair = _document("repair", torn_lines=contents.torn_lines, reason=why)
-                _write_all(fd, (b"\n" if contents.needs_newline else b"") + _encode(repair))
+                write_all(fd, (b"\n" if contents.needs_newline else b"") + _encode(repair))
                 os.fsync(fd)
                 contents = read_journal(path)
         except BaseException:
@@ -506,7 +506,7 @@ class Journal:
             raise JournalError(f"a previous write to {self.path} failed; reopen the journal with Journal.open")
         line = _encode(doc)
         try:
-            _write_all(self._fd, line)
+            write_all(self._fd, line)
             os.fsync(self._fd)
         except OSError as e:
             self._broken = True
@@ -531,13 +531,6 @@ def _encode(doc: dict) -> bytes:
         return (canonical_json(doc) + "\n").encode("utf-8")
     except (TypeError, ValueError) as e:
         raise JournalError(f"document is not JSON-serialisable (no NaN/inf, plain types only): {e}") from None
-
-
-def _write_all(fd: int, data: bytes) -> None:
-    view = memoryview(data)
-    while view:
-        n = os.write(fd, view)
-        view = view[n:]
 
 
 def _lock(fd: int, path: Path) -> None:

@@ -56,6 +56,7 @@ from ._util import (
     sha256_file,
     software_versions,
     utc_now,
+    write_all,
     write_file_durable,
 )
 from .errors import DatasetCorrupted, DatasetError, JournalCorrupted, UnknownSession, UnknownVersion
@@ -642,15 +643,7 @@ class SessionStore:
             if manifest.get("ref") != str(r):
                 problems.append(f"{MANIFEST}: belongs to {manifest.get('ref')!r}, found as {str(r)!r}")
             listed = dict(manifest.get("files") or {})
-            for name, info in sorted(listed.items()):
-                p = vdir / name
-                if not p.is_file():
-                    problems.append(f"{name}: missing (expected sha256 {info.get('sha256')})")
-                    continue
-                actual = sha256_file(p)
-                checked.append(name)
-                if actual != info.get("sha256"):
-                    problems.append(f"{name}: sha256 mismatch: expected {info.get('sha256')}, actual {actual}")
+            _check_files(vdir, listed, "", problems, checked)
         notes: list[str] = []
         for p in sorted(vdir.iterdir()) if manifest is not None else []:
             if p.name in listed or p.name == MANIFEST or (p.name == FITS and p.is_dir()):
@@ -768,15 +761,7 @@ class SessionStore:
             if meta is None:
                 continue
             files = dict(meta.get("files") or {})
-            for name, info in sorted(files.items()):
-                fp = p / name
-                if not fp.is_file():
-                    problems.append(f"{where}/{name}: missing (expected sha256 {info.get('sha256')})")
-                    continue
-                actual = sha256_file(fp)
-                checked.append(f"{where}/{name}")
-                if actual != info.get("sha256"):
-                    problems.append(f"{where}/{name}: sha256 mismatch: expected {info.get('sha256')}, actual {actual}")
+            _check_files(p, files, f"{where}/", problems, checked)
             for fp in sorted(p.iterdir()):
                 if fp.name != FIT_JSON and fp.name not in files:
                     kind = "directory" if fp.is_dir() else "file"
@@ -1139,12 +1124,7 @@ class SessionStore:
             )
         meta, problems = _load_sealed((path / FIT_JSON).read_bytes(), "fit_sha256", f"fit {fit_id}/{FIT_JSON}")
         if meta is not None and check_files:
-            for name, info in meta.get("files", {}).items():
-                p = path / name
-                if not p.is_file():
-                    problems.append(f"fit {fit_id}/{name}: missing")
-                elif (actual := sha256_file(p)) != info["sha256"]:
-                    problems.append(f"fit {fit_id}/{name}: sha256 mismatch: expected {info['sha256']}, actual {actual}")
+            _check_files(path, meta.get("files", {}), f"fit {fit_id}/", problems, [])
         if problems or meta is None:
             raise DatasetCorrupted(f"fit {fit_id} under {r} is corrupted:\n  " + "\n  ".join(problems), problems)
         return FitRecord(fit_id, str(r), path, meta)
@@ -1159,6 +1139,19 @@ class SessionStore:
                     return self.load_fit(Ref(s, v), fit_id)
         known = [p.parent.name for s in self.session_ids() for p in self.session_dir(s).glob(f"v*/{FITS}/*/{FIT_JSON}")]
         raise UnknownVersion(f"no fit {fit_id!r} in store {self.root}{_did_you_mean(fit_id, known)}")
+
+
+def _check_files(folder: Path, listed: Mapping[str, dict], where: str, problems: list[str], checked: list[str]) -> None:
+    """Each file ``listed`` (name → {"sha256": …}) in ``folder`` against its sha256: a line in ``problems`` for each
+    one missing or changed, the name of each one read in ``checked``; ``where`` prefixes the names."""
+    for name, info in sorted(listed.items()):
+        if not (folder / name).is_file():
+            problems.append(f"{where}{name}: missing (expected sha256 {info.get('sha256')})")
+            continue
+        actual = sha256_file(folder / name)
+        checked.append(f"{where}{name}")
+        if actual != info.get("sha256"):
+            problems.append(f"{where}{name}: sha256 mismatch: expected {info.get('sha256')}, actual {actual}")
 
 
 def _foreign_entry_notes(session_dir: Path) -> list[str]:
@@ -1399,9 +1392,7 @@ def _log_version(session_dir: Path, name: str, manifest_sha256: str, parent: str
                 data = b"\n" + data
             else:
                 os.ftruncate(fd, size - len(tail))
-        view = memoryview(data)
-        while view:
-            view = view[os.write(fd, view) :]
+        write_all(fd, data)
         os.fsync(fd)
     finally:
         os.close(fd)
