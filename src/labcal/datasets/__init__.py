@@ -73,7 +73,7 @@ Versions are never rewritten: sealing again, appending to a journal, or importin
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # for type checkers: the names of the table below, imported where they are defined
-    from .documents import MeasurementDoc, SessionHeader, StartDoc, StopDoc  # noqa: F401
+    from .documents import EXIT_STATUSES, MeasurementDoc, SessionHeader, StartDoc, StopDoc  # noqa: F401
     from .errors import (  # noqa: F401
         DatasetCorrupted,
         DatasetError,
@@ -98,7 +98,7 @@ if TYPE_CHECKING:  # for type checkers: the names of the table below, imported w
         load_mapping,
         probe_points,
     )
-    from .journal import EXIT_STATUSES, Journal, JournalContents, read_journal  # noqa: F401
+    from .journal import Journal, JournalContents, read_journal  # noqa: F401
     from .schema import SCHEMA_VERSION, SPLITS, core_columns, joint_columns, spread_columns, target_columns  # noqa: F401
     from .store import (  # noqa: F401
         Dataset,
@@ -119,13 +119,13 @@ if TYPE_CHECKING:  # for type checkers: the names of the table below, imported w
 # manifests and journals without the table machinery (pandas, pyarrow) the importers and loaders need. The table
 # holds the names imported for type checkers above (tests/datasets/test_package_names.py checks they agree).
 _MODULES: dict[str, str] = {
-    "documents": "MeasurementDoc SessionHeader StartDoc StopDoc",
+    "documents": "EXIT_STATUSES MeasurementDoc SessionHeader StartDoc StopDoc",
     "errors": "DatasetCorrupted DatasetError ImportFormatError InvalidId JournalCorrupted JournalError MappingError "
     "TargetsError UnknownSession UnknownVersion",
     "ids": "Ref new_fit_id new_session_id parse_ref validate_id version_name",
     "importers": "DEFAULT_PROBE_OFFSETS ImportOptions ImportSpec import_mapped import_probe_csv import_targets_csv "
     "list_mappings load_mapping probe_points",
-    "journal": "EXIT_STATUSES Journal JournalContents read_journal",
+    "journal": "Journal JournalContents read_journal",
     "schema": "SCHEMA_VERSION SPLITS core_columns joint_columns spread_columns target_columns",
     "store": "Dataset FitRecord SealResult SessionInfo SessionStore StoreWriteError VerifyReport VersionInfo "
     "default_root load_version verify",

@@ -408,19 +408,3 @@ def measured_spread(value: Any, points: list | None, m: int) -> list | None:
     if points is None:
         return [float(v) if math.isfinite(v) else None for v in a.tolist()]
     return [float(v) if ok and math.isfinite(v) else None for ok, v in zip(seen, a.tolist(), strict=True)]
-
-
-__all__ = [
-    "EXIT_STATUSES",
-    "MEASUREMENT_UNITS",
-    "STATUSES",
-    "MeasurementDoc",
-    "SessionHeader",
-    "StartDoc",
-    "StopDoc",
-    "check_unit",
-    "measured_points",
-    "measured_spread",
-    "metadata_with_unit",
-    "robot_document",
-]

@@ -57,7 +57,6 @@ from .documents import (
     is_extra_key,
     measured_points,
     measured_spread,
-    robot_document,
 )
 from .errors import JournalCorrupted, JournalError
 from .ids import validate_id
@@ -73,17 +72,6 @@ except ImportError:  # pragma: no cover
 
 JOURNAL_NAME = "journal.jsonl"
 DOC_TYPES = ("start", "measurement", "pause", "resume", "stop", "repair")
-__all__ = [
-    "DOC_TYPES",
-    "EXIT_STATUSES",
-    "JOURNAL_NAME",
-    "MEASUREMENT_UNITS",
-    "STATUSES",
-    "Journal",
-    "JournalContents",
-    "read_journal",
-    "robot_document",
-]
 
 
 @dataclass(frozen=True)

@@ -1500,20 +1500,3 @@ def load_version(store: SessionStore | str | Path | None, ref: str | Ref) -> Dat
 def verify(store: SessionStore | str | Path | None, ref: str | Ref) -> VerifyReport:
     """Recompute the hashes of ``SESSION[@vN]``; see :meth:`SessionStore.verify`."""
     return _as_store(store).verify(ref)
-
-
-__all__ = [
-    "Dataset",
-    "FitRecord",
-    "SealResult",
-    "SessionInfo",
-    "SessionStore",
-    "StoreWriteError",
-    "VerifyReport",
-    "VersionInfo",
-    "default_root",
-    "journal_rows",
-    "load_version",
-    "session_meta_from_start",
-    "verify",
-]
