@@ -60,7 +60,8 @@ from ._util import (
     write_file_durable,
 )
 from .errors import DatasetCorrupted, DatasetError, JournalCorrupted, UnknownSession, UnknownVersion
-from .ids import Ref, new_fit_id, new_session_id, parse_ref, validate_id, version_name
+from .ids import _ID_RE, Ref, new_fit_id, new_session_id, parse_ref, parse_version, validate_id, version_name
+from .schema import SCHEMA_VERSION, column_units, joint_columns, normalize_table, spread_columns, target_columns
 
 MEASUREMENTS = "measurements.parquet"
 MANIFEST = "manifest.json"
@@ -86,9 +87,9 @@ def is_os_or_editor_file(name: str) -> bool:
     )
 
 
-# journal, documents and schema are imported where they are used: an empty store, a listing of imported sessions
-# and `labcal --help` need none of them (schema imports pandas). The journal's file name is all a listing needs;
-# tests/cli/test_scripting.py checks it is journal.JOURNAL_NAME.
+# journal and documents are imported where they are used: an empty store, a listing of imported sessions and
+# `labcal --help` need neither (schema imports numpy and pandas only in its functions). The journal's file name is
+# all a listing needs; tests/cli/test_scripting.py checks it is journal.JOURNAL_NAME.
 JOURNAL_NAME = "journal.jsonl"
 
 if TYPE_CHECKING:
@@ -211,21 +212,13 @@ class Dataset:
     def q(self) -> np.ndarray:
         """(k, n) rad: joint positions as the controller reported them (controller joints; the robot file's joint
         map converts them to model joints: ``labcal.cli.ops.load_observations``)."""
-        import numpy as np
-
-        from .schema import joint_columns
-
-        return self.table[joint_columns(self.n_joints)].to_numpy(dtype=np.float64)
+        return self.table[joint_columns(self.n_joints)].to_numpy(dtype=float)
 
     @property
     def points(self) -> np.ndarray:
         """(k, m, 3) m: measured targets; ``points[:, i]`` is target t(i+1), all NaN where it was not seen."""
-        import numpy as np
-
-        from .schema import target_columns
-
         m = self.n_targets
-        return self.table[list(target_columns(m))].to_numpy(dtype=np.float64).reshape(-1, m, 3)
+        return self.table[list(target_columns(m))].to_numpy(dtype=float).reshape(-1, m, 3)
 
     @property
     def seen(self) -> np.ndarray:
@@ -242,21 +235,15 @@ class Dataset:
     @property
     def pose(self) -> np.ndarray:
         """(k,) int: plan index (or import row) of each measurement."""
-        import numpy as np
-
-        return self.table["pose"].to_numpy(dtype=np.int64)
+        return self.table["pose"].to_numpy(dtype="int64")
 
     @property
     def spread(self) -> np.ndarray | None:
         """(k, m) m tracker spread per target (NaN where not seen or unknown), or None if the version has none."""
-        import numpy as np
-
-        from .schema import spread_columns
-
         cols = list(spread_columns(self.n_targets))
         if not all(c in self.table.columns for c in cols):
             return None
-        return self.table[cols].to_numpy(dtype=np.float64)
+        return self.table[cols].to_numpy(dtype=float)
 
     @property
     def units(self) -> dict[str, str]:
@@ -818,8 +805,6 @@ class SessionStore:
         ``session`` block). Written into a temporary folder, then renamed; returns the new ``SESSION@vNNN``."""
         import pandas as pd
 
-        from .schema import SCHEMA_VERSION, column_units, normalize_table
-
         table = rows if parent_ds is None else pd.concat([parent_ds.table, rows], ignore_index=True)
         table = normalize_table(table, int(meta["robot"]["n_joints"]), len(meta["targets"]))
         parent = None if parent_ds is None else parse_ref(parent_ds.ref).version
@@ -1005,8 +990,6 @@ class SessionStore:
         JSON-able (method, seed, metrics …). fit.json records each input's resolved ref, manifest sha256 and
         data sha256, plus the sha256 of every fit file. Inputs are verified first.
         """
-        from .schema import SCHEMA_VERSION
-
         ref_list = [refs] if isinstance(refs, str | Ref) else list(refs)
         if not ref_list:
             raise DatasetError("a fit needs at least one input version")
@@ -1179,8 +1162,6 @@ def _check_versions_log(
 ) -> None:
     """The versions log against the version folders: adds to missing the published versions that are gone, to
     problems a damaged log or a manifest that is not the published one, to notes the versions it does not list."""
-    from .ids import parse_version
-
     entries, log_problems, log_notes = _read_versions_log(log.read_bytes())
     problems += log_problems
     notes += log_notes
@@ -1426,8 +1407,6 @@ def _read_versions_log(data: bytes) -> tuple[list[dict], list[str], list[str]]:
 
 def _session_folder_problem(p: Path) -> str | None:
     """Why the store entry ``p`` is not a session folder, or None if it is one."""
-    from .ids import _ID_RE
-
     name = p.name
     if is_os_or_editor_file(name):
         return "a file of the operating system or an editor"
@@ -1460,8 +1439,6 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
     """
     import numpy as np
     import pandas as pd
-
-    from .schema import spread_columns
 
     recs = []
     for m in measurements:
