@@ -72,6 +72,8 @@ except ImportError:  # pragma: no cover
 
 JOURNAL_NAME = "journal.jsonl"
 DOC_TYPES = ("start", "measurement", "pause", "resume", "stop", "repair")
+# The state of the run after each lifecycle document (JournalContents.state).
+_STATES = {"start": "running", "resume": "running", "pause": "paused", "stop": "stopped"}
 
 
 @dataclass(frozen=True)
@@ -112,14 +114,7 @@ class JournalContents:
     @property
     def state(self) -> str:
         """ "running", "paused" or "stopped", from the last lifecycle document."""
-        for d in reversed(self.documents):
-            if d["type"] == "stop":
-                return "stopped"
-            if d["type"] == "pause":
-                return "paused"
-            if d["type"] in ("resume", "start"):
-                return "running"
-        return "running"
+        return next((_STATES[d["type"]] for d in reversed(self.documents) if d["type"] in _STATES), "running")
 
     @property
     def stop(self) -> StopDoc | None:

@@ -455,12 +455,8 @@ class SessionStore:
 
         Example: a folder copied by a file manager, ``20261122-031500-ur10-3f9a (copy)``, gives ``("… (copy)", "not a
         session id (…): a copy? rename it to a new id to use it as a session")``."""
-        out = []
-        for p in sorted(self._root_entries(), key=lambda q: q.name):
-            why = _session_folder_problem(p)
-            if why is not None:
-                out.append((p.name, why))
-        return out
+        entries = sorted(self._root_entries(), key=lambda q: q.name)
+        return [(p.name, why) for p in entries if (why := _session_folder_problem(p)) is not None]
 
     def require_root(self) -> None:
         """Raise :class:`UnknownSession` with one clear line when the store folder does not exist."""
@@ -580,11 +576,8 @@ class SessionStore:
             try:
                 m = json.loads((vdir / MANIFEST).read_text(encoding="utf-8"))
                 fits_dir = vdir / FITS
-                nfits = (
-                    len([p for p in fits_dir.iterdir() if p.is_dir() and not p.name.startswith(".")])
-                    if fits_dir.is_dir()
-                    else 0
-                )
+                fits = fits_dir.iterdir() if fits_dir.is_dir() else ()
+                nfits = sum(p.is_dir() and not p.name.startswith(".") for p in fits)
                 infos.append(
                     VersionInfo(version_name(v), int(m["row_count"]), m["created"], m["source"], m["parent"], nfits)
                 )
@@ -1014,9 +1007,7 @@ class SessionStore:
             if name == FIT_JSON:
                 raise DatasetError(f"{FIT_JSON} is reserved for labcal's own record of the fit")
         fits_dir = self.session_dir(resolved[0].session_id) / version_name(resolved[0].version) / FITS  # type: ignore[arg-type]
-        if not fits_dir.exists():
-            fits_dir.mkdir()
-            fsync_dir(fits_dir.parent)
+        make_dirs_durable(fits_dir)
         if (fits_dir / fit_id).exists():
             raise DatasetError(f"fit {fit_id!r} already exists under {resolved[0]}")
         tmp = make_temp_dir(fits_dir, fit_id)
