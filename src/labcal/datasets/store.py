@@ -657,10 +657,9 @@ class SessionStore:
                 manifests[v] = json.loads((d / version_name(v) / MANIFEST).read_text(encoding="utf-8"))
             except (OSError, ValueError):
                 manifests[v] = None  # the version's own verify says why
-        missing: dict[int, str] = {}
-        for v in range(1, (versions[-1] if versions else 0)):
-            if v not in manifests:
-                missing[v] = f"{version_name(versions[-1])} exists and versions are numbered in order"
+        last = versions[-1] if versions else 0
+        gap = f"{version_name(last)} exists and versions are numbered in order" if last else ""
+        missing = {v: gap for v in range(1, last) if v not in manifests}
         log = d / VERSIONS_LOG
         if log.is_file():
             checked.append(VERSIONS_LOG)
@@ -1456,15 +1455,11 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
     return table
 
 
-def _as_store(store: SessionStore | str | Path | None) -> SessionStore:
-    return store if isinstance(store, SessionStore) else SessionStore(store)
-
-
 def load_version(store: SessionStore | str | Path | None, ref: str | Ref) -> Dataset:
     """Load ``SESSION[@vN]`` from ``store`` (a SessionStore or its root folder), verifying its hashes."""
-    return _as_store(store).load(ref)
+    return (store if isinstance(store, SessionStore) else SessionStore(store)).load(ref)
 
 
 def verify(store: SessionStore | str | Path | None, ref: str | Ref) -> VerifyReport:
     """Recompute the hashes of ``SESSION[@vN]``; see :meth:`SessionStore.verify`."""
-    return _as_store(store).verify(ref)
+    return (store if isinstance(store, SessionStore) else SessionStore(store)).verify(ref)
