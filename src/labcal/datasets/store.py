@@ -33,6 +33,7 @@ listed as foreign (:meth:`SessionStore.foreign_entries`, :attr:`VerifyReport.not
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import io
 import json
@@ -527,11 +528,9 @@ class SessionStore:
             return Journal.create(d / JOURNAL_NAME, header, session_id=session_id)
         except BaseException:
             # Nothing was written (or the start document failed): leave no empty session behind.
-            for p in (d / JOURNAL_NAME, d):
-                try:
-                    p.unlink() if p.is_file() else p.rmdir()
-                except OSError:
-                    pass
+            with contextlib.suppress(OSError):
+                (d / JOURNAL_NAME).unlink(missing_ok=True)
+                d.rmdir()
             raise
 
     def open_journal(self, session_id: str) -> Journal:
@@ -1435,13 +1434,11 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
         q = m.q
         rec: dict[str, Any] = {"pose": m.pose_index}
         rec.update({f"q{j + 1}": float(q[j]) for j in range(n_joints)})
-        if m.points is None or len(m.points) != n_targets:
-            have = "no points" if m.points is None else f"{len(m.points)} target(s)"
+        points = m.points_array()
+        if points is None or len(points) != n_targets:
+            have = "no points" if points is None else f"{len(points)} target(s)"
             raise JournalCorrupted(f"measurement seq {m.seq} is valid but has {have}; the session has {n_targets}")
-        for i in range(n_targets):
-            point = m.points[i]
-            for a, axis in enumerate("xyz"):
-                rec[f"t{i + 1}_{axis}"] = np.nan if point is None else float(point[a])
+        rec.update(zip(target_columns(n_targets), points.ravel().tolist(), strict=True))
         rec["split"] = m.split or ""
         spread = m.spread
         for i, c in enumerate(spread_columns(n_targets)):
