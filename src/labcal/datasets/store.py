@@ -395,19 +395,11 @@ def with_robot_record(meta: dict) -> dict:
 
 
 def session_meta_from_start(start: StartDoc) -> dict:
-    """The ``session`` block of a manifest, from a journal's start document."""
-    return {
-        "session_id": start.session_id,
-        "robot": dict(start.robot),
-        "targets": start.targets,
-        "targets_unit": "m",
-        "frame": start.frame,
-        "tracker": start.tracker,
-        "robot_driver": start.robot_driver,
-        "plan": _plan_summary(start.plan),
-        "extra_units": dict(start.extra_units),
-        "metadata": start.metadata,
-    }
+    """The ``session`` block of a manifest, from a journal's start document: what describes the session (robot,
+    targets, frame, devices, units of the extra fields, metadata) and a summary of the plan."""
+    doc = start.to_json()
+    keep = ("session_id", "robot", "targets", "frame", "tracker", "robot_driver", "extra_units", "metadata")
+    return {**{k: doc[k] for k in keep}, "targets_unit": "m", "plan": _plan_summary(start.plan)}
 
 
 _ID_TIME = re.compile(r"^(\d{4})(\d{2})(\d{2})-(\d{2})(\d{2})(\d{2})-")
@@ -662,7 +654,7 @@ class SessionStore:
         log = d / VERSIONS_LOG
         if log.is_file():
             checked.append(VERSIONS_LOG)
-            _check_versions_log(log, versions, manifests, missing, problems, notes)
+            _check_versions_log(log, manifests, missing, problems, notes)
         for v, why in sorted(missing.items()):
             problems.append(
                 f"{version_name(v)}: missing ({why}): restore {d / version_name(v)} from a backup; the other versions "
@@ -1142,15 +1134,11 @@ def _foreign_entry_notes(session_dir: Path) -> list[str]:
 
 
 def _check_versions_log(
-    log: Path,
-    versions: list[int],
-    manifests: dict[int, dict | None],
-    missing: dict[int, str],
-    problems: list[str],
-    notes: list[str],
+    log: Path, manifests: dict[int, dict | None], missing: dict[int, str], problems: list[str], notes: list[str]
 ) -> None:
-    """The versions log against the version folders: adds to missing the published versions that are gone, to
-    problems a damaged log or a manifest that is not the published one, to notes the versions it does not list."""
+    """The versions log against the version folders (``manifests``: version → its manifest, None if unreadable):
+    adds to missing the published versions that are gone, to problems a damaged log or a manifest that is not the
+    published one, to notes the versions it does not list."""
     entries, log_problems, log_notes = _read_versions_log(log.read_bytes())
     problems += log_problems
     notes += log_notes
@@ -1170,7 +1158,7 @@ def _check_versions_log(
                 f"{e.get('manifest_sha256')} in {VERSIONS_LOG}, {man.get('manifest_sha256')} now): "
                 f"restore {version_name(v)} from a backup"
             )
-    for v in versions:
+    for v in manifests:
         if v not in logged:
             notes.append(
                 f"{version_name(v)}: not listed in {VERSIONS_LOG} (written by an older labcal, or a seal "
