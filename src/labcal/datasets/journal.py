@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import functools
 import json
-import math
 import os
 import time as _time
 import uuid
@@ -48,7 +47,6 @@ from typing import Any
 from ._util import canonical_json, fsync_dir, jsonable, write_all
 from .documents import (
     EXIT_STATUSES,
-    MEASUREMENT_UNITS,
     STATUSES,
     MeasurementDoc,
     SessionHeader,
@@ -427,9 +425,7 @@ class Journal:
         for k, v in (extra or {}).items():
             if not is_extra_key(k):
                 raise JournalError(f"extra field name {k!r} must match [A-Za-z0-9_]+")
-            v = jsonable(v)
-            if isinstance(v, float) and not math.isfinite(v):
-                v = None
+            v = jsonable(v, finite=True)  # a NaN or infinite value is stored as null
             if v is not None and not isinstance(v, bool | int | float | str):
                 raise JournalError(f"extra field {k!r} must be a number, string, bool or None, got {type(v)}")
             extra_doc[k] = v
@@ -448,7 +444,6 @@ class Journal:
             reason=str(reason),
             split=split,
             extra=extra_doc,
-            units=dict(MEASUREMENT_UNITS),
             time=float(_time.time() if time is None else time),
         )
         self._append(doc.to_json())
