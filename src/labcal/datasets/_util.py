@@ -106,15 +106,11 @@ def write_file_durable(path: Path, data: bytes, *, read_only: bool = True) -> No
 
 
 def make_temp_dir(parent: Path, prefix: str) -> Path:
-    """A fresh hidden directory in ``parent`` (same file system, so a later rename is atomic)."""
-    for _ in range(100):
-        p = parent / f".tmp-{prefix}-{random_hex(8)}"
-        try:
-            p.mkdir()
-            return p
-        except FileExistsError:  # pragma: no cover - astronomically unlikely
-            continue
-    raise OSError(f"could not create a temporary directory in {parent}")  # pragma: no cover
+    """A fresh hidden directory in ``parent`` (same file system, so a later rename is atomic). Its 8 random hex
+    digits make the name unique; were it taken, ``mkdir`` fails (FileExistsError) rather than reuse the folder."""
+    p = parent / f".tmp-{prefix}-{random_hex(8)}"
+    p.mkdir()
+    return p
 
 
 def remove_tree(path: Path) -> None:

@@ -567,8 +567,7 @@ class SessionStore:
             try:
                 m = json.loads((vdir / MANIFEST).read_text(encoding="utf-8"))
                 fits_dir = vdir / FITS
-                fits = fits_dir.iterdir() if fits_dir.is_dir() else ()
-                nfits = sum(p.is_dir() and not p.name.startswith(".") for p in fits)
+                nfits = sum(p.is_dir() and not p.name.startswith(".") for p in fits_dir.glob("*"))
                 infos.append(
                     VersionInfo(version_name(v), int(m["row_count"]), m["created"], m["source"], m["parent"], nfits)
                 )
@@ -1056,7 +1055,7 @@ class SessionStore:
         r = self.resolve(ref)
         folder = self.session_dir(r.session_id) / version_name(r.version) / FITS / EVALUATIONS / fit_id  # type: ignore[arg-type]
         out = []
-        for p in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        for p in sorted(folder.glob("*.json")):
             doc, problems = _load_sealed(p.read_bytes(), "evaluation_sha256", p.name)
             out.append({**(doc or {"evaluation_id": p.stem}), **({"corrupt": True} if problems else {})})
         return out
@@ -1078,11 +1077,7 @@ class SessionStore:
         r = self.resolve(ref)
         path = self.session_dir(r.session_id) / version_name(r.version) / FITS / validate_id(fit_id, "fit id")  # type: ignore[arg-type]
         if not (path / FIT_JSON).is_file():
-            known = (
-                sorted(p.name for p in path.parent.iterdir() if not p.name.startswith("."))
-                if path.parent.is_dir()
-                else []
-            )
+            known = sorted(p.name for p in path.parent.glob("*") if not p.name.startswith("."))  # none: no folder
             raise UnknownVersion(
                 f"{r} has no fit {fit_id!r}{_did_you_mean(fit_id, known)}; available: {', '.join(known) or 'none'}"
             )
