@@ -124,10 +124,8 @@ class JournalContents:
     @property
     def status(self) -> str:
         """The session's status for listings: the stop document's exit_status, "paused", or "open"."""
-        state = self.state
-        if state == "stopped":
-            return self.stop.exit_status  # type: ignore[union-attr]
-        return "paused" if state == "paused" else "open"
+        stop = self.stop
+        return stop.exit_status if stop is not None else "paused" if self.state == "paused" else "open"
 
     @property
     def next_seq(self) -> int:
