@@ -97,8 +97,8 @@ MUTATIONS: list[Mutation] = [
     # ---------------------------------------------------------------------------------------- datasets: journal
     M("datasets/journal", J, 'if d["seq"] <= last_seq:', 'if d["seq"] < last_seq:',
       "a line repeating the previous seq is accepted", T_DUR, T_JOURNAL),
-    M("datasets/journal", J, "            _write_all(self._fd, line)\n            os.fsync(self._fd)\n",
-      "            _write_all(self._fd, line)\n", "append returns before the document is fsynced", T_DUR, T_JOURNAL),
+    M("datasets/journal", J, "            write_all(self._fd, line)\n            os.fsync(self._fd)\n",
+      "            write_all(self._fd, line)\n", "append returns before the document is fsynced", T_DUR, T_JOURNAL),
     M("datasets/journal", J, "if contents.needs_newline or contents.torn_lines:", "if contents.torn_lines:",
       "a complete last line without its newline is not repaired on open", T_DUR, T_JOURNAL),
     M("datasets/journal", J, '(b"\\n" if contents.needs_newline else b"")', 'b""',
@@ -125,8 +125,8 @@ MUTATIONS: list[Mutation] = [
     # ------------------------------------------------------------------------------------------ datasets: store
     M("datasets/store", S, "(p.name == FITS and p.is_dir())", "p.is_dir()",
       "verify does not report an extra folder inside a version", T_DUR, T_STORE),
-    M("datasets/store", S, '                checked.append(name)\n                if actual != info.get("sha256"):',
-      '                checked.append(name)\n                if False:', "verify ignores a changed data file",
+    M("datasets/store", S, '        checked.append(f"{where}{name}")\n        if actual != info.get("sha256"):',
+      '        checked.append(f"{where}{name}")\n        if False:', "verify ignores a changed data file",
       T_STORE),
     M("datasets/store", S, 'elif sha256_file(jpath, limit=n) != info.get("sha256"):', "elif False:",
       "verify ignores an edited journal prefix", T_STORE, T_DAMAGE),
@@ -156,7 +156,7 @@ MUTATIONS: list[Mutation] = [
       'expected = manifest["files"][MEASUREMENTS]["sha256"]\n        if False:',
       "load does not re-hash the bytes it parses (a change after its verify)", T_STOREM),
     # -------------------------------------------------------------------------------- datasets: files and ids
-    M("datasets/util", U, "            view = view[n:]\n        os.fsync(fd)\n", "            view = view[n:]\n",
+    M("datasets/util", U, "        write_all(fd, data)\n        os.fsync(fd)\n", "        write_all(fd, data)\n",
       "version files are not fsynced before the rename", T_DUR2),
     M("datasets/util", U, "    if read_only:\n        os.chmod(path, READ_ONLY)\n", "",
       "version files stay writable", T_STORE),

@@ -23,7 +23,18 @@ import os
 import stat
 from pathlib import Path
 
-__all__ = ["UnsafeTargetError", "check_target", "write_bytes", "write_text"]
+__all__ = ["UnsafeTargetError", "check_target", "fsync_dir", "write_all", "write_bytes", "write_text"]
+
+
+# What a path that is not a regular file is, for the message that refuses it.
+_KINDS = (
+    (stat.S_ISLNK, "a symbolic link"),
+    (stat.S_ISDIR, "a folder"),
+    (stat.S_ISCHR, "a device"),
+    (stat.S_ISBLK, "a device"),
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISSOCK, "a socket"),
+)
 
 
 class UnsafeTargetError(ValueError):
@@ -45,22 +56,9 @@ def check_target(path: str | os.PathLike) -> Path:
         return path
     except OSError as e:
         raise UnsafeTargetError(f"{path}: cannot be inspected ({e.strerror or e})") from None
-    mode = st.st_mode
-    if stat.S_ISREG(mode):
+    if stat.S_ISREG(st.st_mode):
         return path
-    kind = (
-        "a symbolic link"
-        if stat.S_ISLNK(mode)
-        else "a folder"
-        if stat.S_ISDIR(mode)
-        else "a device"
-        if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
-        else "a FIFO"
-        if stat.S_ISFIFO(mode)
-        else "a socket"
-        if stat.S_ISSOCK(mode)
-        else "not a regular file"
-    )
+    kind = next((what for test, what in _KINDS if test(st.st_mode)), "not a regular file")
     raise UnsafeTargetError(f"{path} is {kind}; labcal only writes regular files - name a file path instead")
 
 
@@ -73,9 +71,7 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view) :]
+            write_all(fd, data)
             os.fsync(fd)
         finally:
             os.close(fd)
@@ -89,8 +85,20 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
         except OSError:
             pass
         raise OSError(e.errno, f"cannot write {path}: {e.strerror or e}") from None
+    fsync_dir(path.parent)
+
+
+def write_all(fd: int, data: bytes) -> None:
+    """``os.write`` until every byte of ``data`` is written (one call may write only part)."""
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view) :]
+
+
+def fsync_dir(path: Path) -> None:
+    """Make the directory entries of ``path`` durable (no-op where directories cannot be opened)."""
     try:
-        fd = os.open(path.parent, os.O_RDONLY)
+        fd = os.open(path, os.O_RDONLY)
     except OSError:  # pragma: no cover - platforms without directory fds
         return
     try:

@@ -54,10 +54,8 @@ def printable(value: object, limit: int | None = None) -> str:
     """``value`` as one printable line: whitespace runs become one blank, other control and format characters
     (ESC, bidi overrides, NUL …) their backslash escapes, so nothing written can move a cursor or start a line.
     limit: cut to that many characters (marked with ``...``)."""
-    out = []
-    for ch in " ".join(str(value).split()):
-        out.append(ch if ch.isprintable() else ch.encode("unicode_escape").decode("ascii"))
-    text = "".join(out)
+    one_line = " ".join(str(value).split())
+    text = "".join(ch if ch.isprintable() else ch.encode("unicode_escape").decode("ascii") for ch in one_line)
     if limit is not None and len(text) > limit:
         text = text[: max(0, limit - 3)] + "..."
     return text

@@ -214,7 +214,7 @@ def test_fits_are_stored_under_their_version_with_input_hashes(sealed):
     assert store.verify(ref).ok  # the fits folder is outside the version's hashes
     assert {p.name: p.read_bytes() for p in vdir.iterdir() if p.is_file()} == before
     loaded = store.load_fit(ref, fit.fit_id)
-    assert loaded.read("model.npz") == weights and loaded.read_json("metrics.json") == {"mean_mm": 0.4}
+    assert loaded.read("model.npz") == weights and json.loads(loaded.read("metrics.json")) == {"mean_mm": 0.4}
     assert loaded.metadata["seed"] == 7 and store.find_fit(fit.fit_id).path == fit.path
     fit2 = store.save_fit(ref, {"a.bin": b"1"}, {"method": "ann"})
     assert [f.fit_id for f in store.list_fits(ref)] == sorted([fit.fit_id, fit2.fit_id])

@@ -163,12 +163,12 @@ def test_resume_refuses_a_damaged_version_before_any_motion(tmp_path):
 def test_a_start_document_that_does_not_read_back_as_written_is_refused_before_recording(tmp_path, monkeypatch):
     from labcal.datasets import journal as journal_module
 
-    real = journal_module._write_all
+    real = journal_module.write_all
 
     def flipping(fd, data):  # a disk that stores one bit wrong
         real(fd, data[:40] + bytes([data[40] ^ 0x04]) + data[41:])
 
-    monkeypatch.setattr(journal_module, "_write_all", flipping)
+    monkeypatch.setattr(journal_module, "write_all", flipping)
     with pytest.raises(JournalCorrupted, match="read back differs"):
         new_journal(SessionStore(tmp_path / "store"))
 

@@ -72,9 +72,9 @@ Versions are never rewritten: sealing again, appending to a journal, or importin
 
 from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    from .documents import MeasurementDoc, SessionHeader, StartDoc, StopDoc
-    from .errors import (
+if TYPE_CHECKING:  # for type checkers: the names of the table below, imported where they are defined
+    from .documents import EXIT_STATUSES, MeasurementDoc, SessionHeader, StartDoc, StopDoc  # noqa: F401
+    from .errors import (  # noqa: F401
         DatasetCorrupted,
         DatasetError,
         ImportFormatError,
@@ -86,8 +86,8 @@ if TYPE_CHECKING:
         UnknownSession,
         UnknownVersion,
     )
-    from .ids import Ref, new_fit_id, new_session_id, parse_ref, validate_id, version_name
-    from .importers import (
+    from .ids import Ref, new_fit_id, new_session_id, parse_ref, validate_id, version_name  # noqa: F401
+    from .importers import (  # noqa: F401
         DEFAULT_PROBE_OFFSETS,
         ImportOptions,
         ImportSpec,
@@ -98,9 +98,9 @@ if TYPE_CHECKING:
         load_mapping,
         probe_points,
     )
-    from .journal import EXIT_STATUSES, Journal, JournalContents, read_journal
-    from .schema import SCHEMA_VERSION, SPLITS, core_columns, joint_columns, spread_columns, target_columns
-    from .store import (
+    from .journal import Journal, JournalContents, read_journal  # noqa: F401
+    from .schema import SCHEMA_VERSION, SPLITS, core_columns, joint_columns, spread_columns, target_columns  # noqa: F401
+    from .store import (  # noqa: F401
         Dataset,
         FitRecord,
         SealResult,
@@ -113,125 +113,26 @@ if TYPE_CHECKING:
         load_version,
         verify,
     )
-    from .targets import MIN_TARGET_AREA, MIN_TARGET_HEIGHT, load_targets, target_layout, validate_targets
+    from .targets import MIN_TARGET_AREA, MIN_TARGET_HEIGHT, load_targets, target_layout, validate_targets  # noqa: F401
 
 # Each name is imported from its module on first use (PEP 562): `labcal session list` and `labcal --help` read
-# manifests and journals without the table machinery (pandas, pyarrow) the importers and loaders need.
-_LAZY: dict[str, str] = {
-    "MeasurementDoc": "documents",
-    "SessionHeader": "documents",
-    "StartDoc": "documents",
-    "StopDoc": "documents",
-    "DatasetCorrupted": "errors",
-    "DatasetError": "errors",
-    "ImportFormatError": "errors",
-    "InvalidId": "errors",
-    "JournalCorrupted": "errors",
-    "JournalError": "errors",
-    "MappingError": "errors",
-    "TargetsError": "errors",
-    "UnknownSession": "errors",
-    "UnknownVersion": "errors",
-    "Ref": "ids",
-    "new_fit_id": "ids",
-    "new_session_id": "ids",
-    "parse_ref": "ids",
-    "validate_id": "ids",
-    "version_name": "ids",
-    "DEFAULT_PROBE_OFFSETS": "importers",
-    "ImportOptions": "importers",
-    "ImportSpec": "importers",
-    "import_mapped": "importers",
-    "import_probe_csv": "importers",
-    "import_targets_csv": "importers",
-    "list_mappings": "importers",
-    "load_mapping": "importers",
-    "probe_points": "importers",
-    "EXIT_STATUSES": "journal",
-    "Journal": "journal",
-    "JournalContents": "journal",
-    "read_journal": "journal",
-    "SCHEMA_VERSION": "schema",
-    "SPLITS": "schema",
-    "core_columns": "schema",
-    "joint_columns": "schema",
-    "spread_columns": "schema",
-    "target_columns": "schema",
-    "Dataset": "store",
-    "FitRecord": "store",
-    "SealResult": "store",
-    "SessionInfo": "store",
-    "SessionStore": "store",
-    "StoreWriteError": "store",
-    "VerifyReport": "store",
-    "VersionInfo": "store",
-    "default_root": "store",
-    "load_version": "store",
-    "verify": "store",
-    "MIN_TARGET_AREA": "targets",
-    "MIN_TARGET_HEIGHT": "targets",
-    "load_targets": "targets",
-    "target_layout": "targets",
-    "validate_targets": "targets",
+# manifests and journals without the table machinery (pandas, pyarrow) the importers and loaders need. The table
+# holds the names imported for type checkers above (tests/datasets/test_package_names.py checks they agree).
+_MODULES: dict[str, str] = {
+    "documents": "EXIT_STATUSES MeasurementDoc SessionHeader StartDoc StopDoc",
+    "errors": "DatasetCorrupted DatasetError ImportFormatError InvalidId JournalCorrupted JournalError MappingError "
+    "TargetsError UnknownSession UnknownVersion",
+    "ids": "Ref new_fit_id new_session_id parse_ref validate_id version_name",
+    "importers": "DEFAULT_PROBE_OFFSETS ImportOptions ImportSpec import_mapped import_probe_csv import_targets_csv "
+    "list_mappings load_mapping probe_points",
+    "journal": "Journal JournalContents read_journal",
+    "schema": "SCHEMA_VERSION SPLITS core_columns joint_columns spread_columns target_columns",
+    "store": "Dataset FitRecord SealResult SessionInfo SessionStore StoreWriteError VerifyReport VersionInfo "
+    "default_root load_version verify",
+    "targets": "MIN_TARGET_AREA MIN_TARGET_HEIGHT load_targets target_layout validate_targets",
 }
-
-__all__ = [
-    "DEFAULT_PROBE_OFFSETS",
-    "EXIT_STATUSES",
-    "MIN_TARGET_AREA",
-    "MIN_TARGET_HEIGHT",
-    "SCHEMA_VERSION",
-    "SPLITS",
-    "Dataset",
-    "DatasetCorrupted",
-    "DatasetError",
-    "FitRecord",
-    "ImportFormatError",
-    "ImportOptions",
-    "ImportSpec",
-    "InvalidId",
-    "Journal",
-    "JournalContents",
-    "JournalCorrupted",
-    "JournalError",
-    "MappingError",
-    "MeasurementDoc",
-    "Ref",
-    "SealResult",
-    "SessionHeader",
-    "SessionInfo",
-    "SessionStore",
-    "StartDoc",
-    "StopDoc",
-    "StoreWriteError",
-    "TargetsError",
-    "UnknownSession",
-    "UnknownVersion",
-    "VerifyReport",
-    "VersionInfo",
-    "core_columns",
-    "default_root",
-    "import_mapped",
-    "import_probe_csv",
-    "import_targets_csv",
-    "joint_columns",
-    "list_mappings",
-    "load_mapping",
-    "load_targets",
-    "load_version",
-    "new_fit_id",
-    "new_session_id",
-    "parse_ref",
-    "probe_points",
-    "read_journal",
-    "spread_columns",
-    "target_columns",
-    "target_layout",
-    "validate_id",
-    "validate_targets",
-    "verify",
-    "version_name",
-]
+_LAZY: dict[str, str] = {name: module for module, names in _MODULES.items() for name in names.split()}
+__all__ = sorted(_LAZY)
 
 
 def __getattr__(name: str):

@@ -17,6 +17,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from labcal.atomicio import fsync_dir, write_all
+
 READ_ONLY = 0o444
 
 # hashlib (it loads OpenSSL) and secrets are imported by the helpers that hash and make ids, which listing an empty
@@ -70,18 +72,6 @@ def random_hex(n: int) -> str:
     return secrets.token_hex((n + 1) // 2)[:n]
 
 
-def fsync_dir(path: Path) -> None:
-    """Make the directory entries of ``path`` durable (no-op where directories cannot be opened)."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:  # pragma: no cover - Windows
-        return
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def make_dirs_durable(path: Path) -> None:
     """``path.mkdir(parents=True, exist_ok=True)``, and the name of every folder it created made durable (its parent
     fsynced): files fsynced inside a folder whose own entry never reached the disk are lost with it."""
@@ -103,10 +93,7 @@ def write_file_durable(path: Path, data: bytes, *, read_only: bool = True) -> No
     """
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
     try:
-        view = memoryview(data)
-        while view:
-            n = os.write(fd, view)
-            view = view[n:]
+        write_all(fd, data)
         os.fsync(fd)
     except OSError as e:
         if e.filename is None:
@@ -119,15 +106,11 @@ def write_file_durable(path: Path, data: bytes, *, read_only: bool = True) -> No
 
 
 def make_temp_dir(parent: Path, prefix: str) -> Path:
-    """A fresh hidden directory in ``parent`` (same file system, so a later rename is atomic)."""
-    for _ in range(100):
-        p = parent / f".tmp-{prefix}-{random_hex(8)}"
-        try:
-            p.mkdir()
-            return p
-        except FileExistsError:  # pragma: no cover - astronomically unlikely
-            continue
-    raise OSError(f"could not create a temporary directory in {parent}")  # pragma: no cover
+    """A fresh hidden directory in ``parent`` (same file system, so a later rename is atomic). Its 8 random hex
+    digits make the name unique; were it taken, ``mkdir`` fails (FileExistsError) rather than reuse the folder."""
+    p = parent / f".tmp-{prefix}-{random_hex(8)}"
+    p.mkdir()
+    return p
 
 
 def remove_tree(path: Path) -> None:

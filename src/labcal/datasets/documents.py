@@ -36,7 +36,7 @@ import math
 import time as _time
 import uuid
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from ._util import jsonable, software_versions
@@ -111,7 +111,7 @@ class SessionHeader:
         if not isinstance(n, int) or isinstance(n, bool) or n < 1:
             raise JournalError(f"n_joints must be a positive integer, got {n!r}")
         for k in self.extra_units:
-            if not _extra_key(k):
+            if not is_extra_key(k):
                 raise JournalError(f"extra field name {k!r} must match [A-Za-z0-9_]+")
         metadata = metadata_with_unit(self.metadata, self.unit)
         # Only sessions whose devices said something carry the key: the others' documents read as before.
@@ -162,12 +162,23 @@ def metadata_with_unit(metadata: Mapping[str, Any] | None, unit: str | None, wha
     return out
 
 
-def _extra_key(k: object) -> bool:
+def is_extra_key(k: object) -> bool:
+    """A name for an ``extra`` field: 1 to 64 ASCII letters, digits or ``_``."""
     return isinstance(k, str) and 1 <= len(k) <= 64 and all(c.isascii() and (c.isalnum() or c == "_") for c in k)
 
 
+class _Document:
+    """A journal document. Its JSON is ``type`` and every field under the field's name, exactly as labcal has always
+    written it (the journal writes it with sorted keys)."""
+
+    type: ClassVar[str]
+
+    def to_json(self) -> dict:
+        return {"type": self.type, **{f.name: getattr(self, f.name) for f in fields(self)}}  # type: ignore[arg-type]
+
+
 @dataclass(frozen=True)
-class StartDoc:
+class StartDoc(_Document):
     """The first document of a journal. ``targets``: m lists [x, y, z] in m, tool frame; ``robot``: name, hash,
     n_joints (+ text, format); ``plan``: one entry per pose (model joints)."""
 
@@ -221,25 +232,6 @@ class StartDoc:
 
         return np.asarray(self.targets, dtype=np.float64).reshape(-1, 3)
 
-    def to_json(self) -> dict:
-        return {
-            "type": "start",
-            "uid": self.uid,
-            "time": self.time,
-            "session_id": self.session_id,
-            "schema_version": self.schema_version,
-            "robot": self.robot,
-            "targets": self.targets,
-            "targets_unit": self.targets_unit,
-            "frame": self.frame,
-            "tracker": self.tracker,
-            "robot_driver": self.robot_driver,
-            "plan": self.plan,
-            "extra_units": self.extra_units,
-            "software": self.software,
-            "metadata": self.metadata,
-        }
-
     @classmethod
     def from_json(cls, doc: Mapping[str, Any]) -> StartDoc:
         return cls(
@@ -247,12 +239,8 @@ class StartDoc:
             robot=dict(doc["robot"]),
             targets=list(doc["targets"]),
             frame=doc.get("frame", "base"),
-            tracker=dict(doc.get("tracker") or {}),
-            robot_driver=dict(doc.get("robot_driver") or {}),
+            **{k: dict(doc.get(k) or {}) for k in ("tracker", "robot_driver", "extra_units", "metadata", "software")},
             plan=list(doc.get("plan") or []),
-            extra_units=dict(doc.get("extra_units") or {}),
-            metadata=dict(doc.get("metadata") or {}),
-            software=dict(doc.get("software") or {}),
             uid=doc.get("uid", ""),
             time=float(doc.get("time", 0.0)),
             schema_version=int(doc.get("schema_version", SCHEMA_VERSION)),
@@ -261,7 +249,7 @@ class StartDoc:
 
 
 @dataclass(frozen=True)
-class MeasurementDoc:
+class MeasurementDoc(_Document):
     """One pose's final outcome. q_*: (n,) rad, controller joints; points: m entries ``[x, y, z]`` (m, session
     frame) or None for a target not seen (the whole ``points`` is None when a rejected pose has none); spread: m
     entries, m, None where unknown; status "valid" | "rejected" with ``reason``; extra: the runner's fields."""
@@ -303,25 +291,6 @@ class MeasurementDoc:
             raise JournalError(f"measurement seq {self.seq} has {out.shape[0]} target(s), the session {m}")
         return out
 
-    def to_json(self) -> dict:
-        return {
-            "type": "measurement",
-            "uid": self.uid,
-            "time": self.time,
-            "seq": self.seq,
-            "pose_index": self.pose_index,
-            "q_commanded": self.q_commanded,
-            "q_actual": self.q_actual,
-            "points": self.points,
-            "spread": self.spread,
-            "samples": self.samples,
-            "status": self.status,
-            "reason": self.reason,
-            "split": self.split,
-            "extra": self.extra,
-            "units": self.units,
-        }
-
     @classmethod
     def from_json(cls, doc: Mapping[str, Any]) -> MeasurementDoc:
         return cls(
@@ -343,7 +312,7 @@ class MeasurementDoc:
 
 
 @dataclass(frozen=True)
-class StopDoc:
+class StopDoc(_Document):
     """The end of a run: ``exit_status`` "success" | "aborted" | "paused" | "failed", ``reason``, and the number of
     measurement documents in the journal at that point."""
 
@@ -355,10 +324,9 @@ class StopDoc:
     time: float = 0.0
 
     def to_json(self) -> dict:
-        doc = {"type": "stop", "uid": self.uid, "time": self.time, "exit_status": self.exit_status}
-        doc["reason"] = self.reason
-        if self.num_measurements is not None:
-            doc["num_measurements"] = self.num_measurements
+        doc = super().to_json()
+        if self.num_measurements is None:  # stop documents written without the count have no key for it
+            del doc["num_measurements"]
         return doc
 
     @classmethod
@@ -436,19 +404,3 @@ def measured_spread(value: Any, points: list | None, m: int) -> list | None:
     if points is None:
         return [float(v) if math.isfinite(v) else None for v in a.tolist()]
     return [float(v) if ok and math.isfinite(v) else None for ok, v in zip(seen, a.tolist(), strict=True)]
-
-
-__all__ = [
-    "EXIT_STATUSES",
-    "MEASUREMENT_UNITS",
-    "STATUSES",
-    "MeasurementDoc",
-    "SessionHeader",
-    "StartDoc",
-    "StopDoc",
-    "check_unit",
-    "measured_points",
-    "measured_spread",
-    "metadata_with_unit",
-    "robot_document",
-]

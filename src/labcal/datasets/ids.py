@@ -81,6 +81,4 @@ def parse_ref(text: str | Ref) -> Ref:
         raise InvalidId(f"invalid reference {text!r}: at most one '@' (SESSION@vN)")
     session, _, version = text.partition("@")
     validate_id(session)
-    if "@" in text:
-        return Ref(session, parse_version(version))
-    return Ref(session, None)
+    return Ref(session, parse_version(version) if "@" in text else None)

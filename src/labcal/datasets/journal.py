@@ -36,9 +36,7 @@ from __future__ import annotations
 
 import functools
 import json
-import math
 import os
-import re
 import time as _time
 import uuid
 from collections.abc import Mapping
@@ -46,18 +44,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ._util import canonical_json, fsync_dir, jsonable
+from ._util import canonical_json, fsync_dir, jsonable, write_all
 from .documents import (
     EXIT_STATUSES,
-    MEASUREMENT_UNITS,
     STATUSES,
     MeasurementDoc,
     SessionHeader,
     StartDoc,
     StopDoc,
+    is_extra_key,
     measured_points,
     measured_spread,
-    robot_document,
 )
 from .errors import JournalCorrupted, JournalError
 from .ids import validate_id
@@ -73,18 +70,8 @@ except ImportError:  # pragma: no cover
 
 JOURNAL_NAME = "journal.jsonl"
 DOC_TYPES = ("start", "measurement", "pause", "resume", "stop", "repair")
-__all__ = [
-    "DOC_TYPES",
-    "EXIT_STATUSES",
-    "JOURNAL_NAME",
-    "MEASUREMENT_UNITS",
-    "STATUSES",
-    "Journal",
-    "JournalContents",
-    "read_journal",
-    "robot_document",
-]
-_EXTRA_KEY = re.compile(r"^[A-Za-z0-9_]{1,64}$")
+# The state of the run after each lifecycle document (JournalContents.state).
+_STATES = {"start": "running", "resume": "running", "pause": "paused", "stop": "stopped"}
 
 
 @dataclass(frozen=True)
@@ -125,14 +112,7 @@ class JournalContents:
     @property
     def state(self) -> str:
         """ "running", "paused" or "stopped", from the last lifecycle document."""
-        for d in reversed(self.documents):
-            if d["type"] == "stop":
-                return "stopped"
-            if d["type"] == "pause":
-                return "paused"
-            if d["type"] in ("resume", "start"):
-                return "running"
-        return "running"
+        return next((_STATES[d["type"]] for d in reversed(self.documents) if d["type"] in _STATES), "running")
 
     @property
     def stop(self) -> StopDoc | None:
@@ -144,10 +124,8 @@ class JournalContents:
     @property
     def status(self) -> str:
         """The session's status for listings: the stop document's exit_status, "paused", or "open"."""
-        state = self.state
-        if state == "stopped":
-            return self.stop.exit_status  # type: ignore[union-attr]
-        return "paused" if state == "paused" else "open"
+        stop = self.stop
+        return stop.exit_status if stop is not None else "paused" if self.state == "paused" else "open"
 
     @property
     def next_seq(self) -> int:
@@ -216,6 +194,12 @@ def read_journal(path: str | Path) -> JournalContents:
     torn: list[int] = []
     corrupt: list[int] = []
     reasons: dict[int, str] = {}
+
+    def reject(ln: int, why: str, warning: str) -> None:
+        corrupt.append(ln)
+        reasons[ln] = why
+        warnings.append(f"{path}: line {ln} ignored: {warning}")
+
     for ln, why in bad:
         if ln > last_good:
             torn.append(ln)
@@ -223,23 +207,18 @@ def read_journal(path: str | Path) -> JournalContents:
         elif ln in repaired:
             warnings.append(f"{path}: line {ln} ignored: torn write, repaired later ({why})")
         else:
-            corrupt.append(ln)
-            reasons[ln] = why
-            warnings.append(f"{path}: line {ln} ignored: CORRUPT ({why})")
+            reject(ln, why, f"CORRUPT ({why})")
     docs: list[dict] = []
     doc_lines: list[int] = []
     last_seq = 0
     for ln, d in parsed:
         if d["type"] == "start" and docs:
-            corrupt.append(ln)
-            reasons[ln] = "a second start document"
-            warnings.append(f"{path}: line {ln} ignored: a second start document")
+            reject(ln, "a second start document", "a second start document")
             continue
         if d["type"] == "measurement":
             if d["seq"] <= last_seq:
-                corrupt.append(ln)
-                reasons[ln] = f"seq {d['seq']} does not follow {last_seq}"
-                warnings.append(f"{path}: line {ln} ignored: seq {d['seq']} does not follow {last_seq}")
+                why = f"seq {d['seq']} does not follow {last_seq}"
+                reject(ln, why, why)
                 continue
             last_seq = d["seq"]
         docs.append(d)
@@ -321,7 +300,7 @@ class Journal:
             raise JournalError(f"journal {path} already exists; use Journal.open to append") from None
         try:
             _lock(fd, path)
-            _write_all(fd, line)
+            write_all(fd, line)
             os.fsync(fd)
             fsync_dir(path.parent)
             # Read back before anyone records: the robot must not move for a session whose start document (robot,
@@ -350,14 +329,9 @@ class Journal:
             if contents.start is None:
                 raise JournalCorrupted(f"{path}: no start document on the first line")
             if contents.needs_newline or contents.torn_lines:
-                repair = {
-                    "type": "repair",
-                    "uid": str(uuid.uuid4()),
-                    "time": _time.time(),
-                    "torn_lines": contents.torn_lines,
-                    "reason": "the previous writer stopped in the middle of a line (crash or kill)",
-                }
-                _write_all(fd, (b"\n" if contents.needs_newline else b"") + _encode(repair))
+                why = "the previous writer stopped in the middle of a line (crash or kill)"
+                repair = _document("repair", torn_lines=contents.torn_lines, reason=why)
+                write_all(fd, (b"\n" if contents.needs_newline else b"") + _encode(repair))
                 os.fsync(fd)
                 contents = read_journal(path)
         except BaseException:
@@ -447,11 +421,9 @@ class Journal:
         n = self.n_joints
         extra_doc: dict[str, Any] = {}
         for k, v in (extra or {}).items():
-            if not isinstance(k, str) or not _EXTRA_KEY.match(k):
+            if not is_extra_key(k):
                 raise JournalError(f"extra field name {k!r} must match [A-Za-z0-9_]+")
-            v = jsonable(v)
-            if isinstance(v, float) and not math.isfinite(v):
-                v = None
+            v = jsonable(v, finite=True)  # a NaN or infinite value is stored as null
             if v is not None and not isinstance(v, bool | int | float | str):
                 raise JournalError(f"extra field {k!r} must be a number, string, bool or None, got {type(v)}")
             extra_doc[k] = v
@@ -470,7 +442,6 @@ class Journal:
             reason=str(reason),
             split=split,
             extra=extra_doc,
-            units=dict(MEASUREMENT_UNITS),
             time=float(_time.time() if time is None else time),
         )
         self._append(doc.to_json())
@@ -483,13 +454,13 @@ class Journal:
         """Record a pause (protective stop, Ctrl-C …); measurements need :meth:`resume` afterwards."""
         if self._state != "running":
             raise JournalError(f"cannot pause: the run is {self._state}")
-        doc = self._append({"type": "pause", "uid": str(uuid.uuid4()), "time": _time.time(), "reason": str(reason)})
+        doc = self._append(_document("pause", reason=str(reason)))
         self._state = "paused"
         return doc
 
     def resume(self, reason: str = "") -> dict:
         """Record that measuring continues (after a pause, a stop with exit_status "paused", or a crash)."""
-        doc = self._append({"type": "resume", "uid": str(uuid.uuid4()), "time": _time.time(), "reason": str(reason)})
+        doc = self._append(_document("resume", reason=str(reason)))
         self._state = "running"
         return doc
 
@@ -511,7 +482,7 @@ class Journal:
             raise JournalError(f"a previous write to {self.path} failed; reopen the journal with Journal.open")
         line = _encode(doc)
         try:
-            _write_all(self._fd, line)
+            write_all(self._fd, line)
             os.fsync(self._fd)
         except OSError as e:
             self._broken = True
@@ -526,18 +497,16 @@ class Journal:
         return doc
 
 
+def _document(kind: str, **fields: Any) -> dict:
+    """A pause, resume or repair document: its type, a new uid, the time and ``fields``."""
+    return {"type": kind, "uid": str(uuid.uuid4()), "time": _time.time(), **fields}
+
+
 def _encode(doc: dict) -> bytes:
     try:
         return (canonical_json(doc) + "\n").encode("utf-8")
     except (TypeError, ValueError) as e:
         raise JournalError(f"document is not JSON-serialisable (no NaN/inf, plain types only): {e}") from None
-
-
-def _write_all(fd: int, data: bytes) -> None:
-    view = memoryview(data)
-    while view:
-        n = os.write(fd, view)
-        view = view[n:]
 
 
 def _lock(fd: int, path: Path) -> None:

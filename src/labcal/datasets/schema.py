@@ -43,6 +43,14 @@ FRAMES = ("base", "tracker")
 _EXTRA_RE = re.compile(r"^x_[A-Za-z0-9_]+$")
 _TARGET_RE = re.compile(r"^t(\d+)_[xyz]$")
 _SPREAD_RE = re.compile(r"^spread_t(\d+)$")
+# The unit of each kind of core column (column_units).
+_UNITS = (
+    (re.compile("pose"), "1"),
+    (re.compile(r"q\d+"), "rad"),
+    (re.compile(r"t\d+_[xyz]|spread_t\d+"), "m"),
+    (re.compile("split"), ""),
+    (re.compile("timestamp"), "s"),
+)
 
 
 def target_columns(m: int = 3) -> tuple[str, ...]:
@@ -53,11 +61,6 @@ def target_columns(m: int = 3) -> tuple[str, ...]:
 def spread_columns(m: int = 3) -> tuple[str, ...]:
     """``("spread_t1", …, "spread_tm")``."""
     return tuple(f"spread_t{i}" for i in range(1, m + 1))
-
-
-#: The columns of the three-target tables (every table before sessions had 1..k targets).
-TARGET_COLUMNS = target_columns(3)
-SPREAD_COLUMNS = spread_columns(3)
 
 
 def targets_in(columns) -> int:
@@ -75,23 +78,9 @@ def core_columns(n_joints: int, n_targets: int = 3) -> list[str]:
 
 
 def column_units(columns: list[str], extra_units: Mapping[str, str] | None = None) -> dict[str, str]:
-    """Unit of every column (``"1"`` for dimensionless/int, ``""`` for text)."""
+    """Unit of every column (``"1"`` for dimensionless/int, ``""`` for text); ``x_*`` columns from ``extra_units``."""
     extra_units = dict(extra_units or {})
-    out: dict[str, str] = {}
-    for c in columns:
-        if c == "pose":
-            out[c] = "1"
-        elif re.fullmatch(r"q\d+", c):
-            out[c] = "rad"
-        elif _TARGET_RE.match(c) or _SPREAD_RE.match(c):
-            out[c] = "m"
-        elif c == "split":
-            out[c] = ""
-        elif c == "timestamp":
-            out[c] = "s"
-        else:
-            out[c] = extra_units.get(c, "")
-    return out
+    return {c: next((u for rx, u in _UNITS if rx.fullmatch(c)), extra_units.get(c, "")) for c in columns}
 
 
 def validate_split(value: object, row: int | None = None) -> str:

@@ -33,6 +33,7 @@ listed as foreign (:meth:`SessionStore.foreign_entries`, :attr:`VerifyReport.not
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import io
 import json
@@ -56,10 +57,12 @@ from ._util import (
     sha256_file,
     software_versions,
     utc_now,
+    write_all,
     write_file_durable,
 )
 from .errors import DatasetCorrupted, DatasetError, JournalCorrupted, UnknownSession, UnknownVersion
-from .ids import Ref, new_fit_id, new_session_id, parse_ref, validate_id, version_name
+from .ids import _ID_RE, Ref, new_fit_id, new_session_id, parse_ref, parse_version, validate_id, version_name
+from .schema import SCHEMA_VERSION, column_units, joint_columns, normalize_table, spread_columns, target_columns
 
 MEASUREMENTS = "measurements.parquet"
 MANIFEST = "manifest.json"
@@ -85,9 +88,9 @@ def is_os_or_editor_file(name: str) -> bool:
     )
 
 
-# journal, documents and schema are imported where they are used: an empty store, a listing of imported sessions
-# and `labcal --help` need none of them (schema imports pandas). The journal's file name is all a listing needs;
-# tests/cli/test_scripting.py checks it is journal.JOURNAL_NAME.
+# journal and documents are imported where they are used: an empty store, a listing of imported sessions and
+# `labcal --help` need neither (schema imports numpy and pandas only in its functions). The journal's file name is
+# all a listing needs; tests/cli/test_scripting.py checks it is journal.JOURNAL_NAME.
 JOURNAL_NAME = "journal.jsonl"
 
 if TYPE_CHECKING:
@@ -96,20 +99,6 @@ if TYPE_CHECKING:
 
     from .documents import MeasurementDoc, SessionHeader, StartDoc
     from .journal import Journal, JournalContents
-
-
-def _schema_version() -> int:
-    from .schema import SCHEMA_VERSION
-
-    return SCHEMA_VERSION
-
-
-def _pandas():
-    """pandas, imported when a table is built or read: listing and showing sessions (manifests and journals) never
-    needs it, and importing it costs more than the rest of `labcal session list`."""
-    import pandas
-
-    return pandas
 
 
 class StoreWriteError(DatasetError, OSError):
@@ -224,21 +213,13 @@ class Dataset:
     def q(self) -> np.ndarray:
         """(k, n) rad: joint positions as the controller reported them (controller joints; the robot file's joint
         map converts them to model joints: ``labcal.cli.ops.load_observations``)."""
-        import numpy as np
-
-        from .schema import joint_columns
-
-        return self.table[joint_columns(self.n_joints)].to_numpy(dtype=np.float64)
+        return self.table[joint_columns(self.n_joints)].to_numpy(dtype=float)
 
     @property
     def points(self) -> np.ndarray:
         """(k, m, 3) m: measured targets; ``points[:, i]`` is target t(i+1), all NaN where it was not seen."""
-        import numpy as np
-
-        from .schema import target_columns
-
         m = self.n_targets
-        return self.table[list(target_columns(m))].to_numpy(dtype=np.float64).reshape(-1, m, 3)
+        return self.table[list(target_columns(m))].to_numpy(dtype=float).reshape(-1, m, 3)
 
     @property
     def seen(self) -> np.ndarray:
@@ -255,21 +236,15 @@ class Dataset:
     @property
     def pose(self) -> np.ndarray:
         """(k,) int: plan index (or import row) of each measurement."""
-        import numpy as np
-
-        return self.table["pose"].to_numpy(dtype=np.int64)
+        return self.table["pose"].to_numpy(dtype="int64")
 
     @property
     def spread(self) -> np.ndarray | None:
         """(k, m) m tracker spread per target (NaN where not seen or unknown), or None if the version has none."""
-        import numpy as np
-
-        from .schema import spread_columns
-
         cols = list(spread_columns(self.n_targets))
         if not all(c in self.table.columns for c in cols):
             return None
-        return self.table[cols].to_numpy(dtype=np.float64)
+        return self.table[cols].to_numpy(dtype=float)
 
     @property
     def units(self) -> dict[str, str]:
@@ -371,9 +346,6 @@ class FitRecord:
             )
         return data
 
-    def read_json(self, name: str) -> Any:
-        return json.loads(self.read(name).decode("utf-8"))
-
 
 # --------------------------------------------------------------------------------------------------------------
 
@@ -393,11 +365,9 @@ def _read_parquet(data: bytes) -> pd.DataFrame:
     return pq.read_table(io.BytesIO(data)).to_pandas()
 
 
-def _plan_summary(plan: Sequence[Any], *, plain: bool = False) -> dict:
-    """Length and sha256 of a plan. ``plain``: the plan was parsed from JSON, so it holds JSON types already and
-    the conversion (slow for a long plan, and the identity on such data) is skipped."""
-    doc = list(plan) if plain else jsonable(list(plan))
-    return {"length": len(plan), "sha256": sha256_bytes(canonical_json(doc).encode("utf-8"))}
+def _plan_summary(plan: Sequence[Any]) -> dict:
+    """Length and sha256 of a plan (JSON types: as read from a journal)."""
+    return {"length": len(plan), "sha256": sha256_bytes(canonical_json(list(plan)).encode("utf-8"))}
 
 
 def with_robot_record(meta: dict) -> dict:
@@ -425,19 +395,11 @@ def with_robot_record(meta: dict) -> dict:
 
 
 def session_meta_from_start(start: StartDoc) -> dict:
-    """The ``session`` block of a manifest, from a journal's start document."""
-    return {
-        "session_id": start.session_id,
-        "robot": dict(start.robot),
-        "targets": start.targets,
-        "targets_unit": "m",
-        "frame": start.frame,
-        "tracker": start.tracker,
-        "robot_driver": start.robot_driver,
-        "plan": _plan_summary(start.plan, plain=True),  # read from the journal: JSON types only
-        "extra_units": dict(start.extra_units),
-        "metadata": start.metadata,
-    }
+    """The ``session`` block of a manifest, from a journal's start document: what describes the session (robot,
+    targets, frame, devices, units of the extra fields, metadata) and a summary of the plan."""
+    doc = start.to_json()
+    keep = ("session_id", "robot", "targets", "frame", "tracker", "robot_driver", "extra_units", "metadata")
+    return {**{k: doc[k] for k in keep}, "targets_unit": "m", "plan": _plan_summary(start.plan)}
 
 
 _ID_TIME = re.compile(r"^(\d{4})(\d{2})(\d{2})-(\d{2})(\d{2})(\d{2})-")
@@ -486,12 +448,8 @@ class SessionStore:
 
         Example: a folder copied by a file manager, ``20261122-031500-ur10-3f9a (copy)``, gives ``("… (copy)", "not a
         session id (…): a copy? rename it to a new id to use it as a session")``."""
-        out = []
-        for p in sorted(self._root_entries(), key=lambda q: q.name):
-            why = _session_folder_problem(p)
-            if why is not None:
-                out.append((p.name, why))
-        return out
+        entries = sorted(self._root_entries(), key=lambda q: q.name)
+        return [(p.name, why) for p in entries if (why := _session_folder_problem(p)) is not None]
 
     def require_root(self) -> None:
         """Raise :class:`UnknownSession` with one clear line when the store folder does not exist."""
@@ -562,11 +520,9 @@ class SessionStore:
             return Journal.create(d / JOURNAL_NAME, header, session_id=session_id)
         except BaseException:
             # Nothing was written (or the start document failed): leave no empty session behind.
-            for p in (d / JOURNAL_NAME, d):
-                try:
-                    p.unlink() if p.is_file() else p.rmdir()
-                except OSError:
-                    pass
+            with contextlib.suppress(OSError):
+                (d / JOURNAL_NAME).unlink(missing_ok=True)
+                d.rmdir()
             raise
 
     def open_journal(self, session_id: str) -> Journal:
@@ -611,11 +567,7 @@ class SessionStore:
             try:
                 m = json.loads((vdir / MANIFEST).read_text(encoding="utf-8"))
                 fits_dir = vdir / FITS
-                nfits = (
-                    len([p for p in fits_dir.iterdir() if p.is_dir() and not p.name.startswith(".")])
-                    if fits_dir.is_dir()
-                    else 0
-                )
+                nfits = sum(p.is_dir() and not p.name.startswith(".") for p in fits_dir.glob("*"))
                 infos.append(
                     VersionInfo(version_name(v), int(m["row_count"]), m["created"], m["source"], m["parent"], nfits)
                 )
@@ -661,15 +613,7 @@ class SessionStore:
             if manifest.get("ref") != str(r):
                 problems.append(f"{MANIFEST}: belongs to {manifest.get('ref')!r}, found as {str(r)!r}")
             listed = dict(manifest.get("files") or {})
-            for name, info in sorted(listed.items()):
-                p = vdir / name
-                if not p.is_file():
-                    problems.append(f"{name}: missing (expected sha256 {info.get('sha256')})")
-                    continue
-                actual = sha256_file(p)
-                checked.append(name)
-                if actual != info.get("sha256"):
-                    problems.append(f"{name}: sha256 mismatch: expected {info.get('sha256')}, actual {actual}")
+            _check_files(vdir, listed, "", problems, checked)
         notes: list[str] = []
         for p in sorted(vdir.iterdir()) if manifest is not None else []:
             if p.name in listed or p.name == MANIFEST or (p.name == FITS and p.is_dir()):
@@ -703,14 +647,13 @@ class SessionStore:
                 manifests[v] = json.loads((d / version_name(v) / MANIFEST).read_text(encoding="utf-8"))
             except (OSError, ValueError):
                 manifests[v] = None  # the version's own verify says why
-        missing: dict[int, str] = {}
-        for v in range(1, (versions[-1] if versions else 0)):
-            if v not in manifests:
-                missing[v] = f"{version_name(versions[-1])} exists and versions are numbered in order"
+        last = versions[-1] if versions else 0
+        gap = f"{version_name(last)} exists and versions are numbered in order" if last else ""
+        missing = {v: gap for v in range(1, last) if v not in manifests}
         log = d / VERSIONS_LOG
         if log.is_file():
             checked.append(VERSIONS_LOG)
-            _check_versions_log(log, versions, manifests, missing, problems, notes)
+            _check_versions_log(log, manifests, missing, problems, notes)
         for v, why in sorted(missing.items()):
             problems.append(
                 f"{version_name(v)}: missing ({why}): restore {d / version_name(v)} from a backup; the other versions "
@@ -787,15 +730,7 @@ class SessionStore:
             if meta is None:
                 continue
             files = dict(meta.get("files") or {})
-            for name, info in sorted(files.items()):
-                fp = p / name
-                if not fp.is_file():
-                    problems.append(f"{where}/{name}: missing (expected sha256 {info.get('sha256')})")
-                    continue
-                actual = sha256_file(fp)
-                checked.append(f"{where}/{name}")
-                if actual != info.get("sha256"):
-                    problems.append(f"{where}/{name}: sha256 mismatch: expected {info.get('sha256')}, actual {actual}")
+            _check_files(p, files, f"{where}/", problems, checked)
             for fp in sorted(p.iterdir()):
                 if fp.name != FIT_JSON and fp.name not in files:
                     kind = "directory" if fp.is_dir() else "file"
@@ -819,10 +754,6 @@ class SessionStore:
                 problems.append(f"{where}: evaluates fit {ep.parent.name}, which is not stored under {r}")
         return VerifyReport(str(r), problems, checked, notes)
 
-    def verify_session(self, session_id: str) -> list[VerifyReport]:
-        """:meth:`verify` of every version, then :meth:`check_session` (the last report, ``ref`` = the session id)."""
-        return [*(self.verify(Ref(session_id, v)) for v in self.versions(session_id)), self.check_session(session_id)]
-
     def load(self, ref: str | Ref) -> Dataset:
         """Load a version after verifying its hashes; raises :class:`DatasetCorrupted` on any mismatch."""
         r = self.resolve(ref)
@@ -840,57 +771,60 @@ class SessionStore:
         return Dataset(str(r), table, manifest)
 
     def _write_version(
-        self, session_dir: Path, number: int, table: pd.DataFrame, manifest: dict, *, parent_dir: Path | None = None
-    ) -> None:
-        """Write table + manifest into a temp dir in ``parent_dir`` (default ``session_dir``), then rename."""
-        where = parent_dir or session_dir
-        tmp = make_temp_dir(where, version_name(number))
+        self,
+        where: Path,
+        session_id: str,
+        parent_ds: Dataset | None,
+        rows: pd.DataFrame,
+        meta: dict,
+        *,
+        source: str,
+        provenance: dict,
+        journal_seq_through: int,
+    ) -> str:
+        """Publish the version after ``parent_ds`` (None: v001) in the session folder ``where``: the parent's rows
+        plus ``rows``, checked (:func:`~labcal.datasets.schema.normalize_table`), and its manifest (``meta`` is its
+        ``session`` block). Written into a temporary folder, then renamed; returns the new ``SESSION@vNNN``."""
+        import pandas as pd
+
+        table = rows if parent_ds is None else pd.concat([parent_ds.table, rows], ignore_index=True)
+        table = normalize_table(table, int(meta["robot"]["n_joints"]), len(meta["targets"]))
+        parent = None if parent_ds is None else parse_ref(parent_ds.ref).version
+        name = version_name((parent or 0) + 1)
+        tmp = make_temp_dir(where, name)
         try:
             data = _parquet_bytes(table)
             write_file_durable(tmp / MEASUREMENTS, data)
-            manifest = {**manifest, "files": {MEASUREMENTS: {"sha256": sha256_bytes(data), "bytes": len(data)}}}
+            manifest = {
+                "kind": "labcal.dataset.version",
+                "schema_version": SCHEMA_VERSION,
+                "session_id": session_id,
+                "version": name,
+                "ref": f"{session_id}@{name}",
+                "created": iso(utc_now()),
+                "parent": version_name(parent) if parent else None,
+                "source": source,
+                "session": meta,
+                "software": software_versions(),
+                "row_count": len(table),
+                "columns": list(table.columns),
+                "units": column_units(
+                    list(table.columns), {f"x_{k}": u for k, u in (meta.get("extra_units") or {}).items()}
+                ),
+                "journal_seq_through": journal_seq_through,
+                "provenance": jsonable(provenance),
+                "files": {MEASUREMENTS: {"sha256": sha256_bytes(data), "bytes": len(data)}},
+            }
             sealed = _dump_sealed(manifest, "manifest_sha256")
             write_file_durable(tmp / MANIFEST, sealed)
-            publish_dir(tmp, where / version_name(number))
+            publish_dir(tmp, where / name)
         except BaseException:
             remove_tree(tmp)
             raise
         # After the rename: a crash in between leaves a complete version the log does not list yet, which
         # check_session notes; the other order would list a version that was never published.
-        _log_version(where, version_name(number), json.loads(sealed)["manifest_sha256"], manifest.get("parent"))
-
-    def _manifest(
-        self,
-        session_id: str,
-        number: int,
-        table: pd.DataFrame,
-        meta: dict,
-        *,
-        parent: int | None,
-        source: str,
-        provenance: dict,
-        journal_seq_through: int,
-    ) -> dict:
-        from .schema import SCHEMA_VERSION, column_units
-
-        extra_units = {f"x_{k}": u for k, u in (meta.get("extra_units") or {}).items()}
-        return {
-            "kind": "labcal.dataset.version",
-            "schema_version": SCHEMA_VERSION,
-            "session_id": session_id,
-            "version": version_name(number),
-            "ref": f"{session_id}@{version_name(number)}",
-            "created": iso(utc_now()),
-            "parent": version_name(parent) if parent else None,
-            "source": source,
-            "session": meta,
-            "software": software_versions(),
-            "row_count": len(table),
-            "columns": list(table.columns),
-            "units": column_units(list(table.columns), extra_units),
-            "journal_seq_through": journal_seq_through,
-            "provenance": jsonable(provenance),
-        }
+        _log_version(where, name, json.loads(sealed)["manifest_sha256"], manifest["parent"])
+        return f"{session_id}@{name}"
 
     def _check_compatible(self, session_id: str, meta: dict, new: dict) -> None:
         """Refuse to mix data of another robot, target set or frame into a session."""
@@ -914,62 +848,39 @@ class SessionStore:
         ``meta`` describes the new rows (same robot hash, n_joints, frame and targets as the session).
         Returns the new ref ``SESSION@vNNN``.
         """
-        from .schema import normalize_table
-
         d = self._require_session(session_id)
         versions = self.versions(session_id)
         session = self.session_meta(session_id)
         meta = with_robot_record(meta)
         self._check_compatible(session_id, session, meta)
-        n = int(session["robot"]["n_joints"])
-        if versions:
-            parent_ds = self.load(Ref(session_id, versions[-1]))
-            through = int(parent_ds.manifest.get("journal_seq_through", 0))
-            table = _pandas().concat([parent_ds.table, rows], ignore_index=True)
-        else:
-            through = 0
-            table = rows
-        table = normalize_table(table, n, len(session["targets"]))
-        number = (versions[-1] if versions else 0) + 1
+        parent_ds = self.load(Ref(session_id, versions[-1])) if versions else None
+        through = int(parent_ds.manifest.get("journal_seq_through", 0)) if parent_ds is not None else 0
         merged = {**session, "extra_units": {**meta.get("extra_units", {}), **session.get("extra_units", {})}}
-        manifest = self._manifest(
-            session_id,
-            number,
-            table,
-            merged,
-            parent=versions[-1] if versions else None,
-            source=source,
-            provenance=provenance,
-            journal_seq_through=through,
+        return self._write_version(
+            d, session_id, parent_ds, rows, merged, source=source, provenance=provenance, journal_seq_through=through
         )
-        self._write_version(d, number, table, manifest)
-        return f"{session_id}@{version_name(number)}"
 
     @_writes("write the imported session")
     def create_imported_session(
         self, rows: pd.DataFrame, meta: dict, *, source: str, provenance: dict, session_id: str | None = None
     ) -> str:
         """Create a session holding only ``v001`` (no journal), atomically: it appears complete or not at all."""
-        from .schema import normalize_table
-
         session_id = validate_id(session_id) if session_id else new_session_id(meta["robot"]["name"])
         meta = with_robot_record({**meta, "session_id": session_id})
         make_dirs_durable(self.root)
         final = self.root / session_id
         if final.exists():
             raise DatasetError(f"session {session_id!r} already exists in {self.root}")
-        table = normalize_table(rows, int(meta["robot"]["n_joints"]), len(meta["targets"]))
-        manifest = self._manifest(
-            session_id, 1, table, meta, parent=None, source=source, provenance=provenance, journal_seq_through=0
-        )
         tmp = make_temp_dir(self.root, f"session-{session_id}")
         try:
-            self._write_version(tmp, 1, table, manifest)
+            ref = self._write_version(
+                tmp, session_id, None, rows, meta, source=source, provenance=provenance, journal_seq_through=0
+            )
             publish_dir(tmp, final)
         except BaseException:
             remove_tree(tmp)
             raise
-        return f"{session_id}@v001"
+        return ref
 
     @_writes("seal the journal into a version")
     def seal(self, session_id: str, *, valid_prefix: bool = False) -> SealResult:
@@ -986,7 +897,6 @@ class SessionStore:
         it), the session metadata taken from the version's manifest, and the damage recorded in the provenance.
         """
         from .journal import read_journal
-        from .schema import normalize_table
 
         d = self._require_session(session_id)
         jpath = d / JOURNAL_NAME
@@ -1004,7 +914,6 @@ class SessionStore:
         if not valid_prefix:
             _refuse_damaged_journal(session_id, contents, contents.size < sealed_bytes, latest, damage, tail)
         meta = _seal_session_meta(session_id, contents, parent_ds, damage)
-        n_joints, n_targets = int(meta["robot"]["n_joints"]), len(meta["targets"])
         first_bad = tail[0] if tail else None
         measurements, skipped = _measurements_to_seal(
             contents, sealed_lines if damage is not None else 0, old, tail, latest
@@ -1014,9 +923,6 @@ class SessionStore:
             where = f"since {latest}" if latest else "in the journal"
             why = f"; {damage}, and {latest} keeps its own copy" if damage else ""
             return SealResult(latest, False, 0, f"nothing new to seal {where} (no new valid measurements){why}")
-        rows = journal_rows(new, n_joints, n_targets)
-        table = _pandas().concat([parent_ds.table, rows], ignore_index=True) if parent_ds is not None else rows
-        table = normalize_table(table, n_joints, n_targets)
         seq_through = max(m.seq for m in measurements)
         provenance = {
             "journal": {
@@ -1033,19 +939,17 @@ class SessionStore:
                 "skipped": skipped,
                 **({"sealed_part_damage": damage} if damage is not None else {}),
             }
-        number = (parent or 0) + 1
-        manifest = self._manifest(
+        rows = journal_rows(new, int(meta["robot"]["n_joints"]), len(meta["targets"]))
+        ref = self._write_version(
+            d,
             session_id,
-            number,
-            table,
+            parent_ds,
+            rows,
             meta,
-            parent=parent,
             source="journal",
             provenance=provenance,
             journal_seq_through=seq_through,
         )
-        self._write_version(d, number, table, manifest)
-        ref = f"{session_id}@{version_name(number)}"
         left_out = f"; left out {len(skipped)} journal line(s) from line {skipped[0]['line']} on" if skipped else ""
         if damage is not None:
             left_out += f" ({damage}: sealed only what was recorded after it)"
@@ -1092,9 +996,7 @@ class SessionStore:
             if name == FIT_JSON:
                 raise DatasetError(f"{FIT_JSON} is reserved for labcal's own record of the fit")
         fits_dir = self.session_dir(resolved[0].session_id) / version_name(resolved[0].version) / FITS  # type: ignore[arg-type]
-        if not fits_dir.exists():
-            fits_dir.mkdir()
-            fsync_dir(fits_dir.parent)
+        make_dirs_durable(fits_dir)
         if (fits_dir / fit_id).exists():
             raise DatasetError(f"fit {fit_id!r} already exists under {resolved[0]}")
         tmp = make_temp_dir(fits_dir, fit_id)
@@ -1106,7 +1008,7 @@ class SessionStore:
                 recorded[name] = {"sha256": sha256_bytes(data), "bytes": len(data)}
             meta = {
                 "kind": "labcal.fit",
-                "schema_version": _schema_version(),
+                "schema_version": SCHEMA_VERSION,
                 "fit_id": fit_id,
                 "created": iso(utc_now()),
                 "stored_under": str(resolved[0]),
@@ -1153,7 +1055,7 @@ class SessionStore:
         r = self.resolve(ref)
         folder = self.session_dir(r.session_id) / version_name(r.version) / FITS / EVALUATIONS / fit_id  # type: ignore[arg-type]
         out = []
-        for p in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        for p in sorted(folder.glob("*.json")):
             doc, problems = _load_sealed(p.read_bytes(), "evaluation_sha256", p.name)
             out.append({**(doc or {"evaluation_id": p.stem}), **({"corrupt": True} if problems else {})})
         return out
@@ -1175,22 +1077,13 @@ class SessionStore:
         r = self.resolve(ref)
         path = self.session_dir(r.session_id) / version_name(r.version) / FITS / validate_id(fit_id, "fit id")  # type: ignore[arg-type]
         if not (path / FIT_JSON).is_file():
-            known = (
-                sorted(p.name for p in path.parent.iterdir() if not p.name.startswith("."))
-                if path.parent.is_dir()
-                else []
-            )
+            known = sorted(p.name for p in path.parent.glob("*") if not p.name.startswith("."))  # none: no folder
             raise UnknownVersion(
                 f"{r} has no fit {fit_id!r}{_did_you_mean(fit_id, known)}; available: {', '.join(known) or 'none'}"
             )
         meta, problems = _load_sealed((path / FIT_JSON).read_bytes(), "fit_sha256", f"fit {fit_id}/{FIT_JSON}")
         if meta is not None and check_files:
-            for name, info in meta.get("files", {}).items():
-                p = path / name
-                if not p.is_file():
-                    problems.append(f"fit {fit_id}/{name}: missing")
-                elif (actual := sha256_file(p)) != info["sha256"]:
-                    problems.append(f"fit {fit_id}/{name}: sha256 mismatch: expected {info['sha256']}, actual {actual}")
+            _check_files(path, meta.get("files", {}), f"fit {fit_id}/", problems, [])
         if problems or meta is None:
             raise DatasetCorrupted(f"fit {fit_id} under {r} is corrupted:\n  " + "\n  ".join(problems), problems)
         return FitRecord(fit_id, str(r), path, meta)
@@ -1205,6 +1098,19 @@ class SessionStore:
                     return self.load_fit(Ref(s, v), fit_id)
         known = [p.parent.name for s in self.session_ids() for p in self.session_dir(s).glob(f"v*/{FITS}/*/{FIT_JSON}")]
         raise UnknownVersion(f"no fit {fit_id!r} in store {self.root}{_did_you_mean(fit_id, known)}")
+
+
+def _check_files(folder: Path, listed: Mapping[str, dict], where: str, problems: list[str], checked: list[str]) -> None:
+    """Each file ``listed`` (name → {"sha256": …}) in ``folder`` against its sha256: a line in ``problems`` for each
+    one missing or changed, the name of each one read in ``checked``; ``where`` prefixes the names."""
+    for name, info in sorted(listed.items()):
+        if not (folder / name).is_file():
+            problems.append(f"{where}{name}: missing (expected sha256 {info.get('sha256')})")
+            continue
+        actual = sha256_file(folder / name)
+        checked.append(f"{where}{name}")
+        if actual != info.get("sha256"):
+            problems.append(f"{where}{name}: sha256 mismatch: expected {info.get('sha256')}, actual {actual}")
 
 
 def _foreign_entry_notes(session_dir: Path) -> list[str]:
@@ -1223,18 +1129,12 @@ def _foreign_entry_notes(session_dir: Path) -> list[str]:
 
 
 def _check_versions_log(
-    log: Path,
-    versions: list[int],
-    manifests: dict[int, dict | None],
-    missing: dict[int, str],
-    problems: list[str],
-    notes: list[str],
+    log: Path, manifests: dict[int, dict | None], missing: dict[int, str], problems: list[str], notes: list[str]
 ) -> None:
-    """The versions log against the version folders: adds to missing the published versions that are gone, to
-    problems a damaged log or a manifest that is not the published one, to notes the versions it does not list."""
-    from .ids import parse_version
-
-    entries, log_problems, log_notes = _read_versions_log(log)
+    """The versions log against the version folders (``manifests``: version → its manifest, None if unreadable):
+    adds to missing the published versions that are gone, to problems a damaged log or a manifest that is not the
+    published one, to notes the versions it does not list."""
+    entries, log_problems, log_notes = _read_versions_log(log.read_bytes())
     problems += log_problems
     notes += log_notes
     logged = set()
@@ -1253,7 +1153,7 @@ def _check_versions_log(
                 f"{e.get('manifest_sha256')} in {VERSIONS_LOG}, {man.get('manifest_sha256')} now): "
                 f"restore {version_name(v)} from a backup"
             )
-    for v in versions:
+    for v in manifests:
         if v not in logged:
             notes.append(
                 f"{version_name(v)}: not listed in {VERSIONS_LOG} (written by an older labcal, or a seal "
@@ -1440,14 +1340,12 @@ def _log_version(session_dir: Path, name: str, manifest_sha256: str, parent: str
         tail = os.pread(fd, size, 0).rsplit(b"\n", 1)[-1] if size else b""
         data = (line + "\n").encode("utf-8")
         if tail:
-            entries, _, _ = _read_versions_log_bytes(tail + b"\n")
+            entries, _, _ = _read_versions_log(tail + b"\n")
             if entries:
                 data = b"\n" + data
             else:
                 os.ftruncate(fd, size - len(tail))
-        view = memoryview(data)
-        while view:
-            view = view[os.write(fd, view) :]
+        write_all(fd, data)
         os.fsync(fd)
     finally:
         os.close(fd)
@@ -1455,12 +1353,8 @@ def _log_version(session_dir: Path, name: str, manifest_sha256: str, parent: str
         fsync_dir(session_dir)
 
 
-def _read_versions_log(path: Path) -> tuple[list[dict], list[str], list[str]]:
+def _read_versions_log(data: bytes) -> tuple[list[dict], list[str], list[str]]:
     """(entries, problems, notes) of a versions log; an unfinished last line (a crash mid-append) is a note."""
-    return _read_versions_log_bytes(path.read_bytes())
-
-
-def _read_versions_log_bytes(data: bytes) -> tuple[list[dict], list[str], list[str]]:
     entries: list[dict] = []
     problems: list[str] = []
     notes: list[str] = []
@@ -1485,8 +1379,6 @@ def _read_versions_log_bytes(data: bytes) -> tuple[list[dict], list[str], list[s
 
 def _session_folder_problem(p: Path) -> str | None:
     """Why the store entry ``p`` is not a session folder, or None if it is one."""
-    from .ids import _ID_RE
-
     name = p.name
     if is_os_or_editor_file(name):
         return "a file of the operating system or an editor"
@@ -1518,21 +1410,18 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
     A target written as ``null`` (not seen) becomes NaN in its three columns and its spread.
     """
     import numpy as np
-
-    from .schema import spread_columns
+    import pandas as pd
 
     recs = []
     for m in measurements:
         q = m.q
         rec: dict[str, Any] = {"pose": m.pose_index}
         rec.update({f"q{j + 1}": float(q[j]) for j in range(n_joints)})
-        if m.points is None or len(m.points) != n_targets:
-            have = "no points" if m.points is None else f"{len(m.points)} target(s)"
+        points = m.points_array()
+        if points is None or len(points) != n_targets:
+            have = "no points" if points is None else f"{len(points)} target(s)"
             raise JournalCorrupted(f"measurement seq {m.seq} is valid but has {have}; the session has {n_targets}")
-        for i in range(n_targets):
-            point = m.points[i]
-            for a, axis in enumerate("xyz"):
-                rec[f"t{i + 1}_{axis}"] = np.nan if point is None else float(point[a])
+        rec.update(zip(target_columns(n_targets), points.ravel().tolist(), strict=True))
         rec["split"] = m.split or ""
         spread = m.spread
         for i, c in enumerate(spread_columns(n_targets)):
@@ -1541,37 +1430,16 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
         for k, v in m.extra.items():
             rec[f"x_{k}"] = np.nan if v is None else v
         recs.append(rec)
-    table = _pandas().DataFrame.from_records(recs)
+    table = pd.DataFrame.from_records(recs)
     table["pose"] = table["pose"].astype(np.int64)
     return table
 
 
-def _as_store(store: SessionStore | str | Path | None) -> SessionStore:
-    return store if isinstance(store, SessionStore) else SessionStore(store)
-
-
 def load_version(store: SessionStore | str | Path | None, ref: str | Ref) -> Dataset:
     """Load ``SESSION[@vN]`` from ``store`` (a SessionStore or its root folder), verifying its hashes."""
-    return _as_store(store).load(ref)
+    return (store if isinstance(store, SessionStore) else SessionStore(store)).load(ref)
 
 
 def verify(store: SessionStore | str | Path | None, ref: str | Ref) -> VerifyReport:
     """Recompute the hashes of ``SESSION[@vN]``; see :meth:`SessionStore.verify`."""
-    return _as_store(store).verify(ref)
-
-
-__all__ = [
-    "Dataset",
-    "FitRecord",
-    "SealResult",
-    "SessionInfo",
-    "SessionStore",
-    "StoreWriteError",
-    "VerifyReport",
-    "VersionInfo",
-    "default_root",
-    "journal_rows",
-    "load_version",
-    "session_meta_from_start",
-    "verify",
-]
+    return (store if isinstance(store, SessionStore) else SessionStore(store)).verify(ref)
