@@ -113,7 +113,7 @@ if TYPE_CHECKING:
         load_version,
         verify,
     )
-    from .targets import MIN_TARGET_AREA, MIN_TARGET_HEIGHT, load_targets, target_layout, validate_targets
+    from .targets import MIN_TARGET_HEIGHT, load_targets, target_layout, validate_targets
 
 # Each name is imported from its module on first use (PEP 562): `labcal session list` and `labcal --help` read
 # manifests and journals without the table machinery (pandas, pyarrow) the importers and loaders need.
@@ -168,7 +168,6 @@ _LAZY: dict[str, str] = {
     "default_root": "store",
     "load_version": "store",
     "verify": "store",
-    "MIN_TARGET_AREA": "targets",
     "MIN_TARGET_HEIGHT": "targets",
     "load_targets": "targets",
     "target_layout": "targets",
@@ -178,7 +177,6 @@ _LAZY: dict[str, str] = {
 __all__ = [
     "DEFAULT_PROBE_OFFSETS",
     "EXIT_STATUSES",
-    "MIN_TARGET_AREA",
     "MIN_TARGET_HEIGHT",
     "SCHEMA_VERSION",
     "SPLITS",

@@ -813,7 +813,7 @@ def load_mapping(mapping: str | Path) -> tuple[ImportSpec, np.ndarray | None, di
         kw["convention"], kw["euler_sequence"] = p["convention"], p.get("euler_sequence")
         if "offsets" in p:
             try:
-                raw = validate_targets(p["offsets"], min_area=0, min_height=0, source=f"{src} [probe] offsets")
+                raw = validate_targets(p["offsets"], min_height=0, source=f"{src} [probe] offsets")
                 offsets = validate_targets(raw * LENGTH_UNITS[p["offsets_unit"]], source=f"{src} [probe] offsets")
             except TargetsError as e:
                 raise MappingError(str(e)) from None
