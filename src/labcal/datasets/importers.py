@@ -426,15 +426,11 @@ def _sanity(
     existing_q: np.ndarray | None,
 ) -> SanityReport:
     """Run :mod:`labcal.datasets.sanity` on the parsed rows; fixes are phrased for CLI flags unless told otherwise."""
-    n = len([c for c in rows.columns if c[:1] == "q" and c[1:].isdigit()])
-    q = rows[[f"q{j + 1}" for j in range(n)]].to_numpy(dtype=float)
+    q = rows[joint_columns(len(spec.joints))].to_numpy(dtype=float)
     m = len(targets)
     points = rows[list(target_columns(m))].to_numpy(dtype=float).reshape(-1, m, 3)
-    lines = csvf.lines
     base = hints or Hints()
-    hints = Hints(
-        base.length, base.angle, base.frame, base.allow, base.row or (lambda i: f"row {i + 1} (line {int(lines[i])})")
-    )
+    hints = dataclasses.replace(base, row=base.row or (lambda i: f"row {i + 1} (line {int(csvf.lines[i])})"))
     return check_measurements(
         q,
         points,
@@ -534,9 +530,10 @@ def _run_import(
     path = Path(path)
     csvf = _Csv(path, spec.separator)
     rows = _build_rows(csvf, spec, n_joints, labels.offsets)
-    existing_q = None
-    if session_id is not None and (store.root / validate_id(session_id)).is_dir() and store.versions(session_id):
-        existing_q = store.load(session_id).q
+    # the session to add a version to, when session_id names one that exists
+    existing = session_id if session_id is not None and (store.root / validate_id(session_id)).is_dir() else None
+    latest = store.load(existing) if existing is not None and store.versions(existing) else None
+    existing_q = None if latest is None else latest.q
     report = _sanity(csvf, rows, spec, labels.targets, robot, allowed, opts.hints, existing_q)
     report.raise_if_failed()
     options = {**recorded_options, "allow": sorted(allowed)}
@@ -564,13 +561,12 @@ def _run_import(
         }
     }
     source = f"import:{file_sha}"
-    if session_id is not None and (store.root / validate_id(session_id)).is_dir():
-        if store.versions(session_id):  # continue the pose numbering of the rows already there
-            latest = store.load(session_id)
+    if existing is not None:
+        if latest is not None:  # continue the pose numbering of the rows already there
             rows["pose"] += int(latest.pose.max()) + 1 if len(latest) else 0
-        meta["session_id"] = session_id
-        _check_unit_of_existing(store, session_id, meta["metadata"].get("unit"))
-        return store.append_rows(session_id, rows, meta, source=source, provenance=provenance)
+        meta["session_id"] = existing
+        _check_unit_of_existing(store, existing, meta["metadata"].get("unit"))
+        return store.append_rows(existing, rows, meta, source=source, provenance=provenance)
     return store.create_imported_session(rows, meta, source=source, provenance=provenance, session_id=session_id)
 
 
@@ -584,6 +580,26 @@ def _check_unit_of_existing(store: SessionStore, session_id: str, unit: str | No
             f"session {session_id} was recorded with {had}, the rows to add are of unit {unit!r}: import them into a "
             "new session (rows of one session come from one robot)"
         )
+
+
+def _plain_spec(form: str, opts: ImportOptions, n_joints: int, **fields: Any) -> ImportSpec:
+    """The spec of a plain CSV form (joints ``q1..qn``), read with the units, frame, separator and decimal mark of
+    ``opts``; ``fields``: the form's own."""
+    return ImportSpec(
+        form=form,
+        joints=tuple(joint_columns(n_joints)),
+        frame=opts.frame,
+        joint_unit=opts.angle_unit,
+        separator=opts.separator,
+        decimal=opts.decimal,
+        length_unit=opts.length_unit,
+        **fields,
+    )
+
+
+def _read_options(opts: ImportOptions) -> dict[str, Any]:
+    """The reading options of a plain CSV import, as recorded in the version's provenance."""
+    return {k: getattr(opts, k) for k in ("length_unit", "angle_unit", "frame", "separator", "decimal")}
 
 
 def import_targets_csv(
@@ -611,26 +627,10 @@ def import_targets_csv(
     """
     opts = _options(options, changes)
     t = validate_targets(targets)
-    spec = ImportSpec(
-        form="targets",
-        joints=tuple(joint_columns(n_joints)),
-        frame=opts.frame,
-        joint_unit=opts.angle_unit,
-        separator=opts.separator,
-        decimal=opts.decimal,
-        target_columns=tuple(tuple(target_columns(len(t))[3 * i : 3 * i + 3]) for i in range(len(t))),  # type: ignore[misc]
-        length_unit=opts.length_unit,
-        reject_extra_joints=True,
-    )
-    recorded = {
-        "length_unit": opts.length_unit,
-        "angle_unit": opts.angle_unit,
-        "frame": opts.frame,
-        "separator": opts.separator,
-        "decimal": opts.decimal,
-    }
+    triples = tuple(tuple(target_columns(len(t))[3 * i : 3 * i + 3]) for i in range(len(t)))
+    spec = _plain_spec("targets", opts, n_joints, target_columns=triples, reject_extra_joints=True)
     labels = _Labels(robot_name, robot_hash, n_joints, t, None)
-    return _run_import(store, path, spec, labels, opts, recorded)
+    return _run_import(store, path, spec, labels, opts, _read_options(opts))
 
 
 def import_probe_csv(
@@ -656,31 +656,23 @@ def import_probe_csv(
     columns = list(opts.columns)
     if len(columns) != 6:
         raise DatasetError(f"columns must name x, y, z, rx, ry, rz (6 names), got {columns}")
-    spec = ImportSpec(
-        form="probe",
-        joints=tuple(joint_columns(n_joints)),
-        frame=opts.frame,
-        joint_unit=opts.angle_unit,
-        separator=opts.separator,
-        decimal=opts.decimal,
-        length_unit=opts.length_unit,
-        position=tuple(columns[:3]),  # type: ignore[arg-type]
-        rotation=tuple(columns[3:]),  # type: ignore[arg-type]
+    spec = _plain_spec(
+        "probe",
+        opts,
+        n_joints,
+        position=tuple(columns[:3]),
+        rotation=tuple(columns[3:]),
         rotation_unit=opts.rotation_unit or opts.angle_unit,
         convention=opts.rotation,
         euler_sequence=opts.euler_sequence,
     )
     recorded = {
-        "length_unit": opts.length_unit,
-        "angle_unit": opts.angle_unit,
+        **_read_options(opts),
         "rotation_unit": spec.rotation_unit,
-        "frame": opts.frame,
         "rotation": opts.rotation,
         "euler_sequence": opts.euler_sequence,
         "offsets_m": v.tolist(),
         "columns": columns,
-        "separator": opts.separator,
-        "decimal": opts.decimal,
     }
     labels = _Labels(robot_name, robot_hash, n_joints, v, v)
     return _run_import(store, path, spec, labels, opts, recorded)
