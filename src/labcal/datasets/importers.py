@@ -781,18 +781,13 @@ def load_mapping(mapping: str | Path) -> tuple[ImportSpec, np.ndarray | None, di
     form = d["form"]
     if form not in d:
         raise fail(src, "", f'form = "{form}" needs a [{form}] table', MappingError)
-    kw: dict[str, Any] = {
-        "form": form,
+    kw: dict[str, Any] = {k: d[k] for k in ("form", "frame", "joint_unit", "separator", "decimal", "description")}
+    kw |= {
         "joints": tuple(d["joints"]),
-        "frame": d["frame"],
-        "joint_unit": d["joint_unit"],
-        "separator": d["separator"],
-        "decimal": d["decimal"],
         "split_column": d.get("split_column", "split"),
         "split_required": "split_column" in d,
         "timestamp_column": d.get("timestamp_column"),
         "tracker": dict(d["tracker"]),
-        "description": d["description"],
     }
     offsets = None
     if form == "targets":
