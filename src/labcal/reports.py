@@ -199,15 +199,16 @@ def histogram_bins(samples: list[np.ndarray]) -> np.ndarray:
     return np.logspace(*span, max(auto, math.ceil(8 * (span[1] - span[0])), 1) + 1)
 
 
+def _position_errors_mm(model, obs) -> np.ndarray:
+    """Position errors (mm) of the poses that have one (a pose that saw fewer than three targets has none)."""
+    e = prediction_errors(model, obs)[0] * 1e3
+    return e[np.isfinite(e)]
+
+
 def _plot_histograms(plt, fits: list[dict], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4))
-    first = fits[0]
-    before = prediction_errors(first["before"], first["obs"])[0] * 1e3
-    before = before[np.isfinite(before)]  # poses that saw fewer than three targets have no pose error
-    after = []
-    for data in fits:
-        e = prediction_errors(data["robot"], data["obs"])[0] * 1e3
-        after.append(e[np.isfinite(e)])
+    before = _position_errors_mm(fits[0]["before"], fits[0]["obs"])
+    after = [_position_errors_mm(data["robot"], data["obs"]) for data in fits]
     bins = histogram_bins([before, *after])
     ax.hist(before, bins=bins, histtype="step", lw=1.5, label="before (registered nominal)")
     for data, e in zip(fits, after, strict=True):

@@ -152,9 +152,7 @@ class SanityReport:
     def message(self) -> str:
         n = len(self.failures)
         head = f"{n} sanity check{'s' if n > 1 else ''} failed; nothing was written"
-        lines = [head]
-        for f in self.failures:
-            lines.append(f"  [{f.check}] {f.message}")
+        lines = [head, *(f"  [{f.check}] {f.message}" for f in self.failures)]
         flags = " ".join(self.hints.allow.format(check=f.check) for f in self.failures)
         lines.append(f"  Fix the input as suggested; only if the data are right as they are, pass {flags}")
         return "\n".join(lines)
@@ -633,11 +631,7 @@ def _hypotheses(
 
 def _map_row(M: np.ndarray, r: int) -> str:
     """'q3 = J2 + J3' for row r of a joint map matrix."""
-    terms = []
-    for c in np.flatnonzero(M[r]):
-        sign = "−" if M[r, c] < 0 else "+"
-        terms.append(f"{sign} J{c + 1}")
-    text = " ".join(terms)
+    text = " ".join(f"{'−' if M[r, c] < 0 else '+'} J{c + 1}" for c in np.flatnonzero(M[r]))
     return f"q{r + 1} = " + (text[2:] if text.startswith("+ ") else "−" + text[2:])
 
 
@@ -789,11 +783,9 @@ def _check_duplicates(q, existing_q, final, hints, report, allow) -> None:
     report.stats["distinct_poses"] = int(n_distinct)
     report.stats["duplicate_rows"] = len(dup_rows)
     if len(dup_rows):
-        groups = [g for g in np.flatnonzero(counts > 1)]
-        examples = []
-        for g in groups[:3]:
-            members = np.flatnonzero(inverse == g)
-            examples.append(" = ".join(_row_or_earlier(int(m), offset, hints) for m in members[:4]))
+        groups = np.flatnonzero(counts > 1)
+        members = [np.flatnonzero(inverse == g)[:4] for g in groups[:3]]
+        examples = [" = ".join(_row_or_earlier(int(m), offset, hints) for m in pose) for pose in members]
         report.notes.append(
             f"{len(dup_rows)} row(s) repeat an earlier pose ({len(groups)} pose(s) measured more than once; "
             f"identical joints: {'; '.join(examples)}{' …' if len(groups) > 3 else ''}); a fit keeps repeats of one "
