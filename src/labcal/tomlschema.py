@@ -58,7 +58,8 @@ class Key:
 
     ``check(value) -> phrase | None`` adds a rule of its own after the type check; the phrase follows the key's
     path in the message (``"must not be zero"`` → ``joints[4].axis must not be zero``). ``expect`` replaces the
-    generated description of the kind in type errors (``"[lo, hi] numbers"``).
+    generated description of the kind in type errors (``"[lo, hi] numbers"``). ``doc`` says what the key means,
+    for a reader of the schema.
     """
 
     kind: str
@@ -300,32 +301,12 @@ def validate(
     return out
 
 
-def describe(table: Table, indent: str = "") -> str:
-    """A plain-text listing of a schema's keys (kind, unit, required/default, doc), for docs and ``--help``."""
-    lines = []
-    for name, key in table.keys.items():
-        bits = [key.kind + (f" {key.shape}" if key.shape else "")]
-        if key.unit:
-            bits.append(key.unit)
-        if key.required:
-            bits.append("required")
-        elif key.default is not MISSING:
-            bits.append(f"default {key.default!r}")
-        if key.choices:
-            bits.append("one of " + ", ".join(map(repr, key.choices)))
-        lines.append(f"{indent}{name}: {'; '.join(bits)}" + (f" — {key.doc}" if key.doc else ""))
-        if key.table is not None:
-            lines.append(describe(key.table, indent + "    "))
-    return "\n".join(lines)
-
-
 __all__ = [
     "MISSING",
     "Key",
     "SchemaError",
     "Table",
     "decode_text",
-    "describe",
     "fail",
     "input_file_problem",
     "is_number",
