@@ -736,6 +736,7 @@ def _fit_section(store, r, data: dict, metrics: dict, plt, out: Path) -> list[st
     claim = observability_lines(meta.get("observability"), data["obs"])
     if claim:
         lines += [*claim, ""]
+    tables = [_md_metrics(metrics), _md_targets(metrics)]
     if _primary(metrics) == "points":
         # Fewer than three targets seen somewhere: the points are what was measured, so they lead (15.3).
         lines += [
@@ -743,13 +744,9 @@ def _fit_section(store, r, data: dict, metrics: dict, plt, out: Path) -> list[st
             "some poses). The pose columns of the table after them cover only the poses that fix a full pose "
             "(n = their count; — when none does).",
             "",
-            *_md_targets(metrics),
-            "",
-            *_md_metrics(metrics),
-            "",
         ]
-    else:
-        lines += [*_md_metrics(metrics), "", *_md_targets(metrics), ""]
+        tables.reverse()
+    lines += [*tables[0], "", *tables[1], ""]
     lines += [*_cv_lines(meta.get("cv"))]
     lines += _fit_plots(plt, data, out)
     info = meta.get("info") or {}
