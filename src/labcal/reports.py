@@ -323,17 +323,14 @@ IDENTIFIABLE_LEVERAGE = 1e-6  # share of a parameter's unit vector inside the nu
 
 
 def _covariance(lp: dict, data: dict) -> np.ndarray | None:
-    """Parameter covariance (p × p, SI units) of the local-POE identification: the stored ``cov`` if the fit kept
-    it, else recomputed from the fit's rows at the identified model (σ² (JᵀJ)⁺ on the identified rank)."""
-    if lp.get("cov") is not None:
-        return np.asarray(lp["cov"], dtype=float)
+    """Parameter covariance (p × p, SI units) of the local-POE identification, recomputed from the fit's rows at the
+    identified model (σ² (JᵀJ)⁺ on the identified rank): fits do not store it."""
     from labcal.calibration.local_poe import _residual_and_jacobian, fitting_rows
 
     try:
         obs, robot = data["obs"], data["robot"]
         estimate_base = obs.frame == "tracker"
-        n = robot.model.n
-        frames = list(range(1 if estimate_base else 0, n + 1))
+        frames = list(range(1 if estimate_base else 0, robot.model.n + 1))
         rows = fitting_rows(obs)
         r, J = _residual_and_jacobian(
             robot.measurement_model,
