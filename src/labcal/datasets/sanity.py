@@ -440,8 +440,7 @@ def _revolute(robot: RobotSpec) -> np.ndarray:
 
 
 def _joint_name(robot: RobotSpec, j: int) -> str:
-    names = getattr(robot.model, "joint_names", None)
-    name = names[j] if names and j < len(names) else ""
+    name = robot.model.joint_names[j]  # "joint3" when the robot file names none
     return f"joint {j + 1}" + (f" ({name})" if name and name != f"joint{j + 1}" else "")
 
 
