@@ -195,10 +195,11 @@ def _apply(R: np.ndarray, t: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ R.T + t
 
 
-def _hand_eye(F: np.ndarray, P: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """Closed-form Y (tracker ← base) and X (tool ← probe) with P_i ≈ Y F_i X, from (k, 4, 4) tool poses F and
-    measured probe poses P. Rotation of Y: A R_Y = R_Y B for relative motions A = R_Pi R_Pjᵀ, B = R_Fi R_Fjᵀ,
-    a linear null-space problem; then R_X by averaging, translations by linear least squares."""
+def _hand_eye(F: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form Y = (R_Y, p_Y) (tracker ← base) with P_i ≈ Y F_i X (X: tool ← probe, unknown), from (k, 4, 4)
+    tool poses F and measured probe poses P. Rotation of Y: A R_Y = R_Y B for relative motions A = R_Pi R_Pjᵀ,
+    B = R_Fi R_Fjᵀ, a linear null-space problem; then the translations of Y and X by linear least squares (the
+    caller registers X's rotation itself, against Y's estimate)."""
     k = len(F)
     RF, RP = F[:, :3, :3], P[:, :3, :3]
     step = max(1, k // 2)
@@ -216,12 +217,11 @@ def _hand_eye(F: np.ndarray, P: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarra
     if np.linalg.det(Ry) < 0:
         Ry = -Ry
     Ry = _project_so3(Ry)
-    Rx = _project_so3(np.einsum("kba,bc,kcd->ad", RF, Ry.T, RP))
     # p_P − R_Y p_F = R_Y R_F p_X + p_Y
     lhs = np.concatenate([np.einsum("ab,kbc->kac", Ry, RF), np.broadcast_to(eye, (k, 3, 3))], axis=2)
     rhs = P[:, :3, 3] - F[:, :3, 3] @ Ry.T
     sol, *_ = np.linalg.lstsq(lhs.reshape(-1, 6), rhs.reshape(-1), rcond=None)
-    return (Ry, sol[3:]), (Rx, sol[:3])
+    return Ry, sol[3:]
 
 
 def _points_from_poses(F: np.ndarray, X: tuple[np.ndarray, np.ndarray], v: np.ndarray) -> np.ndarray:
@@ -267,7 +267,7 @@ def _registered(F, pred, points, targets, frame, fit_rows) -> np.ndarray:
         return _row_mean(np.linalg.norm(_apply(R, t, points) - pred, axis=2))
     if frame == "tracker":
         P = se3.rigid_fit(targets, points)  # the measured probe poses
-        Y, _ = _hand_eye(F[fit_rows], P[fit_rows])
+        Y = _hand_eye(F[fit_rows], P[fit_rows])
         base_pts = _apply(Y[0].T, -Y[0].T @ Y[1], points)  # tracker → base with the first estimate
     else:
         base_pts = points
