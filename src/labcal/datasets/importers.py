@@ -199,7 +199,7 @@ class _Csv:
         except pd.errors.ParserWarning:
             raise ImportFormatError(
                 f"a row has more fields than the {len(names)} columns of the header{_separator_hint(names, separator)}",
-                path=str(path), line=_first_long_line(path, separator, len(names)),
+                path=str(path), line=_first_long_line(text, separator, len(names)),
             ) from None  # fmt: skip
         except pd.errors.ParserError as e:
             raise ImportFormatError(f"malformed CSV: {e}", path=str(path)) from None
@@ -316,13 +316,10 @@ def _refuse_comments(text: str, path: Path, separator: str) -> None:
             )
 
 
-def _first_long_line(path: Path, separator: str, n: int) -> int | None:
-    """1-based line of the first row with more than n fields (for the error message)."""
-    with open(path, encoding="utf-8-sig", newline="") as f:
-        for i, row in enumerate(csv.reader(f, delimiter=separator), start=1):
-            if len(row) > n:
-                return i
-    return None
+def _first_long_line(text: str, separator: str, n: int) -> int | None:
+    """1-based line of the first row of the file's ``text`` with more than n fields (for the error message)."""
+    rows = csv.reader(io.StringIO(text, newline=""), delimiter=separator)
+    return next((i for i, row in enumerate(rows, start=1) if len(row) > n), None)
 
 
 def _rotations(angles: np.ndarray, spec: ImportSpec) -> np.ndarray:
