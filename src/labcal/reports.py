@@ -23,13 +23,14 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from labcal.calibration.metrics import point_errors, prediction_errors
+from labcal.calibration.metrics import observability, point_errors, prediction_errors, split_table
 from labcal.calibration.observations import Observations
 from labcal.calibration.tool import tool_lines
 from labcal.compensator import from_payload
@@ -68,13 +69,8 @@ def _fit_data(store, ref: str, fit_id: str, load_obs=None) -> dict:
             split=np.concatenate([d.split for d in datasets]).astype(object),
         )
     split = meta.get("split")
-    obs = Observations(
-        q=pooled.q,
-        points=pooled.points,
-        targets=pooled.targets,
-        frame=pooled.frame,
-        split=np.array(split, dtype=object) if split and len(split) == pooled.k else pooled.split,
-    )
+    split = np.array(split, dtype=object) if split and len(split) == pooled.k else pooled.split
+    obs = dataclasses.replace(pooled, split=split, group=None)
     return {"fit_id": fit_id, "meta": meta, "robot": robot, "before": before, "obs": obs}
 
 
@@ -92,33 +88,20 @@ def _owner(info, key):
 
 def _find(info, key):
     """The first value stored under key anywhere in a nested info dict (hybrid/auto nest their stages)."""
-    if isinstance(info, dict):
-        if key in info and info[key] is not None:
-            return info[key]
-        for value in info.values():
-            found = _find(value, key)
-            if found is not None:
-                return found
-    return None
+    return (_owner(info, key) or {}).get(key)
 
 
 def _md_metrics(metrics: dict) -> list[str]:
-    cols = [f"pos {s} (mm)" for s in ("mean", "rms", "p95", "max")] + [
-        f"ori {s} (°)" for s in ("mean", "rms", "p95", "max")
-    ]
+    stats = ("mean", "rms", "p95", "max")
+    cols = [f"pos {s} (mm)" for s in stats] + [f"ori {s} (°)" for s in stats]
     cols += [f"point {s} (mm)" for s in ("mean", "p95", "max")]
     lines = ["| split | n | | " + " | ".join(cols) + " |", "|---|---:|---|" + "---:|" * len(cols)]
     for split in ("train", "val", "test", "all"):
         if split not in metrics:
             continue
         for when in ("before", "after"):
-            s = metrics[split][when]
-
-            def f(key, scale, s=s):
-                return _mm(s.get(key), scale)  # NaN: no pose in these rows (fewer than three targets seen)
-
-            vals = [f(f"pos_{k}", 1e3) for k in ("mean", "rms", "p95", "max")]
-            vals += [f(f"ori_{k}", 180 / np.pi) for k in ("mean", "rms", "p95", "max")]
+            s = metrics[split][when]  # NaN: no pose in these rows (fewer than three targets seen)
+            vals = [_mm(s.get(f"pos_{k}")) for k in stats] + [_mm(s.get(f"ori_{k}"), 180 / np.pi) for k in stats]
             pts = (metrics[split].get("points") or {}).get(when) or {}
             vals += [_mm(pts.get(k)) for k in ("mean", "p95", "max")]
             n = str(int(s.get("count") or 0)) if when == "before" else ""
@@ -126,9 +109,20 @@ def _md_metrics(metrics: dict) -> list[str]:
     return lines
 
 
+def _save(plt, fig, path: Path) -> None:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _split_order(obs) -> np.ndarray:
+    """Row order for the per-configuration plots: train, then val, then test (stable within each)."""
+    return np.argsort([{"train": 0, "val": 1, "test": 2}.get(s, 3) for s in obs.split], kind="stable")
+
+
 def _plot_per_configuration(plt, data: dict, path: Path) -> None:
     obs = data["obs"]
-    order = np.argsort([{"train": 0, "val": 1, "test": 2}.get(s, 3) for s in obs.split], kind="stable")
+    order = _split_order(obs)
     p0, o0 = prediction_errors(data["before"], obs)
     p1, o1 = prediction_errors(data["robot"], obs)
     fig, axes = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True)
@@ -151,9 +145,7 @@ def _plot_per_configuration(plt, data: dict, path: Path) -> None:
     axes[0].legend()
     axes[1].set_xlabel("configuration (train, then val, then test)")
     axes[0].set_title(f"{data['robot'].method}: error per configuration before/after calibration")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 LOSS_LABELS = {
@@ -179,9 +171,7 @@ def _plot_curve(plt, curve: dict, stopped_at, path: Path, title: str, loss: str 
     ax.set_title(title)
     ax.legend()
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def histogram_bins(samples: list[np.ndarray]) -> np.ndarray:
@@ -209,15 +199,16 @@ def histogram_bins(samples: list[np.ndarray]) -> np.ndarray:
     return np.logspace(*span, max(auto, math.ceil(8 * (span[1] - span[0])), 1) + 1)
 
 
+def _position_errors_mm(model, obs) -> np.ndarray:
+    """Position errors (mm) of the poses that have one (a pose that saw fewer than three targets has none)."""
+    e = prediction_errors(model, obs)[0] * 1e3
+    return e[np.isfinite(e)]
+
+
 def _plot_histograms(plt, fits: list[dict], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4))
-    first = fits[0]
-    before = prediction_errors(first["before"], first["obs"])[0] * 1e3
-    before = before[np.isfinite(before)]  # poses that saw fewer than three targets have no pose error
-    after = []
-    for data in fits:
-        e = prediction_errors(data["robot"], data["obs"])[0] * 1e3
-        after.append(e[np.isfinite(e)])
+    before = _position_errors_mm(fits[0]["before"], fits[0]["obs"])
+    after = [_position_errors_mm(data["robot"], data["obs"]) for data in fits]
     bins = histogram_bins([before, *after])
     ax.hist(before, bins=bins, histtype="step", lw=1.5, label="before (registered nominal)")
     for data, e in zip(fits, after, strict=True):
@@ -227,9 +218,7 @@ def _plot_histograms(plt, fits: list[dict], path: Path) -> None:
     ax.set_ylabel("configurations")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def _mm(v, scale: float = 1e3) -> str:
@@ -261,7 +250,7 @@ def _md_targets(metrics: dict) -> list[str]:
 def _plot_targets(plt, data: dict, path: Path) -> None:
     """Point error of every target and configuration after calibration (solid) and before (faint)."""
     obs = data["obs"]
-    order = np.argsort([{"train": 0, "val": 1, "test": 2}.get(s, 3) for s in obs.split], kind="stable")
+    order = _split_order(obs)
     d0 = point_errors(data["before"], obs)[order] * 1e3
     d1 = point_errors(data["robot"], obs)[order] * 1e3
     fig, ax = plt.subplots(figsize=(9, 4))
@@ -275,24 +264,18 @@ def _plot_targets(plt, data: dict, path: Path) -> None:
     ax.set_title(f"{data['robot'].method}: per-target point error before/after calibration")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, ncol=3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def observability_lines(obs_info: dict | None, data=None) -> list[str]:
     """What orientation accuracy the fit can and cannot claim, from the fit's stored ``observability`` (15.3), or
     from the data when the fit was stored before it existed (``data``: Observations, or None)."""
     if not obs_info and data is not None:
-        try:
-            from labcal.calibration.metrics import observability
-        except ImportError:
-            return []
         obs_info = observability(data)
     if not obs_info:
         return []
     level = obs_info.get("orientation")
-    head = {"measured": "measured", "partial": "partly measured", "none": "not measured"}.get(level, str(level))
+    head = {"measured": "measured", "partial": "partly measured", "none": "not measured"}.get(str(level), str(level))
     lines = [
         f"**Orientation accuracy: {head}.** {obs_info.get('claim', '')} ({obs_info.get('targets')} target(s), "
         f"{obs_info.get('geometry')}; {obs_info.get('rows_with_pose')} of {obs_info.get('rows')} poses fix a full "
@@ -311,16 +294,11 @@ def _primary(metrics: dict) -> str:
 
 
 def _warning_lines(meta: dict, fit_id: str, *, heading: bool = True) -> list[str]:
-    warnings = meta.get("warnings")
-    notes = meta.get("notes") or []
-    lines = []
-    if warnings is None:
-        lines.append(f"- fit {fit_id}: stored before fit warnings were recorded; `labcal export` re-derives them.")
-    for w in warnings or []:
-        lines.append(f"- **WARNING [{w.get('code')}]** {'fit ' + fit_id + ': ' if heading else ''}{w.get('message')}")
-    for n in notes:
-        lines.append(f"- note: {'fit ' + fit_id + ': ' if heading else ''}{n}")
-    return lines
+    warnings, who = meta.get("warnings"), f"fit {fit_id}: " if heading else ""
+    old = f"- fit {fit_id}: stored before fit warnings were recorded; `labcal export` re-derives them."
+    lines = [old] if warnings is None else []
+    lines += [f"- **WARNING [{w.get('code')}]** {who}{w.get('message')}" for w in warnings or []]
+    return lines + [f"- note: {who}{n}" for n in meta.get("notes") or []]
 
 
 def _chosen_info(info: dict, chosen: str | None) -> dict:
@@ -345,19 +323,14 @@ IDENTIFIABLE_LEVERAGE = 1e-6  # share of a parameter's unit vector inside the nu
 
 
 def _covariance(lp: dict, data: dict) -> np.ndarray | None:
-    """Parameter covariance (p × p, SI units) of the local-POE identification: the stored ``cov`` if the fit kept
-    it, else recomputed from the fit's rows at the identified model (σ² (JᵀJ)⁺ on the identified rank)."""
-    if lp.get("cov") is not None:
-        return np.asarray(lp["cov"], dtype=float)
-    try:
-        from labcal.calibration.local_poe import _residual_and_jacobian, fitting_rows
-    except ImportError:
-        return None
+    """Parameter covariance (p × p, SI units) of the local-POE identification, recomputed from the fit's rows at the
+    identified model (σ² (JᵀJ)⁺ on the identified rank): fits do not store it."""
+    from labcal.calibration.local_poe import _residual_and_jacobian, fitting_rows
+
     try:
         obs, robot = data["obs"], data["robot"]
         estimate_base = obs.frame == "tracker"
-        n = robot.model.n
-        frames = list(range(1 if estimate_base else 0, n + 1))
+        frames = list(range(1 if estimate_base else 0, robot.model.n + 1))
         rows = fitting_rows(obs)
         r, J = _residual_and_jacobian(
             robot.measurement_model,
@@ -379,9 +352,8 @@ def _covariance(lp: dict, data: dict) -> np.ndarray | None:
         return None
 
 
-def _measurement_tool_lines(info: dict, data: dict | None = None) -> list[str]:
+def _measurement_tool_lines(lp: dict | None) -> list[str]:
     """Robot and tool apart: the identified measurement tool (± σ) against the robot file's tool, when identified."""
-    lp = _local_poe_info(_chosen_info(info, (data or {}).get("meta", {}).get("chosen")))
     if lp is None or lp.get("measurement_tool") is None:
         return []
     X = np.asarray(lp["measurement_tool"], dtype=float)
@@ -397,8 +369,9 @@ def _measurement_tool_lines(info: dict, data: dict | None = None) -> list[str]:
     ]
 
 
-def _parameter_lines(info: dict, data: dict | None = None) -> list[str]:
-    lp = _local_poe_info(_chosen_info(info, (data or {}).get("meta", {}).get("chosen")))
+def _parameter_lines(lp: dict | None, data: dict) -> list[str]:
+    """The local-POE stage's frame corrections (lp: its diagnostics, None when the fit has none) with σ where
+    identifiable, the identifiable combinations of the others and the directions the data do not determine."""
     if lp is None:
         return []
     dz = np.asarray(lp["delta_zeta"], dtype=float)
@@ -409,10 +382,9 @@ def _parameter_lines(info: dict, data: dict | None = None) -> list[str]:
     estimate_base = bool(labels) and labels[-1].startswith("T_tracker_base")
     frames = list(range(n1 - len(labels) // 6 + (1 if estimate_base else 0), n1)) if labels else list(range(n1))
     identified = np.zeros((n1, 6), bool)
-    leverage = None
+    leverage = scale = Vn = None
     if labels and null.ndim == 2 and null.shape[0] == len(labels):
-        L = float(lp.get("length_scale") or 1.0)
-        scale = parameter_weights(len(labels) // 6, L)
+        scale = parameter_weights(len(labels) // 6, float(lp.get("length_scale") or 1.0))
         Vn = null / scale[:, None]  # back to the orthonormal basis of the scaled problem
         leverage = np.sum(Vn * Vn, axis=1)
         for k, j in enumerate(frames):
@@ -452,7 +424,7 @@ def _parameter_lines(info: dict, data: dict | None = None) -> list[str]:
         label = f"A{j + 1}" if j < n1 - 1 else f"A{j + 1} (tool)"
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     if leverage is not None:
-        lines += ["", *_combination_lines(lp, data, dz, frames, labels, leverage)]
+        lines += ["", *_combination_lines(lp, data, dz, frames, labels, leverage, scale, Vn)]
     dirs = lp.get("null_directions") or []
     if dirs:
         lines += ["", "Directions the data do not determine (largest components):", ""]
@@ -460,14 +432,12 @@ def _parameter_lines(info: dict, data: dict | None = None) -> list[str]:
     return lines
 
 
-def _combination_lines(lp, data, dz, frames, labels, leverage) -> list[str]:
-    """The identifiable combinations of the parameters that are not identifiable on their own, with σ."""
+def _combination_lines(lp, data, dz, frames, labels, leverage, scale, null) -> list[str]:
+    """The identifiable combinations of the parameters that are not identifiable on their own, with σ (scale: the
+    parameter weights, null: the null space in the orthonormal basis of the scaled problem, as _parameter_lines)."""
     S = np.flatnonzero(leverage >= IDENTIFIABLE_LEVERAGE)
     if S.size == 0:
         return ["Every parameter is identifiable on its own."]
-    L = float(lp.get("length_scale") or 1.0)
-    scale = parameter_weights(len(labels) // 6, L)
-    null = np.asarray(lp["null_space"], dtype=float) / scale[:, None]
     U, sv, _ = np.linalg.svd(null[S], full_matrices=True)
     d = int(np.sum(sv > 1e-9))
     B = U[:, d:].T  # rows: coefficient vectors (scaled coordinates) orthogonal to the null space
@@ -481,7 +451,7 @@ def _combination_lines(lp, data, dz, frames, labels, leverage) -> list[str]:
     x = np.zeros(len(labels))
     for k, j in enumerate(frames):
         x[6 * k : 6 * k + 6] = dz[j]
-    cov = _covariance(lp, data) if data is not None else None
+    cov = _covariance(lp, data)
     units = ("mm", "mm", "mm", "mrad", "mrad", "mrad")
     lines = [
         "Identifiable combinations of the parameters marked — (first order; coefficients in SI units, value in "
@@ -622,10 +592,7 @@ def _identity_text(identity: dict | None, what: str) -> str:
     identity = identity or {}
     serial = identity.get("serial")
     extra = [f"{k} {identity[k]}" for k in ("model", "software", "firmware", "version") if identity.get(k)]
-    if serial in (None, ""):
-        text = f"{what}: serial not reported"
-    else:
-        text = f"{what} serial **{serial}**"
+    text = f"{what}: serial not reported" if serial in (None, "") else f"{what} serial **{serial}**"
     return f"{text} ({', '.join(extra)})" if extra else text
 
 
@@ -666,8 +633,6 @@ def _devices_of(store, refs: list[str]) -> list[str]:
 
 def _metrics_of(data: dict) -> dict:
     """A fit's split table as stored, recomputed for fits stored before point errors were."""
-    from labcal.calibration.metrics import split_table
-
     metrics = data["meta"].get("metrics") or {}
     if not any("points" in m for m in metrics.values() if isinstance(m, dict)):
         metrics = split_table(data["before"], data["robot"], data["obs"])
@@ -760,18 +725,15 @@ def _fit_section(store, r, data: dict, metrics: dict, plt, out: Path) -> list[st
     own = _warning_lines(meta, fid, heading=False) + _held_out_lines(store, str(r), data, metrics, heading=False)
     if own:
         lines += [*own, ""]
-    lines += [
-        f"Inputs: {', '.join(str(x) for x in (meta.get('inputs') or [])) or r}. Rows: "
-        + ", ".join(f"{k} {v}" for k, v in (meta.get("rows") or {}).items())
-        + ".",
-        "",
-    ]
     inputs = [str(x) for x in (meta.get("inputs") or [])]
+    rows = ", ".join(f"{k} {v}" for k, v in (meta.get("rows") or {}).items())
+    lines += [f"Inputs: {', '.join(inputs) or r}. Rows: {rows}.", ""]
     if inputs and inputs != [str(r)]:
         lines += ["Units of the inputs:", "", *[f"- {line}" for line in _devices_of(store, inputs)], ""]
     claim = observability_lines(meta.get("observability"), data["obs"])
     if claim:
         lines += [*claim, ""]
+    tables = [_md_metrics(metrics), _md_targets(metrics)]
     if _primary(metrics) == "points":
         # Fewer than three targets seen somewhere: the points are what was measured, so they lead (15.3).
         lines += [
@@ -779,19 +741,15 @@ def _fit_section(store, r, data: dict, metrics: dict, plt, out: Path) -> list[st
             "some poses). The pose columns of the table after them cover only the poses that fix a full pose "
             "(n = their count; — when none does).",
             "",
-            *_md_targets(metrics),
-            "",
-            *_md_metrics(metrics),
-            "",
         ]
-    else:
-        lines += [*_md_metrics(metrics), "", *_md_targets(metrics), ""]
+        tables.reverse()
+    lines += [*tables[0], "", *tables[1], ""]
     lines += [*_cv_lines(meta.get("cv"))]
     lines += _fit_plots(plt, data, out)
     info = meta.get("info") or {}
     lines += _choice_lines(info)
-    lines += [*_parameter_lines(info, data), ""]
-    lines += _measurement_tool_lines(info, data)
+    lp = _local_poe_info(_chosen_info(info, meta.get("chosen")))
+    lines += [*_parameter_lines(lp, data), "", *_measurement_tool_lines(lp)]
     return [*lines, *_evaluation_lines(store, str(r), fid), ""]
 
 

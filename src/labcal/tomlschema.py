@@ -58,7 +58,8 @@ class Key:
 
     ``check(value) -> phrase | None`` adds a rule of its own after the type check; the phrase follows the key's
     path in the message (``"must not be zero"`` → ``joints[4].axis must not be zero``). ``expect`` replaces the
-    generated description of the kind in type errors (``"[lo, hi] numbers"``).
+    generated description of the kind in type errors (``"[lo, hi] numbers"``). ``doc`` says what the key means,
+    for a reader of the schema.
     """
 
     kind: str
@@ -170,30 +171,36 @@ def _plural(n: int, word: str) -> str:
     return f"{n} {word}{'' if n == 1 else 's'}"
 
 
-def _dim(value: Any, dims: Mapping[str, int]) -> int | None:
-    return dims.get(value) if isinstance(value, str) else value
+def _shape(key: Key, dims: Mapping[str, int]) -> tuple[int | None, int | None]:
+    """The key's shape with named dimensions bound (None: any count), padded to two entries."""
+    shape = [dims.get(s) if isinstance(s, str) else s for s in key.shape or ()]
+    return (*shape, None, None)[:2]  # type: ignore[return-value]
+
+
+#: The kinds of one value: the test a value passes and how a message names the kind.
+_PLAIN: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "str": (lambda v: isinstance(v, str), "a string"),
+    "int": (lambda v: isinstance(v, int) and not isinstance(v, bool), "an integer"),
+    "bool": (lambda v: isinstance(v, bool), "true or false"),
+    "number": (is_number, "a finite number"),
+}
 
 
 def _expected(key: Key, dims: Mapping[str, int]) -> str:
     unit = f" ({key.unit})" if key.unit else ""
     if key.expect:
         return key.expect + unit
-    shape = tuple(_dim(s, dims) for s in key.shape) if key.shape else ()
-    if key.kind == "number":
-        return f"a finite number{unit}"
+    rows, cols = _shape(key, dims)
+    if key.kind in _PLAIN:
+        return _PLAIN[key.kind][1] + unit
     if key.kind == "vector":
-        n = shape[0] if shape else None
-        return (f"a list of {_plural(n, 'number')}" if n is not None else "a list of numbers") + unit
+        return (f"a list of {_plural(rows, 'number')}" if rows is not None else "a list of numbers") + unit
     if key.kind == "vectors":
-        rows, cols = (*shape, None, None)[:2]
         inner = _plural(cols, "number") if cols is not None else "numbers"
         return (f"{rows} rows of {inner}" if rows is not None else f"a list of rows of {inner}") + unit
     if key.kind == "strings":
-        n = shape[0] if shape else None
-        return f"a list of {_plural(n, 'string')}" if n is not None else "a list of strings"
-    return {"str": "a string", "int": "an integer", "bool": "true or false", "table": "a table"}.get(
-        key.kind, "an array of tables"
-    )
+        return f"a list of {_plural(rows, 'string')}" if rows is not None else "a list of strings"
+    return "a table" if key.kind == "table" else "an array of tables"
 
 
 def _numbers(value: Any, n: int | None) -> bool:
@@ -203,27 +210,20 @@ def _numbers(value: Any, n: int | None) -> bool:
 def _check_kind(key: Key, value: Any, dims: Mapping[str, int]) -> Any:
     """The value converted (numbers to float), or MISSING when it is not of the key's kind."""
     kind = key.kind
-    shape = tuple(_dim(s, dims) for s in key.shape) if key.shape else (None, None)
-    if kind == "any":
-        return value
-    if kind == "str":
-        return value if isinstance(value, str) else MISSING
-    if kind == "bool":
-        return value if isinstance(value, bool) else MISSING
-    if kind == "int":
-        return value if isinstance(value, int) and not isinstance(value, bool) else MISSING
-    if kind == "number":
-        return float(value) if is_number(value) else MISSING
+    rows, cols = _shape(key, dims)
+    if kind in _PLAIN:
+        if not _PLAIN[kind][0](value):
+            return MISSING
+        return float(value) if kind == "number" else value
     if kind == "vector":
-        return [float(x) for x in value] if _numbers(value, shape[0]) else MISSING
+        return [float(x) for x in value] if _numbers(value, rows) else MISSING
     if kind == "vectors":
-        rows, cols = (*shape, None, None)[:2]
         ok = isinstance(value, list) and (rows is None or len(value) == rows) and all(_numbers(r, cols) for r in value)
         return [[float(x) for x in r] for r in value] if ok else MISSING
     if kind == "strings":
-        ok = isinstance(value, list) and (shape[0] is None or len(value) == shape[0])
+        ok = isinstance(value, list) and (rows is None or len(value) == rows)
         return list(value) if ok and all(isinstance(s, str) for s in value) else MISSING
-    return value  # table / tables: checked by the caller
+    return value  # any, and table / tables: checked by the caller
 
 
 def _unknown(data: Mapping, table: Table, source: str, path: str, error: type[SchemaError]) -> None:
@@ -301,32 +301,12 @@ def validate(
     return out
 
 
-def describe(table: Table, indent: str = "") -> str:
-    """A plain-text listing of a schema's keys (kind, unit, required/default, doc), for docs and ``--help``."""
-    lines = []
-    for name, key in table.keys.items():
-        bits = [key.kind + (f" {key.shape}" if key.shape else "")]
-        if key.unit:
-            bits.append(key.unit)
-        if key.required:
-            bits.append("required")
-        elif key.default is not MISSING:
-            bits.append(f"default {key.default!r}")
-        if key.choices:
-            bits.append("one of " + ", ".join(map(repr, key.choices)))
-        lines.append(f"{indent}{name}: {'; '.join(bits)}" + (f" — {key.doc}" if key.doc else ""))
-        if key.table is not None:
-            lines.append(describe(key.table, indent + "    "))
-    return "\n".join(lines)
-
-
 __all__ = [
     "MISSING",
     "Key",
     "SchemaError",
     "Table",
     "decode_text",
-    "describe",
     "fail",
     "input_file_problem",
     "is_number",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from labcal.tomlschema import Key, SchemaError, Table, describe, read_toml, validate
+from labcal.tomlschema import Key, SchemaError, Table, read_toml, validate
 
 INNER = Table({"xyz": Key("vector", shape=(3,), unit="m", default=[0.0, 0.0, 0.0]), "mass": Key("number")})
 SCHEMA = Table(
@@ -77,9 +77,3 @@ def test_read_toml_names_the_file(tmp_path):
         read_toml(bad, MyError)
     with pytest.raises(MyError, match=r"nope\.toml: cannot read thing"):
         read_toml(tmp_path / "nope.toml", MyError, "thing")
-
-
-def test_describe_lists_every_key_with_its_unit_and_default():
-    text = describe(SCHEMA)
-    assert "name: str; required" in text and "unit: str; default 'm'; one of 'm', 'mm'" in text
-    assert "    xyz: vector (3,); m; default [0.0, 0.0, 0.0]" in text

@@ -113,7 +113,7 @@ if TYPE_CHECKING:  # for type checkers: the names of the table below, imported w
         load_version,
         verify,
     )
-    from .targets import MIN_TARGET_AREA, MIN_TARGET_HEIGHT, load_targets, target_layout, validate_targets  # noqa: F401
+    from .targets import MIN_TARGET_HEIGHT, load_targets, target_layout, validate_targets  # noqa: F401
 
 # Each name is imported from its module on first use (PEP 562): `labcal session list` and `labcal --help` read
 # manifests and journals without the table machinery (pandas, pyarrow) the importers and loaders need. The table
@@ -129,7 +129,7 @@ _MODULES: dict[str, str] = {
     "schema": "SCHEMA_VERSION SPLITS core_columns joint_columns spread_columns target_columns",
     "store": "Dataset FitRecord SealResult SessionInfo SessionStore StoreWriteError VerifyReport VersionInfo "
     "default_root load_version verify",
-    "targets": "MIN_TARGET_AREA MIN_TARGET_HEIGHT load_targets target_layout validate_targets",
+    "targets": "MIN_TARGET_HEIGHT load_targets target_layout validate_targets",
 }
 _LAZY: dict[str, str] = {name: module for module, names in _MODULES.items() for name in names.split()}
 __all__ = sorted(_LAZY)

@@ -199,7 +199,7 @@ class _Csv:
         except pd.errors.ParserWarning:
             raise ImportFormatError(
                 f"a row has more fields than the {len(names)} columns of the header{_separator_hint(names, separator)}",
-                path=str(path), line=_first_long_line(path, separator, len(names)),
+                path=str(path), line=_first_long_line(text, separator, len(names)),
             ) from None  # fmt: skip
         except pd.errors.ParserError as e:
             raise ImportFormatError(f"malformed CSV: {e}", path=str(path)) from None
@@ -316,13 +316,10 @@ def _refuse_comments(text: str, path: Path, separator: str) -> None:
             )
 
 
-def _first_long_line(path: Path, separator: str, n: int) -> int | None:
-    """1-based line of the first row with more than n fields (for the error message)."""
-    with open(path, encoding="utf-8-sig", newline="") as f:
-        for i, row in enumerate(csv.reader(f, delimiter=separator), start=1):
-            if len(row) > n:
-                return i
-    return None
+def _first_long_line(text: str, separator: str, n: int) -> int | None:
+    """1-based line of the first row of the file's ``text`` with more than n fields (for the error message)."""
+    rows = csv.reader(io.StringIO(text, newline=""), delimiter=separator)
+    return next((i for i, row in enumerate(rows, start=1) if len(row) > n), None)
 
 
 def _rotations(angles: np.ndarray, spec: ImportSpec) -> np.ndarray:
@@ -426,15 +423,11 @@ def _sanity(
     existing_q: np.ndarray | None,
 ) -> SanityReport:
     """Run :mod:`labcal.datasets.sanity` on the parsed rows; fixes are phrased for CLI flags unless told otherwise."""
-    n = len([c for c in rows.columns if c[:1] == "q" and c[1:].isdigit()])
-    q = rows[[f"q{j + 1}" for j in range(n)]].to_numpy(dtype=float)
+    q = rows[joint_columns(len(spec.joints))].to_numpy(dtype=float)
     m = len(targets)
     points = rows[list(target_columns(m))].to_numpy(dtype=float).reshape(-1, m, 3)
-    lines = csvf.lines
     base = hints or Hints()
-    hints = Hints(
-        base.length, base.angle, base.frame, base.allow, base.row or (lambda i: f"row {i + 1} (line {int(lines[i])})")
-    )
+    hints = dataclasses.replace(base, row=base.row or (lambda i: f"row {i + 1} (line {int(csvf.lines[i])})"))
     return check_measurements(
         q,
         points,
@@ -534,9 +527,10 @@ def _run_import(
     path = Path(path)
     csvf = _Csv(path, spec.separator)
     rows = _build_rows(csvf, spec, n_joints, labels.offsets)
-    existing_q = None
-    if session_id is not None and (store.root / validate_id(session_id)).is_dir() and store.versions(session_id):
-        existing_q = store.load(session_id).q
+    # the session to add a version to, when session_id names one that exists
+    existing = session_id if session_id is not None and (store.root / validate_id(session_id)).is_dir() else None
+    latest = store.load(existing) if existing is not None and store.versions(existing) else None
+    existing_q = None if latest is None else latest.q
     report = _sanity(csvf, rows, spec, labels.targets, robot, allowed, opts.hints, existing_q)
     report.raise_if_failed()
     options = {**recorded_options, "allow": sorted(allowed)}
@@ -564,13 +558,12 @@ def _run_import(
         }
     }
     source = f"import:{file_sha}"
-    if session_id is not None and (store.root / validate_id(session_id)).is_dir():
-        if store.versions(session_id):  # continue the pose numbering of the rows already there
-            latest = store.load(session_id)
+    if existing is not None:
+        if latest is not None:  # continue the pose numbering of the rows already there
             rows["pose"] += int(latest.pose.max()) + 1 if len(latest) else 0
-        meta["session_id"] = session_id
-        _check_unit_of_existing(store, session_id, meta["metadata"].get("unit"))
-        return store.append_rows(session_id, rows, meta, source=source, provenance=provenance)
+        meta["session_id"] = existing
+        _check_unit_of_existing(store, existing, meta["metadata"].get("unit"))
+        return store.append_rows(existing, rows, meta, source=source, provenance=provenance)
     return store.create_imported_session(rows, meta, source=source, provenance=provenance, session_id=session_id)
 
 
@@ -584,6 +577,26 @@ def _check_unit_of_existing(store: SessionStore, session_id: str, unit: str | No
             f"session {session_id} was recorded with {had}, the rows to add are of unit {unit!r}: import them into a "
             "new session (rows of one session come from one robot)"
         )
+
+
+def _plain_spec(form: str, opts: ImportOptions, n_joints: int, **fields: Any) -> ImportSpec:
+    """The spec of a plain CSV form (joints ``q1..qn``), read with the units, frame, separator and decimal mark of
+    ``opts``; ``fields``: the form's own."""
+    return ImportSpec(
+        form=form,
+        joints=tuple(joint_columns(n_joints)),
+        frame=opts.frame,
+        joint_unit=opts.angle_unit,
+        separator=opts.separator,
+        decimal=opts.decimal,
+        length_unit=opts.length_unit,
+        **fields,
+    )
+
+
+def _read_options(opts: ImportOptions) -> dict[str, Any]:
+    """The reading options of a plain CSV import, as recorded in the version's provenance."""
+    return {k: getattr(opts, k) for k in ("length_unit", "angle_unit", "frame", "separator", "decimal")}
 
 
 def import_targets_csv(
@@ -611,26 +624,10 @@ def import_targets_csv(
     """
     opts = _options(options, changes)
     t = validate_targets(targets)
-    spec = ImportSpec(
-        form="targets",
-        joints=tuple(joint_columns(n_joints)),
-        frame=opts.frame,
-        joint_unit=opts.angle_unit,
-        separator=opts.separator,
-        decimal=opts.decimal,
-        target_columns=tuple(tuple(target_columns(len(t))[3 * i : 3 * i + 3]) for i in range(len(t))),  # type: ignore[misc]
-        length_unit=opts.length_unit,
-        reject_extra_joints=True,
-    )
-    recorded = {
-        "length_unit": opts.length_unit,
-        "angle_unit": opts.angle_unit,
-        "frame": opts.frame,
-        "separator": opts.separator,
-        "decimal": opts.decimal,
-    }
+    triples = tuple(tuple(target_columns(len(t))[3 * i : 3 * i + 3]) for i in range(len(t)))
+    spec = _plain_spec("targets", opts, n_joints, target_columns=triples, reject_extra_joints=True)
     labels = _Labels(robot_name, robot_hash, n_joints, t, None)
-    return _run_import(store, path, spec, labels, opts, recorded)
+    return _run_import(store, path, spec, labels, opts, _read_options(opts))
 
 
 def import_probe_csv(
@@ -656,31 +653,23 @@ def import_probe_csv(
     columns = list(opts.columns)
     if len(columns) != 6:
         raise DatasetError(f"columns must name x, y, z, rx, ry, rz (6 names), got {columns}")
-    spec = ImportSpec(
-        form="probe",
-        joints=tuple(joint_columns(n_joints)),
-        frame=opts.frame,
-        joint_unit=opts.angle_unit,
-        separator=opts.separator,
-        decimal=opts.decimal,
-        length_unit=opts.length_unit,
-        position=tuple(columns[:3]),  # type: ignore[arg-type]
-        rotation=tuple(columns[3:]),  # type: ignore[arg-type]
+    spec = _plain_spec(
+        "probe",
+        opts,
+        n_joints,
+        position=tuple(columns[:3]),
+        rotation=tuple(columns[3:]),
         rotation_unit=opts.rotation_unit or opts.angle_unit,
         convention=opts.rotation,
         euler_sequence=opts.euler_sequence,
     )
     recorded = {
-        "length_unit": opts.length_unit,
-        "angle_unit": opts.angle_unit,
+        **_read_options(opts),
         "rotation_unit": spec.rotation_unit,
-        "frame": opts.frame,
         "rotation": opts.rotation,
         "euler_sequence": opts.euler_sequence,
         "offsets_m": v.tolist(),
         "columns": columns,
-        "separator": opts.separator,
-        "decimal": opts.decimal,
     }
     labels = _Labels(robot_name, robot_hash, n_joints, v, v)
     return _run_import(store, path, spec, labels, opts, recorded)
@@ -789,18 +778,13 @@ def load_mapping(mapping: str | Path) -> tuple[ImportSpec, np.ndarray | None, di
     form = d["form"]
     if form not in d:
         raise fail(src, "", f'form = "{form}" needs a [{form}] table', MappingError)
-    kw: dict[str, Any] = {
-        "form": form,
+    kw: dict[str, Any] = {k: d[k] for k in ("form", "frame", "joint_unit", "separator", "decimal", "description")}
+    kw |= {
         "joints": tuple(d["joints"]),
-        "frame": d["frame"],
-        "joint_unit": d["joint_unit"],
-        "separator": d["separator"],
-        "decimal": d["decimal"],
         "split_column": d.get("split_column", "split"),
         "split_required": "split_column" in d,
         "timestamp_column": d.get("timestamp_column"),
         "tracker": dict(d["tracker"]),
-        "description": d["description"],
     }
     offsets = None
     if form == "targets":
@@ -813,7 +797,7 @@ def load_mapping(mapping: str | Path) -> tuple[ImportSpec, np.ndarray | None, di
         kw["convention"], kw["euler_sequence"] = p["convention"], p.get("euler_sequence")
         if "offsets" in p:
             try:
-                raw = validate_targets(p["offsets"], min_area=0, min_height=0, source=f"{src} [probe] offsets")
+                raw = validate_targets(p["offsets"], min_height=0, source=f"{src} [probe] offsets")
                 offsets = validate_targets(raw * LENGTH_UNITS[p["offsets_unit"]], source=f"{src} [probe] offsets")
             except TargetsError as e:
                 raise MappingError(str(e)) from None

@@ -42,7 +42,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -152,9 +152,7 @@ class SanityReport:
     def message(self) -> str:
         n = len(self.failures)
         head = f"{n} sanity check{'s' if n > 1 else ''} failed; nothing was written"
-        lines = [head]
-        for f in self.failures:
-            lines.append(f"  [{f.check}] {f.message}")
+        lines = [head, *(f"  [{f.check}] {f.message}" for f in self.failures)]
         flags = " ".join(self.hints.allow.format(check=f.check) for f in self.failures)
         lines.append(f"  Fix the input as suggested; only if the data are right as they are, pass {flags}")
         return "\n".join(lines)
@@ -178,15 +176,11 @@ def check_names(allow: Iterable[str] | None) -> frozenset[str]:
 
 
 def kabsch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R and translation t minimising Σ |R a_i + t − b_i|² over (m, 3) point sets (a proper rotation)."""
-    T = se3.rigid_fit(a, np.asarray(b, dtype=float)[None])[0]
-    return T[:3, :3], T[:3, 3]
-
-
-def _kabsch_batch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-row rigid fit: a (m, 3) the same for every row, b (k, m, 3) → R (k, 3, 3), t (k, 3)."""
-    T = se3.rigid_fit(a, b)
-    return T[:, :3, :3], T[:, :3, 3]
+    """Rotation R and translation t minimising Σ |R a_i + t − b_i|² (a proper rotation) for (m, 3) point sets a, b;
+    with b (k, m, 3) one fit per row: R (k, 3, 3), t (k, 3)."""
+    b = np.asarray(b, dtype=float)
+    T = se3.rigid_fit(a, b if b.ndim == 3 else b[None])
+    return (T[:, :3, :3], T[:, :3, 3]) if b.ndim == 3 else (T[0, :3, :3], T[0, :3, 3])
 
 
 def _project_so3(M: np.ndarray) -> np.ndarray:
@@ -201,10 +195,11 @@ def _apply(R: np.ndarray, t: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ R.T + t
 
 
-def _hand_eye(F: np.ndarray, P: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """Closed-form Y (tracker ← base) and X (tool ← probe) with P_i ≈ Y F_i X, from (k, 4, 4) tool poses F and
-    measured probe poses P. Rotation of Y: A R_Y = R_Y B for relative motions A = R_Pi R_Pjᵀ, B = R_Fi R_Fjᵀ,
-    a linear null-space problem; then R_X by averaging, translations by linear least squares."""
+def _hand_eye(F: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form Y = (R_Y, p_Y) (tracker ← base) with P_i ≈ Y F_i X (X: tool ← probe, unknown), from (k, 4, 4)
+    tool poses F and measured probe poses P. Rotation of Y: A R_Y = R_Y B for relative motions A = R_Pi R_Pjᵀ,
+    B = R_Fi R_Fjᵀ, a linear null-space problem; then the translations of Y and X by linear least squares (the
+    caller registers X's rotation itself, against Y's estimate)."""
     k = len(F)
     RF, RP = F[:, :3, :3], P[:, :3, :3]
     step = max(1, k // 2)
@@ -222,12 +217,11 @@ def _hand_eye(F: np.ndarray, P: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarra
     if np.linalg.det(Ry) < 0:
         Ry = -Ry
     Ry = _project_so3(Ry)
-    Rx = _project_so3(np.einsum("kba,bc,kcd->ad", RF, Ry.T, RP))
     # p_P − R_Y p_F = R_Y R_F p_X + p_Y
     lhs = np.concatenate([np.einsum("ab,kbc->kac", Ry, RF), np.broadcast_to(eye, (k, 3, 3))], axis=2)
     rhs = P[:, :3, 3] - F[:, :3, 3] @ Ry.T
     sol, *_ = np.linalg.lstsq(lhs.reshape(-1, 6), rhs.reshape(-1), rcond=None)
-    return (Ry, sol[3:]), (Rx, sol[:3])
+    return Ry, sol[3:]
 
 
 def _points_from_poses(F: np.ndarray, X: tuple[np.ndarray, np.ndarray], v: np.ndarray) -> np.ndarray:
@@ -252,14 +246,10 @@ def registered_residuals(
     registered too (closed form, then a few alternating refinements). A registration is fitted again without rows
     far off the rest (> 5 × the median and > 25 mm), so one absurd row does not drag every other row's residual.
     """
-    model = robot.model
-    if tool_known:
-        pred = model.target_points(q_model, targets)
-        if frame != "tracker":
-            return _row_mean(np.linalg.norm(points - pred, axis=2))
-    else:
-        pred = None
-    F = model.fk(q_model) if not tool_known else None
+    pred = robot.model.target_points(q_model, targets) if tool_known else None
+    if pred is not None and frame != "tracker":
+        return _row_mean(np.linalg.norm(points - pred, axis=2))
+    F = None if tool_known else robot.model.fk(q_model)
     res = _registered(F, pred, points, targets, frame, np.ones(len(points), bool))
     keep = res <= max(5 * float(np.median(res)), NOMINAL_MEAN_LIMIT)
     if not keep.all() and keep.sum() >= max(3, len(res) // 2):
@@ -276,10 +266,8 @@ def _registered(F, pred, points, targets, frame, fit_rows) -> np.ndarray:
         R, t = kabsch(a[seen], b[seen]) if not seen.all() else kabsch(a, b)
         return _row_mean(np.linalg.norm(_apply(R, t, points) - pred, axis=2))
     if frame == "tracker":
-        P = np.zeros_like(F)
-        P[:, :3, :3], P[:, :3, 3] = _kabsch_batch(targets, points)
-        P[:, 3, 3] = 1.0
-        Y, _ = _hand_eye(F[fit_rows], P[fit_rows])
+        P = se3.rigid_fit(targets, points)  # the measured probe poses
+        Y = _hand_eye(F[fit_rows], P[fit_rows])
         base_pts = _apply(Y[0].T, -Y[0].T @ Y[1], points)  # tracker → base with the first estimate
     else:
         base_pts = points
@@ -319,24 +307,31 @@ def _perm_text(perm: tuple[int, ...]) -> str:
     return "CSV " + ", ".join(f"t{i + 1}" for i in range(3)) + " = file " + ", ".join(f"t{p + 1}" for p in perm)
 
 
+def _unit_pairs(ratio: float) -> list[tuple[str, str]]:
+    """The length units (a, b) whose factor a/b a measured/expected length ratio is, within UNIT_RATIO_TOL."""
+    return [
+        (a, b)
+        for a, b in itertools.permutations(LENGTH_FACTORS, 2)
+        if abs(math.log(ratio / (LENGTH_FACTORS[a] / LENGTH_FACTORS[b]))) < math.log(UNIT_RATIO_TOL)
+    ]
+
+
 def _unit_slip(ratio: float, used: str, hints: Hints, what: str) -> str | None:
-    """Explain a measured/expected length ratio as a unit mix-up, or None."""
-    for true, f_true in LENGTH_FACTORS.items():
-        if true == used:
-            continue
-        expected = LENGTH_FACTORS[used] / f_true
-        if abs(math.log(ratio / expected)) < math.log(UNIT_RATIO_TOL):
-            return (
-                f"length unit slip: {what} are {ratio:.4g}× the expected size: the data look like {true} imported as "
-                f"{used} — pass {hints.length.format(unit=true)}"
-            )
-    for a, b in itertools.permutations(LENGTH_FACTORS, 2):
-        expected = LENGTH_FACTORS[a] / LENGTH_FACTORS[b]
-        if abs(math.log(ratio / expected)) < math.log(UNIT_RATIO_TOL):
-            return (
-                f"length unit slip: {what} are {ratio:.4g}× the expected size (the factor between {b} and {a}): "
-                f"check the data's unit ({hints.length.format(unit='…')}, now {used}) and the targets file's unit"
-            )
+    """Explain a measured/expected length ratio as a unit mix-up (first as data in another unit read as ``used``),
+    or None."""
+    pairs = _unit_pairs(ratio)
+    true = next((b for a, b in pairs if a == used), None)
+    if true is not None:
+        return (
+            f"length unit slip: {what} are {ratio:.4g}× the expected size: the data look like {true} imported as "
+            f"{used} — pass {hints.length.format(unit=true)}"
+        )
+    if pairs:
+        a, b = pairs[0]
+        return (
+            f"length unit slip: {what} are {ratio:.4g}× the expected size (the factor between {b} and {a}): "
+            f"check the data's unit ({hints.length.format(unit='…')}, now {used}) and the targets file's unit"
+        )
     return None
 
 
@@ -370,15 +365,15 @@ def _check_target_distances(points, targets, length_unit, hints, report, allow) 
         "ratio": round(ratio, 6),
     }
     tol = np.maximum(TARGET_ABS_TOL, TARGET_REL_TOL * d_file)
-    finding = _target_distance_finding(pairs, med, d_file, ratio, tol, len(points), targets, length_unit, hints)
-    if finding is not None:
-        _add(report, finding, allow)
+    message = _target_distance_message(pairs, med, d_file, ratio, tol, len(points), targets, length_unit, hints)
+    if message is not None:
+        _add(report, allow, "target-distances", message)
         if "target-distances" not in allow:
             return  # per-row outliers mean nothing against the wrong triangle
     _check_target_outlier_rows(pairs, d, med, d_file, hints, report, allow)
 
 
-def _target_distance_finding(pairs, med, d_file, ratio, tol, n_rows, targets, length_unit, hints) -> Finding | None:
+def _target_distance_message(pairs, med, d_file, ratio, tol, n_rows, targets, length_unit, hints) -> str | None:
     """What the median measured pair distances say against the file's: None (they match), coinciding targets, a
     unit slip, swapped targets, or a triangle that does not match."""
     listing = "; ".join(
@@ -388,12 +383,11 @@ def _target_distance_finding(pairs, med, d_file, ratio, tol, n_rows, targets, le
     if np.all(np.abs(med - d_file) <= tol):
         return None
     if not ratio > 0:  # every measured triangle collapsed to a point (zeros, one reflector reported thrice)
-        return Finding("target-distances", f"the measured targets coincide ({listing}): the target columns do not "
-                       f"hold distinct measured points")  # fmt: skip
+        return f"the measured targets coincide ({listing}): the target columns do not hold distinct measured points"
     if (slip := _unit_slip(ratio, length_unit, hints, "the measured distances between the targets")) and np.all(
         np.abs(med / d_file / ratio - 1) < UNIT_RATIO_TOL - 1
     ):
-        return Finding("target-distances", f"{slip} (median over {n_rows} rows: {listing})")
+        return f"{slip} (median over {n_rows} rows: {listing})"
     best, best_err = None, np.inf
     for perm in itertools.permutations(range(3)) if pairs == _PAIRS else ():
         if perm == (0, 1, 2):
@@ -403,18 +397,16 @@ def _target_distance_finding(pairs, med, d_file, ratio, tol, n_rows, targets, le
         if err < best_err:
             best, best_err = perm, err
     if best is not None and best_err <= 0:
-        return Finding(
-            "target-distances",
+        return (
             f"targets look swapped: {_perm_text(best)} — the measured distances match the targets file with "
             f"the targets in that order ({listing}); reorder the points in the targets file or the CSV's "
-            f"target columns",
+            f"target columns"
         )
-    return Finding(
-        "target-distances",
+    return (
         f"the targets file's {'triangle does' if pairs == _PAIRS else 'distances do'} not match the data "
         f"({listing}; median over {n_rows} rows, "
         f"tolerance {_mm(float(tol.min()))}): check that the targets file describes the targets that were "
-        f"measured, in the same order and unit",
+        f"measured, in the same order and unit"
     )
 
 
@@ -433,15 +425,13 @@ def _check_target_outlier_rows(pairs, d, med, d_file, hints, report, allow) -> N
         a, b = pairs[pair]
         _add(
             report,
-            Finding(
-                "target-outliers",
-                f"{len(bad)} row(s) have target distances off the other rows' by more than {_mm(limit)}: "
-                f"{hints.rows_text(bad)}; worst {hints.row_text(worst)}: t{a + 1}–t{b + 1} "
-                f"{_mm(float(d[worst, pair]))} vs {_mm(float(med[pair]))} (median; {_mm(float(d_file[pair]))} in the "
-                f"targets file) — a target mis-measured or confused; remove or re-measure those rows",
-                rows=[int(i) for i in bad[:20]],
-            ),
             allow,
+            "target-outliers",
+            f"{len(bad)} row(s) have target distances off the other rows' by more than {_mm(limit)}: "
+            f"{hints.rows_text(bad)}; worst {hints.row_text(worst)}: t{a + 1}–t{b + 1} "
+            f"{_mm(float(d[worst, pair]))} vs {_mm(float(med[pair]))} (median; {_mm(float(d_file[pair]))} in the "
+            f"targets file) — a target mis-measured or confused; remove or re-measure those rows",
+            bad[:20],
         )
 
 
@@ -450,8 +440,7 @@ def _revolute(robot: RobotSpec) -> np.ndarray:
 
 
 def _joint_name(robot: RobotSpec, j: int) -> str:
-    names = getattr(robot.model, "joint_names", None)
-    name = names[j] if names and j < len(names) else ""
+    name = robot.model.joint_names[j]  # "joint3" when the robot file names none
     return f"joint {j + 1}" + (f" ({name})" if name and name != f"joint{j + 1}" else "")
 
 
@@ -481,16 +470,8 @@ def _check_joint_limits(q, robot, angle_unit, hints, report, allow) -> None:
     fix = "check the joint columns and the robot file's limits"
     if angle_unit == "rad" and rev.any():
         fix = _limits_fix(q, qm, robot, rev, bad_joints, hints) or fix
-    rows = np.flatnonzero(bad.any(axis=1))
-    _add(
-        report,
-        Finding(
-            "joint-limits",
-            f"joint values outside the robot's limits{mapped}: " + "; ".join(parts) + f": {fix}",
-            rows=[int(i) for i in rows[:20]],
-        ),
-        allow,
-    )
+    message = f"joint values outside the robot's limits{mapped}: " + "; ".join(parts) + f": {fix}"
+    _add(report, allow, "joint-limits", message, np.flatnonzero(bad.any(axis=1))[:20])
 
 
 def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
@@ -499,9 +480,6 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
     columns in degrees and the others in radians (no option converts one column), or every joint in degrees
     (--angle-unit deg). q: the file's (controller) joints; the limits apply to the model joints (the joint map)."""
     jm = robot.joints
-
-    def fits(candidate: np.ndarray) -> bool:
-        return bool(robot.model.within_limits(jm.to_model(candidate)).all())
 
     def outside(candidate: np.ndarray) -> int:
         return int((~robot.model.within_limits(jm.to_model(candidate))).sum())
@@ -513,7 +491,7 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
         best = min((1, -1, 2, -2), key=lambda k: outside(turned - k * one_turn))
         if outside(turned - best * one_turn) < outside(turned):
             turned, turns[c] = turned - best * one_turn, best
-    if turns and fits(turned):
+    if turns and not outside(turned):
         named = ", ".join(f"q{c + 1} by {k:+d} turn(s) ({360 * k:+d}°)" for c, k in turns.items())
         return (
             f"whole turns off: {named} — a homing or turn-count offset; subtract it in the file (2π rad per turn), "
@@ -524,7 +502,7 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
     radians = rev & ~cannot_be_radians & (np.ptp(q, axis=0) > 0.5)
     converted = q.copy()
     converted[:, cannot_be_radians] = np.radians(q[:, cannot_be_radians])
-    if cannot_be_radians.any() and radians.any() and fits(converted):
+    if cannot_be_radians.any() and radians.any() and not outside(converted):
         as_deg = ", ".join(str(j + 1) for j in np.flatnonzero(cannot_be_radians))
         as_rad = ", ".join(str(j + 1) for j in np.flatnonzero(radians))
         return (
@@ -533,7 +511,7 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
         )
     scaled = q.copy()
     scaled[:, rev] = np.radians(q[:, rev])
-    if cannot_be_radians.any() and fits(scaled):
+    if cannot_be_radians.any() and not outside(scaled):
         return f"the values look like degrees — pass {hints.angle.format(unit='deg')}"
     return None
 
@@ -551,14 +529,12 @@ def _check_joint_span(q, robot, angle_unit, hints, report, allow) -> None:
         j = int(np.flatnonzero(rev)[np.argmax(span)])
         _add(
             report,
-            Finding(
-                "joint-span",
-                f"every joint moves less than {math.degrees(SPAN_TINY):.0f}° over the {len(q)} rows (largest span "
-                f"{math.degrees(span.max()):.2f}° on {_joint_name(robot, j)}) though the limits allow "
-                f"{math.degrees(width.min()):.0f}° or more: the values look like radians imported as degrees — pass "
-                f"{hints.angle.format(unit='rad')}",
-            ),
             allow,
+            "joint-span",
+            f"every joint moves less than {math.degrees(SPAN_TINY):.0f}° over the {len(q)} rows (largest span "
+            f"{math.degrees(span.max()):.2f}° on {_joint_name(robot, j)}) though the limits allow "
+            f"{math.degrees(width.min()):.0f}° or more: the values look like radians imported as degrees — pass "
+            f"{hints.angle.format(unit='rad')}",
         )
 
 
@@ -579,6 +555,11 @@ def _hypotheses(
     """Alternative readings of the input that a user could have meant, each with the fix that selects it."""
     rev = _revolute(robot)
     jm = robot.joints
+    out = []
+
+    def add(text, q_model, cost=1, pts=points, tgt=targets, fr=frame, free_tool=False):
+        out.append(_Hypothesis(text, cost, q_model, pts, tgt, fr, free_tool))
+
     angle_alts = [("", q_ctrl)]
     alt_unit = "deg" if angle_unit == "rad" else "rad"
     scaled = q_ctrl.copy()
@@ -596,14 +577,12 @@ def _hypotheses(
             alt = points * s
         length_alts.append((hints.length.format(unit=unit), alt))
     frames = [("", frame)] + ([(hints.frame.format(frame="tracker"), "tracker")] if frame == "base" else [])
-    out = []
     for (ta, qa), (tl, pl), (tf, fr) in itertools.product(angle_alts, length_alts, frames):
         changes = [t for t in (ta, tl, tf) if t]
         if changes:
-            out.append(_Hypothesis(f"with {' and '.join(changes)}", len(changes), jm.to_model(qa), pl, targets, fr))
+            add(f"with {' and '.join(changes)}", jm.to_model(qa), len(changes), pl, fr=fr)
     if not jm.is_identity:
-        out.append(_Hypothesis("without the robot file's [joint_map] (the CSV may hold model joints already)", 1,
-                               q_ctrl, points, targets, frame))  # fmt: skip
+        add("without the robot file's [joint_map] (the CSV may hold model joints already)", q_ctrl)
     n = q_ctrl.shape[1]
     for j in range(1, n):
         if not (rev[j] and rev[j - 1]):
@@ -616,52 +595,42 @@ def _hypotheses(
             M = np.eye(n)
             M[j - 1, j - 1], M[j, j], M[j, j - 1] = s1, s2, c
             rows = "; ".join(_map_row(M, r) for r in (j - 1, j) if not np.array_equal(M[r], np.eye(n)[r]))
-            out.append(_Hypothesis(
-                f"if model {rows} (coupled or reversed joints, e.g. an elbow measured from the horizontal; declare "
-                f"it in the robot file's [joint_map])", 1 + int(s1 < 0) + int(s2 < 0), jm.to_model(q_ctrl @ M.T),
-                points, targets, frame,
-            ))  # fmt: skip
+            add(f"if model {rows} (coupled or reversed joints, e.g. an elbow measured from the horizontal; declare "
+                f"it in the robot file's [joint_map])", jm.to_model(q_ctrl @ M.T),
+                1 + int(s1 < 0) + int(s2 < 0))  # fmt: skip
     for j in range(n):
         M = np.eye(n)
         M[j, j] = -1.0
-        out.append(_Hypothesis(f"if joint {j + 1} counts the other way (declare the sign in the robot file's "
-                               f"[joint_map])", 1, jm.to_model(q_ctrl @ M.T), points, targets, frame))  # fmt: skip
+        add(f"if joint {j + 1} counts the other way (declare the sign in the robot file's [joint_map])",
+            jm.to_model(q_ctrl @ M.T))  # fmt: skip
     for i, j in itertools.combinations(range(n), 2):  # two joint columns swapped in the file
         swapped = q_ctrl.copy()
         swapped[:, [i, j]] = q_ctrl[:, [j, i]]
-        out.append(_Hypothesis(f"with the columns of joints {i + 1} and {j + 1} swapped (q{i + 1} holds joint "
-                               f"{j + 1}, q{j + 1} joint {i + 1}): fix the file's header", 1, jm.to_model(swapped),
-                               points, targets, frame))  # fmt: skip
+        add(f"with the columns of joints {i + 1} and {j + 1} swapped (q{i + 1} holds joint {j + 1}, q{j + 1} joint "
+            f"{i + 1}): fix the file's header", jm.to_model(swapped))  # fmt: skip
     for j in np.flatnonzero(rev):
         for offset in (math.pi / 2, -math.pi / 2, math.pi):
             shifted = jm.to_model(q_ctrl)
             shifted[:, j] += offset
-            out.append(_Hypothesis(f"if joint {j + 1}'s zero is {math.degrees(offset):+.0f}° from the model's (declare "
-                                   f"the offset in the robot file's [joint_map])", 1, shifted, points, targets,
-                                   frame))  # fmt: skip
+            add(f"if joint {j + 1}'s zero is {math.degrees(offset):+.0f}° from the model's (declare the offset in the "
+                f"robot file's [joint_map])", shifted)  # fmt: skip
     if unit_ratio is not None:  # the target distances already showed a unit slip between the CSV and targets file
-        out.append(_Hypothesis(f"once the length units agree (the data scaled by 1/{unit_ratio:.4g}, see "
-                               f"target-distances)", 1, jm.to_model(q_ctrl), points / unit_ratio, targets,
-                               frame))  # fmt: skip
+        add(f"once the length units agree (the data scaled by 1/{unit_ratio:.4g}, see target-distances)",
+            jm.to_model(q_ctrl), pts=points / unit_ratio)  # fmt: skip
     complete = points.shape[1] == 3 and np.isfinite(points).all() and target_layout(targets) != "line"
     if form == "targets" and complete:  # re-registering the targets' mount needs three seen targets per row
-        out.append(_Hypothesis("if the targets file's points were given in another frame than the robot file's tool "
-                               "frame (check its [tool] and the targets file)", 1, jm.to_model(q_ctrl), points, targets,
-                               frame, free_tool=True))  # fmt: skip
+        add("if the targets file's points were given in another frame than the robot file's tool frame (check its "
+            "[tool] and the targets file)", jm.to_model(q_ctrl), free_tool=True)  # fmt: skip
         for perm in itertools.permutations(range(3)):
             if perm != (0, 1, 2):
-                out.append(_Hypothesis(f"with the targets reordered ({_perm_text(perm)}) in the targets file", 1,
-                                       jm.to_model(q_ctrl), points, targets[list(perm)], frame))  # fmt: skip
+                add(f"with the targets reordered ({_perm_text(perm)}) in the targets file", jm.to_model(q_ctrl),
+                    tgt=targets[list(perm)])  # fmt: skip
     return out
 
 
 def _map_row(M: np.ndarray, r: int) -> str:
     """'q3 = J2 + J3' for row r of a joint map matrix."""
-    terms = []
-    for c in np.flatnonzero(M[r]):
-        sign = "−" if M[r, c] < 0 else "+"
-        terms.append(f"{sign} J{c + 1}")
-    text = " ".join(terms)
+    text = " ".join(f"{'−' if M[r, c] < 0 else '+'} J{c + 1}" for c in np.flatnonzero(M[r]))
     return f"q{r + 1} = " + (text[2:] if text.startswith("+ ") else "−" + text[2:])
 
 
@@ -679,16 +648,14 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
         # The data as a whole describe this robot; a few rows do not (a typo, a target swapped in one row).
         _add(
             report,
-            Finding(
-                "nominal",
-                f"{len(far)} of {len(q)} rows are far from where the nominal {robot.name} model puts the targets "
-                f"while the others are within {_mm(mean)} (mean): "
-                + ", ".join(f"{hints.row_text(int(i))} {_mm(float(per_row[i]))}" for i in far[:5])
-                + (f" (+{len(far) - 5} more)" if len(far) > 5 else "")
-                + ": a mistyped or mis-measured row; remove or re-measure it",
-                rows=[int(i) for i in far[:20]],
-            ),
             allow,
+            "nominal",
+            f"{len(far)} of {len(q)} rows are far from where the nominal {robot.name} model puts the targets "
+            f"while the others are within {_mm(mean)} (mean): "
+            + ", ".join(f"{hints.row_text(int(i))} {_mm(float(per_row[i]))}" for i in far[:5])
+            + (f" (+{len(far) - 5} more)" if len(far) > 5 else "")
+            + ": a mistyped or mis-measured row; remove or re-measure it",
+            far[:20],
         )
     if mean <= NOMINAL_MEAN_LIMIT and not len(reach_bad):
         return
@@ -710,20 +677,18 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
         )
         _add(
             report,
-            Finding(
-                "reach",
-                f"{len(reach_bad)} of {len(q)} rows have points farther from the base origin than the robot can "
-                f"reach ({_mm(_reach(robot, targets))}), e.g. {hints.row_text(i)} at {_mm(dist)}: {fix}",
-                rows=[int(r) for r in reach_bad[:20]],
-            ),
             allow,
+            "reach",
+            f"{len(reach_bad)} of {len(q)} rows have points farther from the base origin than the robot can "
+            f"reach ({_mm(_reach(robot, targets))}), e.g. {hints.row_text(i)} at {_mm(dist)}: {fix}",
+            reach_bad[:20],
         )
     if mean > NOMINAL_MEAN_LIMIT:
         drop = f"the mean drops to {_mm(best_mean)} {best_text}" if explained else None
-        _add(report, _nominal_mismatch(q, per_row, mean, robot, frame, tool_known, hints, drop), allow)
+        _add(report, allow, "nominal", _nominal_mismatch(q, per_row, mean, robot, frame, tool_known, hints, drop))
 
 
-def _nominal_mismatch(q, per_row, mean, robot, frame, tool_known, hints, fix: str | None) -> Finding:
+def _nominal_mismatch(q, per_row, mean, robot, frame, tool_known, hints, fix: str | None) -> str:
     """The data as a whole are far from the nominal model: how far, where, the worst rows, and the fix (the
     reading of the input that explains it, else the likely causes)."""
     where = {
@@ -741,11 +706,10 @@ def _nominal_mismatch(q, per_row, mean, robot, frame, tool_known, hints, fix: st
             f"[joint_map]), the frame of the points ({hints.frame.format(frame='base|tracker')}), the targets file, "
             f"or the wrong robot file"
         )
-    return Finding(
-        "nominal",
+    return (
         f"the measured points are {_mm(mean)} (mean over {len(q)} rows) from where the nominal "
         f"{robot.name} model puts them {where}; a robot matching its model is within a few mm (limit "
-        f"{_mm(NOMINAL_MEAN_LIMIT)}); worst {worst_text}: {fix}",
+        f"{_mm(NOMINAL_MEAN_LIMIT)}); worst {worst_text}: {fix}"
     )
 
 
@@ -756,7 +720,7 @@ def _best_reading(q, points, targets, robot, *, frame, form, angle_unit, length_
     tool_known = form == "targets"
     # Which reading of the input would make the data agree with the model? Test on a spread subset of rows.
     idx = np.unique(np.linspace(0, len(q) - 1, min(len(q), HYPOTHESIS_ROWS)).astype(int))
-    probe_poses = _kabsch_batch(targets, points[idx]) if form == "probe" else None
+    probe_poses = kabsch(targets, points[idx]) if form == "probe" else None
     scored = []
     for h in _hypotheses(q[idx], points[idx], targets, robot, angle_unit=angle_unit, length_unit=length_unit,
                          frame=frame, form=form, probe_poses=probe_poses, hints=hints,
@@ -792,13 +756,8 @@ def _robust_mean(per_row: np.ndarray, share: float = 0.1) -> tuple[float, np.nda
 def _known_unit_ratio(stats: dict) -> float | None:
     """The unit ratio (1000, 25.4, …) the target distances showed, or None."""
     ratio = stats.get("target_distances", {}).get("ratio")
-    if not ratio or ratio <= 0:
-        return None
-    for a, b in itertools.permutations(LENGTH_FACTORS, 2):
-        expected = LENGTH_FACTORS[a] / LENGTH_FACTORS[b]
-        if abs(math.log(ratio / expected)) < math.log(UNIT_RATIO_TOL):
-            return expected
-    return None
+    pairs = _unit_pairs(ratio) if ratio and ratio > 0 else []
+    return LENGTH_FACTORS[pairs[0][0]] / LENGTH_FACTORS[pairs[0][1]] if pairs else None
 
 
 def _reach(robot: RobotSpec, targets: np.ndarray) -> float:
@@ -823,33 +782,32 @@ def _check_duplicates(q, existing_q, final, hints, report, allow) -> None:
     report.stats["distinct_poses"] = int(n_distinct)
     report.stats["duplicate_rows"] = len(dup_rows)
     if len(dup_rows):
-        groups = [g for g in np.flatnonzero(counts > 1)]
-        examples = []
-        for g in groups[:3]:
-            members = np.flatnonzero(inverse == g)
-            examples.append(" = ".join(_row_or_earlier(int(m), offset, hints) for m in members[:4]))
+        groups = np.flatnonzero(counts > 1)
+        members = [np.flatnonzero(inverse == g)[:4] for g in groups[:3]]
+        examples = [" = ".join(_row_or_earlier(int(m), offset, hints) for m in pose) for pose in members]
         report.notes.append(
             f"{len(dup_rows)} row(s) repeat an earlier pose ({len(groups)} pose(s) measured more than once; "
             f"identical joints: {'; '.join(examples)}{' …' if len(groups) > 3 else ''}); a fit keeps repeats of one "
             f"pose together when it splits the data"
         )
     if len(dup_rows) > 0.5 * len(all_q):
-        _add(report, Finding("duplicates", f"{len(dup_rows)} of {len(all_q)} rows repeat a pose (only {n_distinct} "
-                             f"distinct): a fit would learn the repeats, not the robot; measure distinct poses",
-                             rows=[int(i) - offset for i in dup_rows[:20] if i >= offset]), allow)  # fmt: skip
+        _add(report, allow, "duplicates", f"{len(dup_rows)} of {len(all_q)} rows repeat a pose (only {n_distinct} "
+             f"distinct): a fit would learn the repeats, not the robot; measure distinct poses",
+             [int(i) - offset for i in dup_rows[:20] if i >= offset])  # fmt: skip
     need = 2 * all_q.shape[1]
     if final and n_distinct < need:
-        _add(report, Finding("few-poses", f"only {n_distinct} distinct pose(s) in {len(all_q)} rows; calibrating "
-                             f"{all_q.shape[1]} joints needs at least {need} (2 per joint) spread over the workspace: "
-                             f"measure more poses"), allow)  # fmt: skip
+        _add(report, allow, "few-poses", f"only {n_distinct} distinct pose(s) in {len(all_q)} rows; calibrating "
+             f"{all_q.shape[1]} joints needs at least {need} (2 per joint) spread over the workspace: "
+             f"measure more poses")  # fmt: skip
 
 
 def _row_or_earlier(i: int, offset: int, hints: Hints) -> str:
     return f"earlier pose {i}" if i < offset else hints.row_text(i - offset)
 
 
-def _add(report: SanityReport, finding: Finding, allow: frozenset[str]) -> None:
-    (report.allowed if finding.check in allow else report.failures).append(finding)
+def _add(report: SanityReport, allow: frozenset[str], check: str, message: str, rows: Iterable[int] = ()) -> None:
+    """File a finding of ``check`` (rows: 0-based rows at fault, the first few) as a failure, or as allowed."""
+    (report.allowed if check in allow else report.failures).append(Finding(check, message, [int(i) for i in rows]))
 
 
 def check_measurements(
@@ -898,8 +856,7 @@ def check_measurements(
         keep = np.flatnonzero(finite)
         q, points = q[keep], points[keep]
         base_row = hints.row
-        hints = Hints(hints.length, hints.angle, hints.frame, hints.allow,
-                      lambda i: base_row(int(keep[i])) if base_row else f"row {int(keep[i]) + 1}")  # fmt: skip
+        hints = replace(hints, row=lambda i: base_row(int(keep[i])) if base_row else f"row {int(keep[i]) + 1}")
         report.hints = hints
     report.stats["rows"] = len(q)
     layout = target_layout(targets) if form == "targets" else "plane"

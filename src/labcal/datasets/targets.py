@@ -32,8 +32,6 @@ if TYPE_CHECKING:
 # numpy is imported where targets are checked or measured: reading a session's journal (listing a store) imports
 # this module without needing it.
 
-#: Before 1..k targets three targets had to span a triangle this large (m²); kept for callers that pass it.
-MIN_TARGET_AREA = 1e-6
 #: Two targets closer than this (m) are the same point listed twice; targets within this of one line (or point)
 #: are reported as lying on it by :func:`target_layout`.
 MIN_TARGET_HEIGHT = 1e-3
@@ -45,15 +43,13 @@ LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "in": 0.0254}
 def validate_targets(
     points: object,
     *,
-    min_area: float = MIN_TARGET_AREA,
     min_height: float = MIN_TARGET_HEIGHT,
     source: str = "targets",
 ) -> np.ndarray:
     """Return the targets as an (m, 3) float64 array in metres (m >= 1), or raise :class:`TargetsError`.
 
     ``points`` must already be in metres. Rejects no points, non-numeric or non-finite values and two targets
-    closer than ``min_height`` m (the same point twice). Collinear targets are accepted (see :func:`target_layout`);
-    ``min_area`` is no longer used and only kept so that older callers still work.
+    closer than ``min_height`` m (the same point twice). Collinear targets are accepted (see :func:`target_layout`).
     """
     import numpy as np
 

@@ -296,7 +296,7 @@ def _robot_schema(joint: Table) -> Table:
     )
 
 
-#: The schemas of a robot file, by ``kinematics`` (``tomlschema.describe(ROBOT_SCHEMAS["dh"])`` lists every key).
+#: The schemas of a robot file, by ``kinematics``.
 ROBOT_SCHEMAS = {"dh": _robot_schema(_DH_JOINT), "mdh": _robot_schema(_DH_JOINT), "poe": _robot_schema(_POE_JOINT)}
 
 
