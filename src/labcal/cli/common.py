@@ -60,8 +60,6 @@ SimErrors = Literal["paper", "default", "none"]
 ProgramKind = Literal["poses", "joints"]
 LengthUnit = Literal["m", "mm"]
 AngleUnit = Literal["rad", "deg"]
-Frame = Literal["base", "tracker"]
-Form = Literal["targets", "probe"]
 
 
 class _FirstUseConsole:
@@ -126,7 +124,7 @@ def user_errors(fn):
             else:
                 msg = str(e)
             err.print(f"error: {msg}", markup=False)
-            raise typer.Exit(2) from None
+            raise typer.Exit(USAGE_ERROR) from None
 
     return wrapper
 

@@ -455,27 +455,6 @@ def _remove_temp_folders(store: SessionStore, task: RefitTask) -> None:
             remove_tree(p)
 
 
-def summary_rows(report: RefitReport) -> list[dict]:
-    """The before/after table as plain rows (JSON-ready): errors in m, None where unknown."""
-    return [
-        {
-            "ref": r.ref,
-            "status": r.status,
-            "before_fit": r.before.fit_id,
-            "before_method": r.before.method,
-            "before_error": r.before.error,
-            "before_source": r.before.source,
-            "after_fit": r.after.fit_id,
-            "after_method": r.after.method,
-            "after_error": r.after.error,
-            "after_source": r.after.source,
-            "warnings": list(r.after.warnings),
-            "message": r.message,
-        }
-        for r in report.rows
-    ]
-
-
 __all__ = [
     "FAILED",
     "FITTED",
@@ -493,5 +472,4 @@ __all__ = [
     "run_refit",
     "select_versions",
     "session_created",
-    "summary_rows",
 ]
