@@ -44,6 +44,19 @@ def _check_one_version_per_session(store: SessionStore, refs: list[str]) -> None
         seen[resolved.session_id] = str(resolved)
 
 
+def check_fit_options(method: str, seed: int, hidden: int | None, val_fraction: float) -> None:
+    """The options of a fit that need no data: a bad one is a usage error before anything is read."""
+    from labcal.calibration.fit import METHODS
+
+    if method not in METHODS:
+        raise UserError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+    check_seed(seed)
+    if not 0.0 <= val_fraction < 1.0:
+        raise UserError(f"--val-fraction must be in [0, 1), got {val_fraction}")
+    if hidden is not None and hidden < 1:
+        raise UserError(f"--hidden must be a positive number of nodes, got {hidden}")
+
+
 def run_fit(
     store: SessionStore,
     refs: list[str],
@@ -56,20 +69,16 @@ def run_fit(
     features: tuple[str, ...] | None = None,
     progress=None,
     pool_units: bool = False,
+    fit_id: str | None = None,
 ) -> FitOutcome:
     """Fit one method on the pooled versions and store it under the first version it read.
 
     pool_units: fit sessions of different robot units as one (by default load_observations refuses them: one
-    unit, one calibration); recorded in the fit's metadata."""
-    from labcal.calibration.fit import METHODS, fit
+    unit, one calibration); recorded in the fit's metadata. fit_id: store the fit under this id (default: a new
+    one; `labcal refit` draws its tasks' ids before they run)."""
+    from labcal.calibration.fit import fit
 
-    if method not in METHODS:
-        raise UserError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
-    check_seed(seed)
-    if not 0.0 <= val_fraction < 1.0:
-        raise UserError(f"--val-fraction must be in [0, 1), got {val_fraction}")
-    if hidden is not None and hidden < 1:
-        raise UserError(f"--hidden must be a positive number of nodes, got {hidden}")
+    check_fit_options(method, seed, hidden, val_fraction)
     _check_one_version_per_session(store, refs)
     obs, datasets, spec = load_observations(store, refs, robot, with_spec=True, pool_units=pool_units)
     options = {}
@@ -112,7 +121,7 @@ def run_fit(
         ROBOT_FILE: json.dumps(to_payload(fitted, {"sessions": [d.ref for d in datasets]})),
         BEFORE_FILE: json.dumps(to_payload(before)),
     }
-    record = store.save_fit([d.ref for d in datasets], files, plain(meta))
+    record = store.save_fit([d.ref for d in datasets], files, plain(meta), fit_id=fit_id)
     return FitOutcome(result, record.fit_id, record.ref, [d.ref for d in datasets], meta["metrics"], gates)
 
 
