@@ -143,12 +143,12 @@ def test_unwritable_export_path_is_one_line_before_any_work(world, tmp_path):
 
 
 def test_ctrl_c_exits_130(world, monkeypatch):
-    import labcal.cli.ops
+    import labcal.cli.ops.fitting
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(labcal.cli.ops, "run_fit", interrupted)
+    monkeypatch.setattr(labcal.cli.ops.fitting, "run_fit", interrupted)
     r = invoke("fit", world["refs"]["good"], "--method", "local-poe", store=world["store"])
     assert r.exit_code == 130 and "interrupted" in r.stderr
 

@@ -29,9 +29,11 @@ def demo(
     """
     from rich.table import Table
 
-    from labcal.cli.ops import export_fit, new_session, run_fit
     from labcal.cli.ops.common import check_seed
     from labcal.cli.ops.evaluating import evaluate_fit
+    from labcal.cli.ops.exporting import export_fit
+    from labcal.cli.ops.fitting import run_fit
+    from labcal.cli.ops.sessions import new_session
     from labcal.reports import write_session_report
 
     # Everything the demo needs is checked before it records: a bad option found after minutes of work wastes them.

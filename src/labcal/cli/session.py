@@ -195,8 +195,7 @@ def new(
         --profile drivers/ur10-lab.toml --tracker-profile drivers/ndi-polaris.toml --robot-host 127.0.0.5
         --tracker-port /dev/pts/3   # rehearsal: the fakes of `python -m labcal.testing.rehearse`
     """
-    from labcal.cli.ops import new_session
-    from labcal.cli.ops.sessions import SessionRequest
+    from labcal.cli.ops.sessions import SessionRequest, new_session
     from labcal.datasets import load_targets
     from labcal.datasets.targets import load_target_normals
     from labcal.robots import load
@@ -393,7 +392,7 @@ def resume(
 
       labcal session resume S --profile drivers/ur10-lab.toml --tracker-profile drivers/ndi-polaris.toml   # files moved
     """
-    from labcal.cli.ops import resume_session
+    from labcal.cli.ops.sessions import resume_session
 
     st = open_store(store, create=False, write=True)
     with _RunProgress() as progress:
