@@ -129,6 +129,12 @@ def user_errors(fn):
     return wrapper
 
 
+def session_unit(session: dict) -> str | None:
+    """The robot unit a session records (its ``metadata["unit"]``), None for a session recorded without one."""
+    unit = (session.get("metadata") or {}).get("unit")
+    return None if unit in (None, "") else str(unit)
+
+
 def complete_robot(incomplete: str) -> list[str]:
     """Shell completion of --robot: the built-in models starting with what was typed (none: the shell completes a
     file name, for a robot TOML/URDF)."""

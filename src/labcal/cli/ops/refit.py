@@ -35,7 +35,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from labcal.cli.common import UserError
+from labcal.cli.common import UserError, session_unit
 from labcal.datasets import DatasetError, SessionStore
 
 FITTED, FAILED, NOT_RUN = "fitted", "failed", "not run"
@@ -119,8 +119,7 @@ def select_versions(store: SessionStore, selection: Selection) -> tuple[list[str
             continue
         if selection.robot and str((meta.get("robot") or {}).get("name", "")).casefold() != selection.robot.casefold():
             continue
-        unit = (meta.get("metadata") or {}).get("unit")
-        if selection.unit and (unit is None or str(unit) != selection.unit):
+        if selection.unit and session_unit(meta) != selection.unit:
             continue
         created = session_created(store, sid)
         if selection.since is not None and (created is None or created < selection.since):
