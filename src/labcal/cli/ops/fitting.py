@@ -66,7 +66,6 @@ def run_fit(
     hidden: int | None = None,
     val_fraction: float = 0.0,
     robot: str | None = None,
-    features: tuple[str, ...] | None = None,
     progress=None,
     pool_units: bool = False,
     fit_id: str | None = None,
@@ -84,8 +83,6 @@ def run_fit(
     options = {}
     if hidden is not None:
         options["hidden"] = hidden
-    if features is not None:
-        options["features"] = tuple(features)
     nominal, tool_note = nominal_for(obs, datasets, spec.model)
     probe = tool_note is not None  # the registered nominal then carries the probe as its measurement tool
     result = fit(
@@ -224,11 +221,11 @@ def info_warnings(info: dict, chosen: str | None = None) -> list[dict]:
     return out
 
 
-def metric_warnings(metrics: dict, *, nominal: bool = False) -> list[dict]:
-    """Warnings read off a split table (an evaluation's): worse than nominal on held-out rows (not for the nominal
-    itself, which is its own baseline); point residuals (the calibration's own check)."""
+def metric_warnings(metrics: dict) -> list[dict]:
+    """Warnings read off a split table (an evaluation's): worse than nominal on held-out rows; point residuals (the
+    calibration's own check)."""
     out = []
-    for split in () if nominal else ("test", "val"):
+    for split in ("test", "val"):
         m = metrics.get(split)
         if not m:
             continue
