@@ -197,7 +197,6 @@ def info_warnings(info: dict, chosen: str | None = None) -> list[dict]:
             msg = f"numerical rank {rank} < {need} identifiable parameters"
         if msg:
             if part.get("rank_deficient") or "rank" in str(msg):
-                rank, need = part.get("rank"), part.get("expected_rank")
                 head = "" if "rank" in str(msg) or rank is None else f"rank {rank} of {need}: "
                 missing = need - rank if isinstance(rank, int) and isinstance(need, int) else None
                 tail = (
