@@ -99,7 +99,7 @@ def _sim_rig(spec: RobotSpec, targets, sim: dict):
             targets,
             seed=int(sim.get("noise_seed", sim["seed"])),
             joint_map=spec.joint_map,
-            serial=sim_unit(sim),
+            serial=f"sim-{int(sim['seed'])}",  # the errors' seed names the simulated robot (sim_seed pools sessions)
             dropout=float(sim.get("dropout") or 0.0),
         )
     except ValueError as e:  # e.g. a target count the sim rig does not support
@@ -170,11 +170,6 @@ class SessionRequest:
         failed = self.max_failed_poses  # 0: never stop for rejected poses
         if isinstance(failed, bool) or not isinstance(failed, int) or failed < 0:
             raise UserError(f"--max-failed-poses must be an integer >= 0 (0: never stop early), got {failed!r}")
-
-
-def sim_unit(sim: dict) -> str:
-    """The unit id of a simulated robot: its errors' seed names it (``sim_seed`` pools sessions of one robot)."""
-    return f"sim-{int(sim['seed'])}"
 
 
 def _drivers(request: SessionRequest, spec: RobotSpec, targets):
@@ -301,7 +296,7 @@ def new_session(store: SessionStore, request: SessionRequest | None = None, *, p
     normals = load_target_normals(request.targets_file)
     sim = request.robot_driver == "sim"
     rob, trk, frame, meta = _drivers(request, spec, targets)
-    # The unit: --unit, else the serial the robot driver reports (the sim rig's is sim-<seed>; see sim_unit).
+    # The unit: --unit, else the serial the robot driver reports (the sim rig's is sim-<seed of its errors>).
     options = RunOptions(
         frame=frame, progress=progress, metadata=meta, allow=_allowed(request.allow), unit=request.unit,
         retry=RetryPolicy(max_failed_poses=request.max_failed_poses),
