@@ -426,23 +426,3 @@ def _remove_temp_folders(store: SessionStore, task: RefitTask) -> None:
     if fits.is_dir():
         for p in fits.glob(f".tmp-{task.fit_id}-*"):
             remove_tree(p)
-
-
-__all__ = [
-    "FAILED",
-    "FITTED",
-    "NOT_RUN",
-    "FitSummary",
-    "RefitReport",
-    "RefitRow",
-    "RefitTask",
-    "Selection",
-    "held_out_error",
-    "latest_fit",
-    "parse_since",
-    "plan_tasks",
-    "refit_one",
-    "run_refit",
-    "select_versions",
-    "session_created",
-]
