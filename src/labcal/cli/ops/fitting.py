@@ -83,15 +83,17 @@ def run_fit(
     options = {}
     if hidden is not None:
         options["hidden"] = hidden
-    nominal, tool_note = nominal_for(obs, datasets, spec.model)
+    tool_note = probe_mount_note(obs, datasets, spec.model)
     probe = tool_note is not None  # the registered nominal then carries the probe as its measurement tool
     result = fit(
-        obs, nominal, method, seed=seed, val_fraction=val_fraction, progress=progress, register_tool=probe, **options
+        obs, spec.model, method, seed=seed, val_fraction=val_fraction, progress=progress, register_tool=probe, **options
     )
-    metrics = result.metrics
-    gates = fit_gates(result)
-    if tool_note:
-        gates["notes"] = [tool_note, *gates["notes"]]
+    # What fit.json stores of the checks: each warning blocks `labcal export` unless --force.
+    gates = {
+        "warnings": [_as_warning(w) for w in result.warnings],
+        "notes": ([tool_note] if probe else []) + [str(n) for n in result.notes],
+        "cv": result.cv,
+    }
     meta = {
         "method": result.method,
         "chosen": result.chosen,
@@ -100,7 +102,7 @@ def run_fit(
         "hidden": hidden,
         "pool_units": pool_units,
         "robot": {"name": spec.name, "hash": spec.hash},
-        "metrics": metrics,
+        "metrics": result.metrics,
         "warnings": gates["warnings"],
         "notes": gates["notes"],
         "cv": gates["cv"],
@@ -109,7 +111,7 @@ def run_fit(
         "fit_seconds": result.fit_seconds,
         "info": slim_info(result.info),
         # What the targets let this fit claim about orientation (15.3): the report and evaluate print its claim.
-        "observability": getattr(result, "observability", None),
+        "observability": result.observability,
     }
     # The fit works in model joints; its compensator takes controller joints through the robot file's map.
     fitted = dataclasses.replace(result.robot, joint_map=spec.joint_map)
@@ -122,8 +124,8 @@ def run_fit(
     return FitOutcome(result, record.fit_id, record.ref, [d.ref for d in datasets], meta["metrics"], gates)
 
 
-def nominal_for(obs, datasets, model):
-    """The nominal model a fit starts from and its compensator aims for (the robot file's), and a note for probe data.
+def probe_mount_note(obs, datasets, model) -> str | None:
+    """For probe data, a note on the probe's mount the fit registers; None for other data.
 
     Probe data (a 6-DOF probe's pose per row) give the targets in the probe's frame, but where the probe sits on
     the flange is not part of the robot file. Robot and tool apart: the fits identify that mount as the measurement
@@ -134,28 +136,14 @@ def nominal_for(obs, datasets, model):
 
     forms = {((d.manifest.get("provenance") or {}).get("import") or {}).get("form") for d in datasets}
     if "probe" not in forms:
-        return model, None
+        return None
     registered, _ = register(obs, model, estimate_tool=True)
     mount = np.eye(4) if registered.measurement_tool is None else registered.measurement_tool
     angle = float(np.degrees(np.arccos(np.clip((np.trace(mount[:3, :3]) - 1) / 2, -1.0, 1.0))))
-    note = (
+    return (
         f"probe data: the probe's mount on the tool frame was registered ({np.linalg.norm(mount[:3, 3]) * 1e3:.1f} mm, "
         f"{angle:.1f}°): it is the measurement tool of this fit, not part of the robot"
     )
-    return model, note
-
-
-def fit_gates(result) -> dict:
-    """{"warnings": [{code, message}], "notes": [str], "cv": dict | None} of a fit result, as fit.json stores them.
-
-    The calibration makes every check (``FitResult.warnings``, see :mod:`labcal.calibration.fit`); each warning
-    blocks ``labcal export`` unless ``--force``.
-    """
-    return {
-        "warnings": [_as_warning(w) for w in result.warnings],
-        "notes": [str(n) for n in result.notes],
-        "cv": result.cv,
-    }
 
 
 def _as_warning(w) -> dict:
