@@ -35,7 +35,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from labcal.cli.common import UserError, session_unit
+from labcal.cli.common import INTERRUPTED, UserError, session_unit
 from labcal.datasets import DatasetError, SessionStore
 
 FITTED, FAILED, NOT_RUN = "fitted", "failed", "not run"
@@ -262,7 +262,7 @@ class RefitReport:
     def exit_code(self) -> int:
         """0 all fitted, 1 any failed, 130 interrupted."""
         if self.interrupted:
-            return 130
+            return INTERRUPTED
         return 1 if self.failed else 0
 
 
