@@ -1,6 +1,6 @@
 """Time per pose of `session new` on the real drivers against labcal's fakes, in the planner's order and ordered.
 
-`labcal.cli.ops.new_session` with ``robot_driver="ur"`` (ur-rtde against ``labcal.testing.rtde_fake``, which moves
+`cli.ops.sessions.new_session` with ``robot_driver="ur"`` (ur-rtde against ``labcal.testing.rtde_fake``, which moves
 its simulated arm at the commanded speed and acceleration) and ``tracker_driver="serial"`` (the NDI driver on a pty
 against ``labcal.testing.fakes.FakeNDIDevice``, which reports the targets where the fake controller's joints put
 them, the tracker 2.6 m in front of the base). Robot profile: drivers/ur10-lab.toml with the joint limits narrowed
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 import labcal.sessions.planning as planning
-from labcal.cli.ops import new_session
+from labcal.cli.ops.sessions import new_session
 from labcal.datasets import SessionStore, load_targets
 from labcal.robots import load
 from labcal.testing.fakes import FakeNDIDevice

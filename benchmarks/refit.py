@@ -37,7 +37,8 @@ def _noop(task):
 
 
 def make_store(root: Path, n: int, poses: int) -> tuple[list[str], float]:
-    from labcal.cli.ops import new_session, open_store
+    from labcal.cli.common import open_store
+    from labcal.cli.ops.sessions import new_session
 
     store = open_store(root, create=True)
     have = store.session_ids()
@@ -135,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cluster-workers", type=int, default=32, help="worker processes of the 'small cluster'")
     args = ap.parse_args(argv)
 
-    from labcal.cli.ops import open_store
+    from labcal.cli.common import open_store
     from labcal.cli.ops.refit import FITTED, run_refit
 
     lines: list[str] = []

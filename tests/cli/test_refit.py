@@ -17,8 +17,9 @@ from distributed import LocalCluster
 from typer.testing import CliRunner
 
 from labcal.cli.app import app
-from labcal.cli.ops import new_session, open_store
+from labcal.cli.common import open_store
 from labcal.cli.ops.refit import FAILED, FITTED, NOT_RUN, Selection, run_refit, select_versions, session_created
+from labcal.cli.ops.sessions import new_session
 from labcal.datasets import SessionStore
 
 TARGETS = "drivers/targets-example.toml"

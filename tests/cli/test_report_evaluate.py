@@ -205,7 +205,7 @@ def test_evaluate_on_the_fits_own_data_says_it_is_not_held_out(world):
 
 def test_evaluate_on_a_reimport_of_the_fits_data_says_it_is_not_held_out(world, tmp_path):
     # a re-import (or a later version) of the fit's rows has another ref: the rows themselves give it away
-    from labcal.cli.ops import load_observations
+    from labcal.cli.ops.common import load_observations
 
     s, fit = world["store"], world["fits"]["good"]
     obs = load_observations(SessionStore(s), [world["refs"]["good"]])[0]

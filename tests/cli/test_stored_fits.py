@@ -8,8 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from labcal.cli.common import UserError
-from labcal.cli.ops import export_fit, load_stored_fit, new_session, open_store, run_fit
+from labcal.cli.common import UserError, open_store
+from labcal.cli.ops.exporting import export_fit
+from labcal.cli.ops.fitting import load_stored_fit, run_fit
+from labcal.cli.ops.sessions import new_session
 from labcal.compensator import Compensator, CompensatorFileError, from_payload, to_payload
 from labcal.robots import load
 

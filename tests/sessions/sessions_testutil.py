@@ -55,7 +55,7 @@ class CountingRobot:
 def record_interrupted(
     store, spec, n_poses: int, interrupt_at: int, *, errors: str = "default", seed: int = 0, seal: bool = True
 ):
-    """A sim session (resumable by ``labcal.cli.ops.resume_session``) aborted by Ctrl-C at move ``interrupt_at``;
+    """A sim session (resumable by ``cli.ops.sessions.resume_session``) aborted by Ctrl-C at move ``interrupt_at``;
     ``seal=False`` leaves its journal unsealed (as a crash would)."""
     from labcal.cli.ops.sessions import sim_actual
 

@@ -9,8 +9,9 @@ from __future__ import annotations
 import pytest
 from sessions_testutil import TARGETS, CountingRobot
 
-from labcal.cli.ops import UserError, resume_session
+from labcal.cli.common import UserError
 from labcal.cli.ops import sessions as session_ops
+from labcal.cli.ops.sessions import resume_session
 from labcal.datasets import SessionStore
 from labcal.robots import load
 from labcal.sessions import make_plan, random_configurations, run

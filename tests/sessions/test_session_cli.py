@@ -111,7 +111,7 @@ def test_poses_beyond_the_bound_fail_at_once_with_the_reason(tmp_path, targets):
 
 @pytest.mark.parametrize(("status", "code"), [("failed", 1), ("paused", 1), ("aborted", 130), ("success", 0)])
 def test_session_new_exit_code_follows_the_run(tmp_path, targets, monkeypatch, status, code):
-    import labcal.cli.ops as ops
+    import labcal.cli.ops.sessions as ops
 
     summary = RunSummary("s", status, "the tracker did not answer", 0, 0, 3, 0, "s@v001" if code == 0 else None)
     monkeypatch.setattr(ops, "new_session", lambda *a, **k: summary)
@@ -215,7 +215,7 @@ def test_seal_valid_prefix_cli_prints_what_it_left_out(tmp_path, targets):
 def test_verify_of_a_session_checks_the_fits_of_every_version(tmp_path):
     from sessions_testutil import record_interrupted
 
-    from labcal.cli.ops import resume_session
+    from labcal.cli.ops.sessions import resume_session
     from labcal.robots import load
 
     st = SessionStore(tmp_path / "store")
@@ -239,7 +239,7 @@ def test_show_says_whether_the_robot_file_is_stored(recorded):
 def test_a_coupled_elbow_session_records_controller_joints_and_fits_in_model_joints(tmp_path, targets):
     import numpy as np
 
-    from labcal.cli.ops import load_observations
+    from labcal.cli.ops.common import load_observations
     from labcal.robots import load
     from labcal.sessions import Plan
 
@@ -270,7 +270,7 @@ def test_fit_refuses_two_versions_of_one_session(tmp_path):
     # a resumed session's v002 holds v001's rows: pooling both would count those poses twice
     from sessions_testutil import record_interrupted
 
-    from labcal.cli.ops import resume_session
+    from labcal.cli.ops.sessions import resume_session
     from labcal.robots import load
 
     st = SessionStore(tmp_path / "store")

@@ -11,8 +11,8 @@ import os
 import pytest
 from sessions_testutil import TARGETS, CountingRobot, record_interrupted
 
-from labcal.cli.ops import UserError, open_store, plan_configurations
-from labcal.cli.ops.sessions import MAX_POSES, resume_session
+from labcal.cli.common import UserError, open_store
+from labcal.cli.ops.sessions import MAX_POSES, plan_configurations, resume_session
 from labcal.datasets import JournalCorrupted, SessionStore, read_journal
 from labcal.drivers.base import MotionRejected
 from labcal.drivers.sim import SimFaults, SimRig

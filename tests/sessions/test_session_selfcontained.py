@@ -11,7 +11,11 @@ import pytest
 from sessions_testutil import TARGETS, CountingRobot, record_interrupted, write_custom_robot
 
 from labcal.calibration.observations import Observations
-from labcal.cli.ops import UserError, export_fit, load_observations, resume_session, robot_for, run_fit
+from labcal.cli.common import UserError
+from labcal.cli.ops.common import load_observations, robot_for
+from labcal.cli.ops.exporting import export_fit
+from labcal.cli.ops.fitting import run_fit
+from labcal.cli.ops.sessions import resume_session
 from labcal.datasets import SessionStore, read_journal
 from labcal.drivers.sim import SimRig
 from labcal.robots import load, loads
@@ -207,7 +211,7 @@ def test_resume_uses_the_joint_map_stored_with_the_session(store):
 
 
 def test_an_imported_custom_robot_session_is_refitted_and_exported_after_the_file_is_deleted(tmp_path):
-    from labcal.cli.ops import import_session
+    from labcal.cli.ops.imports import import_session
 
     path = write_custom_robot(tmp_path)
     spec = load(path)

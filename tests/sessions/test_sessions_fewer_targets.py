@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from labcal.cli.ops import load_observations
+from labcal.cli.ops.common import load_observations
 from labcal.cli.ops.sessions import new_session
 from labcal.datasets import SessionStore, read_journal
 from labcal.datasets.targets import pair_distances

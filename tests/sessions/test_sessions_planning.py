@@ -376,7 +376,7 @@ TARGETS_TEXT = 'unit = "m"\npoints = [[0.15, 0.0, 0.05], [-0.075, 0.13, 0.05], [
 
 
 def _new(tmp_path, profile, targets_text=TARGETS_TEXT, poses=16, tracker_profile="drivers/ndi-polaris.toml"):
-    from labcal.cli.ops import new_session
+    from labcal.cli.ops.sessions import new_session
     from labcal.datasets import SessionStore
 
     targets = tmp_path / "targets.toml"
@@ -430,7 +430,7 @@ def test_session_new_plans_targets_facing_the_tracker_of_the_profile(hardware, t
 
 
 def test_two_tracker_positions_that_disagree_are_refused_before_planning(hardware, tmp_path):
-    from labcal.cli.ops import UserError
+    from labcal.cli.common import UserError
 
     tracker = tmp_path / "ndi.toml"
     tracker.write_text(open("drivers/ndi-polaris.toml").read() + "\n[placement]\nposition_mm = [2400.0, 0.0, 600.0]\n")

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from labcal.cli.ops import new_session, open_store, resume_session, run_fit
+from labcal.cli.common import open_store
 from labcal.cli.ops.evaluating import evaluate_fit
+from labcal.cli.ops.fitting import run_fit
+from labcal.cli.ops.sessions import new_session, resume_session
 
 TARGETS = "drivers/targets-example.toml"
 

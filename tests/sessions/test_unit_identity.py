@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 from sessions_testutil import TARGETS, TARGETS_TOML
 
-from labcal.cli.ops import UserError, load_observations
-from labcal.cli.ops.common import check_units
+from labcal.cli.common import UserError
+from labcal.cli.ops.common import check_units, load_observations
 from labcal.cli.ops.sessions import SessionRequest, new_session
 from labcal.datasets import JournalError, SessionHeader, SessionStore, StartDoc
 from labcal.datasets.documents import check_unit

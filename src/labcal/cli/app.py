@@ -35,8 +35,6 @@ from labcal.cli.fit import fit
 from labcal.cli.refit import refit
 from labcal.cli.report import report
 
-USAGE_ERROR = 2
-
 
 class _LabcalGroup(TyperGroup):
     """The root command: a usage error (bad option value, unknown option, missing argument) is ONE line on stderr,

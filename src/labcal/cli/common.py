@@ -60,8 +60,6 @@ SimErrors = Literal["paper", "default", "none"]
 ProgramKind = Literal["poses", "joints"]
 LengthUnit = Literal["m", "mm"]
 AngleUnit = Literal["rad", "deg"]
-Frame = Literal["base", "tracker"]
-Form = Literal["targets", "probe"]
 
 
 class _FirstUseConsole:
@@ -126,9 +124,15 @@ def user_errors(fn):
             else:
                 msg = str(e)
             err.print(f"error: {msg}", markup=False)
-            raise typer.Exit(2) from None
+            raise typer.Exit(USAGE_ERROR) from None
 
     return wrapper
+
+
+def session_unit(session: dict) -> str | None:
+    """The robot unit a session records (its ``metadata["unit"]``), None for a session recorded without one."""
+    unit = (session.get("metadata") or {}).get("unit")
+    return None if unit in (None, "") else str(unit)
 
 
 def complete_robot(incomplete: str) -> list[str]:
@@ -197,9 +201,7 @@ def plain(obj, depth: int = 0):
     NaN / ±inf → None (JSON has no NaN), anything else → its str. numpy is never imported here."""
     if depth > 32:
         return None
-    if obj is None or isinstance(obj, bool | str):
-        return obj
-    if isinstance(obj, int):
+    if obj is None or isinstance(obj, bool | int | str):
         return obj
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
@@ -209,9 +211,7 @@ def plain(obj, depth: int = 0):
         return [plain(v, depth + 1) for v in obj]
     if hasattr(obj, "tolist"):  # numpy arrays and scalars
         return plain(obj.tolist(), depth + 1)
-    if isinstance(obj, Path):
-        return str(obj)
-    return str(obj)
+    return str(obj)  # paths too
 
 
 def print_json(schema: str, doc: dict) -> None:
@@ -230,19 +230,16 @@ def metrics_doc(metrics: dict | None) -> dict | None:
     if metrics is None:
         return None
 
-    def stats(d: dict, unit_of) -> dict:
+    def stats(d: dict) -> dict:
         out: dict = {}
         for k, v in (d or {}).items():
             if k == "per_target":
-                out[k] = [stats(p, unit_of) for p in v or []]
+                out[k] = [stats(p) for p in v or []]
             elif k == "count":
                 out[k] = None if v is None else int(v)
-            else:
-                out[f"{k}_{unit_of(k)}"] = v
+            else:  # orientation stats (ori_*) in rad, every other one (pos_*, point stats) in m
+                out[f"{k}_{'rad' if k.startswith('ori_') else 'm'}"] = v
         return out
-
-    def pose_unit(k: str) -> str:
-        return "rad" if k.startswith("ori_") else "m"
 
     doc: dict = {}
     for split, block in metrics.items():
@@ -252,9 +249,9 @@ def metrics_doc(metrics: dict | None) -> dict | None:
         entry: dict = {}
         for key, value in block.items():
             if key in ("before", "after"):
-                entry[key] = stats(value, pose_unit)
+                entry[key] = stats(value)
             elif key == "points":
-                entry[key] = {w: stats(v, lambda k: "m") for w, v in (value or {}).items()}
+                entry[key] = {w: stats(v) for w, v in (value or {}).items()}
             else:
                 entry[key] = value
         doc[split] = entry

@@ -29,20 +29,13 @@ def demo(
     """
     from rich.table import Table
 
-    from labcal.cli.ops import export_fit, new_session, run_fit
-    from labcal.cli.ops.common import check_seed
     from labcal.cli.ops.evaluating import evaluate_fit
+    from labcal.cli.ops.exporting import export_fit
+    from labcal.cli.ops.fitting import run_fit
+    from labcal.cli.ops.sessions import new_session
     from labcal.reports import write_session_report
 
-    # Everything the demo needs is checked before it records: a bad option found after minutes of work wastes them.
-    if poses < MIN_POSES:
-        raise UserError(f"--poses must be at least {MIN_POSES} (2 per joint, or no fit is exported), got {poses}")
-    if held_out < 1:
-        raise UserError(f"--held-out must be at least 1, got {held_out}")
-    check_seed(seed)
-    if out_dir is not None and out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        what = "is not a folder" if not out_dir.is_dir() else "is not empty (a demo writes a new store there)"
-        raise UserError(f"--out {out_dir} {what}: name a new or empty folder")
+    _check_options(out_dir, poses, held_out, seed)
     root = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="labcal-demo-"))
     root.mkdir(parents=True, exist_ok=True)
     store = open_store(root / "sessions", create=True)
@@ -94,3 +87,17 @@ def demo(
         out.print(f"export:  {p}", markup=False)
     out.print(f"report:  {report}", markup=False)
     print(root)
+
+
+def _check_options(out_dir: Path | None, poses: int, held_out: int, seed: int) -> None:
+    """Everything the demo needs is checked before it records: a bad option found after minutes of work wastes them."""
+    from labcal.cli.ops.common import check_seed
+
+    if poses < MIN_POSES:
+        raise UserError(f"--poses must be at least {MIN_POSES} (2 per joint, or no fit is exported), got {poses}")
+    if held_out < 1:
+        raise UserError(f"--held-out must be at least 1, got {held_out}")
+    check_seed(seed)
+    if out_dir is not None and out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        what = "is not a folder" if not out_dir.is_dir() else "is not empty (a demo writes a new store there)"
+        raise UserError(f"--out {out_dir} {what}: name a new or empty folder")

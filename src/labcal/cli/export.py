@@ -71,8 +71,8 @@ def export(
       labcal export S --format urdf --ur-link-names --geometry-only --out ur10.urdf
     """
     from labcal.cli.common import print_gates
-    from labcal.cli.ops import export_fit, split_ref
-    from labcal.cli.ops.exporting import format_options, stored_warnings
+    from labcal.cli.ops.common import split_ref
+    from labcal.cli.ops.exporting import export_fit, format_options, stored_warnings
     from labcal.cli.ops.fitting import load_stored_fit
 
     st = open_store(store, create=False)

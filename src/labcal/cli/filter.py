@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import AngleUnit, LengthUnit, ProgramKind, StoreOption, UserError, err, user_errors
+from labcal.cli.common import AngleUnit, LengthUnit, ProgramKind, StoreOption, err, user_errors
 
 _PROGRAM = typer.Argument(
     ...,
@@ -107,8 +107,6 @@ def filter_program(
     from labcal.cli.ops import programs as ops
     from labcal.export import program as prog
 
-    if kind not in ("poses", "joints"):
-        raise UserError(f"--kind must be poses or joints, got {kind!r}")
     ops.check_filter_outputs(out, script, force)
     robot = ops.load_calibration(calibration, fit_id, store)
     ops.check_filterable(robot, script)

@@ -72,7 +72,8 @@ def fit(
 
       labcal fit S --method hybrid --json | jq .metrics.all.after.pos_mean_m
     """
-    from labcal.cli.ops import run_fit, split_ref
+    from labcal.cli.ops.common import split_ref
+    from labcal.cli.ops.fitting import run_fit
 
     refs = [split_ref(s) for s in sessions]
     say = err if as_json else out  # with --json stdout holds the document alone

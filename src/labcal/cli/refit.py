@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 
 import typer
 
-from labcal.cli.common import INTERRUPTED, StoreOption, err, mm, open_store, out, user_errors
+from labcal.cli.common import StoreOption, err, mm, open_store, out, user_errors
 
 if TYPE_CHECKING:
     from rich.table import Table
@@ -87,11 +87,11 @@ def refit(
     line = f"{fitted} of {len(report.rows)} fitted"
     if report.interrupted:
         err.print(f"interrupted (Ctrl-C): {line}; every stored fit is complete", markup=False)
-        raise typer.Exit(INTERRUPTED)
-    if report.failed:
+    elif report.failed:
         err.print(f"{line}; {len(report.failed)} failed (see the table)", markup=False)
-        raise typer.Exit(1)
-    out.print(line, markup=False)
+    else:
+        out.print(line, markup=False)
+    raise typer.Exit(report.exit_code)
 
 
 def summary_table(report, title: str) -> Table:

@@ -30,7 +30,7 @@ def report(
       labcal report S --fit 20261122-040000-123456-ab12cd --out report-fit/
     """
     from labcal.cli.common import print_gates
-    from labcal.cli.ops import load_observations, split_ref
+    from labcal.cli.ops.common import load_observations, split_ref
     from labcal.cli.ops.exporting import stored_warnings
     from labcal.reports import write_session_report
 

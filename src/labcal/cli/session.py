@@ -19,6 +19,7 @@ from labcal.cli.common import (
     open_store,
     out,
     print_json,
+    session_unit,
     user_errors,
 )
 from labcal.cli.session_import import import_
@@ -195,8 +196,7 @@ def new(
         --profile drivers/ur10-lab.toml --tracker-profile drivers/ndi-polaris.toml --robot-host 127.0.0.5
         --tracker-port /dev/pts/3   # rehearsal: the fakes of `python -m labcal.testing.rehearse`
     """
-    from labcal.cli.ops import new_session
-    from labcal.cli.ops.sessions import SessionRequest
+    from labcal.cli.ops.sessions import SessionRequest, new_session
     from labcal.datasets import load_targets
     from labcal.datasets.targets import load_target_normals
     from labcal.robots import load
@@ -245,7 +245,7 @@ def list_(
     for info in st.list_sessions():
         # The table needs no metadata; reading it again costs a second pass over each journal.
         meta = _meta(st, info.session_id) if unit is not None or as_json else {}
-        if unit is not None and _unit(meta) != unit:
+        if unit is not None and session_unit(meta) != unit:
             continue
         rows.append((info, meta))
     foreign = st.foreign_entries()  # copies, OS and editor files: listed, skipped, never fatal
@@ -278,12 +278,6 @@ def _meta(st, session_id: str) -> dict:
         return {}
 
 
-def _unit(meta: dict) -> str | None:
-    """The robot unit's id recorded with the session (``metadata["unit"]``), None for sessions recorded without."""
-    unit = (meta.get("metadata") or {}).get("unit")
-    return None if unit is None else str(unit)
-
-
 def _session_doc(info, meta: dict) -> dict:
     """A session as JSON (labcal.session-list/1 and labcal.session-show/1; docs/cli-json.md)."""
     targets = meta.get("targets")
@@ -295,7 +289,7 @@ def _session_doc(info, meta: dict) -> dict:
             "n_joints": info.robot.get("n_joints"),
             "file_stored": bool(info.robot.get("text")),
         },
-        "unit": _unit(meta),
+        "unit": session_unit(meta),
         "identity": {
             "robot": (meta.get("robot_driver") or {}).get("identity"),
             "tracker": (meta.get("tracker") or {}).get("identity"),
@@ -339,7 +333,7 @@ def show(
     if isinstance(meta.get("targets"), list):
         n_targets = len(meta["targets"])
         targets = f", {n_targets} target{'s' if n_targets != 1 else ''}"
-    unit = "" if _unit(meta) is None else f", unit {_unit(meta)}"
+    unit = "" if session_unit(meta) is None else f", unit {session_unit(meta)}"
     from labcal.names import printable  # a stored name may predate the name checks: no raw escapes
 
     name = printable(info.robot.get("name"))
@@ -393,7 +387,7 @@ def resume(
 
       labcal session resume S --profile drivers/ur10-lab.toml --tracker-profile drivers/ndi-polaris.toml   # files moved
     """
-    from labcal.cli.ops import resume_session
+    from labcal.cli.ops.sessions import resume_session
 
     st = open_store(store, create=False, write=True)
     with _RunProgress() as progress:

@@ -67,7 +67,7 @@ def import_(
     ),
     store: Path | None = StoreOption,
 ) -> None:
-    from labcal.cli.ops import import_session
+    from labcal.cli.ops.imports import import_session
     from labcal.datasets import load_version
 
     st = open_store(store, create=True)

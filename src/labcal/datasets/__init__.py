@@ -63,7 +63,7 @@ Importing external data (each returns the new ``SESSION@vNNN``)::
 
 Self-contained versions: a version's manifest (``session.robot``) holds the robot model's name, hash, joint count
 and, for data recorded or imported since the robot file's text was stored, the file text and format
-(``RobotSpec.record()``); ``labcal.cli.ops.robot_for`` reads it back, so fitting, reporting, exporting and resuming
+(``RobotSpec.record()``); ``cli.ops.common.robot_for`` reads it back, so fitting, reporting, exporting and resuming
 need nothing outside the store. Older versions without the text fall back to the built-in of that name.
 
 Versions are never rewritten: sealing again, appending to a journal, or importing into an existing session

@@ -189,7 +189,7 @@ class Dataset:
     @property
     def robot(self) -> dict:
         """{"name", "hash", "n_joints"} of the robot model the data were taken with, plus "text" and "format" (the
-        robot file itself) for data recorded or imported since versions store it (``labcal.cli.ops.robot_for``)."""
+        robot file itself) for data recorded or imported since versions store it (``cli.ops.common.robot_for``)."""
         return dict(self.manifest["session"]["robot"])
 
     @property
@@ -212,7 +212,7 @@ class Dataset:
     @property
     def q(self) -> np.ndarray:
         """(k, n) rad: joint positions as the controller reported them (controller joints; the robot file's joint
-        map converts them to model joints: ``labcal.cli.ops.load_observations``)."""
+        map converts them to model joints: ``labcal.cli.ops.common.load_observations``)."""
         return self.table[joint_columns(self.n_joints)].to_numpy(dtype=float)
 
     @property

@@ -196,7 +196,7 @@ def device_identity(device: object) -> dict:
         return {"notes": [f"{type(device).__name__} did not report its identity: {e}"]}
 
 
-# Decides the unit when recording; labcal.cli.ops.common.session_unit reads back the one a stored version recorded.
+# Decides the unit when recording; labcal.cli.common.session_unit reads back the one a stored version recorded.
 def session_unit(unit: str | None, robot_identity: Mapping[str, Any]) -> tuple[str | None, list[str]]:
     """(the session's unit id, notes): the operator's ``unit`` when given, else the robot's serial number, else None.
 

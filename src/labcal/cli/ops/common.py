@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from labcal.calibration.observations import Observations
-from labcal.cli.common import UserError
+from labcal.cli.common import UserError, session_unit
 from labcal.datasets import Dataset, SessionStore, parse_ref
 from labcal.robots import BUILTINS, RobotSpec, load, loads
 
@@ -82,12 +82,6 @@ def check_unit_option(unit: str | None) -> str | None:
         raise UserError(str(e)) from None
 
 
-def session_unit(dataset: Dataset) -> str | None:
-    """The robot unit a version's data come from (``metadata["unit"]``), None for data recorded without one."""
-    unit = (dataset.manifest["session"].get("metadata") or {}).get("unit")
-    return None if unit in (None, "") else str(unit)
-
-
 def check_units(datasets: list[Dataset], pool_units: bool = False) -> list[str]:
     """The distinct robot units of the versions to pool, in order of first appearance; UserError if there are two
     or more and ``pool_units`` is False.
@@ -98,7 +92,7 @@ def check_units(datasets: list[Dataset], pool_units: bool = False) -> list[str]:
     """
     units: dict[str, list[str]] = {}
     for ds in datasets:
-        unit = session_unit(ds)
+        unit = session_unit(ds.manifest["session"])
         if unit is not None:
             units.setdefault(unit, []).append(ds.ref)
     if len(units) > 1 and not pool_units:

@@ -67,14 +67,11 @@ def register_base(robot, obs) -> tuple[np.ndarray, float]:
 
 def _robot_argument(store: SessionStore, stored, robot: str | None, tmpdir: Path) -> str:
     """The --robot to import the file with: the user's, else the fit's model (a built-in name or its stored text)."""
-    from labcal.robots import BUILTINS
+    from labcal.robots import BUILTINS, load
 
     if robot is not None:
         return robot
-    from labcal.robots import load
-
-    ds = store.load(stored.inputs[0])
-    rec = ds.robot
+    rec = store.load(stored.inputs[0]).robot
     if rec.get("name") in BUILTINS and load(str(rec["name"])).hash == rec.get("hash"):
         return str(rec["name"])  # the built-in is the very model of the fit: import under its name
     if rec.get("text"):
@@ -135,7 +132,7 @@ def evaluate_fit(
     length_unit, angle_unit, frame, form, allow) for a file. Raises UserError for a fit or data that do not exist,
     a different robot model, or a targets file that differs from the fit's.
     """
-    from labcal.calibration.metrics import split_table
+    from labcal.calibration.metrics import observability, split_table
 
     record = store.find_fit(fit_id)
     stored = load_stored_fit(store, record.ref, fit_id)
@@ -152,8 +149,6 @@ def evaluate_fit(
     obs = dataclasses.replace(obs, split=np.full(obs.k, "test", dtype=object))
     before, after, registration = _registered(stored, obs)
     table = split_table(before, after, obs)
-    from labcal.calibration.metrics import observability
-
     claims = observability(obs)
     # Not a gate here (nothing is exported), but the same reading of the numbers: points far off while the pose
     # fits mean the evaluation file's targets or units do not match the data.

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from labcal.atomicio import UnsafeTargetError, check_target, write_bytes
-from labcal.cli.common import UserError
+from labcal.cli.common import UserError, session_unit
 from labcal.cli.ops.common import robot_for
 from labcal.cli.ops.fitting import info_warnings, load_stored_fit
 from labcal.datasets import SessionStore
@@ -114,7 +114,7 @@ def device_serials(store: SessionStore, refs: list[str]) -> dict[str, str]:
         session = store.load(ref).manifest.get("session") or {}  # verified: a record names what it calibrated
         robot_id = (session.get("robot_driver") or {}).get("identity") or {}
         tracker_id = (session.get("tracker") or {}).get("identity") or {}
-        arm = robot_id.get("serial") or (session.get("metadata") or {}).get("unit")
+        arm = robot_id.get("serial") or session_unit(session)
         for value, seen in ((arm, arms), (tracker_id.get("serial"), trackers)):
             if value is not None and str(value).strip():
                 text = printable(value, MAX_SERIAL)

@@ -44,6 +44,19 @@ def _check_one_version_per_session(store: SessionStore, refs: list[str]) -> None
         seen[resolved.session_id] = str(resolved)
 
 
+def check_fit_options(method: str, seed: int, hidden: int | None, val_fraction: float) -> None:
+    """The options of a fit that need no data: a bad one is a usage error before anything is read."""
+    from labcal.calibration.fit import METHODS
+
+    if method not in METHODS:
+        raise UserError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+    check_seed(seed)
+    if not 0.0 <= val_fraction < 1.0:
+        raise UserError(f"--val-fraction must be in [0, 1), got {val_fraction}")
+    if hidden is not None and hidden < 1:
+        raise UserError(f"--hidden must be a positive number of nodes, got {hidden}")
+
+
 def run_fit(
     store: SessionStore,
     refs: list[str],
@@ -53,39 +66,34 @@ def run_fit(
     hidden: int | None = None,
     val_fraction: float = 0.0,
     robot: str | None = None,
-    features: tuple[str, ...] | None = None,
     progress=None,
     pool_units: bool = False,
+    fit_id: str | None = None,
 ) -> FitOutcome:
     """Fit one method on the pooled versions and store it under the first version it read.
 
     pool_units: fit sessions of different robot units as one (by default load_observations refuses them: one
-    unit, one calibration); recorded in the fit's metadata."""
-    from labcal.calibration.fit import METHODS, fit
+    unit, one calibration); recorded in the fit's metadata. fit_id: store the fit under this id (default: a new
+    one; `labcal refit` draws its tasks' ids before they run)."""
+    from labcal.calibration.fit import fit
 
-    if method not in METHODS:
-        raise UserError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
-    check_seed(seed)
-    if not 0.0 <= val_fraction < 1.0:
-        raise UserError(f"--val-fraction must be in [0, 1), got {val_fraction}")
-    if hidden is not None and hidden < 1:
-        raise UserError(f"--hidden must be a positive number of nodes, got {hidden}")
+    check_fit_options(method, seed, hidden, val_fraction)
     _check_one_version_per_session(store, refs)
     obs, datasets, spec = load_observations(store, refs, robot, with_spec=True, pool_units=pool_units)
     options = {}
     if hidden is not None:
         options["hidden"] = hidden
-    if features is not None:
-        options["features"] = tuple(features)
-    nominal, tool_note = nominal_for(obs, datasets, spec.model)
+    tool_note = probe_mount_note(obs, datasets, spec.model)
     probe = tool_note is not None  # the registered nominal then carries the probe as its measurement tool
     result = fit(
-        obs, nominal, method, seed=seed, val_fraction=val_fraction, progress=progress, register_tool=probe, **options
+        obs, spec.model, method, seed=seed, val_fraction=val_fraction, progress=progress, register_tool=probe, **options
     )
-    metrics = result.metrics
-    gates = fit_gates(result)
-    if tool_note:
-        gates["notes"] = [tool_note, *gates["notes"]]
+    # What fit.json stores of the checks: each warning blocks `labcal export` unless --force.
+    gates = {
+        "warnings": [_as_warning(w) for w in result.warnings],
+        "notes": ([tool_note] if probe else []) + [str(n) for n in result.notes],
+        "cv": result.cv,
+    }
     meta = {
         "method": result.method,
         "chosen": result.chosen,
@@ -94,7 +102,7 @@ def run_fit(
         "hidden": hidden,
         "pool_units": pool_units,
         "robot": {"name": spec.name, "hash": spec.hash},
-        "metrics": metrics,
+        "metrics": result.metrics,
         "warnings": gates["warnings"],
         "notes": gates["notes"],
         "cv": gates["cv"],
@@ -103,7 +111,7 @@ def run_fit(
         "fit_seconds": result.fit_seconds,
         "info": slim_info(result.info),
         # What the targets let this fit claim about orientation (15.3): the report and evaluate print its claim.
-        "observability": getattr(result, "observability", None),
+        "observability": result.observability,
     }
     # The fit works in model joints; its compensator takes controller joints through the robot file's map.
     fitted = dataclasses.replace(result.robot, joint_map=spec.joint_map)
@@ -112,12 +120,12 @@ def run_fit(
         ROBOT_FILE: json.dumps(to_payload(fitted, {"sessions": [d.ref for d in datasets]})),
         BEFORE_FILE: json.dumps(to_payload(before)),
     }
-    record = store.save_fit([d.ref for d in datasets], files, plain(meta))
+    record = store.save_fit([d.ref for d in datasets], files, plain(meta), fit_id=fit_id)
     return FitOutcome(result, record.fit_id, record.ref, [d.ref for d in datasets], meta["metrics"], gates)
 
 
-def nominal_for(obs, datasets, model):
-    """The nominal model a fit starts from and its compensator aims for (the robot file's), and a note for probe data.
+def probe_mount_note(obs, datasets, model) -> str | None:
+    """For probe data, a note on the probe's mount the fit registers; None for other data.
 
     Probe data (a 6-DOF probe's pose per row) give the targets in the probe's frame, but where the probe sits on
     the flange is not part of the robot file. Robot and tool apart: the fits identify that mount as the measurement
@@ -128,28 +136,14 @@ def nominal_for(obs, datasets, model):
 
     forms = {((d.manifest.get("provenance") or {}).get("import") or {}).get("form") for d in datasets}
     if "probe" not in forms:
-        return model, None
+        return None
     registered, _ = register(obs, model, estimate_tool=True)
     mount = np.eye(4) if registered.measurement_tool is None else registered.measurement_tool
     angle = float(np.degrees(np.arccos(np.clip((np.trace(mount[:3, :3]) - 1) / 2, -1.0, 1.0))))
-    note = (
+    return (
         f"probe data: the probe's mount on the tool frame was registered ({np.linalg.norm(mount[:3, 3]) * 1e3:.1f} mm, "
         f"{angle:.1f}°): it is the measurement tool of this fit, not part of the robot"
     )
-    return model, note
-
-
-def fit_gates(result) -> dict:
-    """{"warnings": [{code, message}], "notes": [str], "cv": dict | None} of a fit result, as fit.json stores them.
-
-    The calibration makes every check (``FitResult.warnings``, see :mod:`labcal.calibration.fit`); each warning
-    blocks ``labcal export`` unless ``--force``.
-    """
-    return {
-        "warnings": [_as_warning(w) for w in result.warnings],
-        "notes": [str(n) for n in result.notes],
-        "cv": result.cv,
-    }
 
 
 def _as_warning(w) -> dict:
@@ -191,7 +185,6 @@ def info_warnings(info: dict, chosen: str | None = None) -> list[dict]:
             msg = f"numerical rank {rank} < {need} identifiable parameters"
         if msg:
             if part.get("rank_deficient") or "rank" in str(msg):
-                rank, need = part.get("rank"), part.get("expected_rank")
                 head = "" if "rank" in str(msg) or rank is None else f"rank {rank} of {need}: "
                 missing = need - rank if isinstance(rank, int) and isinstance(need, int) else None
                 tail = (
@@ -215,11 +208,11 @@ def info_warnings(info: dict, chosen: str | None = None) -> list[dict]:
     return out
 
 
-def metric_warnings(metrics: dict, *, nominal: bool = False) -> list[dict]:
-    """Warnings read off a split table (an evaluation's): worse than nominal on held-out rows (not for the nominal
-    itself, which is its own baseline); point residuals (the calibration's own check)."""
+def metric_warnings(metrics: dict) -> list[dict]:
+    """Warnings read off a split table (an evaluation's): worse than nominal on held-out rows; point residuals (the
+    calibration's own check)."""
     out = []
-    for split in () if nominal else ("test", "val"):
+    for split in ("test", "val"):
         m = metrics.get(split)
         if not m:
             continue

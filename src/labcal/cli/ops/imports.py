@@ -70,15 +70,14 @@ def import_session(
             )
         targets = load_targets(targets_file) if targets_file else None
         return import_mapped(store, path, mapping, *ident, recording, targets=targets)
+    reading = recording.with_changes(length_unit=length_unit, angle_unit=angle_unit, frame=frame)
     if form == "targets":
         if targets_file is None:
             raise UserError("--targets TARGETS.toml is required for --form targets")
-        reading = recording.with_changes(length_unit=length_unit, angle_unit=angle_unit, frame=frame)
         return import_targets_csv(store, path, *ident, load_targets(targets_file), reading)
     if targets_file is not None:
         raise UserError(
             "--targets is not used with --form probe: the probe's pose is measured and three virtual targets 100 mm "
             "apart in the probe frame become the session's targets (a --mapping with [probe] offsets can change them)"
         )
-    reading = recording.with_changes(length_unit=length_unit, angle_unit=angle_unit, frame=frame)
     return import_probe_csv(store, path, *ident, reading)

@@ -201,7 +201,7 @@ def load_calibration(calibration: str, fit_id: str | None, store: Path | None):
         except (OSError, CompensatorFileError) as e:
             raise UserError(f"--calibration {path}: {e}") from None
     from labcal.cli.common import open_store
-    from labcal.cli.ops import split_ref
+    from labcal.cli.ops.common import split_ref
     from labcal.cli.ops.fitting import load_stored_fit
 
     return load_stored_fit(open_store(store, create=False), split_ref(calibration), fit_id).robot

@@ -35,8 +35,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from labcal.cli.common import UserError
-from labcal.cli.ops.common import check_seed
+from labcal.cli.common import INTERRUPTED, UserError, session_unit
 from labcal.datasets import DatasetError, SessionStore
 
 FITTED, FAILED, NOT_RUN = "fitted", "failed", "not run"
@@ -120,8 +119,7 @@ def select_versions(store: SessionStore, selection: Selection) -> tuple[list[str
             continue
         if selection.robot and str((meta.get("robot") or {}).get("name", "")).casefold() != selection.robot.casefold():
             continue
-        unit = (meta.get("metadata") or {}).get("unit")
-        if selection.unit and (unit is None or str(unit) != selection.unit):
+        if selection.unit and session_unit(meta) != selection.unit:
             continue
         created = session_created(store, sid)
         if selection.since is not None and (created is None or created < selection.since):
@@ -206,24 +204,14 @@ class RefitRow:
     message: str = ""  # why it failed, or a note (e.g. stored by an earlier attempt of a task whose worker died)
 
 
-class _FitIdStore(SessionStore):
-    """The store with the fit id fixed: ``run_fit`` stores through ``save_fit`` as always, under the task's id."""
-
-    def __init__(self, root, fit_id: str) -> None:
-        super().__init__(root)
-        self._fit_id = fit_id
-
-    def save_fit(self, refs, files, metadata, *, fit_id=None):
-        return super().save_fit(refs, files, metadata, fit_id=fit_id or self._fit_id)
-
-
-def _stored(store: SessionStore, task: RefitTask):
-    """The task's fit if an earlier attempt published it (verified), else None."""
+def _published(task: RefitTask, note: str) -> RefitRow | None:
+    """The FITTED row of a task whose fit an attempt already published (verified), with ``note`` saying how; None
+    when no attempt did."""
     try:
-        record = store.load_fit(task.ref, task.fit_id)
+        record = SessionStore(task.store_root).load_fit(task.ref, task.fit_id)
     except DatasetError:
         return None
-    return record
+    return RefitRow(task.ref, FITTED, task.before, FitSummary.of(task.fit_id, record.metadata), note)
 
 
 def refit_one(task: RefitTask) -> RefitRow:
@@ -236,22 +224,19 @@ def refit_one(task: RefitTask) -> RefitRow:
 
     if task.hook is not None:
         task.hook(task)
-    store = _FitIdStore(task.store_root, task.fit_id)
-    earlier = _stored(store, task)
+    earlier = _published(task, "stored by an earlier attempt whose worker died")
     if earlier is not None:
-        return RefitRow(task.ref, FITTED, task.before, FitSummary.of(task.fit_id, earlier.metadata),
-                        "stored by an earlier attempt whose worker died")  # fmt: skip
+        return earlier
+    store = SessionStore(task.store_root)
     try:
         outcome = run_fit(
             store, [task.ref], task.method, seed=task.seed, hidden=task.hidden, val_fraction=task.val_fraction,
-            robot=task.robot_file,
+            robot=task.robot_file, fit_id=task.fit_id,
         )  # fmt: skip
     except Exception as e:  # one session's bad data must not stop the others; the row names it
-        earlier = _stored(store, task)  # a concurrent attempt (a worker wrongly declared dead) may have won
-        if earlier is not None:
-            return RefitRow(task.ref, FITTED, task.before, FitSummary.of(task.fit_id, earlier.metadata),
-                            "stored by a concurrent attempt")  # fmt: skip
-        return RefitRow(task.ref, FAILED, task.before, message=f"{type(e).__name__}: {e}")
+        # A concurrent attempt (a worker wrongly declared dead) may have won.
+        concurrent = _published(task, "stored by a concurrent attempt")
+        return concurrent or RefitRow(task.ref, FAILED, task.before, message=f"{type(e).__name__}: {e}")
     meta = store.load_fit(outcome.ref, outcome.fit_id, check_files=False).metadata
     return RefitRow(task.ref, FITTED, task.before, FitSummary.of(outcome.fit_id, meta))
 
@@ -277,7 +262,7 @@ class RefitReport:
     def exit_code(self) -> int:
         """0 all fitted, 1 any failed, 130 interrupted."""
         if self.interrupted:
-            return 130
+            return INTERRUPTED
         return 1 if self.failed else 0
 
 
@@ -304,16 +289,11 @@ def plan_tasks(
     hook: Callable | None = None,
 ) -> list[RefitTask]:
     """One task per ref, with its fit id drawn now and the version's latest earlier fit as "before"."""
-    from labcal.calibration.fit import METHODS
+    from labcal.cli.ops.fitting import check_fit_options
     from labcal.datasets.ids import new_fit_id
 
     # The checks run_fit makes, made once here: a bad option is a usage error, not a failure of every task.
-    if method not in METHODS:
-        raise UserError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
-    if not 0.0 <= val_fraction < 1.0:
-        raise UserError(f"--val-fraction must be in [0, 1), got {val_fraction}")
-    if hidden is not None and hidden < 1:
-        raise UserError(f"--hidden must be a positive number of nodes, got {hidden}")
+    check_fit_options(method, seed, hidden, val_fraction)
     root = str(Path(store.root).resolve())
     tasks = []
     for ref in refs:
@@ -346,7 +326,6 @@ def run_refit(
     """
     if jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {jobs}")
-    check_seed(seed)
     if scheduler and jobs > 1:
         raise UserError("--jobs sets the size of the local cluster; with --scheduler the cluster's workers decide")
     tasks = plan_tasks(store, refs, method, seed=seed, hidden=hidden, val_fraction=val_fraction,
@@ -380,11 +359,8 @@ def run_refit(
 
 def _unfinished(task: RefitTask) -> RefitRow:
     """The row of a task the interrupt caught: not run, unless its fit was published before the workers stopped."""
-    earlier = _stored(SessionStore(task.store_root), task)
-    if earlier is not None:
-        return RefitRow(task.ref, FITTED, task.before, FitSummary.of(task.fit_id, earlier.metadata),
-                        "stored just before the interrupt")  # fmt: skip
-    return RefitRow(task.ref, NOT_RUN, task.before, message="interrupted")
+    earlier = _published(task, "stored just before the interrupt")
+    return earlier or RefitRow(task.ref, NOT_RUN, task.before, message="interrupted")
 
 
 def _run_dask(tasks: list[RefitTask], jobs: int, scheduler: str | None, done) -> bool:
@@ -435,11 +411,8 @@ def _run_dask(tasks: list[RefitTask], jobs: int, scheduler: str | None, done) ->
 def _given_up(task: RefitTask, error: Exception) -> RefitRow:
     """The row of a task Dask gave up on: failed, unless an attempt published its fit before its worker died."""
     why = f"{type(error).__name__}: {error}"
-    earlier = _stored(SessionStore(task.store_root), task)
-    if earlier is not None:
-        return RefitRow(task.ref, FITTED, task.before, FitSummary.of(task.fit_id, earlier.metadata),
-                        f"stored before its worker died; Dask then gave up ({why})")  # fmt: skip
-    return RefitRow(task.ref, FAILED, task.before, message=why)
+    earlier = _published(task, f"stored before its worker died; Dask then gave up ({why})")
+    return earlier or RefitRow(task.ref, FAILED, task.before, message=why)
 
 
 def _remove_temp_folders(store: SessionStore, task: RefitTask) -> None:
@@ -453,45 +426,3 @@ def _remove_temp_folders(store: SessionStore, task: RefitTask) -> None:
     if fits.is_dir():
         for p in fits.glob(f".tmp-{task.fit_id}-*"):
             remove_tree(p)
-
-
-def summary_rows(report: RefitReport) -> list[dict]:
-    """The before/after table as plain rows (JSON-ready): errors in m, None where unknown."""
-    return [
-        {
-            "ref": r.ref,
-            "status": r.status,
-            "before_fit": r.before.fit_id,
-            "before_method": r.before.method,
-            "before_error": r.before.error,
-            "before_source": r.before.source,
-            "after_fit": r.after.fit_id,
-            "after_method": r.after.method,
-            "after_error": r.after.error,
-            "after_source": r.after.source,
-            "warnings": list(r.after.warnings),
-            "message": r.message,
-        }
-        for r in report.rows
-    ]
-
-
-__all__ = [
-    "FAILED",
-    "FITTED",
-    "NOT_RUN",
-    "FitSummary",
-    "RefitReport",
-    "RefitRow",
-    "RefitTask",
-    "Selection",
-    "held_out_error",
-    "latest_fit",
-    "parse_since",
-    "plan_tasks",
-    "refit_one",
-    "run_refit",
-    "select_versions",
-    "session_created",
-    "summary_rows",
-]

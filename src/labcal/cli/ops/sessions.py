@@ -85,15 +85,6 @@ def check_plan_size(poses: int, planner: str = "random", samples: int = 2000) ->
             raise UserError(f"--samples ({samples}) must be at least --poses ({poses}) for the optimal planner")
 
 
-def check_dropout(dropout: float) -> float:
-    """--sim-dropout: a probability in [0, 1)."""
-    if not (isinstance(dropout, int | float) and 0.0 <= float(dropout) < 1.0):
-        raise UserError(
-            f"--sim-dropout must be a probability in [0, 1) (each target lost independently), got {dropout}"
-        )
-    return float(dropout)
-
-
 def _sim_rig(spec: RobotSpec, targets, sim: dict):
     """The sim rig of a session's recorded ``sim`` metadata: the simulated robot's errors come from ``seed``, the
     tracker noise from ``noise_seed`` (the same seed unless another session of the same robot was asked for), the
@@ -101,9 +92,6 @@ def _sim_rig(spec: RobotSpec, targets, sim: dict):
     from labcal.drivers.sim import SimRig
 
     actual = sim_actual(spec, sim["errors"], int(sim["seed"]))
-    extra: dict[str, Any] = {}
-    if sim.get("dropout"):
-        extra["dropout"] = float(sim["dropout"])
     # The simulated controller speaks the robot file's controller joints, as the real one would.
     try:
         return SimRig(
@@ -111,13 +99,9 @@ def _sim_rig(spec: RobotSpec, targets, sim: dict):
             targets,
             seed=int(sim.get("noise_seed", sim["seed"])),
             joint_map=spec.joint_map,
-            serial=sim_unit(sim),
-            **extra,
+            serial=f"sim-{int(sim['seed'])}",  # the errors' seed names the simulated robot (sim_seed pools sessions)
+            dropout=float(sim.get("dropout") or 0.0),
         )
-    except TypeError as e:
-        if extra:
-            raise UserError(f"this labcal's sim rig has no per-target drop-out (--sim-dropout): {e}") from None
-        raise
     except ValueError as e:  # e.g. a target count the sim rig does not support
         raise UserError(f"the sim rig refused the session's targets: {e}") from None
 
@@ -172,26 +156,20 @@ class SessionRequest:
             raise UserError(f"--sim-errors must be one of {', '.join(SIM_ERRORS)}, got {self.sim_errors!r}")
         check_seed(self.seed)
         check_seed(self.sim_seed, "--sim-seed")
-        check_dropout(self.sim_dropout)
+        dropout = self.sim_dropout
+        if not (isinstance(dropout, int | float) and 0.0 <= float(dropout) < 1.0):
+            raise UserError(
+                f"--sim-dropout must be a probability in [0, 1) (each target lost independently), got {dropout}"
+            )
         if self.sim_dropout and self.robot_driver != "sim":
             raise UserError("--sim-dropout is an option of the sim tracker (--tracker-driver sim)")
         _allowed(self.allow)
         check_unit_option(self.unit)
         if (self.robot_host or self.tracker_port) and self.robot_driver == "sim":
             raise UserError("--robot-host and --tracker-port are options of the hardware drivers (--robot-driver ur)")
-        check_max_failed_poses(self.max_failed_poses)
-
-
-def check_max_failed_poses(value: int) -> int:
-    """--max-failed-poses: an integer >= 0 (0: never stop for rejected poses)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise UserError(f"--max-failed-poses must be an integer >= 0 (0: never stop early), got {value!r}")
-    return value
-
-
-def sim_unit(sim: dict) -> str:
-    """The unit id of a simulated robot: its errors' seed names it (``sim_seed`` pools sessions of one robot)."""
-    return f"sim-{int(sim['seed'])}"
+        failed = self.max_failed_poses  # 0: never stop for rejected poses
+        if isinstance(failed, bool) or not isinstance(failed, int) or failed < 0:
+            raise UserError(f"--max-failed-poses must be an integer >= 0 (0: never stop early), got {failed!r}")
 
 
 def _drivers(request: SessionRequest, spec: RobotSpec, targets):
@@ -318,10 +296,10 @@ def new_session(store: SessionStore, request: SessionRequest | None = None, *, p
     normals = load_target_normals(request.targets_file)
     sim = request.robot_driver == "sim"
     rob, trk, frame, meta = _drivers(request, spec, targets)
-    # The unit: --unit, else the serial the robot driver reports (the sim rig's is sim-<seed>; see sim_unit).
+    # The unit: --unit, else the serial the robot driver reports (the sim rig's is sim-<seed of its errors>).
     options = RunOptions(
         frame=frame, progress=progress, metadata=meta, allow=_allowed(request.allow), unit=request.unit,
-        retry=RetryPolicy(max_failed_poses=check_max_failed_poses(request.max_failed_poses)),
+        retry=RetryPolicy(max_failed_poses=request.max_failed_poses),
     )  # fmt: skip
     with rob, trk:
         # Planned after the drivers open, inside the limits object the robot checks every move against.
