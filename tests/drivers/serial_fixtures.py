@@ -13,7 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from labcal.drivers.serial_tracker import NDIProfile, PortSettings, SerialTracker, parse_profile
+from labcal.drivers.serial.profiles import NDIProfile, PortSettings, parse_profile
+from labcal.drivers.serial.tracker import SerialTracker
 from labcal.testing.fakes import ScriptedTransport
 
 # Targets in the tool frame (m): a clearly scalene triangle, sides 100 mm, 70 mm, ~122.07 mm.

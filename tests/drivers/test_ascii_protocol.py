@@ -9,7 +9,8 @@ from serial_fixtures import TARGETS, ascii_line, ascii_profile, tool_to_tracker
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
 from labcal.drivers.serial.ascii import DeviceError
 from labcal.drivers.serial.crc import xor8
-from labcal.drivers.serial_tracker import SerialTracker, load_profile
+from labcal.drivers.serial.profiles import load_profile
+from labcal.drivers.serial.tracker import SerialTracker
 from labcal.testing.fakes import ScriptedTransport
 
 SEEN = tool_to_tracker()

@@ -25,7 +25,7 @@ from serial_fixtures import (
 
 from labcal.drivers.base import MeasurementRejected
 from labcal.drivers.serial.matching import check_targets, match_targets
-from labcal.drivers.serial_tracker import SerialTracker
+from labcal.drivers.serial.tracker import SerialTracker
 from labcal.testing.fakes import FakeNDIDevice, ScriptedTransport
 
 TOL = 0.5e-3

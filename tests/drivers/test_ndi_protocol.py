@@ -30,7 +30,8 @@ from labcal.drivers.base import (
     ProtocolError,
     Tracker,
 )
-from labcal.drivers.serial_tracker import NDIError, SerialTracker, parse_tx_strays
+from labcal.drivers.serial.ndi import NDIError, parse_tx_strays
+from labcal.drivers.serial.tracker import SerialTracker
 from labcal.testing.fakes import BREAK, ScriptedTransport
 
 SEEN = tool_to_tracker()  # (3, 3) m, what the tracker should report, rows t1, t2, t3

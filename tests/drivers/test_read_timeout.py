@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from labcal.drivers.base import DriverTimeout
-from labcal.drivers.serial_tracker import SerialLink
+from labcal.drivers.serial.link import SerialLink
 from labcal.testing.fakes import ScriptedTransport
 
 

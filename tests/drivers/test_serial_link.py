@@ -9,8 +9,9 @@ from hypothesis import strategies as st
 from serial_fixtures import crc16_arc_bitwise
 
 from labcal.drivers.base import ConnectionFailed, DriverTimeout, ProtocolError
-from labcal.drivers.serial.crc import xor8
-from labcal.drivers.serial_tracker import SerialLink, crc16_arc, decode_reply, encode_command, open_serial
+from labcal.drivers.serial.crc import crc16_arc, xor8
+from labcal.drivers.serial.link import SerialLink, open_serial
+from labcal.drivers.serial.ndi import decode_reply, encode_command
 from labcal.testing.fakes import ScriptedTransport
 
 

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from serial_fixtures import TARGETS
 
 from labcal.drivers.base import MeasurementRejected
-from labcal.drivers.serial_tracker import check_scalene, match_targets
+from labcal.drivers.serial.matching import check_scalene, match_targets
 
 TOL = 0.5e-3
 
