@@ -36,7 +36,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -821,77 +821,3 @@ def _construct(factory: Callable[[str, float], Any], host: str, frequency: float
         if "not found" in str(exc).lower():
             raise ProtocolError(f"{what} for {host}: {exc}") from exc
         raise ConnectionFailed(f"{what} for {host} could not be set up: {exc}") from exc
-
-
-def interface_signatures() -> dict[str, list[tuple[str, list[str]]]]:
-    """Names and parameter lists of the ur-rtde methods labcal calls, parsed from their ``__doc__``.
-
-    Returns {"Class.method": [(name, [param, ...]), ...]} (one entry per pybind11 overload; ``self`` dropped).
-    pybind11 methods have no ``inspect.signature``; the first docstring line(s) carry it instead.
-    """
-    import rtde_control
-    import rtde_receive
-
-    out: dict[str, list[tuple[str, list[str]]]] = {}
-    for cls, names in (
-        (rtde_receive.RTDEReceiveInterface, RECEIVE_METHODS),
-        (rtde_control.RTDEControlInterface, CONTROL_METHODS),
-    ):
-        for name in names:
-            out[f"{cls.__name__}.{name}"] = parse_pybind_signatures(getattr(cls, name).__doc__ or "", name)
-    return out
-
-
-RECEIVE_METHODS: Sequence[str] = (
-    "getTimestamp",
-    "getActualQ",
-    "isProtectiveStopped",
-    "isEmergencyStopped",
-    "getRobotMode",
-    "isConnected",
-    "disconnect",
-)
-CONTROL_METHODS: Sequence[str] = (
-    "moveJ",
-    "stopJ",
-    "isProgramRunning",
-    "reuploadScript",
-    "isConnected",
-    "disconnect",
-)
-
-
-def parse_pybind_signatures(doc: str, name: str) -> list[tuple[str, list[str]]]:
-    """Parameter names of each signature line ``name(self: T, a: float = 1.0, ...) -> R`` in a pybind11 doc.
-
-    Overloaded functions list numbered lines ``1. name(...)``; a plain one has its signature on line one.
-    """
-    signatures = []
-    for raw in doc.splitlines():
-        line = raw.strip()
-        if line[:1].isdigit() and ". " in line:
-            line = line.split(". ", 1)[1]
-        if not line.startswith(name + "(") or line.startswith(name + "(*args"):
-            continue
-        inner = line[len(name) + 1 : line.rindex(")")] if ")" in line else ""
-        params = [p.split(":")[0].split("=")[0].strip() for p in _split_params(inner)]
-        signatures.append((name, [p for p in params if p and p != "self"]))
-    return signatures
-
-
-def _split_params(text: str) -> list[str]:
-    """Split a parameter list on top-level commas (defaults and annotations may contain brackets)."""
-    parts, depth, current = [], 0, []
-    for ch in text:
-        if ch in "[(<{":
-            depth += 1
-        elif ch in "])>}":
-            depth -= 1
-        if ch == "," and depth == 0:
-            parts.append("".join(current))
-            current = []
-        else:
-            current.append(ch)
-    if current:
-        parts.append("".join(current))
-    return parts
