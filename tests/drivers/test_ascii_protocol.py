@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scripted_transport import ScriptedTransport
 from serial_fixtures import TARGETS, ascii_line, ascii_profile, tool_to_tracker
 
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
@@ -11,7 +12,6 @@ from labcal.drivers.serial.ascii import DeviceError
 from labcal.drivers.serial.crc import xor8
 from labcal.drivers.serial.profiles import load_profile
 from labcal.drivers.serial.tracker import SerialTracker
-from labcal.testing.fakes import ScriptedTransport
 
 SEEN = tool_to_tracker()
 

@@ -6,13 +6,13 @@ import pytest
 import serial
 from hypothesis import given
 from hypothesis import strategies as st
+from scripted_transport import ScriptedTransport
 from serial_fixtures import crc16_arc_bitwise
 
 from labcal.drivers.base import ConnectionFailed, DriverTimeout, ProtocolError
 from labcal.drivers.serial.crc import crc16_arc, xor8
 from labcal.drivers.serial.link import SerialLink, open_serial
 from labcal.drivers.serial.ndi import decode_reply, encode_command
-from labcal.testing.fakes import ScriptedTransport
 
 
 def test_crc16_arc_check_value():

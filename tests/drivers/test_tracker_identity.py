@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scripted_transport import ScriptedTransport
 from serial_fixtures import (
     CLOSE_NDI,
     OPEN_NDI,
@@ -22,7 +23,7 @@ from serial_fixtures import (
 
 from labcal.drivers.serial.ndi import parse_ver
 from labcal.drivers.serial.tracker import SerialTracker
-from labcal.testing.fakes import FakeNDIDevice, ScriptedTransport
+from labcal.testing.fakes import FakeNDIDevice
 from labcal.tomlschema import SchemaError
 
 # The commands exactly as they go on the wire (CRC16 of "VER:4" and "APIREV:", written out; checked below).
