@@ -188,6 +188,13 @@ class _PtyDevice:
 
 
 _NDI_BAUDS = {0: 9600, 1: 14400, 2: 19200, 3: 38400, 4: 57600, 5: 115200, 6: 921600, 7: 1228739, 8: 230400}
+# The commands that only move the device between its states: command -> ({state: ERRORxx code refusing it in that
+# state}, state after OKAY). INIT is refused while tracking, TSTART before INIT, TSTOP unless tracking.
+_NDI_TRANSITIONS = {
+    "INIT": ({"tracking": 0x0C}, "setup"),
+    "TSTART": ({"reset": 0x10, "tracking": 0x0C}, "tracking"),
+    "TSTOP": ({"reset": 0x0C, "setup": 0x0C}, "setup"),
+}
 
 
 def _ndi_frame(body: str) -> bytes:
@@ -303,16 +310,16 @@ class FakeNDIDevice(_PtyDevice):
         else:
             name, _, params = line.partition(" ")
         name = name.strip().upper()
+        if name in _NDI_TRANSITIONS:
+            refused, after = _NDI_TRANSITIONS[name]
+            if self.state in refused:
+                return _ndi_frame(f"ERROR{refused[self.state]:02X}")
+            self.state = after
+            return _ndi_frame("OKAY")
         handler = getattr(self, f"_cmd_{name.lower()}", None) if name.isalnum() else None
         if handler is None:
             return _ndi_frame("ERROR01")
         return handler(params.strip())
-
-    def _cmd_init(self, params: str) -> bytes:
-        if self.state == "tracking":
-            return _ndi_frame("ERROR0C")
-        self.state = "setup"
-        return _ndi_frame("OKAY")
 
     def _cmd_comm(self, params: str) -> bytes:
         if len(params) != 5 or not params.isdigit() or int(params[0]) not in _NDI_BAUDS:
@@ -321,20 +328,6 @@ class FakeNDIDevice(_PtyDevice):
             return _ndi_frame("ERROR06")  # only 8N1 is emulated
         # OKAY goes out at the old rate; the device then switches (no-op on a pty, recorded for tests).
         self.baudrate = _NDI_BAUDS[int(params[0])]
-        return _ndi_frame("OKAY")
-
-    def _cmd_tstart(self, params: str) -> bytes:
-        if self.state == "reset":
-            return _ndi_frame("ERROR10")
-        if self.state == "tracking":
-            return _ndi_frame("ERROR0C")
-        self.state = "tracking"
-        return _ndi_frame("OKAY")
-
-    def _cmd_tstop(self, params: str) -> bytes:
-        if self.state != "tracking":
-            return _ndi_frame("ERROR0C")
-        self.state = "setup"
         return _ndi_frame("OKAY")
 
     def _cmd_beep(self, params: str) -> bytes:
