@@ -36,7 +36,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -347,10 +347,19 @@ def probe_rtde(host: str, port: int = RTDE_PORT, timeout: float = 2.0) -> tuple[
 
 def probe_dashboard(host: str, port: int = DASHBOARD_PORT, timeout: float = 2.0) -> str:
     """Check that the dashboard server greets us with a line within ``timeout`` s; return that line."""
-    what = f"dashboard probe of {host}:{port}"
+    return _ask_dashboard(host, port, timeout, f"dashboard probe of {host}:{port}", (), {})
+
+
+def _ask_dashboard(host: str, port: int, timeout: float, what: str, commands: Sequence[str], answers: dict) -> str:
+    """Send each command line to the dashboard server after its greeting, all within ``timeout`` s; return the
+    greeting. ``answers`` ({command: answer line}) fills as they come, so a caller keeps them when a later one fails."""
     deadline = time.monotonic() + timeout
     with contextlib.closing(_open(host, port, timeout)) as sock:
-        return _read_line(sock, deadline, what)
+        greeting = _read_line(sock, deadline, what)
+        for command in commands:
+            sock.sendall(command.encode("ascii") + b"\n")
+            answers[command] = _read_line(sock, deadline, what)
+    return greeting
 
 
 # What labcal asks the dashboard server about the arm, and the identity key each answer goes to.
@@ -401,13 +410,8 @@ def read_dashboard_identity(host: str, port: int = DASHBOARD_PORT, timeout: floa
     """
     what = f"dashboard identity query of {host}:{port}"
     answers: dict[str, str] = {}
-    deadline = time.monotonic() + timeout
     try:
-        with contextlib.closing(_open(host, port, timeout)) as sock:
-            _read_line(sock, deadline, what)  # the greeting
-            for command, _ in IDENTITY_COMMANDS:
-                sock.sendall(command.encode("ascii") + b"\n")
-                answers[command] = _read_line(sock, deadline, what)
+        _ask_dashboard(host, port, timeout, what, [command for command, _ in IDENTITY_COMMANDS], answers)
     except (ConnectionFailed, ProtocolError, OSError) as exc:
         identity = parse_dashboard_identity(answers)
         asked = [c for c, _ in IDENTITY_COMMANDS if c not in answers]
@@ -725,13 +729,10 @@ class URRobot:
         """Stop the program through the dashboard server (independent of RTDE): the best left when the control
         interface is gone. Never raises; bounded by a short timeout (a dead controller refuses or times out)."""
         what = f"dashboard stop on {self.profile.host}:{self.profile.dashboard_port}"
-        timeout = min(0.5, self.profile.connect_timeout)
-        deadline = time.monotonic() + timeout
+        timeout, answers = min(0.5, self.profile.connect_timeout), dict[str, str]()
         try:
-            with contextlib.closing(_open(self.profile.host, self.profile.dashboard_port, timeout)) as sock:
-                _read_line(sock, deadline, what)
-                sock.sendall(b"stop\n")
-                log.warning("%s: %s", what, _read_line(sock, deadline, what))
+            _ask_dashboard(self.profile.host, self.profile.dashboard_port, timeout, what, ["stop"], answers)
+            log.warning("%s: %s", what, answers["stop"])
         except (DriverError, OSError) as exc:
             log.info("%s failed: %s", what, exc)
 
