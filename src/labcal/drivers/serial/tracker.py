@@ -12,6 +12,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -69,32 +70,26 @@ class SerialTracker:
             target_url = url or profile.port.url
             if not target_url:
                 raise ValueError(f"{profile.source}: no serial port: set [port].url or pass url=")
-            port = profile.port
-            transport = open_serial(
-                target_url,
-                baudrate=port.baudrate,
-                bytesize=port.bytesize,
-                parity=port.parity,
-                stopbits=port.stopbits,
-                timeout=port.timeout,
-            )
-        if isinstance(profile, NDIProfile):
-            terminators = (b"\r", b"\r")
+            settings = dataclasses.asdict(profile.port)
+            del settings["url"]
+            transport = open_serial(target_url, **settings)
+        if isinstance(profile, AsciiProfile):
+            write, read = profile.write_terminator, profile.read_terminator
         else:
-            terminators = (profile.write_terminator, profile.read_terminator)
+            write = read = b"\r"  # the NDI Combined API ends every command and reply with CR
         self.link = SerialLink(
             transport,
-            write_terminator=terminators[0],
-            read_terminator=terminators[1],
+            write_terminator=write,
+            read_terminator=read,
             timeout=profile.port.timeout,
             clock=clock,
             sleep=sleep,
         )
         self.protocol: NDIProtocol | AsciiProtocol
-        if isinstance(profile, NDIProfile):
-            self.protocol = NDIProtocol(profile, targets, self.link, sleep)
-        else:
+        if isinstance(profile, AsciiProfile):
             self.protocol = AsciiProtocol(profile, targets, self.link)
+        else:
+            self.protocol = NDIProtocol(profile, targets, self.link)
         try:
             self.protocol.start()
         except BaseException:
