@@ -98,15 +98,14 @@ class URProfile:
     frequency: RTDE output rate, Hz (-1: controller default, 125 Hz on CB3, 500 Hz on e-Series).
     watchdog_timeout: during a move, how long the controller timestamp may stay unchanged before the move is
     abandoned (controller dead, network down), s. call_timeout: the longest any other ur-rtde call may take, s.
+    No ports: ur-rtde 1.6.5 connects to UR's standard ones only (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT), so the
+    probes use those too (a profile's ``[ports]`` may only restate them).
     """
 
     name: str
     model: str  # robot model name/file whose joint limits bound the profile's ("" if none)
     host: str
     limits: SafetyLimits
-    rtde_port: int = RTDE_PORT
-    dashboard_port: int = DASHBOARD_PORT
-    script_port: int = SCRIPT_PORT
     settle_time: float = 0.2
     position_tolerance: float = 1e-3
     stop_acceleration: float = 2.0
@@ -511,14 +510,14 @@ class URRobot:
         """
         host, timeout = profile.host, profile.connect_timeout
         if probe:
-            version = probe_rtde(host, profile.rtde_port, timeout)
+            version = probe_rtde(host, RTDE_PORT, timeout)
             log.info("UR controller at %s answers RTDE, version %s", host, ".".join(map(str, version)))
             if not read_only:
-                probe_dashboard(host, profile.dashboard_port, timeout)
-                probe_script_port(host, profile.script_port, timeout)
+                probe_dashboard(host, DASHBOARD_PORT, timeout)
+                probe_script_port(host, SCRIPT_PORT, timeout)
         identity = None
         if probe if identify is None else identify:
-            identity = read_dashboard_identity(host, profile.dashboard_port, timeout)
+            identity = read_dashboard_identity(host, DASHBOARD_PORT, timeout)
             log.info("UR controller at %s: %s", host, identity)
         receive_factory = receive_factory or _remote_factory("receive", profile.call_timeout)
         control_factory = control_factory or _remote_factory("control", profile.call_timeout)
@@ -728,10 +727,10 @@ class URRobot:
     def _halt_from_dashboard(self) -> None:
         """Stop the program through the dashboard server (independent of RTDE): the best left when the control
         interface is gone. Never raises; bounded by a short timeout (a dead controller refuses or times out)."""
-        what = f"dashboard stop on {self.profile.host}:{self.profile.dashboard_port}"
+        what = f"dashboard stop on {self.profile.host}:{DASHBOARD_PORT}"
         timeout, answers = min(0.5, self.profile.connect_timeout), dict[str, str]()
         try:
-            _ask_dashboard(self.profile.host, self.profile.dashboard_port, timeout, what, ["stop"], answers)
+            _ask_dashboard(self.profile.host, DASHBOARD_PORT, timeout, what, ["stop"], answers)
             log.warning("%s: %s", what, answers["stop"])
         except (DriverError, OSError) as exc:
             log.info("%s failed: %s", what, exc)
