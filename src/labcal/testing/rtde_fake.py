@@ -720,35 +720,30 @@ class ControlEmulator:
     def dashboard_answer(self, line: str) -> str:
         """The dashboard server's reply to one command line (caller holds the sim lock)."""
         sim = self.sim
-        major, minor, bugfix, build = sim.controller_version
-        if line == "PolyscopeVersion":
-            return f"URSoftware {major}.{minor}.{bugfix}.{build} (fake)"
-        if line == "get serial number" and sim.serial is not None:
-            return sim.serial
-        if line == "get robot model":
-            return sim.robot_model
-        if line == "is in remote control":
-            return "true"
-        if line == "robotmode":
-            return "Robotmode: RUNNING" if sim.robot_mode == ROBOT_MODE_RUNNING else f"Robotmode: {sim.robot_mode}"
-        if line in ("safetystatus", "safetymode"):
-            state = "ROBOT_EMERGENCY_STOP" if sim.emergency else "PROTECTIVE_STOP" if sim.protective else "NORMAL"
-            return f"Safetystatus: {state}"
-        if line == "running":
-            return f"Program running: {str(sim.program_running).lower()}"
-        if line == "programState":
-            return "PLAYING" if sim.program_running else "STOPPED"
         if line == "unlock protective stop":
             sim.protective = False
-            return "Protective stop releasing"
-        if line == "close safety popup":
-            return "closing safety popup"
-        if line == "stop":
+        elif line == "stop":
             sim.program_running = False
-            return "Stopped"
-        if line == "play":
-            return "Failed to execute: play"  # no .urp programs here: ur-rtde uploads its script instead
-        return f"could not understand: '{line}'"
+        safety = "ROBOT_EMERGENCY_STOP" if sim.emergency else "PROTECTIVE_STOP" if sim.protective else "NORMAL"
+        answers = {
+            "PolyscopeVersion": "URSoftware {}.{}.{}.{} (fake)".format(*sim.controller_version),
+            "get serial number": sim.serial,  # None: a controller too old to know the command
+            "get robot model": sim.robot_model,
+            "is in remote control": "true",
+            "robotmode": "Robotmode: RUNNING"
+            if sim.robot_mode == ROBOT_MODE_RUNNING
+            else f"Robotmode: {sim.robot_mode}",
+            "safetystatus": f"Safetystatus: {safety}",
+            "safetymode": f"Safetystatus: {safety}",
+            "running": f"Program running: {str(sim.program_running).lower()}",
+            "programState": "PLAYING" if sim.program_running else "STOPPED",
+            "unlock protective stop": "Protective stop releasing",
+            "close safety popup": "closing safety popup",
+            "stop": "Stopped",
+            "play": "Failed to execute: play",  # no .urp programs here: ur-rtde uploads its script instead
+        }
+        answer = answers.get(line)
+        return f"could not understand: '{line}'" if answer is None else answer
 
     def serve_script(self, sock: socket.socket) -> None:
         with contextlib.closing(sock):
