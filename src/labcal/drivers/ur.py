@@ -261,12 +261,11 @@ def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfi
     )
 
 
-def _model_limits(model: Any, fail: Callable[[str], ValueError]) -> np.ndarray | None:
-    """Joint limits (6, 2) rad of the named robot model (built-in name or robot file path), or None."""
-    if model is None or model == "":
+def _model_limits(model: str, fail: Callable[[str], ValueError]) -> np.ndarray | None:
+    """Joint limits (6, 2) rad of the named robot model (built-in name or robot file path), or None for ""
+    (the schema has made sure ``model`` is a string)."""
+    if not model:
         return None
-    if not isinstance(model, str):
-        raise fail(f"'model' = {model!r} must be a robot name or robot file path")
     from labcal.robots import RobotFileError, load  # lazy: the profile loader is usable without it
 
     try:
