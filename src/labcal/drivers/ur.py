@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from labcal.drivers.base import (
+    ClosedOnExit,
     ConnectionFailed,
     DriverError,
     DriverTimeout,
@@ -455,7 +456,7 @@ def _remote_factory(kind: str, call_timeout: float) -> Callable[[str, float], An
     return build
 
 
-class URRobot:
+class URRobot(ClosedOnExit):
     """The ``Robot`` port for a UR arm. A context manager; ``close()`` is safe to call twice.
 
     receive: an ``rtde_receive.RTDEReceiveInterface`` (or a stand-in with the same methods).
@@ -541,9 +542,6 @@ class URRobot:
         return dict(self.identity_read or {})
 
     # -- context manager -------------------------------------------------------------------------------------
-
-    def __enter__(self) -> URRobot:
-        return self
 
     def __exit__(self, *exc: object) -> None:
         try:

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from labcal.drivers.base import DriverError, Measurement, MeasurementRejected, average_frames
+from labcal.drivers.base import ClosedOnExit, DriverError, Measurement, MeasurementRejected, average_frames
 from labcal.drivers.serial.ascii import AsciiProtocol
 from labcal.drivers.serial.link import SerialLink, Transport, open_serial
 from labcal.drivers.serial.matching import check_targets
@@ -28,7 +28,7 @@ from labcal.drivers.serial.ndi import NDIProtocol
 from labcal.drivers.serial.profiles import AsciiProfile, NDIProfile, Profile, load_profile
 
 
-class SerialTracker:
+class SerialTracker(ClosedOnExit):
     """A tracker of the session's m targets on a serial line, described by a profile (``load_profile``).
 
     targets: (m, 3) nominal target points in the tool frame, m (rows t1 … tm); an ASCII profile's reply must name
@@ -168,12 +168,6 @@ class SerialTracker:
             pass  # the port may be gone already; closing must not fail because of it
         finally:
             self.link.close()
-
-    def __enter__(self) -> SerialTracker:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def open_tracker(profile_path: str | Path, targets: Any, url: str | None = None, **kwargs: Any) -> SerialTracker:
