@@ -221,10 +221,10 @@ def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfi
     limits_table = doc.get("joint_limits_deg", {})
     if not limits_table and model_limits is None:
         raise fail("give [joint_limits_deg] or a 'model' whose robot file carries joint limits")
-    bounds = []
-    for key in ("lower", "upper") if limits_table else ():
-        bounds.append(np.radians(np.asarray(limits_table[key], dtype=float)))
-    joint_limits = np.stack(bounds, axis=1) if bounds else np.array(model_limits)
+    if limits_table:
+        joint_limits = np.radians(np.column_stack([limits_table["lower"], limits_table["upper"]]).astype(float))
+    else:
+        joint_limits = np.array(model_limits)
     if model_limits is not None:
         # The model's limits are the hard bound: a profile may only narrow them.
         outside = (joint_limits[:, 0] < model_limits[:, 0] - 1e-9) | (joint_limits[:, 1] > model_limits[:, 1] + 1e-9)
