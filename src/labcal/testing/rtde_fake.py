@@ -610,7 +610,6 @@ class ControlEmulator:
     def __init__(self, sim: SimController):
         self.sim = sim
         self.fault: tuple[str, float] | None = None
-        self._program: threading.Thread | None = None
         self._abort = threading.Event()
 
     def on_input(self, names: list[str]) -> None:
@@ -626,8 +625,7 @@ class ControlEmulator:
             self.sim.program_running = True
             self.sim.registers["output_int_register_0"] = 1
             self.sim.log.append(("program", "started"))
-        self._program = threading.Thread(target=self._run_program, daemon=True)
-        self._program.start()
+        threading.Thread(target=self._run_program, daemon=True).start()
 
     def _run_program(self) -> None:
         executing = False
