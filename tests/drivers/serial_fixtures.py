@@ -12,9 +12,10 @@ import struct
 from typing import Any
 
 import numpy as np
+from scripted_transport import ScriptedTransport
 
-from labcal.drivers.serial_tracker import NDIProfile, PortSettings, SerialTracker, parse_profile
-from labcal.testing.fakes import ScriptedTransport
+from labcal.drivers.serial.profiles import NDIProfile, PortSettings, parse_profile
+from labcal.drivers.serial.tracker import SerialTracker
 
 # Targets in the tool frame (m): a clearly scalene triangle, sides 100 mm, 70 mm, ~122.07 mm.
 TARGETS = np.array([[0.0, 0.0, 0.0], [0.100, 0.0, 0.0], [0.0, 0.070, 0.0]])

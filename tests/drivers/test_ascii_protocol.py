@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scripted_transport import ScriptedTransport
 from serial_fixtures import TARGETS, ascii_line, ascii_profile, tool_to_tracker
 
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
 from labcal.drivers.serial.ascii import DeviceError
 from labcal.drivers.serial.crc import xor8
-from labcal.drivers.serial_tracker import SerialTracker, load_profile
-from labcal.testing.fakes import ScriptedTransport
+from labcal.drivers.serial.profiles import load_profile
+from labcal.drivers.serial.tracker import SerialTracker
 
 SEEN = tool_to_tracker()
 

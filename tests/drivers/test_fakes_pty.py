@@ -9,12 +9,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ascii_fake import FakeASCIIDevice
 from serial_fixtures import TARGETS, bx_reply, tool_to_tracker
 
 from labcal.drivers.base import ConnectionFailed, MeasurementRejected
 from labcal.drivers.serial.ascii import DeviceError
-from labcal.drivers.serial_tracker import NDIError, SerialTracker, load_profile, open_tracker
-from labcal.testing.fakes import FakeASCIIDevice, FakeNDIDevice
+from labcal.drivers.serial.ndi import NDIError
+from labcal.drivers.serial.profiles import load_profile
+from labcal.drivers.serial.tracker import SerialTracker, open_tracker
+from labcal.testing.fakes import FakeNDIDevice
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from scripted_transport import BREAK, ScriptedTransport
 from serial_fixtures import (
     BX,
     CLOSE_NDI,
@@ -28,8 +29,9 @@ from serial_fixtures import (
 )
 
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
-from labcal.drivers.serial_tracker import NDIError, SerialTracker, StrayFrame, parse_bx_strays
-from labcal.testing.fakes import BREAK, ScriptedTransport, encode_bx_reply
+from labcal.drivers.serial.ndi import NDIError, StrayFrame, parse_bx_strays
+from labcal.drivers.serial.tracker import SerialTracker
+from labcal.testing.fakes import encode_bx_reply
 
 SEEN = tool_to_tracker()  # (3, 3) m, rows t1, t2, t3
 F32 = 1e-7  # m: float32 millimetres near 1.5 m resolve about 0.12 um
@@ -297,7 +299,7 @@ def test_fake_encoder_checks_flag_count():
 def test_header_crc_makes_the_whole_reply_crc_equal_the_body_crc():
     # Why clients that run one CRC over header + body (ndicapi does) accept replies framed as specified:
     # a CRC-16/ARC over data followed by its own CRC is zero, so the header leaves the running CRC at zero.
-    from labcal.drivers.serial_tracker import crc16_arc
+    from labcal.drivers.serial.crc import crc16_arc
 
     n = struct.unpack_from("<H", GOOD, 2)[0]
     assert crc16_arc(GOOD[:6]) == 0

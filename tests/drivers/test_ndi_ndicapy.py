@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 from serial_fixtures import BX, COMM_9600, COMM_115200, INIT, TARGETS, TSTART, TSTOP, TX, tool_to_tracker
 
-from labcal.drivers.serial_tracker import ERROR_CODES, SerialTracker, encode_command, load_profile
+from labcal.drivers.serial.ndi import ERROR_CODES, encode_command
+from labcal.drivers.serial.profiles import load_profile
+from labcal.drivers.serial.tracker import SerialTracker
 from labcal.testing.fakes import FakeNDIDevice
 
 ndicapy = pytest.importorskip("ndicapy")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scripted_transport import BREAK, ScriptedTransport
 from serial_fixtures import (
     CLOSE_NDI,
     COMM_9600,
@@ -30,8 +31,8 @@ from labcal.drivers.base import (
     ProtocolError,
     Tracker,
 )
-from labcal.drivers.serial_tracker import NDIError, SerialTracker, parse_tx_strays
-from labcal.testing.fakes import BREAK, ScriptedTransport
+from labcal.drivers.serial.ndi import NDIError, parse_tx_strays
+from labcal.drivers.serial.tracker import SerialTracker
 
 SEEN = tool_to_tracker()  # (3, 3) m, what the tracker should report, rows t1, t2, t3
 

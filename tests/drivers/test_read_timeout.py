@@ -4,10 +4,10 @@ read_line that ignored it survived the other tests). The scripted transport's cl
 from __future__ import annotations
 
 import pytest
+from scripted_transport import ScriptedTransport
 
 from labcal.drivers.base import DriverTimeout
-from labcal.drivers.serial_tracker import SerialLink
-from labcal.testing.fakes import ScriptedTransport
+from labcal.drivers.serial.link import SerialLink
 
 
 def _silent_link(link_timeout: float = 0.2) -> tuple[SerialLink, ScriptedTransport]:

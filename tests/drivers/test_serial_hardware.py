@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from labcal.datasets.targets import pair_distances
-from labcal.drivers.serial_tracker import NDIProfile, load_profile, open_tracker
+from labcal.drivers.serial.profiles import NDIProfile, load_profile
+from labcal.drivers.serial.tracker import open_tracker
 
 pytestmark = [pytest.mark.hardware, pytest.mark.timeout(120)]
 

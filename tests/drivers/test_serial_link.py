@@ -6,12 +6,13 @@ import pytest
 import serial
 from hypothesis import given
 from hypothesis import strategies as st
+from scripted_transport import ScriptedTransport
 from serial_fixtures import crc16_arc_bitwise
 
 from labcal.drivers.base import ConnectionFailed, DriverTimeout, ProtocolError
-from labcal.drivers.serial.crc import xor8
-from labcal.drivers.serial_tracker import SerialLink, crc16_arc, decode_reply, encode_command, open_serial
-from labcal.testing.fakes import ScriptedTransport
+from labcal.drivers.serial.crc import crc16_arc, xor8
+from labcal.drivers.serial.link import SerialLink, open_serial
+from labcal.drivers.serial.ndi import decode_reply, encode_command
 
 
 def test_crc16_arc_check_value():

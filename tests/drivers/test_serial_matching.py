@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from serial_fixtures import TARGETS
 
 from labcal.drivers.base import MeasurementRejected
-from labcal.drivers.serial_tracker import check_scalene, match_targets
+from labcal.drivers.serial.matching import check_targets, match_targets
 
 TOL = 0.5e-3
 
@@ -61,12 +61,12 @@ def test_two_copies_of_the_triangle_are_ambiguous():
         match_targets(strays, TARGETS, TOL)
 
 
-def test_check_scalene_accepts_scalene_and_refuses_isosceles_and_degenerate():
-    np.testing.assert_array_equal(check_scalene(TARGETS, TOL), TARGETS)
+def test_check_targets_accepts_scalene_and_refuses_isosceles_and_degenerate_triangles():
+    np.testing.assert_array_equal(check_targets(TARGETS, TOL), TARGETS)
     iso = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.05, 0.08, 0.0]])
-    with pytest.raises(ValueError, match=r"t1-t3.*t2-t3"):
-        check_scalene(iso, TOL)
+    with pytest.raises(ValueError, match=r"t1-t3.*t2-t3.*not scalene enough"):
+        check_targets(iso, TOL)
     with pytest.raises(ValueError, match="coincident"):
-        check_scalene(np.zeros((3, 3)), TOL)
-    with pytest.raises(ValueError, match=r"\(3, 3\)"):
-        check_scalene(np.zeros((2, 3)), TOL)
+        check_targets(np.zeros((3, 3)), TOL)
+    with pytest.raises(ValueError, match=r"\(m, 3\)"):
+        check_targets(np.zeros((3, 2)), TOL)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from labcal.drivers.serial_tracker import AsciiProfile, NDIProfile, PortSettings, ProfileError, load_profile
+from labcal.drivers.serial.profiles import AsciiProfile, NDIProfile, PortSettings, ProfileError, load_profile
 
 REPO = Path(__file__).resolve().parents[2]
 

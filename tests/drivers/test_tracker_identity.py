@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scripted_transport import ScriptedTransport
 from serial_fixtures import (
     CLOSE_NDI,
     OPEN_NDI,
@@ -21,8 +22,8 @@ from serial_fixtures import (
 )
 
 from labcal.drivers.serial.ndi import parse_ver
-from labcal.drivers.serial_tracker import SerialTracker
-from labcal.testing.fakes import FakeNDIDevice, ScriptedTransport
+from labcal.drivers.serial.tracker import SerialTracker
+from labcal.testing.fakes import FakeNDIDevice
 from labcal.tomlschema import SchemaError
 
 # The commands exactly as they go on the wire (CRC16 of "VER:4" and "APIREV:", written out; checked below).
@@ -80,7 +81,7 @@ def test_ver_replies_are_parsed_line_by_line(text, expected):
 @pytest.mark.integration
 @pytest.mark.timeout(30)
 def test_the_fake_ndi_device_on_a_pty_tells_who_it_is():
-    from labcal.drivers.serial_tracker import NDIProfile, PortSettings
+    from labcal.drivers.serial.profiles import NDIProfile, PortSettings
 
     with FakeNDIDevice(lambda: tool_to_tracker()) as device:
         profile = NDIProfile(name="pty", port=PortSettings(url=device.port, timeout=1.0), switch_delay=0.05)

@@ -1,14 +1,14 @@
 """Stand-ins for ur-rtde's interfaces and helpers shared by the UR driver tests.
 
-The stubs define exactly the methods labcal calls (``RECEIVE_METHODS`` / ``CONTROL_METHODS`` in
-labcal.drivers.ur) with the parameter names of the real pybind11 methods; test_ur_contract.py checks both.
+The stubs define exactly the methods labcal.drivers.ur calls (``RECEIVE_METHODS`` / ``CONTROL_METHODS``
+below) with the parameter names of the real pybind11 methods; test_ur_contract.py checks both.
 """
 
 from __future__ import annotations
 
 import os
 import socket
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
 import numpy as np
@@ -17,6 +17,25 @@ from labcal.drivers.base import SafetyLimits
 from labcal.drivers.ur import URProfile
 
 HOME = np.array([0.0, -1.5708, 1.5708, 0.0, 1.5708, 0.0])
+
+# The ur-rtde methods labcal.drivers.ur calls, per interface.
+RECEIVE_METHODS: Sequence[str] = (
+    "getTimestamp",
+    "getActualQ",
+    "isProtectiveStopped",
+    "isEmergencyStopped",
+    "getRobotMode",
+    "isConnected",
+    "disconnect",
+)
+CONTROL_METHODS: Sequence[str] = (
+    "moveJ",
+    "stopJ",
+    "isProgramRunning",
+    "reuploadScript",
+    "isConnected",
+    "disconnect",
+)
 
 
 def make_profile(host: str = "127.0.0.1", **overrides: object) -> URProfile:

@@ -92,7 +92,7 @@ def test_opening_the_drivers_releases_the_robot_when_the_tracker_fails(monkeypat
         def close(self):
             closed.append(True)
 
-    import labcal.drivers.serial_tracker as serial_tracker
+    import labcal.drivers.serial.tracker as serial_tracker
     import labcal.drivers.ur as ur
 
     monkeypatch.setattr(ur, "load_ur_profile", lambda path: path)

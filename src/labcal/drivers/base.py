@@ -17,7 +17,7 @@ Example::
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -202,6 +202,19 @@ class SafetyLimits:
         if not (np.isfinite(acceleration) and 0 < acceleration <= self.max_acceleration):
             raise MotionRejected(f"acceleration {acceleration} rad/s² is outside (0, {self.max_acceleration}] rad/s²")
         return q
+
+
+class ClosedOnExit:
+    """The ``with`` block of every concrete driver: leaving it closes the driver (``close()`` is safe twice)."""
+
+    def close(self) -> None:  # pragma: no cover - every driver defines its own
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from labcal.drivers.base import (
+    ClosedOnExit,
     DriverError,
     DriverTimeout,
     Measurement,
@@ -228,7 +229,7 @@ class SimRig:
         return 2.0 * np.sqrt(d / acceleration)
 
 
-class SimRobot:
+class SimRobot(ClosedOnExit):
     """The Robot port on a :class:`SimRig`. Context manager; ``close`` and ``stop`` are idempotent."""
 
     def __init__(self, rig: SimRig) -> None:
@@ -295,14 +296,8 @@ class SimRobot:
     def close(self) -> None:
         self._closed = True
 
-    def __enter__(self) -> SimRobot:
-        return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-class SimTracker:
+class SimTracker(ClosedOnExit):
     """The Tracker port on a :class:`SimRig`: true target points in the tracker frame plus noise."""
 
     def __init__(self, rig: SimRig) -> None:
@@ -356,12 +351,6 @@ class SimTracker:
 
     def close(self) -> None:
         self._closed = True
-
-    def __enter__(self) -> SimTracker:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 __all__ = ["DROPOUT_MODES", "SimFaults", "SimRig", "SimRobot", "SimTracker"]

@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from labcal.drivers.base import (
+    ClosedOnExit,
     ConnectionFailed,
     DriverError,
     DriverTimeout,
@@ -98,15 +99,14 @@ class URProfile:
     frequency: RTDE output rate, Hz (-1: controller default, 125 Hz on CB3, 500 Hz on e-Series).
     watchdog_timeout: during a move, how long the controller timestamp may stay unchanged before the move is
     abandoned (controller dead, network down), s. call_timeout: the longest any other ur-rtde call may take, s.
+    No ports: ur-rtde 1.6.5 connects to UR's standard ones only (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT), so the
+    probes use those too (a profile's ``[ports]`` may only restate them).
     """
 
     name: str
     model: str  # robot model name/file whose joint limits bound the profile's ("" if none)
     host: str
     limits: SafetyLimits
-    rtde_port: int = RTDE_PORT
-    dashboard_port: int = DASHBOARD_PORT
-    script_port: int = SCRIPT_PORT
     settle_time: float = 0.2
     position_tolerance: float = 1e-3
     stop_acceleration: float = 2.0
@@ -221,10 +221,10 @@ def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfi
     limits_table = doc.get("joint_limits_deg", {})
     if not limits_table and model_limits is None:
         raise fail("give [joint_limits_deg] or a 'model' whose robot file carries joint limits")
-    bounds = []
-    for key in ("lower", "upper") if limits_table else ():
-        bounds.append(np.radians(np.asarray(limits_table[key], dtype=float)))
-    joint_limits = np.stack(bounds, axis=1) if bounds else np.array(model_limits)
+    if limits_table:
+        joint_limits = np.radians(np.column_stack([limits_table["lower"], limits_table["upper"]]).astype(float))
+    else:
+        joint_limits = np.array(model_limits)
     if model_limits is not None:
         # The model's limits are the hard bound: a profile may only narrow them.
         outside = (joint_limits[:, 0] < model_limits[:, 0] - 1e-9) | (joint_limits[:, 1] > model_limits[:, 1] + 1e-9)
@@ -262,12 +262,11 @@ def parse_ur_profile(data: dict[str, Any], source: str = "<profile>") -> URProfi
     )
 
 
-def _model_limits(model: Any, fail: Callable[[str], ValueError]) -> np.ndarray | None:
-    """Joint limits (6, 2) rad of the named robot model (built-in name or robot file path), or None."""
-    if model is None or model == "":
+def _model_limits(model: str, fail: Callable[[str], ValueError]) -> np.ndarray | None:
+    """Joint limits (6, 2) rad of the named robot model (built-in name or robot file path), or None for ""
+    (the schema has made sure ``model`` is a string)."""
+    if not model:
         return None
-    if not isinstance(model, str):
-        raise fail(f"'model' = {model!r} must be a robot name or robot file path")
     from labcal.robots import RobotFileError, load  # lazy: the profile loader is usable without it
 
     try:
@@ -347,10 +346,19 @@ def probe_rtde(host: str, port: int = RTDE_PORT, timeout: float = 2.0) -> tuple[
 
 def probe_dashboard(host: str, port: int = DASHBOARD_PORT, timeout: float = 2.0) -> str:
     """Check that the dashboard server greets us with a line within ``timeout`` s; return that line."""
-    what = f"dashboard probe of {host}:{port}"
+    return _ask_dashboard(host, port, timeout, f"dashboard probe of {host}:{port}", (), {})
+
+
+def _ask_dashboard(host: str, port: int, timeout: float, what: str, commands: Sequence[str], answers: dict) -> str:
+    """Send each command line to the dashboard server after its greeting, all within ``timeout`` s; return the
+    greeting. ``answers`` ({command: answer line}) fills as they come, so a caller keeps them when a later one fails."""
     deadline = time.monotonic() + timeout
     with contextlib.closing(_open(host, port, timeout)) as sock:
-        return _read_line(sock, deadline, what)
+        greeting = _read_line(sock, deadline, what)
+        for command in commands:
+            sock.sendall(command.encode("ascii") + b"\n")
+            answers[command] = _read_line(sock, deadline, what)
+    return greeting
 
 
 # What labcal asks the dashboard server about the arm, and the identity key each answer goes to.
@@ -401,13 +409,8 @@ def read_dashboard_identity(host: str, port: int = DASHBOARD_PORT, timeout: floa
     """
     what = f"dashboard identity query of {host}:{port}"
     answers: dict[str, str] = {}
-    deadline = time.monotonic() + timeout
     try:
-        with contextlib.closing(_open(host, port, timeout)) as sock:
-            _read_line(sock, deadline, what)  # the greeting
-            for command, _ in IDENTITY_COMMANDS:
-                sock.sendall(command.encode("ascii") + b"\n")
-                answers[command] = _read_line(sock, deadline, what)
+        _ask_dashboard(host, port, timeout, what, [command for command, _ in IDENTITY_COMMANDS], answers)
     except (ConnectionFailed, ProtocolError, OSError) as exc:
         identity = parse_dashboard_identity(answers)
         asked = [c for c, _ in IDENTITY_COMMANDS if c not in answers]
@@ -453,7 +456,7 @@ def _remote_factory(kind: str, call_timeout: float) -> Callable[[str, float], An
     return build
 
 
-class URRobot:
+class URRobot(ClosedOnExit):
     """The ``Robot`` port for a UR arm. A context manager; ``close()`` is safe to call twice.
 
     receive: an ``rtde_receive.RTDEReceiveInterface`` (or a stand-in with the same methods).
@@ -507,14 +510,14 @@ class URRobot:
         """
         host, timeout = profile.host, profile.connect_timeout
         if probe:
-            version = probe_rtde(host, profile.rtde_port, timeout)
+            version = probe_rtde(host, RTDE_PORT, timeout)
             log.info("UR controller at %s answers RTDE, version %s", host, ".".join(map(str, version)))
             if not read_only:
-                probe_dashboard(host, profile.dashboard_port, timeout)
-                probe_script_port(host, profile.script_port, timeout)
+                probe_dashboard(host, DASHBOARD_PORT, timeout)
+                probe_script_port(host, SCRIPT_PORT, timeout)
         identity = None
         if probe if identify is None else identify:
-            identity = read_dashboard_identity(host, profile.dashboard_port, timeout)
+            identity = read_dashboard_identity(host, DASHBOARD_PORT, timeout)
             log.info("UR controller at %s: %s", host, identity)
         receive_factory = receive_factory or _remote_factory("receive", profile.call_timeout)
         control_factory = control_factory or _remote_factory("control", profile.call_timeout)
@@ -539,9 +542,6 @@ class URRobot:
         return dict(self.identity_read or {})
 
     # -- context manager -------------------------------------------------------------------------------------
-
-    def __enter__(self) -> URRobot:
-        return self
 
     def __exit__(self, *exc: object) -> None:
         try:
@@ -724,14 +724,11 @@ class URRobot:
     def _halt_from_dashboard(self) -> None:
         """Stop the program through the dashboard server (independent of RTDE): the best left when the control
         interface is gone. Never raises; bounded by a short timeout (a dead controller refuses or times out)."""
-        what = f"dashboard stop on {self.profile.host}:{self.profile.dashboard_port}"
-        timeout = min(0.5, self.profile.connect_timeout)
-        deadline = time.monotonic() + timeout
+        what = f"dashboard stop on {self.profile.host}:{DASHBOARD_PORT}"
+        timeout, answers = min(0.5, self.profile.connect_timeout), dict[str, str]()
         try:
-            with contextlib.closing(_open(self.profile.host, self.profile.dashboard_port, timeout)) as sock:
-                _read_line(sock, deadline, what)
-                sock.sendall(b"stop\n")
-                log.warning("%s: %s", what, _read_line(sock, deadline, what))
+            _ask_dashboard(self.profile.host, DASHBOARD_PORT, timeout, what, ["stop"], answers)
+            log.warning("%s: %s", what, answers["stop"])
         except (DriverError, OSError) as exc:
             log.info("%s failed: %s", what, exc)
 
@@ -821,77 +818,3 @@ def _construct(factory: Callable[[str, float], Any], host: str, frequency: float
         if "not found" in str(exc).lower():
             raise ProtocolError(f"{what} for {host}: {exc}") from exc
         raise ConnectionFailed(f"{what} for {host} could not be set up: {exc}") from exc
-
-
-def interface_signatures() -> dict[str, list[tuple[str, list[str]]]]:
-    """Names and parameter lists of the ur-rtde methods labcal calls, parsed from their ``__doc__``.
-
-    Returns {"Class.method": [(name, [param, ...]), ...]} (one entry per pybind11 overload; ``self`` dropped).
-    pybind11 methods have no ``inspect.signature``; the first docstring line(s) carry it instead.
-    """
-    import rtde_control
-    import rtde_receive
-
-    out: dict[str, list[tuple[str, list[str]]]] = {}
-    for cls, names in (
-        (rtde_receive.RTDEReceiveInterface, RECEIVE_METHODS),
-        (rtde_control.RTDEControlInterface, CONTROL_METHODS),
-    ):
-        for name in names:
-            out[f"{cls.__name__}.{name}"] = parse_pybind_signatures(getattr(cls, name).__doc__ or "", name)
-    return out
-
-
-RECEIVE_METHODS: Sequence[str] = (
-    "getTimestamp",
-    "getActualQ",
-    "isProtectiveStopped",
-    "isEmergencyStopped",
-    "getRobotMode",
-    "isConnected",
-    "disconnect",
-)
-CONTROL_METHODS: Sequence[str] = (
-    "moveJ",
-    "stopJ",
-    "isProgramRunning",
-    "reuploadScript",
-    "isConnected",
-    "disconnect",
-)
-
-
-def parse_pybind_signatures(doc: str, name: str) -> list[tuple[str, list[str]]]:
-    """Parameter names of each signature line ``name(self: T, a: float = 1.0, ...) -> R`` in a pybind11 doc.
-
-    Overloaded functions list numbered lines ``1. name(...)``; a plain one has its signature on line one.
-    """
-    signatures = []
-    for raw in doc.splitlines():
-        line = raw.strip()
-        if line[:1].isdigit() and ". " in line:
-            line = line.split(". ", 1)[1]
-        if not line.startswith(name + "(") or line.startswith(name + "(*args"):
-            continue
-        inner = line[len(name) + 1 : line.rindex(")")] if ")" in line else ""
-        params = [p.split(":")[0].split("=")[0].strip() for p in _split_params(inner)]
-        signatures.append((name, [p for p in params if p and p != "self"]))
-    return signatures
-
-
-def _split_params(text: str) -> list[str]:
-    """Split a parameter list on top-level commas (defaults and annotations may contain brackets)."""
-    parts, depth, current = [], 0, []
-    for ch in text:
-        if ch in "[(<{":
-            depth += 1
-        elif ch in "])>}":
-            depth -= 1
-        if ch == "," and depth == 0:
-            parts.append("".join(current))
-            current = []
-        else:
-            current.append(ch)
-    if current:
-        parts.append("".join(current))
-    return parts

@@ -7,7 +7,8 @@ be bounded from Python in the same process. Here each interface (receive or cont
 (``python -m labcal.drivers.ur_process KIND HOST FREQUENCY VARIABLES``); :class:`RemoteInterface` forwards method
 calls over a pipe and waits with a deadline. A call that misses its deadline, or a child that dies, kills the
 child (SIGKILL: nothing of ur-rtde's runs in labcal's process) and raises ``RuntimeError`` — the error ur-rtde
-itself raises — so :mod:`labcal.drivers.ur` maps it as before.
+itself raises — so :mod:`labcal.drivers.ur` maps it as before. The plumbing (:class:`ChildProcess` and the child's
+:func:`serve`) is not ur-rtde's: the fake controller of :mod:`labcal.testing.rtde_fake` runs on it too.
 
 Example::
 
@@ -28,8 +29,8 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, TextIO
 
 log = logging.getLogger(__name__)
 
@@ -37,62 +38,52 @@ log = logging.getLogger(__name__)
 WATCH_PERIOD = 0.05
 
 
-class RemoteInterface:
-    """A ur-rtde ``RTDEReceiveInterface`` ("receive") or ``RTDEControlInterface`` ("control") in a child process.
+class ChildProcess:
+    """A Python module in a child process that answers JSON-line calls, every wait bounded.
 
-    Any method name is forwarded: ``iface.getActualQ()``. Every call waits at most ``call_timeout`` s; a call
-    given ``timeout=None`` (see :meth:`call`) waits as long as ``watch`` (called every WATCH_PERIOD s while
-    waiting) does not raise. Timeouts and a dead child raise RuntimeError and kill the child; later calls raise
-    RuntimeError at once, and ``isConnected()`` answers False.
+    The child (see :func:`serve`) answers its start-up, then each ``[name, [args]]`` line, with ``["ok", value]``
+    or ``["error", exception type name, message]``. ``started`` holds the start-up answer's value. Every call
+    waits at most ``call_timeout`` s; a call given ``timeout=None`` (see :meth:`call`) waits as long as ``watch``
+    (called every WATCH_PERIOD s while waiting) does not raise. Timeouts and a dead child raise RuntimeError and
+    kill the child; later calls raise RuntimeError at once. label: what the child is, in every error message.
+    log_stderr: the child's stderr goes to this module's log (debug) instead of the terminal.
     """
 
     def __init__(
         self,
-        kind: str,
-        host: str,
-        frequency: float,
-        variables: Sequence[str] = (),
+        argv: Sequence[str],
+        label: str,
         *,
-        start_timeout: float = 10.0,
-        call_timeout: float = 2.0,
+        start_timeout: float,
+        call_timeout: float,
+        start_what: str = "starting",
+        log_stderr: bool = True,
     ):
-        if kind not in ("receive", "control"):
-            raise ValueError(f"kind must be 'receive' or 'control', got {kind!r}")
-        self.kind, self.host, self.call_timeout = kind, host, float(call_timeout)
+        self.label, self.call_timeout = label, float(call_timeout)
         self._lock = threading.Lock()
         self._replies: queue.Queue[bytes | None] = queue.Queue()
         self._dead: str | None = None
         self._process = subprocess.Popen(
-            [sys.executable, "-m", "labcal.drivers.ur_process", kind, host, repr(float(frequency)),
-             json.dumps(list(variables))],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-        )  # fmt: skip
-        threading.Thread(target=self._log_stderr, name=f"ur-rtde {kind} log", daemon=True).start()
-        threading.Thread(target=self._read_replies, name=f"ur-rtde {kind} replies", daemon=True).start()
+            list(argv), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE if log_stderr else None
+        )
+        if log_stderr:
+            threading.Thread(target=self._log_stderr, name=f"{label} log", daemon=True).start()
+        threading.Thread(target=self._read_replies, name=f"{label} replies", daemon=True).start()
         try:
-            self._await(start_timeout, f"connecting the RTDE {kind} interface to {host}", None)
+            self.started = self._await(start_timeout, start_what, None)
         except BaseException:
             self.kill()
             raise
 
     # -- calls -----------------------------------------------------------------------------------------------
 
-    def __getattr__(self, name: str) -> Callable[..., Any]:
-        if name.startswith("_"):
-            raise AttributeError(name)
-        return lambda *args: self.call(name, *args)
-
     def call(
         self, name: str, *args: Any, timeout: float | str | None = "default", watch: Callable[[], None] | None = None
     ) -> Any:
         """Call ``name(*args)`` in the child. timeout: s, "default" (call_timeout), or None (``watch`` bounds it)."""
-        if name == "isConnected" and self._dead is not None:
-            return False
         with self._lock:
             if self._dead is not None:
-                raise RuntimeError(f"the ur-rtde {self.kind} interface is gone: {self._dead}")
+                raise RuntimeError(f"the {self.label} is gone: {self._dead}")
             assert self._process.stdin is not None
             limit = self.call_timeout if timeout == "default" else timeout
             try:
@@ -101,12 +92,12 @@ class RemoteInterface:
                     self._process.stdin.flush()
                 except OSError as exc:
                     self._died(f"its process ended ({exc})")
-                    raise RuntimeError(f"the ur-rtde {self.kind} interface is gone: {self._dead}") from None
+                    raise RuntimeError(f"the {self.label} is gone: {self._dead}") from None
                 line = self._read_line(limit, f"{name}()", watch)  # type: ignore[arg-type]
             except BaseException:
                 # Whatever stopped the call once the request may have left (deadline, dead child, watchdog, Ctrl-C
                 # even between sending and waiting), its answer may still come and would be taken for the next
-                # call's: this interface is done.
+                # call's: this child is done.
                 self._died(f"{name}() was abandoned")
                 raise
             return self._decode(line)
@@ -135,7 +126,7 @@ class RemoteInterface:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     self._died(f"{what} got no answer within {timeout} s")
-                    raise RuntimeError(f"ur-rtde {self.kind}: {what} got no answer within {timeout} s")
+                    raise RuntimeError(f"{self.label}: {what} got no answer within {timeout} s")
                 wait = remaining if wait is None else min(wait, remaining)
             try:
                 line = self._replies.get(timeout=wait)
@@ -146,7 +137,7 @@ class RemoteInterface:
             if line is None:
                 code = self._process.wait()
                 self._died(f"its process ended with code {code} during {what}")
-                raise RuntimeError(f"the ur-rtde {self.kind} interface is gone: {self._dead}")
+                raise RuntimeError(f"the {self.label} is gone: {self._dead}")
             return line
 
     def _read_replies(self) -> None:
@@ -169,7 +160,7 @@ class RemoteInterface:
         self.kill()
 
     def kill(self) -> None:
-        """SIGKILL the child (whatever ur-rtde is doing in it). Safe to repeat."""
+        """SIGKILL the child (whatever it, ur-rtde say, is doing). Safe to repeat."""
         if self._dead is None:
             self._dead = "killed"
         with contextlib.suppress(OSError):
@@ -182,6 +173,61 @@ class RemoteInterface:
                 if stream is not None:
                     stream.close()
 
+    def end(self, timeout: float) -> None:
+        """Close the child's stdin (its :func:`serve` loop ends), give it ``timeout`` s to exit, then kill it."""
+        if self.alive:
+            with contextlib.suppress(OSError):
+                assert self._process.stdin is not None
+                self._process.stdin.close()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self._process.wait(timeout)
+        self.kill()
+
+    def _log_stderr(self) -> None:
+        assert self._process.stderr is not None
+        for raw in self._process.stderr:  # ur-rtde's own chatter ("Reconnecting..."), kept out of the terminal
+            log.debug("%s: %s", self.label, raw.decode("utf-8", "replace").rstrip())
+
+
+class RemoteInterface(ChildProcess):
+    """A ur-rtde ``RTDEReceiveInterface`` ("receive") or ``RTDEControlInterface`` ("control") in a child process.
+
+    Any method name is forwarded: ``iface.getActualQ()``, bounded as :class:`ChildProcess` calls are; after the
+    child is gone ``isConnected()`` answers False.
+    """
+
+    def __init__(
+        self,
+        kind: str,
+        host: str,
+        frequency: float,
+        variables: Sequence[str] = (),
+        *,
+        start_timeout: float = 10.0,
+        call_timeout: float = 2.0,
+    ):
+        if kind not in ("receive", "control"):
+            raise ValueError(f"kind must be 'receive' or 'control', got {kind!r}")
+        self.kind, self.host = kind, host
+        argv = [sys.executable, "-m", "labcal.drivers.ur_process", kind, host, repr(float(frequency))]
+        super().__init__(
+            [*argv, json.dumps(list(variables))],
+            f"ur-rtde {kind} interface",
+            start_timeout=start_timeout,
+            call_timeout=call_timeout,
+            start_what=f"connecting the RTDE {kind} interface to {host}",
+        )
+
+    def __getattr__(self, name: str) -> Callable[..., Any]:
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return lambda *args: self.call(name, *args)
+
+    def call(self, name: str, *args: Any, **kw: Any) -> Any:
+        if name == "isConnected" and self._dead is not None:
+            return False
+        return super().call(name, *args, **kw)
+
     def close(self, timeout: float = 1.0) -> None:
         """``disconnect()`` within ``timeout`` s (a healthy link is told goodbye), then the child goes."""
         if self._dead is None:
@@ -189,14 +235,34 @@ class RemoteInterface:
                 self.call("disconnect", timeout=timeout)
         self.kill()
 
-    def _log_stderr(self) -> None:
-        assert self._process.stderr is not None
-        for raw in self._process.stderr:  # ur-rtde's own chatter ("Reconnecting..."), kept out of the terminal
-            log.debug("ur-rtde %s (%s): %s", self.kind, self.host, raw.decode("utf-8", "replace").rstrip())
-
 
 # --------------------------------------------------------------------------------------------------------------
 # The child.
+
+
+def serve(start: Callable[[], tuple[Callable[..., Any], Any]], requests: Iterable[str], replies: TextIO) -> None:
+    """The child's side of :class:`ChildProcess`: ``start()`` gives (handler, start-up value) or raises (answered
+    as an error); then each ``[name, [args]]`` line of ``requests`` is answered with ``handler(name, *args)``, until
+    ``requests`` ends (EOF when the parent goes away: a child never outlives it)."""
+
+    def reply(*values: Any) -> None:
+        replies.write(json.dumps(list(values)) + "\n")
+        replies.flush()
+
+    try:
+        handler, started = start()
+    except Exception as exc:
+        reply("error", type(exc).__name__, str(exc))
+        return
+    reply("ok", started)
+    for line in requests:
+        name, args = json.loads(line)
+        try:
+            value = handler(name, *args)
+        except Exception as exc:
+            reply("error", type(exc).__name__, str(exc))
+        else:
+            reply("ok", value)
 
 
 def _child(kind: str, host: str, frequency: float, variables: list[str]) -> None:
@@ -206,11 +272,7 @@ def _child(kind: str, host: str, frequency: float, variables: list[str]) -> None
     replies = os.fdopen(os.dup(1), "w")
     os.dup2(2, 1)
 
-    def reply(*values: Any) -> None:
-        replies.write(json.dumps(list(values)) + "\n")
-        replies.flush()
-
-    try:
+    def start() -> tuple[Callable[..., Any], None]:
         if kind == "receive":
             import rtde_receive
 
@@ -219,18 +281,9 @@ def _child(kind: str, host: str, frequency: float, variables: list[str]) -> None
             import rtde_control
 
             iface = rtde_control.RTDEControlInterface(host, frequency)
-    except Exception as exc:
-        reply("error", type(exc).__name__, str(exc))
-        return
-    reply("ok", None)
-    for line in sys.stdin:  # EOF when labcal goes away: never outlive it
-        name, args = json.loads(line)
-        try:
-            value = getattr(iface, name)(*args)
-        except Exception as exc:
-            reply("error", type(exc).__name__, str(exc))
-        else:
-            reply("ok", value)
+        return (lambda name, *args: getattr(iface, name)(*args)), None
+
+    serve(start, sys.stdin, replies)
     # No disconnect here: after a dropped link it is what crashes; the parent asks for it while the link is up.
     os._exit(0)
 

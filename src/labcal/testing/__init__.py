@@ -3,6 +3,6 @@
 They live here, outside ``labcal.drivers``, because nothing at runtime may use them (an import contract says so);
 tests, benchmarks and simulated set-ups import them explicitly:
 
-    from labcal.testing.fakes import FakeNDIDevice, ScriptedTransport
+    from labcal.testing.fakes import FakeNDIDevice
     from labcal.testing.rtde_fake import FakeRTDEServer
 """

@@ -1,16 +1,18 @@
-"""Fake serial tracker devices for tests and the simulated rig, plus a scripted transport.
+"""Fake serial tracker devices for tests and the simulated rig.
 
-``FakeNDIDevice`` and ``FakeASCIIDevice`` run on the master side of a pseudo-terminal in a background thread;
-pyserial (or the real ``ndicapy`` client) opens ``.port``, the slave path, exactly as it would open a real
-device. Both read target positions from ``points_provider() -> (m, 3)`` metres in the tracker frame (any number
-of targets; a NaN row is a target the camera cannot see at the moment), so a simulator can feed them the true
-target positions plus noise, and hide targets.
+``FakeNDIDevice`` runs on the master side of a pseudo-terminal in a background thread (:class:`PtyDevice`, the
+base of any such fake line device: the tests' fake ASCII tracker is another); pyserial (or the real ``ndicapy``
+client) opens ``.port``, the slave path, exactly as it would open a real device. It reads target positions from
+``points_provider() -> (m, 3)`` metres in the tracker frame (any number of targets; a NaN row is a target the
+camera cannot see at the moment), so a simulator can feed it the true target positions plus noise, and hide
+targets.
 
 Limits of a pty: bytes flow whatever the baud rate, and a serial break does not reach the master side. The fake
 NDI device therefore keeps an *emulated* rate (9600 after reset, then what COMM set) and compares it with the
 rate the client configured on the pty (termios settings are shared by both ends' view of the slave): at a
 mismatch it ignores the command, as a real device seeing framing errors would. ``reset()`` emulates what a
-break (or power cycle) does; the host-side break path itself is tested with ``ScriptedTransport``.
+break (or power cycle) does; the host-side break path itself is tested with a scripted transport
+(tests/drivers/scripted_transport.py).
 
 Fault injection (one-shot, in order, applied to the next measurement request, ``TX`` or ``BX``)::
 
@@ -35,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from labcal.drivers.serial.crc import crc16_arc, xor8
+from labcal.drivers.serial.crc import crc16_arc
 
 PointsProvider = Callable[[], np.ndarray]
 
@@ -54,7 +56,7 @@ def _fixed(points: np.ndarray) -> PointsProvider:
     return lambda: frozen.copy()
 
 
-class _PtyDevice:
+class PtyDevice:
     """A line-oriented fake device on a pty master, served by a daemon thread.
 
     The fake keeps its own handle on the slave open, so clients may open and close the port repeatedly without
@@ -81,7 +83,7 @@ class _PtyDevice:
 
     # -- lifecycle -----------------------------------------------------------------------------------------
 
-    def start(self) -> _PtyDevice:
+    def start(self) -> PtyDevice:
         if not self._started:
             self._started = True
             self._thread.start()
@@ -187,6 +189,13 @@ class _PtyDevice:
 
 
 _NDI_BAUDS = {0: 9600, 1: 14400, 2: 19200, 3: 38400, 4: 57600, 5: 115200, 6: 921600, 7: 1228739, 8: 230400}
+# The commands that only move the device between its states: command -> ({state: ERRORxx code refusing it in that
+# state}, state after OKAY). INIT is refused while tracking, TSTART before INIT, TSTOP unless tracking.
+_NDI_TRANSITIONS = {
+    "INIT": ({"tracking": 0x0C}, "setup"),
+    "TSTART": ({"reset": 0x10, "tracking": 0x0C}, "tracking"),
+    "TSTOP": ({"reset": 0x0C, "setup": 0x0C}, "setup"),
+}
 
 
 def _ndi_frame(body: str) -> bytes:
@@ -218,7 +227,7 @@ def encode_bx_reply(
     return header + struct.pack("<H", crc16_arc(header)) + body + struct.pack("<H", crc16_arc(body))
 
 
-class FakeNDIDevice(_PtyDevice):
+class FakeNDIDevice(PtyDevice):
     """A Polaris-like NDI Combined API device reporting the targets as passive stray markers.
 
     points_provider: () -> (m, 3) m, true target positions in the tracker frame (rows t1 … tm; a NaN row is not
@@ -302,16 +311,16 @@ class FakeNDIDevice(_PtyDevice):
         else:
             name, _, params = line.partition(" ")
         name = name.strip().upper()
+        if name in _NDI_TRANSITIONS:
+            refused, after = _NDI_TRANSITIONS[name]
+            if self.state in refused:
+                return _ndi_frame(f"ERROR{refused[self.state]:02X}")
+            self.state = after
+            return _ndi_frame("OKAY")
         handler = getattr(self, f"_cmd_{name.lower()}", None) if name.isalnum() else None
         if handler is None:
             return _ndi_frame("ERROR01")
         return handler(params.strip())
-
-    def _cmd_init(self, params: str) -> bytes:
-        if self.state == "tracking":
-            return _ndi_frame("ERROR0C")
-        self.state = "setup"
-        return _ndi_frame("OKAY")
 
     def _cmd_comm(self, params: str) -> bytes:
         if len(params) != 5 or not params.isdigit() or int(params[0]) not in _NDI_BAUDS:
@@ -320,20 +329,6 @@ class FakeNDIDevice(_PtyDevice):
             return _ndi_frame("ERROR06")  # only 8N1 is emulated
         # OKAY goes out at the old rate; the device then switches (no-op on a pty, recorded for tests).
         self.baudrate = _NDI_BAUDS[int(params[0])]
-        return _ndi_frame("OKAY")
-
-    def _cmd_tstart(self, params: str) -> bytes:
-        if self.state == "reset":
-            return _ndi_frame("ERROR10")
-        if self.state == "tracking":
-            return _ndi_frame("ERROR0C")
-        self.state = "tracking"
-        return _ndi_frame("OKAY")
-
-    def _cmd_tstop(self, params: str) -> bytes:
-        if self.state != "tracking":
-            return _ndi_frame("ERROR0C")
-        self.state = "setup"
         return _ndi_frame("OKAY")
 
     def _cmd_beep(self, params: str) -> bytes:
@@ -431,205 +426,3 @@ class FakeNDIDevice(_PtyDevice):
         text = f"{n:02X}" + (f"{flags:0{math.ceil(n / 4)}X}" if n else "")
         text += "".join(f"{int(v):+07d}" for v in units.ravel())
         return text
-
-
-# ----------------------------------------------------------------------------------------------------------
-# ASCII example protocol (drivers/ascii-example.toml)
-
-
-class FakeASCIIDevice(_PtyDevice):
-    """The example ASCII tracker of ``drivers/ascii-example.toml`` (CR LF lines, mm, NMEA-style checksum).
-
-    Commands: ``*IDN?`` -> ``LABCAL,FAKE-3T,FK-0001,1.0`` (maker, model ``FAKE-<m>T`` for m targets, ``serial``,
-    firmware); ``UNITS MM`` -> ``OK``;
-    ``MEAS?`` -> ``$PTS,x1,y1,z1,...,zm*HH`` (m = the rows of ``points_provider()``: one for the built-in
-    ``ascii-single-smr`` profile); ``STREAM ON``/``STREAM OFF`` -> ``OK`` (while on, a measurement line every
-    1/stream_hz s); anything else -> ``ERR,01``. A target the device cannot see (a NaN row, or the
-    ``drop_target`` fault) has empty fields.
-    """
-
-    terminator = b"\r\n"
-    FAULTS = ("no_reply", "bad_checksum", "garbled", "drop_target", "error")
-
-    def __init__(
-        self,
-        points_provider: PointsProvider | None = None,
-        *,
-        seed: int = 0,
-        noise: float = 0.0,
-        stream_hz: float = 100.0,
-    ):
-        super().__init__(points_provider, seed)
-        self.serial = "FK-0001"
-        self.noise = float(noise)
-        self.stream_hz = float(stream_hz)
-        self.streaming = False
-        self._next_stream = 0.0
-
-    def _line(self, text: str) -> bytes:
-        return text.encode("ascii") + b"\r\n"
-
-    def measurement_line(self, fault: str | None = None) -> bytes | None:
-        points = np.array(self.points_provider(), dtype=float).reshape(-1, 3)
-        if self.noise:
-            points = points + self.rng.normal(0.0, self.noise, size=points.shape)
-        if fault == "no_reply":
-            return None
-        if fault is not None and fault.startswith("error"):
-            return self._line("ERR," + (fault.partition(":")[2] or "05"))
-        fields = ["" if not np.isfinite(v) else f"{v * 1e3:.4f}" for v in points.ravel()]
-        if fault == "drop_target":
-            k = int(self.rng.integers(len(points)))
-            fields[3 * k : 3 * k + 3] = ["", "", ""]
-        body = "PTS," + ",".join(fields)
-        checksum = xor8(body.encode("ascii")) ^ (0x5A if fault == "bad_checksum" else 0)
-        line = f"${body}*{checksum:02X}"
-        if fault == "garbled":
-            line = line[:10] + "?!" + line[14:]
-        return self._line(line)
-
-    def handle(self, line: str) -> bytes | None:
-        command = line.strip().upper()
-        if command == "*IDN?":
-            m = len(np.asarray(self.points_provider()).reshape(-1, 3))
-            return self._line(f"LABCAL,FAKE-{m}T,{self.serial},1.0")
-        if command == "UNITS MM":
-            return self._line("OK")
-        if command == "MEAS?":
-            return self.measurement_line(self._next_fault())
-        if command in ("STREAM ON", "STREAM OFF"):
-            self.streaming = command == "STREAM ON"
-            self._next_stream = time.monotonic()
-            return self._line("OK")
-        return self._line("ERR,01")
-
-    def tick(self) -> None:
-        if self.streaming and time.monotonic() >= self._next_stream:
-            self._next_stream += 1.0 / self.stream_hz
-            line = self.measurement_line(self._next_fault())
-            if line:
-                # A real streaming device loses lines nobody reads; so does this one (short send timeout).
-                self.send(line, timeout=0.001)
-
-
-# ----------------------------------------------------------------------------------------------------------
-# Scripted transport for byte-exact protocol tests
-
-
-BREAK = b"<serial break>"
-
-
-class ScriptedTransport:
-    """A ``serial.Serial`` stand-in that plays a script of (expected bytes written, reply bytes).
-
-    When the bytes written so far equal the next expected chunk, its reply becomes readable; writing anything
-    else fails the test at once (AssertionError naming the step). ``BREAK`` as the expected chunk means a serial
-    break. ``read`` returns b'' when nothing is buffered (a timeout) and advances the fake clock by
-    ``read_timeout`` s, so timeouts cost no real time; pass ``clock=t.clock, sleep=t.sleep`` to the driver.
-    ``events`` logs writes, breaks, baud changes, sleeps and flushes in order. Call ``assert_done()`` at the end.
-    ``max_read`` caps the bytes one ``read`` returns, as a slow line delivers a reply in pieces.
-    """
-
-    def __init__(
-        self,
-        script: Sequence[tuple[bytes, bytes]],
-        *,
-        baudrate: int = 9600,
-        read_timeout: float = 0.05,
-        pending_input: bytes = b"",
-        max_read: int | None = None,
-    ):
-        self.script = list(script)
-        self.step = 0
-        self._written = b""
-        self._input = bytearray(pending_input)
-        self._baudrate = baudrate
-        self.read_timeout = read_timeout
-        self.max_read = max_read
-        self.now = 0.0
-        self.events: list[tuple[str, Any]] = []
-        self.closed = False
-
-    # -- the serial.Serial surface -------------------------------------------------------------------------
-
-    @property
-    def baudrate(self) -> int:
-        return self._baudrate
-
-    @baudrate.setter
-    def baudrate(self, value: int) -> None:
-        self._baudrate = value
-        self.events.append(("baud", value))
-
-    def _expected(self, what: str) -> bytes:
-        if self.closed:
-            raise OSError(f"{what} on a closed port")
-        if self.step >= len(self.script):
-            raise AssertionError(f"script exhausted after {self.step} steps, but the driver did a {what}")
-        return self.script[self.step][0]
-
-    def _advance(self) -> None:
-        self._input += self.script[self.step][1]
-        self.step += 1
-        self._written = b""
-
-    def write(self, data: bytes) -> int:
-        expected = self._expected(f"write of {bytes(data)!r}")
-        self.events.append(("write", bytes(data)))
-        self._written += bytes(data)
-        if expected == BREAK or not expected.startswith(self._written):
-            raise AssertionError(f"script step {self.step}: expected {expected!r}, driver wrote {self._written!r}")
-        if self._written == expected:
-            self._advance()
-        return len(data)
-
-    def send_break(self, duration: float = 0.25) -> None:
-        expected = self._expected("serial break")
-        self.events.append(("break", duration))
-        if expected != BREAK or self._written:
-            raise AssertionError(f"script step {self.step}: expected {expected!r}, driver sent a serial break")
-        self._advance()
-
-    def read(self, size: int = 1) -> bytes:
-        if self.closed:
-            raise OSError("read on a closed port")
-        if not self._input:
-            self.now += self.read_timeout
-            return b""
-        size = size if self.max_read is None else min(size, self.max_read)
-        data = bytes(self._input[:size])
-        del self._input[:size]
-        return data
-
-    def reset_input_buffer(self) -> None:
-        self.events.append(("flush", bytes(self._input)))
-        self._input.clear()
-
-    def close(self) -> None:
-        self.closed = True
-        self.events.append(("close", None))
-
-    # -- test helpers --------------------------------------------------------------------------------------
-
-    def clock(self) -> float:
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.events.append(("sleep", seconds))
-        self.now += seconds
-
-    def feed(self, data: bytes) -> None:
-        """Make ``data`` readable now (unsolicited device output)."""
-        self._input += data
-
-    def assert_done(self) -> None:
-        """Every scripted exchange happened and every reply byte was read (or deliberately flushed)."""
-        problems = []
-        if self.step != len(self.script):
-            problems.append(f"{len(self.script) - self.step} step(s) unused, next {self.script[self.step]!r}")
-        if self._written:
-            problems.append(f"partial write {self._written!r}")
-        if self._input:
-            problems.append(f"unread reply bytes {bytes(self._input)!r}")
-        if problems:
-            raise AssertionError("scripted transport: " + "; ".join(problems))

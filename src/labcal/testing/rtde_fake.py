@@ -34,15 +34,15 @@ import json
 import math
 import os
 import re
-import select
 import socket
 import struct
-import subprocess
 import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
+
+from labcal.drivers.ur_process import ChildProcess, serve
 
 RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
@@ -610,7 +610,6 @@ class ControlEmulator:
     def __init__(self, sim: SimController):
         self.sim = sim
         self.fault: tuple[str, float] | None = None
-        self._program: threading.Thread | None = None
         self._abort = threading.Event()
 
     def on_input(self, names: list[str]) -> None:
@@ -626,8 +625,7 @@ class ControlEmulator:
             self.sim.program_running = True
             self.sim.registers["output_int_register_0"] = 1
             self.sim.log.append(("program", "started"))
-        self._program = threading.Thread(target=self._run_program, daemon=True)
-        self._program.start()
+        threading.Thread(target=self._run_program, daemon=True).start()
 
     def _run_program(self) -> None:
         executing = False
@@ -720,35 +718,30 @@ class ControlEmulator:
     def dashboard_answer(self, line: str) -> str:
         """The dashboard server's reply to one command line (caller holds the sim lock)."""
         sim = self.sim
-        major, minor, bugfix, build = sim.controller_version
-        if line == "PolyscopeVersion":
-            return f"URSoftware {major}.{minor}.{bugfix}.{build} (fake)"
-        if line == "get serial number" and sim.serial is not None:
-            return sim.serial
-        if line == "get robot model":
-            return sim.robot_model
-        if line == "is in remote control":
-            return "true"
-        if line == "robotmode":
-            return "Robotmode: RUNNING" if sim.robot_mode == ROBOT_MODE_RUNNING else f"Robotmode: {sim.robot_mode}"
-        if line in ("safetystatus", "safetymode"):
-            state = "ROBOT_EMERGENCY_STOP" if sim.emergency else "PROTECTIVE_STOP" if sim.protective else "NORMAL"
-            return f"Safetystatus: {state}"
-        if line == "running":
-            return f"Program running: {str(sim.program_running).lower()}"
-        if line == "programState":
-            return "PLAYING" if sim.program_running else "STOPPED"
         if line == "unlock protective stop":
             sim.protective = False
-            return "Protective stop releasing"
-        if line == "close safety popup":
-            return "closing safety popup"
-        if line == "stop":
+        elif line == "stop":
             sim.program_running = False
-            return "Stopped"
-        if line == "play":
-            return "Failed to execute: play"  # no .urp programs here: ur-rtde uploads its script instead
-        return f"could not understand: '{line}'"
+        safety = "ROBOT_EMERGENCY_STOP" if sim.emergency else "PROTECTIVE_STOP" if sim.protective else "NORMAL"
+        answers = {
+            "PolyscopeVersion": "URSoftware {}.{}.{}.{} (fake)".format(*sim.controller_version),
+            "get serial number": sim.serial,  # None: a controller too old to know the command
+            "get robot model": sim.robot_model,
+            "is in remote control": "true",
+            "robotmode": "Robotmode: RUNNING"
+            if sim.robot_mode == ROBOT_MODE_RUNNING
+            else f"Robotmode: {sim.robot_mode}",
+            "safetystatus": f"Safetystatus: {safety}",
+            "safetymode": f"Safetystatus: {safety}",
+            "running": f"Program running: {str(sim.program_running).lower()}",
+            "programState": "PLAYING" if sim.program_running else "STOPPED",
+            "unlock protective stop": "Protective stop releasing",
+            "close safety popup": "closing safety popup",
+            "stop": "Stopped",
+            "play": "Failed to execute: play",  # no .urp programs here: ur-rtde uploads its script instead
+        }
+        answer = answers.get(line)
+        return f"could not understand: '{line}'" if answer is None else answer
 
     def serve_script(self, sock: socket.socket) -> None:
         with contextlib.closing(sock):
@@ -806,60 +799,45 @@ def candidate_hosts(start: int, count: int = 400) -> list[str]:
 
 
 def _child_main(options: dict[str, Any], commands: Any, replies: Any) -> None:
-    """Body of the fake's process: bind, report the host, then serve until told to stop or stdin closes.
-
-    commands/replies: text streams of JSON lines (the process's stdin and stdout).
-    """
-
-    def reply(status: str, value: Any) -> None:
-        replies.write(json.dumps([status, value]) + "\n")
-        replies.flush()
-
+    """Body of the fake's process: bind, report the host, then serve until stdin closes (see
+    :func:`labcal.drivers.ur_process.serve`). commands/replies: text streams of JSON lines (stdin and stdout)."""
     sim = SimController(options["q0"], options["controller_version"])
     sim.serial, sim.robot_model = options.get("serial", sim.serial), options.get("robot_model", sim.robot_model)
     ports = [RTDE_PORT] + ([DASHBOARD_PORT, SCRIPT_PORT] if options["control"] else [])
     listeners: dict[int, socket.socket] = {}
-    host = None
-    for candidate in options["hosts"]:
-        try:
-            for port in ports:
-                listeners[port] = _listen(candidate, port)
-            host = candidate
-            break
-        except OSError:
-            for sock in listeners.values():
-                sock.close()
-            listeners.clear()
-    if host is None:
-        reply("error", f"no free loopback address among {len(options['hosts'])} candidates")
-        return
-
-    control = ControlEmulator(sim) if options["control"] else None
     sessions: list[_RTDESession] = []
 
-    def serve_rtde(sock: socket.socket) -> None:
-        on_input = control.on_input if control else (lambda names: None)
-        session = _RTDESession(sock, sim, on_input, options["unknown_variables"])
-        sessions.append(session)
-        session.run()
+    def start() -> tuple[Callable[..., Any], str]:
+        host = None
+        for candidate in options["hosts"]:
+            try:
+                for port in ports:
+                    listeners[port] = _listen(candidate, port)
+                host = candidate
+                break
+            except OSError:
+                for sock in listeners.values():
+                    sock.close()
+                listeners.clear()
+        if host is None:
+            raise RuntimeError(
+                f"fake RTDE server failed to start: no free loopback address among {len(options['hosts'])} candidates"
+            )
+        control = ControlEmulator(sim) if options["control"] else None
 
-    threading.Thread(target=_accept_loop, args=(listeners[RTDE_PORT], serve_rtde), daemon=True).start()
-    if control is not None:
-        for port, handler in ((DASHBOARD_PORT, control.serve_dashboard), (SCRIPT_PORT, control.serve_script)):
-            threading.Thread(target=_accept_loop, args=(listeners[port], handler), daemon=True).start()
-    reply("ready", host)
+        def serve_rtde(sock: socket.socket) -> None:
+            on_input = control.on_input if control else (lambda names: None)
+            session = _RTDESession(sock, sim, on_input, options["unknown_variables"])
+            sessions.append(session)
+            session.run()
 
-    for line in commands:  # EOF when the parent goes away: never outlive it
-        command, args = json.loads(line)
-        if command == "stop":
-            reply("ok", None)
-            break
-        try:
-            result = _apply(sim, sessions, control, command, args)
-        except Exception as exc:  # report, never die silently: the test would only see a timeout
-            reply("error", f"{type(exc).__name__}: {exc}")
-        else:
-            reply("ok", result)
+        threading.Thread(target=_accept_loop, args=(listeners[RTDE_PORT], serve_rtde), daemon=True).start()
+        if control is not None:
+            for port, handler in ((DASHBOARD_PORT, control.serve_dashboard), (SCRIPT_PORT, control.serve_script)):
+                threading.Thread(target=_accept_loop, args=(listeners[port], handler), daemon=True).start()
+        return (lambda command, args=None: _apply(sim, sessions, control, command, args)), host
+
+    serve(start, commands, replies)  # until stdin closes: stop() closes it, and so does the parent's end
     for sock in listeners.values():
         with contextlib.suppress(OSError):
             sock.close()
@@ -952,9 +930,7 @@ class FakeRTDEServer:
         }
         self._start_timeout = start_timeout
         self._reply_timeout = reply_timeout
-        self._process: subprocess.Popen[bytes] | None = None
-        self._buffer = b""
-        self._lock = threading.Lock()
+        self._child: ChildProcess | None = None
         self.host = ""
 
     def __enter__(self) -> FakeRTDEServer:
@@ -965,48 +941,15 @@ class FakeRTDEServer:
         self.stop()
 
     def start(self) -> None:
-        self._process = subprocess.Popen(
-            [sys.executable, "-m", "labcal.testing.rtde_fake", json.dumps(self._options)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-        )
-        try:
-            status, value = self._read_reply(self._start_timeout, "start")
-        except BaseException:
-            self.kill()
-            raise
-        if status != "ready":
-            self.kill()
-            raise RuntimeError(f"fake RTDE server failed to start: {value}")
-        self.host = value
+        argv = [sys.executable, "-m", "labcal.testing.rtde_fake", json.dumps(self._options)]
+        start, call = self._start_timeout, self._reply_timeout
+        self._child = ChildProcess(argv, "fake RTDE server", start_timeout=start, call_timeout=call, log_stderr=False)
+        self.host = self._child.started
 
-    def _read_reply(self, timeout: float, what: str) -> tuple[str, Any]:
-        assert self._process is not None and self._process.stdout is not None
-        fd = self._process.stdout.fileno()
-        deadline = time.monotonic() + timeout
-        while b"\n" not in self._buffer:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
-                raise TimeoutError(f"fake RTDE server did not answer {what!r} within {timeout} s")
-            chunk = os.read(fd, 65536)
-            if not chunk:
-                raise RuntimeError(f"fake RTDE server exited (code {self._process.poll()}) before answering {what!r}")
-            self._buffer += chunk
-        line, self._buffer = self._buffer.split(b"\n", 1)
-        status, value = json.loads(line)
-        return status, value
-
-    def _call(self, command: str, args: Any = None) -> Any:
-        with self._lock:
-            if self._process is None or self._process.poll() is not None:
-                raise RuntimeError("fake RTDE server is not running")
-            assert self._process.stdin is not None
-            self._process.stdin.write((json.dumps([command, args]) + "\n").encode())
-            self._process.stdin.flush()
-            status, value = self._read_reply(self._reply_timeout, command)
-        if status != "ok":
-            raise RuntimeError(f"fake RTDE server: {value}")
-        return value
+    def _call(self, command: str, *args: Any) -> Any:
+        if self._child is None:
+            raise RuntimeError("fake RTDE server is not running")
+        return self._child.call(command, *args)
 
     def set_q(self, q: Sequence[float]) -> None:
         """Set the simulated actual (and target) joint positions, (6,) rad."""
@@ -1040,30 +983,19 @@ class FakeRTDEServer:
 
     def kill(self) -> None:
         """Kill the process abruptly (the kernel closes its sockets): a controller that died. Safe to repeat."""
-        process, self._process = self._process, None
-        if process is None:
-            return
-        if process.poll() is None:
-            process.kill()
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            process.wait(5.0)
-        for stream in (process.stdin, process.stdout):
-            with contextlib.suppress(OSError):
-                if stream is not None:
-                    stream.close()
+        child, self._child = self._child, None
+        if child is not None:
+            child.kill()
 
     def stop(self) -> None:
-        """Stop the process politely, killing it if it does not exit in time. Safe to call twice."""
-        if self._process is not None and self._process.poll() is None:
-            with contextlib.suppress(Exception):
-                self._call("stop")
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self._process.wait(3.0)
+        """Stop the process politely (closing its stdin), killing it if it does not exit in time. Safe to call twice."""
+        if self._child is not None:
+            self._child.end(3.0)
         self.kill()
 
     @property
     def alive(self) -> bool:
-        return self._process is not None and self._process.poll() is None
+        return self._child is not None and self._child.alive
 
 
 if __name__ == "__main__":

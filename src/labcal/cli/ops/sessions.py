@@ -203,7 +203,7 @@ def _real_drivers(profile, tracker_profile, targets, robot_host=None, tracker_po
     A controller or tracker that cannot be reached is a UserError naming the host or port and the profile key to
     fix (one line, exit 2): nothing has moved yet."""
     from labcal.drivers.base import DriverError
-    from labcal.drivers.serial_tracker import open_tracker
+    from labcal.drivers.serial.tracker import open_tracker
     from labcal.drivers.ur import URRobot, load_ur_profile
 
     ur_profile = load_ur_profile(profile)
@@ -263,7 +263,7 @@ def plan_cell(request: SessionRequest, spec: RobotSpec, normals, robot) -> dict:
 
 
 def _profile_url(tracker_profile) -> str:
-    from labcal.drivers.serial_tracker import load_profile
+    from labcal.drivers.serial.profiles import load_profile
 
     try:
         return load_profile(tracker_profile).port.url or "(no port)"

@@ -1,4 +1,4 @@
-"""Serial tracker driver internals: checksums, link/framer, profiles, NDI and ASCII protocols, matching.
-
-Use the public names from ``labcal.drivers.serial_tracker``.
+"""Serial tracker driver (1..m targets): pyserial transport -> framer (``link``) -> protocol profile (``profiles``:
+the ``ascii`` line protocol or the NDI Combined API, ``ndi``) -> the ``Tracker`` port (``tracker.SerialTracker``,
+``tracker.open_tracker``); ``matching`` labels unordered markers, ``crc`` holds the checksums.
 """

@@ -60,13 +60,9 @@ def open_serial(url: str, *, baudrate: int, bytesize: int, parity: str, stopbits
 
 def _library_errors() -> tuple[type[BaseException], ...]:
     """Exceptions a serial port can raise: pyserial's own, OS errors, and termios.error (not an OSError!)."""
-    errors: list[type[BaseException]] = [OSError]
-    try:
-        import serial
+    import serial  # a dependency; imported here, lazily, as in open_serial
 
-        errors.append(serial.SerialException)
-    except ImportError:  # pragma: no cover - pyserial is a dependency
-        pass
+    errors: list[type[BaseException]] = [OSError, serial.SerialException]
     try:
         import termios
 

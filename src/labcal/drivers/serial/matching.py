@@ -36,36 +36,13 @@ from labcal.drivers.base import MeasurementRejected
 _PAIRS = target_pairs(3)
 
 
-def check_scalene(targets: np.ndarray, tolerance: float) -> np.ndarray:
-    """Validate three nominal targets (3, 3) m and return them as floats.
-
-    Raises ValueError when two sides differ by less than 2 x ``tolerance`` (m): such a triangle cannot be
-    labelled from distances within that tolerance.
-    """
-    t = np.asarray(targets, dtype=float)
-    if t.shape != (3, 3) or not np.all(np.isfinite(t)):
-        raise ValueError(f"targets must be a finite (3, 3) array in metres, got shape {t.shape}")
-    sides = pair_distances(t)
-    names = ("t1-t2", "t1-t3", "t2-t3")
-    if np.min(sides) < 4 * tolerance:
-        raise ValueError(f"targets are (nearly) coincident: side lengths {np.round(sides * 1e3, 3)} mm")
-    for a, b in itertools.combinations(range(3), 2):
-        if abs(sides[a] - sides[b]) < 2 * tolerance:
-            raise ValueError(
-                f"target triangle is not scalene enough to label markers: sides {names[a]} "
-                f"({sides[a] * 1e3:.3f} mm) and {names[b]} ({sides[b] * 1e3:.3f} mm) differ by less than "
-                f"2 x tolerance ({2 * tolerance * 1e3:.3f} mm)"
-            )
-    return t
-
-
 def check_targets(targets: np.ndarray, tolerance: float) -> np.ndarray:
     """Validate m nominal targets (m, 3) m for labelling stray markers; return them as floats.
 
     One target is fine (a lone marker is it). Two are refused: their one distance reads the same both ways
-    round, so no frame could ever be labelled. Three must form a clearly scalene triangle (:func:`check_scalene`);
-    more must have all pairwise distances at least 4 x ``tolerance`` and differing from each other by at least
-    2 x ``tolerance``.
+    round, so no frame could ever be labelled. Three or more must have all pairwise distances at least
+    4 x ``tolerance`` and differing from each other by at least 2 x ``tolerance`` (three: a clearly scalene
+    triangle).
     """
     t = np.asarray(targets, dtype=float)
     if t.ndim != 2 or t.shape[1] != 3 or len(t) == 0 or not np.all(np.isfinite(t)):
@@ -78,8 +55,6 @@ def check_targets(targets: np.ndarray, tolerance: float) -> np.ndarray:
             "two targets cannot be told apart as stray markers (the one distance between them reads the same both "
             "ways round): use one target, or three or more"
         )
-    if m == 3:
-        return check_scalene(t, tolerance)
     pairs = target_pairs(m)
     d = pair_distances(t)
     if np.min(d) < 4 * tolerance:
@@ -93,7 +68,7 @@ def check_targets(targets: np.ndarray, tolerance: float) -> np.ndarray:
         raise ValueError(
             f"target distances t{a + 1}-t{b + 1} ({d[order[k]] * 1e3:.3f} mm) and t{c + 1}-t{e + 1} "
             f"({d[order[k + 1]] * 1e3:.3f} mm) differ by less than 2 x tolerance ({2 * tolerance * 1e3:.3f} mm): "
-            "markers could not be labelled"
+            "the targets are not scalene enough to label markers"
         )
     return t
 

@@ -302,19 +302,13 @@ def parse_ver(text: str) -> dict[str, str]:
 
 
 class NDIProtocol:
-    """The NDI session on a SerialLink: start (INIT, COMM, TSTART), read_frame (TX:1000 or BX:1000), stop (TSTOP)."""
+    """The NDI session on a SerialLink: start (INIT, COMM, TSTART), read_strays (TX:1000 or BX:1000) and label them
+    as the targets, stop (TSTOP)."""
 
-    def __init__(
-        self,
-        profile: NDIProfile,
-        targets: np.ndarray,
-        link: SerialLink,
-        sleep: Callable[[float], None],
-    ):
+    def __init__(self, profile: NDIProfile, targets: np.ndarray, link: SerialLink):
         self.profile = profile
         self.targets = np.asarray(targets, dtype=float)
         self.link = link
-        self.sleep = sleep
         self.tracking = False
         self.resets = 0  # hard resets (break) performed, for diagnostics
 
@@ -402,7 +396,7 @@ class NDIProtocol:
             code = NDI_BAUD_CODES[self.profile.baudrate]
             self._expect_okay(f"COMM:{code}000{int(self.profile.handshake)}")
             # The device changes rate after sending OKAY; follow once it has.
-            self.sleep(self.profile.switch_delay)
+            self.link.sleep(self.profile.switch_delay)
             self.link.set_baudrate(self.profile.baudrate)
         self._expect_okay("TSTART:")
         self.tracking = True
@@ -467,10 +461,6 @@ class NDIProtocol:
         quality += tuple(f"missing:t{k + 1}" for k, i in enumerate(match.indices) if i < 0)
         return match.points, quality
 
-    def read_frame(self) -> tuple[np.ndarray, tuple[str, ...]]:
-        """One frame on its own: (m, 3) target positions in the tracker frame, m (NaN rows: not seen), flags."""
-        return self.label(self.read_strays())
-
     def identify(self) -> dict[str, object]:
         """Ask the device who it is (``VER:4``, ``APIREV:``): serial, model, firmware, api_revision, and ``notes``
         for what it would not tell. Never raises a protocol error: a session can be recorded without them."""
@@ -503,5 +493,5 @@ class NDIProtocol:
             self._expect_okay("TSTOP:", retries=0)
         if self.link.transport.baudrate != 9600:
             self._expect_okay("COMM:00000", retries=0)
-            self.sleep(self.profile.switch_delay)
+            self.link.sleep(self.profile.switch_delay)
             self.link.set_baudrate(9600)

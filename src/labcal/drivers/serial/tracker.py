@@ -12,6 +12,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -19,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from labcal.drivers.base import DriverError, Measurement, MeasurementRejected, average_frames
+from labcal.drivers.base import ClosedOnExit, DriverError, Measurement, MeasurementRejected, average_frames
 from labcal.drivers.serial.ascii import AsciiProtocol
 from labcal.drivers.serial.link import SerialLink, Transport, open_serial
 from labcal.drivers.serial.matching import check_targets
@@ -27,7 +28,7 @@ from labcal.drivers.serial.ndi import NDIProtocol
 from labcal.drivers.serial.profiles import AsciiProfile, NDIProfile, Profile, load_profile
 
 
-class SerialTracker:
+class SerialTracker(ClosedOnExit):
     """A tracker of the session's m targets on a serial line, described by a profile (``load_profile``).
 
     targets: (m, 3) nominal target points in the tool frame, m (rows t1 … tm); an ASCII profile's reply must name
@@ -69,32 +70,26 @@ class SerialTracker:
             target_url = url or profile.port.url
             if not target_url:
                 raise ValueError(f"{profile.source}: no serial port: set [port].url or pass url=")
-            port = profile.port
-            transport = open_serial(
-                target_url,
-                baudrate=port.baudrate,
-                bytesize=port.bytesize,
-                parity=port.parity,
-                stopbits=port.stopbits,
-                timeout=port.timeout,
-            )
-        if isinstance(profile, NDIProfile):
-            terminators = (b"\r", b"\r")
+            settings = dataclasses.asdict(profile.port)
+            del settings["url"]
+            transport = open_serial(target_url, **settings)
+        if isinstance(profile, AsciiProfile):
+            write, read = profile.write_terminator, profile.read_terminator
         else:
-            terminators = (profile.write_terminator, profile.read_terminator)
+            write = read = b"\r"  # the NDI Combined API ends every command and reply with CR
         self.link = SerialLink(
             transport,
-            write_terminator=terminators[0],
-            read_terminator=terminators[1],
+            write_terminator=write,
+            read_terminator=read,
             timeout=profile.port.timeout,
             clock=clock,
             sleep=sleep,
         )
         self.protocol: NDIProtocol | AsciiProtocol
-        if isinstance(profile, NDIProfile):
-            self.protocol = NDIProtocol(profile, targets, self.link, sleep)
-        else:
+        if isinstance(profile, AsciiProfile):
             self.protocol = AsciiProtocol(profile, targets, self.link)
+        else:
+            self.protocol = NDIProtocol(profile, targets, self.link)
         try:
             self.protocol.start()
         except BaseException:
@@ -173,12 +168,6 @@ class SerialTracker:
             pass  # the port may be gone already; closing must not fail because of it
         finally:
             self.link.close()
-
-    def __enter__(self) -> SerialTracker:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def open_tracker(profile_path: str | Path, targets: Any, url: str | None = None, **kwargs: Any) -> SerialTracker:
