@@ -71,7 +71,7 @@ from typing import Any
 import numpy as np
 
 from labcal.calibration.observations import Observations, rigid_fit, target_geometry
-from labcal.calibration.tool import split_robot, split_tool, tool_std
+from labcal.calibration.tool import split_robot, split_tool
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
@@ -340,6 +340,39 @@ def _weak_threshold(noise: float, error_bound: float) -> float:
     if not (noise >= 0 and error_bound > 0):
         raise ValueError(f"noise must be ≥ 0 and error_bound > 0 (m), got {noise!r} and {error_bound!r}")
     return float(noise / error_bound)
+
+
+def tool_std(
+    J: np.ndarray, scale: np.ndarray, n_frames: int, sigma: float, X: np.ndarray, fixed=None, rank_rtol: float = 1e-6
+) -> np.ndarray:
+    """(6,) standard deviations of the measurement tool's position and rotation (m, rad, along tool0's axes) from a
+    fit's Jacobian at the split model (right perturbations X·exp(δ) of the tool, turned into tool0 by X's rotation;
+    :mod:`labcal.calibration.tool`).
+
+    J: (r, p) the point residuals' Jacobian over the frames' right perturbations (``n_frames`` frames, the tool
+    last, then any base parameters), in SI units; scale: (p,) the fit's parameter weights; sigma: the residual σ
+    per coordinate (m); fixed: (p, c) directions the targets cannot show (held: NaN where the tool only moves
+    along them). The last joint frame's turn about and shift along its axis are the tool's (not parameters).
+    """
+    held = fixed is not None and fixed.shape[1] > 0
+    Js = _without_image(J * scale, fixed / scale[:, None] if held else None)
+    keep_cols = np.ones(Js.shape[1], bool)
+    last_joint = 6 * (n_frames - 2)
+    if n_frames >= 2:
+        keep_cols[[last_joint + 2, last_joint + 5]] = False
+    lam, V, keep = _eig(Js[:, keep_cols], rank_rtol)
+    Vk = V[:, keep] / np.sqrt(lam[keep])
+    tool = slice(6 * (n_frames - 1), 6 * n_frames)
+    rows = np.flatnonzero(keep_cols[: tool.stop])[-6:]  # the tool's columns among the kept ones
+    B = Vk[np.searchsorted(np.flatnonzero(keep_cols), rows)] * scale[tool][:, None]
+    R = np.kron(np.eye(2), X[:3, :3])
+    cov = sigma**2 * (R @ B) @ (R @ B).T
+    std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    if held:
+        # a tool direction the targets cannot show has no variance, not a small one
+        unseen = np.abs(fixed[tool]).max(axis=1) > 0
+        std[unseen & (np.arange(6) >= 3)] = np.nan
+    return std
 
 
 def _eig(Js: np.ndarray, rank_rtol: float, s_min: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
