@@ -67,6 +67,7 @@ from labcal.calibration.equivalent import (
     JointErrorObservations,
     equivalent_joints,
     joint_error_observations,
+    learned_robot,
 )
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot, Network, input_features
@@ -533,24 +534,7 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
         "export_max_abs_diff": export_diff,
         "warnings": warnings,
     }
-    return _network_robot(base, network, used.q), info
-
-
-def _network_robot(base: CalibratedRobot, network: Network, q: np.ndarray) -> CalibratedRobot:
-    """``base`` with the network, calibrated over the joint ranges of q: every row the fit was given, including
-    the ones the condition filter kept out of training — the ranges say where the calibration data lie, and the
-    network is smooth across the dropped (singular) points."""
-    return CalibratedRobot(
-        nominal=base.nominal,
-        model=base.model,
-        network=network,
-        T_tracker_base=base.T_tracker_base,
-        measurement_tool=base.measurement_tool,
-        measurement_tool_std=base.measurement_tool_std,
-        joint_ranges=np.stack([q.min(axis=0), q.max(axis=0)], axis=1),
-        length_scale=base.length_scale,
-        method="ann",
-    )
+    return learned_robot(base, network, used.q, "ann"), info
 
 
 def _check_options(
@@ -721,8 +705,3 @@ def torch_predict(network: Network, q: np.ndarray, model) -> np.ndarray:
     with _deterministic_torch(0) as torch:
         out = _forward(torch.as_tensor(theta), torch.as_tensor(x), shapes).numpy()
     return out * network.out_scale + network.out_mean
-
-
-def observations_for(obs: Observations, base: CalibratedRobot, **kwargs) -> JointErrorObservations:
-    """The eq. (21) observations fit_ann trains on (a convenience re-export for reports and the hybrid)."""
-    return joint_error_observations(obs, base, **kwargs)

@@ -65,13 +65,14 @@ small there). A smaller target triangle raises every condition number: with targ
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from labcal.calibration.observations import Observations, seen_patterns, target_geometry
-from labcal.compensator import CalibratedRobot
+from labcal.compensator import CalibratedRobot, Network
 from labcal.kinematics import metric, se3
 
 MAX_CONDITION = 1e3
@@ -146,6 +147,14 @@ class JointErrorObservations:
         if self.rank is not None:  # rows whose δρ is a minimum-norm solution (module docstring)
             out["rank_below_6"] = int(np.sum(self.rank < 6))
         return out
+
+
+def learned_robot(base: CalibratedRobot, network: Network, q: np.ndarray, method: str) -> CalibratedRobot:
+    """``base`` with a learned joint-error term, calibrated over the joint ranges of the fitting rows q (k, n): every
+    row the fit was given, including the ones the condition filter kept out of training — the ranges say where the
+    calibration data lie, and the learned term is smooth across the dropped (singular) points."""
+    ranges = np.stack([q.min(axis=0), q.max(axis=0)], axis=1)
+    return dataclasses.replace(base, network=network, joint_ranges=ranges, method=method, validity=None)
 
 
 def point_matrix(points: np.ndarray) -> np.ndarray:
