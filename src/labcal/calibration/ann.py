@@ -218,25 +218,13 @@ class _Problem:
 
 
 @dataclass(frozen=True)
-class TrainOptions:
-    """How one network is trained (:func:`fit_ann`'s trainer settings, defaults resolved)."""
-
-    trainer: str
-    weight_decay: float
-    max_iter: int
-    patience: int
-    lr: float | None
-    progress: ProgressFn | None = None
-
-
-@dataclass(frozen=True)
 class _Job:
     """One training problem: layer shapes, the training and early-stopping problems, and the options."""
 
     shapes: list
     train: _Problem
     val: _Problem
-    options: TrainOptions
+    options: _Settings
 
 
 def _train_one(torch, job: _Job, theta0: np.ndarray, restart: int):
@@ -322,7 +310,7 @@ def _lm_step(torch, job: _Job, full_residual, wmask, sqrt_wd: float, size: int):
     return step
 
 
-def _gradient_step(torch, opts: TrainOptions, full_residual, theta0):
+def _gradient_step(torch, opts: _Settings, full_residual, theta0):
     """Adam or plain gradient descent: a function θ → the next θ (the optimiser's state carried between calls)."""
     param = torch.nn.Parameter(theta0.clone())
     opt = torch.optim.Adam([param], lr=opts.lr) if opts.trainer == "adam" else torch.optim.SGD([param], lr=opts.lr)
@@ -454,7 +442,7 @@ def fit_ann(
     if max_rows is not None and int(max_rows) < MIN_TRAIN_ROWS:
         raise ValueError(f"max_rows must be >= {MIN_TRAIN_ROWS} or None, got {max_rows}")
     settings = _Settings(
-        TrainOptions(trainer, weight_decay, max_iter, patience, lr, progress),
+        trainer, weight_decay, max_iter, patience, lr, progress,
         features, hidden, loss, int(restarts), seed, max_condition, soft_condition, stop_fraction, max_rows,
     )  # fmt: skip
     return _fit_network(obs, base, settings)
@@ -462,9 +450,14 @@ def fit_ann(
 
 @dataclass(frozen=True)
 class _Settings:
-    """fit_ann's checked options."""
+    """fit_ann's checked options, the trainer's defaults resolved."""
 
-    train: TrainOptions
+    trainer: str
+    weight_decay: float
+    max_iter: int
+    patience: int
+    lr: float | None
+    progress: ProgressFn | None
     features: tuple[str, ...]
     hidden: int | tuple[int, ...] | None
     loss: str
@@ -496,11 +489,10 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
         warnings.append(
             f"the network has {n_params} weights for {n_out * rows['train'].size} training numbers: expect over-fitting"
         )
-    runs, val_losses, best = _train_restarts(jeo, data, rows, shapes, loss, opts.train, opts.seed, opts.restarts)
+    runs, val_losses, best = _train_restarts(jeo, data, rows, shapes, loss, opts, opts.seed, opts.restarts)
     theta, curve_t, curve_v, stopped_at, iterations = runs[best]
     network = _network(theta, shapes, opts.features, data)
     export_diff = _export_difference(network, jeo.q[rows["train"]], base)
-    train = opts.train
     info = {
         "method": "ann",
         "observations": jeo.summary(),
@@ -515,13 +507,13 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
         "inputs": int(data.x.shape[1]),
         "hidden": list(network.hidden),
         "weights": n_params,
-        "trainer": train.trainer,
+        "trainer": opts.trainer,
         "loss": loss,
         "loss_note": loss_note,
-        "weight_decay": train.weight_decay,
-        "max_iter": train.max_iter,
-        "patience": train.patience,
-        "lr": train.lr,
+        "weight_decay": opts.weight_decay,
+        "max_iter": opts.max_iter,
+        "patience": opts.patience,
+        "lr": opts.lr,
         "seed": opts.seed,
         "restarts": opts.restarts,
         "restart_val_losses": val_losses,
@@ -650,7 +642,7 @@ def _train_restarts(
     rows: dict[str, np.ndarray],
     shapes,
     loss: str,
-    options: TrainOptions,
+    options: _Settings,
     seed: int,
     restarts: int,
 ) -> tuple[list, list[float], int]:

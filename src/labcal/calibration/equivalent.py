@@ -255,9 +255,9 @@ def joint_error_observations(
     condition = condition_numbers(PJ, scale, rank) if k else np.zeros(0)
     reason, weight, ok = _screen(condition, max_condition, soft_condition)
     delta_rho = np.full((k, N), np.nan)
-    if np.any(ok) and dense:
+    if np.any(ok) and rank is None:  # dense
         delta_rho[ok] = np.einsum("kab,kb->ka", np.linalg.pinv(PJ[ok]), delta_p[ok])
-    elif np.any(ok):
+    elif np.any(ok) and rank is not None:
         delta_rho[ok] = _min_norm(PJ[ok], delta_p[ok], rank[ok], scale)
     return JointErrorObservations(
         q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split, obs.targets, None if dense else seen, rank

@@ -297,7 +297,7 @@ def _without_image(Js: np.ndarray, F: np.ndarray | None) -> np.ndarray:
 
 
 def _tilts_measured(
-    out: dict, fit_args: tuple, seen, structural: dict, length_scale: float, rank_rtol: float, s_min: float
+    out: dict, fit_args: _FitArgs, seen, structural: dict, length_scale: float, rank_rtol: float, s_min: float
 ) -> bool:
     """Whether the data measure the two held tilts of the last joint's axis (:data:`MEASURED_TILT_MIN_JOINTS`).
 

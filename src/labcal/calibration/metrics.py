@@ -24,6 +24,7 @@ Example::
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -49,7 +50,7 @@ def summarize(pos: np.ndarray, ori: np.ndarray) -> dict[str, float]:
     return out
 
 
-_STATISTICS = {
+_STATISTICS: dict[str, Callable[[np.ndarray], Any]] = {
     "mean": np.mean,
     "rms": lambda e: np.sqrt(np.mean(e * e)),
     "p95": lambda e: np.percentile(e, 95),
