@@ -200,11 +200,6 @@ def is_feature(name: str) -> bool:
     return True
 
 
-def size(name: str, n: int) -> int:
-    """Number of feature columns of ``name`` for a robot with n joints."""
-    return get(name).size(n)
-
-
 def compute_all(q: np.ndarray, names, joint_types=None, limits=None, frames=None) -> np.ndarray:
     """(k, n) joint values → (k, f) network inputs: the features ``names`` side by side (see Feature.compute)."""
     return evaluator(tuple(names), joint_types, limits)(np.atleast_2d(np.asarray(q, dtype=float)), frames)
@@ -316,11 +311,6 @@ def harmonics(q: np.ndarray, order: int, joint_types=None, limits=None) -> np.nd
     if not 1 <= order <= MAX_HARMONICS:
         raise ValueError(f"order must be in 1 … {MAX_HARMONICS}, got {order}")
     return _harmonics_of_angles(joint_angles(q, joint_types, limits), order)
-
-
-def compute(q: np.ndarray, name: str, joint_types=None, limits=None, frames=None) -> np.ndarray:
-    """Evaluate the feature ``name`` (e.g. ``"harmonics:24"``) at (k, n) joint values → (k, f)."""
-    return get(name).compute(q, joint_types, limits, frames)
 
 
 @functools.lru_cache(maxsize=64)
