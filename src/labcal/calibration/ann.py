@@ -489,7 +489,7 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
         warnings.append(
             f"the network has {n_params} weights for {n_out * rows['train'].size} training numbers: expect over-fitting"
         )
-    runs, val_losses, best = _train_restarts(jeo, data, rows, shapes, loss, opts, opts.seed, opts.restarts)
+    runs, val_losses, best = _train_restarts(jeo, data, rows, shapes, loss, opts)
     theta, curve_t, curve_v, stopped_at, iterations = runs[best]
     network = _network(theta, shapes, opts.features, data)
     export_diff = _export_difference(network, jeo.q[rows["train"]], base)
@@ -643,15 +643,13 @@ def _train_restarts(
     shapes,
     loss: str,
     options: _Settings,
-    seed: int,
-    restarts: int,
 ) -> tuple[list, list[float], int]:
     """Every restart trained; their validation losses and the best one. Raises if every restart diverged."""
-    tr, va = rows["train"], rows["val"]
+    tr, va, seed = rows["train"], rows["val"], options.seed
     runs = []
     with _deterministic_torch(seed) as torch:
         job = _Job(shapes, _problem(torch, jeo, data, tr, tr, loss), _problem(torch, jeo, data, va, tr, loss), options)
-        for r in range(restarts):
+        for r in range(options.restarts):
             runs.append(_train_one(torch, job, _init_params(shapes, seed, r), r))
     val_losses = [float(run[2][run[3]]) for run in runs]
     finite = [v if math.isfinite(v) else math.inf for v in val_losses]
