@@ -180,10 +180,7 @@ def condition_numbers(PJ: np.ndarray, scale: np.ndarray, rank: np.ndarray | None
 
     rank: (k,) the directions each row can see (module docstring); the condition is then σ_max / σ_rank."""
     sv = np.linalg.svd(PJ * scale, compute_uv=False)
-    if rank is None:
-        with np.errstate(divide="ignore"):
-            return np.where(sv[:, -1] > 0, sv[:, 0] / np.where(sv[:, -1] > 0, sv[:, -1], 1.0), np.inf)
-    low = np.take_along_axis(sv, (np.asarray(rank, int) - 1)[:, None], axis=1)[:, 0] if len(sv) else sv[:, 0]
+    low = sv[:, -1] if rank is None else sv[np.arange(len(sv)), np.asarray(rank, int) - 1]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(low > 0, sv[:, 0] / np.where(low > 0, low, 1.0), np.inf)
 
