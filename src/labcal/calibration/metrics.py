@@ -100,8 +100,7 @@ def point_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
     :func:`point_residuals`; a row's mean over its seen targets is :func:`labcal.calibration.cv.row_errors`.
     """
     if obs.k == 0:
-        points = np.asarray(obs.points, dtype=float)
-        return np.zeros((0, points.shape[1] if points.ndim == 3 else 3))
+        return np.zeros((0, obs.m))
     return np.linalg.norm(point_residuals(robot, obs), axis=-1)
 
 
