@@ -22,7 +22,7 @@ def test_harmonics_match_the_direct_formula_column_by_column():
             c = j * 2 * H + 2 * (h - 1)
             np.testing.assert_allclose(x[:, c], np.sin(h * q[:, j]), rtol=0, atol=1e-12)
             np.testing.assert_allclose(x[:, c + 1], np.cos(h * q[:, j]), rtol=0, atol=1e-12)
-    np.testing.assert_array_equal(features.compute(q, "harmonics:5"), x)
+    np.testing.assert_array_equal(features.get("harmonics:5").compute(q), x)
     assert features.harmonic_orders(H, 3)[c] == H and features.column_joints(H, 3)[c] == 2
 
 
@@ -39,15 +39,15 @@ def test_parse_size_and_clear_errors():
     assert features.parse("harmonics:24") == ("harmonics", 24)
     assert features.parse("sincos") is None
     assert features.is_feature("harmonics:3") and not features.is_feature("harmonics:0")
-    assert features.size("harmonics:4", 6) == 48
+    assert features.get("harmonics:4").size(6) == 48
     with pytest.raises(ValueError, match="must be an integer, got 'x'"):
         features.parse("harmonics:x")
     with pytest.raises(ValueError, match="1 … 512, got 0"):
-        features.compute(np.zeros((1, 2)), "harmonics:0")
+        features.get("harmonics:0").compute(np.zeros((1, 2)))
     with pytest.raises(ValueError, match="unknown feature 'gravitation'; known: q, sincos"):
-        features.compute(np.zeros((1, 2)), "gravitation")
+        features.get("gravitation").compute(np.zeros((1, 2)))
     with pytest.raises(ValueError, match="'gravity' needs the link frames"):
-        features.compute(np.zeros((1, 2)), "gravity")
+        features.get("gravity").compute(np.zeros((1, 2)))
     with pytest.raises(ValueError, match="need the joint limits"):
         features.harmonics(np.zeros((1, 1)), 2, ("prismatic",))
     with pytest.raises(ValueError, match="joint 1 is prismatic with limits"):
@@ -99,11 +99,11 @@ def test_every_registered_feature_matches_its_column_recipes_and_size(robot):
     for name in NAMES:
         feature = features.get(name)
         x = feature.compute(q, model.joint_types, model.limits, frames)
-        assert x.shape == (9, feature.size(model.n)) == (9, features.size(name, model.n))
+        assert x.shape == (9, feature.size(model.n))
         cols = feature.columns(model.joint_types, model.limits)
         np.testing.assert_allclose(x, _evaluate_columns(cols, q, frames), rtol=0, atol=1e-12, err_msg=name)
     together = features.compute_all(q, NAMES, model.joint_types, model.limits, frames)
-    assert together.shape[1] == sum(features.size(name, model.n) for name in NAMES)
+    assert together.shape[1] == sum(features.get(name).size(model.n) for name in NAMES)
     assert all(features.is_feature(name) for name in NAMES) and not features.is_feature("harmonics")
 
 
@@ -113,7 +113,7 @@ def test_gravity_is_the_base_down_direction_in_each_link_frame():
     model = load("ur10").model
     q = np.random.default_rng(2).uniform(-2, 2, size=(4, 6))
     frames = model.link_frames(q)
-    g = features.compute(q, "gravity", frames=frames).reshape(4, 6, 3)
+    g = features.get("gravity").compute(q, frames=frames).reshape(4, 6, 3)
     for j in range(6):
         R = frames[:, j + 1, :3, :3]
         np.testing.assert_allclose(g[:, j], np.einsum("kba,b->ka", R, [0.0, 0.0, -1.0]), atol=1e-15)

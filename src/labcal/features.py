@@ -136,22 +136,15 @@ class Feature:
             return functools.partial(_gravity, self.name)
         if kind == "q":
             return lambda q, frames=None: q
-        if kind == "sincos":
-            rev = None if joint_types is None else _revolute(joint_types, len(tuple(joint_types)))
-            if rev is None:
-                return lambda q, frames=None: np.concatenate([np.sin(q), np.cos(q)], axis=1)
-            return lambda q, frames=None: np.concatenate(
-                [np.where(rev, np.sin(q), q), np.where(rev, np.cos(q), 0.0)], axis=1
-            )
-        if kind != "sincos2":
+        if kind not in ("sincos", "sincos2"):
             raise ValueError(_unknown_kind(kind, "Feature.prepare"))
-        rev2 = None if joint_types is None else _revolute(joint_types, len(tuple(joint_types)))
-
-        def sincos2(q: np.ndarray, frames=None) -> np.ndarray:
-            mask = np.ones(q.shape[1], dtype=bool) if rev2 is None else rev2
-            return np.concatenate([np.where(mask, np.sin(2 * q), 0.0), np.where(mask, np.cos(2 * q), 0.0)], axis=1)
-
-        return sincos2
+        h = 1 if kind == "sincos" else 2  # a prismatic joint gives q_j and 0 for sincos, 0 and 0 for sincos2
+        rev = None if joint_types is None else _revolute(joint_types, len(tuple(joint_types)))
+        if rev is None:
+            return lambda q, frames=None: np.concatenate([np.sin(h * q), np.cos(h * q)], axis=1)
+        return lambda q, frames=None: np.concatenate(
+            [np.where(rev, np.sin(h * q), q if h == 1 else 0.0), np.where(rev, np.cos(h * q), 0.0)], axis=1
+        )
 
     def columns(self, joint_types, limits=None) -> tuple[Column, ...]:
         """One :class:`Column` recipe per column, in :meth:`compute`'s order (limits: for prismatic harmonics)."""
@@ -205,11 +198,6 @@ def is_feature(name: str) -> bool:
     except ValueError:
         return False
     return True
-
-
-def size(name: str, n: int) -> int:
-    """Number of feature columns of ``name`` for a robot with n joints."""
-    return get(name).size(n)
 
 
 def compute_all(q: np.ndarray, names, joint_types=None, limits=None, frames=None) -> np.ndarray:
@@ -323,11 +311,6 @@ def harmonics(q: np.ndarray, order: int, joint_types=None, limits=None) -> np.nd
     if not 1 <= order <= MAX_HARMONICS:
         raise ValueError(f"order must be in 1 … {MAX_HARMONICS}, got {order}")
     return _harmonics_of_angles(joint_angles(q, joint_types, limits), order)
-
-
-def compute(q: np.ndarray, name: str, joint_types=None, limits=None, frames=None) -> np.ndarray:
-    """Evaluate the feature ``name`` (e.g. ``"harmonics:24"``) at (k, n) joint values → (k, f)."""
-    return get(name).compute(q, joint_types, limits, frames)
 
 
 @functools.lru_cache(maxsize=64)

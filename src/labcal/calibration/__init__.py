@@ -8,9 +8,10 @@ The public API::
     fit_ann(obs, base, seed=0) -> (CalibratedRobot, info)      # the paper's method (imports torch lazily)
     fit_hybrid(obs, nominal, seed=0) -> (CalibratedRobot, info)
 
-``fit_ann`` is resolved on first access so that importing this package does not import torch.
+Importing this package does not import torch: the network's fitting imports it when it runs.
 """
 
+from labcal.calibration.ann import fit_ann
 from labcal.calibration.fit import METHODS, FitResult, fit, fit_hybrid
 from labcal.calibration.hybrid import validation_error
 from labcal.calibration.local_poe import IdentificationError, expected_rank, fit_local_poe, register
@@ -36,11 +37,3 @@ __all__ = [
     "summarize",
     "validation_error",
 ]
-
-
-def __getattr__(name: str):
-    if name == "fit_ann":
-        from labcal.calibration.ann import fit_ann
-
-        return fit_ann
-    raise AttributeError(f"module 'labcal.calibration' has no attribute {name!r}")

@@ -67,6 +67,7 @@ from labcal.calibration.equivalent import (
     JointErrorObservations,
     equivalent_joints,
     joint_error_observations,
+    learned_robot,
 )
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot, Network, input_features
@@ -217,25 +218,13 @@ class _Problem:
 
 
 @dataclass(frozen=True)
-class TrainOptions:
-    """How one network is trained (:func:`fit_ann`'s trainer settings, defaults resolved)."""
-
-    trainer: str
-    weight_decay: float
-    max_iter: int
-    patience: int
-    lr: float | None
-    progress: ProgressFn | None = None
-
-
-@dataclass(frozen=True)
 class _Job:
     """One training problem: layer shapes, the training and early-stopping problems, and the options."""
 
     shapes: list
     train: _Problem
     val: _Problem
-    options: TrainOptions
+    options: _Settings
 
 
 def _train_one(torch, job: _Job, theta0: np.ndarray, restart: int):
@@ -321,7 +310,7 @@ def _lm_step(torch, job: _Job, full_residual, wmask, sqrt_wd: float, size: int):
     return step
 
 
-def _gradient_step(torch, opts: TrainOptions, full_residual, theta0):
+def _gradient_step(torch, opts: _Settings, full_residual, theta0):
     """Adam or plain gradient descent: a function θ → the next θ (the optimiser's state carried between calls)."""
     param = torch.nn.Parameter(theta0.clone())
     opt = torch.optim.Adam([param], lr=opts.lr) if opts.trainer == "adam" else torch.optim.SGD([param], lr=opts.lr)
@@ -453,7 +442,7 @@ def fit_ann(
     if max_rows is not None and int(max_rows) < MIN_TRAIN_ROWS:
         raise ValueError(f"max_rows must be >= {MIN_TRAIN_ROWS} or None, got {max_rows}")
     settings = _Settings(
-        TrainOptions(trainer, weight_decay, max_iter, patience, lr, progress),
+        trainer, weight_decay, max_iter, patience, lr, progress,
         features, hidden, loss, int(restarts), seed, max_condition, soft_condition, stop_fraction, max_rows,
     )  # fmt: skip
     return _fit_network(obs, base, settings)
@@ -461,9 +450,14 @@ def fit_ann(
 
 @dataclass(frozen=True)
 class _Settings:
-    """fit_ann's checked options."""
+    """fit_ann's checked options, the trainer's defaults resolved."""
 
-    train: TrainOptions
+    trainer: str
+    weight_decay: float
+    max_iter: int
+    patience: int
+    lr: float | None
+    progress: ProgressFn | None
     features: tuple[str, ...]
     hidden: int | tuple[int, ...] | None
     loss: str
@@ -495,11 +489,10 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
         warnings.append(
             f"the network has {n_params} weights for {n_out * rows['train'].size} training numbers: expect over-fitting"
         )
-    runs, val_losses, best = _train_restarts(jeo, data, rows, shapes, loss, opts.train, opts.seed, opts.restarts)
+    runs, val_losses, best = _train_restarts(jeo, data, rows, shapes, loss, opts)
     theta, curve_t, curve_v, stopped_at, iterations = runs[best]
     network = _network(theta, shapes, opts.features, data)
     export_diff = _export_difference(network, jeo.q[rows["train"]], base)
-    train = opts.train
     info = {
         "method": "ann",
         "observations": jeo.summary(),
@@ -514,13 +507,13 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
         "inputs": int(data.x.shape[1]),
         "hidden": list(network.hidden),
         "weights": n_params,
-        "trainer": train.trainer,
+        "trainer": opts.trainer,
         "loss": loss,
         "loss_note": loss_note,
-        "weight_decay": train.weight_decay,
-        "max_iter": train.max_iter,
-        "patience": train.patience,
-        "lr": train.lr,
+        "weight_decay": opts.weight_decay,
+        "max_iter": opts.max_iter,
+        "patience": opts.patience,
+        "lr": opts.lr,
         "seed": opts.seed,
         "restarts": opts.restarts,
         "restart_val_losses": val_losses,
@@ -533,24 +526,7 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
         "export_max_abs_diff": export_diff,
         "warnings": warnings,
     }
-    return _network_robot(base, network, used.q), info
-
-
-def _network_robot(base: CalibratedRobot, network: Network, q: np.ndarray) -> CalibratedRobot:
-    """``base`` with the network, calibrated over the joint ranges of q: every row the fit was given, including
-    the ones the condition filter kept out of training — the ranges say where the calibration data lie, and the
-    network is smooth across the dropped (singular) points."""
-    return CalibratedRobot(
-        nominal=base.nominal,
-        model=base.model,
-        network=network,
-        T_tracker_base=base.T_tracker_base,
-        measurement_tool=base.measurement_tool,
-        measurement_tool_std=base.measurement_tool_std,
-        joint_ranges=np.stack([q.min(axis=0), q.max(axis=0)], axis=1),
-        length_scale=base.length_scale,
-        method="ann",
-    )
+    return learned_robot(base, network, used.q, "ann"), info
 
 
 def _check_options(
@@ -666,16 +642,14 @@ def _train_restarts(
     rows: dict[str, np.ndarray],
     shapes,
     loss: str,
-    options: TrainOptions,
-    seed: int,
-    restarts: int,
+    options: _Settings,
 ) -> tuple[list, list[float], int]:
     """Every restart trained; their validation losses and the best one. Raises if every restart diverged."""
-    tr, va = rows["train"], rows["val"]
+    tr, va, seed = rows["train"], rows["val"], options.seed
     runs = []
     with _deterministic_torch(seed) as torch:
         job = _Job(shapes, _problem(torch, jeo, data, tr, tr, loss), _problem(torch, jeo, data, va, tr, loss), options)
-        for r in range(restarts):
+        for r in range(options.restarts):
             runs.append(_train_one(torch, job, _init_params(shapes, seed, r), r))
     val_losses = [float(run[2][run[3]]) for run in runs]
     finite = [v if math.isfinite(v) else math.inf for v in val_losses]
@@ -721,8 +695,3 @@ def torch_predict(network: Network, q: np.ndarray, model) -> np.ndarray:
     with _deterministic_torch(0) as torch:
         out = _forward(torch.as_tensor(theta), torch.as_tensor(x), shapes).numpy()
     return out * network.out_scale + network.out_mean
-
-
-def observations_for(obs: Observations, base: CalibratedRobot, **kwargs) -> JointErrorObservations:
-    """The eq. (21) observations fit_ann trains on (a convenience re-export for reports and the hybrid)."""
-    return joint_error_observations(obs, base, **kwargs)

@@ -98,8 +98,6 @@ def fold_plan(obs: Observations, seed: int = 0) -> tuple[list[np.ndarray], str]:
 def row_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
     """(k,) mean distance (m) between measured and predicted target points of each row (over the targets the row
     saw), observation frame: the row means of :func:`labcal.calibration.metrics.point_errors`."""
-    if obs.k == 0:
-        return np.zeros(0)
     d = point_errors(robot, obs)
     if obs.complete:
         return np.mean(d, axis=1)

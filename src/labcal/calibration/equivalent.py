@@ -65,13 +65,16 @@ small there). A smaller target triangle raises every condition number: with targ
 
 from __future__ import annotations
 
+import dataclasses
+from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from labcal.calibration.metrics import statistics
 from labcal.calibration.observations import Observations, seen_patterns, target_geometry
-from labcal.compensator import CalibratedRobot
+from labcal.compensator import CalibratedRobot, Network
 from labcal.kinematics import metric, se3
 
 MAX_CONDITION = 1e3
@@ -122,20 +125,9 @@ class JointErrorObservations:
     def summary(self) -> dict:
         """Counts of dropped rows by reason and condition statistics of all rows (JSON-friendly); with fewer than
         three targets in some row also ``rank_below_6``, the rows whose δρ is a minimum-norm solution."""
-        reasons: dict[str, int] = {}
-        for r in self.reason[~self.kept]:
-            reasons[str(r)] = reasons.get(str(r), 0) + 1
+        reasons = dict(Counter(str(r) for r in self.reason[~self.kept]))
         finite = self.condition[np.isfinite(self.condition)]
-        stats = (
-            {
-                "min": float(finite.min()),
-                "median": float(np.median(finite)),
-                "p95": float(np.percentile(finite, 95)),
-                "max": float(finite.max()),
-            }
-            if finite.size
-            else {}
-        )
+        stats = statistics(finite, ("min", "median", "p95", "max")) if finite.size else {}
         out = {
             "count": len(self.q),
             "dropped": int(np.sum(~self.kept)),
@@ -146,6 +138,14 @@ class JointErrorObservations:
         if self.rank is not None:  # rows whose δρ is a minimum-norm solution (module docstring)
             out["rank_below_6"] = int(np.sum(self.rank < 6))
         return out
+
+
+def learned_robot(base: CalibratedRobot, network: Network, q: np.ndarray, method: str) -> CalibratedRobot:
+    """``base`` with a learned joint-error term, calibrated over the joint ranges of the fitting rows q (k, n): every
+    row the fit was given, including the ones the condition filter kept out of training — the ranges say where the
+    calibration data lie, and the learned term is smooth across the dropped (singular) points."""
+    ranges = np.stack([q.min(axis=0), q.max(axis=0)], axis=1)
+    return dataclasses.replace(base, network=network, joint_ranges=ranges, method=method, validity=None)
 
 
 def point_matrix(points: np.ndarray) -> np.ndarray:
@@ -180,10 +180,7 @@ def condition_numbers(PJ: np.ndarray, scale: np.ndarray, rank: np.ndarray | None
 
     rank: (k,) the directions each row can see (module docstring); the condition is then σ_max / σ_rank."""
     sv = np.linalg.svd(PJ * scale, compute_uv=False)
-    if rank is None:
-        with np.errstate(divide="ignore"):
-            return np.where(sv[:, -1] > 0, sv[:, 0] / np.where(sv[:, -1] > 0, sv[:, -1], 1.0), np.inf)
-    low = np.take_along_axis(sv, (np.asarray(rank, int) - 1)[:, None], axis=1)[:, 0] if len(sv) else sv[:, 0]
+    low = sv[:, -1] if rank is None else sv[np.arange(len(sv)), np.asarray(rank, int) - 1]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(low > 0, sv[:, 0] / np.where(low > 0, low, 1.0), np.inf)
 
@@ -238,24 +235,30 @@ def joint_error_observations(
             raise ValueError(f"soft_condition must be >= 1, got {soft_condition}")
         if max_condition is not None and soft_condition > max_condition:
             raise ValueError(f"soft_condition {soft_condition} exceeds max_condition {max_condition}")
-    q = obs.q
-    k = obs.k
-    if base.n > 6 or not obs.complete or obs.m != 3 or target_geometry(obs.targets)[0] != "plane":
-        # A redundant arm's P J_ρ always has a null space (the self-motion): the truncated minimum-norm path.
-        return _partial_observations(obs, base, max_condition, soft_condition)
-    predicted = base.predict_points(q, obs.targets) if k else np.zeros((0, 3, 3))  # (k, 3, 3) base frame
+    q, k, m, seen = obs.q, obs.k, obs.m, obs.seen
+    # Every row sees the same three non-collinear targets and P J_ρ is square: eq. (21) as the paper writes it.
+    # Otherwise (a redundant arm's P J_ρ always has a null space, the self-motion; fewer targets see fewer
+    # directions) each row's truncated minimum-norm solution.
+    dense = base.n <= 6 and obs.complete and m == 3 and target_geometry(obs.targets)[0] == "plane"
+    rank = None if dense else row_ranks(obs.targets, seen)
+    N = equivalent_joints(base.n)
+    predicted, PJ = _masked_pj(base, q, obs.targets, seen) if k else (np.zeros((0, m, 3)), np.zeros((0, 3 * m, N)))
     R, t = base.T_tracker_base[:3, :3], base.T_tracker_base[:3, 3]
     in_obs_frame = np.einsum("ab,kmb->kma", R, predicted) + t
     # Residuals are formed where the data live, then expressed in K0 where eq. (18) holds.
-    delta_p = np.einsum("ba,kmb->kma", R, obs.points - in_obs_frame).reshape(k, 9)
-    J = base.equivalent_jacobian(q) if k else np.zeros((0, 6, 6))
-    PJ = np.einsum("kab,kbc->kac", point_matrix(predicted), J)
-    condition = condition_numbers(PJ, metric_scale(base)) if k else np.zeros(0)
+    diff = np.where(seen[..., None], obs.points - in_obs_frame, 0.0)
+    delta_p = np.einsum("ba,kmb->kma", R, diff).reshape(k, 3 * m)
+    scale = metric_scale(base)
+    condition = condition_numbers(PJ, scale, rank) if k else np.zeros(0)
     reason, weight, ok = _screen(condition, max_condition, soft_condition)
-    delta_rho = np.full((k, 6), np.nan)
-    if np.any(ok):
+    delta_rho = np.full((k, N), np.nan)
+    if np.any(ok) and rank is None:  # dense
         delta_rho[ok] = np.einsum("kab,kb->ka", np.linalg.pinv(PJ[ok]), delta_p[ok])
-    return JointErrorObservations(q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split, obs.targets)
+    elif np.any(ok) and rank is not None:
+        delta_rho[ok] = _min_norm(PJ[ok], delta_p[ok], rank[ok], scale)
+    return JointErrorObservations(
+        q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split, obs.targets, None if dense else seen, rank
+    )
 
 
 def _screen(condition: np.ndarray, max_condition, soft_condition) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -275,30 +278,6 @@ def _screen(condition: np.ndarray, max_condition, soft_condition) -> tuple[np.nd
         band = (weight > 0) & (condition > soft_condition)
         weight[band] = (soft_condition / condition[band]) ** 2
     return reason, weight, ~singular
-
-
-def _partial_observations(obs, base, max_condition, soft_condition) -> JointErrorObservations:
-    """:func:`joint_error_observations` unless every row sees the same three non-collinear targets and the robot
-    has at most six joints (module docstring): zero rows for unseen targets, each row's rank, the condition of what
-    it can see, min-norm δρ."""
-    q, k, m = obs.q, obs.k, obs.m
-    seen = obs.seen
-    rank = row_ranks(obs.targets, seen)
-    N = equivalent_joints(base.n)
-    predicted, PJ = _masked_pj(base, q, obs.targets, seen) if k else (np.zeros((0, m, 3)), np.zeros((0, 3 * m, N)))
-    R, t = base.T_tracker_base[:3, :3], base.T_tracker_base[:3, 3]
-    in_obs_frame = np.einsum("ab,kmb->kma", R, predicted) + t
-    diff = np.where(seen[..., None], obs.points - in_obs_frame, 0.0)
-    delta_p = np.einsum("ba,kmb->kma", R, diff).reshape(k, 3 * m)
-    scale = metric_scale(base)
-    condition = condition_numbers(PJ, scale, rank) if k else np.zeros(0)
-    reason, weight, ok = _screen(condition, max_condition, soft_condition)
-    delta_rho = np.full((k, N), np.nan)
-    if np.any(ok):
-        delta_rho[ok] = _min_norm(PJ[ok], delta_p[ok], rank[ok], scale)
-    return JointErrorObservations(
-        q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split, obs.targets, seen, rank
-    )
 
 
 _PROBE_STEP = 0.1  # rad (revolute) or fraction of the reach (prismatic): the move that shows which joint causes it
@@ -331,17 +310,13 @@ def dropped_causes(jeo: JointErrorObservations, base: CalibratedRobot) -> list[d
     culprit = np.zeros(dropped.size, dtype=int)
     if jeo.targets is None:
         raise ValueError("these observations carry no targets; build them with joint_error_observations")
+    seen = np.ones((dropped.size, len(jeo.targets)), bool) if jeo.seen is None else jeo.seen[dropped]
+    rank = None if jeo.rank is None else jeo.rank[dropped]
     for j in range(n):
         step = _PROBE_STEP * (_length_scale(base) if base.model.joint_types[j] == "prismatic" else 1.0)
         moved = q.copy()
         moved[:, j] += step
-        if jeo.rank is None or jeo.seen is None:  # the rank comes with the seen cells (points missing)
-            pts = base.predict_points(moved, jeo.targets)
-            PJ = np.einsum("kab,kbc->kac", point_matrix(pts), base.equivalent_jacobian(moved))
-            cond = condition_numbers(PJ, scale)
-        else:
-            PJ = _masked_pj(base, moved, jeo.targets, jeo.seen[dropped])[1]
-            cond = condition_numbers(PJ, scale, jeo.rank[dropped])
+        cond = condition_numbers(_masked_pj(base, moved, jeo.targets, seen)[1], scale, rank)
         with np.errstate(divide="ignore", invalid="ignore"):
             gain = np.where(np.isfinite(cond0), cond0 / cond, np.where(np.isfinite(cond), np.inf, 1.0))
         better = gain > np.maximum(best_gain, 2.0)

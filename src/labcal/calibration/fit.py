@@ -103,7 +103,7 @@ from threadpoolctl import threadpool_limits
 
 from labcal.calibration.candidates import BY_NAME, NETWORKS, STAGE2, TABLE, Candidates, FitContext, Outcome, Stage
 from labcal.calibration.cv import CVResult, choose, cross_validate, fold_plan, row_errors
-from labcal.calibration.hybrid import data_ranges, finish_hybrid, prefit_series, series_fixed
+from labcal.calibration.hybrid import finish_hybrid, prefit_series, series_fixed
 from labcal.calibration.local_poe import fit_local_poe, register
 from labcal.calibration.metrics import observability, point_residual_warning, point_residuals, split_table
 from labcal.calibration.observations import ObservationError, Observations
@@ -400,7 +400,7 @@ def _fit_ann_or_nominal(
     except ObservationError as err:  # NetworkDataError: too few usable rows, the message names the cause
         reason = f"the paper's network could not be trained: {err}; this fit is the registered nominal (no correction)"
         return dataclasses.replace(before, method="ann"), {"method": "ann", "no_network": reason}
-    return dataclasses.replace(robot, joint_ranges=data_ranges(fit_obs.q)), info
+    return robot, info
 
 
 def _with_validity(robot: CalibratedRobot, q: np.ndarray) -> CalibratedRobot:

@@ -32,8 +32,6 @@ import dataclasses
 import math
 from typing import Any
 
-import numpy as np
-
 from labcal.calibration.candidates import BY_NAME, TABLE, Candidates, FitContext, Outcome, Stage
 from labcal.calibration.cv import CVResult, choose
 from labcal.calibration.metrics import primary_error
@@ -88,8 +86,8 @@ def finish_hybrid(ctx: FitContext, table: Candidates, choice: str | None = None)
     else:
         skipped, kept = _cv_choice(table.cv, candidates, choice, notes)
     kept, stage = _refit_kept(ctx, table, kept, notes)
-    # Every row the fit used, not only those a learned stage kept (issue 13.3).
-    robot = dataclasses.replace(stage.robot, method="hybrid", joint_ranges=_ranges(ctx.fit_obs.q, stage.robot))
+    # A learned stage's joint ranges are already every fitting row's, not only those it kept (issue 13.3).
+    robot = dataclasses.replace(stage.robot, method="hybrid")
     info = _hybrid_info(ctx, table, kept, robot, skipped, notes)
     learned = BY_NAME[kept].learned
     if learned is not None:
@@ -157,15 +155,3 @@ def _hybrid_info(
         "notes": notes,
         "local_poe": table.stage1.info,
     }
-
-
-def data_ranges(q: np.ndarray) -> np.ndarray:
-    """(n, 2) the smallest and largest value of each joint over the rows q (k, n)."""
-    return np.stack([q.min(axis=0), q.max(axis=0)], axis=1)
-
-
-def _ranges(q: np.ndarray, robot: CalibratedRobot) -> np.ndarray:
-    """Joint ranges of the fitting rows for a learned model; a purely geometric one keeps the robot's limits."""
-    if robot.network is None:
-        return np.asarray(robot.joint_ranges)  # CalibratedRobot fills them in (the limits): the same array
-    return data_ranges(q)

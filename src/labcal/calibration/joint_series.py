@@ -56,7 +56,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from labcal import features as feature_lib
-from labcal.calibration.equivalent import equivalent_joints, joint_error_observations
+from labcal.calibration.equivalent import equivalent_joints, joint_error_observations, learned_robot
 from labcal.calibration.metrics import primary_error
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot, Network, input_features
@@ -184,17 +184,7 @@ def fit_joint_series(
     cv, cv_error, H, use_gravity, lam = search.choose(cands, gravity)
     coef = search.coefficients(H, use_gravity, lam)
     g_cols = 3 * base.n if use_gravity else 0
-    robot = CalibratedRobot(
-        nominal=base.nominal,
-        model=base.model,
-        network=_series_network(coef, H, use_gravity),
-        T_tracker_base=base.T_tracker_base,
-        measurement_tool=base.measurement_tool,
-        measurement_tool_std=base.measurement_tool_std,
-        joint_ranges=np.stack([train.q.min(axis=0), train.q.max(axis=0)], axis=1),
-        length_scale=base.length_scale,
-        method="series",
-    )
+    robot = learned_robot(base, _series_network(coef, H, use_gravity), train.q, "series")
     amplitudes = np.hypot(coef[:, 1 + g_cols :: 2], coef[:, 2 + g_cols :: 2])
     val = obs.subset(obs.split == "val") if np.any(obs.split == "val") else None
     train_error, kind = primary_error(robot, train)

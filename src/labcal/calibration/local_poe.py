@@ -71,7 +71,7 @@ from typing import Any
 import numpy as np
 
 from labcal.calibration.observations import Observations, rigid_fit, target_geometry
-from labcal.calibration.tool import split_robot, split_tool, tool_std
+from labcal.calibration.tool import split_robot, split_tool
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
@@ -192,8 +192,8 @@ def _gauss_newton(
     length_scale: float,
     max_iter: int,
     tol: float,
-    rank_rtol: float,
-    damping: float,
+    rank_rtol: float = DEFAULT_RANK_RTOL,
+    damping: float = 0.0,
     seen: np.ndarray | None = None,
     fixed: np.ndarray | None = None,
     s_min: float = 0.0,
@@ -297,7 +297,7 @@ def _without_image(Js: np.ndarray, F: np.ndarray | None) -> np.ndarray:
 
 
 def _tilts_measured(
-    out: dict, fit_args: tuple, seen, structural: dict, length_scale: float, rank_rtol: float, s_min: float
+    out: dict, fit_args: _FitArgs, seen, structural: dict, length_scale: float, rank_rtol: float, s_min: float
 ) -> bool:
     """Whether the data measure the two held tilts of the last joint's axis (:data:`MEASURED_TILT_MIN_JOINTS`).
 
@@ -306,8 +306,7 @@ def _tilts_measured(
     directions that the rank and weak-direction thresholds both keep (``_eig``), i.e. when the weak-direction rule
     itself would not hold them. ``fit_args``: (q, targets, measured, frames, estimate_base) of the fit.
     """
-    q, targets, measured, frames, estimate_base = fit_args
-    _, J = _residual_and_jacobian(out["model"], out["T_tb"], q, targets, measured, frames, estimate_base, seen)
+    _, J = _residual_and_jacobian(out["model"], out["T_tb"], *fit_args, seen)
     scale = metric.parameter_weights(J.shape[1] // 6, length_scale)
     basis = structural["basis"] / scale[:, None]
     tilt = structural["tilt"]
@@ -340,6 +339,39 @@ def _weak_threshold(noise: float, error_bound: float) -> float:
     if not (noise >= 0 and error_bound > 0):
         raise ValueError(f"noise must be ≥ 0 and error_bound > 0 (m), got {noise!r} and {error_bound!r}")
     return float(noise / error_bound)
+
+
+def tool_std(
+    J: np.ndarray, scale: np.ndarray, n_frames: int, sigma: float, X: np.ndarray, fixed=None, rank_rtol: float = 1e-6
+) -> np.ndarray:
+    """(6,) standard deviations of the measurement tool's position and rotation (m, rad, along tool0's axes) from a
+    fit's Jacobian at the split model (right perturbations X·exp(δ) of the tool, turned into tool0 by X's rotation;
+    :mod:`labcal.calibration.tool`).
+
+    J: (r, p) the point residuals' Jacobian over the frames' right perturbations (``n_frames`` frames, the tool
+    last, then any base parameters), in SI units; scale: (p,) the fit's parameter weights; sigma: the residual σ
+    per coordinate (m); fixed: (p, c) directions the targets cannot show (held: NaN where the tool only moves
+    along them). The last joint frame's turn about and shift along its axis are the tool's (not parameters).
+    """
+    held = fixed is not None and fixed.shape[1] > 0
+    Js = _without_image(J * scale, fixed / scale[:, None] if held else None)
+    keep_cols = np.ones(Js.shape[1], bool)
+    last_joint = 6 * (n_frames - 2)
+    if n_frames >= 2:
+        keep_cols[[last_joint + 2, last_joint + 5]] = False
+    lam, V, keep = _eig(Js[:, keep_cols], rank_rtol)
+    Vk = V[:, keep] / np.sqrt(lam[keep])
+    tool = slice(6 * (n_frames - 1), 6 * n_frames)
+    rows = np.flatnonzero(keep_cols[: tool.stop])[-6:]  # the tool's columns among the kept ones
+    B = Vk[np.searchsorted(np.flatnonzero(keep_cols), rows)] * scale[tool][:, None]
+    R = np.kron(np.eye(2), X[:3, :3])
+    cov = sigma**2 * (R @ B) @ (R @ B).T
+    std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    if held:
+        # a tool direction the targets cannot show has no variance, not a small one
+        unseen = np.abs(fixed[tool]).max(axis=1) > 0
+        std[unseen & (np.arange(6) >= 3)] = np.nan
+    return std
 
 
 def _eig(Js: np.ndarray, rank_rtol: float, s_min: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -384,14 +416,6 @@ def _describe_null(null: np.ndarray, labels: list[str], top: int = 2, rotate: bo
 def _check(obs: Observations, nominal: LocalPOEModel, rows: np.ndarray, needed: int, what: str) -> None:
     obs.check_robot(nominal.n)
     k = int(rows.sum())
-    if obs.complete and obs.m == 3:
-        if 9 * k < needed:
-            raise IdentificationError(
-                f"{what} needs at least {needed} measured coordinates but the fitting rows hold {9 * k} "
-                f"({k} configuration(s) × 3 points × 3): measure at least {math.ceil(needed / 9)} configurations "
-                f"(well spread; several times more to average the noise)"
-            )
-        return
     points = int(obs.seen[rows].sum())
     if 3 * points < needed:
         per_row = points / k if k else float(obs.m)
@@ -423,14 +447,12 @@ def target_null(
     used = obs.seen[rows].any(axis=0) if rows.any() else np.ones(obs.m, bool)
     names = [f"t{i + 1}" for i in np.flatnonzero(used)]
     kind, where = target_geometry(obs.targets[used])
-    basis = np.zeros((n_params, STRUCTURAL[kind]))
     col = 6 * n_frames_before_tool
+    basis = np.zeros((n_params, 0))
     # A right perturbation (δv, δω) of the tool frame moves a tool-frame point t by δv + δω × t: a rotation δω
     # about an axis through c with δv = −δω × c leaves every target on that axis where it was.
     if kind == "point":
-        for a in range(3):
-            w = np.eye(3)[a]
-            basis[col : col + 3, a], basis[col + 3 : col + 6, a] = -np.cross(w, where), w
+        basis = _turns(n_params, col, np.eye(3), where)
         words = [
             f"the orientation of the tool (any rotation of the tool frame about target {names[0]}"
             + (f" and the coincident {', '.join(names[1:])}" if len(names) > 1 else "")
@@ -438,7 +460,7 @@ def target_null(
         ]
     elif kind == "line":
         on, u = where
-        basis[col : col + 3, 0], basis[col + 3 : col + 6, 0] = -np.cross(u, on), u
+        basis = _turns(n_params, col, u[None], on)
         words = [
             f"the rotation of the tool about the line through {', '.join(names)} (direction "
             f"({u[0]:+.3f}, {u[1]:+.3f}, {u[2]:+.3f}) in the tool frame, 1 direction): targets on a line do not "
@@ -453,11 +475,7 @@ def target_null(
         if off < AXIS_TOL:
             # A_n right-perturbed by (δv, δω) with δv = −δω × p tilts joint n's axis about the point, which stays on
             # it: no value of q_n moves the point then.
-            tilt = np.zeros((n_params, 2))
-            c = 6 * (n_frames_before_tool - 1)
-            for a in range(2):
-                w = np.eye(3)[a]
-                tilt[c : c + 3, a], tilt[c + 3 : c + 6, a] = -np.cross(w, p), w
+            tilt = _turns(n_params, 6 * (n_frames_before_tool - 1), np.eye(3)[:2], p)
             basis = np.concatenate([basis, tilt], axis=1)
             last = model.n
             words.append(
@@ -467,6 +485,15 @@ def target_null(
             )
     tilts = basis.shape[1] - STRUCTURAL[kind]  # the axis tilts, the last columns (and the last line of words)
     return {"geometry": kind, "count": basis.shape[1], "words": words, "basis": basis, "tilt": tilts}
+
+
+def _turns(n_params: int, col: int, axes: np.ndarray, through: np.ndarray) -> np.ndarray:
+    """(n_params, len(axes)) parameter vectors turning the frame whose parameters start at ``col`` about each of the
+    axes (rows, unit) through the point ``through`` of that frame: δω = w, δv = −w × through."""
+    out = np.zeros((n_params, len(axes)))
+    for a, w in enumerate(axes):
+        out[col : col + 3, a], out[col + 3 : col + 6, a] = -np.cross(w, through), w
+    return out
 
 
 def _without(null: np.ndarray, known: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -486,11 +513,7 @@ def _initial_base(obs: Observations, model: LocalPOEModel, rows: np.ndarray) -> 
     """Closed-form T_tracker_base: Kabsch over all seen points, model-predicted (base) vs measured (tracker).
 
     One target per row is enough once its points over the rows are not collinear (a few spread poses)."""
-    seen = _seen_rows(obs, rows)
-    if seen is None:
-        pred = model.target_points(obs.q[rows], obs.targets).reshape(1, -1, 3)
-        meas = obs.points[rows].reshape(1, -1, 3)
-        return rigid_fit(pred[0], meas)[0]
+    seen = obs.seen[rows]
     pred = model.target_points(obs.q[rows], obs.targets)[seen]
     return rigid_fit(pred, obs.points[rows][seen][None])[0]
 
@@ -526,21 +549,10 @@ def register(
         robot = _robot(nominal, nominal, np.eye(4), obs, "nominal")
         return robot, {"estimated": [], "iterations": 0, "T_tracker_base": np.eye(4)}
     T0 = _initial_base(obs, nominal, rows) if estimate_base else np.eye(4)
+    fit_args: _FitArgs = (obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base)
+    seen, fixed = _seen_rows(obs, rows), None if structural is None else structural["basis"]
     out = _gauss_newton(
-        nominal,
-        T0,
-        obs.q[rows],
-        obs.targets,
-        obs.points[rows],
-        frames,
-        estimate_base,
-        length_scale=nominal.reach(),
-        max_iter=max_iter,
-        tol=tol,
-        rank_rtol=DEFAULT_RANK_RTOL,
-        damping=0.0,
-        seen=_seen_rows(obs, rows),
-        fixed=None if structural is None else structural["basis"],
+        nominal, T0, *fit_args, length_scale=nominal.reach(), max_iter=max_iter, tol=tol, seen=seen, fixed=fixed
     )
     robot = _robot(nominal, out["model"], out["T_tb"], obs, "nominal")
     info = {

@@ -24,6 +24,7 @@ Example::
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -45,15 +46,25 @@ def summarize(pos: np.ndarray, ori: np.ndarray) -> dict[str, float]:
         pos, ori = pos[defined], ori[defined]
     out: dict[str, float] = {"count": float(len(pos))}
     for name, e in (("pos", pos), ("ori", ori)):
-        if e.size == 0:
-            out.update({f"{name}_{s}": float("nan") for s in STATS})
-            continue
-        out[f"{name}_mean"] = float(np.mean(e))
-        out[f"{name}_rms"] = float(np.sqrt(np.mean(e * e)))
-        out[f"{name}_p95"] = float(np.percentile(e, 95))
-        out[f"{name}_max"] = float(np.max(e))
-        out[f"{name}_std"] = float(np.std(e))
+        out.update({f"{name}_{s}": value for s, value in statistics(e, STATS).items()})
     return out
+
+
+_STATISTICS: dict[str, Callable[[np.ndarray], Any]] = {
+    "mean": np.mean,
+    "rms": lambda e: np.sqrt(np.mean(e * e)),
+    "p95": lambda e: np.percentile(e, 95),
+    "max": np.max,
+    "min": np.min,
+    "median": np.median,
+    "std": np.std,
+}
+
+
+def statistics(e: np.ndarray, names: tuple[str, ...]) -> dict[str, float]:
+    """{name: that statistic of the errors e} for names among mean, rms, p95, max, min, median, std; NaN each when
+    e is empty."""
+    return {name: float(_STATISTICS[name](e)) if e.size else float("nan") for name in names}
 
 
 def prediction_errors(robot: CalibratedRobot, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
@@ -66,8 +77,6 @@ def prediction_errors(robot: CalibratedRobot, obs: Observations) -> tuple[np.nda
         return np.zeros(0), np.zeros(0)
     T_pred = robot.T_tracker_base @ robot.predict_pose(obs.q, tcp=robot.measurement_tool)  # the fixture measured
     has = obs.pose_rows()
-    if has.all():
-        return se3.pose_distance(obs.measured_poses(), T_pred)
     pos, ori = np.full(obs.k, np.nan), np.full(obs.k, np.nan)
     if has.any():
         pos[has], ori[has] = se3.pose_distance(obs.measured_poses()[has], T_pred[has])
@@ -91,8 +100,7 @@ def point_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
     :func:`point_residuals`; a row's mean over its seen targets is :func:`labcal.calibration.cv.row_errors`.
     """
     if obs.k == 0:
-        points = np.asarray(obs.points, dtype=float)
-        return np.zeros((0, points.shape[1] if points.ndim == 3 else 3))
+        return np.zeros((0, obs.m))
     return np.linalg.norm(point_residuals(robot, obs), axis=-1)
 
 
@@ -106,14 +114,7 @@ def summarize_points(d: np.ndarray) -> dict:
 
     def stats(e: np.ndarray) -> dict[str, float]:
         e = e[np.isfinite(e)]
-        if e.size == 0:
-            return {"count": 0.0, "mean": float("nan"), "p95": float("nan"), "max": float("nan")}
-        return {
-            "count": float(e.size),
-            "mean": float(np.mean(e)),
-            "p95": float(np.percentile(e, 95)),
-            "max": float(np.max(e)),
-        }
+        return {"count": float(e.size), **statistics(e, ("mean", "p95", "max"))}
 
     out: dict[str, Any] = dict(stats(d.ravel()))
     out["per_target"] = [stats(d[:, i]) for i in range(d.shape[1])]

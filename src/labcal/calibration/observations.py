@@ -228,8 +228,6 @@ class Observations:
 
         In the observation frame. Noise-free points give the exact pose; noisy ones the best rigid fit.
         """
-        if self.complete and target_geometry(self.targets)[0] == "plane":
-            return rigid_fit(self.targets, self.points)
         out = np.full((self.k, 4, 4), np.nan)
         for pattern, rows in seen_patterns(self._seen):
             if target_geometry(self.targets[pattern])[0] == "plane":

@@ -16,8 +16,9 @@ pose:
    joints' frames and axes only;
 3. the rest is the measurement tool X, the fixture frame in tool0: ``A_{n+1} = A_{n+1}^nominal · X``.
 
-:func:`tool_std` gives X's standard deviations (the fit's residual σ, its truncated pseudo-inverse in the split
-parameters: the two commuting directions of A_n are the tool's and are not parameters of the robot).
+:func:`labcal.calibration.local_poe.tool_std` gives X's standard deviations (the fit's residual σ, its truncated
+pseudo-inverse in the split parameters: the two commuting directions of A_n are the tool's and are not parameters
+of the robot).
 
 Example (a nominal robot measured through a 93 mm mount)::
 
@@ -154,46 +155,6 @@ def _commuting_part(D: np.ndarray) -> np.ndarray:
     canonical[:3, :3] = se3.exp_so3(axis * angle)
     canonical[:3, 3] = D[:3, 3] - float(D[:3, 3] @ z) * z
     return se3.inv(canonical) @ D
-
-
-def tool_std(
-    J: np.ndarray, scale: np.ndarray, n_frames: int, sigma: float, X: np.ndarray, fixed=None, rank_rtol: float = 1e-6
-) -> np.ndarray:
-    """(6,) standard deviations of the measurement tool's position and rotation (m, rad, along tool0's axes) from a
-    fit's Jacobian at the split model (right perturbations X·exp(δ) of the tool, turned into tool0 by X's rotation).
-
-    J: (r, p) the point residuals' Jacobian over the frames' right perturbations (``n_frames`` frames, the tool
-    last, then any base parameters), in SI units; scale: (p,) the fit's parameter weights; sigma: the residual σ
-    per coordinate (m); fixed: (p, c) directions the targets cannot show (held: NaN where the tool only moves
-    along them). The last joint frame's turn about and shift along its axis are the tool's (not parameters).
-    """
-    Js = J * scale
-    p = Js.shape[1]
-    keep_cols = np.ones(p, bool)
-    last_joint = 6 * (n_frames - 2)
-    if n_frames >= 2:
-        keep_cols[[last_joint + 2, last_joint + 5]] = False
-    if fixed is not None and fixed.shape[1]:
-        F = fixed / scale[:, None]
-        U, s, _ = np.linalg.svd(Js @ F, full_matrices=False)
-        U = U[:, s > 1e-12 * max(float(np.abs(Js).max()), 1e-300)]
-        Js = Js - U @ (U.T @ Js)
-    Js = Js[:, keep_cols]
-    lam, V = np.linalg.eigh(Js.T @ Js)
-    lam = np.clip(lam, 0.0, None)
-    keep = np.sqrt(lam) > rank_rtol * np.sqrt(lam[-1])
-    Vk = V[:, keep] / np.sqrt(lam[keep])
-    tool = slice(6 * (n_frames - 1), 6 * n_frames)
-    rows = np.flatnonzero(keep_cols[: tool.stop])[-6:]  # the tool's columns among the kept ones
-    B = Vk[np.searchsorted(np.flatnonzero(keep_cols), rows)] * scale[tool][:, None]
-    R = np.kron(np.eye(2), X[:3, :3])
-    cov = sigma**2 * (R @ B) @ (R @ B).T
-    std = np.sqrt(np.clip(np.diag(cov), 0, None))
-    if fixed is not None and fixed.shape[1]:
-        # a tool direction the targets cannot show has no variance, not a small one
-        unseen = np.abs(fixed[tool]).max(axis=1) > 0
-        std[unseen & (np.arange(6) >= 3)] = np.nan
-    return std
 
 
 def tool_lines(X: np.ndarray, std: np.ndarray | None) -> list[str]:
