@@ -6,7 +6,8 @@ call, not the arithmetic, is the price (a numpy correction costs more than one p
 call; the compiled one a fraction of it: benchmarks/compensator_kernel.py). So :func:`build` prepares, for a robot
 whose correction it implements, a function ``(q (n,) float array, extrapolate, iterations, tol, damped_iterations,
 tcp (4, 4) or None) → q_cmd (n,) or None`` that takes the same steps as the definition on compiled code
-(:mod:`labcal.compensator._jit`), tested against it to 1e-12 rad (tests/compensator/test_kernel.py). None means
+(:mod:`labcal.compensator._jit`), tested against it to 1e-12 rad (a damped answer to the definition's own rounding
+resolution: tests/compensator/test_kernel.py). None means
 "take the batched path": q is not finite, or outside the calibrated ranges or validity region (the batched path
 then raises the error that names it), or within rounding of the region's boundary, or an option is not a plain
 bool, int or float count the compiled code reads as the definition does (the batched path decides them).
