@@ -213,7 +213,7 @@ def solve(
 
 class _Rows:
     """The Gauss-Newton state of a batch: every row's q, last step size, last Jacobian and fate, advanced by
-    :func:`verdict`'s rule in array arithmetic (:func:`_verdicts`)."""
+    :func:`verdict`."""
 
     def __init__(self, q0: np.ndarray, tol: float) -> None:
         self.out, self.tol, self.q0 = q0.copy(), tol, q0
@@ -257,7 +257,7 @@ class _Rows:
         rows, everyone = self.rows, self._everyone()
         size = np.abs(step).max(axis=1)
         prev = None if self.prev is None else (self.prev if everyone else self.prev[rows])
-        bad, done = _verdicts(size, prev, self.tol)
+        bad, done = verdict(size, prev, self.tol)
         if bad.any():
             step[bad] = 0.0
             self.bad[rows[bad]] = True
@@ -277,21 +277,11 @@ class _Rows:
         return np.flatnonzero(self.bad)
 
 
-def verdict(size: float, prev: float | None, tol: float) -> tuple[bool, bool]:
-    """The Gauss-Newton rule for one row: (failed, converged) after a step of max-norm ``size`` that followed one of
-    max-norm ``prev`` (None: the first step). See the module docstring; :func:`_verdicts` applies it to a batch
-    (and the URScript exporter and :mod:`labcal.compensator._jit` write it in their languages)."""
+def verdict(size: np.ndarray, prev: np.ndarray | None, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """The Gauss-Newton rule, (failed, converged) as (m,) bool arrays, after steps of max-norm ``size`` (m,) that
+    followed ones of max-norm ``prev`` (None: the first step). See the module docstring (the URScript exporter and
+    :mod:`labcal.compensator._jit` write it for one row in their languages)."""
     if prev is None:  # no previous step: ρ = 1/2, so the estimated distance is the step itself
-        return not size <= GN_MAX_STEP, size < tol
-    if size < NOISE_FLOOR:
-        return False, True
-    ratio = min(size / max(prev, 1e-300), 0.5)
-    return not size <= min(GN_MAX_STEP, 0.5 * prev), size * ratio / (1 - ratio) < tol or size < 1e-3 * tol
-
-
-def _verdicts(size: np.ndarray, prev: np.ndarray | None, tol: float) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`verdict` of every row, as (m,) bool arrays, in array arithmetic."""
-    if prev is None:
         return ~(size <= GN_MAX_STEP), size < tol
     ratio = np.minimum(size / np.maximum(prev, 1e-300), 0.5)
     floor = size < NOISE_FLOOR
