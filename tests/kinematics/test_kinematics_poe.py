@@ -18,7 +18,7 @@ from kin_testutil import (
 )
 
 from labcal.kinematics import se3
-from labcal.kinematics.conversions import dh_fk, from_dh, from_mdh
+from labcal.kinematics.conversions import from_dh, from_mdh
 from labcal.kinematics.poe import (
     PRISMATIC,
     REVOLUTE,
@@ -75,7 +75,6 @@ def test_builtin_dh_model_equals_the_textbook_dh_product(robot):
     for qi, Ti in zip(q, model.fk(q), strict=True):
         ref = dh_product(rows, qi) @ tool
         assert_poses_close(Ti, ref, atol=1e-14)
-        assert_poses_close(dh_fk(rows, qi) @ tool, ref, atol=1e-14)
 
 
 def test_random_dh_and_mdh_tables_with_prismatic_joints():
@@ -89,7 +88,6 @@ def test_random_dh_and_mdh_tables_with_prismatic_joints():
         for qi, T_dh, T_mdh in zip(q, dh.fk(q), mdh.fk(q), strict=True):
             assert_poses_close(T_dh, dh_product(rows, qi) @ tool, atol=1e-13)
             assert_poses_close(T_mdh, dh_product(rows, qi, modified=True) @ tool, atol=1e-13)
-            assert_poses_close(dh_fk(rows, qi, modified=True), dh_product(rows, qi, modified=True), atol=1e-13)
 
 
 def test_hand_written_ur5e_mdh_table_equals_the_dh_model():
@@ -132,10 +130,6 @@ def test_z_joint_fast_path_equals_the_general_exponential():
                 T = T @ se3.exp_se3(model.twists[j] * qi[j]) @ model.frames[j + 1]
             ref[i] = T
         np.testing.assert_allclose(model.fk(q), ref, rtol=0, atol=2e-15)
-        for j in range(model.n):
-            np.testing.assert_allclose(
-                model._joint_exp(j, q[:, j]), se3.exp_se3(np.outer(q[:, j], model.twists[j])), rtol=0, atol=1e-15
-            )
 
 
 def test_batch_equals_single_and_shapes():

@@ -216,20 +216,6 @@ class LocalPOEModel:
             raise ValueError(f"q must have shape ({self.n},) or (k, {self.n}), got {q.shape}")
         return q2, single
 
-    def _joint_exp(self, j: int, qj: np.ndarray) -> np.ndarray:
-        """(k,) joint values → (k, 4, 4) exp(ξ̂_j q_j)."""
-        if self._z_joint[j]:
-            out = np.zeros((qj.shape[0], 4, 4))
-            if self.joint_types[j] == REVOLUTE:
-                c, s = np.cos(qj), np.sin(qj)
-                out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
-                out[:, 2, 2] = out[:, 3, 3] = 1.0
-            else:
-                out[:, 0, 0] = out[:, 1, 1] = out[:, 2, 2] = out[:, 3, 3] = 1.0
-                out[:, 2, 3] = qj
-            return out
-        return se3.exp_se3(self.twists[j] * qj[:, None])
-
     def _walk(self, q2: np.ndarray) -> np.ndarray:
         """Walk the chain once: (n+1, 3, 4, k) top three rows of the frames K_1 … K_{n+1} in K0, each before its own
         joint moves it (see :meth:`_chain`). The batch axis is last so that every step is a handful of whole-array
