@@ -1,7 +1,7 @@
 """Pure numpy kinematics: SE(3) tools, the local POE model and its definition, DH/MDH/URDF conversions, and the
 length-scaled metric (:mod:`labcal.kinematics.metric`)."""
 
-from labcal.kinematics.conversions import dh_fk, from_dh, from_mdh, from_urdf, to_urdf
+from labcal.kinematics.conversions import from_dh, from_mdh, from_urdf, to_urdf
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel, poe_fk, poe_joint_twists, poe_link_frames
 from labcal.kinematics.se3 import (
     adjoint,
@@ -25,7 +25,6 @@ __all__ = [
     "REVOLUTE",
     "LocalPOEModel",
     "adjoint",
-    "dh_fk",
     "exp_se3",
     "exp_so3",
     "from_dh",

@@ -90,19 +90,6 @@ def from_mdh(rows: Sequence[Mapping], T_flange_tool=None, name: str = "", joint_
     return LocalPOEModel.from_frames(np.array(frames), types, limits=_limits(rows), name=name, joint_names=joint_names)
 
 
-def dh_fk(rows: Sequence[Mapping], q: np.ndarray, modified: bool = False) -> np.ndarray:
-    """Reference forward kinematics straight from the DH product (one configuration, (4, 4)); for tests."""
-    T = np.eye(4)
-    for row, qj in zip(rows, q, strict=True):
-        a, alpha, d, theta = (float(row[k]) for k in ("a", "alpha", "d", "theta"))
-        if row.get("type", REVOLUTE) == REVOLUTE:
-            theta += qj
-        else:
-            d += qj
-        T = T @ (mdh_transform(a, alpha, d, theta) if modified else dh_transform(a, alpha, d, theta))
-    return T
-
-
 # --------------------------------------------------------------------------------------------------------------
 # URDF
 
