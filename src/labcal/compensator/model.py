@@ -647,7 +647,7 @@ class CalibratedRobot:
         if not extrapolate:
             return True  # correct() refused every row outside the region
         # the refusal's own distances (_check_validity): a row correct() accepts without extrapolate is bounded with
-        # it too (ValidityRegion.contains, summed otherwise, parts from them at the boundary's last ulp)
+        # it too (a |c − x|² test, summed otherwise, parts from them at the boundary's last ulp)
         return self.validity.inside(q2)
 
     def _newton(
