@@ -26,6 +26,7 @@ directory is writable) at the first single correction, never when labcal is impo
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from types import ModuleType
 from typing import TYPE_CHECKING
@@ -40,21 +41,15 @@ if TYPE_CHECKING:
 
 Kernel = Callable[..., "np.ndarray | None"]
 
-_UNLOADED = object()
-_module: object = _UNLOADED  # the compiled module, None when numba is not importable
 
-
+@functools.cache
 def compiled() -> ModuleType | None:
     """labcal.compensator._jit (importing numba on first use), or None without numba."""
-    global _module
-    if _module is _UNLOADED:
-        try:
-            from labcal.compensator import _jit
-        except ImportError:  # numba is optional at run time
-            _module = None
-        else:
-            _module = _jit
-    return _module  # type: ignore[return-value]
+    try:
+        from labcal.compensator import _jit
+    except ImportError:  # numba is optional at run time
+        return None
+    return _jit
 
 
 _OPS = {"q": 0, "zero": 1, "sin": 2, "cos": 3, "gravity": 4}
