@@ -52,7 +52,7 @@ def _jit(fn=None, **extra):
 @_jit
 def _walk(frames, q, T, J):
     """Link frames T (n+1, 4, 4) of the chain ``frames`` at q (n,) and joint twists J (6, n): LocalPOEModel's walk
-    (M · Rz(q_j) · A_{j+1}(0)) and _z_twists (ω = z_j, v = p_j × z_j)."""
+    (M · Rz(q_j) · A_{j+1}(0)) and _twists_from_walk (ω = z_j, v = p_j × z_j)."""
     n = q.shape[0]
     T[0] = frames[0]
     for j in range(n):
@@ -243,13 +243,15 @@ def _series(q, T, runs, weights, rho, S, slope):
 
 
 @_jit
-def _residual(qc, jacobian, target, point, has_point, model, mode, cols, weights, layers, T, r, J, x, dx, work):
-    """CalibratedRobot.residual at qc (n,) into r (6,) and, with ``jacobian``, J (6, n); target: the nominal pose.
+def _residual(qc, jacobian, r, J, ctx):
+    """CalibratedRobot.residual at qc (n,) into r (6,) and, with ``jacobian``, J (6, n); ctx: the fixed arguments of
+    one call (correct_one), target the nominal pose.
 
     mode NET_NONE: r = e, J the joint twists; NET_LAYERS: r = e − J δρ; NET_SERIES (a linear series): r = e − J δρ
     and J the Newton Jacobian J + J S + bracket (model._bracket). has_point: twists about ``point``
     (model._about_point).
     """
+    target, point, has_point, model, mode, cols, weights, layers, T, x, dx, work = ctx
     trig, buf, Jt, S, vec = work  # workspace: vec rows e, ρ, z, tail
     n = qc.shape[0]
     _walk(model, qc, T, Jt)
@@ -303,13 +305,6 @@ def _residual(qc, jacobian, target, point, has_point, model, mode, cols, weights
                 J[0, j] += wy * pz - wz * py
                 J[1, j] += wz * px - wx * pz
                 J[2, j] += wx * py - wy * px
-
-
-@_jit
-def _eval(qc, jacobian, r, J, ctx):
-    """_residual with the fixed arguments of one call bundled in ctx."""
-    target, point, has_point, model, mode, cols, weights, layers, T, x, dx, work = ctx
-    _residual(qc, jacobian, target, point, has_point, model, mode, cols, weights, layers, T, r, J, x, dx, work)
 
 
 @_jit
@@ -420,7 +415,7 @@ def _damped(q0, q_init, r0, J0, bound, has_bound, w, budget, tol, consts, ctx):
             predicted -= m * m
         for j in range(n):
             cand[j] = out[j] + step[j]
-        _eval(cand, True, rc, Jc, ctx)
+        _residual(cand, True, rc, Jc, ctx)
         cost_c = _cost(rc, w)
         kept = cost_c <= cost
         gain = (cost - cost_c) / predicted if predicted > 0 else 0.0
@@ -443,19 +438,9 @@ def _damped(q0, q_init, r0, J0, bound, has_bound, w, budget, tol, consts, ctx):
     return out
 
 
-@_jit
-def _in_ranges(q, ranges):
-    """Whether q lies in the calibrated joint ranges (ranges (2, n): lo, hi with CalibratedRobot._ranges' 1e-12
-    margin): the definition's comparisons on the same numbers."""
-    for j in range(q.shape[0]):
-        if not (ranges[0, j] <= q[j] <= ranges[1, j]):
-            return False
-    return True
-
-
 # Relative width of the shell about the validity region's boundary where the kernel leaves the verdict to the
 # definition: ValidityRegion.distance sums |x|² − 2 x·c + |c|² (rounding error ≈ n ε (|x|² + |c|²), ε = 2.2e-16)
-# and ValidityRegion.contains |c − x|² (≈ n ε |c − x|²); 1e-12 is a hundredfold that for any arm.
+# and this kernel |c − x|² (≈ n ε |c − x|²); 1e-12 is a hundredfold that for any arm.
 _REGION_SHELL = 1e-12
 
 
@@ -463,8 +448,8 @@ _REGION_SHELL = 1e-12
 def _in_region(q, centres, scale, radius):
     """The validity region's ball test: (inside, sure). Inside when a centre is within the radius (the scaled
     |c − x|² ≤ radius²). sure is False when q lies within rounding of the boundary, where the definition's own
-    distances (ValidityRegion.distance to refuse, .contains to bound), summed in other orders, may judge it the
-    other way: the caller then leaves the verdict to the definition."""
+    distance (ValidityRegion.distance, to refuse and to bound), summed in another order, may judge it the other
+    way: the caller then leaves the verdict to the definition."""
     n = q.shape[0]
     x = np.empty(n)
     xx = 0.0
@@ -503,7 +488,7 @@ def _gauss_newton(q0, out, iterations, tol, consts, r, J, r0, J0, ctx):
         # settled: reuse the last J (solve's simplified Newton; n = 6 only: a redundant arm's least change moves
         # with J)
         fresh = n != 6 or not (prev >= 0.0 and prev < reuse_below)
-        _eval(out, fresh, r, J, ctx)
+        _residual(out, fresh, r, J, ctx)
         if i == 0:
             r0[:] = r
             J0[:] = J
@@ -568,11 +553,10 @@ def correct_one(
     MAX_CORRECTION)."""
     n = q0.shape[0]
     for j in range(n):
-        if not math.isfinite(q0[j]):
+        # not finite, or outside the calibrated ranges (lo, hi with CalibratedRobot._ranges' 1e-12 margin: the
+        # definition's comparisons on the same numbers)
+        if not (math.isfinite(q0[j]) and (extrapolate or ranges[0, j] <= q0[j] <= ranges[1, j])):
             return OUTSIDE
-    in_ranges = _in_ranges(q0, ranges)
-    if not (in_ranges or extrapolate):
-        return OUTSIDE
     # The region decides both the refusal and, under extrapolate, the bound: outside the joint ranges too (the
     # region's balls reach beyond a learned fit's ranges, which are its data's). Near its boundary the definition
     # decides.
@@ -613,7 +597,7 @@ def correct_one(
             clipped = np.empty(n)
             for j in range(n):
                 clipped[j] = min(max(out[j], q0[j] - bound), q0[j] + bound)
-            _eval(clipped, True, r, J, ctx)
+            _residual(clipped, True, r, J, ctx)
             if _cost(r, w) < _cost(r0, w):
                 res = _damped(q0, clipped, r, J, bound, True, w, budget, tol, consts, ctx)
                 out[:] = res
