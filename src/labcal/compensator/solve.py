@@ -184,7 +184,7 @@ def solve(
             if not rows.advance(rows.step(r, J, w if n < 6 else None)):
                 break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
-        out, failed = rows.out, rows.failed()
+        out, failed = rows.out, np.flatnonzero(rows.bad)
         budget = DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
         if max_correction is not None:
             far = np.setdiff1d(np.flatnonzero(~(np.abs(out - q0).max(axis=1) <= max_correction)), failed)
@@ -272,9 +272,6 @@ class _Rows:
         if stop.any():
             self.rows = rows[~stop]
         return self.rows.size > 0
-
-    def failed(self) -> np.ndarray:
-        return np.flatnonzero(self.bad)
 
 
 def verdict(size: np.ndarray, prev: np.ndarray | None, tol: float) -> tuple[np.ndarray, np.ndarray]:
