@@ -390,9 +390,7 @@ def _damped(q0, q_init, r0, J0, bound, has_bound, w, budget, tol, consts, ctx):
         err[a] = r0[a] * w[a]
         for j in range(n):
             jac[a, j] = J0[a, j] * w[a]
-    cost = 0.0
-    for a in range(6):
-        cost += err[a] * err[a]
+    cost = _cost(r0, w)
     lam, grow = consts[4], 2.0  # LAMBDA_START
     history = np.empty(budget + 1)
     history[0] = cost
@@ -571,9 +569,8 @@ def correct_one(
     bounded = has_region and in_region
     bound = consts[9]
     T = np.empty((n + 1, 4, 4))
-    target = np.empty((4, 4))
     _walk(nominal, q0, T, np.empty((6, n)))
-    target[:] = T[n]
+    target = T[n].copy()
     point = np.zeros(3)
     if has_tcp:  # the TCP's nominal position: (T_target · tcp)[:3, 3]
         for a in range(3):
@@ -599,11 +596,9 @@ def correct_one(
                 clipped[j] = min(max(out[j], q0[j] - bound), q0[j] + bound)
             _residual(clipped, True, r, J, ctx)
             if _cost(r, w) < _cost(r0, w):
-                res = _damped(q0, clipped, r, J, bound, True, w, budget, tol, consts, ctx)
-                out[:] = res
+                out[:] = _damped(q0, clipped, r, J, bound, True, w, budget, tol, consts, ctx)
             else:
                 failed = True
     if failed:
-        res = _damped(q0, q0, r0, J0, bound, bounded, w, budget, tol, consts, ctx)
-        out[:] = res
+        out[:] = _damped(q0, q0, r0, J0, bound, bounded, w, budget, tol, consts, ctx)
     return DONE
