@@ -301,19 +301,8 @@ def test_every_kernel_result_equals_the_product_of_exponentials(k):
                 se3.adjoint(frames).transpose(0, 2, 1, 3).reshape(k, 6, -1),
             ),
             "target_points": (model.target_points(q, targets), points),
-            "twists_from_frames": (model.twists_from_frames(frames), twists),
         }
         for name, (got, want) in expected.items():
             for g, w in zip(*((got, want) if isinstance(got, tuple) else ((got,), (want,))), strict=True):
                 np.testing.assert_allclose(g, w, rtol=0, atol=1e-12, err_msg=f"{model.name} {name}")
         np.testing.assert_allclose(model.fk(q[0]), T[0], rtol=0, atol=1e-12)
-
-
-def test_twists_from_frames_single_and_batched():
-    for model in (load("ur10").model, load("scara4").model, general_model()):
-        q = random_q(model, 4, seed=5)
-        frames = model.link_frames(q)
-        np.testing.assert_array_equal(model.twists_from_frames(frames), model.joint_twists(q))
-        np.testing.assert_array_equal(model.twists_from_frames(frames[2]), model.joint_twists(q)[2])
-        with pytest.raises(ValueError, match="frames must have shape"):
-            model.twists_from_frames(frames[:, :-1])

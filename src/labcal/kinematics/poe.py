@@ -348,21 +348,6 @@ class LocalPOEModel:
         W = self._walk(q2)
         return self._to_matrices(W), self._twists_from_walk(W)
 
-    def twists_from_frames(self, frames: np.ndarray) -> np.ndarray:
-        """Joint twists in K0 from link frames: (n+1, 4, 4) → (6, n), or (k, n+1, 4, 4) → (k, 6, n).
-
-        frames as :meth:`link_frames` returns them (or :func:`frames_together`): the twist of joint j depends only on
-        frame K_j, so a caller that already walked the chain gets its Jacobian without a second walk.
-        """
-        frames = np.asarray(frames, dtype=float)
-        if frames.shape[-3:] != (self.n + 1, 4, 4) or frames.ndim not in (3, 4):
-            raise ValueError(
-                f"frames must have shape ({self.n + 1}, 4, 4) or (k, {self.n + 1}, 4, 4), got {frames.shape}"
-            )
-        if frames.ndim == 3:
-            return self.twists_from_frames(frames[None])[0]
-        return self._twists_from_walk(frames[:, :, :3, :].transpose(1, 2, 3, 0))
-
     def fk_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(k, 4, 4) tool poses and (k, 6, n) actuated joint twists in K0, from one walk of the chain."""
         q2, _ = self._as_batch(q)
