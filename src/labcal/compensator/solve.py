@@ -45,7 +45,6 @@ Example (six "joints" whose twists are the unit twists, so r = target − q)::
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 
@@ -126,13 +125,6 @@ def gauss_newton_step(
     )
 
 
-@functools.lru_cache(maxsize=8)
-def _eye(n: int) -> np.ndarray:
-    out = np.eye(n)
-    out.setflags(write=False)
-    return out
-
-
 def damped_step(r: np.ndarray, J: np.ndarray, lam: np.ndarray | float) -> np.ndarray:
     """(m, 6) weighted residuals, (m, 6, n) weighted Jacobians, (m,) λ (a float for m = 1) → (m, n) clipped
     Levenberg-Marquardt steps."""
@@ -141,12 +133,12 @@ def damped_step(r: np.ndarray, J: np.ndarray, lam: np.ndarray | float) -> np.nda
         J1 = J[0]
         lam1 = lam if isinstance(lam, float) else float(np.ravel(lam)[0])
         # mean of JᵀJ's diagonal: trace(JᵀJ) is the sum of J's squares
-        step = np.linalg.solve(J1.T @ J1 + (lam1 * float(np.vdot(J1, J1)) / n) * _eye(n), J1.T @ r[0])
+        step = np.linalg.solve(J1.T @ J1 + (lam1 * float(np.vdot(J1, J1)) / n) * np.eye(n), J1.T @ r[0])
         return np.minimum(np.maximum(step, -DAMPED_MAX_STEP), DAMPED_MAX_STEP)[None]
     JtJ = np.einsum("kai,kaj->kij", J, J)
     mean_diag = (np.trace(JtJ, axis1=1, axis2=2) / n)[:, None, None]
     rhs = np.einsum("kai,ka->ki", J, r)[..., None]
-    step = np.linalg.solve(JtJ + (np.asarray(lam)[:, None, None] * mean_diag) * _eye(n), rhs)[..., 0]
+    step = np.linalg.solve(JtJ + (np.asarray(lam)[:, None, None] * mean_diag) * np.eye(n), rhs)[..., 0]
     return np.minimum(np.maximum(step, -DAMPED_MAX_STEP), DAMPED_MAX_STEP)
 
 
