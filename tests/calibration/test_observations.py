@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from labcal.calibration.observations import ObservationError, Observations, rigid_fit, target_geometry
-from labcal.kinematics import exp_se3
+from labcal.kinematics.se3 import exp_se3
 
 TARGETS = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.15, 0.0]])
 

@@ -12,7 +12,7 @@ from cli_testutil import TARGETS, invoke, last_line
 
 from labcal.compensator import Compensator
 from labcal.datasets import SessionStore
-from labcal.kinematics import from_urdf
+from labcal.kinematics.conversions import from_urdf
 
 
 def assert_user_error(result, *fragments: str) -> None:

@@ -2,8 +2,18 @@
 
 The definition of a correction is the batched residual and solver; ``robot.correct(q[None])`` runs it with a batch
 of one (a (1, n) input never takes the kernel), so it takes the steps the kernel must take, and the two answers
-agree to rounding: 1e-12 rad, on configurations inside and outside the validity region, near singularities (the
-damped fallback), beyond the 0.1 rad box, with a TCP, for local POE, a network and a linear series.
+agree to rounding, on configurations inside and outside the validity region, near singularities (the damped
+fallback), beyond the 0.1 rad box, with a TCP, for local POE, a network and a linear series.
+
+"To rounding" is 1e-12 rad for a Gauss-Newton answer: each step corrects the last one's rounding. A damped answer
+is fixed by floating point only to the definition's own resolution there (:func:`rounding_spread`): the steps pass
+through ill-conditioned systems, and once the cost is at its rounding floor the kept/refused test and λ's gain
+ratio compare numbers that differ in their last bits, so one ulp of the residual changes the path. Measured over
+1,357 damped answers (4 seeds, the 4 kinds, with and without a TCP and a short budget): the definition moved by up
+to 5e-10 rad when its residual and Jacobian were perturbed by one ulp, and the kernel's answer was never farther
+from the definition's than 1e-12 rad + 6.0 times that spread (median 0.46 times). The tests hold damped answers
+to 1e-12 rad + :data:`SPREAD_FACTOR` times the spread at each configuration; a different step rule (a λ factor, a
+stop) parts by orders of magnitude more.
 """
 
 from __future__ import annotations
@@ -24,6 +34,8 @@ from labcal.robots import load
 pytest.importorskip("numba")
 
 AGREE = 1e-12  # rad
+SPREAD_FACTOR = 16  # a damped answer's bound, in units of the definition's rounding spread (module docstring)
+EPS = np.finfo(float).eps
 
 
 def _network(model, features, hidden, seed, out=1e-3) -> Network:
@@ -90,10 +102,35 @@ def condition(robot: CalibratedRobot, q: np.ndarray) -> float:
     return float(np.linalg.cond(D[:, None] * robot.model.joint_twists(q[None])[0]))
 
 
+def rounding_spread(robot: CalibratedRobot, q: np.ndarray, draws: int = 4, **kw) -> float:
+    """How far the definition's answer moves when its residual and Jacobian are perturbed by one ulp (random signs,
+    a fixed seed; the largest of ``draws`` runs): the resolution to which floating point fixes a damped answer."""
+    rng = np.random.default_rng(0)
+    exact = CalibratedRobot.residual
+
+    def rounded(self, qc, T_target, jacobian=True):
+        r, J = exact(self, qc, T_target, jacobian)
+        r = r * (1 + EPS * rng.choice([-1.0, 1.0], r.shape))
+        return r, None if J is None else J * (1 + EPS * rng.choice([-1.0, 1.0], J.shape))
+
+    want = definition(robot, q, **kw)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(CalibratedRobot, "residual", rounded)
+        return max(float(np.abs(definition(robot, q, **kw) - want).max()) for _ in range(draws))
+
+
+def assert_damped_agree(robot: CalibratedRobot, q: np.ndarray, got: np.ndarray, want: np.ndarray, **kw) -> None:
+    """A damped answer: within 1e-12 rad + SPREAD_FACTOR × the definition's rounding spread."""
+    gap = float(np.abs(got - want).max())
+    if gap > AGREE:
+        spread = rounding_spread(robot, q, **kw)
+        assert gap <= AGREE + SPREAD_FACTOR * spread, f"at {q.tolist()} {kw}: {gap:.3g} rad, spread {spread:.3g}"
+
+
 def assert_agree(robot: CalibratedRobot, q: np.ndarray, **kw) -> None:
-    """The kernel's answer is the definition's: 1e-12 rad, or 1e-9 rad at the same pose for a damped answer
-    (test_the_kernel_takes_the_definitions_steps says why). An unconverged Gauss-Newton answer (``iterations``
-    cut short) near a singularity carries one step's rounding times the condition number: 1e-15 · cond there."""
+    """The kernel's answer is the definition's: 1e-12 rad, or for a damped answer the definition's rounding
+    resolution there (:func:`assert_damped_agree`). An unconverged Gauss-Newton answer (``iterations`` cut short)
+    near a singularity carries one step's rounding times the condition number: 1e-15 · cond there."""
     got, want = robot.correct(q, **kw), definition(robot, q, **kw)
     limit = AGREE if "iterations" not in kw else max(AGREE, 1e-15 * condition(robot, q))
     if np.abs(got - want).max() <= limit:
@@ -106,7 +143,7 @@ def assert_agree(robot: CalibratedRobot, q: np.ndarray, **kw) -> None:
     finally:
         solver._damped = damped
     assert calls, f"a Gauss-Newton answer differs at {q.tolist()} {kw}: {got - want}"
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    assert_damped_agree(robot, q, got, want, **kw)
 
 
 def pose_error(robot: CalibratedRobot, q: np.ndarray, q_cmd: np.ndarray) -> float:
@@ -118,10 +155,8 @@ def pose_error(robot: CalibratedRobot, q: np.ndarray, q_cmd: np.ndarray) -> floa
 
 @pytest.mark.parametrize("kind", ["local-poe", "series", "series-q", "network"])
 def test_the_kernel_takes_the_definitions_steps(kind, monkeypatch):
-    """Gauss-Newton answers agree to 1e-12 rad. Damped answers are settled only to the stop rule's tol: at the end
-    the kept/refused test and λ's gain ratio compare costs at the rounding floor, so two implementations' last steps
-    part (the old numpy one-row and batched damped loops differed by up to 1e-8); they agree to 1e-9 rad and reach
-    the same pose to 1e-12."""
+    """Gauss-Newton answers agree to 1e-12 rad; damped answers to the definition's rounding resolution at each
+    configuration (module docstring) and reach the same pose to 1e-12."""
     robot = make_robot(kind)
     assert robot._kernel is not None
     damped = solver._damped
@@ -134,12 +169,12 @@ def test_the_kernel_takes_the_definitions_steps(kind, monkeypatch):
         want = definition(robot, q, extrapolate=True)
         if calls:
             fell_back += 1
-            np.testing.assert_allclose(got, want, rtol=0, atol=1e-9, err_msg=str(q.tolist()))
+            assert_damped_agree(robot, q, got, want, extrapolate=True)
             assert abs(pose_error(robot, q, got) - pose_error(robot, q, want)) <= 1e-12
         else:
             gauss_newton += 1
             np.testing.assert_allclose(got, want, rtol=0, atol=AGREE, err_msg=str(q.tolist()))
-        inside = robot.validity.contains(q)
+        inside = robot.validity.inside(q[None])[0]
         inside_box += inside
         if inside:  # the bound holds inside the region, also where the unbounded answer lies beyond it
             assert np.abs(got - q).max() <= solver.MAX_CORRECTION + 1e-15
@@ -216,7 +251,7 @@ def test_failures_raise_the_definitions_errors(kind):
     inside = robot.validity.sample(1, np.random.default_rng(0))[0]
     outside_region = inside.copy()
     outside_region[0] += 2.0  # within the joint ranges, far from the data
-    assert not robot.validity.contains(outside_region)
+    assert not robot.validity.inside(outside_region[None])[0]
     outside_range = inside.copy()
     outside_range[3] = 7.0
     for q in [outside_region, outside_range, np.r_[inside[:5], np.nan], np.r_[inside[:5], np.inf]]:
@@ -232,7 +267,7 @@ def test_failures_raise_the_definitions_errors(kind):
 
 
 def test_without_numba_single_calls_take_the_batched_path(monkeypatch):
-    monkeypatch.setattr(kernel, "_module", None)  # as if numba were not importable
+    monkeypatch.setattr(kernel, "compiled", lambda: None)  # as if numba were not importable
     for kind in ("local-poe", "series", "network"):
         robot = make_robot(kind)
         assert robot._kernel is None

@@ -15,12 +15,13 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "cli"))
+sys.path.insert(0, str(Path(__file__).parents[1] / "kinematics"))
 
 from cli_testutil import TARGETS, invoke, last_line
+from kin_testutil import dh_product
 
 from labcal.compensator import Compensator
 from labcal.kinematics import se3
-from labcal.kinematics.conversions import dh_fk
 
 PI2 = math.pi / 2
 ROWS = [  # the Panda's modified DH (a_{j-1}, alpha_{j-1}, d_j, theta_j), Franka's published values
@@ -39,7 +40,7 @@ def nominal_fk(q: np.ndarray) -> np.ndarray:
     """(4, 4) the nominal flange pose at one configuration, from the DH product."""
     flange = np.eye(4)
     flange[2, 3] = FLANGE_D
-    return dh_fk(ROWS, q, modified=True) @ flange
+    return dh_product(ROWS, q, modified=True) @ flange
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,8 @@ from export_fixtures import hybrid, make_network, sample
 from labcal.compensator import CalibratedRobot
 from labcal.export.learned import dropped_learned_term
 from labcal.export.urdf import urdf_text
-from labcal.kinematics import from_urdf, se3
+from labcal.kinematics import se3
+from labcal.kinematics.conversions import from_urdf
 from labcal.robots import load
 
 DYN = {"velocity": [2.0, 2.0, 3.0, 3.0, 3.0, 3.0], "effort": [330.0, 330.0, 150.0, 56.0, 56.0, 56.0]}

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import xml.etree.ElementTree as ET
+
 import numpy as np
 import scipy.linalg
 
@@ -90,3 +92,37 @@ def general_model(seed: int = 0, n: int = 5) -> LocalPOEModel:
         else:
             twists.append(np.concatenate([u, np.zeros(3)]))
     return LocalPOEModel.from_frames(frames, types, np.array(twists))
+
+
+def to_urdf(model: LocalPOEModel, robot_name: str | None = None, comment: str = "") -> str:
+    """Write any local-POE model as a URDF chain (base_link → link_1 … → tool0), exact to printed precision (17
+    digits): the inputs of from_urdf's round-trip tests (labcal's own URDF export, labcal.export.urdf, writes a
+    calibrated robot in the z-axis form with its dynamics). Built with xml.etree, so names and the comment are
+    escaped as XML requires."""
+
+    def fmt(v) -> str:
+        return " ".join(repr(float(x)) for x in v)
+
+    robot = ET.Element("robot", name=robot_name or model.name or "robot")
+    if comment:
+        robot.append(ET.Comment(f" {comment.replace('--', '- -')} "))
+    links = ["base_link", *[f"link_{j + 1}" for j in range(model.n)], "tool0"]
+    for link in links:
+        ET.SubElement(robot, "link", name=link)
+    for j in range(model.n + 1):
+        T = model.frames[j]
+        if j < model.n:
+            kind = "prismatic" if model.joint_types[j] == PRISMATIC else "revolute"
+            joint = ET.SubElement(robot, "joint", name=model.joint_names[j], type=kind)
+        else:
+            joint = ET.SubElement(robot, "joint", name="tool_fixed", type="fixed")
+        ET.SubElement(joint, "parent", link=links[j])
+        ET.SubElement(joint, "child", link=links[j + 1])
+        ET.SubElement(joint, "origin", xyz=fmt(T[:3, 3]), rpy=fmt(se3.matrix_to_rpy(T[:3, :3])))
+        if j < model.n:
+            axis = model.twists[j, :3] if kind == "prismatic" else model.twists[j, 3:]
+            ET.SubElement(joint, "axis", xyz=fmt(axis))
+            lo, hi = model.limits[j]
+            ET.SubElement(joint, "limit", lower=repr(float(lo)), upper=repr(float(hi)), effort="0", velocity="0")
+    ET.indent(robot, space="  ")
+    return '<?xml version="1.0"?>\n' + ET.tostring(robot, encoding="unicode") + "\n"

@@ -18,7 +18,7 @@ from kin_testutil import (
 )
 
 from labcal.kinematics import se3
-from labcal.kinematics.conversions import dh_fk, from_dh, from_mdh
+from labcal.kinematics.conversions import from_dh, from_mdh
 from labcal.kinematics.poe import (
     PRISMATIC,
     REVOLUTE,
@@ -75,7 +75,6 @@ def test_builtin_dh_model_equals_the_textbook_dh_product(robot):
     for qi, Ti in zip(q, model.fk(q), strict=True):
         ref = dh_product(rows, qi) @ tool
         assert_poses_close(Ti, ref, atol=1e-14)
-        assert_poses_close(dh_fk(rows, qi) @ tool, ref, atol=1e-14)
 
 
 def test_random_dh_and_mdh_tables_with_prismatic_joints():
@@ -89,7 +88,6 @@ def test_random_dh_and_mdh_tables_with_prismatic_joints():
         for qi, T_dh, T_mdh in zip(q, dh.fk(q), mdh.fk(q), strict=True):
             assert_poses_close(T_dh, dh_product(rows, qi) @ tool, atol=1e-13)
             assert_poses_close(T_mdh, dh_product(rows, qi, modified=True) @ tool, atol=1e-13)
-            assert_poses_close(dh_fk(rows, qi, modified=True), dh_product(rows, qi, modified=True), atol=1e-13)
 
 
 def test_hand_written_ur5e_mdh_table_equals_the_dh_model():
@@ -132,10 +130,6 @@ def test_z_joint_fast_path_equals_the_general_exponential():
                 T = T @ se3.exp_se3(model.twists[j] * qi[j]) @ model.frames[j + 1]
             ref[i] = T
         np.testing.assert_allclose(model.fk(q), ref, rtol=0, atol=2e-15)
-        for j in range(model.n):
-            np.testing.assert_allclose(
-                model._joint_exp(j, q[:, j]), se3.exp_se3(np.outer(q[:, j], model.twists[j])), rtol=0, atol=1e-15
-            )
 
 
 def test_batch_equals_single_and_shapes():
@@ -307,19 +301,8 @@ def test_every_kernel_result_equals_the_product_of_exponentials(k):
                 se3.adjoint(frames).transpose(0, 2, 1, 3).reshape(k, 6, -1),
             ),
             "target_points": (model.target_points(q, targets), points),
-            "twists_from_frames": (model.twists_from_frames(frames), twists),
         }
         for name, (got, want) in expected.items():
             for g, w in zip(*((got, want) if isinstance(got, tuple) else ((got,), (want,))), strict=True):
                 np.testing.assert_allclose(g, w, rtol=0, atol=1e-12, err_msg=f"{model.name} {name}")
         np.testing.assert_allclose(model.fk(q[0]), T[0], rtol=0, atol=1e-12)
-
-
-def test_twists_from_frames_single_and_batched():
-    for model in (load("ur10").model, load("scara4").model, general_model()):
-        q = random_q(model, 4, seed=5)
-        frames = model.link_frames(q)
-        np.testing.assert_array_equal(model.twists_from_frames(frames), model.joint_twists(q))
-        np.testing.assert_array_equal(model.twists_from_frames(frames[2]), model.joint_twists(q)[2])
-        with pytest.raises(ValueError, match="frames must have shape"):
-            model.twists_from_frames(frames[:, :-1])

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.linalg
-from kin_testutil import assert_poses_close, rot_z, shift
+from kin_testutil import assert_poses_close, rot_z, shift, to_urdf
 
 from labcal.kinematics import se3
-from labcal.kinematics.conversions import from_urdf, to_urdf
+from labcal.kinematics.conversions import from_urdf
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 from labcal.robots import BUILTINS, load
 

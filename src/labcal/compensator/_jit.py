@@ -3,7 +3,8 @@
 
 Imported only by :mod:`labcal.compensator.kernel`, and only when a single ``correct()`` first needs it (importing
 numba and compiling cost seconds: ``labcal --help`` must not pay them). Every function here mirrors a step of the
-batched numpy definition, which is what the tests compare it with (tests/compensator/test_kernel.py, to 1e-12 rad):
+batched numpy definition, which is what the tests compare it with (tests/compensator/test_kernel.py, to 1e-12 rad;
+a damped answer to the definition's own rounding resolution, which one ulp of the residual moves by up to 5e-10):
 
 - :func:`_walk`: the local POE chain (:meth:`LocalPOEModel.link_frames`) and the joint twists ``(p × z, z)``;
 - :func:`_log_pose`: ``log(T_target T⁻¹)``, series below 1e-2 rad as ``model._log_small``, closed forms above;
@@ -51,7 +52,7 @@ def _jit(fn=None, **extra):
 @_jit
 def _walk(frames, q, T, J):
     """Link frames T (n+1, 4, 4) of the chain ``frames`` at q (n,) and joint twists J (6, n): LocalPOEModel's walk
-    (M · Rz(q_j) · A_{j+1}(0)) and _z_twists (ω = z_j, v = p_j × z_j)."""
+    (M · Rz(q_j) · A_{j+1}(0)) and _twists_from_walk (ω = z_j, v = p_j × z_j)."""
     n = q.shape[0]
     T[0] = frames[0]
     for j in range(n):
@@ -242,13 +243,15 @@ def _series(q, T, runs, weights, rho, S, slope):
 
 
 @_jit
-def _residual(qc, jacobian, target, point, has_point, model, mode, cols, weights, layers, T, r, J, x, dx, work):
-    """CalibratedRobot.residual at qc (n,) into r (6,) and, with ``jacobian``, J (6, n); target: the nominal pose.
+def _residual(qc, jacobian, r, J, ctx):
+    """CalibratedRobot.residual at qc (n,) into r (6,) and, with ``jacobian``, J (6, n); ctx: the fixed arguments of
+    one call (correct_one), target the nominal pose.
 
     mode NET_NONE: r = e, J the joint twists; NET_LAYERS: r = e − J δρ; NET_SERIES (a linear series): r = e − J δρ
     and J the Newton Jacobian J + J S + bracket (model._bracket). has_point: twists about ``point``
     (model._about_point).
     """
+    target, point, has_point, model, mode, cols, weights, layers, T, x, dx, work = ctx
     trig, buf, Jt, S, vec = work  # workspace: vec rows e, ρ, z, tail
     n = qc.shape[0]
     _walk(model, qc, T, Jt)
@@ -302,13 +305,6 @@ def _residual(qc, jacobian, target, point, has_point, model, mode, cols, weights
                 J[0, j] += wy * pz - wz * py
                 J[1, j] += wz * px - wx * pz
                 J[2, j] += wx * py - wy * px
-
-
-@_jit
-def _eval(qc, jacobian, r, J, ctx):
-    """_residual with the fixed arguments of one call bundled in ctx."""
-    target, point, has_point, model, mode, cols, weights, layers, T, x, dx, work = ctx
-    _residual(qc, jacobian, target, point, has_point, model, mode, cols, weights, layers, T, r, J, x, dx, work)
 
 
 @_jit
@@ -394,9 +390,7 @@ def _damped(q0, q_init, r0, J0, bound, has_bound, w, budget, tol, consts, ctx):
         err[a] = r0[a] * w[a]
         for j in range(n):
             jac[a, j] = J0[a, j] * w[a]
-    cost = 0.0
-    for a in range(6):
-        cost += err[a] * err[a]
+    cost = _cost(r0, w)
     lam, grow = consts[4], 2.0  # LAMBDA_START
     history = np.empty(budget + 1)
     history[0] = cost
@@ -419,7 +413,7 @@ def _damped(q0, q_init, r0, J0, bound, has_bound, w, budget, tol, consts, ctx):
             predicted -= m * m
         for j in range(n):
             cand[j] = out[j] + step[j]
-        _eval(cand, True, rc, Jc, ctx)
+        _residual(cand, True, rc, Jc, ctx)
         cost_c = _cost(rc, w)
         kept = cost_c <= cost
         gain = (cost - cost_c) / predicted if predicted > 0 else 0.0
@@ -442,19 +436,9 @@ def _damped(q0, q_init, r0, J0, bound, has_bound, w, budget, tol, consts, ctx):
     return out
 
 
-@_jit
-def _in_ranges(q, ranges):
-    """Whether q lies in the calibrated joint ranges (ranges (2, n): lo, hi with CalibratedRobot._ranges' 1e-12
-    margin): the definition's comparisons on the same numbers."""
-    for j in range(q.shape[0]):
-        if not (ranges[0, j] <= q[j] <= ranges[1, j]):
-            return False
-    return True
-
-
 # Relative width of the shell about the validity region's boundary where the kernel leaves the verdict to the
 # definition: ValidityRegion.distance sums |x|² − 2 x·c + |c|² (rounding error ≈ n ε (|x|² + |c|²), ε = 2.2e-16)
-# and ValidityRegion.contains |c − x|² (≈ n ε |c − x|²); 1e-12 is a hundredfold that for any arm.
+# and this kernel |c − x|² (≈ n ε |c − x|²); 1e-12 is a hundredfold that for any arm.
 _REGION_SHELL = 1e-12
 
 
@@ -462,8 +446,8 @@ _REGION_SHELL = 1e-12
 def _in_region(q, centres, scale, radius):
     """The validity region's ball test: (inside, sure). Inside when a centre is within the radius (the scaled
     |c − x|² ≤ radius²). sure is False when q lies within rounding of the boundary, where the definition's own
-    distances (ValidityRegion.distance to refuse, .contains to bound), summed in other orders, may judge it the
-    other way: the caller then leaves the verdict to the definition."""
+    distance (ValidityRegion.distance, to refuse and to bound), summed in another order, may judge it the other
+    way: the caller then leaves the verdict to the definition."""
     n = q.shape[0]
     x = np.empty(n)
     xx = 0.0
@@ -502,7 +486,7 @@ def _gauss_newton(q0, out, iterations, tol, consts, r, J, r0, J0, ctx):
         # settled: reuse the last J (solve's simplified Newton; n = 6 only: a redundant arm's least change moves
         # with J)
         fresh = n != 6 or not (prev >= 0.0 and prev < reuse_below)
-        _eval(out, fresh, r, J, ctx)
+        _residual(out, fresh, r, J, ctx)
         if i == 0:
             r0[:] = r
             J0[:] = J
@@ -567,11 +551,10 @@ def correct_one(
     MAX_CORRECTION)."""
     n = q0.shape[0]
     for j in range(n):
-        if not math.isfinite(q0[j]):
+        # not finite, or outside the calibrated ranges (lo, hi with CalibratedRobot._ranges' 1e-12 margin: the
+        # definition's comparisons on the same numbers)
+        if not (math.isfinite(q0[j]) and (extrapolate or ranges[0, j] <= q0[j] <= ranges[1, j])):
             return OUTSIDE
-    in_ranges = _in_ranges(q0, ranges)
-    if not (in_ranges or extrapolate):
-        return OUTSIDE
     # The region decides both the refusal and, under extrapolate, the bound: outside the joint ranges too (the
     # region's balls reach beyond a learned fit's ranges, which are its data's). Near its boundary the definition
     # decides.
@@ -586,9 +569,8 @@ def correct_one(
     bounded = has_region and in_region
     bound = consts[9]
     T = np.empty((n + 1, 4, 4))
-    target = np.empty((4, 4))
     _walk(nominal, q0, T, np.empty((6, n)))
-    target[:] = T[n]
+    target = T[n].copy()
     point = np.zeros(3)
     if has_tcp:  # the TCP's nominal position: (T_target · tcp)[:3, 3]
         for a in range(3):
@@ -612,13 +594,11 @@ def correct_one(
             clipped = np.empty(n)
             for j in range(n):
                 clipped[j] = min(max(out[j], q0[j] - bound), q0[j] + bound)
-            _eval(clipped, True, r, J, ctx)
+            _residual(clipped, True, r, J, ctx)
             if _cost(r, w) < _cost(r0, w):
-                res = _damped(q0, clipped, r, J, bound, True, w, budget, tol, consts, ctx)
-                out[:] = res
+                out[:] = _damped(q0, clipped, r, J, bound, True, w, budget, tol, consts, ctx)
             else:
                 failed = True
     if failed:
-        res = _damped(q0, q0, r0, J0, bound, bounded, w, budget, tol, consts, ctx)
-        out[:] = res
+        out[:] = _damped(q0, q0, r0, J0, bound, bounded, w, budget, tol, consts, ctx)
     return DONE

@@ -6,7 +6,8 @@ call, not the arithmetic, is the price (a numpy correction costs more than one p
 call; the compiled one a fraction of it: benchmarks/compensator_kernel.py). So :func:`build` prepares, for a robot
 whose correction it implements, a function ``(q (n,) float array, extrapolate, iterations, tol, damped_iterations,
 tcp (4, 4) or None) → q_cmd (n,) or None`` that takes the same steps as the definition on compiled code
-(:mod:`labcal.compensator._jit`), tested against it to 1e-12 rad (tests/compensator/test_kernel.py). None means
+(:mod:`labcal.compensator._jit`), tested against it to 1e-12 rad (a damped answer to the definition's own rounding
+resolution: tests/compensator/test_kernel.py). None means
 "take the batched path": q is not finite, or outside the calibrated ranges or validity region (the batched path
 then raises the error that names it), or within rounding of the region's boundary, or an option is not a plain
 bool, int or float count the compiled code reads as the definition does (the batched path decides them).
@@ -25,6 +26,7 @@ directory is writable) at the first single correction, never when labcal is impo
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from types import ModuleType
 from typing import TYPE_CHECKING
@@ -39,21 +41,15 @@ if TYPE_CHECKING:
 
 Kernel = Callable[..., "np.ndarray | None"]
 
-_UNLOADED = object()
-_module: object = _UNLOADED  # the compiled module, None when numba is not importable
 
-
+@functools.cache
 def compiled() -> ModuleType | None:
     """labcal.compensator._jit (importing numba on first use), or None without numba."""
-    global _module
-    if _module is _UNLOADED:
-        try:
-            from labcal.compensator import _jit
-        except ImportError:  # numba is optional at run time
-            _module = None
-        else:
-            _module = _jit
-    return _module  # type: ignore[return-value]
+    try:
+        from labcal.compensator import _jit
+    except ImportError:  # numba is optional at run time
+        return None
+    return _jit
 
 
 _OPS = {"q": 0, "zero": 1, "sin": 2, "cos": 3, "gravity": 4}

@@ -425,10 +425,6 @@ class CalibratedRobot:
         equals the network up to rounding. S is
         dδρ/dq without the gravity terms' part (gravity features turn slowly with q: their slope saved a tenth of a
         Gauss-Newton step per call and cost more, benchmarks/compensator_tail.py).
-
-        Per joint j one row of features x_j = (sin h q_j, cos h q_j for h = 1 … H, then link j+1's gravity
-        direction), and one stacked product x_j K_j gives both δρ's terms and their slope (d sin(h q)/dq =
-        h cos(h q), d cos(h q)/dq = −h sin(h q)).
         """
         network, model, n = self.network, self.model, self.n
         if len(network.weights) != 1 or n != 6 or not model._all_revolute_z:
@@ -449,29 +445,17 @@ class CalibratedRobot:
                 return None
         if harmonic is None:
             return None
-        weights, h = harmonic, np.arange(1.0, H + 1)[:, None]
-        G = 0 if gravity is None else 3
-        F = 2 * H + G  # features per joint: sin h q, cos h q interleaved, then link j+1's gravity direction
-        K = np.zeros((n, F, 6 + 6 * n))  # columns: δρ (summed over joints), then joint j's slope in 6 + 6j …
-        K[:, 0 : 2 * H : 2, :6], K[:, 1 : 2 * H : 2, :6] = weights[:, :, 0], weights[:, :, 1]
-        for j in range(n):
-            slope = K[j, :, 6 + 6 * j : 12 + 6 * j]
-            slope[0 : 2 * H : 2], slope[1 : 2 * H : 2] = -h * weights[j, :, 1], h * weights[j, :, 0]
-        gravity_of = None
-        if gravity is not None:
-            K[:, 2 * H :, :6], gravity_of = gravity
-        K = K.reshape(n * F, 6 + 6 * n)  # one product of the joints' feature rows side by side gives all
-        K.setflags(write=False)
-
-        # Only K's non-zero blocks are multiplied, not the dense (k, n·F) @ (n·F, 6 + 6n) product: joint
-        # j's harmonics reach δρ and joint j's own slope column, nothing else, so per joint one (2H, 12) block (δρ's
-        # columns, then the slope's) acts on its harmonics, and the gravity rows act on δρ alone. The harmonics come
-        # as complex sin h q + i cos h q (features.harmonics_of_joints), so a block's sin and cos rows a, b become one
-        # complex row a − i b, and the real part of the product is a sin h q + b cos h q.
-        blocks = K.reshape(n, F, 6 + 6 * n)
-        own = [np.concatenate([blocks[j, :, :6], blocks[j, :, 6 + 6 * j : 12 + 6 * j]], 1) for j in range(n)]
-        joint_W = np.stack([(b[0 : 2 * H : 2] - 1j * b[1 : 2 * H : 2]).T for b in own])  # (n, 12, H)
-        gravity_W = blocks[:, 2 * H :, :6].reshape(n * G, 6)
+        # Per joint j one (12, H) complex block acts on its harmonics, which come as complex sin h q + i cos h q
+        # (features.harmonics_of_joints): columns δρ (6), then joint j's own slope dδρ/dq_j (6). A sin row a and a cos
+        # row b become one complex row a − i b, so the real part of the product is a sin h q + b cos h q; the slope's
+        # rows are (−h b, h a) (d sin(h q)/dq = h cos(h q), d cos(h q)/dq = −h sin(h q)). Only these blocks are
+        # multiplied, not a dense product of all joints' features: joint j's harmonics reach δρ and joint j's slope,
+        # nothing else. The gravity rows act on δρ alone.
+        W_sin, W_cos, h = harmonic[:, :, 0], harmonic[:, :, 1], np.arange(1.0, H + 1)[:, None]
+        sin_rows = np.concatenate([W_sin, -h * W_cos], axis=2)  # (n, H, 12)
+        cos_rows = np.concatenate([W_cos, h * W_sin], axis=2)
+        joint_W = (sin_rows - 1j * cos_rows).transpose(0, 2, 1)  # (n, 12, H), laid out (n, H, 12)
+        gravity_W, gravity_of = (None, None) if gravity is None else (gravity[0].reshape(n * 3, 6), gravity[1])
         chunk = 2048  # configurations per product: bounds the harmonics in memory (n · H · chunk complex, 6 MB)
 
         def batch(q, frames) -> tuple[np.ndarray, np.ndarray]:  # the same terms for (k, n) q and their link frames
@@ -663,7 +647,7 @@ class CalibratedRobot:
         if not extrapolate:
             return True  # correct() refused every row outside the region
         # the refusal's own distances (_check_validity): a row correct() accepts without extrapolate is bounded with
-        # it too (ValidityRegion.contains, summed otherwise, parts from them at the boundary's last ulp)
+        # it too (a |c − x|² test, summed otherwise, parts from them at the boundary's last ulp)
         return self.validity.inside(q2)
 
     def _newton(

@@ -45,7 +45,6 @@ Example (six "joints" whose twists are the unit twists, so r = target − q)::
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 
@@ -126,13 +125,6 @@ def gauss_newton_step(
     )
 
 
-@functools.lru_cache(maxsize=8)
-def _eye(n: int) -> np.ndarray:
-    out = np.eye(n)
-    out.setflags(write=False)
-    return out
-
-
 def damped_step(r: np.ndarray, J: np.ndarray, lam: np.ndarray | float) -> np.ndarray:
     """(m, 6) weighted residuals, (m, 6, n) weighted Jacobians, (m,) λ (a float for m = 1) → (m, n) clipped
     Levenberg-Marquardt steps."""
@@ -141,12 +133,12 @@ def damped_step(r: np.ndarray, J: np.ndarray, lam: np.ndarray | float) -> np.nda
         J1 = J[0]
         lam1 = lam if isinstance(lam, float) else float(np.ravel(lam)[0])
         # mean of JᵀJ's diagonal: trace(JᵀJ) is the sum of J's squares
-        step = np.linalg.solve(J1.T @ J1 + (lam1 * float(np.vdot(J1, J1)) / n) * _eye(n), J1.T @ r[0])
+        step = np.linalg.solve(J1.T @ J1 + (lam1 * float(np.vdot(J1, J1)) / n) * np.eye(n), J1.T @ r[0])
         return np.minimum(np.maximum(step, -DAMPED_MAX_STEP), DAMPED_MAX_STEP)[None]
     JtJ = np.einsum("kai,kaj->kij", J, J)
     mean_diag = (np.trace(JtJ, axis1=1, axis2=2) / n)[:, None, None]
     rhs = np.einsum("kai,ka->ki", J, r)[..., None]
-    step = np.linalg.solve(JtJ + (np.asarray(lam)[:, None, None] * mean_diag) * _eye(n), rhs)[..., 0]
+    step = np.linalg.solve(JtJ + (np.asarray(lam)[:, None, None] * mean_diag) * np.eye(n), rhs)[..., 0]
     return np.minimum(np.maximum(step, -DAMPED_MAX_STEP), DAMPED_MAX_STEP)
 
 
@@ -184,7 +176,7 @@ def solve(
             if not rows.advance(rows.step(r, J, w if n < 6 else None)):
                 break
         # Rows still contracting after the iteration budget keep their Gauss-Newton result; failed rows start over.
-        out, failed = rows.out, rows.failed()
+        out, failed = rows.out, np.flatnonzero(rows.bad)
         budget = DAMPED_BUDGET if damped_iterations is None else int(damped_iterations)
         if max_correction is not None:
             far = np.setdiff1d(np.flatnonzero(~(np.abs(out - q0).max(axis=1) <= max_correction)), failed)
@@ -213,7 +205,7 @@ def solve(
 
 class _Rows:
     """The Gauss-Newton state of a batch: every row's q, last step size, last Jacobian and fate, advanced by
-    :func:`verdict`'s rule in array arithmetic (:func:`_verdicts`)."""
+    :func:`verdict`."""
 
     def __init__(self, q0: np.ndarray, tol: float) -> None:
         self.out, self.tol, self.q0 = q0.copy(), tol, q0
@@ -257,7 +249,7 @@ class _Rows:
         rows, everyone = self.rows, self._everyone()
         size = np.abs(step).max(axis=1)
         prev = None if self.prev is None else (self.prev if everyone else self.prev[rows])
-        bad, done = _verdicts(size, prev, self.tol)
+        bad, done = verdict(size, prev, self.tol)
         if bad.any():
             step[bad] = 0.0
             self.bad[rows[bad]] = True
@@ -273,25 +265,12 @@ class _Rows:
             self.rows = rows[~stop]
         return self.rows.size > 0
 
-    def failed(self) -> np.ndarray:
-        return np.flatnonzero(self.bad)
 
-
-def verdict(size: float, prev: float | None, tol: float) -> tuple[bool, bool]:
-    """The Gauss-Newton rule for one row: (failed, converged) after a step of max-norm ``size`` that followed one of
-    max-norm ``prev`` (None: the first step). See the module docstring; :func:`_verdicts` applies it to a batch
-    (and the URScript exporter and :mod:`labcal.compensator._jit` write it in their languages)."""
+def verdict(size: np.ndarray, prev: np.ndarray | None, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """The Gauss-Newton rule, (failed, converged) as (m,) bool arrays, after steps of max-norm ``size`` (m,) that
+    followed ones of max-norm ``prev`` (None: the first step). See the module docstring (the URScript exporter and
+    :mod:`labcal.compensator._jit` write it for one row in their languages)."""
     if prev is None:  # no previous step: ρ = 1/2, so the estimated distance is the step itself
-        return not size <= GN_MAX_STEP, size < tol
-    if size < NOISE_FLOOR:
-        return False, True
-    ratio = min(size / max(prev, 1e-300), 0.5)
-    return not size <= min(GN_MAX_STEP, 0.5 * prev), size * ratio / (1 - ratio) < tol or size < 1e-3 * tol
-
-
-def _verdicts(size: np.ndarray, prev: np.ndarray | None, tol: float) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`verdict` of every row, as (m,) bool arrays, in array arithmetic."""
-    if prev is None:
         return ~(size <= GN_MAX_STEP), size < tol
     ratio = np.minimum(size / np.maximum(prev, 1e-300), 0.5)
     floor = size < NOISE_FLOOR

@@ -78,12 +78,8 @@ class ValidityRegion:
             [self.centres.min(axis=0) / self.weights - half, self.centres.max(axis=0) / self.weights + half], axis=1
         )
 
-    def contains(self, q: np.ndarray) -> bool:
-        """Whether one configuration (n,) is inside: the control loop's check, a few numpy calls."""
-        d = self.centres - q * self.weights
-        return bool(np.einsum("ca,ca->c", d, d).min() <= self.radius * self.radius)
-
     def inside(self, q2: np.ndarray) -> np.ndarray:
+        """(k,) whether each configuration (k, n) is inside (within the radius of a centre)."""
         return self.distance(q2) <= self.radius
 
     def sample(self, count: int, rng: np.random.Generator) -> np.ndarray:

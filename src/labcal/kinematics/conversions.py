@@ -1,4 +1,5 @@
-"""Exact conversions of DH, modified DH and URDF descriptions into a :class:`LocalPOEModel`, and back to URDF.
+"""Exact conversions of DH, modified DH and URDF descriptions into a :class:`LocalPOEModel` (labcal.export.urdf writes
+a calibrated robot back as a URDF).
 
 Standard DH (Denavit-Hartenberg): ``T = Π_j Rz(θ_j + q_j) Tz(d_j) Tx(a_j) Rx(α_j) · T_tool``. Joint j moves about
 z of DH frame j−1, so K_j is DH frame j−1: A_1(0) = I, A_{j+1}(0) = Rz(θ_j) Tz(d_j) Tx(a_j) Rx(α_j), and the
@@ -88,19 +89,6 @@ def from_mdh(rows: Sequence[Mapping], T_flange_tool=None, name: str = "", joint_
     frames.append(np.eye(4) if T_flange_tool is None else np.asarray(T_flange_tool, float))
     types = tuple(row.get("type", REVOLUTE) for row in rows)
     return LocalPOEModel.from_frames(np.array(frames), types, limits=_limits(rows), name=name, joint_names=joint_names)
-
-
-def dh_fk(rows: Sequence[Mapping], q: np.ndarray, modified: bool = False) -> np.ndarray:
-    """Reference forward kinematics straight from the DH product (one configuration, (4, 4)); for tests."""
-    T = np.eye(4)
-    for row, qj in zip(rows, q, strict=True):
-        a, alpha, d, theta = (float(row[k]) for k in ("a", "alpha", "d", "theta"))
-        if row.get("type", REVOLUTE) == REVOLUTE:
-            theta += qj
-        else:
-            d += qj
-        T = T @ (mdh_transform(a, alpha, d, theta) if modified else dh_transform(a, alpha, d, theta))
-    return T
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -222,37 +210,3 @@ def _reaches(joint_el, tip: str, children) -> bool:
     if link == tip:
         return True
     return any(_reaches(el, tip, children) for el in children.get(link, []))
-
-
-def to_urdf(model: LocalPOEModel, robot_name: str | None = None, comment: str = "") -> str:
-    """Write the model as a URDF chain (base_link → link_1 … → tool0), exact to printed precision (17 digits).
-
-    Built with xml.etree, so names and the comment are escaped as XML requires.
-    """
-
-    def fmt(v) -> str:
-        return " ".join(repr(float(x)) for x in v)
-
-    robot = ET.Element("robot", name=robot_name or model.name or "robot")
-    if comment:
-        robot.append(ET.Comment(f" {comment.replace('--', '- -')} "))
-    links = ["base_link", *[f"link_{j + 1}" for j in range(model.n)], "tool0"]
-    for link in links:
-        ET.SubElement(robot, "link", name=link)
-    for j in range(model.n + 1):
-        T = model.frames[j]
-        if j < model.n:
-            kind = "prismatic" if model.joint_types[j] == PRISMATIC else "revolute"
-            joint = ET.SubElement(robot, "joint", name=model.joint_names[j], type=kind)
-        else:
-            joint = ET.SubElement(robot, "joint", name="tool_fixed", type="fixed")
-        ET.SubElement(joint, "parent", link=links[j])
-        ET.SubElement(joint, "child", link=links[j + 1])
-        ET.SubElement(joint, "origin", xyz=fmt(T[:3, 3]), rpy=fmt(se3.matrix_to_rpy(T[:3, :3])))
-        if j < model.n:
-            axis = model.twists[j, :3] if kind == "prismatic" else model.twists[j, 3:]
-            ET.SubElement(joint, "axis", xyz=fmt(axis))
-            lo, hi = model.limits[j]
-            ET.SubElement(joint, "limit", lower=repr(float(lo)), upper=repr(float(hi)), effort="0", velocity="0")
-    ET.indent(robot, space="  ")
-    return '<?xml version="1.0"?>\n' + ET.tostring(robot, encoding="unicode") + "\n"

@@ -8,7 +8,7 @@ Each link j carries a frame K_j on joint j's axis. At joint value q_j the relati
 Pose errors are spatial twists δy in the base frame K0, defined by ``T_actual = exp(δŷ) · T_nominal``.
 
 The definition is :func:`poe_link_frames` (with :func:`poe_fk` and :func:`poe_joint_twists`): the product above,
-one :func:`se3.exp_se3` per joint. :class:`LocalPOEModel` computes the same numbers with three kernels, each kept
+one :func:`se3.exp_se3` per joint. :class:`LocalPOEModel` computes the same numbers with two kernels, each kept
 because ``benchmarks/speed.py`` shows what it earns against the definition, each tested against the definition
 (tests/kinematics/test_kinematics_poe.py):
 
@@ -216,20 +216,6 @@ class LocalPOEModel:
             raise ValueError(f"q must have shape ({self.n},) or (k, {self.n}), got {q.shape}")
         return q2, single
 
-    def _joint_exp(self, j: int, qj: np.ndarray) -> np.ndarray:
-        """(k,) joint values → (k, 4, 4) exp(ξ̂_j q_j)."""
-        if self._z_joint[j]:
-            out = np.zeros((qj.shape[0], 4, 4))
-            if self.joint_types[j] == REVOLUTE:
-                c, s = np.cos(qj), np.sin(qj)
-                out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
-                out[:, 2, 2] = out[:, 3, 3] = 1.0
-            else:
-                out[:, 0, 0] = out[:, 1, 1] = out[:, 2, 2] = out[:, 3, 3] = 1.0
-                out[:, 2, 3] = qj
-            return out
-        return se3.exp_se3(self.twists[j] * qj[:, None])
-
     def _walk(self, q2: np.ndarray) -> np.ndarray:
         """Walk the chain once: (n+1, 3, 4, k) top three rows of the frames K_1 … K_{n+1} in K0, each before its own
         joint moves it (see :meth:`_chain`). The batch axis is last so that every step is a handful of whole-array
@@ -272,40 +258,26 @@ class LocalPOEModel:
         (one 4×4 matmul per joint) than :meth:`_walk`, which pays per call and wins only on large batches.
 
         For z-axis joints every step ``exp(ξ̂_j q_j) · A_{j+1}(0)`` is built for all joints at once: ``Rz(q) · A``
-        mixes rows 0 and 1 of A by (cos q, sin q), ``Tz(q) · A`` adds q to A's z translation.
+        mixes rows 0 and 1 of A by (cos q, sin q), ``Tz(q) · A`` adds q to A's z translation; another axis's step is
+        ``exp_se3(ξ_j q_j) · A``.
         """
         k, n = q2.shape[0], self.n
         frames = np.empty((k, n + 1, 4, 4))
         T = frames[:, 0] = self.frames[0]
-        if all(self._z_joint):
-            F = self.frames[1:]  # (n, 4, 4)
-            revolute = self._revolute_mask
-            s = np.where(revolute, np.sin(q2), 0.0)[:, :, None]
-            c = np.where(revolute, np.cos(q2), 1.0)[:, :, None]
-            G = np.empty((k, n, 4, 4))
-            G[:, :, 0] = c * F[:, 0] - s * F[:, 1]
-            G[:, :, 1] = s * F[:, 0] + c * F[:, 1]
-            G[:, :, 2:] = F[:, 2:]
-            if not revolute.all():
-                G[:, :, 2, 3] += np.where(revolute, 0.0, q2)
-            for j in range(n):
-                T = frames[:, j + 1] = T @ G[:, j]
-            return frames
+        F = self.frames[1:]  # (n, 4, 4)
+        revolute = self._revolute_mask
+        s = np.where(revolute, np.sin(q2), 0.0)[:, :, None]
+        c = np.where(revolute, np.cos(q2), 1.0)[:, :, None]
+        G = np.empty((k, n, 4, 4))
+        G[:, :, 0] = c * F[:, 0] - s * F[:, 1]
+        G[:, :, 1] = s * F[:, 0] + c * F[:, 1]
+        G[:, :, 2:] = F[:, 2:]
+        if not revolute.all():
+            G[:, :, 2, 3] += np.where(revolute, 0.0, q2)
         for j in range(n):
-            F, qj = self.frames[j + 1], q2[:, j]
-            if self._z_joint[j] and self.joint_types[j] == REVOLUTE:
-                # Rz(q) · A_{j+1}(0): only rows 0 and 1 change.
-                c, s = np.cos(qj)[:, None], np.sin(qj)[:, None]
-                G = np.empty((k, 4, 4))
-                G[:, 0] = c * F[0] - s * F[1]
-                G[:, 1] = s * F[0] + c * F[1]
-                G[:, 2:] = F[2:]
-            elif self._z_joint[j]:
-                G = np.broadcast_to(F, (k, 4, 4)).copy()
-                G[:, 2] += qj[:, None] * F[3]  # Tz(q) · A_{j+1}(0)
-            else:
-                G = se3.exp_se3(self.twists[j] * qj[:, None]) @ F
-            T = frames[:, j + 1] = T @ G
+            if not self._z_joint[j]:
+                G[:, j] = se3.exp_se3(self.twists[j] * q2[:, j, None]) @ F[j]
+            T = frames[:, j + 1] = T @ G[:, j]
         return frames
 
     @staticmethod
@@ -327,20 +299,6 @@ class LocalPOEModel:
         """
         initial = self._walk_small(q2) if q2.shape[0] < _SMALL_BATCH else self._to_matrices(self._walk(q2))
         return initial, initial[:, self.n]
-
-    def _z_twists(self, frames: np.ndarray) -> np.ndarray:
-        """(k, 6, n) joint twists of z-axis joints from batch-first frames: ω = z (revolute), v = p × z or z."""
-        n = self.n
-        z, p = frames[:, :n, :3, 2], frames[:, :n, :3, 3]  # (k, n, 3)
-        out = np.empty((frames.shape[0], 6, n))
-        rev = self._revolute_mask
-        pz = np.empty_like(z)
-        pz[..., 0] = p[..., 1] * z[..., 2] - p[..., 2] * z[..., 1]
-        pz[..., 1] = p[..., 2] * z[..., 0] - p[..., 0] * z[..., 2]
-        pz[..., 2] = p[..., 0] * z[..., 1] - p[..., 1] * z[..., 0]
-        out[:, :3] = np.where(rev[:, None], pz, z).transpose(0, 2, 1)
-        out[:, 3:] = np.where(rev[:, None], z, 0.0).transpose(0, 2, 1)
-        return out
 
     def _twists_from_walk(self, W: np.ndarray) -> np.ndarray:
         """(k, 6, n) joint twists Ad(K_j) ξ_j in K0 from a walk: ω = R ω_loc, v = R v_loc + p × ω."""
@@ -386,28 +344,9 @@ class LocalPOEModel:
         q2, _ = self._as_batch(q)
         if q2.shape[0] < _SMALL_BATCH:
             frames = self._walk_small(q2)
-            if all(self._z_joint):
-                return frames, self._z_twists(frames)
             return frames, self._twists_from_walk(frames[:, :, :3, :].transpose(1, 2, 3, 0))
         W = self._walk(q2)
         return self._to_matrices(W), self._twists_from_walk(W)
-
-    def twists_from_frames(self, frames: np.ndarray) -> np.ndarray:
-        """Joint twists in K0 from link frames: (n+1, 4, 4) → (6, n), or (k, n+1, 4, 4) → (k, 6, n).
-
-        frames as :meth:`link_frames` returns them (or :func:`frames_together`): the twist of joint j depends only on
-        frame K_j, so a caller that already walked the chain gets its Jacobian without a second walk.
-        """
-        frames = np.asarray(frames, dtype=float)
-        if frames.shape[-3:] != (self.n + 1, 4, 4) or frames.ndim not in (3, 4):
-            raise ValueError(
-                f"frames must have shape ({self.n + 1}, 4, 4) or (k, {self.n + 1}, 4, 4), got {frames.shape}"
-            )
-        if frames.ndim == 3:
-            return self.twists_from_frames(frames[None])[0]
-        if all(self._z_joint):
-            return self._z_twists(frames)
-        return self._twists_from_walk(frames[:, :, :3, :].transpose(1, 2, 3, 0))
 
     def fk_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(k, 4, 4) tool poses and (k, 6, n) actuated joint twists in K0, from one walk of the chain."""

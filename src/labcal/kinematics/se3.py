@@ -174,29 +174,6 @@ def point_jacobian(p: np.ndarray) -> np.ndarray:
     return out
 
 
-def pose_from_adjoint(Ad: np.ndarray) -> np.ndarray:
-    """(..., 6, 6) adjoint ``[[R, p̂R], [0, R]]`` → (..., 4, 4) pose: the inverse of :func:`adjoint`.
-
-    p is read from the antisymmetric part of p̂ = (p̂R) Rᵀ.
-
-    Example::
-
-        >>> T = pose([0.1, 0.2, 0.3], [0.3, -0.2, 1.0])
-        >>> bool(np.allclose(pose_from_adjoint(adjoint(T)), T))
-        True
-    """
-    Ad = np.asarray(Ad, dtype=float)
-    R = Ad[..., :3, :3]
-    P = Ad[..., :3, 3:] @ np.swapaxes(R, -1, -2)
-    out = np.zeros((*Ad.shape[:-2], 4, 4))
-    out[..., :3, :3] = R
-    out[..., 0, 3] = 0.5 * (P[..., 2, 1] - P[..., 1, 2])
-    out[..., 1, 3] = 0.5 * (P[..., 0, 2] - P[..., 2, 0])
-    out[..., 2, 3] = 0.5 * (P[..., 1, 0] - P[..., 0, 1])
-    out[..., 3, 3] = 1.0
-    return out
-
-
 def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
     """(..., 3) URDF roll-pitch-yaw (fixed axes x, y, z) → (..., 3, 3): ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
     rpy = np.asarray(rpy, dtype=float)
