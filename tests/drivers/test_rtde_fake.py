@@ -7,6 +7,7 @@ import contextlib
 import itertools
 import socket
 import struct
+import time
 
 import numpy as np
 import pytest
@@ -113,10 +114,10 @@ def test_input_recipe_writes_registers(fake, client):
     kind, body = request(client, "I", b"input_int_register_0,input_double_register_3")
     assert (kind, body) == ("I", b"\x01INT32,DOUBLE")
     client.sendall(struct.pack(">HB", 3 + 1 + 12, ord("U")) + b"\x01" + struct.pack(">id", 34, 2.5))
-    for _ in range(50):
-        registers = fake.snapshot()["registers"]
-        if registers:
-            break
+    # The fake applies the package on its own thread: wait for it (a fixed count of polls raced under load).
+    deadline = time.monotonic() + 10.0
+    while not (registers := fake.snapshot()["registers"]) and time.monotonic() < deadline:
+        time.sleep(0.01)
     assert registers == {"input_int_register_0": 34, "input_double_register_3": 2.5}
 
 
