@@ -3,7 +3,7 @@
     python benchmarks/lab_faults.py [--poses 8] [--out benchmarks/results/lab_faults.txt]
     python benchmarks/lab_faults.py --src /path/to/old/labcal/src --out benchmarks/results/lab_faults_before.txt
 
-Every scenario starts the fakes (:class:`labcal.testing.rehearse.Rehearsal`: the fake UR controller in its own
+Every scenario starts the fakes (:class:`labcal_fakes.rehearse.Rehearsal`: the fake UR controller in its own
 process on loopback, the fake NDI tracker on a pty), runs ``labcal session new --robot-driver ur --tracker-driver
 serial`` in a child process on a small cell (the ur10 with ±0.1 rad joint ranges, so a pose takes about a second),
 injects the fault once the first measurement is journaled (faults at open: before the run), and measures:
@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 from labcal.robots import builtin_path
-from labcal.testing.rehearse import HOME, Rehearsal
+from labcal_fakes.rehearse import HOME, Rehearsal
 
 REPO = Path(__file__).resolve().parents[1]
 TARGETS = REPO / "drivers" / "targets-example.toml"

@@ -1,8 +1,8 @@
 """Time per pose of `session new` on the real drivers against labcal's fakes, in the planner's order and ordered.
 
-`cli.ops.sessions.new_session` with ``robot_driver="ur"`` (ur-rtde against ``labcal.testing.rtde_fake``, which moves
+`cli.ops.sessions.new_session` with ``robot_driver="ur"`` (ur-rtde against ``labcal_fakes.rtde_fake``, which moves
 its simulated arm at the commanded speed and acceleration) and ``tracker_driver="serial"`` (the NDI driver on a pty
-against ``labcal.testing.fakes.FakeNDIDevice``, which reports the targets where the fake controller's joints put
+against ``labcal_fakes.devices.FakeNDIDevice``, which reports the targets where the fake controller's joints put
 them, the tracker 2.6 m in front of the base). Robot profile: drivers/ur10-lab.toml with the joint limits narrowed
 (NARROW_DEG) and the host of the fake; tracker profile: drivers/ndi-polaris.toml on the fake's pty. "planner's
 order": the same plan with ``order_for_motion`` switched off. Wall time of the whole call (connecting, planning,
@@ -24,8 +24,8 @@ import labcal.sessions.planning as planning
 from labcal.cli.ops.sessions import new_session
 from labcal.datasets import SessionStore, load_targets
 from labcal.robots import load
-from labcal.testing.fakes import FakeNDIDevice
-from labcal.testing.rtde_fake import FakeRTDEServer
+from labcal_fakes.devices import FakeNDIDevice
+from labcal_fakes.rtde_fake import FakeRTDEServer
 
 ROOT = Path(__file__).resolve().parents[1]
 NARROW_DEG = [[-90, 90], [-150, -30], [-150, 150], [-180, 0], [-180, 180], [-180, 180]]

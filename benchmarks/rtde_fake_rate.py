@@ -1,6 +1,6 @@
 """Output rate of labcal's fake UR controller (issue 25 item 8): packages per second and stamp steps per recipe.
 
-Starts the fake (``labcal.testing.rtde_fake``) in its own process, sets up one output recipe with a plain socket
+Starts the fake (``labcal_fakes.rtde_fake``) in its own process, sets up one output recipe with a plain socket
 client at each frequency, counts the data packages that arrive in a window of wall time and prints a table.
 ``--before SRC`` also runs the fake from another source tree (e.g. a ``git worktree`` of an older commit) in
 the same way, interleaved, so the machine's load falls on both alike:
@@ -22,7 +22,7 @@ import statistics
 import struct
 import time
 
-from labcal.testing.rtde_fake import FakeRTDEServer, read_package
+from labcal_fakes.rtde_fake import FakeRTDEServer, read_package
 
 
 def measure(host: str, frequency: float, window: float) -> tuple[float, float, int]:

@@ -1,10 +1,10 @@
 """The examples in labcal's docstrings run, and print what they say they print.
 
-Every module of ``src/labcal`` whose source holds a ``>>>`` example is one test: its docstring examples run with
-:mod:`doctest` (whitespace-normalised, ``...`` allowed), in a copy of the module's globals, with temporary files
-under pytest's ``tmp_path``. Worked examples that only illustrate (they need a session store or a recorded
-journal that a docstring cannot hold) are listed in ``ILLUSTRATIONS`` with the reason, and the list is itself
-checked so that it cannot go stale.
+Every module of ``src/labcal`` and of its test doubles (``fakes/src/labcal_fakes``) whose source holds a ``>>>``
+example is one test: its docstring examples run with :mod:`doctest` (whitespace-normalised, ``...`` allowed), in a
+copy of the module's globals, with temporary files under pytest's ``tmp_path``. Worked examples that only
+illustrate (they need a session store or a recorded journal that a docstring cannot hold) are listed in
+``ILLUSTRATIONS`` with the reason, and the list is itself checked so that it cannot go stale.
 """
 
 from __future__ import annotations
@@ -17,10 +17,11 @@ from pathlib import Path
 import pytest
 
 import labcal
+import labcal_fakes
 
 OPTIONFLAGS = doctest.NORMALIZE_WHITESPACE | doctest.ELLIPSIS
 
-PACKAGE_DIR = Path(labcal.__file__).parent
+PACKAGE_DIRS = [Path(labcal.__file__).parent, Path(labcal_fakes.__file__).parent]
 
 # Docstrings (doctest names) whose ``>>>`` lines illustrate a call in a ``::`` block and are not run: the reason
 # is what the example would need.
@@ -30,13 +31,18 @@ ILLUSTRATIONS = {
 }
 
 
-def _module_name(path: Path) -> str:
-    parts = path.relative_to(PACKAGE_DIR.parent).with_suffix("").parts
+def _module_name(path: Path, package_dir: Path) -> str:
+    parts = path.relative_to(package_dir.parent).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
 def _modules_with_examples() -> list[str]:
-    return sorted(_module_name(path) for path in PACKAGE_DIR.rglob("*.py") if ">>>" in path.read_text(encoding="utf-8"))
+    return sorted(
+        _module_name(path, package_dir)
+        for package_dir in PACKAGE_DIRS
+        for path in package_dir.rglob("*.py")
+        if ">>>" in path.read_text(encoding="utf-8")
+    )
 
 
 MODULES = _modules_with_examples()

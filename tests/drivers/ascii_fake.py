@@ -7,7 +7,7 @@ import time
 import numpy as np
 
 from labcal.drivers.serial.crc import xor8
-from labcal.testing.fakes import PointsProvider, PtyDevice
+from labcal_fakes.devices import PointsProvider, PtyDevice
 
 
 class FakeASCIIDevice(PtyDevice):

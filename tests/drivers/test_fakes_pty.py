@@ -17,7 +17,7 @@ from labcal.drivers.serial.ascii import DeviceError
 from labcal.drivers.serial.ndi import NDIError
 from labcal.drivers.serial.profiles import load_profile
 from labcal.drivers.serial.tracker import SerialTracker, open_tracker
-from labcal.testing.fakes import FakeNDIDevice
+from labcal_fakes.devices import FakeNDIDevice
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]
 

@@ -31,7 +31,7 @@ from serial_fixtures import (
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
 from labcal.drivers.serial.ndi import NDIError, StrayFrame, parse_bx_strays
 from labcal.drivers.serial.tracker import SerialTracker
-from labcal.testing.fakes import encode_bx_reply
+from labcal_fakes.devices import encode_bx_reply
 
 SEEN = tool_to_tracker()  # (3, 3) m, rows t1, t2, t3
 F32 = 1e-7  # m: float32 millimetres near 1.5 m resolve about 0.12 um

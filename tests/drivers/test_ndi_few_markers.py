@@ -27,7 +27,7 @@ from serial_fixtures import (
 from labcal.drivers.base import MeasurementRejected
 from labcal.drivers.serial.matching import check_targets, match_targets
 from labcal.drivers.serial.tracker import SerialTracker
-from labcal.testing.fakes import FakeNDIDevice
+from labcal_fakes.devices import FakeNDIDevice
 
 TOL = 0.5e-3
 SEEN = tool_to_tracker()  # (3, 3) m, rows t1, t2, t3 as the tracker sees them

@@ -17,7 +17,7 @@ from serial_fixtures import BX, COMM_9600, COMM_115200, INIT, TARGETS, TSTART, T
 from labcal.drivers.serial.ndi import ERROR_CODES, encode_command
 from labcal.drivers.serial.profiles import load_profile
 from labcal.drivers.serial.tracker import SerialTracker
-from labcal.testing.fakes import FakeNDIDevice
+from labcal_fakes.devices import FakeNDIDevice
 
 ndicapy = pytest.importorskip("ndicapy")
 

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from labcal.testing.rtde_fake import (
+from labcal_fakes.rtde_fake import (
     FakeRTDEServer,
     SimController,
     _RTDESession,

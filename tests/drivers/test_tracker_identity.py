@@ -23,8 +23,8 @@ from serial_fixtures import (
 
 from labcal.drivers.serial.ndi import parse_ver
 from labcal.drivers.serial.tracker import SerialTracker
-from labcal.testing.fakes import FakeNDIDevice
 from labcal.tomlschema import SchemaError
+from labcal_fakes.devices import FakeNDIDevice
 
 # The commands exactly as they go on the wire (CRC16 of "VER:4" and "APIREV:", written out; checked below).
 VER4 = b"VER:4A6EF\r"

@@ -14,7 +14,7 @@ from ur_fixtures import make_profile
 
 from labcal.drivers.base import EmergencyStop, ProtectiveStop
 from labcal.drivers.ur import URRobot
-from labcal.testing.rtde_fake import FakeRTDEServer
+from labcal_fakes.rtde_fake import FakeRTDEServer
 
 pytest.importorskip("rtde_control")
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(40)]

@@ -12,7 +12,7 @@ import pytest
 from ur_fixtures import make_profile
 
 from labcal.drivers.ur import URRobot, parse_dashboard_identity, read_dashboard_identity
-from labcal.testing.rtde_fake import FakeRTDEServer
+from labcal_fakes.rtde_fake import FakeRTDEServer
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(40)]
 

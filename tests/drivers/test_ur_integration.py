@@ -11,7 +11,7 @@ from ur_fixtures import make_profile, silent_listener
 
 from labcal.drivers.base import ConnectionFailed, DriverTimeout, ProtocolError, StaleData
 from labcal.drivers.ur import ProbeTimeout, URRobot, probe_rtde
-from labcal.testing.rtde_fake import FakeRTDEServer
+from labcal_fakes.rtde_fake import FakeRTDEServer
 
 pytest.importorskip("rtde_receive")
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]

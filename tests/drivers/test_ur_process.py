@@ -16,7 +16,7 @@ from labcal.drivers import ur
 from labcal.drivers.base import ConnectionFailed, StaleData
 from labcal.drivers.ur import URRobot, load_ur_profile
 from labcal.drivers.ur_process import RemoteInterface
-from labcal.testing.rtde_fake import FakeRTDEServer, candidate_hosts
+from labcal_fakes.rtde_fake import FakeRTDEServer, candidate_hosts
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 

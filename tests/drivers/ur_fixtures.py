@@ -165,7 +165,7 @@ class StubControl:
 @contextmanager
 def silent_listener(first: int = 200) -> Iterator[str]:
     """A TCP listener on 127.0.x.y:30004 that completes the handshake (kernel backlog) but never answers."""
-    from labcal.testing.rtde_fake import candidate_hosts
+    from labcal_fakes.rtde_fake import candidate_hosts
 
     for host in candidate_hosts(first + (os.getpid() * 53) % 50000, count=200):
         sock = socket.socket()

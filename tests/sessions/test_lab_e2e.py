@@ -2,7 +2,7 @@
 
 The command runs in its own process, as a lab runs it; the fake UR controller (RTDE, dashboard, script ports) runs
 in another, on a loopback address; the fake NDI tracker is on a pty served from this process; both see one
-simulated robot (:class:`labcal.testing.rehearse.Rehearsal`). Faults are injected once the first measurement is in
+simulated robot (:class:`labcal_fakes.rehearse.Rehearsal`). Faults are injected once the first measurement is in
 the journal. Each test reads the journal itself (JSON lines: start, measurements, pause/resume, stop) and the exit
 code. Poses are few and the cell small (a robot file whose joint limits are ±0.1 rad about the home pose), so a
 session takes a few seconds; how fast each fault stops a run is measured by ``benchmarks/lab_faults.py``, not here.
@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 
 from labcal.robots import builtin_path
-from labcal.testing.rehearse import HOME, Rehearsal
+from labcal_fakes.rehearse import HOME, Rehearsal
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 

@@ -194,7 +194,7 @@ def new(
 
       labcal session new --robot ur10 --targets t.toml --poses 40 --robot-driver ur --tracker-driver serial
         --profile drivers/ur10-lab.toml --tracker-profile drivers/ndi-polaris.toml --robot-host 127.0.0.5
-        --tracker-port /dev/pts/3   # rehearsal: the fakes of `python -m labcal.testing.rehearse`
+        --tracker-port /dev/pts/3   # rehearsal: the fakes of `python -m labcal_fakes.rehearse`
     """
     from labcal.cli.ops.sessions import SessionRequest, new_session
     from labcal.datasets import load_targets

@@ -8,7 +8,7 @@ be bounded from Python in the same process. Here each interface (receive or cont
 calls over a pipe and waits with a deadline. A call that misses its deadline, or a child that dies, kills the
 child (SIGKILL: nothing of ur-rtde's runs in labcal's process) and raises ``RuntimeError`` — the error ur-rtde
 itself raises — so :mod:`labcal.drivers.ur` maps it as before. The plumbing (:class:`ChildProcess` and the child's
-:func:`serve`) is not ur-rtde's: the fake controller of :mod:`labcal.testing.rtde_fake` runs on it too.
+:func:`serve`) is not ur-rtde's: the fake controller of :mod:`labcal_fakes.rtde_fake` runs on it too.
 
 Example::
 

@@ -892,7 +892,7 @@ def _apply(
 
 
 class FakeRTDEServer:
-    """Start a fake UR controller in a child process (``python -m labcal.testing.rtde_fake``); a context manager.
+    """Start a fake UR controller in a child process (``python -m labcal_fakes.rtde_fake``); a context manager.
 
     q0: (6,) initial joint positions, rad. control: also serve dashboard/script ports and emulate ur-rtde's
     control registers. controller_version: answered to ``v`` (major, minor, bugfix, build).
@@ -941,7 +941,7 @@ class FakeRTDEServer:
         self.stop()
 
     def start(self) -> None:
-        argv = [sys.executable, "-m", "labcal.testing.rtde_fake", json.dumps(self._options)]
+        argv = [sys.executable, "-m", "labcal_fakes.rtde_fake", json.dumps(self._options)]
         start, call = self._start_timeout, self._reply_timeout
         self._child = ChildProcess(argv, "fake RTDE server", start_timeout=start, call_timeout=call, log_stderr=False)
         self.host = self._child.started

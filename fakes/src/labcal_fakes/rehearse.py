@@ -1,13 +1,13 @@
 """Rehearse a hardware session on the fakes: a fake UR controller on loopback and a fake NDI tracker on a pty.
 
-The fake controller (:class:`~labcal.testing.rtde_fake.FakeRTDEServer`, RTDE + dashboard + script ports, in its
+The fake controller (:class:`~labcal_fakes.rtde_fake.FakeRTDEServer`, RTDE + dashboard + script ports, in its
 own process) moves a simulated joint state when ur-rtde commands it; the fake NDI Polaris
-(:class:`~labcal.testing.fakes.FakeNDIDevice`, on a pseudo-terminal) reports where a simulated actual robot
+(:class:`~labcal_fakes.devices.FakeNDIDevice`, on a pseudo-terminal) reports where a simulated actual robot
 (:func:`labcal.simulation.simulate`, with errors) puts the targets at the controller's current joints, in a
 tracker frame. So ``labcal session new --robot-driver ur --tracker-driver serial`` runs its real drivers, exactly
 as on the arm, only with ``--robot-host`` and ``--tracker-port`` pointing at the fakes::
 
-    python -m labcal.testing.rehearse --targets drivers/targets-example.toml
+    python -m labcal_fakes.rehearse --targets drivers/targets-example.toml
     # prints the fakes' address and port, and the `labcal session new …` line to run in another terminal;
     # Ctrl-C stops the fakes.
 
@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from labcal.testing.fakes import FakeNDIDevice
-from labcal.testing.rtde_fake import FakeRTDEServer
+from labcal_fakes.devices import FakeNDIDevice
+from labcal_fakes.rtde_fake import FakeRTDEServer
 
 HOME = (0.0, -1.5708, 1.5708, 0.0, 1.5708, 0.0)
 
@@ -176,7 +176,7 @@ class Rehearsal:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m labcal.testing.rehearse",
+        prog="python -m labcal_fakes.rehearse",
         description="Start a fake UR controller (loopback) and a fake NDI tracker (pty) that see one simulated "
         "robot, and print the `labcal session new` line that records a session on them. Ctrl-C stops them.",
     )
