@@ -10,12 +10,14 @@ export MKL_NUM_THREADS ?= 1
 
 .PHONY: install demo test lint contracts pytest pytest-suite pytest-acceptance bench clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml fakes/pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	# CPU build first: a bare `torch` requirement would pull a multi-GB CUDA build on this machine.
 	$(BIN)/python -m pip install --quiet "torch==2.13.0"
 	$(BIN)/python -m pip install --quiet -e ".[dev]"
+	# The test doubles (fakes/, their own distribution): after labcal, which they require and which is not on PyPI.
+	$(BIN)/python -m pip install --quiet -e fakes
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -24,8 +26,8 @@ demo: $(STAMP)
 	$(BIN)/labcal demo
 
 lint: $(STAMP)
-	$(BIN)/ruff check src tests benchmarks
-	$(BIN)/ruff format --check src tests benchmarks
+	$(BIN)/ruff check src fakes/src tests benchmarks
+	$(BIN)/ruff format --check src fakes/src tests benchmarks
 	$(BIN)/mypy
 
 contracts: $(STAMP)
@@ -48,4 +50,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/speed.py
 
 clean:
-	rm -rf $(VENV) build src/*.egg-info
+	rm -rf $(VENV) build src/*.egg-info fakes/build fakes/src/*.egg-info
