@@ -2,9 +2,10 @@
 
 Lines are non-blank, non-comment source lines (docstrings count: they are read too); a second total leaves the
 docstrings out (issue 29's measure: 24,009 on 3fc465f, before that issue). Run it on two trees to set a
-restructuring's before and after side by side:
+restructuring's before and after side by side. The test doubles (``fakes/src/labcal_fakes``, the labcal-fakes
+distribution beside the package) get a line of their own, outside the product count:
 
-    python benchmarks/code_size.py                       # this checkout's src/labcal
+    python benchmarks/code_size.py                       # this checkout's src/labcal (and fakes/src/labcal_fakes)
     python benchmarks/code_size.py --src /tmp/before/src/labcal --top 5
 """
 
@@ -88,6 +89,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"code lines in {args.src}: {sum(per_area.values())} ({without_docstrings} without docstrings)")
     for area, n in sorted(per_area.items(), key=lambda kv: -kv[1]):
         print(f"  {area:14s} {n:6d}")
+    fakes = args.src.parents[1] / "fakes" / "src" / "labcal_fakes"  # src/labcal -> the checkout -> its fakes
+    if fakes.is_dir():  # checkouts from before the fakes left the package have none
+        texts = [path.read_text() for path in sorted(fakes.rglob("*.py"))]
+        with_docs = sum(code_lines(text) for text in texts)
+        without = sum(code_lines_without_docstrings(text, ast.parse(text)) for text in texts)
+        print(
+            f"labcal-fakes (test doubles, separate distribution; not in the product count), {fakes}: "
+            f"{with_docs} ({without} without docstrings)"
+        )
     print(f"longest functions (lines), of {len(funcs)}:")
     for n, name in sorted(funcs, reverse=True)[: args.top]:
         print(f"  {n:4d}  {name}")
