@@ -106,13 +106,8 @@ class Feature:
         return self.kind == "gravity"
 
     def size(self, n: int) -> int:
-        """Number of columns for a robot with n joints."""
-        if self.kind == HARMONICS:
-            return 2 * n * self.order
-        per_joint = {"q": 1, "sincos": 2, "sincos2": 2, "gravity": 3}
-        if self.kind not in per_joint:
-            raise ValueError(_unknown_kind(self.kind, "Feature.size"))
-        return per_joint[self.kind] * n
+        """Number of columns for a robot with n joints (the joint types change what a column holds, not how many)."""
+        return len(self.columns(("revolute",) * n))
 
     def compute(self, q: np.ndarray, joint_types=None, limits=None, frames=None) -> np.ndarray:
         """(k, n) joint values → (k, size) columns.

@@ -98,10 +98,6 @@ def _layer_shapes(n_in: int, hidden: tuple[int, ...], n_out: int = 6) -> list[tu
     return [(sizes[i + 1], sizes[i]) for i in range(len(sizes) - 1)]
 
 
-def _n_params(shapes) -> int:
-    return sum(o * i + o for o, i in shapes)
-
-
 def _init_params(shapes, seed: int, restart: int) -> np.ndarray:
     rng = np.random.default_rng([seed, restart])
     parts = []
@@ -127,10 +123,8 @@ def _unflatten(theta, shapes):
 
 
 def _weight_mask(shapes) -> np.ndarray:
-    mask = []
-    for o, i in shapes:
-        mask += [np.ones(o * i), np.zeros(o)]
-    return np.concatenate(mask).astype(bool)
+    """True at the weight matrices' entries of a flat parameter vector (:func:`_unflatten`), False at the biases."""
+    return np.concatenate([np.arange(o * i + o) < o * i for o, i in shapes])
 
 
 def _forward(theta, x, shapes):
@@ -484,7 +478,7 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
     data = _Scaled.of(jeo, input_features(jeo.q, opts.features, base.model), rows["train"])
     n_out = equivalent_joints(base.n)
     shapes = _layer_shapes(data.x.shape[1], _check_hidden(opts.hidden, data.x.shape[1], n_out), n_out)
-    n_params = _n_params(shapes)
+    n_params = sum(o * i + o for o, i in shapes)
     if n_params > n_out * rows["train"].size:
         warnings.append(
             f"the network has {n_params} weights for {n_out * rows['train'].size} training numbers: expect over-fitting"

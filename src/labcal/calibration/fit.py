@@ -227,12 +227,11 @@ def fit_hybrid(
 
 def _fit(ctx: FitContext) -> FitResult:
     """fit() inside its BLAS limit: the registered nominal, the candidates, the method, the checks."""
-    counts = {s: int(np.sum(ctx.obs.split == s)) for s in ("train", "val", "test")}
     ctx.say("registering the nominal model")
     before = Stage(*ctx.timed("nominal", lambda: register(ctx.obs, ctx.nominal, estimate_tool=ctx.register_tool)))
     if ctx.method == "nominal":
         outcome = Outcome(before.robot, {"register": before.info}, "nominal", "nominal")
-        return _result(ctx, outcome, before.robot, None, counts, [], None)
+        return _result(ctx, outcome, before.robot, None, [], None)
     table = _candidates(ctx, before)
     outcome = _run_method(ctx, table)
     robot = _with_validity(outcome.robot, ctx.fit_obs.q)
@@ -243,8 +242,8 @@ def _fit(ctx: FitContext) -> FitResult:
         warnings.insert(0, {"code": "no-network", "message": outcome.info["no_network"] + ": use local-poe or hybrid"})
     for w in warnings:
         ctx.say(f"warning [{w['code']}]: {w['message']}")
-    return _result(ctx, dataclasses.replace(outcome, robot=robot), before.robot, table.stage1, counts, warnings,
-                   info_cv, metrics)  # fmt: skip
+    return _result(ctx, dataclasses.replace(outcome, robot=robot), before.robot, table.stage1, warnings, info_cv,
+                   metrics)  # fmt: skip
 
 
 def _context(
@@ -334,8 +333,7 @@ def _run_method(ctx: FitContext, table: Candidates) -> Outcome:
         assert table.stage1 is not None
         return Outcome(table.stage1.robot, table.stage1.info, "local-poe", "local-poe")
     if ctx.method == "ann":
-        robot, info = ctx.timed("ann", lambda: _fit_ann_or_nominal(ctx.fit_obs, table.before.robot, ctx.seed,
-                                                                    ctx.options))  # fmt: skip
+        robot, info = ctx.timed("ann", lambda: _fit_ann_or_nominal(ctx, table.before.robot))
         return Outcome(robot, info, "ann", "ann", network=info)
     if ctx.method == "hybrid":
         outcome = ctx.timed("hybrid", lambda: finish_hybrid(ctx, table))
@@ -349,7 +347,6 @@ def _result(
     outcome: Outcome,
     before: CalibratedRobot,
     stage1: Stage | None,
-    counts: dict[str, int],
     warnings: list[dict],
     cv: dict | None,
     metrics: dict | None = None,
@@ -375,9 +372,9 @@ def _result(
         metrics=split_table(before, robot, obs) if metrics is None else metrics,
         info=outcome.info,
         seed=ctx.seed,
-        n_train=counts["train"],
-        n_val=counts["val"],
-        n_test=counts["test"],
+        n_train=int(np.sum(obs.split == "train")),
+        n_val=int(np.sum(obs.split == "val")),
+        n_test=int(np.sum(obs.split == "test")),
         fit_seconds=ctx.seconds,
         obs=obs,
         warnings=warnings,
@@ -387,16 +384,14 @@ def _result(
     )
 
 
-def _fit_ann_or_nominal(
-    fit_obs: Observations, before: CalibratedRobot, seed: int, options: dict[str, Any]
-) -> tuple[CalibratedRobot, dict]:
+def _fit_ann_or_nominal(ctx: FitContext, before: CalibratedRobot) -> tuple[CalibratedRobot, dict]:
     """The paper's network on the registered nominal; where too few rows can train it (a singular wrist in most
     poses …), the registered nominal itself, with the reason in ``info["no_network"]`` (a blocking warning): the
     method runs on any data, and what it could not learn is said, not exported by accident."""
     from labcal.calibration.ann import fit_ann  # torch only when a network is fitted
 
     try:
-        robot, info = fit_ann(fit_obs, before, seed=seed, **options)
+        robot, info = fit_ann(ctx.fit_obs, before, seed=ctx.seed, **ctx.options)
     except ObservationError as err:  # NetworkDataError: too few usable rows, the message names the cause
         reason = f"the paper's network could not be trained: {err}; this fit is the registered nominal (no correction)"
         return dataclasses.replace(before, method="ann"), {"method": "ann", "no_network": reason}
@@ -441,8 +436,7 @@ def _auto(ctx: FitContext, table: Candidates) -> Outcome:
     info: dict[str, Any] = {"candidates": candidates_info, "cv_errors": errors, "local-poe": stage1.info}
     outcome = Outcome(stage1.robot, info, "local-poe", "local-poe")
     if choice == "ann":
-        robot, ann_info = ctx.timed("ann", lambda: _fit_ann_or_nominal(ctx.fit_obs, table.before.robot, ctx.seed,
-                                                                        ctx.options))  # fmt: skip
+        robot, ann_info = ctx.timed("ann", lambda: _fit_ann_or_nominal(ctx, table.before.robot))
         info["ann"] = ann_info
         if "no_network" in ann_info:  # it cross-validated, yet the refit on all rows found too few usable rows
             ctx.notes.append(f"auto fell back to local-poe: {ann_info.pop('no_network')}")

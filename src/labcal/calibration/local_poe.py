@@ -133,10 +133,7 @@ def _frame_name(j: int, n: int) -> str:
 
 
 def _param_labels(frames: list[int], estimate_base: bool, n: int) -> list[str]:
-    labels = [f"{_frame_name(j, n)} {a}" for j in frames for a in AXES]
-    if estimate_base:
-        labels += [f"T_tracker_base {a}" for a in AXES]
-    return labels
+    return [f"{_frame_name(j, n)} {a}" for j in [*frames, *([-1] if estimate_base else [])] for a in AXES]
 
 
 def _residual_and_jacobian(

@@ -307,7 +307,7 @@ class LocalPOEModel:
         v_loc, w_loc = self.twists[:, :3, None, None], self.twists[:, 3:, None, None]
         if all(self._z_joint):
             # ξ = (0, e_z) or (e_z, 0): ω or v is the third column of R, exactly.
-            revolute = np.array([t == REVOLUTE for t in self.joint_types])[:, None, None]
+            revolute = self._revolute_mask[:, None, None]
             w = np.where(revolute, R[:, :, 2], 0.0)
             v = np.where(revolute, 0.0, R[:, :, 2])
         else:
@@ -350,9 +350,8 @@ class LocalPOEModel:
 
     def fk_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(k, 4, 4) tool poses and (k, 6, n) actuated joint twists in K0, from one walk of the chain."""
-        q2, _ = self._as_batch(q)
-        W = self._walk(q2)
-        return self._to_matrices(W[self.n]), self._twists_from_walk(W)
+        frames, twists = self.frames_and_twists(q)
+        return frames[:, self.n], twists
 
     def joint_twists(self, q) -> np.ndarray:
         """Actuated joint twists in K0, (k, 6, n): the spatial Jacobian, J_ρ of eq. (14) when n = 6.
