@@ -337,7 +337,8 @@ def _check_hidden(hidden, n_in: int, n_out: int = 6) -> tuple[int, ...]:
 
 
 class NetworkDataError(ObservationError):
-    """Too few usable rows for the network after the condition filter; ``causes`` as in dropped_causes."""
+    """Too few usable rows for the network after the condition filter; ``causes`` as
+    :meth:`~labcal.calibration.equivalent.JointErrorObservations.causes` returns them."""
 
     def __init__(self, message: str, causes: list[dict]) -> None:
         super().__init__(message)

@@ -234,7 +234,8 @@ def _fit(ctx: FitContext) -> FitResult:
         return _result(ctx, outcome, before.robot, None, [], None)
     table = _candidates(ctx, before)
     outcome = _run_method(ctx, table)
-    robot = _with_validity(outcome.robot, ctx.fit_obs.q)
+    # Every fit carries its validity region: the neighbourhood of the fitted configurations (scaled joint space).
+    robot = dataclasses.replace(outcome.robot, validity=ValidityRegion.from_configurations(ctx.fit_obs.q))
     info_cv = None if table.cv is None else table.cv.summary(outcome.candidate)
     metrics = split_table(before.robot, robot, ctx.obs)
     warnings = _checks(ctx, table, outcome, robot, metrics)
@@ -264,8 +265,8 @@ def _context(
     obs = obs.with_splits(val_fraction, seed)
     if not np.any(obs.split == "train"):
         raise ValueError("no fitting rows: every row is labelled val or test")
-    hybrid_opts = {key: options.pop(key) for key in ("stage2", "series_options") if key in options}
-    stage2 = tuple(hybrid_opts.get("stage2", ("ann", "series")))
+    stage2 = tuple(options.pop("stage2", ("ann", "series")))
+    series_options = options.pop("series_options", None)
     if not stage2 or any(name not in STAGE2 for name in stage2):
         raise ValueError(f"stage2 must name 'ann' and/or 'series', got {stage2!r}")
     return FitContext(
@@ -276,7 +277,7 @@ def _context(
         seed=seed,
         options=options,
         local_poe_options=dict(local_poe_options or {}),
-        series_options=hybrid_opts.get("series_options"),
+        series_options=series_options,
         stage2=stage2,
         register_tool=register_tool,
         say=progress or (lambda _msg: None),
@@ -398,11 +399,6 @@ def _fit_ann_or_nominal(ctx: FitContext, before: CalibratedRobot) -> tuple[Calib
     return robot, info
 
 
-def _with_validity(robot: CalibratedRobot, q: np.ndarray) -> CalibratedRobot:
-    """The robot with its validity region: the neighbourhood of the fitted configurations (scaled joint space)."""
-    return dataclasses.replace(robot, validity=ValidityRegion.from_configurations(q))
-
-
 def _auto_choice(ctx: FitContext, table: Candidates, pick: list[str]) -> str:
     """The candidate auto refits: cross-validation's choice, local POE when it cannot choose (noted)."""
     cv, notes = table.cv, ctx.notes
@@ -489,7 +485,7 @@ def _checks(ctx: FitContext, table: Candidates, outcome: Outcome, robot: Calibra
             warnings.append(message)
         elif message:
             warnings.append(_warn(code, message))
-    _dropped(table, fit_obs, key, net, warnings, notes)
+    _dropped(table, fit_obs, net, warnings, notes)
     return warnings
 
 
@@ -760,7 +756,7 @@ def _correction_cause(robot, at_data: float, lp: dict | None) -> str:
 
 
 def _dropped(
-    table: Candidates, fit_obs: Observations, key: str, net: dict | None, warnings: list[dict], notes: list[str]
+    table: Candidates, fit_obs: Observations, net: dict | None, warnings: list[dict], notes: list[str]
 ) -> None:
     """rows-dropped: a warning when a kept network misses > DROPPED_SHARE of the rows, else a note."""
     cv = table.cv
@@ -769,8 +765,7 @@ def _dropped(
     elif cv is not None and any(c in cv.rows for c in NETWORKS):
         from labcal.calibration.equivalent import joint_error_observations
 
-        on_stage1 = table.stage1 is not None and "hybrid+ann" in cv.rows
-        base = table.stage1.robot if on_stage1 and table.stage1 is not None else table.before.robot
+        base = table.stage1.robot if table.stage1 is not None and "hybrid+ann" in cv.rows else table.before.robot
         jeo = joint_error_observations(fit_obs, base)
         count = int(np.sum(~jeo.kept))
         causes = jeo.causes(base) if count else []

@@ -74,7 +74,7 @@ from labcal.calibration.observations import Observations, rigid_fit, target_geom
 from labcal.calibration.tool import split_robot, split_tool
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import metric, se3
-from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
+from labcal.kinematics.poe import REVOLUTE, LocalPOEModel
 
 AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
 DEFAULT_RANK_RTOL = 1e-6
@@ -94,9 +94,7 @@ class IdentificationError(ValueError):
 
 def expected_rank(model: LocalPOEModel) -> int:
     """Identifiable local-POE frame errors: 4 per revolute + 2 per prismatic joint + 6 (module docstring)."""
-    n_r = sum(t == REVOLUTE for t in model.joint_types)
-    n_p = sum(t == PRISMATIC for t in model.joint_types)
-    return 4 * n_r + 2 * n_p + 6
+    return sum(4 if t == REVOLUTE else 2 for t in model.joint_types) + 6  # a joint is revolute or prismatic
 
 
 STRUCTURAL = {"point": 3, "line": 1, "plane": 0}  # tool rotations a target set cannot show (module docstring)
@@ -149,7 +147,8 @@ def _residual_and_jacobian(
     """Residual (3s,) measured − predicted and its Jacobian (3s, p) w.r.t. the parameters (SI units), s the seen
     points: every point when ``seen`` is None, else the (k, m) cells marked seen (in row order)."""
     k, m = q.shape[0], targets.shape[0]
-    initial, T = model._chain(q)
+    initial = model.link_frames(q)
+    T = initial[:, model.n]
     p_base = np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]  # (k, m, 3)
     R_tb = T_tb[:3, :3]
     p_meas_frame = np.einsum("ab,kmb->kma", R_tb, p_base) + T_tb[:3, 3]
@@ -323,12 +322,6 @@ def _free_tilts(structural: dict) -> dict:
         "words": structural["words"][:-1],
         "tilt": 0,
     }
-
-
-def _prior(weak_rule: str) -> bool:
-    if weak_rule not in ("truncate", "prior"):
-        raise ValueError(f"weak_rule must be 'truncate' or 'prior', got {weak_rule!r}")
-    return weak_rule == "prior"
 
 
 def _weak_threshold(noise: float, error_bound: float) -> float:
@@ -608,6 +601,8 @@ def fit_local_poe(
     residual standard deviation per coordinate), ``iterations``, ``converged``, ``cost_history`` (sum of squared
     residuals, m²), ``rows`` (count), ``residual_rms`` (m).
     """
+    if weak_rule not in ("truncate", "prior"):
+        raise ValueError(f"weak_rule must be 'truncate' or 'prior', got {weak_rule!r}")
     estimate_base = obs.frame == "tracker" if estimate_base is None else bool(estimate_base)
     rows = fitting_rows(obs, include_val)
     n = nominal.n
@@ -627,7 +622,7 @@ def fit_local_poe(
         damping=damping,
         seen=_seen_rows(obs, rows),
         s_min=_weak_threshold(noise, error_bound),
-        prior=_prior(weak_rule),
+        prior=weak_rule == "prior",
     )
     out, structural = _iterate(nominal, model0, T0, fit_args, options, structural)
     return _identified(nominal, obs.q[rows], out, structural, labels, fit_args, options, noise, error_bound)

@@ -169,13 +169,9 @@ class LocalPOEModel:
         object.__setattr__(self, "joint_names", names)
         # Joints about the local z axis get a closed-form cos/sin exponential (the common case: 10x faster).
         object.__setattr__(self, "_revolute_mask", np.array([t == REVOLUTE for t in self.joint_types]))
-        object.__setattr__(
-            self,
-            "_z_joint",
-            tuple(np.array_equal(xi, default_twist(t)) for t, xi in zip(self.joint_types, twists, strict=True)),
-        )
-        all_revolute_z = all(self._z_joint) and bool(self._revolute_mask.all())
-        object.__setattr__(self, "_all_revolute_z", all_revolute_z)
+        z_joint = tuple(np.array_equal(xi, default_twist(t)) for t, xi in zip(self.joint_types, twists, strict=True))
+        object.__setattr__(self, "_z_joint", z_joint)
+        object.__setattr__(self, "_all_revolute_z", all(z_joint) and bool(self._revolute_mask.all()))
 
     @classmethod
     def from_frames(
@@ -218,7 +214,7 @@ class LocalPOEModel:
 
     def _walk(self, q2: np.ndarray) -> np.ndarray:
         """Walk the chain once: (n+1, 3, 4, k) top three rows of the frames K_1 … K_{n+1} in K0, each before its own
-        joint moves it (see :meth:`_chain`). The batch axis is last so that every step is a handful of whole-array
+        joint moves it (see :meth:`link_frames`). The batch axis is last so that every step is a handful of whole-array
         multiply-adds over k numbers; the bottom row of a homogeneous transform is never stored or multiplied.
         """
         k, n = q2.shape[0], self.n
@@ -254,7 +250,7 @@ class LocalPOEModel:
         return W
 
     def _walk_small(self, q2: np.ndarray) -> np.ndarray:
-        """The chain for a few configurations, as :meth:`_chain`'s (k, n+1, 4, 4) frames: fewer, larger numpy calls
+        """The chain for a few configurations, as :meth:`link_frames`' (k, n+1, 4, 4) frames: fewer, larger numpy calls
         (one 4×4 matmul per joint) than :meth:`_walk`, which pays per call and wins only on large batches.
 
         For z-axis joints every step ``exp(ξ̂_j q_j) · A_{j+1}(0)`` is built for all joints at once: ``Rz(q) · A``
@@ -291,15 +287,6 @@ class LocalPOEModel:
         out[..., 3, 3] = 1.0
         return out
 
-    def _chain(self, q2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Walk the chain once. Returns (initial_frames (k, n+1, 4, 4), tool pose (k, 4, 4)).
-
-        initial_frames[:, j] is the pose in K0 of frame K_{j+1} before its own joint moves it, i.e.
-        ``prod_{i<=j}(A_i e^{ξ_i q_i}) · A_{j+1}(0)`` — the frame whose adjoint is Ad_{j0} in eq. (10).
-        """
-        initial = self._walk_small(q2) if q2.shape[0] < _SMALL_BATCH else self._to_matrices(self._walk(q2))
-        return initial, initial[:, self.n]
-
     def _twists_from_walk(self, W: np.ndarray) -> np.ndarray:
         """(k, 6, n) joint twists Ad(K_j) ξ_j in K0 from a walk: ω = R ω_loc, v = R v_loc + p × ω."""
         n = self.n
@@ -334,9 +321,11 @@ class LocalPOEModel:
         return T[0] if single else T
 
     def link_frames(self, q) -> np.ndarray:
-        """(k, n+1, 4, 4) poses in K0 of K_1 … K_{n+1} before their joints move them (see _chain)."""
+        """(k, n+1, 4, 4) poses in K0 of K_1 … K_{n+1} before their joints move them: ``[:, j]`` is
+        ``prod_{i<=j}(A_i e^{ξ_i q_i}) · A_{j+1}(0)``, the frame whose adjoint is Ad_{j0} in eq. (10); ``[:, n]`` is the
+        tool pose."""
         q2, _ = self._as_batch(q)
-        return self._chain(q2)[0]
+        return self._walk_small(q2) if q2.shape[0] < _SMALL_BATCH else self._to_matrices(self._walk(q2))
 
     def frames_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`link_frames` (k, n+1, 4, 4; the tool pose is ``[:, n]``) and :meth:`joint_twists` (k, 6, n) from
