@@ -354,8 +354,7 @@ def _result(
 ) -> FitResult:
     """The FitResult, with the notes on what the targets cannot show and on the measurement tool."""
     obs, robot, notes = ctx.obs, outcome.robot, ctx.notes
-    seen = obs.seen[obs.split == "train"]
-    unseen = ", ".join(f"t{i + 1}" for i in np.flatnonzero(~seen.any(axis=0))) if seen.size else ""
+    unseen = ", ".join(f"t{i + 1}" for i in np.flatnonzero(~ctx.fit_obs.seen.any(axis=0)))  # fit_obs has rows
     if unseen:
         notes.append(f"targets never seen in the fitting rows: {unseen} (they add nothing to this fit)")
     # The identification's own words when it ran (they include a point beside the last joint's axis), else the
@@ -543,12 +542,12 @@ def _cv_checks(cv: CVResult, key: str, in_sample: float, warnings: list[dict], n
                 "(too few or too similar poses, or data that do not match the robot/targets)",
             ))  # fmt: skip
     text = f"{key} fits its own rows to {in_sample * 1e3:.4g} mm but cross-validates to {e_cv * 1e3:.4g} mm"
-    if not math.isfinite(e_cv):
-        pass  # every fold failed for the chosen model (its notes say why): nothing to compare
-    elif e_cv > OVERFIT_RATIO * in_sample and e_cv - in_sample > 1e-5:
-        warnings.append(_warn("overfit", f"{text} (over {OVERFIT_RATIO:g}×): it interpolates too few poses"))
-    elif e_cv > OVERFIT_NOTE_RATIO * in_sample and e_cv - in_sample > 1e-5:
-        notes.append(f"overfit-risk: {text}; trust the cross-validated error, not the fit error")
+    # e_cv is NaN when every fold failed for the chosen model (its notes say why): nothing to compare
+    if math.isfinite(e_cv) and e_cv - in_sample > 1e-5:
+        if e_cv > OVERFIT_RATIO * in_sample:
+            warnings.append(_warn("overfit", f"{text} (over {OVERFIT_RATIO:g}×): it interpolates too few poses"))
+        elif e_cv > OVERFIT_NOTE_RATIO * in_sample:
+            notes.append(f"overfit-risk: {text}; trust the cross-validated error, not the fit error")
 
 
 def _holdout_checks(metrics: dict, warnings: list[dict]) -> None:

@@ -57,7 +57,7 @@ import numpy as np
 
 from labcal import features as feature_lib
 from labcal.calibration.equivalent import equivalent_joints, joint_error_observations, learned_robot
-from labcal.calibration.metrics import primary_error
+from labcal.calibration.metrics import primary_error, validation_error
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot, Network, input_features
 
@@ -186,7 +186,6 @@ def fit_joint_series(
     g_cols = 3 * base.n if use_gravity else 0
     robot = learned_robot(base, _series_network(coef, H, use_gravity), train.q, "series")
     amplitudes = np.hypot(coef[:, 1 + g_cols :: 2], coef[:, 2 + g_cols :: 2])
-    val = obs.subset(obs.split == "val") if np.any(obs.split == "val") else None
     train_error, kind = primary_error(robot, train)
     info = {
         "method": "series",
@@ -201,9 +200,9 @@ def fit_joint_series(
         "cv": {f"H={h}{'+gravity' if g else ''}": v for (h, g), v in cv.items()},
         "cv_error": float(cv_error),
         "train_rows": k_fit,
-        "val_rows": 0 if val is None else val.k,
+        "val_rows": int(np.sum(obs.split == "val")),
         "train_error": train_error,
-        "val_error": float("nan") if val is None else primary_error(robot, val)[0],
+        "val_error": validation_error(robot, obs),
         "error_metric": kind,
         "amplitudes": amplitudes,
         "constants": coef[:, 0].copy(),

@@ -130,6 +130,15 @@ def primary_error(robot: CalibratedRobot, obs: Observations) -> tuple[float, str
     return float(np.mean(d[np.isfinite(d)])), "points"
 
 
+def validation_error(robot: CalibratedRobot, obs: Observations) -> float:
+    """Mean position error (m) of the robot's prediction on the validation rows (NaN when there are none); the
+    mean target-point error when those rows do not all fix a pose (:func:`primary_error`)."""
+    mask = obs.split == "val"
+    if not mask.any():
+        return float("nan")
+    return primary_error(robot, obs.subset(mask))[0]
+
+
 def split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observations) -> dict[str, dict]:
     """{split: {"before": summary, "after": summary, "points": {"before": …, "after": …}, "primary": "pose" |
     "points"}} per split present (and "all").
