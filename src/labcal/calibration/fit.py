@@ -185,12 +185,35 @@ def fit(
     register_tool: the registered nominal ("before", and the base of the paper's ANN method) also estimates the
     measurement tool (probe data: the probe's mount is the tool, not a robot error the network should learn).
     """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    obs.check_robot(nominal.n)
+    obs = obs.with_splits(val_fraction, seed)
+    if not np.any(obs.split == "train"):
+        raise ValueError("no fitting rows: every row is labelled val or test")
+    # The hybrid's options taken out of the network's.
+    stage2 = tuple(options.pop("stage2", ("ann", "series")))
+    series_options = options.pop("series_options", None)
+    if not stage2 or any(name not in STAGE2 for name in stage2):
+        raise ValueError(f"stage2 must name 'ann' and/or 'series', got {stage2!r}")
+    ctx = FitContext(
+        obs=obs,
+        fit_obs=obs.where("train"),
+        nominal=nominal,
+        method=method,
+        seed=seed,
+        options=options,
+        local_poe_options=dict(local_poe_options or {}),
+        series_options=series_options,
+        stage2=stage2,
+        register_tool=register_tool,
+        say=progress or (lambda _msg: None),
+    )
     # One BLAS thread: the fits multiply many small and medium matrices, where OpenBLAS's threads were measured
     # 3-20x slower on a loaded 2-core machine (local POE at 1,000 rows: 4.0 s threaded, 1.1 s single), and one
     # thread keeps the summation order, so the bits of a fit, independent of the core count.
     with threadpool_limits(limits=1, user_api="blas"):
-        return _fit(_context(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options,
-                             register_tool))  # fmt: skip
+        return _fit(ctx)
 
 
 def fit_hybrid(
@@ -245,43 +268,6 @@ def _fit(ctx: FitContext) -> FitResult:
         ctx.say(f"warning [{w['code']}]: {w['message']}")
     return _result(ctx, dataclasses.replace(outcome, robot=robot), before.robot, table.stage1, warnings, info_cv,
                    metrics)  # fmt: skip
-
-
-def _context(
-    obs: Observations,
-    nominal: LocalPOEModel,
-    method: str,
-    seed: int,
-    val_fraction: float,
-    progress: Callable[[str], None] | None,
-    local_poe_options: dict | None,
-    options: dict[str, Any],
-    register_tool: bool,
-) -> FitContext:
-    """The checked arguments of one fit: the rows split, the hybrid's options taken out of the network's."""
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    obs.check_robot(nominal.n)
-    obs = obs.with_splits(val_fraction, seed)
-    if not np.any(obs.split == "train"):
-        raise ValueError("no fitting rows: every row is labelled val or test")
-    stage2 = tuple(options.pop("stage2", ("ann", "series")))
-    series_options = options.pop("series_options", None)
-    if not stage2 or any(name not in STAGE2 for name in stage2):
-        raise ValueError(f"stage2 must name 'ann' and/or 'series', got {stage2!r}")
-    return FitContext(
-        obs=obs,
-        fit_obs=obs.where("train"),
-        nominal=nominal,
-        method=method,
-        seed=seed,
-        options=options,
-        local_poe_options=dict(local_poe_options or {}),
-        series_options=series_options,
-        stage2=stage2,
-        register_tool=register_tool,
-        say=progress or (lambda _msg: None),
-    )
 
 
 def _candidate_names(method: str, stage2: tuple[str, ...]) -> tuple[str, ...]:

@@ -64,7 +64,7 @@ def finish_hybrid(ctx: FitContext, table: Candidates, choice: str | None = None)
     The outcome's info is the hybrid's (:func:`labcal.calibration.fit.fit_hybrid`), its candidate the kept one.
     """
     assert table.stage1 is not None
-    candidates = table.hybrid_names
+    candidates = tuple(c for c in table.names if c == "local-poe" or BY_NAME[c].hybrid)  # local POE and its learned
     notes: list[str] = []
     if table.cv is None:
         notes.append(
