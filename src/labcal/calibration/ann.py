@@ -243,8 +243,7 @@ def _train_one(torch, job: _Job, theta0: np.ndarray, restart: int):
     tr, va = losses(theta)
     curve_t, curve_v = [tr], [va]
     best_theta, best_val, best_it = theta.clone(), va, 0
-    if opts.progress is not None:
-        opts.progress(restart, 0, tr, va)
+    opts.progress(restart, 0, tr, va)
     if opts.trainer == "lm":
         step = _lm_step(torch, job, full_residual, wmask, sqrt_wd, theta.numel())
     else:
@@ -258,8 +257,7 @@ def _train_one(torch, job: _Job, theta0: np.ndarray, restart: int):
         tr, va = losses(theta)
         curve_t.append(tr)
         curve_v.append(va)
-        if opts.progress is not None:
-            opts.progress(restart, it, tr, va)
+        opts.progress(restart, it, tr, va)
         if not (math.isfinite(tr) and math.isfinite(va)):
             break
         if va < best_val:
@@ -437,7 +435,7 @@ def fit_ann(
     if max_rows is not None and int(max_rows) < MIN_TRAIN_ROWS:
         raise ValueError(f"max_rows must be >= {MIN_TRAIN_ROWS} or None, got {max_rows}")
     settings = _Settings(
-        trainer, weight_decay, max_iter, patience, lr, progress,
+        trainer, weight_decay, max_iter, patience, lr, progress or (lambda *_: None),
         features, hidden, loss, int(restarts), seed, max_condition, soft_condition, stop_fraction, max_rows,
     )  # fmt: skip
     return _fit_network(obs, base, settings)
@@ -452,7 +450,7 @@ class _Settings:
     max_iter: int
     patience: int
     lr: float | None
-    progress: ProgressFn | None
+    progress: ProgressFn
     features: tuple[str, ...]
     hidden: int | tuple[int, ...] | None
     loss: str

@@ -41,9 +41,8 @@ def summarize(pos: np.ndarray, ori: np.ndarray) -> dict[str, float]:
 
     NaN entries (rows without a measured pose) are skipped; ``count`` is the number of rows summarised."""
     pos, ori = np.asarray(pos, float), np.asarray(ori, float)
-    if not (np.isfinite(pos).all() and np.isfinite(ori).all()):  # rows without a measured pose
-        defined = np.isfinite(pos) & np.isfinite(ori)
-        pos, ori = pos[defined], ori[defined]
+    defined = np.isfinite(pos) & np.isfinite(ori)  # NaN: rows without a measured pose
+    pos, ori = pos[defined], ori[defined]
     out: dict[str, float] = {"count": float(len(pos))}
     for name, e in (("pos", pos), ("ori", ori)):
         out.update({f"{name}_{s}": value for s, value in statistics(e, STATS).items()})

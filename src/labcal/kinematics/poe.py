@@ -330,12 +330,8 @@ class LocalPOEModel:
     def frames_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`link_frames` (k, n+1, 4, 4; the tool pose is ``[:, n]``) and :meth:`joint_twists` (k, 6, n) from
         one walk of the chain: what a runtime needs to predict poses, joint twists and gravity directions at once."""
-        q2, _ = self._as_batch(q)
-        if q2.shape[0] < _SMALL_BATCH:
-            frames = self._walk_small(q2)
-            return frames, self._twists_from_walk(frames[:, :, :3, :].transpose(1, 2, 3, 0))
-        W = self._walk(q2)
-        return self._to_matrices(W), self._twists_from_walk(W)
+        frames = self.link_frames(q)
+        return frames, self._twists_from_walk(frames[:, :, :3, :].transpose(1, 2, 3, 0))  # the top rows, batch last
 
     def fk_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(k, 4, 4) tool poses and (k, 6, n) actuated joint twists in K0, from one walk of the chain."""
