@@ -429,7 +429,21 @@ def fit_ann(
     """
     obs.check_robot(base.n)
     features = check_features(features)
-    max_iter, patience, lr = _check_options(trainer, loss, restarts, weight_decay, max_iter, patience, lr)
+    # Refuse unknown trainers and losses and impossible counts; fill in the trainer's defaults.
+    if trainer not in TRAINERS:
+        raise ValueError(f"trainer must be one of {TRAINERS}, got {trainer!r}")
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+    if int(restarts) < 1:
+        raise ValueError(f"restarts must be >= 1, got {restarts}")
+    if not weight_decay >= 0.0:
+        raise ValueError(f"weight_decay must be >= 0, got {weight_decay}")
+    d_iter, d_pat, d_lr = _DEFAULTS[trainer]
+    max_iter = d_iter if max_iter is None else int(max_iter)
+    patience = d_pat if patience is None else int(patience)
+    lr = d_lr if lr is None else float(lr)
+    if max_iter < 1 or patience < 1:
+        raise ValueError(f"max_iter and patience must be >= 1, got {max_iter}, {patience}")
     if not 0.0 < stop_fraction < 1.0:
         raise ValueError(f"stop_fraction must be in (0, 1), got {stop_fraction}")
     if max_rows is not None and int(max_rows) < MIN_TRAIN_ROWS:
@@ -520,33 +534,6 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
         "warnings": warnings,
     }
     return learned_robot(base, network, used.q, "ann"), info
-
-
-def _check_options(
-    trainer: str,
-    loss: str,
-    restarts: int,
-    weight_decay: float,
-    max_iter: int | None,
-    patience: int | None,
-    lr: float | None,
-) -> tuple[int, int, float | None]:
-    """Refuse unknown trainers and losses and impossible counts; the trainer's defaults filled in."""
-    if trainer not in TRAINERS:
-        raise ValueError(f"trainer must be one of {TRAINERS}, got {trainer!r}")
-    if loss not in LOSSES:
-        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
-    if int(restarts) < 1:
-        raise ValueError(f"restarts must be >= 1, got {restarts}")
-    if not weight_decay >= 0.0:
-        raise ValueError(f"weight_decay must be >= 0, got {weight_decay}")
-    d_iter, d_pat, d_lr = _DEFAULTS[trainer]
-    max_iter = d_iter if max_iter is None else int(max_iter)
-    patience = d_pat if patience is None else int(patience)
-    lr = d_lr if lr is None else float(lr)
-    if max_iter < 1 or patience < 1:
-        raise ValueError(f"max_iter and patience must be >= 1, got {max_iter}, {patience}")
-    return max_iter, patience, lr
 
 
 def _loss_for(jeo: JointErrorObservations, k: int, loss: str) -> tuple[str, str | None]:

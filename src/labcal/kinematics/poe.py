@@ -189,14 +189,7 @@ class LocalPOEModel:
             twists = np.array([default_twist(t) for t in joint_types]).reshape(len(joint_types), 6)
         if limits is None:
             limits = np.array([[-np.pi, np.pi] if t == REVOLUTE else [-1.0, 1.0] for t in joint_types])
-        return cls(
-            np.asarray(frames, float),
-            joint_types,
-            np.asarray(twists, float),
-            np.asarray(limits, float),
-            name,
-            tuple(joint_names),
-        )
+        return cls(frames, joint_types, twists, limits, name, joint_names)  # __post_init__ makes arrays and tuples
 
     # ----------------------------------------------------------------------------------------------------------
     @property
