@@ -508,13 +508,6 @@ def _initial_base(obs: Observations, model: LocalPOEModel, rows: np.ndarray) -> 
     return rigid_fit(pred, obs.points[rows][seen][None])[0]
 
 
-def _robot(nominal, model, T_tb, obs, method) -> CalibratedRobot:
-    # Robot and tool apart (labcal.calibration.tool): the robot ends at tool0, the fixture is the measurement tool
-    # (the registration estimates no joint frame: nothing commutes into the tool).
-    robot_model, X = (nominal, None) if model is nominal else split_tool(nominal, model, canonical=False)
-    return CalibratedRobot(nominal=nominal, model=robot_model, T_tracker_base=T_tb, method=method, measurement_tool=X)
-
-
 def register(
     obs: Observations,
     nominal: LocalPOEModel,
@@ -536,7 +529,7 @@ def register(
     needed = 6 * (len(frames) + estimate_base) - (structural["count"] if structural else 0)
     _check(obs, nominal, rows, max(needed, 1), "registration")
     if not frames and not estimate_base:
-        robot = _robot(nominal, nominal, np.eye(4), obs, "nominal")
+        robot = CalibratedRobot(nominal=nominal, model=nominal, T_tracker_base=np.eye(4), method="nominal")
         return robot, {"estimated": [], "iterations": 0, "T_tracker_base": np.eye(4)}
     T0 = _initial_base(obs, nominal, rows) if estimate_base else np.eye(4)
     fit_args: _FitArgs = (obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base)
@@ -544,7 +537,12 @@ def register(
     out = _gauss_newton(
         nominal, T0, *fit_args, length_scale=nominal.reach(), max_iter=max_iter, tol=tol, seen=seen, fixed=fixed
     )
-    robot = _robot(nominal, out["model"], out["T_tb"], obs, "nominal")
+    # Robot and tool apart (labcal.calibration.tool): the robot ends at tool0, the fixture is the measurement tool
+    # (the registration estimates no joint frame: nothing commutes into the tool).
+    model, X = (nominal, None) if out["model"] is nominal else split_tool(nominal, out["model"], canonical=False)
+    robot = CalibratedRobot(
+        nominal=nominal, model=model, T_tracker_base=out["T_tb"], method="nominal", measurement_tool=X
+    )
     info = {
         "estimated": (["tool"] if estimate_tool else []) + (["T_tracker_base"] if estimate_base else []),
         "iterations": out["iterations"],
