@@ -49,9 +49,8 @@ from pathlib import Path
 import numpy as np
 
 from labcal.calibration import Observations, fit, register
-from labcal.calibration.hybrid import validation_error
 from labcal.calibration.joint_series import fit_joint_series
-from labcal.calibration.metrics import prediction_errors
+from labcal.calibration.metrics import prediction_errors, validation_error
 from labcal.datasets import import_mapped, load_version
 from labcal.robots import load
 

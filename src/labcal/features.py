@@ -106,13 +106,8 @@ class Feature:
         return self.kind == "gravity"
 
     def size(self, n: int) -> int:
-        """Number of columns for a robot with n joints."""
-        if self.kind == HARMONICS:
-            return 2 * n * self.order
-        per_joint = {"q": 1, "sincos": 2, "sincos2": 2, "gravity": 3}
-        if self.kind not in per_joint:
-            raise ValueError(_unknown_kind(self.kind, "Feature.size"))
-        return per_joint[self.kind] * n
+        """Number of columns for a robot with n joints (the joint types change what a column holds, not how many)."""
+        return len(self.columns(("revolute",) * n))
 
     def compute(self, q: np.ndarray, joint_types=None, limits=None, frames=None) -> np.ndarray:
         """(k, n) joint values → (k, size) columns.
@@ -272,10 +267,10 @@ def _revolute(joint_types, n: int) -> np.ndarray | None:
     """(n,) bool revolute mask, or None when every joint is revolute (the common case: no np.where needed)."""
     if joint_types is None:
         return None
-    mask = np.array([t != "prismatic" for t in joint_types])
-    if len(mask) != n:
-        raise ValueError(f"joint_types has {len(mask)} entries for {n} joint values")
-    return None if mask.all() else mask
+    prismatic = _prismatic(tuple(joint_types))
+    if len(prismatic) != n:
+        raise ValueError(f"joint_types has {len(prismatic)} entries for {n} joint values")
+    return ~prismatic if prismatic.any() else None
 
 
 def joint_angles(q: np.ndarray, joint_types=None, limits=None) -> np.ndarray:
@@ -286,13 +281,10 @@ def joint_angles(q: np.ndarray, joint_types=None, limits=None) -> np.ndarray:
     """
     q = np.atleast_2d(np.asarray(q, dtype=float))
     n = q.shape[1]
-    if joint_types is None:
+    revolute = _revolute(joint_types, n)
+    if revolute is None:
         return q
-    prismatic = _prismatic(tuple(joint_types))
-    if len(prismatic) != n:
-        raise ValueError(f"joint_types has {len(prismatic)} entries for {n} joint values")
-    if not prismatic.any():
-        return q
+    prismatic = ~revolute
     if limits is None:
         raise ValueError("harmonics of a prismatic joint need the joint limits (the stroke sets the period)")
     lim = np.asarray(limits, dtype=float).reshape(n, 2)

@@ -46,7 +46,7 @@ def _dropped(count: int, rows: int, kept_network: bool):
            "observations": {"dropped": count}} if kept_network else None  # fmt: skip
     warnings, notes = [], []
     table = SimpleNamespace(cv=None)  # no cross-validation record: only the kept network speaks
-    fit_module._dropped(table, SimpleNamespace(k=rows), "hybrid+ann", net, warnings, notes)
+    fit_module._dropped(table, SimpleNamespace(k=rows), net, warnings, notes)
     return [w["code"] for w in warnings], notes
 
 

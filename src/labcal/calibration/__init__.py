@@ -13,9 +13,8 @@ Importing this package does not import torch: the network's fitting imports it w
 
 from labcal.calibration.ann import fit_ann
 from labcal.calibration.fit import METHODS, FitResult, fit, fit_hybrid
-from labcal.calibration.hybrid import validation_error
 from labcal.calibration.local_poe import IdentificationError, expected_rank, fit_local_poe, register
-from labcal.calibration.metrics import prediction_errors, reduction, split_table, summarize
+from labcal.calibration.metrics import prediction_errors, reduction, split_table, summarize, validation_error
 from labcal.calibration.observations import ObservationError, Observations, rigid_fit
 
 __all__ = [

@@ -98,10 +98,6 @@ def _layer_shapes(n_in: int, hidden: tuple[int, ...], n_out: int = 6) -> list[tu
     return [(sizes[i + 1], sizes[i]) for i in range(len(sizes) - 1)]
 
 
-def _n_params(shapes) -> int:
-    return sum(o * i + o for o, i in shapes)
-
-
 def _init_params(shapes, seed: int, restart: int) -> np.ndarray:
     rng = np.random.default_rng([seed, restart])
     parts = []
@@ -127,10 +123,8 @@ def _unflatten(theta, shapes):
 
 
 def _weight_mask(shapes) -> np.ndarray:
-    mask = []
-    for o, i in shapes:
-        mask += [np.ones(o * i), np.zeros(o)]
-    return np.concatenate(mask).astype(bool)
+    """True at the weight matrices' entries of a flat parameter vector (:func:`_unflatten`), False at the biases."""
+    return np.concatenate([np.arange(o * i + o) < o * i for o, i in shapes])
 
 
 def _forward(theta, x, shapes):
@@ -249,8 +243,7 @@ def _train_one(torch, job: _Job, theta0: np.ndarray, restart: int):
     tr, va = losses(theta)
     curve_t, curve_v = [tr], [va]
     best_theta, best_val, best_it = theta.clone(), va, 0
-    if opts.progress is not None:
-        opts.progress(restart, 0, tr, va)
+    opts.progress(restart, 0, tr, va)
     if opts.trainer == "lm":
         step = _lm_step(torch, job, full_residual, wmask, sqrt_wd, theta.numel())
     else:
@@ -264,8 +257,7 @@ def _train_one(torch, job: _Job, theta0: np.ndarray, restart: int):
         tr, va = losses(theta)
         curve_t.append(tr)
         curve_v.append(va)
-        if opts.progress is not None:
-            opts.progress(restart, it, tr, va)
+        opts.progress(restart, it, tr, va)
         if not (math.isfinite(tr) and math.isfinite(va)):
             break
         if va < best_val:
@@ -343,7 +335,8 @@ def _check_hidden(hidden, n_in: int, n_out: int = 6) -> tuple[int, ...]:
 
 
 class NetworkDataError(ObservationError):
-    """Too few usable rows for the network after the condition filter; ``causes`` as in dropped_causes."""
+    """Too few usable rows for the network after the condition filter; ``causes`` as
+    :meth:`~labcal.calibration.equivalent.JointErrorObservations.causes` returns them."""
 
     def __init__(self, message: str, causes: list[dict]) -> None:
         super().__init__(message)
@@ -436,13 +429,27 @@ def fit_ann(
     """
     obs.check_robot(base.n)
     features = check_features(features)
-    max_iter, patience, lr = _check_options(trainer, loss, restarts, weight_decay, max_iter, patience, lr)
+    # Refuse unknown trainers and losses and impossible counts; fill in the trainer's defaults.
+    if trainer not in TRAINERS:
+        raise ValueError(f"trainer must be one of {TRAINERS}, got {trainer!r}")
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+    if int(restarts) < 1:
+        raise ValueError(f"restarts must be >= 1, got {restarts}")
+    if not weight_decay >= 0.0:
+        raise ValueError(f"weight_decay must be >= 0, got {weight_decay}")
+    d_iter, d_pat, d_lr = _DEFAULTS[trainer]
+    max_iter = d_iter if max_iter is None else int(max_iter)
+    patience = d_pat if patience is None else int(patience)
+    lr = d_lr if lr is None else float(lr)
+    if max_iter < 1 or patience < 1:
+        raise ValueError(f"max_iter and patience must be >= 1, got {max_iter}, {patience}")
     if not 0.0 < stop_fraction < 1.0:
         raise ValueError(f"stop_fraction must be in (0, 1), got {stop_fraction}")
     if max_rows is not None and int(max_rows) < MIN_TRAIN_ROWS:
         raise ValueError(f"max_rows must be >= {MIN_TRAIN_ROWS} or None, got {max_rows}")
     settings = _Settings(
-        trainer, weight_decay, max_iter, patience, lr, progress,
+        trainer, weight_decay, max_iter, patience, lr, progress or (lambda *_: None),
         features, hidden, loss, int(restarts), seed, max_condition, soft_condition, stop_fraction, max_rows,
     )  # fmt: skip
     return _fit_network(obs, base, settings)
@@ -457,7 +464,7 @@ class _Settings:
     max_iter: int
     patience: int
     lr: float | None
-    progress: ProgressFn | None
+    progress: ProgressFn
     features: tuple[str, ...]
     hidden: int | tuple[int, ...] | None
     loss: str
@@ -484,7 +491,7 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
     data = _Scaled.of(jeo, input_features(jeo.q, opts.features, base.model), rows["train"])
     n_out = equivalent_joints(base.n)
     shapes = _layer_shapes(data.x.shape[1], _check_hidden(opts.hidden, data.x.shape[1], n_out), n_out)
-    n_params = _n_params(shapes)
+    n_params = sum(o * i + o for o, i in shapes)
     if n_params > n_out * rows["train"].size:
         warnings.append(
             f"the network has {n_params} weights for {n_out * rows['train'].size} training numbers: expect over-fitting"
@@ -527,33 +534,6 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
         "warnings": warnings,
     }
     return learned_robot(base, network, used.q, "ann"), info
-
-
-def _check_options(
-    trainer: str,
-    loss: str,
-    restarts: int,
-    weight_decay: float,
-    max_iter: int | None,
-    patience: int | None,
-    lr: float | None,
-) -> tuple[int, int, float | None]:
-    """Refuse unknown trainers and losses and impossible counts; the trainer's defaults filled in."""
-    if trainer not in TRAINERS:
-        raise ValueError(f"trainer must be one of {TRAINERS}, got {trainer!r}")
-    if loss not in LOSSES:
-        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
-    if int(restarts) < 1:
-        raise ValueError(f"restarts must be >= 1, got {restarts}")
-    if not weight_decay >= 0.0:
-        raise ValueError(f"weight_decay must be >= 0, got {weight_decay}")
-    d_iter, d_pat, d_lr = _DEFAULTS[trainer]
-    max_iter = d_iter if max_iter is None else int(max_iter)
-    patience = d_pat if patience is None else int(patience)
-    lr = d_lr if lr is None else float(lr)
-    if max_iter < 1 or patience < 1:
-        raise ValueError(f"max_iter and patience must be >= 1, got {max_iter}, {patience}")
-    return max_iter, patience, lr
 
 
 def _loss_for(jeo: JointErrorObservations, k: int, loss: str) -> tuple[str, str | None]:

@@ -143,11 +143,6 @@ class Candidates:
         """The candidate's cross-validated mean error (m), NaN when it was not cross-validated."""
         return self.cv.mean(name) if self.cv is not None and name in self.cv.rows else math.nan
 
-    @property
-    def hybrid_names(self) -> tuple[str, ...]:
-        """The hybrid's own candidates: local POE and the learned terms on it."""
-        return tuple(c for c in self.names if c == "local-poe" or BY_NAME[c].hybrid)
-
 
 @dataclass(frozen=True)
 class Outcome:

@@ -79,6 +79,7 @@ from labcal.kinematics import metric, se3
 
 MAX_CONDITION = 1e3
 SOFT_CONDITION = 1e2
+_PROBE_STEP = 0.1  # rad (revolute) or fraction of the reach (prismatic): the move that shows which joint causes it
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,7 +93,7 @@ class JointErrorObservations:
     cond(P J_ρ S) (see module docstring);
     weight: (k,) 0 for dropped rows, (soft/cond)² in the down-weighted band, else 1;
     reason: (k,) "" for kept rows, else why the row was dropped; split: (k,) the observations' split labels;
-    targets: (m, 3) the targets in the tool frame (to name the cause of dropped rows, :func:`dropped_causes`);
+    targets: (m, 3) the targets in the tool frame (to name the cause of dropped rows, :meth:`causes`);
     seen: (k, m) the targets each row saw (None: all); rank: (k,) the joint-error directions the row's points
     can see (6, 5 with two points or a line of them, 3 with one; None: 6 everywhere, n ≤ 6 only).
     """
@@ -105,7 +106,7 @@ class JointErrorObservations:
     weight: np.ndarray
     reason: np.ndarray
     split: np.ndarray
-    targets: np.ndarray | None = None
+    targets: np.ndarray
     seen: np.ndarray | None = None
     rank: np.ndarray | None = None
 
@@ -119,8 +120,59 @@ class JointErrorObservations:
         return self.rank is not None and bool(np.any(self.rank < 6))
 
     def causes(self, base: CalibratedRobot) -> list[dict]:
-        """Why the dropped rows are ill-conditioned, grouped: see :func:`dropped_causes`."""
-        return dropped_causes(self, base)
+        """Name the cause of every row the condition filter dropped, grouped into one entry per cause.
+
+        For each dropped row: the joints whose motion errors the row cannot see (the largest components of the
+        smallest right singular vector of P J_ρ S — e.g. joints 4 and 6 when a wrist's axes align), and the joint
+        whose value puts the robot there (the joint whose move by 0.1 rad lowers the condition number most, e.g.
+        joint 5 of a UR10 at q5 ≈ 0). Returns ``[{"rows": count, "joint": j (1-based, 0 if none found),
+        "lost": [joints], "value": median q_j of the rows, "cause": text}]``, largest group first; the text reads
+        like "joint 5 near a singular value (q5 ≈ 0.002): joints 4, 6 cannot be told apart" (the joints lost in
+        most rows of the group).
+        """
+        dropped = np.flatnonzero(~self.kept)
+        if dropped.size == 0:
+            return []
+        scale = metric_scale(base)
+        n = base.n
+        q = self.q[dropped]
+        _, _, Vt = np.linalg.svd(self.PJ[dropped] * scale, full_matrices=False)
+        if self.rank is None:
+            null = np.abs(Vt[:, -1, :])  # (d, 6): n <= 6 here (a redundant arm's rows always carry their rank)
+        else:  # the weakest direction the row's points can see
+            null = np.abs(np.take_along_axis(Vt, (self.rank[dropped] - 1)[:, None, None], axis=1)[:, 0])
+        cond0 = self.condition[dropped]
+        best_gain = np.ones(dropped.size)
+        culprit = np.zeros(dropped.size, dtype=int)
+        seen = np.ones((dropped.size, len(self.targets)), bool) if self.seen is None else self.seen[dropped]
+        rank = None if self.rank is None else self.rank[dropped]
+        for j in range(n):
+            step = _PROBE_STEP * (_length_scale(base) if base.model.joint_types[j] == "prismatic" else 1.0)
+            moved = q.copy()
+            moved[:, j] += step
+            cond = condition_numbers(_masked_pj(base, moved, self.targets, seen)[1], scale, rank)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                gain = np.where(np.isfinite(cond0), cond0 / cond, np.where(np.isfinite(cond), np.inf, 1.0))
+            better = gain > np.maximum(best_gain, 2.0)
+            best_gain[better], culprit[better] = gain[better], j + 1
+        lost_sets = [np.flatnonzero(null[i] > 0.3 * null[i].max()) + 1 for i in range(dropped.size)]
+        out: list[dict[str, Any]] = []
+        for joint in sorted(set(culprit.tolist())):
+            rows = np.flatnonzero(culprit == joint)
+            counts = np.bincount(np.concatenate([lost_sets[i] for i in rows]), minlength=equivalent_joints(n) + 1)
+            lost = [int(j) for j in np.flatnonzero(counts >= max(1, len(rows) / 2))]  # lost in most of these rows
+            names = ", ".join(str(j) if j <= n else f"virtual {j}" for j in lost)
+            what = (
+                f"joints {names} cannot be told apart" if len(lost) > 1 else f"the error of joint {names} is not seen"
+            )
+            value = float(np.median(q[rows, joint - 1])) if joint else float("nan")
+            if joint:
+                cause = f"joint {joint} near a singular value (q{joint} ≈ {value:.2g}): {what}"
+            else:
+                cause = f"ill-conditioned configuration or target geometry: {what}"
+            out.append({"rows": len(rows), "joint": int(joint), "lost": lost, "value": value, "cause": cause})
+        out.sort(key=lambda c: (-c["rows"], c["joint"], c["lost"]))
+        return out
 
     def summary(self) -> dict:
         """Counts of dropped rows by reason and condition statistics of all rows (JSON-friendly); with fewer than
@@ -278,62 +330,3 @@ def _screen(condition: np.ndarray, max_condition, soft_condition) -> tuple[np.nd
         band = (weight > 0) & (condition > soft_condition)
         weight[band] = (soft_condition / condition[band]) ** 2
     return reason, weight, ~singular
-
-
-_PROBE_STEP = 0.1  # rad (revolute) or fraction of the reach (prismatic): the move that shows which joint causes it
-
-
-def dropped_causes(jeo: JointErrorObservations, base: CalibratedRobot) -> list[dict]:
-    """Name the cause of every row the condition filter dropped, grouped into one entry per cause.
-
-    For each dropped row: the joints whose motion errors the row cannot see (the largest components of the
-    smallest right singular vector of P J_ρ S — e.g. joints 4 and 6 when a wrist's axes align), and the joint
-    whose value puts the robot there (the joint whose move by 0.1 rad lowers the condition number most, e.g.
-    joint 5 of a UR10 at q5 ≈ 0). Returns ``[{"rows": count, "joint": j (1-based, 0 if none found),
-    "lost": [joints], "value": median q_j of the rows, "cause": text}]``, largest group first; the text reads
-    like "joint 5 near a singular value (q5 ≈ 0.002): joints 4, 6 cannot be told apart" (the joints lost in
-    most rows of the group).
-    """
-    dropped = np.flatnonzero(~jeo.kept)
-    if dropped.size == 0:
-        return []
-    scale = metric_scale(base)
-    n = base.n
-    q = jeo.q[dropped]
-    _, _, Vt = np.linalg.svd(jeo.PJ[dropped] * scale, full_matrices=False)
-    if jeo.rank is None:
-        null = np.abs(Vt[:, -1, :])  # (d, 6): n <= 6 here (a redundant arm's rows always carry their rank)
-    else:  # the weakest direction the row's points can see
-        null = np.abs(np.take_along_axis(Vt, (jeo.rank[dropped] - 1)[:, None, None], axis=1)[:, 0])
-    cond0 = jeo.condition[dropped]
-    best_gain = np.ones(dropped.size)
-    culprit = np.zeros(dropped.size, dtype=int)
-    if jeo.targets is None:
-        raise ValueError("these observations carry no targets; build them with joint_error_observations")
-    seen = np.ones((dropped.size, len(jeo.targets)), bool) if jeo.seen is None else jeo.seen[dropped]
-    rank = None if jeo.rank is None else jeo.rank[dropped]
-    for j in range(n):
-        step = _PROBE_STEP * (_length_scale(base) if base.model.joint_types[j] == "prismatic" else 1.0)
-        moved = q.copy()
-        moved[:, j] += step
-        cond = condition_numbers(_masked_pj(base, moved, jeo.targets, seen)[1], scale, rank)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            gain = np.where(np.isfinite(cond0), cond0 / cond, np.where(np.isfinite(cond), np.inf, 1.0))
-        better = gain > np.maximum(best_gain, 2.0)
-        best_gain[better], culprit[better] = gain[better], j + 1
-    lost_sets = [np.flatnonzero(null[i] > 0.3 * null[i].max()) + 1 for i in range(dropped.size)]
-    out: list[dict[str, Any]] = []
-    for joint in sorted(set(culprit.tolist())):
-        rows = np.flatnonzero(culprit == joint)
-        counts = np.bincount(np.concatenate([lost_sets[i] for i in rows]), minlength=equivalent_joints(n) + 1)
-        lost = [int(j) for j in np.flatnonzero(counts >= max(1, len(rows) / 2))]  # lost in most of these rows
-        names = ", ".join(str(j) if j <= n else f"virtual {j}" for j in lost)
-        what = f"joints {names} cannot be told apart" if len(lost) > 1 else f"the error of joint {names} is not seen"
-        value = float(np.median(q[rows, joint - 1])) if joint else float("nan")
-        if joint:
-            cause = f"joint {joint} near a singular value (q{joint} ≈ {value:.2g}): {what}"
-        else:
-            cause = f"ill-conditioned configuration or target geometry: {what}"
-        out.append({"rows": len(rows), "joint": int(joint), "lost": lost, "value": value, "cause": cause})
-    out.sort(key=lambda c: (-c["rows"], c["joint"], c["lost"]))
-    return out

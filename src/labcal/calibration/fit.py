@@ -185,12 +185,35 @@ def fit(
     register_tool: the registered nominal ("before", and the base of the paper's ANN method) also estimates the
     measurement tool (probe data: the probe's mount is the tool, not a robot error the network should learn).
     """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    obs.check_robot(nominal.n)
+    obs = obs.with_splits(val_fraction, seed)
+    if not np.any(obs.split == "train"):
+        raise ValueError("no fitting rows: every row is labelled val or test")
+    # The hybrid's options taken out of the network's.
+    stage2 = tuple(options.pop("stage2", ("ann", "series")))
+    series_options = options.pop("series_options", None)
+    if not stage2 or any(name not in STAGE2 for name in stage2):
+        raise ValueError(f"stage2 must name 'ann' and/or 'series', got {stage2!r}")
+    ctx = FitContext(
+        obs=obs,
+        fit_obs=obs.where("train"),
+        nominal=nominal,
+        method=method,
+        seed=seed,
+        options=options,
+        local_poe_options=dict(local_poe_options or {}),
+        series_options=series_options,
+        stage2=stage2,
+        register_tool=register_tool,
+        say=progress or (lambda _msg: None),
+    )
     # One BLAS thread: the fits multiply many small and medium matrices, where OpenBLAS's threads were measured
     # 3-20x slower on a loaded 2-core machine (local POE at 1,000 rows: 4.0 s threaded, 1.1 s single), and one
     # thread keeps the summation order, so the bits of a fit, independent of the core count.
     with threadpool_limits(limits=1, user_api="blas"):
-        return _fit(_context(obs, nominal, method, seed, val_fraction, progress, local_poe_options, options,
-                             register_tool))  # fmt: skip
+        return _fit(ctx)
 
 
 def fit_hybrid(
@@ -227,15 +250,15 @@ def fit_hybrid(
 
 def _fit(ctx: FitContext) -> FitResult:
     """fit() inside its BLAS limit: the registered nominal, the candidates, the method, the checks."""
-    counts = {s: int(np.sum(ctx.obs.split == s)) for s in ("train", "val", "test")}
     ctx.say("registering the nominal model")
     before = Stage(*ctx.timed("nominal", lambda: register(ctx.obs, ctx.nominal, estimate_tool=ctx.register_tool)))
     if ctx.method == "nominal":
         outcome = Outcome(before.robot, {"register": before.info}, "nominal", "nominal")
-        return _result(ctx, outcome, before.robot, None, counts, [], None)
+        return _result(ctx, outcome, before.robot, None, [], None)
     table = _candidates(ctx, before)
     outcome = _run_method(ctx, table)
-    robot = _with_validity(outcome.robot, ctx.fit_obs.q)
+    # Every fit carries its validity region: the neighbourhood of the fitted configurations (scaled joint space).
+    robot = dataclasses.replace(outcome.robot, validity=ValidityRegion.from_configurations(ctx.fit_obs.q))
     info_cv = None if table.cv is None else table.cv.summary(outcome.candidate)
     metrics = split_table(before.robot, robot, ctx.obs)
     warnings = _checks(ctx, table, outcome, robot, metrics)
@@ -243,45 +266,8 @@ def _fit(ctx: FitContext) -> FitResult:
         warnings.insert(0, {"code": "no-network", "message": outcome.info["no_network"] + ": use local-poe or hybrid"})
     for w in warnings:
         ctx.say(f"warning [{w['code']}]: {w['message']}")
-    return _result(ctx, dataclasses.replace(outcome, robot=robot), before.robot, table.stage1, counts, warnings,
-                   info_cv, metrics)  # fmt: skip
-
-
-def _context(
-    obs: Observations,
-    nominal: LocalPOEModel,
-    method: str,
-    seed: int,
-    val_fraction: float,
-    progress: Callable[[str], None] | None,
-    local_poe_options: dict | None,
-    options: dict[str, Any],
-    register_tool: bool,
-) -> FitContext:
-    """The checked arguments of one fit: the rows split, the hybrid's options taken out of the network's."""
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    obs.check_robot(nominal.n)
-    obs = obs.with_splits(val_fraction, seed)
-    if not np.any(obs.split == "train"):
-        raise ValueError("no fitting rows: every row is labelled val or test")
-    hybrid_opts = {key: options.pop(key) for key in ("stage2", "series_options") if key in options}
-    stage2 = tuple(hybrid_opts.get("stage2", ("ann", "series")))
-    if not stage2 or any(name not in STAGE2 for name in stage2):
-        raise ValueError(f"stage2 must name 'ann' and/or 'series', got {stage2!r}")
-    return FitContext(
-        obs=obs,
-        fit_obs=obs.where("train"),
-        nominal=nominal,
-        method=method,
-        seed=seed,
-        options=options,
-        local_poe_options=dict(local_poe_options or {}),
-        series_options=hybrid_opts.get("series_options"),
-        stage2=stage2,
-        register_tool=register_tool,
-        say=progress or (lambda _msg: None),
-    )
+    return _result(ctx, dataclasses.replace(outcome, robot=robot), before.robot, table.stage1, warnings, info_cv,
+                   metrics)  # fmt: skip
 
 
 def _candidate_names(method: str, stage2: tuple[str, ...]) -> tuple[str, ...]:
@@ -334,8 +320,7 @@ def _run_method(ctx: FitContext, table: Candidates) -> Outcome:
         assert table.stage1 is not None
         return Outcome(table.stage1.robot, table.stage1.info, "local-poe", "local-poe")
     if ctx.method == "ann":
-        robot, info = ctx.timed("ann", lambda: _fit_ann_or_nominal(ctx.fit_obs, table.before.robot, ctx.seed,
-                                                                    ctx.options))  # fmt: skip
+        robot, info = ctx.timed("ann", lambda: _fit_ann_or_nominal(ctx, table.before.robot))
         return Outcome(robot, info, "ann", "ann", network=info)
     if ctx.method == "hybrid":
         outcome = ctx.timed("hybrid", lambda: finish_hybrid(ctx, table))
@@ -349,15 +334,13 @@ def _result(
     outcome: Outcome,
     before: CalibratedRobot,
     stage1: Stage | None,
-    counts: dict[str, int],
     warnings: list[dict],
     cv: dict | None,
     metrics: dict | None = None,
 ) -> FitResult:
     """The FitResult, with the notes on what the targets cannot show and on the measurement tool."""
     obs, robot, notes = ctx.obs, outcome.robot, ctx.notes
-    seen = obs.seen[obs.split == "train"]
-    unseen = ", ".join(f"t{i + 1}" for i in np.flatnonzero(~seen.any(axis=0))) if seen.size else ""
+    unseen = ", ".join(f"t{i + 1}" for i in np.flatnonzero(~ctx.fit_obs.seen.any(axis=0)))  # fit_obs has rows
     if unseen:
         notes.append(f"targets never seen in the fitting rows: {unseen} (they add nothing to this fit)")
     # The identification's own words when it ran (they include a point beside the last joint's axis), else the
@@ -375,9 +358,9 @@ def _result(
         metrics=split_table(before, robot, obs) if metrics is None else metrics,
         info=outcome.info,
         seed=ctx.seed,
-        n_train=counts["train"],
-        n_val=counts["val"],
-        n_test=counts["test"],
+        n_train=int(np.sum(obs.split == "train")),
+        n_val=int(np.sum(obs.split == "val")),
+        n_test=int(np.sum(obs.split == "test")),
         fit_seconds=ctx.seconds,
         obs=obs,
         warnings=warnings,
@@ -387,25 +370,18 @@ def _result(
     )
 
 
-def _fit_ann_or_nominal(
-    fit_obs: Observations, before: CalibratedRobot, seed: int, options: dict[str, Any]
-) -> tuple[CalibratedRobot, dict]:
+def _fit_ann_or_nominal(ctx: FitContext, before: CalibratedRobot) -> tuple[CalibratedRobot, dict]:
     """The paper's network on the registered nominal; where too few rows can train it (a singular wrist in most
     poses …), the registered nominal itself, with the reason in ``info["no_network"]`` (a blocking warning): the
     method runs on any data, and what it could not learn is said, not exported by accident."""
     from labcal.calibration.ann import fit_ann  # torch only when a network is fitted
 
     try:
-        robot, info = fit_ann(fit_obs, before, seed=seed, **options)
+        robot, info = fit_ann(ctx.fit_obs, before, seed=ctx.seed, **ctx.options)
     except ObservationError as err:  # NetworkDataError: too few usable rows, the message names the cause
         reason = f"the paper's network could not be trained: {err}; this fit is the registered nominal (no correction)"
         return dataclasses.replace(before, method="ann"), {"method": "ann", "no_network": reason}
     return robot, info
-
-
-def _with_validity(robot: CalibratedRobot, q: np.ndarray) -> CalibratedRobot:
-    """The robot with its validity region: the neighbourhood of the fitted configurations (scaled joint space)."""
-    return dataclasses.replace(robot, validity=ValidityRegion.from_configurations(q))
 
 
 def _auto_choice(ctx: FitContext, table: Candidates, pick: list[str]) -> str:
@@ -441,8 +417,7 @@ def _auto(ctx: FitContext, table: Candidates) -> Outcome:
     info: dict[str, Any] = {"candidates": candidates_info, "cv_errors": errors, "local-poe": stage1.info}
     outcome = Outcome(stage1.robot, info, "local-poe", "local-poe")
     if choice == "ann":
-        robot, ann_info = ctx.timed("ann", lambda: _fit_ann_or_nominal(ctx.fit_obs, table.before.robot, ctx.seed,
-                                                                        ctx.options))  # fmt: skip
+        robot, ann_info = ctx.timed("ann", lambda: _fit_ann_or_nominal(ctx, table.before.robot))
         info["ann"] = ann_info
         if "no_network" in ann_info:  # it cross-validated, yet the refit on all rows found too few usable rows
             ctx.notes.append(f"auto fell back to local-poe: {ann_info.pop('no_network')}")
@@ -495,7 +470,7 @@ def _checks(ctx: FitContext, table: Candidates, outcome: Outcome, robot: Calibra
             warnings.append(message)
         elif message:
             warnings.append(_warn(code, message))
-    _dropped(table, fit_obs, key, net, warnings, notes)
+    _dropped(table, fit_obs, net, warnings, notes)
     return warnings
 
 
@@ -553,12 +528,12 @@ def _cv_checks(cv: CVResult, key: str, in_sample: float, warnings: list[dict], n
                 "(too few or too similar poses, or data that do not match the robot/targets)",
             ))  # fmt: skip
     text = f"{key} fits its own rows to {in_sample * 1e3:.4g} mm but cross-validates to {e_cv * 1e3:.4g} mm"
-    if not math.isfinite(e_cv):
-        pass  # every fold failed for the chosen model (its notes say why): nothing to compare
-    elif e_cv > OVERFIT_RATIO * in_sample and e_cv - in_sample > 1e-5:
-        warnings.append(_warn("overfit", f"{text} (over {OVERFIT_RATIO:g}×): it interpolates too few poses"))
-    elif e_cv > OVERFIT_NOTE_RATIO * in_sample and e_cv - in_sample > 1e-5:
-        notes.append(f"overfit-risk: {text}; trust the cross-validated error, not the fit error")
+    # e_cv is NaN when every fold failed for the chosen model (its notes say why): nothing to compare
+    if math.isfinite(e_cv) and e_cv - in_sample > 1e-5:
+        if e_cv > OVERFIT_RATIO * in_sample:
+            warnings.append(_warn("overfit", f"{text} (over {OVERFIT_RATIO:g}×): it interpolates too few poses"))
+        elif e_cv > OVERFIT_NOTE_RATIO * in_sample:
+            notes.append(f"overfit-risk: {text}; trust the cross-validated error, not the fit error")
 
 
 def _holdout_checks(metrics: dict, warnings: list[dict]) -> None:
@@ -766,7 +741,7 @@ def _correction_cause(robot, at_data: float, lp: dict | None) -> str:
 
 
 def _dropped(
-    table: Candidates, fit_obs: Observations, key: str, net: dict | None, warnings: list[dict], notes: list[str]
+    table: Candidates, fit_obs: Observations, net: dict | None, warnings: list[dict], notes: list[str]
 ) -> None:
     """rows-dropped: a warning when a kept network misses > DROPPED_SHARE of the rows, else a note."""
     cv = table.cv
@@ -775,8 +750,7 @@ def _dropped(
     elif cv is not None and any(c in cv.rows for c in NETWORKS):
         from labcal.calibration.equivalent import joint_error_observations
 
-        on_stage1 = table.stage1 is not None and "hybrid+ann" in cv.rows
-        base = table.stage1.robot if on_stage1 and table.stage1 is not None else table.before.robot
+        base = table.stage1.robot if table.stage1 is not None and "hybrid+ann" in cv.rows else table.before.robot
         jeo = joint_error_observations(fit_obs, base)
         count = int(np.sum(~jeo.kept))
         causes = jeo.causes(base) if count else []

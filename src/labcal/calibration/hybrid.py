@@ -34,19 +34,9 @@ from typing import Any
 
 from labcal.calibration.candidates import BY_NAME, TABLE, Candidates, FitContext, Outcome, Stage
 from labcal.calibration.cv import CVResult, choose
-from labcal.calibration.metrics import primary_error
-from labcal.calibration.observations import ObservationError, Observations
+from labcal.calibration.metrics import validation_error
+from labcal.calibration.observations import ObservationError
 from labcal.compensator import CalibratedRobot
-
-
-def validation_error(robot: CalibratedRobot, obs: Observations) -> float:
-    """Mean position error (m) of the robot's prediction on the validation rows (NaN when there are none); the
-    mean target-point error when those rows do not all fix a pose (:func:`~labcal.calibration.metrics.
-    primary_error`)."""
-    mask = obs.split == "val"
-    if not mask.any():
-        return float("nan")
-    return primary_error(robot, obs.subset(mask))[0]
 
 
 def prefit_series(ctx: FitContext, robot1: CalibratedRobot) -> Stage | None:
@@ -74,7 +64,7 @@ def finish_hybrid(ctx: FitContext, table: Candidates, choice: str | None = None)
     The outcome's info is the hybrid's (:func:`labcal.calibration.fit.fit_hybrid`), its candidate the kept one.
     """
     assert table.stage1 is not None
-    candidates = table.hybrid_names
+    candidates = tuple(c for c in table.names if c == "local-poe" or BY_NAME[c].hybrid)  # local POE and its learned
     notes: list[str] = []
     if table.cv is None:
         notes.append(

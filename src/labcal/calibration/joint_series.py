@@ -57,7 +57,7 @@ import numpy as np
 
 from labcal import features as feature_lib
 from labcal.calibration.equivalent import equivalent_joints, joint_error_observations, learned_robot
-from labcal.calibration.metrics import primary_error
+from labcal.calibration.metrics import primary_error, validation_error
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot, Network, input_features
 
@@ -103,10 +103,10 @@ class _Design:
         self.g = np.einsum("kai,ka->ki", self.PJ, delta_p)
         self.n, self.m = n, basis.shape[2]
 
-    def normal(self, rows: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
-        """(G, b) of the given rows for the first m basis columns of every joint; unknowns ordered joint-major."""
-        n = self.n
-        B = self.basis[rows, :, :m]  # (r, n, m)
+    def normal(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(G, b) of the given rows; unknowns ordered joint-major (every basis column of every joint)."""
+        n, m = self.n, self.m
+        B = self.basis[rows]  # (r, n, m)
         C = self.C[rows]
         G = np.empty((n * m, n * m))
         for i in range(n):
@@ -186,7 +186,6 @@ def fit_joint_series(
     g_cols = 3 * base.n if use_gravity else 0
     robot = learned_robot(base, _series_network(coef, H, use_gravity), train.q, "series")
     amplitudes = np.hypot(coef[:, 1 + g_cols :: 2], coef[:, 2 + g_cols :: 2])
-    val = obs.subset(obs.split == "val") if np.any(obs.split == "val") else None
     train_error, kind = primary_error(robot, train)
     info = {
         "method": "series",
@@ -201,9 +200,9 @@ def fit_joint_series(
         "cv": {f"H={h}{'+gravity' if g else ''}": v for (h, g), v in cv.items()},
         "cv_error": float(cv_error),
         "train_rows": k_fit,
-        "val_rows": 0 if val is None else val.k,
+        "val_rows": int(np.sum(obs.split == "val")),
         "train_error": train_error,
-        "val_error": float("nan") if val is None else primary_error(robot, val)[0],
+        "val_error": validation_error(robot, obs),
         "error_metric": kind,
         "amplitudes": amplitudes,
         "constants": coef[:, 0].copy(),
@@ -221,17 +220,12 @@ class _OrderSearch:
     design: _Design
     k: int  # rows
     n: int
-    h_max: int
     penalty_power: float
     lams: tuple[float, ...]
     fold_rows: list[np.ndarray]
     G_max: np.ndarray
     b_max: np.ndarray
     fold_normals: list[tuple[np.ndarray, np.ndarray]]
-
-    @property
-    def m_max(self) -> int:
-        return 1 + 3 * self.n + 2 * self.h_max
 
     @classmethod
     def of(cls, train: Observations, base: CalibratedRobot, h_max: int, penalty_power: float, lams: tuple[float, ...],
@@ -251,14 +245,13 @@ class _OrderSearch:
         design = _Design(jeo.PJ, jeo.delta_p, basis, None if train.complete else train.seen.sum(axis=1))
         order = np.random.default_rng(seed).permutation(k_fit)
         fold_rows = [np.sort(f) for f in np.array_split(order, int(folds))]
-        m_max = 1 + 3 * n + 2 * h_max
-        G_max, b_max = design.normal(np.arange(k_fit), m_max)
-        fold_normals = [design.normal(rows, m_max) for rows in fold_rows]
-        return cls(design, k_fit, n, h_max, penalty_power, lams, fold_rows, G_max, b_max, fold_normals)
+        G_max, b_max = design.normal(np.arange(k_fit))  # every candidate (H, gravity) is a sub-block of these
+        fold_normals = [design.normal(rows) for rows in fold_rows]
+        return cls(design, k_fit, n, penalty_power, lams, fold_rows, G_max, b_max, fold_normals)
 
     def columns(self, H: int, with_gravity: bool) -> tuple[np.ndarray, np.ndarray]:
         """Selected unknowns (joint-major) and their penalty weights for a model (H, gravity)."""
-        n, n_grav, m_max = self.n, 3 * self.n, self.m_max
+        n, n_grav, m_max = self.n, 3 * self.n, self.design.m  # m_max: 1 + 3n + 2 H_max
         per_joint = [0, *(range(1, 1 + n_grav) if with_gravity else ()), *range(1 + n_grav, 1 + n_grav + 2 * H)]
         sel = (np.arange(n)[:, None] * m_max + np.array(per_joint)[None, :]).reshape(-1)
         orders = np.concatenate([np.ones(1 + (n_grav if with_gravity else 0)), np.repeat(np.arange(1.0, H + 1), 2)])

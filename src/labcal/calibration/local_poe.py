@@ -74,7 +74,7 @@ from labcal.calibration.observations import Observations, rigid_fit, target_geom
 from labcal.calibration.tool import split_robot, split_tool
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import metric, se3
-from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
+from labcal.kinematics.poe import REVOLUTE, LocalPOEModel
 
 AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
 DEFAULT_RANK_RTOL = 1e-6
@@ -94,9 +94,7 @@ class IdentificationError(ValueError):
 
 def expected_rank(model: LocalPOEModel) -> int:
     """Identifiable local-POE frame errors: 4 per revolute + 2 per prismatic joint + 6 (module docstring)."""
-    n_r = sum(t == REVOLUTE for t in model.joint_types)
-    n_p = sum(t == PRISMATIC for t in model.joint_types)
-    return 4 * n_r + 2 * n_p + 6
+    return sum(4 if t == REVOLUTE else 2 for t in model.joint_types) + 6  # a joint is revolute or prismatic
 
 
 STRUCTURAL = {"point": 3, "line": 1, "plane": 0}  # tool rotations a target set cannot show (module docstring)
@@ -133,10 +131,7 @@ def _frame_name(j: int, n: int) -> str:
 
 
 def _param_labels(frames: list[int], estimate_base: bool, n: int) -> list[str]:
-    labels = [f"{_frame_name(j, n)} {a}" for j in frames for a in AXES]
-    if estimate_base:
-        labels += [f"T_tracker_base {a}" for a in AXES]
-    return labels
+    return [f"{_frame_name(j, n)} {a}" for j in [*frames, *([-1] if estimate_base else [])] for a in AXES]
 
 
 def _residual_and_jacobian(
@@ -152,7 +147,8 @@ def _residual_and_jacobian(
     """Residual (3s,) measured − predicted and its Jacobian (3s, p) w.r.t. the parameters (SI units), s the seen
     points: every point when ``seen`` is None, else the (k, m) cells marked seen (in row order)."""
     k, m = q.shape[0], targets.shape[0]
-    initial, T = model._chain(q)
+    initial = model.link_frames(q)
+    T = initial[:, model.n]
     p_base = np.einsum("kab,mb->kma", T[:, :3, :3], targets) + T[:, None, :3, 3]  # (k, m, 3)
     R_tb = T_tb[:3, :3]
     p_meas_frame = np.einsum("ab,kmb->kma", R_tb, p_base) + T_tb[:3, 3]
@@ -326,12 +322,6 @@ def _free_tilts(structural: dict) -> dict:
         "words": structural["words"][:-1],
         "tilt": 0,
     }
-
-
-def _prior(weak_rule: str) -> bool:
-    if weak_rule not in ("truncate", "prior"):
-        raise ValueError(f"weak_rule must be 'truncate' or 'prior', got {weak_rule!r}")
-    return weak_rule == "prior"
 
 
 def _weak_threshold(noise: float, error_bound: float) -> float:
@@ -518,13 +508,6 @@ def _initial_base(obs: Observations, model: LocalPOEModel, rows: np.ndarray) -> 
     return rigid_fit(pred, obs.points[rows][seen][None])[0]
 
 
-def _robot(nominal, model, T_tb, obs, method) -> CalibratedRobot:
-    # Robot and tool apart (labcal.calibration.tool): the robot ends at tool0, the fixture is the measurement tool
-    # (the registration estimates no joint frame: nothing commutes into the tool).
-    robot_model, X = (nominal, None) if model is nominal else split_tool(nominal, model, canonical=False)
-    return CalibratedRobot(nominal=nominal, model=robot_model, T_tracker_base=T_tb, method=method, measurement_tool=X)
-
-
 def register(
     obs: Observations,
     nominal: LocalPOEModel,
@@ -546,7 +529,7 @@ def register(
     needed = 6 * (len(frames) + estimate_base) - (structural["count"] if structural else 0)
     _check(obs, nominal, rows, max(needed, 1), "registration")
     if not frames and not estimate_base:
-        robot = _robot(nominal, nominal, np.eye(4), obs, "nominal")
+        robot = CalibratedRobot(nominal=nominal, model=nominal, T_tracker_base=np.eye(4), method="nominal")
         return robot, {"estimated": [], "iterations": 0, "T_tracker_base": np.eye(4)}
     T0 = _initial_base(obs, nominal, rows) if estimate_base else np.eye(4)
     fit_args: _FitArgs = (obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base)
@@ -554,7 +537,12 @@ def register(
     out = _gauss_newton(
         nominal, T0, *fit_args, length_scale=nominal.reach(), max_iter=max_iter, tol=tol, seen=seen, fixed=fixed
     )
-    robot = _robot(nominal, out["model"], out["T_tb"], obs, "nominal")
+    # Robot and tool apart (labcal.calibration.tool): the robot ends at tool0, the fixture is the measurement tool
+    # (the registration estimates no joint frame: nothing commutes into the tool).
+    model, X = (nominal, None) if out["model"] is nominal else split_tool(nominal, out["model"], canonical=False)
+    robot = CalibratedRobot(
+        nominal=nominal, model=model, T_tracker_base=out["T_tb"], method="nominal", measurement_tool=X
+    )
     info = {
         "estimated": (["tool"] if estimate_tool else []) + (["T_tracker_base"] if estimate_base else []),
         "iterations": out["iterations"],
@@ -611,6 +599,8 @@ def fit_local_poe(
     residual standard deviation per coordinate), ``iterations``, ``converged``, ``cost_history`` (sum of squared
     residuals, m²), ``rows`` (count), ``residual_rms`` (m).
     """
+    if weak_rule not in ("truncate", "prior"):
+        raise ValueError(f"weak_rule must be 'truncate' or 'prior', got {weak_rule!r}")
     estimate_base = obs.frame == "tracker" if estimate_base is None else bool(estimate_base)
     rows = fitting_rows(obs, include_val)
     n = nominal.n
@@ -630,7 +620,7 @@ def fit_local_poe(
         damping=damping,
         seen=_seen_rows(obs, rows),
         s_min=_weak_threshold(noise, error_bound),
-        prior=_prior(weak_rule),
+        prior=weak_rule == "prior",
     )
     out, structural = _iterate(nominal, model0, T0, fit_args, options, structural)
     return _identified(nominal, obs.q[rows], out, structural, labels, fit_args, options, noise, error_bound)

@@ -41,9 +41,8 @@ def summarize(pos: np.ndarray, ori: np.ndarray) -> dict[str, float]:
 
     NaN entries (rows without a measured pose) are skipped; ``count`` is the number of rows summarised."""
     pos, ori = np.asarray(pos, float), np.asarray(ori, float)
-    if not (np.isfinite(pos).all() and np.isfinite(ori).all()):  # rows without a measured pose
-        defined = np.isfinite(pos) & np.isfinite(ori)
-        pos, ori = pos[defined], ori[defined]
+    defined = np.isfinite(pos) & np.isfinite(ori)  # NaN: rows without a measured pose
+    pos, ori = pos[defined], ori[defined]
     out: dict[str, float] = {"count": float(len(pos))}
     for name, e in (("pos", pos), ("ori", ori)):
         out.update({f"{name}_{s}": value for s, value in statistics(e, STATS).items()})
@@ -128,6 +127,15 @@ def primary_error(robot: CalibratedRobot, obs: Observations) -> tuple[float, str
         return float(np.mean(prediction_errors(robot, obs)[0])) if obs.k else float("nan"), "pose"
     d = point_errors(robot, obs)
     return float(np.mean(d[np.isfinite(d)])), "points"
+
+
+def validation_error(robot: CalibratedRobot, obs: Observations) -> float:
+    """Mean position error (m) of the robot's prediction on the validation rows (NaN when there are none); the
+    mean target-point error when those rows do not all fix a pose (:func:`primary_error`)."""
+    mask = obs.split == "val"
+    if not mask.any():
+        return float("nan")
+    return primary_error(robot, obs.subset(mask))[0]
 
 
 def split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observations) -> dict[str, dict]:

@@ -144,24 +144,11 @@ class Observations:
         cross-validation folds never cut a unit, so a held-out error is never measured on a pose (or a session, or
         a pose a step away from one) that was also fitted. Numbered by first appearance, so the result depends only
         on the data."""
+        from scipy.cluster.hierarchy import DisjointSet
+        from scipy.spatial import cKDTree
+
         k = self.k
-        parent = np.arange(k)
-        size = np.ones(k, dtype=int)
-
-        def find(i: int) -> int:
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
-
-        def union(a: int, b: int, cap: int | None = None) -> None:
-            ra, rb = find(a), find(b)
-            if ra == rb or (cap is not None and size[ra] + size[rb] > cap):
-                return
-            low, high = min(ra, rb), max(ra, rb)
-            parent[high] = low
-            size[low] += size[high]
-
+        units = DisjointSet(range(k))
         if k:
             poses, first_row, inverse = np.unique(self.q, axis=0, return_index=True, return_inverse=True)
             for label in (inverse.reshape(-1), self.group):
@@ -170,17 +157,16 @@ class Observations:
                 first: dict = {}
                 for i, g in enumerate(label.tolist()):
                     if (j := first.setdefault(g, i)) != i:
-                        union(j, i)
-            from scipy.spatial import cKDTree
-
+                        units.merge(j, i)
             # A learned term interpolates between neighbours this close: a fold that fits one and scores the other
             # measures that interpolation, not the error at a new pose (fine sweeps, points paired a row late).
             # Among distinct poses (repeats are joined above), in a fixed order, so the units depend only on the data.
             pairs = cKDTree(poses).query_pairs(SAME_NEIGHBOURHOOD, p=np.inf, output_type="ndarray")
             cap = max(2, k // NEIGHBOURHOOD_FOLDS)
             for a, b in first_row[pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]].tolist():
-                union(a, b, cap)
-        roots = np.array([find(i) for i in range(k)], dtype=int)
+                if not units.connected(a, b) and units.subset_size(a) + units.subset_size(b) <= cap:
+                    units.merge(a, b)
+        roots = np.array([units[i] for i in range(k)], dtype=int)
         _, first_index, inverse = np.unique(roots, return_index=True, return_inverse=True)
         order = np.argsort(np.argsort(first_index, kind="stable"), kind="stable")
         return order[inverse.reshape(-1)]

@@ -41,8 +41,9 @@ from labcal.kinematics.poe import REVOLUTE, LocalPOEModel
 _Z_TWIST = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 
 
-def _last_joint_turns_about_z(model: LocalPOEModel) -> bool:
-    return model.joint_types[-1] == REVOLUTE and bool(np.array_equal(model.twists[-1], _Z_TWIST))
+def _turns_about_z(model: LocalPOEModel, j: int = -1) -> bool:
+    """Joint j (default the last) is revolute about its local z axis."""
+    return model.joint_types[j] == REVOLUTE and bool(np.array_equal(model.twists[j], _Z_TWIST))
 
 
 def split_tool(
@@ -79,7 +80,7 @@ def split_robot(
     """
     n = nominal.n
     frames = np.array(model.frames)
-    if _last_joint_turns_about_z(model) and _last_joint_turns_about_z(nominal):
+    if _turns_about_z(model) and _turns_about_z(nominal):
         q0 = np.zeros((1, n))
         K_id, K_nom = model.link_frames(q0)[0, n - 1], nominal.link_frames(q0)[0, n - 1]
         S = _commuting_part(se3.inv(K_nom) @ K_id)  # the identified last-joint frame in the nominal one, at q = 0
@@ -88,8 +89,7 @@ def split_robot(
     if (
         T_tracker_base is not None
         and n >= 2
-        and model.joint_types[0] == REVOLUTE
-        and np.array_equal(model.twists[0], _Z_TWIST)
+        and _turns_about_z(model, 0)
         and np.array_equal(frames[0], nominal.frames[0])
     ):
         # A_1 exp(ẑ q_1) S A_2'' = A_1 S exp(ẑ q_1) A_2'': S (about/along joint 1's axis) joins the base.
@@ -99,7 +99,7 @@ def split_robot(
     X = se3.inv(nominal.frames[n]) @ frames[n]
     frames[n] = nominal.frames[n]
     robot = model.replace(frames=frames)
-    if q is not None and len(q) and _last_joint_turns_about_z(model) and _last_joint_turns_about_z(nominal):
+    if q is not None and len(q) and _turns_about_z(model) and _turns_about_z(nominal):
         robot, X, T_tracker_base = _closest_on_data(nominal, robot, X, T_tracker_base, np.asarray(q, float))
     return robot, X, T_tracker_base
 

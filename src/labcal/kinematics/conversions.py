@@ -119,7 +119,7 @@ def from_urdf(text: str, tip_link: str | None = None, name: str | None = None) -
         raise ValueError(f"URDF is not valid XML: {err}") from err
     if root.tag != "robot":
         raise ValueError(f"URDF root element must be <robot>, got <{root.tag}>")
-    frames, types, twists, limits, names = [], [], [], [], []
+    joints = []  # (A_j(0), type, twist, [lo, hi], name) of every movable joint
     pending = np.eye(4)
     for el in _urdf_chain(root, tip_link):
         jname, jtype = el.get("name"), el.get("type")
@@ -130,24 +130,13 @@ def from_urdf(text: str, tip_link: str | None = None, name: str | None = None) -
         if jtype == "fixed":
             pending = T
             continue
-        kind, twist, limit = _urdf_joint(el, jname, jtype)
-        frames.append(T)
-        types.append(kind)
-        twists.append(twist)
-        limits.append(limit)
-        names.append(jname)
+        joints.append((T, *_urdf_joint(el, jname, jtype), jname))
         pending = np.eye(4)
-    if not types:
+    if not joints:
         raise ValueError("URDF chain has no movable joints")
-    frames.append(pending)
-    return LocalPOEModel(
-        np.array(frames),
-        tuple(types),
-        np.array(twists),
-        np.array(limits),
-        name or root.get("name") or "",
-        tuple(names),
-    )
+    frames, types, twists, limits, names = zip(*joints, strict=True)
+    name = name or root.get("name") or ""
+    return LocalPOEModel(np.array([*frames, pending]), types, np.array(twists), np.array(limits), name, names)
 
 
 def _urdf_chain(root, tip_link: str | None) -> list:

@@ -46,9 +46,7 @@ def joint_weights(joint_types, length_scale: float, size: int | None = None) -> 
     """
     types = tuple(joint_types)
     out = np.ones(len(types) if size is None else int(size))
-    for j, t in enumerate(types):
-        if t == "prismatic":
-            out[j] = float(length_scale)
+    out[[j for j, t in enumerate(types) if t == "prismatic"]] = float(length_scale)
     return out
 
 

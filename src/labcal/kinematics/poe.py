@@ -169,13 +169,9 @@ class LocalPOEModel:
         object.__setattr__(self, "joint_names", names)
         # Joints about the local z axis get a closed-form cos/sin exponential (the common case: 10x faster).
         object.__setattr__(self, "_revolute_mask", np.array([t == REVOLUTE for t in self.joint_types]))
-        object.__setattr__(
-            self,
-            "_z_joint",
-            tuple(np.array_equal(xi, default_twist(t)) for t, xi in zip(self.joint_types, twists, strict=True)),
-        )
-        all_revolute_z = all(self._z_joint) and bool(self._revolute_mask.all())
-        object.__setattr__(self, "_all_revolute_z", all_revolute_z)
+        z_joint = tuple(np.array_equal(xi, default_twist(t)) for t, xi in zip(self.joint_types, twists, strict=True))
+        object.__setattr__(self, "_z_joint", z_joint)
+        object.__setattr__(self, "_all_revolute_z", all(z_joint) and bool(self._revolute_mask.all()))
 
     @classmethod
     def from_frames(
@@ -193,14 +189,7 @@ class LocalPOEModel:
             twists = np.array([default_twist(t) for t in joint_types]).reshape(len(joint_types), 6)
         if limits is None:
             limits = np.array([[-np.pi, np.pi] if t == REVOLUTE else [-1.0, 1.0] for t in joint_types])
-        return cls(
-            np.asarray(frames, float),
-            joint_types,
-            np.asarray(twists, float),
-            np.asarray(limits, float),
-            name,
-            tuple(joint_names),
-        )
+        return cls(frames, joint_types, twists, limits, name, joint_names)  # __post_init__ makes arrays and tuples
 
     # ----------------------------------------------------------------------------------------------------------
     @property
@@ -218,7 +207,7 @@ class LocalPOEModel:
 
     def _walk(self, q2: np.ndarray) -> np.ndarray:
         """Walk the chain once: (n+1, 3, 4, k) top three rows of the frames K_1 … K_{n+1} in K0, each before its own
-        joint moves it (see :meth:`_chain`). The batch axis is last so that every step is a handful of whole-array
+        joint moves it (see :meth:`link_frames`). The batch axis is last so that every step is a handful of whole-array
         multiply-adds over k numbers; the bottom row of a homogeneous transform is never stored or multiplied.
         """
         k, n = q2.shape[0], self.n
@@ -254,7 +243,7 @@ class LocalPOEModel:
         return W
 
     def _walk_small(self, q2: np.ndarray) -> np.ndarray:
-        """The chain for a few configurations, as :meth:`_chain`'s (k, n+1, 4, 4) frames: fewer, larger numpy calls
+        """The chain for a few configurations, as :meth:`link_frames`' (k, n+1, 4, 4) frames: fewer, larger numpy calls
         (one 4×4 matmul per joint) than :meth:`_walk`, which pays per call and wins only on large batches.
 
         For z-axis joints every step ``exp(ξ̂_j q_j) · A_{j+1}(0)`` is built for all joints at once: ``Rz(q) · A``
@@ -291,15 +280,6 @@ class LocalPOEModel:
         out[..., 3, 3] = 1.0
         return out
 
-    def _chain(self, q2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Walk the chain once. Returns (initial_frames (k, n+1, 4, 4), tool pose (k, 4, 4)).
-
-        initial_frames[:, j] is the pose in K0 of frame K_{j+1} before its own joint moves it, i.e.
-        ``prod_{i<=j}(A_i e^{ξ_i q_i}) · A_{j+1}(0)`` — the frame whose adjoint is Ad_{j0} in eq. (10).
-        """
-        initial = self._walk_small(q2) if q2.shape[0] < _SMALL_BATCH else self._to_matrices(self._walk(q2))
-        return initial, initial[:, self.n]
-
     def _twists_from_walk(self, W: np.ndarray) -> np.ndarray:
         """(k, 6, n) joint twists Ad(K_j) ξ_j in K0 from a walk: ω = R ω_loc, v = R v_loc + p × ω."""
         n = self.n
@@ -307,7 +287,7 @@ class LocalPOEModel:
         v_loc, w_loc = self.twists[:, :3, None, None], self.twists[:, 3:, None, None]
         if all(self._z_joint):
             # ξ = (0, e_z) or (e_z, 0): ω or v is the third column of R, exactly.
-            revolute = np.array([t == REVOLUTE for t in self.joint_types])[:, None, None]
+            revolute = self._revolute_mask[:, None, None]
             w = np.where(revolute, R[:, :, 2], 0.0)
             v = np.where(revolute, 0.0, R[:, :, 2])
         else:
@@ -334,25 +314,22 @@ class LocalPOEModel:
         return T[0] if single else T
 
     def link_frames(self, q) -> np.ndarray:
-        """(k, n+1, 4, 4) poses in K0 of K_1 … K_{n+1} before their joints move them (see _chain)."""
+        """(k, n+1, 4, 4) poses in K0 of K_1 … K_{n+1} before their joints move them: ``[:, j]`` is
+        ``prod_{i<=j}(A_i e^{ξ_i q_i}) · A_{j+1}(0)``, the frame whose adjoint is Ad_{j0} in eq. (10); ``[:, n]`` is the
+        tool pose."""
         q2, _ = self._as_batch(q)
-        return self._chain(q2)[0]
+        return self._walk_small(q2) if q2.shape[0] < _SMALL_BATCH else self._to_matrices(self._walk(q2))
 
     def frames_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`link_frames` (k, n+1, 4, 4; the tool pose is ``[:, n]``) and :meth:`joint_twists` (k, 6, n) from
         one walk of the chain: what a runtime needs to predict poses, joint twists and gravity directions at once."""
-        q2, _ = self._as_batch(q)
-        if q2.shape[0] < _SMALL_BATCH:
-            frames = self._walk_small(q2)
-            return frames, self._twists_from_walk(frames[:, :, :3, :].transpose(1, 2, 3, 0))
-        W = self._walk(q2)
-        return self._to_matrices(W), self._twists_from_walk(W)
+        frames = self.link_frames(q)
+        return frames, self._twists_from_walk(frames[:, :, :3, :].transpose(1, 2, 3, 0))  # the top rows, batch last
 
     def fk_and_twists(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(k, 4, 4) tool poses and (k, 6, n) actuated joint twists in K0, from one walk of the chain."""
-        q2, _ = self._as_batch(q)
-        W = self._walk(q2)
-        return self._to_matrices(W[self.n]), self._twists_from_walk(W)
+        frames, twists = self.frames_and_twists(q)
+        return frames[:, self.n], twists
 
     def joint_twists(self, q) -> np.ndarray:
         """Actuated joint twists in K0, (k, 6, n): the spatial Jacobian, J_ρ of eq. (14) when n = 6.
