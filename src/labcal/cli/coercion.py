@@ -81,10 +81,8 @@ def _plain_check(descriptor: Any):
     if info.min is not None or info.max is not None:
         return None
 
-    if annotation is str:
-        return lambda v, param, ctx: v if isinstance(v, str) else _DEFER
-    if annotation is bool:
-        return lambda v, param, ctx: v if isinstance(v, bool) else _DEFER
+    if annotation is str or annotation is bool:
+        return lambda v, param, ctx: v if isinstance(v, annotation) else _DEFER
     if annotation is int:
 
         def to_int(v, param, ctx):

@@ -115,14 +115,9 @@ def user_errors(fn):
         except (ValueError, DatasetError, OSError, KeyError, RuntimeError) as e:
             # OSError covers more than missing / forbidden files: a full disk or a read-only file system met
             # mid-write is a one-line error too, not a traceback.
-            if isinstance(e, KeyError):
-                msg = f"missing field {e}"
-            elif isinstance(e, OSError) and e.strerror and not str(e).startswith("[Errno"):
-                msg = str(e)
-            elif isinstance(e, OSError) and e.strerror:
+            msg = f"missing field {e}" if isinstance(e, KeyError) else str(e)
+            if isinstance(e, OSError) and e.strerror and msg.startswith("[Errno"):  # not a message of labcal's own
                 msg = f"{e.strerror}: {e.filename}" if e.filename else e.strerror
-            else:
-                msg = str(e)
             err.print(f"error: {msg}", markup=False)
             raise typer.Exit(USAGE_ERROR) from None
 

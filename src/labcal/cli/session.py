@@ -484,19 +484,13 @@ def verify(
                 f"{len(fits.checked)} files checked)",
                 markup=False,
             )
-        for p in problems:
-            out.print(f"{report.ref}: {p}", markup=False)
-        for n in [*report.notes, *fits.notes]:
-            out.print(f"{report.ref}: note: {n}", markup=False)
+        _print_findings(report.ref, problems, [*report.notes, *fits.notes])
     bad = any(not d["ok"] for d in docs) or (whole is not None and not whole.ok)
     if whole is not None and not as_json:
         if whole.ok:
             what = ", ".join(whole.checked) or "no journal (imported)"
             out.print(f"{whole.ref}: ok (session: {len(refs)} version(s), {what} checked)", markup=False)
-        for p in whole.problems:
-            out.print(f"{whole.ref}: {p}", markup=False)
-        for n in whole.notes:
-            out.print(f"{whole.ref}: note: {n}", markup=False)
+        _print_findings(whole.ref, whole.problems, whole.notes)
     if as_json:
         doc = {"session": r.session_id, "ok": not bad, "versions": docs}
         if whole is not None:
@@ -505,6 +499,13 @@ def verify(
         print_json("labcal.session-verify/1", doc)
     if bad:
         raise typer.Exit(VERIFY_FAILED)
+
+
+def _print_findings(ref, problems: list[str], notes: list[str]) -> None:
+    for p in problems:
+        out.print(f"{ref}: {p}", markup=False)
+    for n in notes:
+        out.print(f"{ref}: note: {n}", markup=False)
 
 
 app.command("import")(import_)

@@ -27,7 +27,7 @@ import numpy as np
 
 from labcal.atomicio import UnsafeTargetError, check_target, write_bytes
 from labcal.cli.common import UserError, session_unit
-from labcal.cli.ops.common import robot_for
+from labcal.cli.ops.common import check_choice, robot_for
 from labcal.cli.ops.fitting import info_warnings, load_stored_fit
 from labcal.datasets import SessionStore
 from labcal.names import printable
@@ -161,8 +161,7 @@ def export_fit(
     """
     from labcal.export import FORMATS, SUFFIXES, export
 
-    if fmt not in FORMATS:
-        raise UserError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    check_choice("--format", fmt, FORMATS)
     out = check_output(out, force=force)
     if fmt in ("json", "npz") and out.suffix.lower() != SUFFIXES[fmt]:
         raise UserError(f"a {fmt} export must be written to a path ending in {SUFFIXES[fmt]}, got {out.name!r}")
