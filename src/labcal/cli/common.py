@@ -325,6 +325,18 @@ def targets_table(metrics: dict, title: str = "per-target point error (mm): mean
     return Group(*tables)
 
 
+def print_metrics(metrics: dict, title: str, *, points_lead: str | None = None) -> None:
+    """The pose-error tables (:func:`metrics_table`), then the per-target point errors if any (:func:`targets_table`).
+    ``points_lead``: when there are point errors, print this line and the point errors first."""
+    tables = [metrics_table(metrics, title), targets_table(metrics)]
+    if points_lead is not None and tables[1] is not None:
+        out.print(points_lead)
+        tables.reverse()
+    for table in tables:
+        if table is not None:
+            out.print(table)
+
+
 def print_gates(gates: dict | None, *, what: str = "this fit", footer: bool = True) -> None:
     """Every blocking warning on stderr as `WARNING [code] message`, then the notes; nothing when clean."""
     gates = gates or {}

@@ -196,12 +196,8 @@ def info_warnings(info: dict, chosen: str | None = None) -> list[dict]:
         for w in part.get("warnings") or []:
             if msg and str(w) == str(msg):
                 continue  # the same rank warning, also listed under "warnings"
-            if isinstance(w, dict):
-                out.append(_as_warning(w))
-            elif "over-fitting" in str(w) or "overfit" in str(w):
-                out.append({"code": "overfit", "message": str(w)})
-            else:
-                out.append({"code": "fit-warning", "message": str(w)})
+            code = "overfit" if "over-fitting" in str(w) or "overfit" in str(w) else "fit-warning"
+            out.append(_as_warning(w) if isinstance(w, dict) else {"code": code, "message": str(w)})
     return out
 
 
