@@ -81,26 +81,18 @@ def _plain_check(descriptor: Any):
     if info.min is not None or info.max is not None:
         return None
 
-    if annotation is str:
-        return lambda v, param, ctx: v if isinstance(v, str) else _DEFER
-    if annotation is bool:
-        return lambda v, param, ctx: v if isinstance(v, bool) else _DEFER
-    if annotation is int:
+    if annotation is str or annotation is bool:
+        return lambda v, param, ctx: v if isinstance(v, annotation) else _DEFER
+    if annotation is int or annotation is float:
+        # an int is a float too, a float not an int; a bool (an int to Python) is neither
+        accepted, spelling = (int, _INT) if annotation is int else (int | float, _FLOAT)
 
-        def to_int(v, param, ctx):
-            if isinstance(v, int) and not isinstance(v, bool):
-                return v
-            return int(v) if isinstance(v, str) and _INT.match(v) else _DEFER
+        def to_number(v, param, ctx):
+            if isinstance(v, accepted) and not isinstance(v, bool):
+                return annotation(v)
+            return annotation(v) if isinstance(v, str) and spelling.match(v) else _DEFER
 
-        return to_int
-    if annotation is float:
-
-        def to_float(v, param, ctx):
-            if isinstance(v, int | float) and not isinstance(v, bool):
-                return float(v)
-            return float(v) if isinstance(v, str) and _FLOAT.match(v) else _DEFER
-
-        return to_float
+        return to_number
     if get_origin(annotation) is list and get_args(annotation) == (str,):
 
         def to_strings(v, param, ctx):

@@ -115,14 +115,9 @@ def user_errors(fn):
         except (ValueError, DatasetError, OSError, KeyError, RuntimeError) as e:
             # OSError covers more than missing / forbidden files: a full disk or a read-only file system met
             # mid-write is a one-line error too, not a traceback.
-            if isinstance(e, KeyError):
-                msg = f"missing field {e}"
-            elif isinstance(e, OSError) and e.strerror and not str(e).startswith("[Errno"):
-                msg = str(e)
-            elif isinstance(e, OSError) and e.strerror:
+            msg = f"missing field {e}" if isinstance(e, KeyError) else str(e)
+            if isinstance(e, OSError) and e.strerror and msg.startswith("[Errno"):  # not a message of labcal's own
                 msg = f"{e.strerror}: {e.filename}" if e.filename else e.strerror
-            else:
-                msg = str(e)
             err.print(f"error: {msg}", markup=False)
             raise typer.Exit(USAGE_ERROR) from None
 
@@ -328,6 +323,18 @@ def targets_table(metrics: dict, title: str = "per-target point error (mm): mean
         head = [f"t{i + 1} {k}" for k in ("mean", "p95", "max")]
         tables.append(_number_table(title if i == 0 else None, ["split", ""], head, rows))
     return Group(*tables)
+
+
+def print_metrics(metrics: dict, title: str, *, points_lead: str | None = None) -> None:
+    """The pose-error tables (:func:`metrics_table`), then the per-target point errors if any (:func:`targets_table`).
+    ``points_lead``: when there are point errors, print this line and the point errors first."""
+    tables = [metrics_table(metrics, title), targets_table(metrics)]
+    if points_lead is not None and tables[1] is not None:
+        out.print(points_lead)
+        tables.reverse()
+    for table in tables:
+        if table is not None:
+            out.print(table)
 
 
 def print_gates(gates: dict | None, *, what: str = "this fit", footer: bool = True) -> None:

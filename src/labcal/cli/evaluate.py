@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import StoreOption, err, metrics_table, open_store, out, print_json, targets_table, user_errors
+from labcal.cli.common import StoreOption, open_store, out, print_gates, print_json, print_metrics, user_errors
 
 
 @user_errors
@@ -61,19 +61,11 @@ def evaluate(
         f"fit {ev['fit_id']} ({ev['method']}, fitted on {', '.join(ev['fit_inputs'])}) on {d['ref']}: "
         f"{d['rows']} rows, {d['frame']} frame"
     )
-    per_target = targets_table(ev["metrics"])
-    if ev.get("primary") == "points" and per_target is not None:
-        # Fewer than three targets seen in some rows: the point errors are what was measured, so they lead.
-        out.print("primary figures: the per-target point errors (pose errors only over rows that fix a pose)")
-        out.print(per_target)
-        out.print(metrics_table(ev["metrics"], title))
-    else:
-        out.print(metrics_table(ev["metrics"], title))
-        if per_target is not None:
-            out.print(per_target)
+    # Fewer than three targets seen in some rows: the point errors are what was measured, so they lead.
+    lead = "primary figures: the per-target point errors (pose errors only over rows that fix a pose)"
+    print_metrics(ev["metrics"], title, points_lead=lead if ev.get("primary") == "points" else None)
     _print_notes(ev)
-    for w in ev.get("warnings") or []:
-        err.print(f"WARNING [{w['code']}] {w['message']}", markup=False, style="bold yellow")
+    print_gates({"warnings": ev.get("warnings")}, footer=False)
     out.print(f"stored at {outcome.path}", markup=False)
     print(ev["evaluation_id"])
 

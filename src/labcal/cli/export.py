@@ -76,6 +76,7 @@ def export(
     from labcal.cli.ops.fitting import load_stored_fit
 
     st = open_store(store, create=False)
+    ref = split_ref(session)
     options = format_options(
         fmt,
         geometry_only=geometry_only,
@@ -84,17 +85,10 @@ def export(
         statements_per_sync=statements_per_sync,
     )
     path = export_fit(
-        st,
-        split_ref(session),
-        fmt,
-        out,
-        fit_id,
-        force=force,
-        options=options,
-        on_warning=lambda text: err.print(text, markup=False),
+        st, ref, fmt, out, fit_id, force=force, options=options, on_warning=lambda text: err.print(text, markup=False)
     )
     if force:
-        stored = load_stored_fit(st, split_ref(session), fit_id)
+        stored = load_stored_fit(st, ref, fit_id)
         warnings = stored_warnings(stored.meta)
         if warnings:
             print_gates({"warnings": warnings}, footer=False)

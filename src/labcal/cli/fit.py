@@ -12,12 +12,11 @@ from labcal.cli.common import (
     complete_robot,
     err,
     metrics_doc,
-    metrics_table,
     open_store,
     out,
     print_gates,
     print_json,
-    targets_table,
+    print_metrics,
     user_errors,
 )
 
@@ -90,11 +89,7 @@ def fit(
     title = (
         f"{r.chosen} on {', '.join(outcome.refs)} (seed {seed}; rows train {r.n_train}, val {r.n_val}, test {r.n_test})"
     )
-    metrics = outcome.metrics or r.metrics
-    out.print(metrics_table(metrics, title))
-    per_target = targets_table(metrics)
-    if per_target is not None:
-        out.print(per_target)
+    print_metrics(outcome.metrics or r.metrics, title)
     cv = cv_line((outcome.gates or {}).get("cv"))
     if cv is not None:
         out.print(cv, markup=False)

@@ -324,16 +324,14 @@ def show(
     """
     st = open_store(store, create=False)
     info = st.show(session)
-    meta = _meta(st, session)
+    doc = _session_doc(info, _meta(st, session))
     if as_json:
-        print_json("labcal.session-show/1", {"store": str(st.root), **_session_doc(info, meta)})
+        print_json("labcal.session-show/1", {"store": str(st.root), **doc})
         return
     stored = "robot file stored" if info.robot.get("text") else "robot file NOT stored (needs the built-in or --robot)"
-    targets = ""
-    if isinstance(meta.get("targets"), list):
-        n_targets = len(meta["targets"])
-        targets = f", {n_targets} target{'s' if n_targets != 1 else ''}"
-    unit = "" if session_unit(meta) is None else f", unit {session_unit(meta)}"
+    n_targets = doc["n_targets"]
+    targets = "" if n_targets is None else f", {n_targets} target{'s' if n_targets != 1 else ''}"
+    unit = "" if doc["unit"] is None else f", unit {doc['unit']}"
     from labcal.names import printable  # a stored name may predate the name checks: no raw escapes
 
     name = printable(info.robot.get("name"))
@@ -476,27 +474,13 @@ def verify(
             "ref": str(report.ref), "ok": not problems, "files_checked": len(report.checked), "fits_checked": n_fits,
             "fit_files_checked": len(fits.checked), "problems": problems, "notes": report.notes,
         })  # fmt: skip
-        if as_json:
-            continue
-        if not problems:
-            out.print(
-                f"{report.ref}: ok ({len(report.checked)} files checked, {n_fits} fit(s) with "
-                f"{len(fits.checked)} files checked)",
-                markup=False,
-            )
-        for p in problems:
-            out.print(f"{report.ref}: {p}", markup=False)
-        for n in [*report.notes, *fits.notes]:
-            out.print(f"{report.ref}: note: {n}", markup=False)
+        if not as_json:
+            checked = f"{len(report.checked)} files checked, {n_fits} fit(s) with {len(fits.checked)} files checked"
+            _print_findings(report.ref, checked, problems, [*report.notes, *fits.notes])
     bad = any(not d["ok"] for d in docs) or (whole is not None and not whole.ok)
     if whole is not None and not as_json:
-        if whole.ok:
-            what = ", ".join(whole.checked) or "no journal (imported)"
-            out.print(f"{whole.ref}: ok (session: {len(refs)} version(s), {what} checked)", markup=False)
-        for p in whole.problems:
-            out.print(f"{whole.ref}: {p}", markup=False)
-        for n in whole.notes:
-            out.print(f"{whole.ref}: note: {n}", markup=False)
+        what = ", ".join(whole.checked) or "no journal (imported)"
+        _print_findings(whole.ref, f"session: {len(refs)} version(s), {what} checked", whole.problems, whole.notes)
     if as_json:
         doc = {"session": r.session_id, "ok": not bad, "versions": docs}
         if whole is not None:
@@ -505,6 +489,16 @@ def verify(
         print_json("labcal.session-verify/1", doc)
     if bad:
         raise typer.Exit(VERIFY_FAILED)
+
+
+def _print_findings(ref, checked: str, problems: list[str], notes: list[str]) -> None:
+    """`REF: ok (what was checked)` when nothing is wrong, else one line per problem; then the notes."""
+    if not problems:
+        out.print(f"{ref}: ok ({checked})", markup=False)
+    for p in problems:
+        out.print(f"{ref}: {p}", markup=False)
+    for n in notes:
+        out.print(f"{ref}: note: {n}", markup=False)
 
 
 app.command("import")(import_)

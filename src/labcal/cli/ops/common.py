@@ -61,6 +61,12 @@ def robot_for(dataset_robot: dict, robot: str | None = None) -> RobotSpec:
     return spec
 
 
+def check_choice(flag: str, value: object, choices: tuple[str, ...]) -> None:
+    """An option's value must be one of ``choices`` (the CLI's Literal options check this too; library callers not)."""
+    if value not in choices:
+        raise UserError(f"{flag} must be one of {', '.join(choices)}, got {value!r}")
+
+
 def check_seed(seed: int | None, flag: str = "--seed") -> None:
     """A seed is a non-negative integer (numpy's generators refuse others with a message naming no flag)."""
     if seed is None:

@@ -157,6 +157,7 @@ def evaluate_fit(
     outside = ~np.all((obs.q >= lo - 1e-12) & (obs.q <= hi + 1e-12), axis=1)
     manifest = store.manifest(ref)
     seen = 0 if ref in stored.inputs else rows_the_fit_saw(store, stored, robot, obs.q)
+    options = {k: str(Path(v).resolve()) if isinstance(v, Path) else v for k, v in (import_options or {}).items() if v}
     evaluation = {
         "kind": "labcal.evaluation",
         "evaluation_id": None,
@@ -168,11 +169,7 @@ def evaluate_fit(
         "data": {
             "ref": ref,
             "imported_from": str(Path(data).resolve()) if imported else None,
-            "import_options": {
-                k: str(Path(v).resolve()) if isinstance(v, Path) else v for k, v in (import_options or {}).items() if v
-            }
-            if imported
-            else None,
+            "import_options": options if imported else None,
             "manifest_sha256": manifest.get("manifest_sha256"),
             "rows": int(obs.k),
             "frame": obs.frame,

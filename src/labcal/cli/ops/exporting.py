@@ -17,7 +17,6 @@ every writer escapes it again for its own format.
 from __future__ import annotations
 
 import os
-import shutil
 import tempfile
 import tomllib
 from collections.abc import Callable
@@ -27,7 +26,7 @@ import numpy as np
 
 from labcal.atomicio import UnsafeTargetError, check_target, write_bytes
 from labcal.cli.common import UserError, session_unit
-from labcal.cli.ops.common import robot_for
+from labcal.cli.ops.common import check_choice, robot_for
 from labcal.cli.ops.fitting import info_warnings, load_stored_fit
 from labcal.datasets import SessionStore
 from labcal.names import printable
@@ -161,8 +160,7 @@ def export_fit(
     """
     from labcal.export import FORMATS, SUFFIXES, export
 
-    if fmt not in FORMATS:
-        raise UserError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    check_choice("--format", fmt, FORMATS)
     out = check_output(out, force=force)
     if fmt in ("json", "npz") and out.suffix.lower() != SUFFIXES[fmt]:
         raise UserError(f"a {fmt} export must be written to a path ending in {SUFFIXES[fmt]}, got {out.name!r}")
@@ -190,19 +188,15 @@ def export_fit(
         options = {"unknown_dynamics": "zero", **joint_dynamics(spec), **options}
     # The writer works in a private folder beside --out, and only its finished file is copied into place (through
     # atomicio: temp + fsync + rename, regular files only), so not even a writer that fails halfway touches --out.
-    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
+    with tempfile.TemporaryDirectory(prefix=f".{out.name}.", dir=out.parent, ignore_cleanup_errors=True) as work:
         try:
-            written = export(stored.robot, fmt, work / out.name, provenance, **options)
+            written = export(stored.robot, fmt, Path(work) / out.name, provenance, **options)
         except ValueError as e:
             raise UserError(f"fit {stored.fit_id} cannot be exported as {fmt}: {printable(e)}") from None
-        data = Path(written).read_bytes()
         try:
-            write_bytes(out, data)
+            write_bytes(out, Path(written).read_bytes())
         except UnsafeTargetError as e:  # swapped in since check_output
             raise UserError(f"--out {printable(e)}") from None
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
     if on_warning is not None:
         _warn_about_written(out, fmt, stored.robot, options, on_warning)
     return out

@@ -10,7 +10,7 @@ import numpy as np
 
 from labcal.calibration.metrics import point_residual_warning
 from labcal.cli.common import UserError, plain
-from labcal.cli.ops.common import check_seed, load_observations
+from labcal.cli.ops.common import check_choice, check_seed, load_observations
 from labcal.compensator import CalibratedRobot, from_payload, to_payload
 from labcal.datasets import SessionStore
 
@@ -48,8 +48,7 @@ def check_fit_options(method: str, seed: int, hidden: int | None, val_fraction: 
     """The options of a fit that need no data: a bad one is a usage error before anything is read."""
     from labcal.calibration.fit import METHODS
 
-    if method not in METHODS:
-        raise UserError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+    check_choice("--method", method, METHODS)
     check_seed(seed)
     if not 0.0 <= val_fraction < 1.0:
         raise UserError(f"--val-fraction must be in [0, 1), got {val_fraction}")
@@ -103,9 +102,7 @@ def run_fit(
         "pool_units": pool_units,
         "robot": {"name": spec.name, "hash": spec.hash},
         "metrics": result.metrics,
-        "warnings": gates["warnings"],
-        "notes": gates["notes"],
-        "cv": gates["cv"],
+        **gates,  # warnings, notes, cv
         "rows": {"train": result.n_train, "val": result.n_val, "test": result.n_test},
         "split": list(map(str, result.obs.split)) if result.obs is not None else None,
         "fit_seconds": result.fit_seconds,
@@ -199,12 +196,8 @@ def info_warnings(info: dict, chosen: str | None = None) -> list[dict]:
         for w in part.get("warnings") or []:
             if msg and str(w) == str(msg):
                 continue  # the same rank warning, also listed under "warnings"
-            if isinstance(w, dict):
-                out.append(_as_warning(w))
-            elif "over-fitting" in str(w) or "overfit" in str(w):
-                out.append({"code": "overfit", "message": str(w)})
-            else:
-                out.append({"code": "fit-warning", "message": str(w)})
+            code = "overfit" if "over-fitting" in str(w) or "overfit" in str(w) else "fit-warning"
+            out.append(_as_warning(w) if isinstance(w, dict) else {"code": code, "message": str(w)})
     return out
 
 

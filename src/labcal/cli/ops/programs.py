@@ -125,7 +125,7 @@ def read_program(
     Errors (a missing column, a bad number, a ragged row …) name the file, the row and line, and the column.
     """
     from labcal.datasets.importers import _Csv
-    from labcal.export.program import ANGLE_UNITS, LENGTH_UNITS, joint_factors
+    from labcal.export.program import joint_factors
 
     if kind not in ("poses", "joints"):
         raise UserError(f"--kind must be poses or joints, got {kind!r}")
@@ -171,10 +171,17 @@ def read_program(
     )
     raw = np.stack([table.numbers(c, decimal) for c in columns], axis=1)
     if kind == "poses":
-        factors = np.array([LENGTH_UNITS[length_unit]] * 3 + [ANGLE_UNITS[angle_unit]] * 3)
+        factors = pose_factors(length_unit, angle_unit)
     else:
         factors = joint_factors(joint_types, length_unit, angle_unit)
     return ProgramTable(raw * factors, np.asarray(table.lines), separator, decimal, header)
+
+
+def pose_factors(length_unit: str, angle_unit: str) -> np.ndarray:
+    """(6,) SI factors of x, y, z (``length_unit``) and rx, ry, rz (``angle_unit``)."""
+    from labcal.export.program import ANGLE_UNITS, LENGTH_UNITS
+
+    return np.array([LENGTH_UNITS[length_unit]] * 3 + [ANGLE_UNITS[angle_unit]] * 3)
 
 
 def parse_numbers(text: str | None, count: int, option: str) -> list[float] | None:
@@ -252,9 +259,7 @@ def filter_program_file(
     table = read_program(program, kind, n=robot.n, joint_types=types, length_unit=length_unit, angle_unit=angle_unit)
     offset = parse_numbers(tcp, 6, "--tcp")
     if offset is not None:
-        offset = np.asarray(offset) * np.array(
-            [prog.LENGTH_UNITS[length_unit]] * 3 + [prog.ANGLE_UNITS[angle_unit]] * 3
-        )
+        offset = np.asarray(offset) * pose_factors(length_unit, angle_unit)
     try:
         if kind == "joints":
             tcp4 = None if offset is None else prog.pose_matrix(offset)[0]

@@ -309,27 +309,23 @@ def run_refit(
     refs: Sequence[str],
     method: str,
     *,
-    seed: int = 0,
-    hidden: int | None = None,
-    val_fraction: float = 0.0,
-    robot_file: str | None = None,
     jobs: int = 1,
     scheduler: str | None = None,
     skipped: Sequence[tuple[str, str]] = (),
     progress: Callable[[RefitRow, int, int], None] | None = None,
-    hook: Callable | None = None,
+    **fit_options,
 ) -> RefitReport:
     """Refit every ref with one method and seed; see the module docstring for the executors.
 
-    progress(row, done, total) is called as each task finishes. Ctrl-C returns the report so far with
-    ``interrupted=True`` (every stored fit complete, no temporary folder of this run left behind locally).
+    fit_options: :func:`plan_tasks`' keywords (seed, hidden, val_fraction, robot_file, hook). progress(row, done,
+    total) is called as each task finishes. Ctrl-C returns the report so far with ``interrupted=True`` (every
+    stored fit complete, no temporary folder of this run left behind locally).
     """
     if jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {jobs}")
     if scheduler and jobs > 1:
         raise UserError("--jobs sets the size of the local cluster; with --scheduler the cluster's workers decide")
-    tasks = plan_tasks(store, refs, method, seed=seed, hidden=hidden, val_fraction=val_fraction,
-                       robot_file=robot_file, hook=hook)  # fmt: skip
+    tasks = plan_tasks(store, refs, method, **fit_options)
     rows: dict[int, RefitRow] = {}
 
     def done(i: int, row: RefitRow) -> None:
@@ -353,14 +349,14 @@ def run_refit(
     if not interrupted or scheduler is None:  # a remote attempt may still be running after a Ctrl-C
         for task in tasks:
             _remove_temp_folders(store, task)
-    ordered = [rows.get(i) or _unfinished(t) for i, t in enumerate(tasks)]
+    # A task the interrupt caught: not run, unless its fit was published before the workers stopped.
+    ordered = [
+        rows.get(i)
+        or _published(t, "stored just before the interrupt")
+        or RefitRow(t.ref, NOT_RUN, t.before, message="interrupted")
+        for i, t in enumerate(tasks)
+    ]
     return RefitReport(ordered, list(skipped), interrupted, executor)
-
-
-def _unfinished(task: RefitTask) -> RefitRow:
-    """The row of a task the interrupt caught: not run, unless its fit was published before the workers stopped."""
-    earlier = _published(task, "stored just before the interrupt")
-    return earlier or RefitRow(task.ref, NOT_RUN, task.before, message="interrupted")
 
 
 def _run_dask(tasks: list[RefitTask], jobs: int, scheduler: str | None, done) -> bool:
@@ -396,7 +392,10 @@ def _run_dask(tasks: list[RefitTask], jobs: int, scheduler: str | None, done) ->
             try:
                 row = fut.result()
             except Exception as e:  # KilledWorker, a lost worker, a deserialisation error
-                row = _given_up(tasks[i], e)
+                # Failed, unless an attempt published its fit before its worker died.
+                why = f"{type(e).__name__}: {e}"
+                note = f"stored before its worker died; Dask then gave up ({why})"
+                row = _published(tasks[i], note) or RefitRow(tasks[i].ref, FAILED, tasks[i].before, message=why)
             done(i, row)
         return False
     except KeyboardInterrupt:
@@ -406,13 +405,6 @@ def _run_dask(tasks: list[RefitTask], jobs: int, scheduler: str | None, done) ->
         client.close()
         if cluster is not None:
             cluster.close()
-
-
-def _given_up(task: RefitTask, error: Exception) -> RefitRow:
-    """The row of a task Dask gave up on: failed, unless an attempt published its fit before its worker died."""
-    why = f"{type(error).__name__}: {error}"
-    earlier = _published(task, f"stored before its worker died; Dask then gave up ({why})")
-    return earlier or RefitRow(task.ref, FAILED, task.before, message=why)
 
 
 def _remove_temp_folders(store: SessionStore, task: RefitTask) -> None:

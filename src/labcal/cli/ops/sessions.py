@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from labcal.cli.common import UserError
-from labcal.cli.ops.common import check_seed, check_unit_option, robot_for
+from labcal.cli.ops.common import check_choice, check_seed, check_unit_option, robot_for
 from labcal.datasets import SessionStore
 from labcal.robots import RobotSpec, load
 
@@ -33,8 +33,7 @@ def sim_actual(spec: RobotSpec, errors: str, seed: int):
     """The simulated actual robot of a sim session (recreated identically on resume from errors + seed)."""
     from labcal.simulation import ErrorSpec, simulate
 
-    if errors not in SIM_ERRORS:
-        raise UserError(f"--sim-errors must be one of {', '.join(SIM_ERRORS)}, got {errors!r}")
+    check_choice("--sim-errors", errors, SIM_ERRORS)
     spec_errors = {"paper": ErrorSpec.paper, "default": ErrorSpec.default, "none": ErrorSpec.none}[errors]()
     return simulate(spec, spec_errors, seed=seed)
 
@@ -55,14 +54,13 @@ def plan_configurations(
     from labcal.sessions import optimal_configurations, random_configurations
 
     check_plan_size(poses, planner, samples)
+    check_choice("--planner", planner, PLANNERS)
     cell = cell or {}
     if planner == "random":
         return random_configurations(spec.model, poses, seed=seed, targets=targets, **cell)
-    if planner == "optimal":
-        return optimal_configurations(
-            spec.model, poses, seed=seed, targets=targets, candidates=samples, dropout=dropout or None, **cell
-        )
-    raise UserError(f"--planner must be one of {', '.join(PLANNERS)}, got {planner!r}")
+    return optimal_configurations(
+        spec.model, poses, seed=seed, targets=targets, candidates=samples, dropout=dropout or None, **cell
+    )
 
 
 def check_plan_size(poses: int, planner: str = "random", samples: int = 2000) -> None:
@@ -142,18 +140,13 @@ class SessionRequest:
     def check(self) -> None:
         """The checks that need nothing loaded: plan size, driver names, sim options, override names."""
         check_plan_size(self.poses, self.planner, self.samples)
-        if self.robot_driver not in ROBOT_DRIVERS:
-            raise UserError(f"--robot-driver must be one of {', '.join(ROBOT_DRIVERS)}, got {self.robot_driver!r}")
-        if self.tracker_driver not in TRACKER_DRIVERS:
-            raise UserError(
-                f"--tracker-driver must be one of {', '.join(TRACKER_DRIVERS)}, got {self.tracker_driver!r}"
-            )
+        check_choice("--robot-driver", self.robot_driver, ROBOT_DRIVERS)
+        check_choice("--tracker-driver", self.tracker_driver, TRACKER_DRIVERS)
         if (self.robot_driver == "sim") != (self.tracker_driver == "sim"):
             raise UserError(
                 "the sim robot and the sim tracker go together: use --robot-driver sim --tracker-driver sim"
             )
-        if self.sim_errors not in SIM_ERRORS:
-            raise UserError(f"--sim-errors must be one of {', '.join(SIM_ERRORS)}, got {self.sim_errors!r}")
+        check_choice("--sim-errors", self.sim_errors, SIM_ERRORS)
         check_seed(self.seed)
         check_seed(self.sim_seed, "--sim-seed")
         dropout = self.sim_dropout
@@ -286,10 +279,7 @@ def new_session(store: SessionStore, request: SessionRequest | None = None, *, p
     from labcal.datasets.targets import load_target_normals
     from labcal.sessions import RetryPolicy, RunOptions, make_plan, run
 
-    if request is None:
-        request = SessionRequest(**fields)
-    elif fields:
-        request = dataclasses.replace(request, **fields)
+    request = SessionRequest(**fields) if request is None else dataclasses.replace(request, **fields)
     request.check()  # before anything is loaded, planned or allocated
     spec = load(request.robot)
     targets = load_targets(request.targets_file)
