@@ -135,9 +135,19 @@ def test_an_npz_member_declaring_gigabytes_is_refused_from_its_header(tmp_path, 
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert "Traceback" not in r.stderr, r.stderr
     assert r.stdout.strip() == (
-        f"refused: {path}: joint_ranges has shape (20000, 30000), expected (6, 2) for this 6-joint robot "
-        "(k ≤ 256 golden vectors, f ≤ 4096 network inputs)"
+        f"refused: {path}: joint_ranges has shape (20000, 30000), more numbers than its 4224 bytes hold: refusing "
+        "to read it"
     )
+
+
+def test_npz_members_of_the_wrong_shape_or_size_are_refused_naming_the_field(tmp_path, saved):
+    """A member's shape is the payload check's, as for a JSON file; a file unpacking to more than any export holds
+    is refused before its members are read."""
+    path = Compensator.load(saved).save(tmp_path / "c.npz")
+    _npz_with(path, "joint_ranges", (3, 2), np.zeros((3, 2)).tobytes())
+    _refusal(path, "joint_ranges must be numbers of shape (6, 2), got shape (3, 2)")
+    _npz_with(path, "joint_ranges", (7 * 1024**2, 1), bytes(8 * 7 * 1024**2))  # 56 MiB of zeros, deflated to 56 kB
+    _refusal(path, "its arrays unpack to", "more than any compensator export holds (50331648 bytes at most)")
 
 
 def test_npz_members_are_checked_for_dtype_and_reference(tmp_path, saved):
