@@ -55,7 +55,6 @@ from labcal.kinematics.poe import LocalPOEModel
 from labcal.robots.joint_map import JointMap
 
 _FLOAT64 = np.dtype(np.float64)  # numpy's one float64 descriptor: an identity test is the cheapest dtype check
-FEATURES = feature_lib.SIMPLE  # the parameter-free feature names (every registry name is accepted)
 
 
 def input_features(q: np.ndarray, names: tuple[str, ...], model: LocalPOEModel, frames=None) -> np.ndarray:
