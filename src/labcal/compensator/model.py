@@ -714,20 +714,13 @@ class CalibratedRobot:
                 f"method={method!r} applies only the learned joint motion errors (eq. 24), and this {self.method} "
                 "calibration has no network: it would return q uncorrected. Use method='newton'"
             )
-        if not self._nominal_frames:
+        model, nominal = self.model, self.nominal  # the same for the paper's ANN method alone
+        if not (np.array_equal(model.frames, nominal.frames) and np.array_equal(model.twists, nominal.twists)):
             return (
                 f"method={method!r} applies only the learned joint motion errors (eq. 24) and would ignore the "
                 f"identified frames of this {self.method} calibration. Use method='newton'"
             )
         return None
-
-    @functools.cached_property
-    def _nominal_frames(self) -> bool:
-        """True when the identified model is the nominal one (the paper's ANN method)."""
-        return bool(
-            np.array_equal(self.model.frames, self.nominal.frames)
-            and np.array_equal(self.model.twists, self.nominal.twists)
-        )
 
     @functools.cached_property
     def measurement_model(self) -> LocalPOEModel:
