@@ -370,10 +370,15 @@ def _check_frames(check: _FieldCheck, data: dict) -> None:
         check.fail("method", problem)
 
 
+def _length(value) -> int:
+    """The length of a list or of an array's first axis (an NPZ field); 0 for anything else."""
+    return len(value) if isinstance(value, list) or (isinstance(value, np.ndarray) and value.ndim) else 0
+
+
 def _check_golden_fields(check: _FieldCheck, golden: dict, n: int) -> None:
     """The golden vectors' count and shapes and the correction method they were made with."""
     q = golden.get("q")
-    k = len(q) if isinstance(q, list | np.ndarray) else 0
+    k = _length(q)
     if not 1 <= k <= MAX_GOLDEN:
         check.fail(
             "golden.q",
@@ -400,7 +405,7 @@ def _check_network(check: _FieldCheck, net: dict, outputs: int) -> None:
     if not (isinstance(weights, list) and isinstance(biases, list) and 1 <= len(weights) == len(biases) <= MAX_LAYERS):
         check.fail("network.weights", f"must be 1 to {MAX_LAYERS} layers, each with its biases")
     in_mean = net.get("in_mean")
-    width = len(in_mean) if isinstance(in_mean, list | np.ndarray) else 0
+    width = _length(in_mean)
     if not 1 <= width <= MAX_WIDTH:
         check.fail("network.in_mean", f"must hold 1 to {MAX_WIDTH} numbers (one per network input)")
     check.numbers("network.in_mean", in_mean, (width,))
@@ -409,7 +414,7 @@ def _check_network(check: _FieldCheck, net: dict, outputs: int) -> None:
     check.numbers("network.out_scale", net.get("out_scale"), (outputs,))
     total = 0
     for i, (W, b) in enumerate(zip(weights, biases, strict=True)):
-        rows = outputs if i == len(weights) - 1 else (len(W) if isinstance(W, list | np.ndarray) else 0)
+        rows = outputs if i == len(weights) - 1 else _length(W)
         if not 1 <= rows <= MAX_WIDTH:
             check.fail(f"network.weights.{i}", f"must have 1 to {MAX_WIDTH} rows")
         total += rows * (width + 1)
@@ -581,19 +586,25 @@ def _split_arrays(obj, prefix: str, arrays: dict):
     return obj
 
 
-def _join_arrays(obj, arrays: dict, used: set):
-    """The payload with every {"$array": name} reference of the NPZ metadata replaced by its array (names in
-    ``used``)."""
+def _join_arrays(obj, arrays: dict, used: set, source: str, where: str = ""):
+    """The NPZ metadata with each {"$array": name} reference replaced by its array (names in ``used``). A reference
+    must sit where :func:`_split_arrays` puts one (a numeric field, or a network layer, named by its own path), so
+    that no field :func:`check_payload` reads as text, a count or a table can be an array."""
     if isinstance(obj, dict):
-        if set(obj) == {"$array"} and isinstance(obj["$array"], str):
+        if set(obj) == {"$array"}:
+            parent, _, key = where.rpartition(".")
             name = obj["$array"]
+            if name != where or not (key in _ARRAY_KEYS or parent.rpartition(".")[2] in ("weights", "biases")):
+                raise CompensatorFileError(f"{source}: {printable(where)} must not be an array reference")
             if name not in arrays:
-                raise CompensatorFileError(f"array {name!r} referenced by the metadata is missing")
+                raise CompensatorFileError(f"{source}: array {name!r} referenced by the metadata is missing")
             used.add(name)
             return arrays[name]
-        return {k: _join_arrays(v, arrays, used) for k, v in obj.items()}
+        prefix = f"{where}." if where else ""
+        kept = ("provenance", "checksums")  # metadata _split_arrays keeps as they are
+        return {k: v if k in kept else _join_arrays(v, arrays, used, source, prefix + k) for k, v in obj.items()}
     if isinstance(obj, list):
-        return [_join_arrays(v, arrays, used) for v in obj]
+        return [_join_arrays(v, arrays, used, source, f"{where}.{i}") for i, v in enumerate(obj)]
     return obj
 
 
@@ -680,7 +691,7 @@ def _read_npz(path: Path) -> dict:
     if "__meta__" not in arrays:
         raise CompensatorFileError(f"{path}: NPZ file has no __meta__ entry (not a labcal export)")
     used: set[str] = set()
-    payload = _join_arrays(json.loads(str(arrays.pop("__meta__"))), arrays, used)
+    payload = _join_arrays(json.loads(str(arrays.pop("__meta__"))), arrays, used, str(path))
     if unused := sorted(set(arrays) - used):
         raise CompensatorFileError(f"{path}: array {unused[0]!r} is not referenced by the metadata")
     return payload
