@@ -63,17 +63,10 @@ def input_features(q: np.ndarray, names: tuple[str, ...], model: LocalPOEModel, 
     frames: the model's link frames at q when the caller has them (``gravity`` needs them; computed otherwise).
     """
     q = np.atleast_2d(np.asarray(q, dtype=float))
-    run = _feature_evaluator(tuple(names), model)
+    run = feature_lib.evaluator(tuple(names), model.joint_types, model.limits)  # ValueError for an unknown name
     if frames is None and run.needs_frames:
         frames = model.link_frames(q)
     return run(q, frames)
-
-
-def _feature_evaluator(names: tuple[str, ...], model: LocalPOEModel):
-    for name in names:
-        if not feature_lib.is_feature(name):
-            raise ValueError(f"unknown network input feature {name!r}; known: {', '.join(feature_lib.NAMES)}")
-    return feature_lib.evaluator(names, model.joint_types, model.limits)
 
 
 @dataclass(frozen=True, eq=False)
@@ -413,7 +406,7 @@ class CalibratedRobot:
     @functools.cached_property
     def _inputs(self):
         """The network's input features for this model (:func:`labcal.features.evaluator`), prepared once."""
-        return _feature_evaluator(tuple(self.network.features), self.model)
+        return feature_lib.evaluator(tuple(self.network.features), self.model.joint_types, self.model.limits)
 
     @functools.cached_property
     def _linear_series(self):
