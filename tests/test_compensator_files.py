@@ -135,9 +135,40 @@ def test_an_npz_member_declaring_gigabytes_is_refused_from_its_header(tmp_path, 
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert "Traceback" not in r.stderr, r.stderr
     assert r.stdout.strip() == (
-        f"refused: {path}: joint_ranges has shape (20000, 30000), expected (6, 2) for this 6-joint robot "
-        "(k ≤ 256 golden vectors, f ≤ 4096 network inputs)"
+        f"refused: {path}: joint_ranges has shape (20000, 30000), more numbers than its 4224 bytes hold: refusing "
+        "to read it"
     )
+
+
+def test_npz_members_of_the_wrong_shape_or_size_are_refused_naming_the_field(tmp_path, saved):
+    """A member's shape is the payload check's, as for a JSON file; a file unpacking to more than any export holds
+    is refused before its members are read."""
+    comp = Compensator.load(saved)
+    for name, shape, data, fragment in [
+        ("joint_ranges", (3, 2), bytes(48), "joint_ranges must be numbers of shape (6, 2), got shape (3, 2)"),
+        ("golden.q", (), bytes(8), "golden.q holds 0 configurations"),  # one number where the configurations belong
+        ("joint_ranges", (7 * 1024**2, 1), bytes(8 * 7 * 1024**2), "its arrays unpack to"),  # 56 MiB, deflated 56 kB
+    ]:
+        path = comp.save(tmp_path / "c.npz")
+        _npz_with(path, name, shape, data)
+        _refusal(path, fragment)
+
+
+def test_npz_metadata_may_reference_arrays_only_where_an_export_has_them(tmp_path, saved):
+    """Before, an array where the payload holds text or a version number raised numpy's "truth value of an array
+    is ambiguous" out of the loader."""
+    path = Compensator.load(saved).save(tmp_path / "c.npz")
+    with zipfile.ZipFile(path) as zf:
+        members = {i.filename: zf.read(i) for i in zf.infolist()}
+    meta = json.loads(str(np.load(io.BytesIO(members["__meta__.npy"]))))
+    for field in ("schema_version", "method", "length_scale"):
+        changed = {**meta, field: {"$array": "joint_ranges"}}
+        buf = io.BytesIO()
+        np.save(buf, np.array(json.dumps(changed)))
+        with zipfile.ZipFile(path, "w") as zf:
+            for member, blob in {**members, "__meta__.npy": buf.getvalue()}.items():
+                zf.writestr(member, blob)
+        _refusal(path, f"{field} must not be an array reference")
 
 
 def test_npz_members_are_checked_for_dtype_and_reference(tmp_path, saved):

@@ -44,11 +44,10 @@ from labcal.compensator.io import (
     save,
     to_payload,
 )
-from labcal.compensator.model import FEATURES, CalibratedRobot, Network, input_features
+from labcal.compensator.model import CalibratedRobot, Network, input_features
 
 __all__ = [
     "CHECKED_FIELDS",
-    "FEATURES",
     "GOLDEN_COUNT",
     "GOLDEN_TOL_POSE",
     "GOLDEN_TOL_Q",

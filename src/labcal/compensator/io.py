@@ -34,7 +34,7 @@ import numpy as np
 from labcal import features as feature_lib
 from labcal.atomicio import write_bytes, write_text
 from labcal.compensator.model import CalibratedRobot, Network, register_writer
-from labcal.compensator.validity import MAX_CENTRES, ValidityRegion
+from labcal.compensator.validity import ValidityRegion
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 from labcal.names import duplicate, label_problem, name_problem, printable
@@ -55,15 +55,16 @@ class CompensatorFileError(ValueError):
     """A compensator export is unreadable, has the wrong schema, or fails its own golden vectors."""
 
 
-# What a compensator file may hold, checked before anything large is read (:func:`check_payload`, and the NPZ
-# members' headers in :func:`read_payload`). Generous for any arm labcal fits (6-7 joints, a network of a few
-# hundred parameters, 8 golden vectors), tight enough that a crafted file cannot ask for gigabytes.
+# What a compensator file may hold, checked before its checksums, models or network are computed
+# (:func:`check_payload`; an NPZ file's unpacked size and members' headers first, in :func:`_read_npz`). Generous
+# for any arm labcal fits (6-7 joints, a network of a few hundred parameters, 8 golden vectors), tight enough that
+# a crafted file cannot ask for gigabytes.
 MAX_JOINTS = 32
 MAX_GOLDEN = 256
 MAX_LAYERS = 16
 MAX_WIDTH = 4096  # inputs or nodes of one network layer
 MAX_NETWORK_VALUES = 1_000_000  # weights + biases: 8 MB of float64 (the paper's networks hold hundreds)
-MAX_FILE_BYTES = 48 * 1024**2  # a JSON file, or an NPZ member's uncompressed size (1M numbers as JSON text)
+MAX_FILE_BYTES = 48 * 1024**2  # a JSON file, or an NPZ file's unpacked arrays (1M numbers as JSON text)
 MAX_META_CHARS = 4 * 1024**2  # the NPZ metadata (JSON text without the arrays)
 MAX_PROVENANCE_DEPTH = 4  # provenance: {key: text | number | [{key: text}]}
 MAX_PROVENANCE_TEXT = 65536  # one provenance string: a pooled fit lists every input ref and data hash
@@ -249,8 +250,6 @@ def from_payload(data: dict, source: str = "<payload>", *, stored: bool = False)
         raise
     except (KeyError, TypeError, ValueError, IndexError) as err:
         raise CompensatorFileError(f"{source}: missing or malformed field: {err!r}") from err
-    if q.shape[0] == 0:
-        raise CompensatorFileError(f"{source}: no golden vectors to verify the file against")
     _check_golden(robot, q, q_cmd, pose, golden.get("correct_method", "newton"), source)
     return robot, data
 
@@ -371,10 +370,15 @@ def _check_frames(check: _FieldCheck, data: dict) -> None:
         check.fail("method", problem)
 
 
+def _length(value) -> int:
+    """The length of a list or of an array's first axis (an NPZ field); 0 for anything else."""
+    return len(value) if isinstance(value, list) or (isinstance(value, np.ndarray) and value.ndim) else 0
+
+
 def _check_golden_fields(check: _FieldCheck, golden: dict, n: int) -> None:
     """The golden vectors' count and shapes and the correction method they were made with."""
     q = golden.get("q")
-    k = len(q) if isinstance(q, list | np.ndarray) else 0
+    k = _length(q)
     if not 1 <= k <= MAX_GOLDEN:
         check.fail(
             "golden.q",
@@ -401,7 +405,7 @@ def _check_network(check: _FieldCheck, net: dict, outputs: int) -> None:
     if not (isinstance(weights, list) and isinstance(biases, list) and 1 <= len(weights) == len(biases) <= MAX_LAYERS):
         check.fail("network.weights", f"must be 1 to {MAX_LAYERS} layers, each with its biases")
     in_mean = net.get("in_mean")
-    width = len(in_mean) if isinstance(in_mean, list | np.ndarray) else 0
+    width = _length(in_mean)
     if not 1 <= width <= MAX_WIDTH:
         check.fail("network.in_mean", f"must hold 1 to {MAX_WIDTH} numbers (one per network input)")
     check.numbers("network.in_mean", in_mean, (width,))
@@ -410,7 +414,7 @@ def _check_network(check: _FieldCheck, net: dict, outputs: int) -> None:
     check.numbers("network.out_scale", net.get("out_scale"), (outputs,))
     total = 0
     for i, (W, b) in enumerate(zip(weights, biases, strict=True)):
-        rows = outputs if i == len(weights) - 1 else (len(W) if isinstance(W, list | np.ndarray) else 0)
+        rows = outputs if i == len(weights) - 1 else _length(W)
         if not 1 <= rows <= MAX_WIDTH:
             check.fail(f"network.weights.{i}", f"must have 1 to {MAX_WIDTH} rows")
         total += rows * (width + 1)
@@ -582,26 +586,34 @@ def _split_arrays(obj, prefix: str, arrays: dict):
     return obj
 
 
-def _join_arrays(obj, arrays):
+def _join_arrays(obj, arrays: dict, used: set, source: str, where: str = ""):
+    """The NPZ metadata with each {"$array": name} reference replaced by its array (names in ``used``). A reference
+    must sit where :func:`_split_arrays` puts one (a numeric field, or a network layer, named by its own path), so
+    that no field :func:`check_payload` reads as text, a count or a table can be an array."""
     if isinstance(obj, dict):
         if set(obj) == {"$array"}:
+            parent, _, key = where.rpartition(".")
             name = obj["$array"]
+            if name != where or not (key in _ARRAY_KEYS or parent.rpartition(".")[2] in ("weights", "biases")):
+                raise CompensatorFileError(f"{source}: {printable(where)} must not be an array reference")
             if name not in arrays:
-                raise CompensatorFileError(f"array {name!r} referenced by the metadata is missing")
+                raise CompensatorFileError(f"{source}: array {name!r} referenced by the metadata is missing")
+            used.add(name)
             return arrays[name]
-        return {k: _join_arrays(v, arrays) for k, v in obj.items()}
+        prefix = f"{where}." if where else ""
+        kept = ("provenance", "checksums")  # metadata _split_arrays keeps as they are
+        return {k: v if k in kept else _join_arrays(v, arrays, used, source, prefix + k) for k, v in obj.items()}
     if isinstance(obj, list):
-        return [_join_arrays(v, arrays) for v in obj]
+        return [_join_arrays(v, arrays, used, source, f"{where}.{i}") for i, v in enumerate(obj)]
     return obj
 
 
 def read_payload(path) -> dict:
     """The raw payload of a JSON or NPZ export (arrays as numpy arrays for NPZ), not yet verified.
 
-    Bounded before anything large is read: a JSON file by its size; an NPZ file by its metadata (read first, a
-    bounded string) and each member's ``.npy`` header (shape and dtype), checked against the shapes the
-    metadata imply (:func:`_npz_shapes`) before a member's data are read. Every refusal is one line naming the
-    file and the field.
+    Bounded before anything large is read: a JSON file by its size, an NPZ file by its members' unpacked sizes
+    and each member's ``.npy`` header (:func:`_read_npz`). The fields' shapes and values are then
+    :func:`check_payload`'s, for both forms alike. Every refusal is one line naming the file and the field.
     """
     path = Path(path)
     if not path.is_file():
@@ -640,159 +652,49 @@ def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple, np.d
 
 
 def _read_npz(path: Path) -> dict:
+    """The payload of an NPZ export: its members (``.npy`` arrays, no pickle) joined into the ``__meta__`` JSON.
+
+    Nothing is read beyond what the file holds: the members unpack to at most :data:`MAX_FILE_BYTES` together, and
+    a member is read only when its header declares float64 numbers (the metadata: one string of at most
+    :data:`MAX_META_CHARS` characters) that fit in its unpacked size (numpy allocates what a header declares, so a
+    crafted header of a few bytes could otherwise ask for gigabytes).
+    """
     with zipfile.ZipFile(path) as zf:
-        infos = {}
-        for info in zf.infolist():
+        infos = zf.infolist()
+        for info in infos:
             if not info.filename.endswith(".npy"):
                 raise CompensatorFileError(f"{path}: member {info.filename!r} is not an array: not a labcal export")
-            if info.file_size > MAX_FILE_BYTES:
-                raise CompensatorFileError(
-                    f"{path}: {info.filename[:-4]} unpacks to {info.file_size} bytes, more than any compensator "
-                    "field holds: refusing to read it"
-                )
-            infos[info.filename[:-4]] = info
-        if "__meta__" not in infos:
-            raise CompensatorFileError(f"{path}: NPZ file has no __meta__ entry (not a labcal export)")
-        shape, dtype = _npy_header(zf, infos["__meta__"])
-        if shape != () or dtype.kind != "U" or dtype.itemsize // 4 > MAX_META_CHARS:
-            raise CompensatorFileError(f"{path}: __meta__ must be one string of at most {MAX_META_CHARS} characters")
-        with zf.open(infos.pop("__meta__")) as fh:
-            meta = json.loads(str(np.lib.format.read_array(fh, allow_pickle=False)))
-        n, expected = _npz_shapes(meta, str(path))
-        headers = {}
-        for name, info in infos.items():
-            if name not in expected:
-                raise CompensatorFileError(f"{path}: array {name!r} is not referenced by the metadata")
-            shape, dtype = _npy_header(zf, info)
-            if dtype != np.float64:
-                raise CompensatorFileError(f"{path}: {name} must be float64 numbers, got dtype {dtype}")
-            headers[name] = shape
-        _check_npz_shapes(headers, expected, n, str(path))
+        total = sum(info.file_size for info in infos)
+        if total > MAX_FILE_BYTES:
+            raise CompensatorFileError(
+                f"{path}: its arrays unpack to {total} bytes, more than any compensator export holds "
+                f"({MAX_FILE_BYTES} bytes at most): refusing to read them"
+            )
         arrays = {}
-        for name, info in infos.items():
+        for info in infos:
+            name = info.filename[:-4]
+            shape, dtype = _npy_header(zf, info)
+            if name == "__meta__":
+                if shape != () or dtype.kind != "U" or dtype.itemsize // 4 > MAX_META_CHARS:
+                    raise CompensatorFileError(
+                        f"{path}: __meta__ must be one string of at most {MAX_META_CHARS} characters"
+                    )
+            elif dtype != np.float64:
+                raise CompensatorFileError(f"{path}: {name} must be float64 numbers, got dtype {dtype}")
+            if math.prod(shape) * dtype.itemsize > info.file_size:
+                raise CompensatorFileError(
+                    f"{path}: {name} has shape {shape}, more numbers than its {info.file_size} bytes hold: "
+                    "refusing to read it"
+                )
             with zf.open(info) as fh:
                 arrays[name] = np.lib.format.read_array(fh, allow_pickle=False)
-    return _join_arrays(meta, arrays)
-
-
-def _array_refs(obj, out: dict) -> dict:
-    """{array name: the metadata path it sits at} of every {"$array": name} reference in the NPZ metadata."""
-    if isinstance(obj, dict):
-        if set(obj) == {"$array"} and isinstance(obj["$array"], str):
-            out[obj["$array"]] = obj["$array"]
-        else:
-            for value in obj.values():
-                _array_refs(value, out)
-    elif isinstance(obj, list):
-        for value in obj:
-            _array_refs(value, out)
-    return out
-
-
-def _joint_count(meta: dict, source: str) -> int:
-    types = meta.get("robot", {}).get("joint_types") if isinstance(meta.get("robot"), dict) else None
-    if not isinstance(types, list) or not 1 <= len(types) <= MAX_JOINTS:
-        raise CompensatorFileError(f"{source}: robot.joint_types must list 1 to {MAX_JOINTS} joints")
-    return len(types)
-
-
-def _npz_shapes(meta, source: str) -> tuple[int, dict[str, tuple | None]]:
-    """The joint count and {array name: expected shape} for every array the metadata reference (None: a network
-    layer, whose sizes are checked together by :func:`_check_npz_shapes`; negative: a size arrays must share)."""
-    if not isinstance(meta, dict):
-        raise CompensatorFileError(f"{source}: __meta__ is not a compensator payload")
-    n = _joint_count(meta, source)
-    fixed = _field_shapes(n)
-    out: dict[str, tuple | None] = {}
-    for name in _array_refs(meta, {}):
-        if name in fixed:
-            out[name] = fixed[name]
-        elif name.startswith(("network.weights.", "network.biases.")) and name.rsplit(".", 1)[1].isdigit():
-            out[name] = None
-        else:
-            raise CompensatorFileError(f"{source}: the metadata reference an unknown array {printable(name)!r}")
-    return n, out
-
-
-def _field_shapes(n: int) -> dict[str, tuple]:
-    """The shape of every fixed-size array field of an n-joint payload (-1: the golden count or the input count)."""
-    shapes = {}
-    for part in ("robot", "model"):
-        shapes.update({f"{part}.frames": (n + 1, 4, 4), f"{part}.twists": (n, 6), f"{part}.limits": (n, 2)})
-    shapes.update(
-        {
-            "joint_ranges": (n, 2),
-            "T_tracker_base": (4, 4),
-            "measurement_tool": (4, 4),
-            "joint_map.matrix": (n, n),
-            "joint_map.offsets": (n,),
-            "golden.q": (-1, n),
-            "golden.q_cmd": (-1, n),
-            "golden.pose": (-1, 4, 4),
-            "network.in_mean": (-2,),
-            "network.in_scale": (-2,),
-            "network.out_mean": (max(n, 6),),
-            "network.out_scale": (max(n, 6),),
-            "validity.centres": (-3, n),
-            "validity.joint_scale": (n,),
-        }
-    )
-    return shapes
-
-
-def _check_npz_shapes(headers: dict[str, tuple], expected: dict, n: int, source: str) -> None:
-    """Refuse member shapes that disagree with the payload's joint count, each other, or the size bounds."""
-    # the golden count, the network's input count and the validity region's centres, fixed by the first array
-    bound = {-1: None, -2: None, -3: None}
-    limits = {-1: MAX_GOLDEN, -2: MAX_WIDTH, -3: MAX_CENTRES}
-    for name, shape in headers.items():
-        want = expected[name]
-        if want is None:
-            continue
-        ok = len(shape) == len(want)
-        for got, w in zip(shape, want, strict=False):
-            if not ok:
-                break
-            if w < 0:
-                if bound[w] is None:
-                    bound[w] = got
-                ok = got == bound[w] and 1 <= got <= limits[w]
-            else:
-                ok = got == w
-        if not ok:
-            shown = tuple({-1: "k", -2: "f", -3: "c"}.get(w, w) for w in want)
-            raise CompensatorFileError(
-                f"{source}: {name} has shape {shape}, expected {shown} for this {n}-joint "
-                f"robot (k ≤ {MAX_GOLDEN} golden vectors, f ≤ {MAX_WIDTH} network inputs)"
-            )
-    layers = [(name, headers[name]) for name in headers if expected[name] is None]
-    weights = {int(k.rsplit(".", 1)[1]): v for k, v in layers if k.startswith("network.weights.")}
-    biases = {int(k.rsplit(".", 1)[1]): v for k, v in layers if k.startswith("network.biases.")}
-    if not weights and not biases:
-        return
-    count = len(weights)
-    if count > MAX_LAYERS or set(weights) != set(range(count)) or set(biases) != set(weights):
-        raise CompensatorFileError(
-            f"{source}: network.weights / network.biases must be 1 to {MAX_LAYERS} numbered layers, one bias per weight"
-        )
-    width = bound[-2]
-    total = 0
-    for i in range(count):
-        W, b = weights[i], biases[i]
-        rows = max(n, 6) if i == count - 1 else (W[0] if len(W) == 2 else -1)
-        if len(W) != 2 or W[0] != rows or (width is not None and W[1] != width) or not 1 <= W[0] <= MAX_WIDTH:
-            raise CompensatorFileError(
-                f"{source}: network.weights.{i} has shape {W}, expected ({max(n, 6) if i == count - 1 else 'h'}, "
-                f"{width if width is not None else 'f'}) with h ≤ {MAX_WIDTH}"
-            )
-        if b != (W[0],):
-            raise CompensatorFileError(f"{source}: network.biases.{i} has shape {b}, expected ({W[0]},)")
-        total += W[0] * W[1] + W[0]
-        width = W[0]
-    if total > MAX_NETWORK_VALUES:
-        raise CompensatorFileError(
-            f"{source}: the network has {total} weights, more than a compensator holds ({MAX_NETWORK_VALUES})"
-        )
+    if "__meta__" not in arrays:
+        raise CompensatorFileError(f"{path}: NPZ file has no __meta__ entry (not a labcal export)")
+    used: set[str] = set()
+    payload = _join_arrays(json.loads(str(arrays.pop("__meta__"))), arrays, used, str(path))
+    if unused := sorted(set(arrays) - used):
+        raise CompensatorFileError(f"{path}: array {unused[0]!r} is not referenced by the metadata")
+    return payload
 
 
 class Compensator:

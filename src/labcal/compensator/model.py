@@ -55,7 +55,6 @@ from labcal.kinematics.poe import LocalPOEModel
 from labcal.robots.joint_map import JointMap
 
 _FLOAT64 = np.dtype(np.float64)  # numpy's one float64 descriptor: an identity test is the cheapest dtype check
-FEATURES = feature_lib.SIMPLE  # the parameter-free feature names (every registry name is accepted)
 
 
 def input_features(q: np.ndarray, names: tuple[str, ...], model: LocalPOEModel, frames=None) -> np.ndarray:
@@ -64,17 +63,10 @@ def input_features(q: np.ndarray, names: tuple[str, ...], model: LocalPOEModel, 
     frames: the model's link frames at q when the caller has them (``gravity`` needs them; computed otherwise).
     """
     q = np.atleast_2d(np.asarray(q, dtype=float))
-    run = _feature_evaluator(tuple(names), model)
+    run = feature_lib.evaluator(tuple(names), model.joint_types, model.limits)  # ValueError for an unknown name
     if frames is None and run.needs_frames:
         frames = model.link_frames(q)
     return run(q, frames)
-
-
-def _feature_evaluator(names: tuple[str, ...], model: LocalPOEModel):
-    for name in names:
-        if not feature_lib.is_feature(name):
-            raise ValueError(f"unknown network input feature {name!r}; known: {', '.join(feature_lib.NAMES)}")
-    return feature_lib.evaluator(names, model.joint_types, model.limits)
 
 
 @dataclass(frozen=True, eq=False)
@@ -414,7 +406,7 @@ class CalibratedRobot:
     @functools.cached_property
     def _inputs(self):
         """The network's input features for this model (:func:`labcal.features.evaluator`), prepared once."""
-        return _feature_evaluator(tuple(self.network.features), self.model)
+        return feature_lib.evaluator(tuple(self.network.features), self.model.joint_types, self.model.limits)
 
     @functools.cached_property
     def _linear_series(self):
@@ -715,20 +707,13 @@ class CalibratedRobot:
                 f"method={method!r} applies only the learned joint motion errors (eq. 24), and this {self.method} "
                 "calibration has no network: it would return q uncorrected. Use method='newton'"
             )
-        if not self._nominal_frames:
+        model, nominal = self.model, self.nominal  # the same for the paper's ANN method alone
+        if not (np.array_equal(model.frames, nominal.frames) and np.array_equal(model.twists, nominal.twists)):
             return (
                 f"method={method!r} applies only the learned joint motion errors (eq. 24) and would ignore the "
                 f"identified frames of this {self.method} calibration. Use method='newton'"
             )
         return None
-
-    @functools.cached_property
-    def _nominal_frames(self) -> bool:
-        """True when the identified model is the nominal one (the paper's ANN method)."""
-        return bool(
-            np.array_equal(self.model.frames, self.nominal.frames)
-            and np.array_equal(self.model.twists, self.nominal.twists)
-        )
 
     @functools.cached_property
     def measurement_model(self) -> LocalPOEModel:

@@ -20,23 +20,18 @@ from labcal.atomicio import write_text
 from labcal.compensator import CalibratedRobot
 from labcal.compensator import save as save_compensator
 
-FORMATS = ("json", "npz", "urscript", "urscript-program", "urdf", "ur-kinematics")
-SUFFIXES = {
-    "json": ".json",
-    "npz": ".npz",
-    "urscript": ".script",
-    "urscript-program": ".script",
-    "urdf": ".urdf",
-    "ur-kinematics": ".yaml",
+# format → (suffix, module and function giving the file's text from (robot, provenance=…, **options)); json and npz
+# are the compensator's own files (no text writer). Writers are imported when used: `import labcal.export` stays light.
+_WRITERS: dict[str, tuple[str, tuple[str, str] | None]] = {
+    "json": (".json", None),
+    "npz": (".npz", None),
+    "urscript": (".script", ("labcal.export.urscript", "urscript_text")),
+    "urscript-program": (".script", ("labcal.export.urscript", "urscript_program_text")),
+    "urdf": (".urdf", ("labcal.export.urdf", "urdf_text")),
+    "ur-kinematics": (".yaml", ("labcal.export.ros", "ur_kinematics_text")),
 }
-# The text formats: format → (module, function giving the file's text from (robot, provenance=…, **options)).
-# Imported when used, so that `import labcal.export` stays light.
-TEXT_WRITERS = {
-    "urscript": ("labcal.export.urscript", "urscript_text"),
-    "urscript-program": ("labcal.export.urscript", "urscript_program_text"),
-    "urdf": ("labcal.export.urdf", "urdf_text"),
-    "ur-kinematics": ("labcal.export.ros", "ur_kinematics_text"),
-}
+FORMATS = tuple(_WRITERS)
+SUFFIXES = {fmt: suffix for fmt, (suffix, _) in _WRITERS.items()}
 
 
 def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = None, **options) -> Path:
@@ -56,10 +51,11 @@ def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = Non
         if path.suffix.lower() != SUFFIXES[fmt]:
             raise ValueError(f"a {fmt} export must be written to a path ending in {SUFFIXES[fmt]}, got {path.name!r}")
         return save_compensator(robot, path, provenance)
-    if fmt not in TEXT_WRITERS:
+    writer = _WRITERS.get(fmt, ("", None))[1]
+    if writer is None:
         # a name added to FORMATS without its writer here must not fall through to another format's writer
         raise NotImplementedError(f"export format {fmt!r} is listed in FORMATS but has no writer in export.export()")
-    module, function = TEXT_WRITERS[fmt]
+    module, function = writer
     text = getattr(importlib.import_module(module), function)(robot, provenance=provenance, **options)
     write_text(path, text)
     return path

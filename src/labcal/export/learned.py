@@ -47,16 +47,12 @@ class DroppedTerm:
         )
 
 
-def _sample(robot: CalibratedRobot, count: int, seed: int) -> np.ndarray:
-    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
-    return lo + (hi - lo) * np.random.default_rng(seed).uniform(size=(count, robot.n))
-
-
 def dropped_learned_term(robot: CalibratedRobot, count: int = SAMPLES, seed: int = 0) -> DroppedTerm | None:
     """The size of what a geometry-only export drops (None when the calibration has no learned term)."""
     if robot.network is None:
         return None
-    q = _sample(robot, count, seed)
+    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
+    q = lo + (hi - lo) * np.random.default_rng(seed).uniform(size=(count, robot.n))  # in the calibrated ranges
     dp, dr = se3.pose_distance(robot.predict_pose(q), robot.model.fk(q))
     return DroppedTerm(count, float(dp.mean()), float(dp.max()), float(dr.mean()), float(dr.max()))
 

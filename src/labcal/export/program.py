@@ -204,13 +204,11 @@ def joints_csv(result: FilteredProgram, *, angle_unit: str = "rad", length_unit:
     factors = joint_factors(joint_types or ("revolute",) * n, length_unit, angle_unit)
     head = [f"q{j + 1}" for j in range(n)] + [f"nominal_q{j + 1}" for j in range(n)]
     head += ["correction_mrad", "uncorrected_error_mm", "uncorrected_error_mrad"]
-    lines = [",".join(["row", *head])]
     dq = np.max(np.abs(result.correction), axis=1)
-    q_cmd, q_nom = result.q_command / factors, result.q_nominal / factors
-    for i in range(len(dq)):
-        values = [*q_cmd[i], *q_nom[i]]
-        values += [1e3 * dq[i], 1e3 * result.position_error[i], 1e3 * result.rotation_error[i]]
-        lines.append(",".join([str(i + 1), *(repr(float(v)) for v in values)]))
+    sizes = [1e3 * dq, 1e3 * result.position_error, 1e3 * result.rotation_error]
+    table = np.column_stack([result.q_command / factors, result.q_nominal / factors, *sizes])
+    lines = [",".join(["row", *head])]
+    lines += [",".join([str(i), *map(repr, row)]) for i, row in enumerate(table.tolist(), start=1)]
     return "\n".join(lines) + "\n"
 
 

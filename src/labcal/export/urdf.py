@@ -52,9 +52,9 @@ from labcal.names import duplicate, printable
 from labcal.robots import model_hash
 
 UR_LINKS = ("shoulder_link", "upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link", "wrist_3_link")
-# ur_description's fixed frames after wrist_3_link: flange (x along the last axis), then tool0 (= wrist_3_link's axes).
+# ur_description's fixed frames after wrist_3_link: flange (x along the last axis), then tool0 turned back from it
+# (= wrist_3_link's axes).
 _UR_FLANGE_RPY = (0.0, -np.pi / 2, -np.pi / 2)
-_UR_TOOL0_RPY = (np.pi / 2, 0.0, np.pi / 2)
 
 
 def urdf_model(model: LocalPOEModel) -> LocalPOEModel:
@@ -127,7 +127,11 @@ def urdf_text(
         )
     if unknown_dynamics not in ("refuse", "zero"):
         raise ValueError(f"unknown_dynamics must be 'refuse' or 'zero', got {unknown_dynamics!r}")
-    model = _urdf_frames(robot, ur_names)
+    model = urdf_model(robot.model)
+    if ur_names:  # ur_description's frame layout: wrist_3_link at the flange
+        check_ur(robot, "URDF with UR link names")
+        origins, tool = ur_frames(robot)
+        model = model.replace(frames=np.concatenate([origins, tool[None]]))
     note = refuse_or_note(robot, "URDF", geometry_only)
     n = model.n
     vel, vel_unknown = _dynamics(velocity, n, "velocity", unknown_dynamics)
@@ -151,16 +155,6 @@ def urdf_text(
     _tool_joints(root, robot, model, links, ur_names)
     ET.indent(root, space="  ")
     return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
-
-
-def _urdf_frames(robot: CalibratedRobot, ur_names: bool) -> LocalPOEModel:
-    """robot.model in URDF form (:func:`urdf_model`), in ur_description's frame layout with ``ur_names``."""
-    model = urdf_model(robot.model)
-    if ur_names:
-        check_ur(robot, "URDF with UR link names")
-        origins, tool = ur_frames(robot)  # ur_description's layout: wrist_3_link at the flange
-        model = model.replace(frames=np.concatenate([origins, tool[None]]))
-    return model
 
 
 def _notes(
