@@ -204,6 +204,22 @@ class SafetyLimits:
         return q
 
 
+def move_time(distance, speed, acceleration) -> np.ndarray:
+    """Seconds of a trapezoidal joint move over ``distance`` (rad, any shape) at ``speed`` rad/s and ``acceleration``
+    rad/s² (same shape or broadcast); a move too short to reach ``speed`` is triangular.
+
+    A joint move of a UR arm (moveJ) is led by the joint that has the farthest to go; the others are slowed to end
+    with it, so a move takes the longest of its joints' times (:func:`labcal.sessions.plans.motion_time`).
+
+    >>> move_time([0.0, 0.1, 2.0], 0.5, 1.0).round(3).tolist()
+    [0.0, 0.632, 4.5]
+    """
+    d = np.abs(np.asarray(distance, dtype=float))
+    v, a = np.asarray(speed, dtype=float), np.asarray(acceleration, dtype=float)
+    full = d > v**2 / a
+    return np.where(full, d / v + v / a, 2.0 * np.sqrt(d / a))
+
+
 class ClosedOnExit:
     """The ``with`` block of every concrete driver: leaving it closes the driver (``close()`` is safe twice)."""
 

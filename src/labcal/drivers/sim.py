@@ -50,6 +50,7 @@ from labcal.drivers.base import (
     RobotState,
     SafetyLimits,
     average_frames,
+    move_time,
 )
 from labcal.robots.joint_map import JointMap
 from labcal.simulation import ActualRobot
@@ -174,10 +175,9 @@ class SimRig:
         # the controller's own numbers, kept (not recomputed through the inverse map) so that it reports exactly
         # the joints it was commanded, as the unmapped rig does
         self._q_ctrl = self._q.copy() if self.joint_map is None else self.joint_map.to_controller(self._q)
-        self._noise_rng = np.random.default_rng([self.seed, 0])
-        self._fault_rng = np.random.default_rng([self.seed, 1])
-        self._motion_rng = np.random.default_rng([self.seed, 2])
-        self._dropout_rng = np.random.default_rng([self.seed, 3])
+        self._noise_rng, self._fault_rng, self._motion_rng, self._dropout_rng = (
+            np.random.default_rng([self.seed, stream]) for stream in range(4)
+        )
         self._lock = threading.RLock()
         self._true_points = self._draw_true_points()
         self.protective_stop = False
@@ -222,11 +222,7 @@ class SimRig:
         """Seconds to move to the controller joints q (the motors' distance: controller joints)."""
         if self.motion_time != "realistic":
             return float(self.motion_time)
-        d = float(np.max(np.abs(q - self.q))) if q.size else 0.0
-        # Trapezoidal profile; a short move never reaches full speed (triangular profile).
-        if d > speed**2 / acceleration:
-            return d / speed + speed / acceleration
-        return 2.0 * np.sqrt(d / acceleration)
+        return float(move_time(q - self.q, speed, acceleration).max(initial=0.0))
 
 
 class SimRobot(ClosedOnExit):
@@ -351,6 +347,3 @@ class SimTracker(ClosedOnExit):
 
     def close(self) -> None:
         self._closed = True
-
-
-__all__ = ["DROPOUT_MODES", "SimFaults", "SimRig", "SimRobot", "SimTracker"]
