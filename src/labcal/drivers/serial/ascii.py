@@ -15,7 +15,7 @@ import numpy as np
 from labcal.datasets.targets import pair_distances
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
 from labcal.drivers.serial.crc import crc16_arc, xor8
-from labcal.drivers.serial.link import SerialLink
+from labcal.drivers.serial.link import SerialLink, retried
 from labcal.drivers.serial.profiles import AXES, AsciiProfile
 
 
@@ -162,18 +162,11 @@ class AsciiProtocol:
 
         Retries garbled lines and timeouts.
         """
-        last: Exception | None = None
-        for _ in range(self.profile.retries + 1):
-            try:
-                points, flags = self._parse(self._fetch_line())
-                break
-            except DeviceError:
-                raise
-            except (DriverTimeout, ProtocolError) as exc:
-                last = exc
-        else:
-            assert last is not None
-            raise last
+        points, flags = retried(
+            self.profile.retries + 1,
+            lambda: self._parse(self._fetch_line()),
+            lambda error: isinstance(error, DeviceError),  # the device's own error reply: asking again cannot help
+        )
         tol = self.profile.triangle_tolerance
         if tol is not None:
             # Only distances between two seen targets can be compared (NaN otherwise).

@@ -12,9 +12,23 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from labcal.drivers.base import ConnectionFailed, DriverTimeout, ProtocolError
+
+T = TypeVar("T")
+
+
+def retried(attempts: int, attempt: Callable[[], T], final: Callable[[Exception], bool]) -> T:
+    """``attempt()`` up to ``attempts`` (>= 1) times: a DriverTimeout or ProtocolError (a reply lost or garbled on
+    the line) is tried again unless ``final(error)``; the last attempt's error is raised."""
+    for _ in range(attempts - 1):
+        try:
+            return attempt()
+        except (DriverTimeout, ProtocolError) as exc:
+            if final(exc):
+                raise
+    return attempt()
 
 
 class Transport(Protocol):
