@@ -261,11 +261,6 @@ def parse_bx_body(body: bytes) -> StrayFrame:
     return StrayFrame(strays=mm * 1e-3, out_of_volume=oov, system_status=int(status))
 
 
-def parse_bx_strays(reply: bytes, command: str = "BX:1000") -> StrayFrame:
-    """Parse one whole binary ``BX:1000`` reply (header to body CRC). Raises ProtocolError naming the fault."""
-    return parse_bx_body(split_bx_reply(reply, command))
-
-
 # What labcal asks an NDI device about itself: its combined firmware description and its API revision.
 IDENTITY_COMMANDS = ("VER:4", "APIREV:")
 _VERSION_NUMBER = re.compile(r"(\d+(?:\.\d+)+)\s*$")
