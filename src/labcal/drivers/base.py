@@ -304,11 +304,6 @@ def average_frames(frames: list[np.ndarray], timestamp: float, quality: tuple[st
     if stack.ndim != 3 or stack.shape[2] != 3 or stack.shape[0] == 0 or stack.shape[1] == 0:
         raise MeasurementRejected(f"expected k frames of m targets x 3 coordinates, got shape {stack.shape}")
     finite = np.isfinite(stack)
-    if finite.all():
-        # Every target in every frame: the plain mean (the same floating-point operations as before NaN rows).
-        mean = stack.mean(axis=0)
-        spread = np.sqrt(np.mean(np.sum((stack - mean) ** 2, axis=2), axis=0))
-        return Measurement(points=mean, timestamp=timestamp, spread=spread, samples=stack.shape[0], quality=quality)
     seen = finite.all(axis=2)  # (k, m)
     partial = np.argwhere(finite.any(axis=2) & ~seen)
     if partial.size:
@@ -322,6 +317,7 @@ def average_frames(frames: list[np.ndarray], timestamp: float, quality: tuple[st
             f"frame {int(blank[0]) + 1} of {stack.shape[0]} saw none of the {stack.shape[1]} targets"
         )
     count = seen.sum(axis=0)  # (m,) frames that saw each target
+    # With every target in every frame these are the very operations of stack.mean(axis=0) and its spread.
     filled = np.where(seen[:, :, None], stack, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = filled.sum(axis=0) / count[:, None]

@@ -50,12 +50,6 @@ def strip_checksum(line: str, kind: str) -> str:
     return body
 
 
-def _axis_map(axes: tuple[str, str, str]) -> tuple[list[int], np.ndarray]:
-    index = [AXES.index(a.lstrip("+-")) for a in axes]
-    sign = np.array([-1.0 if a.startswith("-") else 1.0 for a in axes])
-    return index, sign
-
-
 class AsciiProtocol:
     """The ASCII session on a SerialLink: start (init commands), read_frame, stop (close commands)."""
 
@@ -64,7 +58,9 @@ class AsciiProtocol:
         self.link = link
         self.targets = np.asarray(targets, dtype=float)
         self.nominal_distances = pair_distances(self.targets)
-        self._index, self._sign = _axis_map(profile.axes)
+        # tracker-frame axis i is device axis _index[i], times _sign[i]
+        self._index = [AXES.index(a.lstrip("+-")) for a in profile.axes]
+        self._sign = np.array([-1.0 if a.startswith("-") else 1.0 for a in profile.axes])
         self.identity: dict[str, object] = {}  # filled by start()
 
     def _read_text(self) -> str:
