@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,19 +55,6 @@ from labcal.robots.joint_map import JointMap
 from labcal.simulation import ActualRobot
 
 DROPOUT_MODES = ("nan", "reject")
-
-
-def _numbers(value: Iterable[int] | None, name: str) -> frozenset[int]:
-    items = frozenset(int(v) for v in (value or ()))
-    if any(v < 1 for v in items):
-        raise ValueError(f"SimFaults.{name} counts calls from 1, got {sorted(items)}")
-    return items
-
-
-def _probability(value: float, name: str) -> float:
-    if not 0.0 <= float(value) <= 1.0:
-        raise ValueError(f"SimFaults.{name} must be a probability in [0, 1], got {value!r}")
-    return float(value)
 
 
 @dataclass(frozen=True)
@@ -97,9 +83,15 @@ class SimFaults:
 
     def __post_init__(self) -> None:
         for name in ("dropout_at", "timeout_at", "garbled_at", "protective_stop_at"):
-            object.__setattr__(self, name, _numbers(getattr(self, name), name))
+            calls = frozenset(int(v) for v in (getattr(self, name) or ()))
+            if any(v < 1 for v in calls):
+                raise ValueError(f"SimFaults.{name} counts calls from 1, got {sorted(calls)}")
+            object.__setattr__(self, name, calls)
         for name in ("dropout_probability", "timeout_probability", "garbled_probability"):
-            object.__setattr__(self, name, _probability(getattr(self, name), name))
+            value = getattr(self, name)
+            if not 0.0 <= float(value) <= 1.0:
+                raise ValueError(f"SimFaults.{name} must be a probability in [0, 1], got {value!r}")
+            object.__setattr__(self, name, float(value))
         if self.dropout_mode not in DROPOUT_MODES:
             raise ValueError(f"SimFaults.dropout_mode must be one of {DROPOUT_MODES}, got {self.dropout_mode!r}")
         target = self.dropout_target

@@ -131,14 +131,8 @@ def _within(lo: float, hi: float) -> Callable[[float], str | None]:
 
 
 def _standard_port(standard: int) -> Callable[[int], str | None]:
-    return lambda v: (
-        None
-        if v == standard
-        else (
-            f"must be {standard}: ur-rtde 1.6.5 always connects to port {standard}, so another port cannot be honoured "
-            f"(got {v})"
-        )
-    )
+    why = f"must be {standard}: ur-rtde 1.6.5 always connects to port {standard}, so another port cannot be honoured"
+    return lambda v: None if v == standard else f"{why} (got {v})"
 
 
 def _non_empty(text: str) -> str | None:
