@@ -93,6 +93,8 @@ class SerialLink:
     sleep: delay function in s (injected for the same reason).
     """
 
+    max_line = 8192  # bytes: the longest reply, so a device sending garbage without terminators cannot fill memory
+
     def __init__(
         self,
         transport: Transport,
@@ -102,7 +104,6 @@ class SerialLink:
         timeout: float,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
-        max_line: int = 8192,
     ):
         if not read_terminator:
             raise ValueError("read_terminator must not be empty")
@@ -112,7 +113,6 @@ class SerialLink:
         self.timeout = float(timeout)
         self.clock = clock
         self.sleep = sleep
-        self.max_line = max_line
         self._errors = _library_errors()
         self.closed = False
 
