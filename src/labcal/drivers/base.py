@@ -1,4 +1,5 @@
-"""Driver ports: what a session needs from a robot and a tracker, and labcal's own driver errors.
+"""Driver ports: what a session needs from a robot and a tracker, labcal's own driver errors, and the time a joint
+move takes (:func:`move_time`: the sim rig waits it, the planner orders poses by it).
 
 Sessions talk to these Protocols only; the CLI picks the concrete driver (sim, serial tracker, UR). Every
 concrete driver is a context manager whose ``close()`` is safe to call twice.
