@@ -574,17 +574,14 @@ def _path_time(D: np.ndarray, order: np.ndarray) -> float:
 
 
 def _nearest_neighbour(D: np.ndarray, first: int) -> np.ndarray:
-    k = len(D)
-    order = np.empty(k, dtype=int)
-    free = np.ones(k, dtype=bool)
-    here = first
-    for i in range(k):
-        order[i] = here
+    order = [first]
+    free = np.ones(len(D), dtype=bool)
+    free[first] = False
+    while free.any():
+        here = int(np.argmin(np.where(free, D[order[-1]], np.inf)))  # ties: the lowest index (reproducible)
+        order.append(here)
         free[here] = False
-        if i + 1 < k:
-            row = np.where(free, D[here], np.inf)
-            here = int(np.argmin(row))  # ties: the lowest index, so the order is reproducible
-    return order
+    return np.array(order)
 
 
 def _two_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
