@@ -28,10 +28,10 @@ REPLIES = ["tx", "bx"]
 
 
 def ndi_tracker(dev: FakeNDIDevice, **overrides) -> SerialTracker:
-    profile = load_profile(REPO / "drivers" / "ndi-polaris.toml").with_url(dev.port)
+    profile = load_profile(REPO / "drivers" / "ndi-polaris.toml")
     profile = dataclasses.replace(profile, switch_delay=0.0, init_timeout=0.5, **overrides)
     profile = dataclasses.replace(profile, port=dataclasses.replace(profile.port, timeout=0.2))
-    return SerialTracker(profile, TARGETS)
+    return SerialTracker(profile, TARGETS, url=dev.port)
 
 
 def wait_for(predicate, timeout: float = 2.0) -> bool:
@@ -204,9 +204,9 @@ def test_ascii_example_profile_end_to_end_with_faults():
 
 def test_ascii_no_reply_is_retried_over_pty():
     with FakeASCIIDevice(lambda: SEEN) as dev:
-        profile = load_profile(REPO / "drivers" / "ascii-example.toml").with_url(dev.port)
+        profile = load_profile(REPO / "drivers" / "ascii-example.toml")
         profile = dataclasses.replace(profile, port=dataclasses.replace(profile.port, timeout=0.1))
-        with SerialTracker(profile, TARGETS) as tracker:
+        with SerialTracker(profile, TARGETS, url=dev.port) as tracker:
             dev.inject("no_reply")
             np.testing.assert_allclose(tracker.measure().points, SEEN, atol=1e-7)
         assert dev.received.count("MEAS?") == 2
@@ -216,7 +216,7 @@ def test_ascii_streaming_device_over_pty():
     from labcal.drivers.serial.profiles import InitStep
 
     with FakeASCIIDevice(lambda: SEEN, stream_hz=200.0) as dev:
-        profile = load_profile(REPO / "drivers" / "ascii-example.toml").with_url(dev.port)
+        profile = load_profile(REPO / "drivers" / "ascii-example.toml")
         profile = dataclasses.replace(
             profile,
             mode="stream",
@@ -224,7 +224,7 @@ def test_ascii_streaming_device_over_pty():
             init=(*profile.init, InitStep("STREAM ON", None)),
             close_commands=("STREAM OFF",),
         )
-        with SerialTracker(profile, TARGETS) as tracker:
+        with SerialTracker(profile, TARGETS, url=dev.port) as tracker:
             m = tracker.measure(samples=3)
         np.testing.assert_allclose(m.points, SEEN, atol=1e-7)
         assert "MEAS?" not in dev.received

@@ -29,7 +29,7 @@ from serial_fixtures import (
 )
 
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
-from labcal.drivers.serial.ndi import NDIError, StrayFrame, parse_bx_strays
+from labcal.drivers.serial.ndi import NDIError, StrayFrame, parse_bx_body, split_bx_reply
 from labcal.drivers.serial.tracker import SerialTracker
 from labcal_fakes.devices import encode_bx_reply
 
@@ -191,7 +191,7 @@ def test_parse_bx_reads_handles_count_bits_coordinates_and_status():
     strays = np.arange(30, dtype=float).reshape(10, 3) * 0.25e-3 - 1.5  # exact in float32 mm
     oov = [j in (0, 8, 9) for j in range(10)]  # bits in both out-of-volume bytes
     reply = bx_reply(strays, oov=oov, status=0x0102, handles=((0x0A, 0x01), (0x0B, 0x04)))
-    frame = parse_bx_strays(reply)
+    frame = parse_bx_body(split_bx_reply(reply))
     assert isinstance(frame, StrayFrame)
     np.testing.assert_allclose(frame.strays, strays, rtol=0, atol=1e-15)  # metres, not millimetres
     assert frame.out_of_volume.tolist() == oov
@@ -199,7 +199,7 @@ def test_parse_bx_reads_handles_count_bits_coordinates_and_status():
 
 
 def test_parse_bx_with_no_strays():
-    frame = parse_bx_strays(bx_reply(np.zeros((0, 3))))
+    frame = parse_bx_body(split_bx_reply(bx_reply(np.zeros((0, 3)))))
     assert frame.strays.shape == (0, 3) and frame.out_of_volume.shape == (0,)
 
 
@@ -237,12 +237,12 @@ def _short_body() -> bytes:
 )
 def test_parse_bx_names_what_is_wrong(reply, message):
     with pytest.raises(ProtocolError, match=message):
-        parse_bx_strays(reply)
+        parse_bx_body(split_bx_reply(reply))
 
 
 def test_parse_bx_raises_the_ascii_error_reply_as_ndi_error():
     with pytest.raises(NDIError, match="ERROR0C"):
-        parse_bx_strays(ndi_reply("ERROR0C"))
+        parse_bx_body(split_bx_reply(ndi_reply("ERROR0C")))
 
 
 # -- round trips and corruption --------------------------------------------------------------------------------
@@ -266,7 +266,7 @@ def test_fake_encoder_round_trips_through_the_parser_and_matches_the_independent
     metres = mm * 1e-3
     reply = encode_bx_reply(metres, oov, status, handles)
     assert reply == bx_reply(metres, oov=oov, status=status, handles=handles)
-    frame = parse_bx_strays(reply)
+    frame = parse_bx_body(split_bx_reply(reply))
     np.testing.assert_array_equal(frame.strays, mm * 1e-3)  # float32 mm survive the trip exactly
     assert frame.out_of_volume.tolist() == oov
     assert frame.system_status == status
@@ -280,13 +280,13 @@ def test_every_single_byte_corruption_is_rejected(scene, data):
     flip = data.draw(st.integers(1, 255), label="xor")
     spoilt = reply[:i] + bytes([reply[i] ^ flip]) + reply[i + 1 :]
     with pytest.raises(ProtocolError):
-        parse_bx_strays(spoilt)
+        parse_bx_body(split_bx_reply(spoilt))
 
 
 @given(st.binary(max_size=200))
 def test_arbitrary_bytes_give_a_frame_or_a_protocol_error_never_another_exception(data):
     try:
-        parse_bx_strays(data)
+        parse_bx_body(split_bx_reply(data))
     except ProtocolError:
         pass
 

@@ -59,8 +59,8 @@ def test_ndicapy_reads_the_fake_and_agrees_with_labcal():
         for command in ("INIT:", "COMM:50000", "TSTART:", "TX:1000", "TSTOP:", "COMM:00000"):
             assert encode_command(command)[:-1].decode() in dev.received
 
-        profile = load_profile(REPO / "drivers" / "ndi-polaris.toml").with_url(dev.port)
-        with SerialTracker(dataclasses.replace(profile, switch_delay=0.0), TARGETS) as tracker:
+        profile = load_profile(REPO / "drivers" / "ndi-polaris.toml")
+        with SerialTracker(dataclasses.replace(profile, switch_delay=0.0), TARGETS, url=dev.port) as tracker:
             ours = tracker.measure().points
 
     assert reference.shape == (4, 3)  # three targets + the spurious reflection, in the fake's shuffled order
@@ -135,9 +135,9 @@ def test_ndicapy_reads_bx_from_the_fake_and_agrees_with_labcal_in_bx_mode():
         assert dev.received == [c[:-1].decode() for c in (INIT, COMM_115200, TSTART, BX, TX, TSTOP, COMM_9600)]
         assert encode_command("BX:1000") == BX
 
-        profile = load_profile(REPO / "drivers" / "ndi-polaris.toml").with_url(dev.port)
+        profile = load_profile(REPO / "drivers" / "ndi-polaris.toml")
         profile = dataclasses.replace(profile, switch_delay=0.0, reply="bx")
-        with SerialTracker(profile, TARGETS) as tracker:
+        with SerialTracker(profile, TARGETS, url=dev.port) as tracker:
             m = tracker.measure()
         # labcal's BX session sent what ndicapy's did.
         assert dev.received[7:] == [c[:-1].decode() for c in (INIT, COMM_115200, TSTART, BX, TSTOP, COMM_9600)]

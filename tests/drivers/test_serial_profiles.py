@@ -18,7 +18,6 @@ def test_shipped_ndi_profile():
     assert p.baudrate == 115200
     assert p.reply == "tx"
     assert p.match_tolerance == pytest.approx(0.5e-3)  # given in mm, held in m
-    assert p.with_url("/dev/pts/9").port.url == "/dev/pts/9"
 
 
 def test_shipped_ascii_profile():

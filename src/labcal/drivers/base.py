@@ -1,4 +1,5 @@
-"""Driver ports: what a session needs from a robot and a tracker, and labcal's own driver errors.
+"""Driver ports: what a session needs from a robot and a tracker, labcal's own driver errors, and the time a joint
+move takes (:func:`move_time`: the sim rig waits it, the planner orders poses by it).
 
 Sessions talk to these Protocols only; the CLI picks the concrete driver (sim, serial tracker, UR). Every
 concrete driver is a context manager whose ``close()`` is safe to call twice.
@@ -204,6 +205,22 @@ class SafetyLimits:
         return q
 
 
+def move_time(distance, speed, acceleration) -> np.ndarray:
+    """Seconds of a trapezoidal joint move over ``distance`` (rad, any shape) at ``speed`` rad/s and ``acceleration``
+    rad/s² (same shape or broadcast); a move too short to reach ``speed`` is triangular.
+
+    A joint move of a UR arm (moveJ) is led by the joint that has the farthest to go; the others are slowed to end
+    with it, so a move takes the longest of its joints' times (:func:`labcal.sessions.plans.motion_time`).
+
+    >>> move_time([0.0, 0.1, 2.0], 0.5, 1.0).round(3).tolist()
+    [0.0, 0.632, 4.5]
+    """
+    d = np.abs(np.asarray(distance, dtype=float))
+    v, a = np.asarray(speed, dtype=float), np.asarray(acceleration, dtype=float)
+    full = d > v**2 / a
+    return np.where(full, d / v + v / a, 2.0 * np.sqrt(d / a))
+
+
 class ClosedOnExit:
     """The ``with`` block of every concrete driver: leaving it closes the driver (``close()`` is safe twice)."""
 
@@ -288,11 +305,6 @@ def average_frames(frames: list[np.ndarray], timestamp: float, quality: tuple[st
     if stack.ndim != 3 or stack.shape[2] != 3 or stack.shape[0] == 0 or stack.shape[1] == 0:
         raise MeasurementRejected(f"expected k frames of m targets x 3 coordinates, got shape {stack.shape}")
     finite = np.isfinite(stack)
-    if finite.all():
-        # Every target in every frame: the plain mean (the same floating-point operations as before NaN rows).
-        mean = stack.mean(axis=0)
-        spread = np.sqrt(np.mean(np.sum((stack - mean) ** 2, axis=2), axis=0))
-        return Measurement(points=mean, timestamp=timestamp, spread=spread, samples=stack.shape[0], quality=quality)
     seen = finite.all(axis=2)  # (k, m)
     partial = np.argwhere(finite.any(axis=2) & ~seen)
     if partial.size:
@@ -306,6 +318,7 @@ def average_frames(frames: list[np.ndarray], timestamp: float, quality: tuple[st
             f"frame {int(blank[0]) + 1} of {stack.shape[0]} saw none of the {stack.shape[1]} targets"
         )
     count = seen.sum(axis=0)  # (m,) frames that saw each target
+    # With every target in every frame these are the very operations of stack.mean(axis=0) and its spread.
     filled = np.where(seen[:, :, None], stack, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = filled.sum(axis=0) / count[:, None]

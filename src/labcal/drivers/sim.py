@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,24 +49,12 @@ from labcal.drivers.base import (
     RobotState,
     SafetyLimits,
     average_frames,
+    move_time,
 )
 from labcal.robots.joint_map import JointMap
 from labcal.simulation import ActualRobot
 
 DROPOUT_MODES = ("nan", "reject")
-
-
-def _numbers(value: Iterable[int] | None, name: str) -> frozenset[int]:
-    items = frozenset(int(v) for v in (value or ()))
-    if any(v < 1 for v in items):
-        raise ValueError(f"SimFaults.{name} counts calls from 1, got {sorted(items)}")
-    return items
-
-
-def _probability(value: float, name: str) -> float:
-    if not 0.0 <= float(value) <= 1.0:
-        raise ValueError(f"SimFaults.{name} must be a probability in [0, 1], got {value!r}")
-    return float(value)
 
 
 @dataclass(frozen=True)
@@ -96,9 +83,15 @@ class SimFaults:
 
     def __post_init__(self) -> None:
         for name in ("dropout_at", "timeout_at", "garbled_at", "protective_stop_at"):
-            object.__setattr__(self, name, _numbers(getattr(self, name), name))
+            calls = frozenset(int(v) for v in (getattr(self, name) or ()))
+            if any(v < 1 for v in calls):
+                raise ValueError(f"SimFaults.{name} counts calls from 1, got {sorted(calls)}")
+            object.__setattr__(self, name, calls)
         for name in ("dropout_probability", "timeout_probability", "garbled_probability"):
-            object.__setattr__(self, name, _probability(getattr(self, name), name))
+            value = getattr(self, name)
+            if not 0.0 <= float(value) <= 1.0:
+                raise ValueError(f"SimFaults.{name} must be a probability in [0, 1], got {value!r}")
+            object.__setattr__(self, name, float(value))
         if self.dropout_mode not in DROPOUT_MODES:
             raise ValueError(f"SimFaults.dropout_mode must be one of {DROPOUT_MODES}, got {self.dropout_mode!r}")
         target = self.dropout_target
@@ -174,10 +167,9 @@ class SimRig:
         # the controller's own numbers, kept (not recomputed through the inverse map) so that it reports exactly
         # the joints it was commanded, as the unmapped rig does
         self._q_ctrl = self._q.copy() if self.joint_map is None else self.joint_map.to_controller(self._q)
-        self._noise_rng = np.random.default_rng([self.seed, 0])
-        self._fault_rng = np.random.default_rng([self.seed, 1])
-        self._motion_rng = np.random.default_rng([self.seed, 2])
-        self._dropout_rng = np.random.default_rng([self.seed, 3])
+        self._noise_rng, self._fault_rng, self._motion_rng, self._dropout_rng = (
+            np.random.default_rng([self.seed, stream]) for stream in range(4)
+        )
         self._lock = threading.RLock()
         self._true_points = self._draw_true_points()
         self.protective_stop = False
@@ -222,11 +214,7 @@ class SimRig:
         """Seconds to move to the controller joints q (the motors' distance: controller joints)."""
         if self.motion_time != "realistic":
             return float(self.motion_time)
-        d = float(np.max(np.abs(q - self.q))) if q.size else 0.0
-        # Trapezoidal profile; a short move never reaches full speed (triangular profile).
-        if d > speed**2 / acceleration:
-            return d / speed + speed / acceleration
-        return 2.0 * np.sqrt(d / acceleration)
+        return float(move_time(q - self.q, speed, acceleration).max(initial=0.0))
 
 
 class SimRobot(ClosedOnExit):
@@ -351,6 +339,3 @@ class SimTracker(ClosedOnExit):
 
     def close(self) -> None:
         self._closed = True
-
-
-__all__ = ["DROPOUT_MODES", "SimFaults", "SimRig", "SimRobot", "SimTracker"]

@@ -29,6 +29,7 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import re
@@ -130,14 +131,8 @@ def _within(lo: float, hi: float) -> Callable[[float], str | None]:
 
 
 def _standard_port(standard: int) -> Callable[[int], str | None]:
-    return lambda v: (
-        None
-        if v == standard
-        else (
-            f"must be {standard}: ur-rtde 1.6.5 always connects to port {standard}, so another port cannot be honoured "
-            f"(got {v})"
-        )
-    )
+    why = f"must be {standard}: ur-rtde 1.6.5 always connects to port {standard}, so another port cannot be honoured"
+    return lambda v: None if v == standard else f"{why} (got {v})"
 
 
 def _non_empty(text: str) -> str | None:
@@ -444,18 +439,6 @@ def probe_script_port(host: str, port: int = SCRIPT_PORT, timeout: float = 2.0) 
 CONSTRUCT_TIMEOUT = 10.0
 
 
-def _remote_factory(kind: str, call_timeout: float) -> Callable[[str, float], Any]:
-    """A factory building the ur-rtde interface ``kind`` in its own process (see :mod:`labcal.drivers.ur_process`)."""
-
-    def build(host: str, frequency: float) -> Any:
-        variables = RECEIVE_VARIABLES if kind == "receive" else ()
-        return RemoteInterface(
-            kind, host, frequency, variables, start_timeout=CONSTRUCT_TIMEOUT, call_timeout=call_timeout
-        )
-
-    return build
-
-
 class URRobot(ClosedOnExit):
     """The ``Robot`` port for a UR arm. A context manager; ``close()`` is safe to call twice.
 
@@ -519,8 +502,10 @@ class URRobot(ClosedOnExit):
         if probe if identify is None else identify:
             identity = read_dashboard_identity(host, DASHBOARD_PORT, timeout)
             log.info("UR controller at %s: %s", host, identity)
-        receive_factory = receive_factory or _remote_factory("receive", profile.call_timeout)
-        control_factory = control_factory or _remote_factory("control", profile.call_timeout)
+        # by default each ur-rtde interface in its own process (see labcal.drivers.ur_process)
+        remote = functools.partial(RemoteInterface, start_timeout=CONSTRUCT_TIMEOUT, call_timeout=profile.call_timeout)
+        receive_factory = receive_factory or functools.partial(remote, "receive", variables=RECEIVE_VARIABLES)
+        control_factory = control_factory or functools.partial(remote, "control")
         receive = _construct(receive_factory, host, profile.frequency, "RTDE receive interface")
         control = None
         if not read_only:
@@ -594,12 +579,13 @@ class URRobot(ClosedOnExit):
         """Wait (at most stale_timeout) for a controller timestamp newer than the last one seen."""
         rx = self._rx()
         deadline = self._clock() + self.profile.stale_timeout
-        first = self._call_rx("getTimestamp")
-        previous = self._last_timestamp if self._last_timestamp is not None else first
-        current = first
-        while not current > previous:
+        current = self._call_rx("getTimestamp")
+        previous = self._last_timestamp if self._last_timestamp is not None else current
+        while True:
             if not self._connected(rx):
                 raise ConnectionFailed(f"the RTDE connection to {self.profile.host} is down")
+            if current > previous:
+                break
             if self._clock() >= deadline:
                 raise StaleData(
                     f"controller timestamp stuck at {current:.6f} s for {self.profile.stale_timeout} s "
@@ -607,8 +593,6 @@ class URRobot(ClosedOnExit):
                 )
             self._sleep(0.001)
             current = self._call_rx("getTimestamp")
-        if not self._connected(rx):
-            raise ConnectionFailed(f"the RTDE connection to {self.profile.host} is down")
         self._last_timestamp = current
         return current
 

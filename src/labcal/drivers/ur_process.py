@@ -70,9 +70,9 @@ class ChildProcess:
             threading.Thread(target=self._log_stderr, name=f"{label} log", daemon=True).start()
         threading.Thread(target=self._read_replies, name=f"{label} replies", daemon=True).start()
         try:
-            self.started = self._await(start_timeout, start_what, None)
+            self.started = self._decode(self._read_line(start_timeout, start_what, None))
         except BaseException:
-            self.kill()
+            self._died(f"{start_what} was abandoned")  # as in call(); a start-up error answer ends the child too
             raise
 
     # -- calls -----------------------------------------------------------------------------------------------
@@ -101,14 +101,6 @@ class ChildProcess:
                 self._died(f"{name}() was abandoned")
                 raise
             return self._decode(line)
-
-    def _await(self, timeout: float | None, what: str, watch: Callable[[], None] | None) -> Any:
-        try:
-            line = self._read_line(timeout, what, watch)
-        except BaseException:
-            self._died(f"{what} was abandoned")  # as in call()
-            raise
-        return self._decode(line)
 
     @staticmethod
     def _decode(line: bytes) -> Any:

@@ -140,6 +140,3 @@ def parse_workspace(doc: dict[str, Any], source: str = "<workspace>", error: typ
     )
     tracker = doc.get("tracker_mm")
     return Workspace(allowed, keep, None if tracker is None else tuple(np.asarray(tracker) / 1000.0))
-
-
-__all__ = ["WORKSPACE_SCHEMA", "Box", "Workspace", "parse_workspace"]

@@ -50,17 +50,18 @@ Example::
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from labcal.drivers.base import SafetyLimits
+from labcal.drivers.base import SafetyLimits, move_time
 from labcal.drivers.workspace import Workspace
 from labcal.kinematics.metric import parameter_weights, scaled_condition
 from labcal.kinematics.poe import LocalPOEModel
 from labcal.kinematics.se3 import point_jacobian
 from labcal.robots.joint_map import JointMap
-from labcal.sessions.plans import move_time
 
 #: Default bound on the length-scaled condition number of J_ρ (see the module docstring).
 DEFAULT_MAX_CONDITION = 100.0
@@ -296,12 +297,7 @@ class _Screen:
     pts: np.ndarray
 
     def __post_init__(self) -> None:
-        self.rejected = {
-            "joint limits": 0,
-            "workspace": 0,
-            "facing away": 0,
-            "condition": 0,
-        }
+        self.rejected = dict.fromkeys(("joint limits", "workspace", "facing away", "condition"), 0)
         self.example: list[str] = []  # what the first pose the workspace refused ran into, for the error message
 
     def passing(self, q: np.ndarray) -> np.ndarray:
@@ -317,25 +313,27 @@ class _Screen:
             accepted = runner_accepts(q, self.safety, self.joint_map)
             rejected["joint limits"] += int(np.sum(~accepted))
             ok &= accepted
-        if self.workspace is not None and ok.any():
-            idx = np.flatnonzero(ok)
-            points = checked_points(model, q[idx], self.pts)
-            inside = self.workspace.admits(points)
-            rejected["workspace"] += int(np.sum(~inside))
-            if not self.example and not inside.all():
-                self.example = self.workspace.offenders(points[np.flatnonzero(~inside)[0]])
-            ok[idx[~inside]] = False
-        if self.facing is not None and ok.any():
-            idx = np.flatnonzero(ok)
-            seen = self.facing.visible(model, q[idx], self.pts).all(axis=1)
-            rejected["facing away"] += int(np.sum(~seen))
-            ok[idx[~seen]] = False
-        if self.max_condition is not None and ok.any():
-            idx = np.flatnonzero(ok)
-            good = length_scaled_condition(model, q[idx]) <= self.max_condition
-            rejected["condition"] += int(np.sum(~good))
-            ok[idx[~good]] = False
+        # (name, its setting, test of poses given the setting), each on the draws still in
+        checks: tuple[tuple[str, Any, Callable[[np.ndarray, Any], np.ndarray]], ...] = (
+            ("workspace", self.workspace, self._admitted),
+            ("facing away", self.facing, lambda q, facing: facing.visible(model, q, self.pts).all(axis=1)),
+            ("condition", self.max_condition, lambda q, bound: length_scaled_condition(model, q) <= bound),
+        )
+        for name, setting, passes in checks:
+            if setting is not None and ok.any():
+                idx = np.flatnonzero(ok)
+                good = passes(q[idx], setting)
+                rejected[name] += int(np.sum(~good))
+                ok[idx[~good]] = False
         return q[ok]
+
+    def _admitted(self, q: np.ndarray, workspace: Workspace) -> np.ndarray:
+        """(k,) bool: every checked point of the poses q inside the workspace; keeps the first refusal's reasons."""
+        points = checked_points(self.model, q, self.pts)
+        inside = workspace.admits(points)
+        if not self.example and not inside.all():
+            self.example = workspace.offenders(points[np.flatnonzero(~inside)[0]])
+        return inside
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -562,7 +560,7 @@ def optimal_configurations(
 
 def move_time_matrix(a, b, speed, acceleration) -> np.ndarray:
     """(k, l) seconds of the joint move from each configuration a (k, n) to each b (l, n): the longest of the
-    joints' trapezoidal times (:func:`labcal.sessions.plans.move_time`) at ``speed`` rad/s and ``acceleration``
+    joints' trapezoidal times (:func:`labcal.drivers.base.move_time`) at ``speed`` rad/s and ``acceleration``
     rad/s² (scalars, or (n,) per-joint caps)."""
     a, b = np.atleast_2d(np.asarray(a, dtype=float)), np.atleast_2d(np.asarray(b, dtype=float))
     out = np.empty((len(a), len(b)))
@@ -576,17 +574,14 @@ def _path_time(D: np.ndarray, order: np.ndarray) -> float:
 
 
 def _nearest_neighbour(D: np.ndarray, first: int) -> np.ndarray:
-    k = len(D)
-    order = np.empty(k, dtype=int)
-    free = np.ones(k, dtype=bool)
-    here = first
-    for i in range(k):
-        order[i] = here
+    order = [first]
+    free = np.ones(len(D), dtype=bool)
+    free[first] = False
+    while free.any():
+        here = int(np.argmin(np.where(free, D[order[-1]], np.inf)))  # ties: the lowest index (reproducible)
+        order.append(here)
         free[here] = False
-        if i + 1 < k:
-            row = np.where(free, D[here], np.inf)
-            here = int(np.argmin(row))  # ties: the lowest index, so the order is reproducible
-    return order
+    return np.array(order)
 
 
 def _two_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:

@@ -16,14 +16,11 @@ Example::
     ['Move', 'Settle', 'Measure', 'Move', 'Settle', 'Measure']
     >>> plan.n_poses, plan[2]
     (2, Measure(samples=3))
-    >>> Plan.from_json(plan.to_json()) == plan
-    True
 """
 
 from __future__ import annotations
 
 import functools
-import json
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -31,8 +28,7 @@ from typing import Any, Union
 
 import numpy as np
 
-PLAN_FORMAT = "labcal.plan"
-PLAN_VERSION = 1
+from labcal.drivers.base import move_time
 
 
 class PlanError(ValueError):
@@ -207,32 +203,6 @@ class Plan(Sequence):
         """(n_poses, n) the Move targets, rad (m)."""
         return np.array([c.q for c in self.commands if isinstance(c, Move)])
 
-    # Serialisation -------------------------------------------------------------------------------------------
-    def to_dicts(self) -> list[dict]:
-        return [command_to_dict(c) for c in self.commands]
-
-    @classmethod
-    def from_dicts(cls, items: Sequence[Any]) -> Plan:
-        if isinstance(items, str | bytes) or not isinstance(items, Sequence):
-            raise PlanError(f"expected a list of commands, got {type(items).__name__}")
-        return cls(tuple(command_from_dict(d, f"command {i}") for i, d in enumerate(items)))
-
-    def to_json(self) -> str:
-        """``{"format": "labcal.plan", "version": 1, "commands": [...]}`` as a JSON string."""
-        return json.dumps({"format": PLAN_FORMAT, "version": PLAN_VERSION, "commands": self.to_dicts()})
-
-    @classmethod
-    def from_json(cls, text: str | bytes) -> Plan:
-        try:
-            data = json.loads(text)
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise PlanError(f"plan is not valid JSON: {e}") from None
-        if not isinstance(data, dict) or data.get("format") != PLAN_FORMAT:
-            raise PlanError(f'not a labcal plan (expected "format": "{PLAN_FORMAT}")')
-        if data.get("version") != PLAN_VERSION:
-            raise PlanError(f"unsupported plan version {data.get('version')!r}; this labcal reads {PLAN_VERSION}")
-        return cls.from_dicts(data.get("commands"))
-
     def pose_documents(self) -> list[dict]:
         """One JSON-able entry per pose ``{"pose": i, "commands": [...]}``: the plan as stored in a journal's
         start document, so the journal's plan length is the number of poses."""
@@ -251,23 +221,7 @@ class Plan(Sequence):
             if not isinstance(d, dict) or d.get("pose") != i or not isinstance(d.get("commands"), list):
                 raise PlanError(f"pose document {i}: expected {{'pose': {i}, 'commands': [...]}}, got {d!r}")
             commands += d["commands"]
-        return cls.from_dicts(commands)
-
-
-def move_time(distance, speed, acceleration) -> np.ndarray:
-    """Seconds of a trapezoidal joint move over ``distance`` (rad, any shape) at ``speed`` rad/s and ``acceleration``
-    rad/s² (same shape or broadcast); a move too short to reach ``speed`` is triangular.
-
-    A joint move of a UR arm (moveJ) is led by the joint that has the farthest to go; the others are slowed to end
-    with it, so a move takes the longest of its joints' times (:func:`motion_time`).
-
-    >>> move_time([0.0, 0.1, 2.0], 0.5, 1.0).round(3).tolist()
-    [0.0, 0.632, 4.5]
-    """
-    d = np.abs(np.asarray(distance, dtype=float))
-    v, a = np.asarray(speed, dtype=float), np.asarray(acceleration, dtype=float)
-    full = d > v**2 / a
-    return np.where(full, d / v + v / a, 2.0 * np.sqrt(d / a))
+        return cls(tuple(command_from_dict(c, f"command {i}") for i, c in enumerate(commands)))
 
 
 def motion_time(plan: Plan) -> float:

@@ -52,6 +52,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import signal
 import time
@@ -565,22 +566,20 @@ def _spec_of_start(start: StartDoc) -> RobotSpec | None:
 
 
 def _safe_stop(robot: Robot) -> None:
-    try:
+    with contextlib.suppress(Exception):  # stop() must never mask the reason we are stopping
         robot.stop()
-    except Exception:  # stop() must never mask the reason we are stopping
-        pass
 
 
-def _finish(
-    store: SessionStore, journal: Journal, exit_status: str, reason: str, measured: int, plan: Plan, seal: bool
-) -> RunSummary:
-    contents = journal.read()
-    docs: list[MeasurementDoc] = contents.measurements
+def _finish(store: SessionStore, state: _Run, exit_status: str, reason: str, seal: bool) -> RunSummary:
+    """Report the end of a run (progress), close its journal, seal a version (not when paused) and sum it up."""
+    state.emit(None, exit_status, message=reason)
+    journal = state.journal
+    docs: list[MeasurementDoc] = journal.read().measurements
     valid = sum(d.valid for d in docs)
     rejected = len(docs) - valid
-    remaining = plan.n_poses - len({d.pose_index for d in docs})
+    remaining = state.plan.n_poses - len({d.pose_index for d in docs})
     journal.close()
-    ref, messages = None, []
+    messages = []
     session_id = journal.session_id
     if seal and exit_status != "paused":
         result = store.seal(session_id)
@@ -589,7 +588,7 @@ def _finish(
     else:
         versions = store.versions(session_id)
         ref = f"{session_id}@v{versions[-1]:03d}" if versions else None
-    return RunSummary(session_id, exit_status, reason, valid, rejected, remaining, measured, ref, messages)
+    return RunSummary(session_id, exit_status, reason, valid, rejected, remaining, state.measured, ref, messages)
 
 
 def run(
@@ -651,8 +650,7 @@ def run(
     except BaseException:
         journal.close()
         raise
-    state.emit(None, status, message=reason)
-    return _finish(store, journal, status, reason, state.measured, plan, opts.seal)
+    return _finish(store, state, status, reason, opts.seal)
 
 
 def resume(
@@ -729,8 +727,7 @@ def resume(
     except BaseException:
         journal.close()
         raise
-    state.emit(None, status, message=why)
-    return _finish(store, journal, status, why, state.measured, plan, opts.seal)
+    return _finish(store, state, status, why, opts.seal)
 
 
 def _check_motion_caps(plan: Plan, done: set[int], robot: Robot) -> None:

@@ -15,7 +15,7 @@ import numpy as np
 from labcal.datasets.targets import pair_distances
 from labcal.drivers.base import DriverTimeout, MeasurementRejected, ProtocolError
 from labcal.drivers.serial.crc import crc16_arc, xor8
-from labcal.drivers.serial.link import SerialLink
+from labcal.drivers.serial.link import SerialLink, retried
 from labcal.drivers.serial.profiles import AXES, AsciiProfile
 
 
@@ -50,12 +50,6 @@ def strip_checksum(line: str, kind: str) -> str:
     return body
 
 
-def _axis_map(axes: tuple[str, str, str]) -> tuple[list[int], np.ndarray]:
-    index = [AXES.index(a.lstrip("+-")) for a in axes]
-    sign = np.array([-1.0 if a.startswith("-") else 1.0 for a in axes])
-    return index, sign
-
-
 class AsciiProtocol:
     """The ASCII session on a SerialLink: start (init commands), read_frame, stop (close commands)."""
 
@@ -64,7 +58,9 @@ class AsciiProtocol:
         self.link = link
         self.targets = np.asarray(targets, dtype=float)
         self.nominal_distances = pair_distances(self.targets)
-        self._index, self._sign = _axis_map(profile.axes)
+        # tracker-frame axis i is device axis _index[i], times _sign[i]
+        self._index = [AXES.index(a.lstrip("+-")) for a in profile.axes]
+        self._sign = np.array([-1.0 if a.startswith("-") else 1.0 for a in profile.axes])
         self.identity: dict[str, object] = {}  # filled by start()
 
     def _read_text(self) -> str:
@@ -162,18 +158,11 @@ class AsciiProtocol:
 
         Retries garbled lines and timeouts.
         """
-        last: Exception | None = None
-        for _ in range(self.profile.retries + 1):
-            try:
-                points, flags = self._parse(self._fetch_line())
-                break
-            except DeviceError:
-                raise
-            except (DriverTimeout, ProtocolError) as exc:
-                last = exc
-        else:
-            assert last is not None
-            raise last
+        points, flags = retried(
+            self.profile.retries + 1,
+            lambda: self._parse(self._fetch_line()),
+            lambda error: isinstance(error, DeviceError),  # the device's own error reply: asking again cannot help
+        )
         tol = self.profile.triangle_tolerance
         if tol is not None:
             # Only distances between two seen targets can be compared (NaN otherwise).

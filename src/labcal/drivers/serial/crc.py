@@ -6,6 +6,9 @@ bit-reversed as 0xA001; initial value 0; no final XOR). ``binascii.crc_hqx`` is 
 
 from __future__ import annotations
 
+import functools
+import operator
+
 
 def _make_table() -> tuple[int, ...]:
     table = []
@@ -40,7 +43,4 @@ def xor8(data: bytes) -> int:
     >>> f"{xor8(b'GPGLL,4916.45,N,12311.12,W,225444,A'):02X}"
     '31'
     """
-    value = 0
-    for byte in bytes(data):
-        value ^= byte
-    return value
+    return functools.reduce(operator.xor, bytes(data), 0)

@@ -12,9 +12,23 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from labcal.drivers.base import ConnectionFailed, DriverTimeout, ProtocolError
+
+T = TypeVar("T")
+
+
+def retried(attempts: int, attempt: Callable[[], T], final: Callable[[Exception], bool]) -> T:
+    """``attempt()`` up to ``attempts`` (>= 1) times: a DriverTimeout or ProtocolError (a reply lost or garbled on
+    the line) is tried again unless ``final(error)``; the last attempt's error is raised."""
+    for _ in range(attempts - 1):
+        try:
+            return attempt()
+        except (DriverTimeout, ProtocolError) as exc:
+            if final(exc):
+                raise
+    return attempt()
 
 
 class Transport(Protocol):
@@ -79,6 +93,8 @@ class SerialLink:
     sleep: delay function in s (injected for the same reason).
     """
 
+    max_line = 8192  # bytes: the longest reply, so a device sending garbage without terminators cannot fill memory
+
     def __init__(
         self,
         transport: Transport,
@@ -88,7 +104,6 @@ class SerialLink:
         timeout: float,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
-        max_line: int = 8192,
     ):
         if not read_terminator:
             raise ValueError("read_terminator must not be empty")
@@ -98,7 +113,6 @@ class SerialLink:
         self.timeout = float(timeout)
         self.clock = clock
         self.sleep = sleep
-        self.max_line = max_line
         self._errors = _library_errors()
         self.closed = False
 

@@ -46,7 +46,7 @@ import numpy as np
 
 from labcal.drivers.base import ConnectionFailed, DriverTimeout, MeasurementRejected, ProtocolError
 from labcal.drivers.serial.crc import crc16_arc
-from labcal.drivers.serial.link import SerialLink
+from labcal.drivers.serial.link import SerialLink, retried
 from labcal.drivers.serial.matching import match_targets
 from labcal.drivers.serial.profiles import NDI_BAUD_CODES, NDIProfile
 
@@ -261,11 +261,6 @@ def parse_bx_body(body: bytes) -> StrayFrame:
     return StrayFrame(strays=mm * 1e-3, out_of_volume=oov, system_status=int(status))
 
 
-def parse_bx_strays(reply: bytes, command: str = "BX:1000") -> StrayFrame:
-    """Parse one whole binary ``BX:1000`` reply (header to body CRC). Raises ProtocolError naming the fault."""
-    return parse_bx_body(split_bx_reply(reply, command))
-
-
 # What labcal asks an NDI device about itself: its combined firmware description and its API revision.
 IDENTITY_COMMANDS = ("VER:4", "APIREV:")
 _VERSION_NUMBER = re.compile(r"(\d+(?:\.\d+)+)\s*$")
@@ -318,10 +313,6 @@ class NDIProtocol:
         """Send ``command`` and return the reply body; retry on timeouts, bad CRC, garbage and ERROR04."""
         return self._exchange(command, self._ascii_reply, timeout, retries)
 
-    def binary_command(self, command: str, *, timeout: float | None = None, retries: int | None = None) -> bytes:
-        """Send ``command`` (BX) and return the body of its binary reply; retries as ``command`` does."""
-        return self._exchange(command, self._binary_reply, timeout, retries)
-
     def _ascii_reply(self, command: str, timeout: float | None) -> str:
         return self._decode_line(self.link.read_line(timeout), command)
 
@@ -354,23 +345,15 @@ class NDIProtocol:
     def _exchange(
         self, command: str, read: Callable[[str, float | None], T], timeout: float | None, retries: int | None
     ) -> T:
-        tries = (self.profile.retries if retries is None else retries) + 1
-        last: Exception | None = None
-        for _ in range(tries):
+        def attempt() -> T:
             self.link.flush_input()
             self.link.write(encode_command(command))
-            try:
-                return read(command, timeout)
-            except DeviceReset:
-                raise
-            except NDIError as exc:
-                if exc.code != 0x04:  # only a corrupted command is worth sending again
-                    raise
-                last = exc
-            except (DriverTimeout, ProtocolError) as exc:
-                last = exc
-        assert last is not None
-        raise last
+            return read(command, timeout)
+
+        def final(error: Exception) -> bool:  # a reset, or an ERRORxx other than a corrupted command (ERROR04)
+            return isinstance(error, DeviceReset) or (isinstance(error, NDIError) and error.code != 0x04)
+
+        return retried((self.profile.retries if retries is None else retries) + 1, attempt, final)
 
     def _expect_okay(self, command: str, **kw: float | int | None) -> None:
         body = self.command(command, **kw)  # type: ignore[arg-type]
@@ -443,7 +426,7 @@ class NDIProtocol:
         """One TX:1000 or BX:1000 exchange (with recovery): the unlabelled markers of one frame."""
         command = MEASURE_COMMANDS[self.profile.reply]
         if self.profile.reply == "bx":
-            return parse_bx_body(self._with_recovery(lambda: self.binary_command(command)))
+            return parse_bx_body(self._with_recovery(lambda: self._exchange(command, self._binary_reply, None, None)))
         return parse_tx_strays(self._with_recovery(lambda: self.command(command)))
 
     def label(self, frame: StrayFrame, reference: np.ndarray | None = None) -> tuple[np.ndarray, tuple[str, ...]]:

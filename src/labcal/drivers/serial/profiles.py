@@ -12,7 +12,6 @@ units (metres, seconds).
 
 from __future__ import annotations
 
-import dataclasses
 import re
 import tomllib
 from dataclasses import dataclass
@@ -94,9 +93,6 @@ class AsciiProfile:
     def length_scale(self) -> float:
         return LENGTH_UNITS[self.length_unit]
 
-    def with_url(self, url: str) -> AsciiProfile:
-        return dataclasses.replace(self, port=dataclasses.replace(self.port, url=url))
-
 
 @dataclass(frozen=True)
 class NDIProfile:
@@ -125,9 +121,6 @@ class NDIProfile:
         # Profiles built in code (not loaded from TOML) must not fall back to TX on a typo.
         if self.reply not in NDI_REPLIES:
             raise ValueError(f"NDIProfile.reply must be one of {list(NDI_REPLIES)}, got {self.reply!r}")
-
-    def with_url(self, url: str) -> NDIProfile:
-        return dataclasses.replace(self, port=dataclasses.replace(self.port, url=url))
 
 
 Profile = AsciiProfile | NDIProfile
@@ -319,19 +312,8 @@ def _ndi(t: dict, port: PortSettings, name: str, source: str) -> NDIProfile:
         raise _fail(
             source, "port", "is wrong for NDI: an NDI device starts at 9600 8N1; set the target rate in [ndi].baudrate"
         )
-    return NDIProfile(
-        name=name,
-        port=port,
-        reply=t["reply"],
-        baudrate=t["baudrate"],
-        handshake=t["handshake"],
-        switch_delay=t["switch_delay"],
-        init_timeout=t["init_timeout"],
-        match_tolerance=t["match_tolerance_mm"] * 1e-3,
-        retries=t["retries"],
-        reset_on_failure=t["reset_on_failure"],
-        source=source,
-    )
+    given = {k: v for k, v in t.items() if k != "match_tolerance_mm"}  # the schema's keys are the fields
+    return NDIProfile(name=name, port=port, match_tolerance=t["match_tolerance_mm"] * 1e-3, source=source, **given)
 
 
 def parse_profile(data: dict[str, Any], source: str = "<profile>") -> Profile:

@@ -148,11 +148,7 @@ class SerialTracker(ClosedOnExit):
         if not done:
             assert first is not None
             raise first
-        stack = np.array(done)
-        seen = np.isfinite(stack).all(axis=2)
-        reference = np.full(stack.shape[1:], np.nan)
-        for t in np.flatnonzero(seen.any(axis=0)):
-            reference[t] = stack[seen[:, t], t].mean(axis=0)
+        reference = average_frames(done, timestamp=0.0).points  # each target over the frames that saw it
         for i in pending:
             labelled[i] = self.protocol.label(raw[i], reference)
         return labelled
