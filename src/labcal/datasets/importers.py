@@ -230,7 +230,7 @@ class _Csv:
                 f"missing {what} column(s) {missing}; the file has columns {self.columns}{hint}", path=str(self.path)
             )
 
-    def error(self, message: str, index: int, column: str) -> ImportFormatError:
+    def error(self, message: str, index: int, column: str | None = None) -> ImportFormatError:
         return ImportFormatError(
             message, path=str(self.path), row=index + 1, line=int(self.lines[index]), column=column
         )
@@ -280,12 +280,10 @@ class _Csv:
         blind = np.flatnonzero(nan.all(axis=(1, 2)))
         if blind.size:
             more = f" ({blind.size - 1} more row(s) like it)" if blind.size > 1 else ""
-            raise ImportFormatError(
+            raise self.error(
                 f"no target seen: every target column ({columns[0]} … {columns[-1]}) is empty; a row needs at least "
                 f"one measured target: remove the row{more}",
-                path=str(self.path),
-                row=int(blind[0]) + 1,
-                line=int(self.lines[int(blind[0])]),
+                int(blind[0]),
             )
 
 
