@@ -166,9 +166,8 @@ def _plot_curve(plt, curve: dict, stopped_at, path: Path, title: str, loss: str 
     ax.semilogy(curve["val"], label="validation")
     if stopped_at is not None:
         ax.axvline(stopped_at, color="k", ls="--", lw=0.8, label=f"validation stop (iteration {stopped_at})")
-    ax.set_xlabel("iteration")
+    ax.set(xlabel="iteration", title=title)
     ax.set_ylabel(loss_axis_label(loss), fontsize=8)
-    ax.set_title(title)
     ax.legend()
     ax.grid(alpha=0.3)
     _save(plt, fig, path)
@@ -213,9 +212,7 @@ def _plot_histograms(plt, fits: list[dict], path: Path) -> None:
     ax.hist(before, bins=bins, histtype="step", lw=1.5, label="before (registered nominal)")
     for data, e in zip(fits, after, strict=True):
         ax.hist(e, bins=bins, histtype="step", lw=1.2, label=f"{data['robot'].method} ({data['fit_id']})")
-    ax.set_xscale("log")
-    ax.set_xlabel("position error (mm, log scale), every configuration")
-    ax.set_ylabel("configurations")
+    ax.set(xscale="log", xlabel="position error (mm, log scale), every configuration", ylabel="configurations")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
     _save(plt, fig, path)
@@ -258,9 +255,7 @@ def _plot_targets(plt, data: dict, path: Path) -> None:
     for i in range(d1.shape[1]):
         (line,) = ax.plot(x, d1[:, i], "o-", ms=3, lw=0.8, label=f"t{i + 1} after")
         ax.plot(x, d0[:, i], ":", lw=0.8, color=line.get_color(), alpha=0.6, label=f"t{i + 1} before")
-    ax.set_yscale("log")
-    ax.set_xlabel("configuration (train, then val, then test)")
-    ax.set_ylabel("point error (mm)")
+    ax.set(yscale="log", xlabel="configuration (train, then val, then test)", ylabel="point error (mm)")
     ax.set_title(f"{data['robot'].method}: per-target point error before/after calibration")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, ncol=3)
@@ -763,13 +758,11 @@ def _fit_plots(plt, data: dict, out: Path) -> list[str]:
     tpng = f"targets-{fid}.png"
     _plot_targets(plt, data, out / tpng)
     lines += [f"![per-target point error]({tpng})", ""]
-    info = data["meta"].get("info") or {}
-    curve = _find(info, "curve")
-    if curve and curve.get("train"):
+    trained = _owner(data["meta"].get("info") or {}, "curve")  # the stage that trained a network, if one did
+    if trained and trained["curve"].get("train"):
         cpng = f"training-{fid}.png"
         title = f"network training ({fid})"
-        trained = _owner(info, "curve") or {}
-        _plot_curve(plt, curve, trained.get("stopped_at"), out / cpng, title, trained.get("loss"))
+        _plot_curve(plt, trained["curve"], trained.get("stopped_at"), out / cpng, title, trained.get("loss"))
         lines += [f"![training curve]({cpng})", ""]
     return lines
 
