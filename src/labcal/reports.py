@@ -582,13 +582,17 @@ def _held_out_lines(store, ref: str, data: dict, metrics: dict, *, heading: bool
     ]
 
 
-def _identity_text(identity: dict | None, what: str) -> str:
-    """'arm serial 2018… (UR10, software 5.11.0)' from a device's identity dict; says so when none was reported."""
-    identity = identity or {}
+def _device_text(device: dict, what: str, unit: object = None) -> str:
+    """'arm serial 2018… (UR10, software 5.11.0), ur driver' from a device's block of a manifest (its identity dict
+    and driver); says so when no serial was reported, and names a recorded ``unit`` that is not the serial."""
+    identity = device.get("identity") or {}
     serial = identity.get("serial")
     extra = [f"{k} {identity[k]}" for k in ("model", "software", "firmware", "version") if identity.get(k)]
     text = f"{what}: serial not reported" if serial in (None, "") else f"{what} serial **{serial}**"
-    return f"{text} ({', '.join(extra)})" if extra else text
+    text += f" ({', '.join(extra)})" if extra else ""
+    if unit not in (None, "") and str(unit) != str(serial):
+        text += f", recorded as unit {unit}"
+    return text + (f", {device['driver']} driver" if device.get("driver") else "")
 
 
 def device_line(session: dict) -> str:
@@ -598,18 +602,8 @@ def device_line(session: dict) -> str:
     ...              "tracker": {"driver": "serial", "identity": {"serial": "P9-01234"}}, "metadata": {}})
     'arm serial **20185500001** (model UR10), ur driver; tracker serial **P9-01234**, serial driver'
     """
-    robot = session.get("robot_driver") or {}
-    tracker = session.get("tracker") or {}
-    unit = (session.get("metadata") or {}).get("unit")
-    arm = _identity_text(robot.get("identity"), "arm")
-    if unit not in (None, "") and str(unit) != str((robot.get("identity") or {}).get("serial")):
-        arm += f", recorded as unit {unit}"
-    tracker_text = _identity_text(tracker.get("identity"), "tracker")
-    parts = [
-        arm + (f", {robot['driver']} driver" if robot.get("driver") else ""),
-        tracker_text + (f", {tracker['driver']} driver" if tracker.get("driver") else ""),
-    ]
-    return "; ".join(parts)
+    arm = _device_text(session.get("robot_driver") or {}, "arm", (session.get("metadata") or {}).get("unit"))
+    return f"{arm}; {_device_text(session.get('tracker') or {}, 'tracker')}"
 
 
 def _devices_of(store, refs: list[str]) -> list[str]:
