@@ -382,8 +382,7 @@ def _parameter_lines(lp: dict | None, data: dict) -> list[str]:
         scale = parameter_weights(len(labels) // 6, float(lp.get("length_scale") or 1.0))
         Vn = null / scale[:, None]  # back to the orthonormal basis of the scaled problem
         leverage = np.sum(Vn * Vn, axis=1)
-        for k, j in enumerate(frames):
-            identified[j] = leverage[6 * k : 6 * k + 6] < IDENTIFIABLE_LEVERAGE
+        identified[frames] = leverage[: 6 * len(frames)].reshape(-1, 6) < IDENTIFIABLE_LEVERAGE  # base params last
     else:
         identified = np.isfinite(std)
     names = ["vx (mm)", "vy (mm)", "vz (mm)", "ωx (mrad)", "ωy (mrad)", "ωz (mrad)"]
@@ -444,8 +443,7 @@ def _combination_lines(lp, data, dz, frames, labels, leverage, scale, null) -> l
     pivots = piv[: B.shape[0]]
     C = np.linalg.solve(B[:, pivots], B)  # each row: 1 at its pivot, 0 at the other pivots
     x = np.zeros(len(labels))
-    for k, j in enumerate(frames):
-        x[6 * k : 6 * k + 6] = dz[j]
+    x[: 6 * len(frames)] = dz[frames].ravel()
     cov = _covariance(lp, data)
     units = ("mm", "mm", "mm", "mrad", "mrad", "mrad")
     lines = [
