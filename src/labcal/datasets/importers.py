@@ -335,8 +335,9 @@ def probe_points(position: np.ndarray, rotation: np.ndarray, offsets: np.ndarray
     return np.einsum("kab,ib->kia", rotation, offsets) + position[:, None, :]
 
 
-def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, offsets: np.ndarray | None) -> pd.DataFrame:
-    """Parse every needed column of ``csvf`` into a measurements table (SI units)."""
+def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, targets: np.ndarray) -> pd.DataFrame:
+    """Parse every needed column of ``csvf`` into a measurements table (SI units); ``targets``: the session's, for
+    the probe form its virtual offsets."""
     if len(spec.joints) != n_joints:
         raise ImportFormatError(
             f"{len(spec.joints)} joint column(s) {list(spec.joints)} but the robot has n={n_joints} joints",
@@ -378,7 +379,7 @@ def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, offsets: np.ndarray
         csvf.require([*spec.position, *spec.rotation], "probe pose")
         t = np.stack([csvf.numbers(c, d) for c in spec.position], axis=1) * scale
         ang = np.stack([csvf.numbers(c, d) for c in spec.rotation], axis=1)
-        pts = probe_points(t, _rotations(ang, spec), offsets)  # type: ignore[arg-type]
+        pts = probe_points(t, _rotations(ang, spec), targets)
         for i, name in enumerate(target_columns(pts.shape[1])):
             rows[name] = pts[:, i // 3, i % 3]
     if spec.split_column and spec.split_column in csvf.columns:
@@ -486,13 +487,13 @@ def _options(options: ImportOptions | None, changes: Mapping[str, Any]) -> Impor
 
 @dataclass(frozen=True)
 class _Labels:
-    """What the imported rows are labelled with: the robot model (name, hash, joints) and the session's targets."""
+    """What the imported rows are labelled with: the robot model (name, hash, joints) and the session's targets
+    (the probe form: its virtual offsets)."""
 
     robot_name: str
     robot_hash: str
     n_joints: int
     targets: np.ndarray
-    offsets: np.ndarray | None  # the probe's virtual targets (the probe form), else None
 
 
 def _run_import(
@@ -520,7 +521,7 @@ def _run_import(
         record = robot.record()
     path = Path(path)
     csvf = _Csv(path, spec.separator)
-    rows = _build_rows(csvf, spec, n_joints, labels.offsets)
+    rows = _build_rows(csvf, spec, n_joints, labels.targets)
     # the session to add a version to, when session_id names one that exists
     existing = session_id if session_id is not None and (store.root / validate_id(session_id)).is_dir() else None
     latest = store.load(existing) if existing is not None and store.versions(existing) else None
@@ -620,7 +621,7 @@ def import_targets_csv(
     t = validate_targets(targets)
     triples = tuple(tuple(target_columns(len(t))[3 * i : 3 * i + 3]) for i in range(len(t)))
     spec = _plain_spec("targets", opts, n_joints, target_columns=triples, reject_extra_joints=True)
-    labels = _Labels(robot_name, robot_hash, n_joints, t, None)
+    labels = _Labels(robot_name, robot_hash, n_joints, t)
     return _run_import(store, path, spec, labels, opts, _read_options(opts))
 
 
@@ -665,7 +666,7 @@ def import_probe_csv(
         "offsets_m": v.tolist(),
         "columns": columns,
     }
-    labels = _Labels(robot_name, robot_hash, n_joints, v, v)
+    labels = _Labels(robot_name, robot_hash, n_joints, v)
     return _run_import(store, path, spec, labels, opts, recorded)
 
 
@@ -838,12 +839,10 @@ def import_mapped(
                 f"mapping {mpath.name} has {len(spec.target_columns)} target column triple(s) but the targets file "
                 f"{len(t)} point(s): give one point per measured target, in the order of the mapping's columns"
             )
-        offsets = None
     else:
         t = validate_targets(
             targets if targets is not None else (offsets if offsets is not None else DEFAULT_PROBE_OFFSETS)
         )
-        offsets = t
     hints = opts.hints
     if hints is None:  # the units and frame of a mapped import are keys of the mapping, not flags
         unit_key = "[targets] unit" if spec.form == "targets" else "[probe] position_unit"
@@ -855,5 +854,5 @@ def import_mapped(
         )
     text = mpath.read_bytes()
     recorded = {"mapping": mpath.stem, "mapping_sha256": sha256_bytes(text), "mapping_content": doc}
-    labels = _Labels(robot_name, robot_hash, n_joints, t, offsets)
+    labels = _Labels(robot_name, robot_hash, n_joints, t)
     return _run_import(store, path, spec, labels, opts.with_changes(hints=hints), recorded)
