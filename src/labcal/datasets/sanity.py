@@ -845,8 +845,7 @@ def check_measurements(
         report.notes.append(f"{int((~finite).sum())} row(s) with non-finite values were left out of the checks")
         keep = np.flatnonzero(finite)
         q, points = q[keep], points[keep]
-        base_row = hints.row
-        hints = replace(hints, row=lambda i: base_row(int(keep[i])) if base_row else f"row {int(keep[i]) + 1}")
+        hints = replace(hints, row=lambda i, kept=hints: kept.row_text(int(keep[i])))  # rows as the caller counts
         report.hints = hints
     report.stats["rows"] = len(q)
     layout = target_layout(targets) if form == "targets" else "plane"
