@@ -473,8 +473,6 @@ class ImportOptions:
 
     def with_changes(self, **changes: Any) -> ImportOptions:
         """These options with some fields replaced (an unknown name is a :class:`DatasetError` listing the fields)."""
-        if not changes:
-            return self
         known = {f.name for f in dataclasses.fields(self)}
         if unknown := sorted(set(changes) - known):
             raise DatasetError(f"unknown import option(s) {unknown}; the options are {sorted(known)}")
