@@ -845,7 +845,8 @@ def check_measurements(
         report.notes.append(f"{int((~finite).sum())} row(s) with non-finite values were left out of the checks")
         keep = np.flatnonzero(finite)
         q, points = q[keep], points[keep]
-        hints = replace(hints, row=lambda i, kept=hints: kept.row_text(int(keep[i])))  # rows as the caller counts
+        caller = hints  # rows named as the caller counts them
+        hints = replace(hints, row=lambda i: caller.row_text(int(keep[i])))
         report.hints = hints
     report.stats["rows"] = len(q)
     layout = target_layout(targets) if form == "targets" else "plane"
