@@ -480,8 +480,7 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
 
     turned, turns = q.copy(), {}
     for c in np.flatnonzero(rev):  # greedy, column by column: a turn that puts more rows inside is kept
-        one_turn = np.zeros(q.shape[1])
-        one_turn[c] = 2 * math.pi
+        one_turn = 2 * math.pi * np.eye(q.shape[1])[c]
         best = min((1, -1, 2, -2), key=lambda k: outside(turned - k * one_turn))
         if outside(turned - best * one_turn) < outside(turned):
             turned, turns[c] = turned - best * one_turn, best
@@ -494,8 +493,7 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
     cannot_be_radians = rev & (np.abs(q).max(axis=0) > 2 * math.pi)
     # A joint that moves over half a radian within ±2π reads as radians (in degrees it would hardly move).
     radians = rev & ~cannot_be_radians & (np.ptp(q, axis=0) > 0.5)
-    converted = q.copy()
-    converted[:, cannot_be_radians] = np.radians(q[:, cannot_be_radians])
+    converted = np.where(cannot_be_radians, np.radians(q), q)
     if cannot_be_radians.any() and radians.any() and not outside(converted):
         as_deg = ", ".join(str(j + 1) for j in np.flatnonzero(cannot_be_radians))
         as_rad = ", ".join(str(j + 1) for j in np.flatnonzero(radians))
@@ -503,8 +501,7 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
             f"joint(s) {as_deg} look like degrees while joint(s) {as_rad} look like radians; no option converts one "
             "column: convert those columns in the file (× π/180)"
         )
-    scaled = q.copy()
-    scaled[:, rev] = np.radians(q[:, rev])
+    scaled = np.where(rev, np.radians(q), q)
     if cannot_be_radians.any() and not outside(scaled):
         return f"the values look like degrees — pass {hints.angle.format(unit='deg')}"
     return None
@@ -554,8 +551,7 @@ def _hypotheses(
     def add(text, q_model, cost=1, pts=points, tgt=targets, fr=frame, free_tool=False):
         out.append(_Hypothesis(text, cost, q_model, pts, tgt, fr, free_tool))
 
-    scaled = q_ctrl.copy()
-    scaled[:, rev] = np.radians(q_ctrl[:, rev]) if angle_unit == "rad" else np.degrees(q_ctrl[:, rev])
+    scaled = np.where(rev, np.radians(q_ctrl) if angle_unit == "rad" else np.degrees(q_ctrl), q_ctrl)
     angle_alts = [("", q_ctrl), (hints.angle.format(unit="deg" if angle_unit == "rad" else "rad"), scaled)]
     length_alts = [("", points)]
     for unit, f in LENGTH_FACTORS.items():
