@@ -166,9 +166,8 @@ def _plot_curve(plt, curve: dict, stopped_at, path: Path, title: str, loss: str 
     ax.semilogy(curve["val"], label="validation")
     if stopped_at is not None:
         ax.axvline(stopped_at, color="k", ls="--", lw=0.8, label=f"validation stop (iteration {stopped_at})")
-    ax.set_xlabel("iteration")
+    ax.set(xlabel="iteration", title=title)
     ax.set_ylabel(loss_axis_label(loss), fontsize=8)
-    ax.set_title(title)
     ax.legend()
     ax.grid(alpha=0.3)
     _save(plt, fig, path)
@@ -213,9 +212,7 @@ def _plot_histograms(plt, fits: list[dict], path: Path) -> None:
     ax.hist(before, bins=bins, histtype="step", lw=1.5, label="before (registered nominal)")
     for data, e in zip(fits, after, strict=True):
         ax.hist(e, bins=bins, histtype="step", lw=1.2, label=f"{data['robot'].method} ({data['fit_id']})")
-    ax.set_xscale("log")
-    ax.set_xlabel("position error (mm, log scale), every configuration")
-    ax.set_ylabel("configurations")
+    ax.set(xscale="log", xlabel="position error (mm, log scale), every configuration", ylabel="configurations")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
     _save(plt, fig, path)
@@ -258,9 +255,7 @@ def _plot_targets(plt, data: dict, path: Path) -> None:
     for i in range(d1.shape[1]):
         (line,) = ax.plot(x, d1[:, i], "o-", ms=3, lw=0.8, label=f"t{i + 1} after")
         ax.plot(x, d0[:, i], ":", lw=0.8, color=line.get_color(), alpha=0.6, label=f"t{i + 1} before")
-    ax.set_yscale("log")
-    ax.set_xlabel("configuration (train, then val, then test)")
-    ax.set_ylabel("point error (mm)")
+    ax.set(yscale="log", xlabel="configuration (train, then val, then test)", ylabel="point error (mm)")
     ax.set_title(f"{data['robot'].method}: per-target point error before/after calibration")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, ncol=3)
@@ -387,8 +382,7 @@ def _parameter_lines(lp: dict | None, data: dict) -> list[str]:
         scale = parameter_weights(len(labels) // 6, float(lp.get("length_scale") or 1.0))
         Vn = null / scale[:, None]  # back to the orthonormal basis of the scaled problem
         leverage = np.sum(Vn * Vn, axis=1)
-        for k, j in enumerate(frames):
-            identified[j] = leverage[6 * k : 6 * k + 6] < IDENTIFIABLE_LEVERAGE
+        identified[frames] = leverage[: 6 * len(frames)].reshape(-1, 6) < IDENTIFIABLE_LEVERAGE  # base params last
     else:
         identified = np.isfinite(std)
     names = ["vx (mm)", "vy (mm)", "vz (mm)", "ωx (mrad)", "ωy (mrad)", "ωz (mrad)"]
@@ -449,8 +443,7 @@ def _combination_lines(lp, data, dz, frames, labels, leverage, scale, null) -> l
     pivots = piv[: B.shape[0]]
     C = np.linalg.solve(B[:, pivots], B)  # each row: 1 at its pivot, 0 at the other pivots
     x = np.zeros(len(labels))
-    for k, j in enumerate(frames):
-        x[6 * k : 6 * k + 6] = dz[j]
+    x[: 6 * len(frames)] = dz[frames].ravel()
     cov = _covariance(lp, data)
     units = ("mm", "mm", "mm", "mrad", "mrad", "mrad")
     lines = [
@@ -587,13 +580,17 @@ def _held_out_lines(store, ref: str, data: dict, metrics: dict, *, heading: bool
     ]
 
 
-def _identity_text(identity: dict | None, what: str) -> str:
-    """'arm serial 2018… (UR10, software 5.11.0)' from a device's identity dict; says so when none was reported."""
-    identity = identity or {}
+def _device_text(device: dict, what: str, unit: object = None) -> str:
+    """'arm serial 2018… (UR10, software 5.11.0), ur driver' from a device's block of a manifest (its identity dict
+    and driver); says so when no serial was reported, and names a recorded ``unit`` that is not the serial."""
+    identity = device.get("identity") or {}
     serial = identity.get("serial")
     extra = [f"{k} {identity[k]}" for k in ("model", "software", "firmware", "version") if identity.get(k)]
     text = f"{what}: serial not reported" if serial in (None, "") else f"{what} serial **{serial}**"
-    return f"{text} ({', '.join(extra)})" if extra else text
+    text += f" ({', '.join(extra)})" if extra else ""
+    if unit not in (None, "") and str(unit) != str(serial):
+        text += f", recorded as unit {unit}"
+    return text + (f", {device['driver']} driver" if device.get("driver") else "")
 
 
 def device_line(session: dict) -> str:
@@ -603,18 +600,8 @@ def device_line(session: dict) -> str:
     ...              "tracker": {"driver": "serial", "identity": {"serial": "P9-01234"}}, "metadata": {}})
     'arm serial **20185500001** (model UR10), ur driver; tracker serial **P9-01234**, serial driver'
     """
-    robot = session.get("robot_driver") or {}
-    tracker = session.get("tracker") or {}
-    unit = (session.get("metadata") or {}).get("unit")
-    arm = _identity_text(robot.get("identity"), "arm")
-    if unit not in (None, "") and str(unit) != str((robot.get("identity") or {}).get("serial")):
-        arm += f", recorded as unit {unit}"
-    tracker_text = _identity_text(tracker.get("identity"), "tracker")
-    parts = [
-        arm + (f", {robot['driver']} driver" if robot.get("driver") else ""),
-        tracker_text + (f", {tracker['driver']} driver" if tracker.get("driver") else ""),
-    ]
-    return "; ".join(parts)
+    arm = _device_text(session.get("robot_driver") or {}, "arm", (session.get("metadata") or {}).get("unit"))
+    return f"{arm}; {_device_text(session.get('tracker') or {}, 'tracker')}"
 
 
 def _devices_of(store, refs: list[str]) -> list[str]:
@@ -763,13 +750,11 @@ def _fit_plots(plt, data: dict, out: Path) -> list[str]:
     tpng = f"targets-{fid}.png"
     _plot_targets(plt, data, out / tpng)
     lines += [f"![per-target point error]({tpng})", ""]
-    info = data["meta"].get("info") or {}
-    curve = _find(info, "curve")
-    if curve and curve.get("train"):
+    trained = _owner(data["meta"].get("info") or {}, "curve")  # the stage that trained a network, if one did
+    if trained and trained["curve"].get("train"):
         cpng = f"training-{fid}.png"
         title = f"network training ({fid})"
-        trained = _owner(info, "curve") or {}
-        _plot_curve(plt, curve, trained.get("stopped_at"), out / cpng, title, trained.get("loss"))
+        _plot_curve(plt, trained["curve"], trained.get("stopped_at"), out / cpng, title, trained.get("loss"))
         lines += [f"![training curve]({cpng})", ""]
     return lines
 

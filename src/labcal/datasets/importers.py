@@ -107,8 +107,8 @@ class ImportSpec:
     description: str = ""
 
     def check(self) -> None:
-        if self.form not in ("targets", "probe"):
-            raise MappingError(f'form must be "targets" or "probe", got {self.form!r}')
+        """Refuse the reading options a user gave wrong (a mapping's form, target triples and extra column types
+        are its schema's to check)."""
         if self.frame not in FRAMES:
             raise MappingError(f"frame must be one of {FRAMES}, got {self.frame!r}")
         if self.joint_unit not in ANGLE_UNITS:
@@ -126,8 +126,6 @@ class ImportSpec:
                 raise MappingError(f'rotation convention must be "rotvec" or "euler", got {self.convention!r}')
             if self.convention == "euler":
                 _check_sequence(self.euler_sequence)
-        if self.form == "targets" and len(self.target_columns) < 1:
-            raise MappingError("the targets form needs a target column triple [x, y, z] per target")
         names = [e.name for e in self.extras]
         if len(set(names)) != len(names):
             raise MappingError(f"duplicate extra column names {names}")
@@ -135,8 +133,6 @@ class ImportSpec:
             validate_id(e.name, "extra column name")
             if not all(c.isalnum() or c == "_" for c in e.name):
                 raise MappingError(f"extra column name {e.name!r} may hold letters, digits and '_' only")
-            if e.kind not in ("float", "str"):
-                raise MappingError(f'extra column {e.name!r}: type must be "float" or "str", got {e.kind!r}')
 
 
 def _check_sequence(seq: object) -> str:
@@ -230,7 +226,7 @@ class _Csv:
                 f"missing {what} column(s) {missing}; the file has columns {self.columns}{hint}", path=str(self.path)
             )
 
-    def error(self, message: str, index: int, column: str) -> ImportFormatError:
+    def error(self, message: str, index: int, column: str | None = None) -> ImportFormatError:
         return ImportFormatError(
             message, path=str(self.path), row=index + 1, line=int(self.lines[index]), column=column
         )
@@ -280,12 +276,10 @@ class _Csv:
         blind = np.flatnonzero(nan.all(axis=(1, 2)))
         if blind.size:
             more = f" ({blind.size - 1} more row(s) like it)" if blind.size > 1 else ""
-            raise ImportFormatError(
+            raise self.error(
                 f"no target seen: every target column ({columns[0]} … {columns[-1]}) is empty; a row needs at least "
                 f"one measured target: remove the row{more}",
-                path=str(self.path),
-                row=int(blind[0]) + 1,
-                line=int(self.lines[int(blind[0])]),
+                int(blind[0]),
             )
 
 
@@ -341,8 +335,9 @@ def probe_points(position: np.ndarray, rotation: np.ndarray, offsets: np.ndarray
     return np.einsum("kab,ib->kia", rotation, offsets) + position[:, None, :]
 
 
-def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, offsets: np.ndarray | None) -> pd.DataFrame:
-    """Parse every needed column of ``csvf`` into a measurements table (SI units)."""
+def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, targets: np.ndarray) -> pd.DataFrame:
+    """Parse every needed column of ``csvf`` into a measurements table (SI units); ``targets``: the session's, for
+    the probe form its virtual offsets."""
     if len(spec.joints) != n_joints:
         raise ImportFormatError(
             f"{len(spec.joints)} joint column(s) {list(spec.joints)} but the robot has n={n_joints} joints",
@@ -384,7 +379,7 @@ def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, offsets: np.ndarray
         csvf.require([*spec.position, *spec.rotation], "probe pose")
         t = np.stack([csvf.numbers(c, d) for c in spec.position], axis=1) * scale
         ang = np.stack([csvf.numbers(c, d) for c in spec.rotation], axis=1)
-        pts = probe_points(t, _rotations(ang, spec), offsets)  # type: ignore[arg-type]
+        pts = probe_points(t, _rotations(ang, spec), targets)
         for i, name in enumerate(target_columns(pts.shape[1])):
             rows[name] = pts[:, i // 3, i % 3]
     if spec.split_column and spec.split_column in csvf.columns:
@@ -478,8 +473,6 @@ class ImportOptions:
 
     def with_changes(self, **changes: Any) -> ImportOptions:
         """These options with some fields replaced (an unknown name is a :class:`DatasetError` listing the fields)."""
-        if not changes:
-            return self
         known = {f.name for f in dataclasses.fields(self)}
         if unknown := sorted(set(changes) - known):
             raise DatasetError(f"unknown import option(s) {unknown}; the options are {sorted(known)}")
@@ -492,13 +485,13 @@ def _options(options: ImportOptions | None, changes: Mapping[str, Any]) -> Impor
 
 @dataclass(frozen=True)
 class _Labels:
-    """What the imported rows are labelled with: the robot model (name, hash, joints) and the session's targets."""
+    """What the imported rows are labelled with: the robot model (name, hash, joints) and the session's targets
+    (the probe form: its virtual offsets)."""
 
     robot_name: str
     robot_hash: str
     n_joints: int
     targets: np.ndarray
-    offsets: np.ndarray | None  # the probe's virtual targets (the probe form), else None
 
 
 def _run_import(
@@ -526,7 +519,7 @@ def _run_import(
         record = robot.record()
     path = Path(path)
     csvf = _Csv(path, spec.separator)
-    rows = _build_rows(csvf, spec, n_joints, labels.offsets)
+    rows = _build_rows(csvf, spec, n_joints, labels.targets)
     # the session to add a version to, when session_id names one that exists
     existing = session_id if session_id is not None and (store.root / validate_id(session_id)).is_dir() else None
     latest = store.load(existing) if existing is not None and store.versions(existing) else None
@@ -626,7 +619,7 @@ def import_targets_csv(
     t = validate_targets(targets)
     triples = tuple(tuple(target_columns(len(t))[3 * i : 3 * i + 3]) for i in range(len(t)))
     spec = _plain_spec("targets", opts, n_joints, target_columns=triples, reject_extra_joints=True)
-    labels = _Labels(robot_name, robot_hash, n_joints, t, None)
+    labels = _Labels(robot_name, robot_hash, n_joints, t)
     return _run_import(store, path, spec, labels, opts, _read_options(opts))
 
 
@@ -671,7 +664,7 @@ def import_probe_csv(
         "offsets_m": v.tolist(),
         "columns": columns,
     }
-    labels = _Labels(robot_name, robot_hash, n_joints, v, v)
+    labels = _Labels(robot_name, robot_hash, n_joints, v)
     return _run_import(store, path, spec, labels, opts, recorded)
 
 
@@ -844,12 +837,10 @@ def import_mapped(
                 f"mapping {mpath.name} has {len(spec.target_columns)} target column triple(s) but the targets file "
                 f"{len(t)} point(s): give one point per measured target, in the order of the mapping's columns"
             )
-        offsets = None
     else:
         t = validate_targets(
             targets if targets is not None else (offsets if offsets is not None else DEFAULT_PROBE_OFFSETS)
         )
-        offsets = t
     hints = opts.hints
     if hints is None:  # the units and frame of a mapped import are keys of the mapping, not flags
         unit_key = "[targets] unit" if spec.form == "targets" else "[probe] position_unit"
@@ -861,5 +852,5 @@ def import_mapped(
         )
     text = mpath.read_bytes()
     recorded = {"mapping": mpath.stem, "mapping_sha256": sha256_bytes(text), "mapping_content": doc}
-    labels = _Labels(robot_name, robot_hash, n_joints, t, offsets)
+    labels = _Labels(robot_name, robot_hash, n_joints, t)
     return _run_import(store, path, spec, labels, opts.with_changes(hints=hints), recorded)

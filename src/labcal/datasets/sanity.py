@@ -111,8 +111,9 @@ class Hints:
     def row_text(self, i: int) -> str:
         return self.row(i) if self.row is not None else f"row {i + 1}"
 
-    def rows_text(self, rows: Sequence[int], limit: int = 5) -> str:
-        shown = ", ".join(self.row_text(int(i)) for i in list(rows)[:limit])
+    def rows_text(self, rows: Sequence[int], limit: int = 5, value: Callable[[int], str] | None = None) -> str:
+        """The first ``limit`` rows as text, each followed by ``value(row)`` when given ("row 7 31.2 mm")."""
+        shown = ", ".join(self.row_text(int(i)) + (f" {value(int(i))}" if value else "") for i in list(rows)[:limit])
         return shown + (f" (+{len(rows) - limit} more)" if len(rows) > limit else "")
 
 
@@ -248,7 +249,7 @@ def registered_residuals(
     """
     pred = robot.model.target_points(q_model, targets) if tool_known else None
     if pred is not None and frame != "tracker":
-        return _row_mean(np.linalg.norm(points - pred, axis=2))
+        return np.nanmean(np.linalg.norm(points - pred, axis=2), axis=1)  # NaN: a target not seen
     F = None if tool_known else robot.model.fk(q_model)
     res = _registered(F, pred, points, targets, frame, np.ones(len(points), bool))
     keep = res <= max(5 * float(np.median(res)), NOMINAL_MEAN_LIMIT)
@@ -264,7 +265,7 @@ def _registered(F, pred, points, targets, frame, fit_rows) -> np.ndarray:
         a, b = points[fit_rows].reshape(-1, 3), pred[fit_rows].reshape(-1, 3)
         seen = np.isfinite(a).all(axis=1)
         R, t = kabsch(a[seen], b[seen]) if not seen.all() else kabsch(a, b)
-        return _row_mean(np.linalg.norm(_apply(R, t, points) - pred, axis=2))
+        return np.nanmean(np.linalg.norm(_apply(R, t, points) - pred, axis=2), axis=1)
     if frame == "tracker":
         P = se3.rigid_fit(targets, points)  # the measured probe poses
         Y = _hand_eye(F[fit_rows], P[fit_rows])
@@ -282,13 +283,6 @@ def _registered(F, pred, points, targets, frame, fit_rows) -> np.ndarray:
         R, t = kabsch(points[fit_rows].reshape(-1, 3), pred[fit_rows].reshape(-1, 3))
         base_pts = _apply(R, t, points)
     return np.linalg.norm(base_pts - pred, axis=2).mean(axis=1)
-
-
-def _row_mean(dist: np.ndarray) -> np.ndarray:
-    """(k, m) distances, NaN for targets not seen → (k,) mean over the seen ones (the plain mean when all are)."""
-    if np.isnan(dist).any():
-        return np.nanmean(dist, axis=1)
-    return dist.mean(axis=1)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -486,8 +480,7 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
 
     turned, turns = q.copy(), {}
     for c in np.flatnonzero(rev):  # greedy, column by column: a turn that puts more rows inside is kept
-        one_turn = np.zeros(q.shape[1])
-        one_turn[c] = 2 * math.pi
+        one_turn = 2 * math.pi * np.eye(q.shape[1])[c]
         best = min((1, -1, 2, -2), key=lambda k: outside(turned - k * one_turn))
         if outside(turned - best * one_turn) < outside(turned):
             turned, turns[c] = turned - best * one_turn, best
@@ -500,8 +493,7 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
     cannot_be_radians = rev & (np.abs(q).max(axis=0) > 2 * math.pi)
     # A joint that moves over half a radian within ±2π reads as radians (in degrees it would hardly move).
     radians = rev & ~cannot_be_radians & (np.ptp(q, axis=0) > 0.5)
-    converted = q.copy()
-    converted[:, cannot_be_radians] = np.radians(q[:, cannot_be_radians])
+    converted = np.where(cannot_be_radians, np.radians(q), q)
     if cannot_be_radians.any() and radians.any() and not outside(converted):
         as_deg = ", ".join(str(j + 1) for j in np.flatnonzero(cannot_be_radians))
         as_rad = ", ".join(str(j + 1) for j in np.flatnonzero(radians))
@@ -509,8 +501,7 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
             f"joint(s) {as_deg} look like degrees while joint(s) {as_rad} look like radians; no option converts one "
             "column: convert those columns in the file (× π/180)"
         )
-    scaled = q.copy()
-    scaled[:, rev] = np.radians(q[:, rev])
+    scaled = np.where(rev, np.radians(q), q)
     if cannot_be_radians.any() and not outside(scaled):
         return f"the values look like degrees — pass {hints.angle.format(unit='deg')}"
     return None
@@ -560,11 +551,8 @@ def _hypotheses(
     def add(text, q_model, cost=1, pts=points, tgt=targets, fr=frame, free_tool=False):
         out.append(_Hypothesis(text, cost, q_model, pts, tgt, fr, free_tool))
 
-    angle_alts = [("", q_ctrl)]
-    alt_unit = "deg" if angle_unit == "rad" else "rad"
-    scaled = q_ctrl.copy()
-    scaled[:, rev] = np.radians(q_ctrl[:, rev]) if angle_unit == "rad" else np.degrees(q_ctrl[:, rev])
-    angle_alts.append((hints.angle.format(unit=alt_unit), scaled))
+    scaled = np.where(rev, np.radians(q_ctrl) if angle_unit == "rad" else np.degrees(q_ctrl), q_ctrl)
+    angle_alts = [("", q_ctrl), (hints.angle.format(unit="deg" if angle_unit == "rad" else "rad"), scaled)]
     length_alts = [("", points)]
     for unit, f in LENGTH_FACTORS.items():
         if unit == length_unit:
@@ -588,10 +576,9 @@ def _hypotheses(
         if not (rev[j] and rev[j - 1]):
             continue
         # Coupled neighbours, with either joint possibly reversed: model q_j+1 = ±J_j+1 + c·J_j, q_j = ±J_j (the
-        # coupled elbow of several arm makers is q3 = J2 + J3, sometimes with J2 reversed too).
-        for s1, s2, c in itertools.product((1.0, -1.0), (1.0, -1.0), (0.0, 1.0, -1.0)):
-            if c == 0.0:
-                continue  # plain sign flips are below
+        # coupled elbow of several arm makers is q3 = J2 + J3, sometimes with J2 reversed too). c ≠ 0: plain sign
+        # flips are below.
+        for s1, s2, c in itertools.product((1.0, -1.0), (1.0, -1.0), (1.0, -1.0)):
             M = np.eye(n)
             M[j - 1, j - 1], M[j, j], M[j, j - 1] = s1, s2, c
             rows = "; ".join(_map_row(M, r) for r in (j - 1, j) if not np.array_equal(M[r], np.eye(n)[r]))
@@ -652,8 +639,7 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
             "nominal",
             f"{len(far)} of {len(q)} rows are far from where the nominal {robot.name} model puts the targets "
             f"while the others are within {_mm(mean)} (mean): "
-            + ", ".join(f"{hints.row_text(int(i))} {_mm(float(per_row[i]))}" for i in far[:5])
-            + (f" (+{len(far) - 5} more)" if len(far) > 5 else "")
+            + hints.rows_text(far, value=lambda i: _mm(float(per_row[i])))
             + ": a mistyped or mis-measured row; remove or re-measure it",
             far[:20],
         )
@@ -698,7 +684,7 @@ def _nominal_mismatch(q, per_row, mean, robot, frame, tool_known, hints, fix: st
         ("tracker", False): "after registering the tracker frame and the probe's mount on the flange",
     }[(frame, tool_known)]
     worst = np.argsort(per_row)[::-1][:3]
-    worst_text = ", ".join(f"{hints.row_text(int(i))} {_mm(float(per_row[i]))}" for i in worst)
+    worst_text = hints.rows_text(worst, value=lambda i: _mm(float(per_row[i])))
     if fix is None:
         fix = (
             f"no single fix found; likely causes: the joint angle unit ({hints.angle.format(unit='deg|rad')}), "
@@ -855,8 +841,8 @@ def check_measurements(
         report.notes.append(f"{int((~finite).sum())} row(s) with non-finite values were left out of the checks")
         keep = np.flatnonzero(finite)
         q, points = q[keep], points[keep]
-        base_row = hints.row
-        hints = replace(hints, row=lambda i: base_row(int(keep[i])) if base_row else f"row {int(keep[i]) + 1}")
+        caller = hints  # rows named as the caller counts them
+        hints = replace(hints, row=lambda i: caller.row_text(int(keep[i])))
         report.hints = hints
     report.stats["rows"] = len(q)
     layout = target_layout(targets) if form == "targets" else "plane"
