@@ -39,7 +39,7 @@ import io
 import json
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -363,6 +363,19 @@ def _read_parquet(data: bytes) -> pd.DataFrame:
     import pyarrow.parquet as pq
 
     return pq.read_table(io.BytesIO(data)).to_pandas()
+
+
+@contextlib.contextmanager
+def _publishing(parent: Path, prefix: str, final: Path) -> Iterator[Path]:
+    """A fresh hidden temporary folder in ``parent`` to fill, renamed to ``final`` when the block ends; removed
+    instead if the block or the rename fails, so ``final`` appears complete or not at all."""
+    tmp = make_temp_dir(parent, prefix)
+    try:
+        yield tmp
+        publish_dir(tmp, final)
+    except BaseException:
+        remove_tree(tmp)
+        raise
 
 
 def _plan_summary(plan: Sequence[Any]) -> dict:
@@ -791,8 +804,7 @@ class SessionStore:
         table = normalize_table(table, int(meta["robot"]["n_joints"]), len(meta["targets"]))
         parent = None if parent_ds is None else parse_ref(parent_ds.ref).version
         name = version_name((parent or 0) + 1)
-        tmp = make_temp_dir(where, name)
-        try:
+        with _publishing(where, name, where / name) as tmp:
             data = _parquet_bytes(table)
             write_file_durable(tmp / MEASUREMENTS, data)
             manifest = {
@@ -817,10 +829,6 @@ class SessionStore:
             }
             sealed = _dump_sealed(manifest, "manifest_sha256")
             write_file_durable(tmp / MANIFEST, sealed)
-            publish_dir(tmp, where / name)
-        except BaseException:
-            remove_tree(tmp)
-            raise
         # After the rename: a crash in between leaves a complete version the log does not list yet, which
         # check_session notes; the other order would list a version that was never published.
         _log_version(where, name, json.loads(sealed)["manifest_sha256"], manifest["parent"])
@@ -871,16 +879,10 @@ class SessionStore:
         final = self.root / session_id
         if final.exists():
             raise DatasetError(f"session {session_id!r} already exists in {self.root}")
-        tmp = make_temp_dir(self.root, f"session-{session_id}")
-        try:
-            ref = self._write_version(
+        with _publishing(self.root, f"session-{session_id}", final) as tmp:
+            return self._write_version(
                 tmp, session_id, None, rows, meta, source=source, provenance=provenance, journal_seq_through=0
             )
-            publish_dir(tmp, final)
-        except BaseException:
-            remove_tree(tmp)
-            raise
-        return ref
 
     @_writes("seal the journal into a version")
     def seal(self, session_id: str, *, valid_prefix: bool = False) -> SealResult:
@@ -999,8 +1001,7 @@ class SessionStore:
         make_dirs_durable(fits_dir)
         if (fits_dir / fit_id).exists():
             raise DatasetError(f"fit {fit_id!r} already exists under {resolved[0]}")
-        tmp = make_temp_dir(fits_dir, fit_id)
-        try:
+        with _publishing(fits_dir, fit_id, fits_dir / fit_id) as tmp:
             recorded = {}
             for name, content in sorted(files.items()):
                 data = content.encode("utf-8") if isinstance(content, str) else bytes(content)
@@ -1018,10 +1019,6 @@ class SessionStore:
                 "software": software_versions(),
             }
             write_file_durable(tmp / FIT_JSON, _dump_sealed(meta, "fit_sha256"))
-            publish_dir(tmp, fits_dir / fit_id)
-        except BaseException:
-            remove_tree(tmp)
-            raise
         return FitRecord(
             fit_id, str(resolved[0]), fits_dir / fit_id, json.loads((fits_dir / fit_id / FIT_JSON).read_text())
         )
