@@ -1435,8 +1435,3 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
 def load_version(store: SessionStore | str | Path | None, ref: str | Ref) -> Dataset:
     """Load ``SESSION[@vN]`` from ``store`` (a SessionStore or its root folder), verifying its hashes."""
     return (store if isinstance(store, SessionStore) else SessionStore(store)).load(ref)
-
-
-def verify(store: SessionStore | str | Path | None, ref: str | Ref) -> VerifyReport:
-    """Recompute the hashes of ``SESSION[@vN]``; see :meth:`SessionStore.verify`."""
-    return (store if isinstance(store, SessionStore) else SessionStore(store)).verify(ref)
