@@ -36,18 +36,11 @@ def sha256_file(path: Path, limit: int | None = None) -> str:
     import hashlib
 
     h = hashlib.sha256()
-    remaining = limit
+    remaining = sys.maxsize if limit is None else limit
     with open(path, "rb") as f:
-        while True:
-            n = 1 << 20 if remaining is None else min(1 << 20, remaining)
-            if n == 0:
-                break
-            chunk = f.read(n)
-            if not chunk:
-                break
+        while remaining > 0 and (chunk := f.read(min(1 << 20, remaining))):
             h.update(chunk)
-            if remaining is not None:
-                remaining -= len(chunk)
+            remaining -= len(chunk)
     return h.hexdigest()
 
 
@@ -85,8 +78,8 @@ def make_dirs_durable(path: Path) -> None:
         fsync_dir(p.parent)
 
 
-def write_file_durable(path: Path, data: bytes, *, read_only: bool = True) -> None:
-    """Write a new file (must not exist), fsync it, and optionally make it read-only.
+def write_file_durable(path: Path, data: bytes) -> None:
+    """Write a new file (must not exist), fsync it, and make it read-only.
 
     An error of ``write`` or ``fsync`` (a full disk: ENOSPC, a quota, an I/O error) carries no file name of its own;
     it is re-raised with ``path`` as its filename, so the one-line message names the file that could not be written.
@@ -101,8 +94,7 @@ def write_file_durable(path: Path, data: bytes, *, read_only: bool = True) -> No
         raise
     finally:
         os.close(fd)
-    if read_only:
-        os.chmod(path, READ_ONLY)
+    os.chmod(path, READ_ONLY)
 
 
 def make_temp_dir(parent: Path, prefix: str) -> Path:
