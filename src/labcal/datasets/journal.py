@@ -34,6 +34,7 @@ Lifecycle: measurements are accepted while the run is *running*; ``pause`` → p
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -351,10 +352,8 @@ class Journal:
         self.close()
 
     def __del__(self) -> None:  # pragma: no cover - safety net only
-        try:
+        with contextlib.suppress(Exception):
             self.close()
-        except Exception:
-            pass
 
     # ---------------------------------------------------------------------------------------------- queries
     @property
