@@ -609,26 +609,20 @@ class SessionStore:
         """Recompute every hash of a version; report missing, extra and changed files precisely."""
         r = self.resolve(ref)
         vdir = self.session_dir(r.session_id) / version_name(r.version)  # type: ignore[arg-type]
-        problems: list[str] = []
-        checked: list[str] = []
-        mpath = vdir / MANIFEST
-        if not mpath.is_file():
-            problems.append(f"{MANIFEST}: missing")
-            manifest = None
-        else:
-            manifest, mp = _load_sealed(mpath.read_bytes(), "manifest_sha256", MANIFEST)
-            if manifest is None:
-                mp = [f"{m} (the data files cannot be checked without it)" for m in mp]
-            problems += mp
-            checked.append(MANIFEST)
-        listed: dict[str, dict] = {}
-        if manifest is not None:
-            if manifest.get("ref") != str(r):
-                problems.append(f"{MANIFEST}: belongs to {manifest.get('ref')!r}, found as {str(r)!r}")
-            listed = dict(manifest.get("files") or {})
-            _check_files(vdir, listed, "", problems, checked)
+        if not (vdir / MANIFEST).is_file():
+            return VerifyReport(str(r), [f"{MANIFEST}: missing"])
+        manifest, problems = _load_sealed((vdir / MANIFEST).read_bytes(), "manifest_sha256", MANIFEST)
+        checked = [MANIFEST]
+        if manifest is None:
+            return VerifyReport(
+                str(r), [f"{m} (the data files cannot be checked without it)" for m in problems], checked
+            )
+        if manifest.get("ref") != str(r):
+            problems.append(f"{MANIFEST}: belongs to {manifest.get('ref')!r}, found as {str(r)!r}")
+        listed = dict(manifest.get("files") or {})
+        _check_files(vdir, listed, "", problems, checked)
         notes: list[str] = []
-        for p in sorted(vdir.iterdir()) if manifest is not None else []:
+        for p in sorted(vdir.iterdir()):
             if p.name in listed or p.name == MANIFEST or (p.name == FITS and p.is_dir()):
                 continue
             kind = "directory" if p.is_dir() else "file"
