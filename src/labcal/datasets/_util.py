@@ -13,7 +13,7 @@ import math
 import os
 import shutil
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +49,19 @@ def canonical_json(obj: Any, *, indent: int | None = None) -> str:
     if indent is None:
         return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
     return json.dumps(obj, sort_keys=True, indent=indent, allow_nan=False, ensure_ascii=False) + "\n"
+
+
+def json_lines(data: bytes) -> Iterator[tuple[int, Any, str | None]]:
+    """(line number from 1, document, None) for each non-blank line of JSON-lines ``data`` that is JSON, (line
+    number, None, why) for one that is not: the journal's and the versions log's reader."""
+    for i, raw in enumerate(data.split(b"\n"), start=1):
+        if raw.strip():
+            try:
+                doc = json.loads(raw.decode("utf-8"))
+            except ValueError as e:  # UnicodeDecodeError and json.JSONDecodeError are ValueErrors
+                yield i, None, f"unreadable ({type(e).__name__})"
+                continue
+            yield i, doc, None
 
 
 def utc_now() -> _dt.datetime:

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import json
 import os
 import time as _time
 import uuid
@@ -45,7 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ._util import canonical_json, fsync_dir, jsonable, write_all
+from ._util import canonical_json, fsync_dir, json_lines, jsonable, write_all
 from .documents import (
     EXIT_STATUSES,
     STATUSES,
@@ -171,24 +170,15 @@ def read_journal(path: str | Path) -> JournalContents:
         data = path.read_bytes()
     except OSError as e:
         raise JournalError(f"cannot read journal {path}: {e}") from None
-    lines = data.split(b"\n")
-    # After split, a trailing newline yields an empty last element; anything else there is unterminated.
-    needs_newline = bool(data) and not data.endswith(b"\n")
+    needs_newline = bool(data) and not data.endswith(b"\n")  # the last line is unterminated
     parsed: list[tuple[int, dict]] = []
     bad: list[tuple[int, str]] = []
-    for i, raw in enumerate(lines, start=1):
-        if not raw.strip():
-            continue
-        try:
-            doc = json.loads(raw.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            bad.append((i, f"unreadable ({type(e).__name__})"))
-            continue
-        why = _check_doc(doc)
+    for i, doc, unreadable in json_lines(data):
+        why = unreadable or _check_doc(doc)
         if why:
             bad.append((i, why))
-            continue
-        parsed.append((i, doc))
+        else:
+            parsed.append((i, doc))
     last_good = parsed[-1][0] if parsed else 0
     repaired = {ln for _, d in parsed if d["type"] == "repair" for ln in d.get("torn_lines", [])}
     warnings: list[str] = []

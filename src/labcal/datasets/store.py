@@ -48,6 +48,7 @@ from ._util import (
     canonical_json,
     fsync_dir,
     iso,
+    json_lines,
     jsonable,
     make_dirs_durable,
     make_temp_dir,
@@ -1349,22 +1350,14 @@ def _read_versions_log(data: bytes) -> tuple[list[dict], list[str], list[str]]:
     entries: list[dict] = []
     problems: list[str] = []
     notes: list[str] = []
-    lines = data.split(b"\n")
-    torn = bool(data) and not data.endswith(b"\n")  # then the last element is an unfinished line
-    for i, raw in enumerate(lines, start=1):
-        if not raw.strip():
-            continue
-        try:
-            doc = json.loads(raw.decode("utf-8"))
-            if not isinstance(doc, dict) or not isinstance(doc.get("version"), str):
-                raise ValueError("no version")
-        except (UnicodeDecodeError, ValueError):
-            if torn and i == len(lines):
-                notes.append(f"{VERSIONS_LOG}: line {i} unfinished (an interrupted write), ignored")
-            else:
-                problems.append(f"{VERSIONS_LOG}: line {i} unreadable")
-            continue
-        entries.append(doc)
+    unfinished = data.count(b"\n") + 1 if data and not data.endswith(b"\n") else 0  # its last line, if unterminated
+    for i, doc, _ in json_lines(data):
+        if isinstance(doc, dict) and isinstance(doc.get("version"), str):
+            entries.append(doc)
+        elif i == unfinished:
+            notes.append(f"{VERSIONS_LOG}: line {i} unfinished (an interrupted write), ignored")
+        else:
+            problems.append(f"{VERSIONS_LOG}: line {i} unreadable")
     return entries, problems, notes
 
 
