@@ -8,6 +8,7 @@ finished temporary directory, so a reader never sees a half-written version, ses
 from __future__ import annotations
 
 import datetime as _dt
+import itertools
 import json
 import math
 import os
@@ -81,11 +82,7 @@ def random_hex(n: int) -> str:
 def make_dirs_durable(path: Path) -> None:
     """``path.mkdir(parents=True, exist_ok=True)``, and the name of every folder it created made durable (its parent
     fsynced): files fsynced inside a folder whose own entry never reached the disk are lost with it."""
-    created = []
-    for p in (path, *path.parents):
-        if p.exists():
-            break
-        created.append(p)
+    created = list(itertools.takewhile(lambda p: not p.exists(), (path, *path.parents)))
     path.mkdir(parents=True, exist_ok=True)
     for p in reversed(created):
         fsync_dir(p.parent)
