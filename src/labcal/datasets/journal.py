@@ -127,11 +127,6 @@ class JournalContents:
         stop = self.stop
         return stop.exit_status if stop is not None else "paused" if self.state == "paused" else "open"
 
-    @property
-    def next_seq(self) -> int:
-        ms = self.measurements
-        return ms[-1].seq + 1 if ms else 1
-
     def valid_pose_indices(self) -> set[int]:
         """Plan positions that already have a valid measurement (skip them when resuming)."""
         return {d.pose_index for d in self.measurements if d.valid}
@@ -269,7 +264,7 @@ class Journal:
         self.n_targets: int = start.n_targets
         self.plan_length: int = len(start.plan)
         self._state = contents.state
-        self._next_seq = contents.next_seq
+        self._next_seq = max((m.seq for m in contents.measurements), default=0) + 1  # read_journal keeps seqs rising
         self._valid = contents.valid_pose_indices()
         self.warnings: list[str] = list(contents.warnings)
 
