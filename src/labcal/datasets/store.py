@@ -148,10 +148,13 @@ def default_root() -> Path:
 # Self-hashed JSON: the file's bytes are the canonical dump, and it carries the sha256 of its other content.
 
 
+def _content_sha256(obj: dict, key: str) -> str:
+    """What a self-hashed document holds under ``key``: the sha256 of the canonical JSON of its other fields."""
+    return sha256_bytes(canonical_json({k: v for k, v in obj.items() if k != key}).encode("utf-8"))
+
+
 def _dump_sealed(obj: dict, key: str) -> bytes:
-    body = {k: v for k, v in obj.items() if k != key}
-    sealed = {**body, key: sha256_bytes(canonical_json(body).encode("utf-8"))}
-    return canonical_json(sealed, indent=2).encode("utf-8")
+    return canonical_json({**obj, key: _content_sha256(obj, key)}, indent=2).encode("utf-8")
 
 
 def _load_sealed(data: bytes, key: str, name: str) -> tuple[dict | None, list[str]]:
@@ -162,8 +165,7 @@ def _load_sealed(data: bytes, key: str, name: str) -> tuple[dict | None, list[st
     if not isinstance(obj, dict) or key not in obj:
         return None, [f"{name}: has no {key!r} field"]
     problems = []
-    body = {k: v for k, v in obj.items() if k != key}
-    actual = sha256_bytes(canonical_json(body).encode("utf-8"))
+    actual = _content_sha256(obj, key)
     if actual != obj[key]:
         problems.append(f"{name}: content sha256 mismatch: expected {obj[key]}, actual {actual}")
     elif canonical_json(obj, indent=2).encode("utf-8") != data:
