@@ -99,10 +99,6 @@ class SessionHeader:
     def robot_name(self) -> str:
         return str(self.robot["name"])
 
-    @property
-    def n_joints(self) -> int:
-        return self.robot["n_joints"]
-
     def start_document(self, session_id: str, *, time: float | None = None) -> StartDoc:
         """The start document of a session with this header (checked: frame, joint count, targets, unit keys)."""
         if self.frame not in FRAMES:
