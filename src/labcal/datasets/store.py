@@ -394,9 +394,9 @@ def with_robot_record(meta: dict) -> dict:
     holding the text, which is what makes a version refittable without the robot file. A record of another model
     (different hash) is refused rather than silently attached.
     """
-    robot = dict(meta["robot"])
+    robot = meta["robot"]
     user = dict(meta.get("metadata") or {})
-    record = user.get("robot")
+    record = user.pop("robot", None)  # stored once, in session.robot
     if not isinstance(record, Mapping) or not record.get("text"):
         return meta
     if record.get("hash") not in (None, robot.get("hash")):
@@ -404,9 +404,7 @@ def with_robot_record(meta: dict) -> dict:
             f"the robot record passed in the metadata (hash {str(record.get('hash'))[:12]}…) is not the model the "
             f"data are labelled with ({robot.get('name')!r}, hash {str(robot.get('hash'))[:12]}…)"
         )
-    for key, value in record.items():
-        robot.setdefault(str(key), jsonable(value))
-    del user["robot"]  # stored once, in session.robot
+    robot = {**{str(key): jsonable(value) for key, value in record.items()}, **robot}  # the labels win
     return {**meta, "robot": robot, "metadata": user}
 
 
@@ -582,8 +580,7 @@ class SessionStore:
             vdir = d / version_name(v)
             try:
                 m = json.loads((vdir / MANIFEST).read_text(encoding="utf-8"))
-                fits_dir = vdir / FITS
-                nfits = sum(p.is_dir() and not p.name.startswith(".") for p in fits_dir.glob("*"))
+                nfits = sum(p.is_dir() and not p.name.startswith(".") for p in (vdir / FITS).glob("*"))
                 infos.append(
                     VersionInfo(version_name(v), int(m["row_count"]), m["created"], m["source"], m["parent"], nfits)
                 )
