@@ -898,9 +898,8 @@ class SessionStore:
         jpath = d / JOURNAL_NAME
         contents = read_journal(jpath)
         versions = self.versions(session_id)
-        parent = versions[-1] if versions else None
-        parent_ds = self.load(Ref(session_id, parent)) if parent else None  # its own files only
-        latest = f"{session_id}@{version_name(parent)}" if parent else None
+        parent_ds = self.load(Ref(session_id, versions[-1])) if versions else None  # its own files only
+        latest = parent_ds.ref if parent_ds is not None else None
         through = int(parent_ds.manifest.get("journal_seq_through", 0)) if parent_ds is not None else 0
         damage, sealed_bytes, sealed_lines = _sealed_part_damage(jpath, contents, parent_ds, latest)
         old = [ln for ln in contents.corrupt_lines if ln <= sealed_lines]
@@ -968,12 +967,9 @@ class SessionStore:
         JSON-able (method, seed, metrics …). fit.json records each input's resolved ref, manifest sha256 and
         data sha256, plus the sha256 of every fit file. Inputs are verified first.
         """
-        ref_list = [refs] if isinstance(refs, str | Ref) else list(refs)
-        if not ref_list:
-            raise DatasetError("a fit needs at least one input version")
         inputs = []
         resolved = []
-        for ref in ref_list:
+        for ref in [refs] if isinstance(refs, str | Ref) else refs:
             r = self.resolve(ref)
             self.verify(r).raise_if_bad()
             m = self.manifest(r)
@@ -986,6 +982,8 @@ class SessionStore:
                 }
             )
             resolved.append(r)
+        if not resolved:
+            raise DatasetError("a fit needs at least one input version")
         fit_id = validate_id(fit_id, "fit id") if fit_id else new_fit_id()
         for name in files:
             validate_id(name, "fit file name")
