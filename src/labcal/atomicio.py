@@ -19,6 +19,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import os
 import stat
 from pathlib import Path
@@ -80,10 +81,8 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
         check_target(path)  # a symlink or device swapped in meanwhile is still refused
         os.replace(tmp, path)
     except OSError as e:
-        try:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
-        except OSError:
-            pass
         raise OSError(e.errno, f"cannot write {path}: {e.strerror or e}") from None
     fsync_dir(path.parent)
 

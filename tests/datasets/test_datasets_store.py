@@ -26,7 +26,6 @@ from labcal.datasets import (
     new_session_id,
     parse_ref,
     validate_id,
-    verify,
 )
 
 
@@ -117,7 +116,7 @@ def sealed(tmp_path):
 
 def test_verify_passes_on_intact_version(sealed):
     store, ref, _ = sealed
-    report = verify(store, ref)
+    report = store.verify(ref)
     assert report.ok and "measurements.parquet" in report.checked and "manifest.json" in report.checked
 
 

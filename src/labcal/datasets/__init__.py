@@ -111,7 +111,6 @@ if TYPE_CHECKING:  # for type checkers: the names of the table below, imported w
         VersionInfo,
         default_root,
         load_version,
-        verify,
     )
     from .targets import MIN_TARGET_HEIGHT, load_targets, target_layout, validate_targets  # noqa: F401
 
@@ -128,7 +127,7 @@ _MODULES: dict[str, str] = {
     "journal": "Journal JournalContents read_journal",
     "schema": "SCHEMA_VERSION SPLITS core_columns joint_columns spread_columns target_columns",
     "store": "Dataset FitRecord SealResult SessionInfo SessionStore StoreWriteError VerifyReport VersionInfo "
-    "default_root load_version verify",
+    "default_root load_version",
     "targets": "MIN_TARGET_HEIGHT load_targets target_layout validate_targets",
 }
 _LAZY: dict[str, str] = {name: module for module, names in _MODULES.items() for name in names.split()}

@@ -8,12 +8,13 @@ finished temporary directory, so a reader never sees a half-written version, ses
 from __future__ import annotations
 
 import datetime as _dt
+import itertools
 import json
 import math
 import os
 import shutil
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -36,18 +37,11 @@ def sha256_file(path: Path, limit: int | None = None) -> str:
     import hashlib
 
     h = hashlib.sha256()
-    remaining = limit
+    remaining = sys.maxsize if limit is None else limit
     with open(path, "rb") as f:
-        while True:
-            n = 1 << 20 if remaining is None else min(1 << 20, remaining)
-            if n == 0:
-                break
-            chunk = f.read(n)
-            if not chunk:
-                break
+        while remaining > 0 and (chunk := f.read(min(1 << 20, remaining))):
             h.update(chunk)
-            if remaining is not None:
-                remaining -= len(chunk)
+            remaining -= len(chunk)
     return h.hexdigest()
 
 
@@ -56,6 +50,19 @@ def canonical_json(obj: Any, *, indent: int | None = None) -> str:
     if indent is None:
         return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
     return json.dumps(obj, sort_keys=True, indent=indent, allow_nan=False, ensure_ascii=False) + "\n"
+
+
+def json_lines(data: bytes) -> Iterator[tuple[int, Any, str | None]]:
+    """(line number from 1, document, None) for each non-blank line of JSON-lines ``data`` that is JSON, (line
+    number, None, why) for one that is not: the journal's and the versions log's reader."""
+    for i, raw in enumerate(data.split(b"\n"), start=1):
+        if raw.strip():
+            try:
+                doc = json.loads(raw.decode("utf-8"))
+            except ValueError as e:  # UnicodeDecodeError and json.JSONDecodeError are ValueErrors
+                yield i, None, f"unreadable ({type(e).__name__})"
+                continue
+            yield i, doc, None
 
 
 def utc_now() -> _dt.datetime:
@@ -75,18 +82,14 @@ def random_hex(n: int) -> str:
 def make_dirs_durable(path: Path) -> None:
     """``path.mkdir(parents=True, exist_ok=True)``, and the name of every folder it created made durable (its parent
     fsynced): files fsynced inside a folder whose own entry never reached the disk are lost with it."""
-    created = []
-    for p in (path, *path.parents):
-        if p.exists():
-            break
-        created.append(p)
+    created = list(itertools.takewhile(lambda p: not p.exists(), (path, *path.parents)))
     path.mkdir(parents=True, exist_ok=True)
     for p in reversed(created):
         fsync_dir(p.parent)
 
 
-def write_file_durable(path: Path, data: bytes, *, read_only: bool = True) -> None:
-    """Write a new file (must not exist), fsync it, and optionally make it read-only.
+def write_file_durable(path: Path, data: bytes) -> None:
+    """Write a new file (must not exist), fsync it, and make it read-only.
 
     An error of ``write`` or ``fsync`` (a full disk: ENOSPC, a quota, an I/O error) carries no file name of its own;
     it is re-raised with ``path`` as its filename, so the one-line message names the file that could not be written.
@@ -101,8 +104,7 @@ def write_file_durable(path: Path, data: bytes, *, read_only: bool = True) -> No
         raise
     finally:
         os.close(fd)
-    if read_only:
-        os.chmod(path, READ_ONLY)
+    os.chmod(path, READ_ONLY)
 
 
 def make_temp_dir(parent: Path, prefix: str) -> Path:

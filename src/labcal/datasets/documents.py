@@ -36,8 +36,8 @@ import math
 import time as _time
 import uuid
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any, ClassVar
+from dataclasses import MISSING, dataclass, field, fields
+from typing import TYPE_CHECKING, Any, ClassVar, Self
 
 from ._util import jsonable, software_versions
 from .errors import JournalError
@@ -98,10 +98,6 @@ class SessionHeader:
     @property
     def robot_name(self) -> str:
         return str(self.robot["name"])
-
-    @property
-    def n_joints(self) -> int:
-        return self.robot["n_joints"]
 
     def start_document(self, session_id: str, *, time: float | None = None) -> StartDoc:
         """The start document of a session with this header (checked: frame, joint count, targets, unit keys)."""
@@ -176,6 +172,23 @@ class _Document:
     def to_json(self) -> dict:
         return {"type": self.type, **{f.name: getattr(self, f.name) for f in fields(self)}}  # type: ignore[arg-type]
 
+    @classmethod
+    def from_json(cls, doc: Mapping[str, Any]) -> Self:
+        """The document of a journal line written at any time: a key that older journals lack takes the field's
+        default (``uid`` "": they had none), so does an empty or null table or list of a field that has one; numbers,
+        text, tables and lists are read as their field's type."""
+        values: dict[str, Any] = {"uid": ""}
+        for f in fields(cls):  # type: ignore[arg-type]
+            has_default = f.default is not MISSING or f.default_factory is not MISSING
+            if f.name not in doc or (has_default and f.type in ("dict", "list") and not doc[f.name]):
+                continue
+            values[f.name] = _READ_AS.get(f.type, lambda v: v)(doc[f.name])  # type: ignore[arg-type]
+        return cls(**values)
+
+
+# How from_json reads a field of each declared type (the others as they are: lists or None, text or None …).
+_READ_AS = {"dict": dict, "list": list, "float": float, "int": int, "str": str}
+
 
 @dataclass(frozen=True)
 class StartDoc(_Document):
@@ -186,7 +199,7 @@ class StartDoc(_Document):
     session_id: str
     robot: dict
     targets: list
-    frame: str
+    frame: str = "base"  # the frame of journals written before it was recorded
     tracker: dict = field(default_factory=dict)
     robot_driver: dict = field(default_factory=dict)
     plan: list = field(default_factory=list)
@@ -232,21 +245,6 @@ class StartDoc(_Document):
 
         return np.asarray(self.targets, dtype=np.float64).reshape(-1, 3)
 
-    @classmethod
-    def from_json(cls, doc: Mapping[str, Any]) -> StartDoc:
-        return cls(
-            session_id=doc["session_id"],
-            robot=dict(doc["robot"]),
-            targets=list(doc["targets"]),
-            frame=doc.get("frame", "base"),
-            **{k: dict(doc.get(k) or {}) for k in ("tracker", "robot_driver", "extra_units", "metadata", "software")},
-            plan=list(doc.get("plan") or []),
-            uid=doc.get("uid", ""),
-            time=float(doc.get("time", 0.0)),
-            schema_version=int(doc.get("schema_version", SCHEMA_VERSION)),
-            targets_unit=doc.get("targets_unit", "m"),
-        )
-
 
 @dataclass(frozen=True)
 class MeasurementDoc(_Document):
@@ -291,25 +289,6 @@ class MeasurementDoc(_Document):
             raise JournalError(f"measurement seq {self.seq} has {out.shape[0]} target(s), the session {m}")
         return out
 
-    @classmethod
-    def from_json(cls, doc: Mapping[str, Any]) -> MeasurementDoc:
-        return cls(
-            seq=doc["seq"],
-            pose_index=doc["pose_index"],
-            q_commanded=doc.get("q_commanded"),
-            q_actual=doc.get("q_actual"),
-            points=doc.get("points"),
-            spread=doc.get("spread"),
-            samples=int(doc.get("samples", 1)),
-            status=doc["status"],
-            reason=str(doc.get("reason", "")),
-            split=doc.get("split"),
-            extra=dict(doc.get("extra") or {}),
-            units=dict(doc.get("units") or MEASUREMENT_UNITS),
-            uid=doc.get("uid", ""),
-            time=float(doc.get("time", 0.0)),
-        )
-
 
 @dataclass(frozen=True)
 class StopDoc(_Document):
@@ -328,16 +307,6 @@ class StopDoc(_Document):
         if self.num_measurements is None:  # stop documents written without the count have no key for it
             del doc["num_measurements"]
         return doc
-
-    @classmethod
-    def from_json(cls, doc: Mapping[str, Any]) -> StopDoc:
-        return cls(
-            exit_status=doc["exit_status"],
-            reason=str(doc.get("reason", "")),
-            num_measurements=doc.get("num_measurements"),
-            uid=doc.get("uid", ""),
-            time=float(doc.get("time", 0.0)),
-        )
 
 
 def robot_document(name: str, robot_hash: str, n_joints: int, record: Mapping[str, Any] | None = None) -> dict:

@@ -34,8 +34,8 @@ Lifecycle: measurements are accepted while the run is *running*; ``pause`` → p
 
 from __future__ import annotations
 
+import contextlib
 import functools
-import json
 import os
 import time as _time
 import uuid
@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ._util import canonical_json, fsync_dir, jsonable, write_all
+from ._util import canonical_json, fsync_dir, json_lines, jsonable, write_all
 from .documents import (
     EXIT_STATUSES,
     STATUSES,
@@ -127,11 +127,6 @@ class JournalContents:
         stop = self.stop
         return stop.exit_status if stop is not None else "paused" if self.state == "paused" else "open"
 
-    @property
-    def next_seq(self) -> int:
-        ms = self.measurements
-        return ms[-1].seq + 1 if ms else 1
-
     def valid_pose_indices(self) -> set[int]:
         """Plan positions that already have a valid measurement (skip them when resuming)."""
         return {d.pose_index for d in self.measurements if d.valid}
@@ -170,24 +165,15 @@ def read_journal(path: str | Path) -> JournalContents:
         data = path.read_bytes()
     except OSError as e:
         raise JournalError(f"cannot read journal {path}: {e}") from None
-    lines = data.split(b"\n")
-    # After split, a trailing newline yields an empty last element; anything else there is unterminated.
-    needs_newline = bool(data) and not data.endswith(b"\n")
+    needs_newline = bool(data) and not data.endswith(b"\n")  # the last line is unterminated
     parsed: list[tuple[int, dict]] = []
     bad: list[tuple[int, str]] = []
-    for i, raw in enumerate(lines, start=1):
-        if not raw.strip():
-            continue
-        try:
-            doc = json.loads(raw.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            bad.append((i, f"unreadable ({type(e).__name__})"))
-            continue
-        why = _check_doc(doc)
+    for i, doc, unreadable in json_lines(data):
+        why = unreadable or _check_doc(doc)
         if why:
             bad.append((i, why))
-            continue
-        parsed.append((i, doc))
+        else:
+            parsed.append((i, doc))
     last_good = parsed[-1][0] if parsed else 0
     repaired = {ln for _, d in parsed if d["type"] == "repair" for ln in d.get("torn_lines", [])}
     warnings: list[str] = []
@@ -278,7 +264,7 @@ class Journal:
         self.n_targets: int = start.n_targets
         self.plan_length: int = len(start.plan)
         self._state = contents.state
-        self._next_seq = contents.next_seq
+        self._next_seq = max((m.seq for m in contents.measurements), default=0) + 1  # read_journal keeps seqs rising
         self._valid = contents.valid_pose_indices()
         self.warnings: list[str] = list(contents.warnings)
 
@@ -351,10 +337,8 @@ class Journal:
         self.close()
 
     def __del__(self) -> None:  # pragma: no cover - safety net only
-        try:
+        with contextlib.suppress(Exception):
             self.close()
-        except Exception:
-            pass
 
     # ---------------------------------------------------------------------------------------------- queries
     @property

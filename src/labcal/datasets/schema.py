@@ -91,20 +91,17 @@ def validate_split(value: object, row: int | None = None) -> str:
     return s
 
 
-def seen_mask(points: np.ndarray, *, row_names=None) -> np.ndarray:
-    """(k, m, 3) points with NaN rows for targets not seen → (k, m) bool, after checking the rule of the table.
+def _check_points(p: np.ndarray) -> None:
+    """Check (k, m ≥ 1, 3) points, a NaN row for each target not seen, against the rule of the table.
 
-    Raises :class:`DatasetError` for a target with some coordinates NaN and others not (naming the row, the first
-    empty coordinate and the fix), for a row with no target seen, and for ±inf anywhere. ``row_names(i)`` phrases
-    row i in the messages (default ``"row i"``, 0-based as the table's index).
+    Raises :class:`DatasetError` for a target with some coordinates NaN and others not (naming the row, 0-based as
+    the table's index, the first empty coordinate and the fix), for a row with no target seen, and for ±inf anywhere.
     """
     import numpy as np
 
-    p = np.asarray(points, dtype=np.float64)
-    name = row_names or (lambda i: f"row {i}")
     if np.isinf(p).any():
         i, t, a = (int(v) for v in np.argwhere(np.isinf(p))[0])
-        raise DatasetError(f"{name(i)}, column 't{t + 1}_{'xyz'[a]}': infinite value (an empty cell means not seen)")
+        raise DatasetError(f"row {i}, column 't{t + 1}_{'xyz'[a]}': infinite value (an empty cell means not seen)")
     nan = np.isnan(p)
     partly = nan.any(axis=2) & ~nan.all(axis=2)
     if partly.any():
@@ -112,17 +109,14 @@ def seen_mask(points: np.ndarray, *, row_names=None) -> np.ndarray:
         empty = [f"t{t + 1}_{a}" for a, e in zip("xyz", nan[i, t], strict=True) if e]
         given = [f"t{t + 1}_{a}" for a, e in zip("xyz", nan[i, t], strict=True) if not e]
         raise DatasetError(
-            f"{name(i)}, column {empty[0]!r}: target t{t + 1} is partly empty ({', '.join(given)} given, "
+            f"row {i}, column {empty[0]!r}: target t{t + 1} is partly empty ({', '.join(given)} given, "
             f"{', '.join(empty)} empty): give all three coordinates, or leave all three empty if it was not seen"
         )
-    # np.all, not nan.all: numpy's stub types the method's result as "a bool or an array" whatever the shape
-    seen = ~np.all(nan, axis=2)
-    if p.shape[1] and (blind := np.flatnonzero(~seen.any(axis=1))).size:
+    if (blind := np.flatnonzero(np.all(nan, axis=(1, 2)))).size:
         raise DatasetError(
-            f"{name(int(blind[0]))}: no target seen (every target column empty): a row needs at least one measured "
+            f"row {int(blind[0])}: no target seen (every target column empty): a row needs at least one measured "
             f"target; remove the row{f' (and {blind.size - 1} more like it)' if blind.size > 1 else ''}"
         )
-    return seen
 
 
 def normalize_table(table: pd.DataFrame, n_joints: int, n_targets: int | None = None) -> pd.DataFrame:
@@ -168,7 +162,7 @@ def normalize_table(table: pd.DataFrame, n_joints: int, n_targets: int | None = 
         out[c] = v
     tcols = list(target_columns(m))
     points = np.stack([np.asarray(table[c].to_numpy(), dtype=np.float64) for c in tcols], axis=1)
-    seen_mask(points.reshape(len(table), m, 3))
+    _check_points(points.reshape(len(table), m, 3))
     for j, c in enumerate(tcols):
         out[c] = points[:, j]
     out["split"] = [validate_split(s, i) for i, s in enumerate(table["split"].tolist())]

@@ -39,7 +39,7 @@ import io
 import json
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -48,6 +48,7 @@ from ._util import (
     canonical_json,
     fsync_dir,
     iso,
+    json_lines,
     jsonable,
     make_dirs_durable,
     make_temp_dir,
@@ -147,10 +148,13 @@ def default_root() -> Path:
 # Self-hashed JSON: the file's bytes are the canonical dump, and it carries the sha256 of its other content.
 
 
+def _content_sha256(obj: dict, key: str) -> str:
+    """What a self-hashed document holds under ``key``: the sha256 of the canonical JSON of its other fields."""
+    return sha256_bytes(canonical_json({k: v for k, v in obj.items() if k != key}).encode("utf-8"))
+
+
 def _dump_sealed(obj: dict, key: str) -> bytes:
-    body = {k: v for k, v in obj.items() if k != key}
-    sealed = {**body, key: sha256_bytes(canonical_json(body).encode("utf-8"))}
-    return canonical_json(sealed, indent=2).encode("utf-8")
+    return canonical_json({**obj, key: _content_sha256(obj, key)}, indent=2).encode("utf-8")
 
 
 def _load_sealed(data: bytes, key: str, name: str) -> tuple[dict | None, list[str]]:
@@ -161,8 +165,7 @@ def _load_sealed(data: bytes, key: str, name: str) -> tuple[dict | None, list[st
     if not isinstance(obj, dict) or key not in obj:
         return None, [f"{name}: has no {key!r} field"]
     problems = []
-    body = {k: v for k, v in obj.items() if k != key}
-    actual = sha256_bytes(canonical_json(body).encode("utf-8"))
+    actual = _content_sha256(obj, key)
     if actual != obj[key]:
         problems.append(f"{name}: content sha256 mismatch: expected {obj[key]}, actual {actual}")
     elif canonical_json(obj, indent=2).encode("utf-8") != data:
@@ -365,6 +368,19 @@ def _read_parquet(data: bytes) -> pd.DataFrame:
     return pq.read_table(io.BytesIO(data)).to_pandas()
 
 
+@contextlib.contextmanager
+def _publishing(parent: Path, prefix: str, final: Path) -> Iterator[Path]:
+    """A fresh hidden temporary folder in ``parent`` to fill, renamed to ``final`` when the block ends; removed
+    instead if the block or the rename fails, so ``final`` appears complete or not at all."""
+    tmp = make_temp_dir(parent, prefix)
+    try:
+        yield tmp
+        publish_dir(tmp, final)
+    except BaseException:
+        remove_tree(tmp)
+        raise
+
+
 def _plan_summary(plan: Sequence[Any]) -> dict:
     """Length and sha256 of a plan (JSON types: as read from a journal)."""
     return {"length": len(plan), "sha256": sha256_bytes(canonical_json(list(plan)).encode("utf-8"))}
@@ -378,9 +394,9 @@ def with_robot_record(meta: dict) -> dict:
     holding the text, which is what makes a version refittable without the robot file. A record of another model
     (different hash) is refused rather than silently attached.
     """
-    robot = dict(meta["robot"])
+    robot = meta["robot"]
     user = dict(meta.get("metadata") or {})
-    record = user.get("robot")
+    record = user.pop("robot", None)  # stored once, in session.robot
     if not isinstance(record, Mapping) or not record.get("text"):
         return meta
     if record.get("hash") not in (None, robot.get("hash")):
@@ -388,9 +404,7 @@ def with_robot_record(meta: dict) -> dict:
             f"the robot record passed in the metadata (hash {str(record.get('hash'))[:12]}…) is not the model the "
             f"data are labelled with ({robot.get('name')!r}, hash {str(robot.get('hash'))[:12]}…)"
         )
-    for key, value in record.items():
-        robot.setdefault(str(key), jsonable(value))
-    del user["robot"]  # stored once, in session.robot
+    robot = {**{str(key): jsonable(value) for key, value in record.items()}, **robot}  # the labels win
     return {**meta, "robot": robot, "metadata": user}
 
 
@@ -566,8 +580,7 @@ class SessionStore:
             vdir = d / version_name(v)
             try:
                 m = json.loads((vdir / MANIFEST).read_text(encoding="utf-8"))
-                fits_dir = vdir / FITS
-                nfits = sum(p.is_dir() and not p.name.startswith(".") for p in fits_dir.glob("*"))
+                nfits = sum(p.is_dir() and not p.name.startswith(".") for p in (vdir / FITS).glob("*"))
                 infos.append(
                     VersionInfo(version_name(v), int(m["row_count"]), m["created"], m["source"], m["parent"], nfits)
                 )
@@ -596,26 +609,20 @@ class SessionStore:
         """Recompute every hash of a version; report missing, extra and changed files precisely."""
         r = self.resolve(ref)
         vdir = self.session_dir(r.session_id) / version_name(r.version)  # type: ignore[arg-type]
-        problems: list[str] = []
-        checked: list[str] = []
-        mpath = vdir / MANIFEST
-        if not mpath.is_file():
-            problems.append(f"{MANIFEST}: missing")
-            manifest = None
-        else:
-            manifest, mp = _load_sealed(mpath.read_bytes(), "manifest_sha256", MANIFEST)
-            if manifest is None:
-                mp = [f"{m} (the data files cannot be checked without it)" for m in mp]
-            problems += mp
-            checked.append(MANIFEST)
-        listed: dict[str, dict] = {}
-        if manifest is not None:
-            if manifest.get("ref") != str(r):
-                problems.append(f"{MANIFEST}: belongs to {manifest.get('ref')!r}, found as {str(r)!r}")
-            listed = dict(manifest.get("files") or {})
-            _check_files(vdir, listed, "", problems, checked)
+        if not (vdir / MANIFEST).is_file():
+            return VerifyReport(str(r), [f"{MANIFEST}: missing"])
+        manifest, problems = _load_sealed((vdir / MANIFEST).read_bytes(), "manifest_sha256", MANIFEST)
+        checked = [MANIFEST]
+        if manifest is None:
+            return VerifyReport(
+                str(r), [f"{m} (the data files cannot be checked without it)" for m in problems], checked
+            )
+        if manifest.get("ref") != str(r):
+            problems.append(f"{MANIFEST}: belongs to {manifest.get('ref')!r}, found as {str(r)!r}")
+        listed = dict(manifest.get("files") or {})
+        _check_files(vdir, listed, "", problems, checked)
         notes: list[str] = []
-        for p in sorted(vdir.iterdir()) if manifest is not None else []:
+        for p in sorted(vdir.iterdir()):
             if p.name in listed or p.name == MANIFEST or (p.name == FITS and p.is_dir()):
                 continue
             kind = "directory" if p.is_dir() else "file"
@@ -791,8 +798,7 @@ class SessionStore:
         table = normalize_table(table, int(meta["robot"]["n_joints"]), len(meta["targets"]))
         parent = None if parent_ds is None else parse_ref(parent_ds.ref).version
         name = version_name((parent or 0) + 1)
-        tmp = make_temp_dir(where, name)
-        try:
+        with _publishing(where, name, where / name) as tmp:
             data = _parquet_bytes(table)
             write_file_durable(tmp / MEASUREMENTS, data)
             manifest = {
@@ -817,10 +823,6 @@ class SessionStore:
             }
             sealed = _dump_sealed(manifest, "manifest_sha256")
             write_file_durable(tmp / MANIFEST, sealed)
-            publish_dir(tmp, where / name)
-        except BaseException:
-            remove_tree(tmp)
-            raise
         # After the rename: a crash in between leaves a complete version the log does not list yet, which
         # check_session notes; the other order would list a version that was never published.
         _log_version(where, name, json.loads(sealed)["manifest_sha256"], manifest["parent"])
@@ -871,16 +873,10 @@ class SessionStore:
         final = self.root / session_id
         if final.exists():
             raise DatasetError(f"session {session_id!r} already exists in {self.root}")
-        tmp = make_temp_dir(self.root, f"session-{session_id}")
-        try:
-            ref = self._write_version(
+        with _publishing(self.root, f"session-{session_id}", final) as tmp:
+            return self._write_version(
                 tmp, session_id, None, rows, meta, source=source, provenance=provenance, journal_seq_through=0
             )
-            publish_dir(tmp, final)
-        except BaseException:
-            remove_tree(tmp)
-            raise
-        return ref
 
     @_writes("seal the journal into a version")
     def seal(self, session_id: str, *, valid_prefix: bool = False) -> SealResult:
@@ -902,9 +898,8 @@ class SessionStore:
         jpath = d / JOURNAL_NAME
         contents = read_journal(jpath)
         versions = self.versions(session_id)
-        parent = versions[-1] if versions else None
-        parent_ds = self.load(Ref(session_id, parent)) if parent else None  # its own files only
-        latest = f"{session_id}@{version_name(parent)}" if parent else None
+        parent_ds = self.load(Ref(session_id, versions[-1])) if versions else None  # its own files only
+        latest = parent_ds.ref if parent_ds is not None else None
         through = int(parent_ds.manifest.get("journal_seq_through", 0)) if parent_ds is not None else 0
         damage, sealed_bytes, sealed_lines = _sealed_part_damage(jpath, contents, parent_ds, latest)
         old = [ln for ln in contents.corrupt_lines if ln <= sealed_lines]
@@ -972,12 +967,9 @@ class SessionStore:
         JSON-able (method, seed, metrics …). fit.json records each input's resolved ref, manifest sha256 and
         data sha256, plus the sha256 of every fit file. Inputs are verified first.
         """
-        ref_list = [refs] if isinstance(refs, str | Ref) else list(refs)
-        if not ref_list:
-            raise DatasetError("a fit needs at least one input version")
         inputs = []
         resolved = []
-        for ref in ref_list:
+        for ref in [refs] if isinstance(refs, str | Ref) else refs:
             r = self.resolve(ref)
             self.verify(r).raise_if_bad()
             m = self.manifest(r)
@@ -990,6 +982,8 @@ class SessionStore:
                 }
             )
             resolved.append(r)
+        if not resolved:
+            raise DatasetError("a fit needs at least one input version")
         fit_id = validate_id(fit_id, "fit id") if fit_id else new_fit_id()
         for name in files:
             validate_id(name, "fit file name")
@@ -999,8 +993,7 @@ class SessionStore:
         make_dirs_durable(fits_dir)
         if (fits_dir / fit_id).exists():
             raise DatasetError(f"fit {fit_id!r} already exists under {resolved[0]}")
-        tmp = make_temp_dir(fits_dir, fit_id)
-        try:
+        with _publishing(fits_dir, fit_id, fits_dir / fit_id) as tmp:
             recorded = {}
             for name, content in sorted(files.items()):
                 data = content.encode("utf-8") if isinstance(content, str) else bytes(content)
@@ -1018,10 +1011,6 @@ class SessionStore:
                 "software": software_versions(),
             }
             write_file_durable(tmp / FIT_JSON, _dump_sealed(meta, "fit_sha256"))
-            publish_dir(tmp, fits_dir / fit_id)
-        except BaseException:
-            remove_tree(tmp)
-            raise
         return FitRecord(
             fit_id, str(resolved[0]), fits_dir / fit_id, json.loads((fits_dir / fit_id / FIT_JSON).read_text())
         )
@@ -1358,22 +1347,14 @@ def _read_versions_log(data: bytes) -> tuple[list[dict], list[str], list[str]]:
     entries: list[dict] = []
     problems: list[str] = []
     notes: list[str] = []
-    lines = data.split(b"\n")
-    torn = bool(data) and not data.endswith(b"\n")  # then the last element is an unfinished line
-    for i, raw in enumerate(lines, start=1):
-        if not raw.strip():
-            continue
-        try:
-            doc = json.loads(raw.decode("utf-8"))
-            if not isinstance(doc, dict) or not isinstance(doc.get("version"), str):
-                raise ValueError("no version")
-        except (UnicodeDecodeError, ValueError):
-            if torn and i == len(lines):
-                notes.append(f"{VERSIONS_LOG}: line {i} unfinished (an interrupted write), ignored")
-            else:
-                problems.append(f"{VERSIONS_LOG}: line {i} unreadable")
-            continue
-        entries.append(doc)
+    unfinished = data.count(b"\n") + 1 if data and not data.endswith(b"\n") else 0  # its last line, if unterminated
+    for i, doc, _ in json_lines(data):
+        if isinstance(doc, dict) and isinstance(doc.get("version"), str):
+            entries.append(doc)
+        elif i == unfinished:
+            notes.append(f"{VERSIONS_LOG}: line {i} unfinished (an interrupted write), ignored")
+        else:
+            problems.append(f"{VERSIONS_LOG}: line {i} unreadable")
     return entries, problems, notes
 
 
@@ -1438,8 +1419,3 @@ def journal_rows(measurements: Sequence[MeasurementDoc], n_joints: int, n_target
 def load_version(store: SessionStore | str | Path | None, ref: str | Ref) -> Dataset:
     """Load ``SESSION[@vN]`` from ``store`` (a SessionStore or its root folder), verifying its hashes."""
     return (store if isinstance(store, SessionStore) else SessionStore(store)).load(ref)
-
-
-def verify(store: SessionStore | str | Path | None, ref: str | Ref) -> VerifyReport:
-    """Recompute the hashes of ``SESSION[@vN]``; see :meth:`SessionStore.verify`."""
-    return (store if isinstance(store, SessionStore) else SessionStore(store)).verify(ref)

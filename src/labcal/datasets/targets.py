@@ -54,17 +54,9 @@ def validate_targets(
     import numpy as np
 
     rows = points.tolist() if isinstance(points, np.ndarray) else points
-    if not isinstance(rows, list | tuple) or len(rows) < 1:
-        n = len(rows) if isinstance(rows, list | tuple) else "no"
-        raise TargetsError(f"{source}: expected at least 1 target point ([x, y, z] each), got {n}")
-    out = np.empty((len(rows), 3))
-    for i, p in enumerate(rows):
-        if not isinstance(p, list | tuple) or len(p) != 3:
-            raise TargetsError(f"{source}: target t{i + 1} must be [x, y, z], got {p!r}")
-        for j, v in enumerate(p):
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-                raise TargetsError(f"{source}: target t{i + 1} coordinate {'xyz'[j]} is not a finite number: {v!r}")
-            out[i, j] = float(v)
+    if (why := _points_problem(rows)) is not None:
+        raise TargetsError(f"{source}: {why}")
+    out = np.asarray(rows, dtype=np.float64)
     for i in range(len(out)):
         for j in range(i):
             gap = float(np.linalg.norm(out[i] - out[j]))
@@ -123,11 +115,12 @@ def pair_distances(points: np.ndarray, pairs: Sequence[tuple[int, int]] | None =
 
 
 def _points_problem(points: object) -> str | None:
-    """Why ``points`` is not a list of [x, y, z] numbers (naming the target), or None."""
-    if not isinstance(points, list) or not points:
-        return f"must list the targets as [x, y, z] points (at least 1 point), got {points!r}"
+    """Why ``points`` is not a list of [x, y, z] finite numbers (naming the target), or None: the targets file's
+    rule and :func:`validate_targets`'."""
+    if not isinstance(points, list | tuple) or not points:
+        return f"must list at least 1 target point ([x, y, z] each), got {points!r}"
     for i, p in enumerate(points):
-        if not isinstance(p, list) or len(p) != 3:
+        if not isinstance(p, list | tuple) or len(p) != 3:
             return f"entry t{i + 1} must be [x, y, z], got {p!r}"
         for j, v in enumerate(p):
             if not is_number(v):
