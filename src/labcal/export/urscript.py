@@ -78,7 +78,9 @@ Numbers: the script prints every constant with 17 significant digits, but the co
 floats. The float32 result differs from ``correct()`` by rounding, amplified by the configuration's conditioning:
 within :data:`FLOAT32_BOUND` rad on configurations whose length-scaled joint Jacobian has a condition number
 ≤ 100 (the test evaluates every script in float32 and holds it to this bound; the exact double-precision
-agreement holds only in double precision).
+agreement holds only in double precision). The range and region checks compare with bounds moved inwards by their
+own float32 rounding (:func:`_script_ranges`, :func:`_script_radius2`), so a controller never passes a
+configuration ``correct()`` refuses; it stops in a thin band just inside instead (``benchmarks/urscript_boundary.py``).
 
 Not covered (say so where it matters): configurations outside the calibrated joint ranges or outside the
 calibration's validity region (farther than its radius from every stored configuration, joints scaled as in
@@ -120,6 +122,12 @@ RESIDUAL_TOL = 1e-5  # |r| (L1, translation over the length scale) at the return
 # bound ‖J_s⁻¹‖∞ |δr|∞ assumes the worst alignment of δr; the errors measured were at most 2.0 ε ‖J_s⁻¹‖∞.
 RESIDUAL_ROUNDING = 5.0
 FLOAT32_EPS = 2.0**-23  # a controller's machine epsilon (lc_eps measures the script's own)
+# The range and region checks compare with bounds moved inwards by the float32 rounding of the comparison, so that
+# the controller never passes a configuration correct() refuses (benchmarks/urscript_boundary.py: with the bounds
+# themselves, float32 passed configurations 1e-7 of the validity radius outside it, 1e-4 where a joint never moved,
+# and 1e-8 past a joint's range).
+RANGE_MARGIN = 2.0**-22  # relative (at least 1 rad or m): two float32 spacings of the bound, see _script_ranges
+REGION_ROUNDING = 6.0  # |computed − exact| of e_j = q_j w_j − c_j in float32, in units of 2⁻²⁴ m_j: _script_radius2
 SELF_TEST_COUNT = 4
 SELF_TEST_OFFSETS = (0.05, 0.1, 0.2)  # rad from the wrist and elbow singularities: the self test's candidates
 _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -553,7 +561,7 @@ def _definitions(
     kin, nom = ZAxisForm(robot.model), ZAxisForm(robot.nominal)
     if not np.array_equal(kin.revolute, nom.revolute):
         raise ValueError("the identified model's joint types differ from the nominal robot's")
-    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
+    lo, hi = _script_ranges(robot)
     consts = [
         f"lc_lo = {_list(lo)}",
         f"lc_hi = {_list(hi)}",
@@ -576,7 +584,7 @@ def _definitions(
     region = robot.validity
     if region is not None:
         consts += [f"lc_vc{j} = {_list(region.centres[:, j])}" for j in range(n)]
-        consts.append(f"lc_vr2 = {_num(region.radius * region.radius)}")
+        consts.append(f"lc_vr2 = {_num(_script_radius2(region)[0])}")
         funcs += _region_function(region, budget)
 
     m = 12 * (n + 1)
@@ -626,13 +634,45 @@ def _region_function(region, budget: _Budget) -> list[str]:
     return lines
 
 
+def _script_ranges(robot: CalibratedRobot, margins: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) the script compares q with: the calibrated ranges, each bound b moved inwards by RANGE_MARGIN ·
+    max(|b|, 1), at least two float32 spacings of b. Rounding to float32 is monotone and moves a number by at most
+    half a spacing, so a q past b stays past the rounded literal: the controller refuses every q correct() refuses,
+    and the script refuses a band that thin just inside (float64: 1.5e-6 rad at ±2π, 2.4e-7 within ±1)."""
+    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
+    m = margins * RANGE_MARGIN
+    return lo + m * np.maximum(np.abs(lo), 1.0), hi - m * np.maximum(np.abs(hi), 1.0)
+
+
+def _script_radius2(region) -> tuple[float, float]:
+    """(the radius² ``lc_region_d2`` is compared with, D): below every squared distance correct() refuses, by the
+    rounding of both sides; D bounds the float32 script's error in the distance.
+
+    correct() (float64, ε = 2⁻⁵³) sums |x|² − 2 x·c + |c|² (x = q w): off by at most (n + 5) 2ε (‖x‖ + ‖c‖)²,
+    sqrt and comparison included, so it refuses only where the exact squared distance exceeds r2 below.
+    The script (float32, u = 2⁻²⁴) computes e_j = q_j w_j − c_j with at most 3u|x_j| (q, w, their product) +
+    u|c_j| + u|e_j| (c, the difference) ≤ REGION_ROUNDING u m_j, m_j = max |c_j| + radius bounding |x_j|, |c_j|
+    and |e_j| within a ball (the 6th u absorbs the second-order terms); so its ‖e‖ is off by at most D =
+    REGION_ROUNDING u ‖m‖, and the sum of n squares by a factor (1 ± n u). Comparing with (√r2 − D)² (1 − (n + 2) u)
+    (the literal's own rounding included) refuses every q correct() refuses, and gives up a shell about 2 D thick
+    just inside: 1.1e-5 of the radius for the real UR10 fit of benchmarks/urscript_agreement.py, 3.3e-6 for the
+    simulated ones, 2.3e-3 where a joint never moved (scaled by 1 / MIN_SPREAD: 4,700 units at 4.7 rad).
+    """
+    n = region.centres.shape[1]
+    reach = np.abs(region.centres).max(axis=0) + region.radius  # m_j
+    outer = 2.0 * float(np.linalg.norm(region.centres, axis=1).max()) + region.radius  # bounds ‖x‖ + ‖c‖
+    r2 = region.radius**2 - (n + 5) * 2.0**-52 * outer**2
+    slack = REGION_ROUNDING * 2.0**-24 * float(np.linalg.norm(reach))
+    return max(np.sqrt(max(r2, 0.0)) - slack, 0.0) ** 2 * (1.0 - (n + 2) * 2.0**-24), slack
+
+
 def _region_check(robot: CalibratedRobot) -> list[str]:
     """Lines that stop the program at a configuration outside the validity region, as ``correct()`` refuses it."""
     if robot.validity is None:
         return []
     head = "labcal: configuration outside the validity region of the calibration (no data near it), stopped at q = "
     return [
-        "  if lc_region_d2(q) > lc_vr2:",
+        "  if not (lc_region_d2(q) <= lc_vr2):",
         f'    textmsg("{_text(head)}", q)',
         f'    popup(str_cat("{_text(head)}", q), error=True, blocking=True)',
         "    halt",
@@ -644,7 +684,7 @@ def _range_check(n: int) -> list[str]:
     return [
         "  local j = 0",
         f"  while j < {n}:",
-        "    if q[j] < lc_lo[j] or q[j] > lc_hi[j]:",
+        "    if not (lc_lo[j] <= q[j] and q[j] <= lc_hi[j]):",
         f'      textmsg("{_text("labcal: joint outside the calibrated range, q = ")}", q)',
         f'      popup(str_cat("{_text("labcal: joint outside the calibrated range, stopped at q = ")}", q), '
         "error=True, blocking=True)",
@@ -1013,9 +1053,8 @@ def self_test_configurations(robot: CalibratedRobot, count: int = SELF_TEST_COUN
     region = robot.validity
     if region is None:
         return golden_configurations(robot)[:count]
-    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
     cand = region.sample(64 * count, np.random.default_rng(0))
-    cand = cand[np.all((cand >= lo) & (cand <= hi), axis=1) & region.inside(cand)]
+    cand = cand[_passes(robot, cand)]
     J = robot.model.equivalent_jacobian(cand, length_scale=robot.length_scale)
     return cand[np.argsort(scaled_condition(J, robot.length_scale), kind="stable")[:count]]
 
@@ -1031,15 +1070,12 @@ def near_singular_self_test(robot: CalibratedRobot, golden: np.ndarray, max_corr
     """
     if robot.n != 6:
         return np.zeros((0, robot.n))
-    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
     out = []
     for joint in (4, 2):
         values = [sign * v for v in SELF_TEST_OFFSETS for sign in (1.0, -1.0)]
         q = np.tile(golden, (len(values), 1))
         q[:, joint] = np.repeat(values, len(golden))
-        q = q[(lo[joint] <= q[:, joint]) & (q[:, joint] <= hi[joint])]
-        if robot.validity is not None:  # where the script answers
-            q = q[robot.validity.inside(q)]
+        q = q[_passes(robot, q)]  # where the script answers
         if not len(q):
             continue
         full = robot.correct(q)
@@ -1050,6 +1086,17 @@ def near_singular_self_test(robot: CalibratedRobot, golden: np.ndarray, max_corr
         if ok.any():
             out.append(q[np.argmax(ok)])
     return np.array(out).reshape(-1, robot.n)
+
+
+def _passes(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
+    """(k,) whether (k, n) configurations pass the script's range and region checks in float32 for sure: inside
+    its ranges by another margin, and inside its radius by another D (its own rounding, :func:`_script_radius2`)."""
+    lo, hi = _script_ranges(robot, margins=2)
+    ok = np.all((lo <= q) & (q <= hi), axis=1)
+    if (region := robot.validity) is None:
+        return ok
+    r2, slack = _script_radius2(region)
+    return ok & (region.distance(q) <= np.sqrt(r2) - 2 * slack)
 
 
 def _inv_norm(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
