@@ -507,16 +507,13 @@ def _check_exportable(
         raise ValueError("method 'paper' (eq. 24) needs a network; this calibration has none")
     if method == "paper" and (why := robot.network_only_error("paper")):
         raise ValueError(why)
-    if n > 6:
-        raise ValueError(
-            f"URScript export of a {n}-joint robot is not supported (UR controllers drive 6 joints); "
-            "use the json/npz compensator"
+    if n > 6 or (net is not None and n < 6):
+        what, why = (
+            (f"a {n}-joint robot", "UR controllers drive 6 joints")
+            if n > 6
+            else (f"a network for a {n}-joint robot", "virtual joints")
         )
-    if net is not None and n < 6:
-        raise ValueError(
-            f"URScript export of a network for a {n}-joint robot is not supported (virtual joints); "
-            "use the json/npz compensator"
-        )
+        raise ValueError(f"URScript export of {what} is not supported ({why}); use the json/npz compensator")
 
 
 def _definitions(
@@ -566,30 +563,27 @@ def _region_function(region, chunk: int) -> list[str]:
     """lc_region_d2(q): the squared scaled distance from q to the nearest centre of the validity region
     (:class:`labcal.compensator.validity.ValidityRegion`: joint j scaled by its weight, centres stored scaled)."""
     count, n = region.centres.shape
-    cost = 2 * n + 3
-    lines = [
+    squares = [  # d = Σ_j (q_j w_j − c_j)², one joint after the other
+        (f"    e = q[{j}] * {_num(w)} - lc_vc{j}[c]", "    d = d + e * e" if j else "    d = e * e")
+        for j, w in enumerate(region.weights)
+    ]
+    return [
         "def lc_region_d2(q):",
         "  sync()",
         "  local best = -1.0",
         *_locals("0.0", "d", "e"),
         *_locals("0", "c", "s"),
         f"  while c < {count}:",
-        f"    e = q[0] * {_num(region.weights[0])} - lc_vc0[c]",
-        "    d = e * e",
-    ]
-    for j in range(1, n):
-        lines += [f"    e = q[{j}] * {_num(region.weights[j])} - lc_vc{j}[c]", "    d = d + e * e"]
-    lines += [
+        *(line for pair in squares for line in pair),
         "    if best < 0.0 or d < best:",
         "      best = d",
         "    end",
         "    c = c + 1",
-        *_counter("    ", "s", _every(chunk, cost), count),
+        *_counter("    ", "s", _every(chunk, 2 * n + 3), count),
         "  end",
         "  return best",
         "end",
     ]
-    return lines
 
 
 def _script_ranges(robot: CalibratedRobot, margins: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -952,8 +946,7 @@ def urscript_program_text(
         raise ValueError(f"program name {program_name!r} is not an ASCII identifier")
     consts, funcs = _definitions(robot, method, iterations, function_name, _chunk(statements_per_sync), max_correction)
     usage = f"# usage: send this file to the controller's script port (30002); it runs {program_name}()"
-    lines = [f"def {program_name}():"]
-    lines += ["  " + line for line in consts + funcs]
+    lines = [f"def {program_name}():", *("  " + line for line in consts + funcs)]
     if self_test:
         golden = self_test_configurations(robot)
         near = near_singular_self_test(robot, golden, max_correction)
@@ -1017,21 +1010,18 @@ def near_singular_self_test(robot: CalibratedRobot, golden: np.ndarray, max_corr
     if robot.n != 6:
         return np.zeros((0, robot.n))
     out = []
+    values = [sign * v for v in SELF_TEST_OFFSETS for sign in (1.0, -1.0)]
     for joint in (4, 2):
-        values = [sign * v for v in SELF_TEST_OFFSETS for sign in (1.0, -1.0)]
         q = np.tile(golden, (len(values), 1))
         q[:, joint] = np.repeat(values, len(golden))
         q = q[_passes(robot, q)]  # where the script answers
-        if not len(q):
-            continue
         full = robot.correct(q)
         undamped = robot.correct(q, iterations=ITERATIONS, damped_iterations=0)
         ok = (np.max(np.abs(full - undamped), axis=1) < 1e-9) & (np.max(np.abs(full - q), axis=1) <= max_correction / 2)
         # and one the script's precision check accepts in float32, with a factor 2 to spare (its J is float32)
         ok &= _inv_norm(robot, full) * RESIDUAL_ROUNDING * FLOAT32_EPS <= AGREEMENT / 2
-        if ok.any():
-            out.append(q[np.argmax(ok)])
-    return np.array(out).reshape(-1, robot.n)
+        out.append(q[ok][:1])  # the first that qualifies, if any
+    return np.concatenate(out)
 
 
 def _passes(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
