@@ -4,6 +4,7 @@ configuration; no string the exporter writes (robot name, provenance) can add a 
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import sys
 from pathlib import Path
@@ -229,3 +230,67 @@ def test_program_self_test_runs_inside_the_validity_region_of_a_fit_with_wide_jo
     ns = urscript_subset.load(urscript_program_text(robot), float32=True)
     ns["labcal_program"]()
     assert ("textmsg", "labcal: compensator self test passed") in ns["stats"].messages
+
+
+def _stopped_by(ns, q) -> str | None:
+    """The popup text when labcal_correct(q) halted, None when it returned a command."""
+    ns["stats"].messages.clear()
+    if _call(ns, q) is not None:
+        return None
+    return [text for kind, text in ns["stats"].messages if kind == "popup"][-1]
+
+
+def _narrow_region_robot():
+    """A local-POE robot whose validity region comes from data in which joint 5 never moved (issue 27's narrow
+    series): joint 5 scaled by 1 / MIN_SPREAD, so near q5 = 4.7 rad its scaled value is ~4,700 and the float32
+    spacing there (5e-4 scaled units) is a visible share of the radius."""
+    from labcal.compensator.validity import MIN_RADIUS, MIN_SPREAD, ValidityRegion
+
+    robot = _robot(LOCAL)
+    w = np.array([1.0, 1.0, 1.0, 1.0, 1.0 / MIN_SPREAD, 1.0])
+    centres = golden_configurations(robot)[:2] * w
+    return dataclasses.replace(robot, validity=ValidityRegion(centres=centres, radius=MIN_RADIUS, weights=w))
+
+
+def test_float32_script_refuses_every_configuration_just_outside_the_validity_region():
+    """correct() refuses beyond the radius; the controller's float32 distance is off by ~1e-4 of the radius here:
+    compared with the radius itself, the float32 script passed 16, 6 and 2 of these 40 configurations (1e-6,
+    3e-5 and 1e-4 of the radius outside). Just inside (1 % of the radius) it answers as correct() does."""
+    robot = _narrow_region_robot()
+    region = robot.validity
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=(40, 6))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    ns = urscript_subset.load(urscript_text(robot), float32=True)
+    for delta in (1e-6, 3e-5, 1e-4):
+        q = (region.centres[0] + region.radius * (1 + delta) * u) / region.weights
+        assert not region.inside(q).any()  # the premise: correct() refuses every one
+        passed = [row for row in q if "outside the validity region" not in (_stopped_by(ns, row) or "")]
+        assert not passed, f"{len(passed)} configurations {delta:g} of the radius outside passed the region check"
+    q = (region.centres[0] + region.radius * (1 - 1e-2) * u[:8]) / region.weights
+    for row in q:
+        got = _call(ns, row)
+        assert got is not None and np.max(np.abs(got - robot.correct(row))) <= AGREE
+
+
+@pytest.mark.parametrize("float32", [False, True], ids=["float64", "float32"])
+def test_script_refuses_every_joint_just_past_its_calibrated_range(float32):
+    """q_j = b (1 + 1e-8) past a bound b = ±2π: below half a float32 spacing of b, so the float32 script compared
+    with the bound itself passed every one. Past the range (or not a number) the script stops with the range
+    popup; 1e-5 of the bound inside it passes the range check."""
+    robot = _robot(LOCAL)
+    base = golden_configurations(robot)[0]
+    ns = urscript_subset.load(urscript_text(robot), float32=float32)
+    for j in range(robot.n):
+        for b in robot.joint_ranges[j]:
+            q = base.copy()
+            q[j] = b * (1 + 1e-8)
+            with pytest.raises(ValueError, match="outside the calibrated range"):
+                robot.correct(q)  # the premise
+            assert "outside the calibrated range" in (_stopped_by(ns, q) or ""), f"joint {j + 1} at {q[j]!r}"
+            q[j] = b * (1 - 1e-5)
+            robot.correct(q)  # accepted (q5 = ±2π is the wrist singularity: there the script stops for that)
+            assert "outside the calibrated range" not in (_stopped_by(ns, q) or ""), f"joint {j + 1} at {q[j]!r}"
+    q = base.copy()
+    q[2] = np.nan
+    assert "outside the calibrated range" in (_stopped_by(ns, q) or "")

@@ -78,7 +78,9 @@ Numbers: the script prints every constant with 17 significant digits, but the co
 floats. The float32 result differs from ``correct()`` by rounding, amplified by the configuration's conditioning:
 within :data:`FLOAT32_BOUND` rad on configurations whose length-scaled joint Jacobian has a condition number
 ≤ 100 (the test evaluates every script in float32 and holds it to this bound; the exact double-precision
-agreement holds only in double precision).
+agreement holds only in double precision). The range and region checks compare with bounds moved inwards by their
+own float32 rounding (:func:`_script_ranges`, :func:`_script_radius2`), so a controller never passes a
+configuration ``correct()`` refuses; it stops in a thin band just inside instead (``benchmarks/urscript_boundary.py``).
 
 Not covered (say so where it matters): configurations outside the calibrated joint ranges or outside the
 calibration's validity region (farther than its radius from every stored configuration, joints scaled as in
@@ -120,6 +122,12 @@ RESIDUAL_TOL = 1e-5  # |r| (L1, translation over the length scale) at the return
 # bound ‖J_s⁻¹‖∞ |δr|∞ assumes the worst alignment of δr; the errors measured were at most 2.0 ε ‖J_s⁻¹‖∞.
 RESIDUAL_ROUNDING = 5.0
 FLOAT32_EPS = 2.0**-23  # a controller's machine epsilon (lc_eps measures the script's own)
+# The range and region checks compare with bounds moved inwards by the float32 rounding of the comparison, so that
+# the controller never passes a configuration correct() refuses (benchmarks/urscript_boundary.py: with the bounds
+# themselves, float32 passed configurations 1e-7 of the validity radius outside it, 1e-4 where a joint never moved,
+# and 1e-8 past a joint's range).
+RANGE_MARGIN = 2.0**-22  # relative (at least 1 rad or m): two float32 spacings of the bound, see _script_ranges
+REGION_ROUNDING = 6.0  # |computed − exact| of e_j = q_j w_j − c_j in float32, in units of 2⁻²⁴ m_j: _script_radius2
 SELF_TEST_COUNT = 4
 SELF_TEST_OFFSETS = (0.05, 0.1, 0.2)  # rad from the wrist and elbow singularities: the self test's candidates
 _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -130,19 +138,12 @@ def _num(x: float) -> str:
     x = float(x)
     if not np.isfinite(x):
         raise ValueError(f"cannot write the non-finite number {x} into URScript")
-    text = repr(x)
-    if "e" in text:
-        mantissa, exponent = text.split("e")
-        return (mantissa if "." in mantissa else mantissa + ".0") + "e" + exponent
-    return text if "." in text else text + ".0"
+    mantissa, e, exponent = repr(x).partition("e")  # a finite float's repr has a point unless it has an exponent
+    return (mantissa if "." in mantissa else mantissa + ".0") + e + exponent
 
 
 def _list(values) -> str:
     return "[" + ", ".join(_num(v) for v in np.asarray(values, dtype=float).ravel()) + "]"
-
-
-def _bools(values) -> str:
-    return "[" + ", ".join("True" if v else "False" for v in values) + "]"
 
 
 def _zeros(m: int) -> str:
@@ -154,19 +155,17 @@ def _locals(value: str, *names: str) -> list[str]:
     return [f"  local {name} = {value}" for name in names]
 
 
-class _Budget:
-    """How many loop iterations fit between two sync() calls: half the budget per chunk, so that a chunk plus the
-    straight-line code after it (up to the next phase's sync) stays within the budget."""
+def _chunk(statements: int) -> int:
+    """Statements between two sync() calls in one chunk (``statements_per_sync`` given): half the budget, so that a
+    chunk plus the straight-line code after it (up to the next phase's sync) stays within the budget."""
+    if statements < 200:
+        raise ValueError(f"statements_per_sync must be >= 200 (one joint's chain step needs ~60), got {statements}")
+    return int(statements) // 2
 
-    def __init__(self, statements: int) -> None:
-        if statements < 200:
-            raise ValueError(f"statements_per_sync must be >= 200 (one joint's chain step needs ~60), got {statements}")
-        self.statements = int(statements)
-        self.chunk = self.statements // 2
 
-    def every(self, cost: int) -> int:
-        """Iterations of a loop whose body runs at most ``cost`` statements that fit in one chunk (≥ 1)."""
-        return max(1, self.chunk // max(1, cost))
+def _every(chunk: int, cost: int) -> int:
+    """Iterations of a loop whose body runs at most ``cost`` statements that fit in one chunk (≥ 1)."""
+    return max(1, chunk // max(1, cost))
 
 
 def _counter(indent: str, name: str, every: int, trips: int) -> list[str]:
@@ -189,22 +188,20 @@ def _frames12(kin: ZAxisForm) -> np.ndarray:
 
 
 def _mul_function() -> list[str]:
-    terms = []
-    for i in range(3):
-        for col in range(4):
-            expr = " + ".join(f"a[{4 * i + m}] * b[{4 * m + col}]" for m in range(3))
-            if col == 3:
-                expr += f" + a[{4 * i + 3}]"
-            terms.append(expr)
+    """lc_mul(a, b): the product of two 3×4 blocks (rotation and translation; the last column adds a's)."""
+    terms = [
+        " + ".join(f"a[{4 * i + m}] * b[{4 * m + col}]" for m in range(3)) + (f" + a[{4 * i + 3}]" if col == 3 else "")
+        for i in range(3)
+        for col in range(4)
+    ]
     return ["def lc_mul(a, b):", "  return [" + ", ".join(terms) + "]", "end"]
 
 
-def _chain_function(revolute, budget: _Budget) -> list[str]:
+def _chain_function(revolute, chunk: int) -> list[str]:
     """lc_chain(A, lin, q): the frames T'_0 … T'_n, written out joint by joint (the joint types are the same for
     the nominal and the identified model, so they are known here)."""
     n = len(revolute)
-    body = _Straight(budget)
-    body.add("sync()", 0)
+    body = _Straight(chunk)
     body.add("local c = 1.0")
     body.add("local s = 0.0")
     body.add(f"local G = {_zeros(12)}")
@@ -299,11 +296,11 @@ def _log_function() -> list[str]:
     ]
 
 
-def _solve_function(n: int, budget: _Budget) -> list[str]:
+def _solve_function(n: int, chunk: int) -> list[str]:
     # One pivot column: search (4 per row) and swap (4 per column + 5); then each row below it (8 + 3 per column).
-    every = budget.every(10 + 8 * n)
-    row_every = budget.every(8 + 3 * n)
-    back_every = budget.every(6 + 3 * n)
+    every = _every(chunk, 10 + 8 * n)
+    row_every = _every(chunk, 8 + 3 * n)
+    back_every = _every(chunk, 6 + 3 * n)
     return [
         f"# solve M x = y for a {n}×{n} row-major M (Gaussian elimination, partial pivoting)",
         "def lc_solve(M, y):",
@@ -382,22 +379,6 @@ def _abs_function() -> list[str]:
     ]
 
 
-def _folded(net) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """The network's layers with the input/output standardisation folded into the first/last layer:
-    weights (out, in) and biases (out,), acting on raw features and giving δρ directly."""
-    Ws = [np.array(W, dtype=float) for W in net.weights]
-    bs = [np.array(b, dtype=float) for b in net.biases]
-    in_scale = np.asarray(net.in_scale, dtype=float)
-    in_mean = np.asarray(net.in_mean, dtype=float)
-    W0 = Ws[0] / in_scale
-    bs[0] = bs[0] - W0 @ in_mean
-    Ws[0] = W0
-    out_scale = np.asarray(net.out_scale, dtype=float)
-    Ws[-1] = Ws[-1] * out_scale[:, None]
-    bs[-1] = bs[-1] * out_scale + np.asarray(net.out_mean, dtype=float)
-    return Ws, bs
-
-
 def _column_expression(col: feature_lib.Column, kin: ZAxisForm) -> str:
     """The URScript expression of one feature column (the registry's recipe; F: the chain's frames at q)."""
     if col.op == "q":
@@ -421,12 +402,6 @@ def _column_expression(col: feature_lib.Column, kin: ZAxisForm) -> str:
     raise ValueError(f"feature column {col.op!r} has no URScript form")
 
 
-def _feature_parts(name: str, robot: CalibratedRobot, kin: ZAxisForm) -> list[str]:
-    """URScript expressions of one network input feature's columns, from the feature registry's recipes."""
-    columns = feature_lib.get(name).columns(robot.model.joint_types, robot.model.limits)
-    return [_column_expression(col, kin) for col in columns]
-
-
 TERMS_PER_STATEMENT = 8  # multiply-adds written into one statement of a network layer
 _TANH_COST = 6  # statements of one lc_tanh call (the call, two tests, pow, return)
 
@@ -435,9 +410,9 @@ class _Straight:
     """Straight-line function body: a statement count since the last sync(), and a sync() before a statement
     that would take it past one chunk of the budget (so a chunk plus what follows the function stays within it)."""
 
-    def __init__(self, budget: _Budget) -> None:
-        self.chunk = budget.chunk
-        self.lines: list[str] = []
+    def __init__(self, chunk: int) -> None:
+        self.chunk = chunk
+        self.lines = ["  sync()"]  # each such body is a phase of its own
         self.count = 0
 
     def add(self, line: str, cost: int = 1) -> None:
@@ -448,7 +423,7 @@ class _Straight:
         self.count += cost
 
 
-def _network_functions(robot: CalibratedRobot, kin: ZAxisForm, budget: _Budget) -> list[str]:
+def _network_functions(robot: CalibratedRobot, kin: ZAxisForm, chunk: int) -> list[str]:
     """Function lines of the feature map and the network forward pass lc_rho(q, F).
 
     Both are written out straight (one feature column, or up to TERMS_PER_STATEMENT multiply-adds of a layer, per
@@ -456,14 +431,14 @@ def _network_functions(robot: CalibratedRobot, kin: ZAxisForm, budget: _Budget) 
     so the statement count is known here and sync() is placed exactly where the budget needs it.
     """
     net = robot.network
-    Ws, bs = _folded(net)
-    parts: list[str] = []
-    for name in net.features:
-        parts += _feature_parts(name, robot, kin)
+    Wts, bs = net._folded  # the layers acting on raw features and giving δρ directly (transposed)
+    Ws = [Wt.T for Wt in Wts]
+    joint_types, limits = robot.model.joint_types, robot.model.limits
+    columns = [col for name in net.features for col in feature_lib.get(name).columns(joint_types, limits)]
+    parts = [_column_expression(col, kin) for col in columns]
     if len(parts) != Ws[0].shape[1]:
         raise ValueError(f"network expects {Ws[0].shape[1]} inputs, the features give {len(parts)}")
-    body = _Straight(budget)
-    body.add("sync()", 0)
+    body = _Straight(chunk)
     body.add(f"local x = {_zeros(len(parts))}")
     for k, expr in enumerate(parts):
         body.add(f"x[{k}] = {expr}")
@@ -473,16 +448,15 @@ def _network_functions(robot: CalibratedRobot, kin: ZAxisForm, budget: _Budget) 
     last = len(Ws) - 1
     for i, (W, b) in enumerate(zip(Ws, bs, strict=True)):
         nout, _ = W.shape
-        body = _Straight(budget)
-        body.add("sync()", 0)
+        body = _Straight(chunk)
         body.add(f"local y = {_zeros(nout)}")
         body.add("local acc = 0.0")
         for o in range(nout):
             terms = [f"{_num(W[o, k])} * x[{k}]" for k in np.flatnonzero(W[o])]
             chunks = [terms[c : c + TERMS_PER_STATEMENT] for c in range(0, len(terms), TERMS_PER_STATEMENT)]
             body.add(f"acc = {' + '.join([_num(b[o]), *chunks[0]]) if chunks else _num(b[o])}")
-            for chunk in chunks[1:]:
-                body.add(f"acc = acc + {' + '.join(chunk)}")
+            for more in chunks[1:]:
+                body.add(f"acc = acc + {' + '.join(more)}")
             if i == last:
                 body.add(f"y[{o}] = acc")
             else:
@@ -533,124 +507,143 @@ def _check_exportable(
         raise ValueError("method 'paper' (eq. 24) needs a network; this calibration has none")
     if method == "paper" and (why := robot.network_only_error("paper")):
         raise ValueError(why)
-    if n > 6:
-        raise ValueError(
-            f"URScript export of a {n}-joint robot is not supported (UR controllers drive 6 joints); "
-            "use the json/npz compensator"
+    if n > 6 or (net is not None and n < 6):
+        what, why = (
+            (f"a {n}-joint robot", "UR controllers drive 6 joints")
+            if n > 6
+            else (f"a network for a {n}-joint robot", "virtual joints")
         )
-    if net is not None and n < 6:
-        raise ValueError(
-            f"URScript export of a network for a {n}-joint robot is not supported (virtual joints); "
-            "use the json/npz compensator"
-        )
+        raise ValueError(f"URScript export of {what} is not supported ({why}); use the json/npz compensator")
 
 
 def _definitions(
-    robot: CalibratedRobot, method: str, iterations: int, function_name: str, budget: _Budget, max_correction: float
+    robot: CalibratedRobot, method: str, iterations: int, function_name: str, chunk: int, max_correction: float
 ) -> tuple[list[str], list[str]]:
     """(constant lines, function lines) of the compensator, ending with ``function_name(q)``."""
     n, net = robot.n, robot.network
     kin, nom = ZAxisForm(robot.model), ZAxisForm(robot.nominal)
     if not np.array_equal(kin.revolute, nom.revolute):
         raise ValueError("the identified model's joint types differ from the nominal robot's")
-    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
+    lo, hi = _script_ranges(robot)
     consts = [
         f"lc_lo = {_list(lo)}",
         f"lc_hi = {_list(hi)}",
         f"lc_A = {_list(_frames12(kin))}",
         f"lc_lin = {_list(kin.lin)}",
         f"lc_pitch = {_list(kin.pitch)}",
-        f"lc_rev = {_bools(kin.revolute)}",
+        f"lc_rev = [{', '.join(str(bool(v)) for v in kin.revolute)}]",
         f"lc_nA = {_list(_frames12(nom))}",
         f"lc_nlin = {_list(nom.lin)}",
     ]
     funcs = (
         _mul_function()
-        + _chain_function(kin.revolute, budget)
+        + _chain_function(kin.revolute, chunk)
         + _twists_function(n)
         + _log_function()
-        + _solve_function(n, budget)
+        + _solve_function(n, chunk)
     )
     if net is not None:
-        funcs += _network_functions(robot, kin, budget)
+        funcs += _network_functions(robot, kin, chunk)
     region = robot.validity
     if region is not None:
         consts += [f"lc_vc{j} = {_list(region.centres[:, j])}" for j in range(n)]
-        consts.append(f"lc_vr2 = {_num(region.radius * region.radius)}")
-        funcs += _region_function(region, budget)
+        consts.append(f"lc_vr2 = {_num(_script_radius2(region)[0])}")
+        funcs += _region_function(region, chunk)
 
-    m = 12 * (n + 1)
+    head = _correct_head(robot, function_name)
     if method == "paper":
-        F = "lc_chain(lc_A, lc_lin, q)" if "gravity" in net.features else _zeros(m)
-        main = [
-            f"def {function_name}(q):",
-            *_range_check(n),
-            *_region_check(robot),
-            f"  local rho = lc_rho(q, {F})",
-            "  return [" + ", ".join(f"q[{j}] - rho[{j}]" for j in range(n)) + "]",
-            "end",
-        ]
-        return consts, funcs + main
-    return consts, funcs + _attempt_function(robot, kin, iterations, max_correction) + _correct_function(
-        n, iterations, max_correction, function_name, _region_check(robot)
-    )
+        F = "lc_chain(lc_A, lc_lin, q)" if "gravity" in net.features else _zeros(12 * (n + 1))
+        main = [f"  local rho = lc_rho(q, {F})", "  return [" + ", ".join(f"q[{j}] - rho[{j}]" for j in range(n)) + "]"]
+        return consts, [*funcs, *head, *main, "end"]
+    attempt = _attempt_function(robot, kin, iterations, max_correction)
+    return consts, funcs + attempt + head + _correct_refusals(n, iterations, max_correction)
 
 
-def _region_function(region, budget: _Budget) -> list[str]:
+def _region_function(region, chunk: int) -> list[str]:
     """lc_region_d2(q): the squared scaled distance from q to the nearest centre of the validity region
     (:class:`labcal.compensator.validity.ValidityRegion`: joint j scaled by its weight, centres stored scaled)."""
     count, n = region.centres.shape
-    cost = 2 * n + 3
-    lines = [
+    squares = [  # d = Σ_j (q_j w_j − c_j)², one joint after the other
+        (f"    e = q[{j}] * {_num(w)} - lc_vc{j}[c]", "    d = d + e * e" if j else "    d = e * e")
+        for j, w in enumerate(region.weights)
+    ]
+    return [
         "def lc_region_d2(q):",
         "  sync()",
         "  local best = -1.0",
         *_locals("0.0", "d", "e"),
         *_locals("0", "c", "s"),
         f"  while c < {count}:",
-        f"    e = q[0] * {_num(region.weights[0])} - lc_vc0[c]",
-        "    d = e * e",
-    ]
-    for j in range(1, n):
-        lines += [f"    e = q[{j}] * {_num(region.weights[j])} - lc_vc{j}[c]", "    d = d + e * e"]
-    lines += [
+        *(line for pair in squares for line in pair),
         "    if best < 0.0 or d < best:",
         "      best = d",
         "    end",
         "    c = c + 1",
-        *_counter("    ", "s", budget.every(cost), count),
+        *_counter("    ", "s", _every(chunk, 2 * n + 3), count),
         "  end",
         "  return best",
         "end",
     ]
-    return lines
 
 
-def _region_check(robot: CalibratedRobot) -> list[str]:
-    """Lines that stop the program at a configuration outside the validity region, as ``correct()`` refuses it."""
-    if robot.validity is None:
-        return []
-    head = "labcal: configuration outside the validity region of the calibration (no data near it), stopped at q = "
-    return [
-        "  if lc_region_d2(q) > lc_vr2:",
-        f'    textmsg("{_text(head)}", q)',
-        f'    popup(str_cat("{_text(head)}", q), error=True, blocking=True)',
-        "    halt",
-        "  end",
-    ]
+def _script_ranges(robot: CalibratedRobot, margins: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) the script compares q with: the calibrated ranges, each bound b moved inwards by RANGE_MARGIN ·
+    max(|b|, 1), at least two float32 spacings of b. Rounding to float32 is monotone and moves a number by at most
+    half a spacing, so a q past b stays past the rounded literal: the controller refuses every q correct() refuses,
+    and the script refuses a band that thin just inside (float64: 1.5e-6 rad at ±2π, 2.4e-7 within ±1)."""
+    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
+    m = margins * RANGE_MARGIN
+    return lo + m * np.maximum(np.abs(lo), 1.0), hi - m * np.maximum(np.abs(hi), 1.0)
 
 
-def _range_check(n: int) -> list[str]:
-    return [
+def _script_radius2(region) -> tuple[float, float]:
+    """(the radius² ``lc_region_d2`` is compared with, D): below every squared distance correct() refuses, by the
+    rounding of both sides; D bounds the float32 script's error in the distance.
+
+    correct() (float64, ε = 2⁻⁵³) sums |x|² − 2 x·c + |c|² (x = q w): off by at most (n + 5) 2ε (‖x‖ + ‖c‖)²,
+    sqrt and comparison included, so it refuses only where the exact squared distance exceeds r2 below.
+    The script (float32, u = 2⁻²⁴) computes e_j = q_j w_j − c_j with at most 3u|x_j| (q, w, their product) +
+    u|c_j| + u|e_j| (c, the difference) ≤ REGION_ROUNDING u m_j, m_j = max |c_j| + radius bounding |x_j|, |c_j|
+    and |e_j| within a ball (the 6th u absorbs the second-order terms); so its ‖e‖ is off by at most D =
+    REGION_ROUNDING u ‖m‖, and the sum of n squares by a factor (1 ± n u). Comparing with (√r2 − D)² (1 − (n + 2) u)
+    (the literal's own rounding included) refuses every q correct() refuses, and gives up a shell about 2 D thick
+    just inside: 1.1e-5 of the radius for the real UR10 fit of benchmarks/urscript_agreement.py, 3.3e-6 for the
+    simulated ones, 2.3e-3 where a joint never moved (scaled by 1 / MIN_SPREAD: 4,700 units at 4.7 rad).
+    """
+    n = region.centres.shape[1]
+    reach = np.abs(region.centres).max(axis=0) + region.radius  # m_j
+    outer = 2.0 * float(np.linalg.norm(region.centres, axis=1).max()) + region.radius  # bounds ‖x‖ + ‖c‖
+    r2 = region.radius**2 - (n + 5) * 2.0**-52 * outer**2
+    slack = REGION_ROUNDING * 2.0**-24 * float(np.linalg.norm(reach))
+    return max(np.sqrt(max(r2, 0.0)) - slack, 0.0) ** 2 * (1.0 - (n + 2) * 2.0**-24), slack
+
+
+def _correct_head(robot: CalibratedRobot, function_name: str) -> list[str]:
+    """function_name(q)'s opening: stop the program where ``correct()`` refuses without ``extrapolate``, at a joint
+    outside its calibrated range or a configuration outside the validity region (within :func:`_script_ranges`,
+    :func:`_script_radius2`)."""
+    lines = [
+        f"def {function_name}(q):",
         "  local j = 0",
-        f"  while j < {n}:",
-        "    if q[j] < lc_lo[j] or q[j] > lc_hi[j]:",
+        f"  while j < {robot.n}:",
+        "    if not (lc_lo[j] <= q[j] and q[j] <= lc_hi[j]):",
         f'      textmsg("{_text("labcal: joint outside the calibrated range, q = ")}", q)',
         f'      popup(str_cat("{_text("labcal: joint outside the calibrated range, stopped at q = ")}", q), '
         "error=True, blocking=True)",
         "      halt",
         "    end",
         "    j = j + 1",
+        "  end",
+    ]
+    if robot.validity is None:
+        return lines
+    head = "labcal: configuration outside the validity region of the calibration (no data near it), stopped at q = "
+    return [
+        *lines,
+        "  if not (lc_region_d2(q) <= lc_vr2):",
+        f'    textmsg("{_text(head)}", q)',
+        f'    popup(str_cat("{_text(head)}", q), error=True, blocking=True)',
+        "    halt",
         "  end",
     ]
 
@@ -701,10 +694,7 @@ def _attempt_residual(n: int, learned: bool) -> list[str]:
     """The residual r of one Newton step: log of the pose error, less J ρ(q) when there is a learned term."""
     last = 12 * n
     # dR = Rt Rmᵀ, dp = pt − dR pm
-    dR = []
-    for a in range(3):
-        for b in range(3):
-            dR.append(" + ".join(f"Rt[{3 * a + k}] * F[{last + 4 * b + k}]" for k in range(3)))
+    dR = [" + ".join(f"Rt[{3 * a + k}] * F[{last + 4 * b + k}]" for k in range(3)) for a in range(3) for b in range(3)]
     lines = ["    dR = [" + ", ".join(dR) + "]"]
     dp = [
         f"pt[{a}] - (" + " + ".join(f"dR[{3 * a + k}] * F[{last + 4 * k + 3}]" for k in range(3)) + ")"
@@ -849,10 +839,8 @@ def _eps_function() -> list[str]:
     ]
 
 
-def _correct_function(
-    n: int, iterations: int, max_correction: float, function_name: str, region_check: list[str]
-) -> list[str]:
-    """function_name(q): the range and region checks, lc_attempt, and popup + halt for every status but
+def _correct_refusals(n: int, iterations: int, max_correction: float) -> list[str]:
+    """The rest of function_name(q) after :func:`_correct_head`: lc_attempt, and popup + halt for every status but
     converged."""
     reasons = [
         (-3.5, "labcal: too near a singular configuration for the controller's float precision, no command for q = "),
@@ -861,19 +849,13 @@ def _correct_function(
         (None, f"labcal: correction larger than {max_correction:g} rad, no command for q = "),
     ]
     lines = [
-        f"def {function_name}(q):",
-        *_range_check(n),
-        *region_check,
         "  local out = lc_attempt(q)",
         f"  if out[{n}] < 0.5:",
         f'    textmsg("{_text("labcal: no command, status ")}", out[{n}])',
     ]
     for k, (below, message) in enumerate(reasons):
-        if below is not None:
-            lines.append(f"    {'if' if k == 0 else 'elif'} out[{n}] < {_num(below)}:")
-        else:
-            lines.append("    else:")
-        lines.append(f'      popup(str_cat("{_text(message)}", q), error=True, blocking=True)')
+        test = "else" if below is None else f"{'elif' if k else 'if'} out[{n}] < {_num(below)}"
+        lines += [f"    {test}:", f'      popup(str_cat("{_text(message)}", q), error=True, blocking=True)']
     lines += [
         "    end",
         "    halt",
@@ -932,8 +914,7 @@ def urscript_text(
 ) -> str:
     """The function file: constants and ``function_name(q)`` for a Script node (see the module docstring)."""
     _check_exportable(robot, method, iterations, function_name, max_correction)
-    budget = _Budget(statements_per_sync)
-    consts, funcs = _definitions(robot, method, iterations, function_name, budget, max_correction)
+    consts, funcs = _definitions(robot, method, iterations, function_name, _chunk(statements_per_sync), max_correction)
     usage = (
         f"# usage: a Script node in file mode under BeforeStart loads this once; then q_cmd = {function_name}(q)   "
         f"(q: {robot.n} joint angles in rad, the pose you want the nominal model of)"
@@ -963,11 +944,9 @@ def urscript_program_text(
     _check_exportable(robot, method, iterations, function_name, max_correction)
     if not _IDENTIFIER.fullmatch(program_name):
         raise ValueError(f"program name {program_name!r} is not an ASCII identifier")
-    budget = _Budget(statements_per_sync)
-    consts, funcs = _definitions(robot, method, iterations, function_name, budget, max_correction)
+    consts, funcs = _definitions(robot, method, iterations, function_name, _chunk(statements_per_sync), max_correction)
     usage = f"# usage: send this file to the controller's script port (30002); it runs {program_name}()"
-    lines = [f"def {program_name}():"]
-    lines += ["  " + line for line in consts + funcs]
+    lines = [f"def {program_name}():", *("  " + line for line in consts + funcs)]
     if self_test:
         golden = self_test_configurations(robot)
         near = near_singular_self_test(robot, golden, max_correction)
@@ -1013,9 +992,8 @@ def self_test_configurations(robot: CalibratedRobot, count: int = SELF_TEST_COUN
     region = robot.validity
     if region is None:
         return golden_configurations(robot)[:count]
-    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
     cand = region.sample(64 * count, np.random.default_rng(0))
-    cand = cand[np.all((cand >= lo) & (cand <= hi), axis=1) & region.inside(cand)]
+    cand = cand[_passes(robot, cand)]
     J = robot.model.equivalent_jacobian(cand, length_scale=robot.length_scale)
     return cand[np.argsort(scaled_condition(J, robot.length_scale), kind="stable")[:count]]
 
@@ -1031,32 +1009,35 @@ def near_singular_self_test(robot: CalibratedRobot, golden: np.ndarray, max_corr
     """
     if robot.n != 6:
         return np.zeros((0, robot.n))
-    lo, hi = robot.joint_ranges[:, 0], robot.joint_ranges[:, 1]
     out = []
+    values = [sign * v for v in SELF_TEST_OFFSETS for sign in (1.0, -1.0)]
     for joint in (4, 2):
-        values = [sign * v for v in SELF_TEST_OFFSETS for sign in (1.0, -1.0)]
         q = np.tile(golden, (len(values), 1))
         q[:, joint] = np.repeat(values, len(golden))
-        q = q[(lo[joint] <= q[:, joint]) & (q[:, joint] <= hi[joint])]
-        if robot.validity is not None:  # where the script answers
-            q = q[robot.validity.inside(q)]
-        if not len(q):
-            continue
+        q = q[_passes(robot, q)]  # where the script answers
         full = robot.correct(q)
         undamped = robot.correct(q, iterations=ITERATIONS, damped_iterations=0)
         ok = (np.max(np.abs(full - undamped), axis=1) < 1e-9) & (np.max(np.abs(full - q), axis=1) <= max_correction / 2)
         # and one the script's precision check accepts in float32, with a factor 2 to spare (its J is float32)
         ok &= _inv_norm(robot, full) * RESIDUAL_ROUNDING * FLOAT32_EPS <= AGREEMENT / 2
-        if ok.any():
-            out.append(q[np.argmax(ok)])
-    return np.array(out).reshape(-1, robot.n)
+        out.append(q[ok][:1])  # the first that qualifies, if any
+    return np.concatenate(out)
+
+
+def _passes(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
+    """(k,) whether (k, n) configurations pass the script's range and region checks in float32 for sure: inside
+    its ranges by another margin, and inside its radius by another D (its own rounding, :func:`_script_radius2`)."""
+    lo, hi = _script_ranges(robot, margins=2)
+    ok = np.all((lo <= q) & (q <= hi), axis=1)
+    if (region := robot.validity) is None:
+        return ok
+    r2, slack = _script_radius2(region)
+    return ok & (region.distance(q) <= np.sqrt(r2) - 2 * slack)
 
 
 def _inv_norm(robot: CalibratedRobot, q: np.ndarray) -> np.ndarray:
     """(k,) ‖J_s⁻¹‖∞ at (k, 6) configurations, as ``lc_inv_norm`` computes it (J_s: the length-scaled Jacobian)."""
     J = robot.model.equivalent_jacobian(q)
     w = np.array([float(robot.length_scale)] * 3 + [1.0] * 3)
-    with np.errstate(all="ignore"):
-        inv = np.linalg.inv(J) * w  # J⁻¹ diag(L, L, L, 1, 1, 1) = J_s⁻¹
-    out = np.abs(inv).sum(axis=2).max(axis=1)
-    return np.where(np.isfinite(out), out, np.inf)
+    with np.errstate(all="ignore"):  # a NaN fails the caller's test as inf does
+        return np.abs(np.linalg.inv(J) * w).sum(axis=2).max(axis=1)  # J⁻¹ diag(L, L, L, 1, 1, 1) = J_s⁻¹
