@@ -107,8 +107,8 @@ class ImportSpec:
     description: str = ""
 
     def check(self) -> None:
-        """Refuse the reading options a user gave wrong (a mapping's form, target triples and extra column types
-        are its schema's to check)."""
+        if self.form not in ("targets", "probe"):
+            raise MappingError(f'form must be "targets" or "probe", got {self.form!r}')
         if self.frame not in FRAMES:
             raise MappingError(f"frame must be one of {FRAMES}, got {self.frame!r}")
         if self.joint_unit not in ANGLE_UNITS:
@@ -126,6 +126,8 @@ class ImportSpec:
                 raise MappingError(f'rotation convention must be "rotvec" or "euler", got {self.convention!r}')
             if self.convention == "euler":
                 _check_sequence(self.euler_sequence)
+        if self.form == "targets" and len(self.target_columns) < 1:
+            raise MappingError("the targets form needs a target column triple [x, y, z] per target")
         names = [e.name for e in self.extras]
         if len(set(names)) != len(names):
             raise MappingError(f"duplicate extra column names {names}")
@@ -133,6 +135,8 @@ class ImportSpec:
             validate_id(e.name, "extra column name")
             if not all(c.isalnum() or c == "_" for c in e.name):
                 raise MappingError(f"extra column name {e.name!r} may hold letters, digits and '_' only")
+            if e.kind not in ("float", "str"):
+                raise MappingError(f'extra column {e.name!r}: type must be "float" or "str", got {e.kind!r}')
 
 
 def _check_sequence(seq: object) -> str:
