@@ -309,23 +309,27 @@ def run_refit(
     refs: Sequence[str],
     method: str,
     *,
+    seed: int = 0,
+    hidden: int | None = None,
+    val_fraction: float = 0.0,
+    robot_file: str | None = None,
     jobs: int = 1,
     scheduler: str | None = None,
     skipped: Sequence[tuple[str, str]] = (),
     progress: Callable[[RefitRow, int, int], None] | None = None,
-    **fit_options,
+    hook: Callable | None = None,
 ) -> RefitReport:
     """Refit every ref with one method and seed; see the module docstring for the executors.
 
-    fit_options: :func:`plan_tasks`' keywords (seed, hidden, val_fraction, robot_file, hook). progress(row, done,
-    total) is called as each task finishes. Ctrl-C returns the report so far with ``interrupted=True`` (every
-    stored fit complete, no temporary folder of this run left behind locally).
+    progress(row, done, total) is called as each task finishes. Ctrl-C returns the report so far with
+    ``interrupted=True`` (every stored fit complete, no temporary folder of this run left behind locally).
     """
     if jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {jobs}")
     if scheduler and jobs > 1:
         raise UserError("--jobs sets the size of the local cluster; with --scheduler the cluster's workers decide")
-    tasks = plan_tasks(store, refs, method, **fit_options)
+    tasks = plan_tasks(store, refs, method, seed=seed, hidden=hidden, val_fraction=val_fraction,
+                       robot_file=robot_file, hook=hook)  # fmt: skip
     rows: dict[int, RefitRow] = {}
 
     def done(i: int, row: RefitRow) -> None:
