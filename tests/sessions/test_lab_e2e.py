@@ -297,3 +297,25 @@ def test_the_hardware_test_options_work_as_the_readme_says(rig):
     )  # fmt: skip
     assert result.returncode == 0, result.stdout + result.stderr
     assert re.search(r"\b5 passed", result.stdout), result.stdout  # 2 tracker, 3 robot tests (one moves the fake)
+
+
+def test_ctrl_c_stops_the_rehearsal_quietly():
+    """The rehearsal's one instruction is "Ctrl-C stops the fakes": the terminal's SIGINT reaches the fake
+    controller's own process too, which must leave stopping to the rig instead of dying with a traceback."""
+    default = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731
+    command = [sys.executable, "-m", "labcal_fakes.rehearse", "--targets", str(TARGETS)]
+    process = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=default
+    )
+    try:
+        assert process.stdout is not None
+        deadline = time.monotonic() + HANG
+        while "Ctrl-C stops the fakes" not in process.stdout.readline():
+            assert time.monotonic() < deadline and process.poll() is None, "the rehearsal did not start"
+        os.killpg(process.pid, signal.SIGINT)
+        _, err = process.communicate(timeout=HANG)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert process.returncode == 0, err
+    assert "Traceback" not in err, err

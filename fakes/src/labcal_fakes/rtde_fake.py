@@ -34,6 +34,7 @@ import json
 import math
 import os
 import re
+import signal
 import socket
 import struct
 import sys
@@ -999,4 +1000,7 @@ class FakeRTDEServer:
 
 
 if __name__ == "__main__":
+    # Ctrl-C in a terminal reaches the whole process group; the owner of the fake stops it (closing stdin), as the
+    # UR interfaces' children leave stopping to labcal.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _child_main(json.loads(sys.argv[1]), sys.stdin, sys.stdout)
