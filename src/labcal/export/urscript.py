@@ -606,9 +606,10 @@ def _script_radius2(region) -> tuple[float, float]:
     u|c_j| + u|e_j| (c, the difference) ≤ REGION_ROUNDING u m_j, m_j = max |c_j| + radius bounding |x_j|, |c_j|
     and |e_j| within a ball (the 6th u absorbs the second-order terms); so its ‖e‖ is off by at most D =
     REGION_ROUNDING u ‖m‖, and the sum of n squares by a factor (1 ± n u). Comparing with (√r2 − D)² (1 − (n + 2) u)
-    (the literal's own rounding included) refuses every q correct() refuses, and gives up a shell about 2 D thick
-    just inside: 1.1e-5 of the radius for the real UR10 fit of benchmarks/urscript_agreement.py, 3.3e-6 for the
-    simulated ones, 2.3e-3 where a joint never moved (scaled by 1 / MIN_SPREAD: 4,700 units at 4.7 rad).
+    (the literal's own rounding included) refuses every q correct() refuses. The compared radius is smaller than the
+    region's by 5.6e-6 of it for the real UR10 fit of benchmarks/urscript_agreement.py, 1.8e-6 for the simulated
+    ones and 7.5e-4 where a joint never moved (scaled by 1 / MIN_SPREAD: 4,740 units), as
+    ``benchmarks/urscript_boundary.py`` prints; the script stops in that shell just inside the region.
     """
     n = region.centres.shape[1]
     reach = np.abs(region.centres).max(axis=0) + region.radius  # m_j
