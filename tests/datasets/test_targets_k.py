@@ -223,12 +223,12 @@ def test_normalize_table_names_the_row_and_column_of_a_partly_empty_target():
     t = {"t1_x": [0.0, 1.0, np.nan], "t1_y": [0.0, 1.0, np.nan], "t1_z": [0.0, np.nan, np.nan]}
     t2 = {"t2_x": [1.0, 1.0, 1.0], "t2_y": [1.0, 1.0, 1.0], "t2_z": [1.0, 1.0, 1.0]}
     with pytest.raises(DatasetError, match=r"row 1, column 't1_z': target t1 is partly empty"):
-        normalize_table(pd.DataFrame({**cols, **t, **t2}), 2)
+        normalize_table(pd.DataFrame({**cols, **t, **t2}), 2, 2)
     t["t1_z"][1] = 1.0
-    table = normalize_table(pd.DataFrame({**cols, **t, **t2}), 2)
+    table = normalize_table(pd.DataFrame({**cols, **t, **t2}), 2, 2)
     assert list(table.columns) == ["pose", "q1", "q2", *target_columns(2), "split"]
     with pytest.raises(DatasetError, match="row 2: no target seen"):
-        normalize_table(pd.DataFrame({**cols, **t, **{k: [1.0, 1.0, np.nan] for k in t2}}), 2)
+        normalize_table(pd.DataFrame({**cols, **t, **{k: [1.0, 1.0, np.nan] for k in t2}}), 2, 2)
     with pytest.raises(DatasetError, match=r"target column\(s\) \['t2_x', 't2_y', 't2_z'\] but the session has 1"):
         normalize_table(pd.DataFrame({**cols, **t, **t2}), 2, 1)
 

@@ -41,7 +41,7 @@ SCHEMA_VERSION = 1
 SPLITS = ("train", "val", "test", "")
 FRAMES = ("base", "tracker")
 _EXTRA_RE = re.compile(r"^x_[A-Za-z0-9_]+$")
-_TARGET_RE = re.compile(r"^t(\d+)_[xyz]$")
+_TARGET_RE = re.compile(r"^t\d+_[xyz]$")
 _SPREAD_RE = re.compile(r"^spread_t(\d+)$")
 # The unit of each kind of core column (column_units).
 _UNITS = (
@@ -61,12 +61,6 @@ def target_columns(m: int = 3) -> tuple[str, ...]:
 def spread_columns(m: int = 3) -> tuple[str, ...]:
     """``("spread_t1", …, "spread_tm")``."""
     return tuple(f"spread_t{i}" for i in range(1, m + 1))
-
-
-def targets_in(columns) -> int:
-    """Number of targets m of a table with these columns: the largest i of a ``ti_x/y/z`` column (0 if none)."""
-    found = [int(mt.group(1)) for c in columns if (mt := _TARGET_RE.match(str(c)))]
-    return max(found, default=0)
 
 
 def joint_columns(n_joints: int) -> list[str]:
@@ -119,17 +113,13 @@ def _check_points(p: np.ndarray) -> None:
         )
 
 
-def normalize_table(table: pd.DataFrame, n_joints: int, n_targets: int | None = None) -> pd.DataFrame:
+def normalize_table(table: pd.DataFrame, n_joints: int, m: int) -> pd.DataFrame:
     """Check a measurements table and return it with canonical column order and dtypes.
 
-    ``n_targets``: m, the number of targets (default: from the table's ``ti_*`` columns). NaN in a target's three
-    columns means the target was not seen (see the module docstring). Raises :class:`DatasetError` naming the column
-    (and row) at fault.
+    ``m``: the number of targets (the session's, at least 1). NaN in a target's three columns means the target was
+    not seen (see the module docstring). Raises :class:`DatasetError` naming the column (and row) at fault.
     """
     cols = list(table.columns)
-    m = targets_in(cols) if n_targets is None else int(n_targets)
-    if m < 1:
-        raise DatasetError("measurements table has no target columns t1_x, t1_y, t1_z …")
     need = core_columns(n_joints, m)
     missing = [c for c in need if c not in cols]
     if missing:
