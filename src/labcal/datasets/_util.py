@@ -142,22 +142,15 @@ def publish_dir(tmp: Path, final: Path) -> None:
 
 
 def software_versions() -> dict[str, str]:
-    """Versions of the software that produced a document (labcal, Python and the data libraries)."""
-    import numpy
-    import pandas
-    import pyarrow
+    """Versions of the software that produced a document (labcal, Python and the data libraries; scipy when loaded)."""
+    import importlib
 
     import labcal
 
-    out = {
-        "labcal": getattr(labcal, "__version__", "unknown"),
-        "python": sys.version.split()[0],
-        "numpy": numpy.__version__,
-        "pandas": pandas.__version__,
-        "pyarrow": pyarrow.__version__,
-    }
-    scipy = sys.modules.get("scipy")
-    if scipy is not None:
+    out = {"labcal": getattr(labcal, "__version__", "unknown"), "python": sys.version.split()[0]}
+    for name in ("numpy", "pandas", "pyarrow"):
+        out[name] = importlib.import_module(name).__version__
+    if (scipy := sys.modules.get("scipy")) is not None:
         out["scipy"] = scipy.__version__
     return out
 
