@@ -333,7 +333,7 @@ MUTATIONS: list[Mutation] = [
     M("datasets/store", S, "            return Ref(r.session_id, versions[-1])",
       "            return Ref(r.session_id, versions[0])", "SESSION without @vN resolves to the first version",
       T_STORE, T_DUR, batch=2),
-    M("datasets/store", S, '            raise DatasetError(f"fit {fit_id!r} already exists under {resolved[0]}")',
+    M("datasets/store", S, '            raise DatasetError(f"fit {fit_id!r} already exists under {under}")',
       "            pass", "a fit id that exists is not refused", T_REF, T_STORE, batch=2),
     M("datasets/store", S, "            if name == FIT_JSON:\n", "            if False:\n",
       "a caller's file may replace fit.json", T_REF, T_STORE, batch=2),

@@ -44,7 +44,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from labcal.atomicio import write_bytes
+
 from ._util import (
+    READ_ONLY,
     canonical_json,
     fsync_dir,
     iso,
@@ -508,8 +511,12 @@ class SessionStore:
         return r
 
     def version_dir(self, ref: str | Ref) -> Path:
+        return self._located(ref)[1]
+
+    def _located(self, ref: str | Ref) -> tuple[Ref, Path]:
+        """The resolved reference (:meth:`resolve`) and its version folder."""
         r = self.resolve(ref)
-        return self.session_dir(r.session_id) / version_name(r.version)  # type: ignore[arg-type]
+        return r, self.session_dir(r.session_id) / version_name(r.version)  # type: ignore[arg-type]
 
     @_writes("create a session")
     def create_session(self, header: SessionHeader) -> Journal:
@@ -552,11 +559,9 @@ class SessionStore:
 
     def session_meta(self, session_id: str) -> dict:
         """The session's metadata block (robot, targets, frame, tracker …) from its journal or latest version."""
-        from .journal import read_journal
-
         d = self._require_session(session_id)
         if (d / JOURNAL_NAME).exists():
-            start = read_journal(d / JOURNAL_NAME).start
+            start = self.read_journal(session_id).start
             if start is not None:
                 return session_meta_from_start(start)
         versions = self.versions(session_id)
@@ -566,13 +571,11 @@ class SessionStore:
 
     def show(self, session_id: str) -> SessionInfo:
         """Summary of one session: robot, frame, status, versions (rows, source, parent, fits)."""
-        from .journal import read_journal
-
         d = self._require_session(session_id)
         warnings: list[str] = []
         status, n_meas = "imported", None
         if (d / JOURNAL_NAME).exists():
-            contents = read_journal(d / JOURNAL_NAME)
+            contents = self.read_journal(session_id)
             status, n_meas = contents.status, len(contents.measurements)
             warnings += contents.warnings
         infos = []
@@ -607,8 +610,7 @@ class SessionStore:
 
     def verify(self, ref: str | Ref) -> VerifyReport:
         """Recompute every hash of a version; report missing, extra and changed files precisely."""
-        r = self.resolve(ref)
-        vdir = self.session_dir(r.session_id) / version_name(r.version)  # type: ignore[arg-type]
+        r, vdir = self._located(ref)
         if not (vdir / MANIFEST).is_file():
             return VerifyReport(str(r), [f"{MANIFEST}: missing"])
         manifest, problems = _load_sealed((vdir / MANIFEST).read_bytes(), "manifest_sha256", MANIFEST)
@@ -641,8 +643,6 @@ class SessionStore:
         Each version's own files are :meth:`verify`'s; ``ref`` of the report is the session id. Foreign entries
         of the session folder are notes. One line per problem, naming the file, the line or version, and the fix.
         """
-        from .journal import read_journal
-
         d = self._require_session(session_id)
         problems: list[str] = []
         checked: list[str] = []
@@ -677,7 +677,7 @@ class SessionStore:
                     "session cannot be resumed or sealed again"
                 )
             return VerifyReport(session_id, problems, checked, notes)
-        contents = read_journal(jpath)
+        contents = self.read_journal(session_id)
         checked.append(JOURNAL_NAME)
         problems += _journal_problems(session_id, jpath, contents, sealed, manifests)
         return VerifyReport(session_id, problems, checked, notes)
@@ -710,8 +710,8 @@ class SessionStore:
         Per fit: fit.json's own sha256 and canonical bytes, the sha256 of every file it lists, missing and unlisted
         files, and that each input version's manifest is still the one the fit read. One line per problem.
         """
-        r = self.resolve(ref)
-        fits_dir = self.session_dir(r.session_id) / version_name(r.version) / FITS  # type: ignore[arg-type]
+        r, vdir = self._located(ref)
+        fits_dir = vdir / FITS
         problems: list[str] = []
         checked: list[str] = []
         notes: list[str] = []
@@ -763,8 +763,7 @@ class SessionStore:
 
     def load(self, ref: str | Ref) -> Dataset:
         """Load a version after verifying its hashes; raises :class:`DatasetCorrupted` on any mismatch."""
-        r = self.resolve(ref)
-        vdir = self.session_dir(r.session_id) / version_name(r.version)  # type: ignore[arg-type]
+        r, vdir = self._located(ref)
         self.verify(r).raise_if_bad()
         manifest = json.loads((vdir / MANIFEST).read_text(encoding="utf-8"))
         data = (vdir / MEASUREMENTS).read_bytes()
@@ -892,11 +891,9 @@ class SessionStore:
         ``valid_prefix`` the measurements recorded after that part are sealed (up to the first corrupt line after
         it), the session metadata taken from the version's manifest, and the damage recorded in the provenance.
         """
-        from .journal import read_journal
-
         d = self._require_session(session_id)
         jpath = d / JOURNAL_NAME
-        contents = read_journal(jpath)
+        contents = self.read_journal(session_id)
         versions = self.versions(session_id)
         parent_ds = self.load(Ref(session_id, versions[-1])) if versions else None  # its own files only
         latest = parent_ds.ref if parent_ds is not None else None
@@ -968,7 +965,6 @@ class SessionStore:
         data sha256, plus the sha256 of every fit file. Inputs are verified first.
         """
         inputs = []
-        resolved = []
         for ref in [refs] if isinstance(refs, str | Ref) else refs:
             r = self.resolve(ref)
             self.verify(r).raise_if_bad()
@@ -981,18 +977,18 @@ class SessionStore:
                     "row_count": m["row_count"],
                 }
             )
-            resolved.append(r)
-        if not resolved:
+        if not inputs:
             raise DatasetError("a fit needs at least one input version")
+        under, vdir = self._located(inputs[0]["ref"])
         fit_id = validate_id(fit_id, "fit id") if fit_id else new_fit_id()
         for name in files:
             validate_id(name, "fit file name")
             if name == FIT_JSON:
                 raise DatasetError(f"{FIT_JSON} is reserved for labcal's own record of the fit")
-        fits_dir = self.session_dir(resolved[0].session_id) / version_name(resolved[0].version) / FITS  # type: ignore[arg-type]
+        fits_dir = vdir / FITS
         make_dirs_durable(fits_dir)
         if (fits_dir / fit_id).exists():
-            raise DatasetError(f"fit {fit_id!r} already exists under {resolved[0]}")
+            raise DatasetError(f"fit {fit_id!r} already exists under {under}")
         with _publishing(fits_dir, fit_id, fits_dir / fit_id) as tmp:
             recorded = {}
             for name, content in sorted(files.items()):
@@ -1004,45 +1000,37 @@ class SessionStore:
                 "schema_version": SCHEMA_VERSION,
                 "fit_id": fit_id,
                 "created": iso(utc_now()),
-                "stored_under": str(resolved[0]),
+                "stored_under": str(under),
                 "inputs": inputs,
                 "metadata": jsonable(dict(metadata)),
                 "files": recorded,
                 "software": software_versions(),
             }
             write_file_durable(tmp / FIT_JSON, _dump_sealed(meta, "fit_sha256"))
-        return FitRecord(
-            fit_id, str(resolved[0]), fits_dir / fit_id, json.loads((fits_dir / fit_id / FIT_JSON).read_text())
-        )
+        return FitRecord(fit_id, str(under), fits_dir / fit_id, json.loads((fits_dir / fit_id / FIT_JSON).read_text()))
 
+    @_writes("store the evaluation")
     def save_evaluation(self, ref: str | Ref, fit_id: str, doc: Mapping[str, Any]) -> tuple[str, Path]:
         """Store one evaluation of fit fit_id (stored under ref); returns (evaluation id, path).
 
-        The document is written like fit.json: canonical, self-hashed (``evaluation_sha256``), durable (temp file,
-        fsync, rename, fsync of the folder). The id is the UTC time plus six hex digits.
+        The document is written like fit.json: canonical, self-hashed (``evaluation_sha256``), durable
+        (:func:`labcal.atomicio.write_bytes`: temp file, fsync, rename, fsync of the folder) and read-only. The id is
+        the UTC time plus six hex digits.
         """
-        r = self.resolve(ref)
-        fit_dir = self.session_dir(r.session_id) / version_name(r.version) / FITS  # type: ignore[arg-type]
-        if not (fit_dir / validate_id(fit_id) / FIT_JSON).is_file():
+        r, vdir = self._located(ref)
+        if not (vdir / FITS / validate_id(fit_id) / FIT_JSON).is_file():
             raise DatasetError(f"{r} has no fit {fit_id!r} to store an evaluation under")
-        folder = fit_dir / EVALUATIONS / fit_id
+        folder = vdir / FITS / EVALUATIONS / fit_id
         make_dirs_durable(folder)
         eval_id = new_fit_id()
-        data = _dump_sealed({**jsonable(dict(doc)), "evaluation_id": eval_id}, "evaluation_sha256")
-        tmp = folder / f".{eval_id}.json.tmp"
-        try:
-            write_file_durable(tmp, data)
-            os.replace(tmp, folder / f"{eval_id}.json")
-        except OSError as e:
-            tmp.unlink(missing_ok=True)
-            raise StoreWriteError(f"cannot store the evaluation of fit {fit_id} under {r}: {e}") from e
-        fsync_dir(folder)
-        return eval_id, folder / f"{eval_id}.json"
+        path = folder / f"{eval_id}.json"
+        write_bytes(path, _dump_sealed({**jsonable(dict(doc)), "evaluation_id": eval_id}, "evaluation_sha256"))
+        os.chmod(path, READ_ONLY)
+        return eval_id, path
 
     def list_evaluations(self, ref: str | Ref, fit_id: str) -> list[dict]:
         """The stored evaluations of a fit, oldest first; one that fails its own hash has ``corrupt: True``."""
-        r = self.resolve(ref)
-        folder = self.session_dir(r.session_id) / version_name(r.version) / FITS / EVALUATIONS / fit_id  # type: ignore[arg-type]
+        folder = self.version_dir(ref) / FITS / EVALUATIONS / fit_id
         out = []
         for p in sorted(folder.glob("*.json")):
             doc, problems = _load_sealed(p.read_bytes(), "evaluation_sha256", p.name)
@@ -1051,10 +1039,10 @@ class SessionStore:
 
     def list_fits(self, ref: str | Ref) -> list[FitRecord]:
         """Fits stored under a version, oldest first (fit.json checked, fit files not read)."""
-        fits_dir = self.version_dir(ref) / FITS
+        r, vdir = self._located(ref)
+        fits_dir = vdir / FITS
         if not fits_dir.is_dir():
             return []
-        r = self.resolve(ref)
         return [
             self.load_fit(r, p.name, check_files=False)
             for p in sorted(fits_dir.iterdir())
@@ -1063,8 +1051,8 @@ class SessionStore:
 
     def load_fit(self, ref: str | Ref, fit_id: str, *, check_files: bool = True) -> FitRecord:
         """Load a fit's record, verifying fit.json (and, by default, every fit file's sha256)."""
-        r = self.resolve(ref)
-        path = self.session_dir(r.session_id) / version_name(r.version) / FITS / validate_id(fit_id, "fit id")  # type: ignore[arg-type]
+        r, vdir = self._located(ref)
+        path = vdir / FITS / validate_id(fit_id, "fit id")
         if not (path / FIT_JSON).is_file():
             known = sorted(p.name for p in path.parent.glob("*") if not p.name.startswith("."))  # none: no folder
             raise UnknownVersion(
@@ -1104,17 +1092,12 @@ def _check_files(folder: Path, listed: Mapping[str, dict], where: str, problems:
 
 def _foreign_entry_notes(session_dir: Path) -> list[str]:
     """A note per entry of a session folder that labcal did not write (skipped by the checks)."""
-    notes = []
-    for p in sorted(session_dir.iterdir()):
-        fname = p.name
-        if (
-            fname in (JOURNAL_NAME, VERSIONS_LOG)
-            or fname.startswith(".tmp-")
-            or (p.is_dir() and _VERSION_DIR.match(fname))
-        ):
-            continue
-        notes.append(f"{fname}: foreign {'folder' if p.is_dir() else 'file'} (not written by labcal), skipped")
-    return notes
+    return [
+        f"{p.name}: foreign {'folder' if p.is_dir() else 'file'} (not written by labcal), skipped"
+        for p in sorted(session_dir.iterdir())
+        if not (p.name in (JOURNAL_NAME, VERSIONS_LOG) or p.name.startswith(".tmp-"))
+        and not (p.is_dir() and _VERSION_DIR.match(p.name))
+    ]
 
 
 def _check_versions_log(
