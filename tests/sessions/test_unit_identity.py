@@ -102,7 +102,7 @@ def test_the_robot_serial_becomes_the_unit_and_the_devices_identities_are_stored
     assert meta["robot_driver"]["identity"] == {"serial": "20185500001", "model": "UR10", "software": "5.11.0.0"}
     assert meta["tracker"]["identity"] == {"serial": "P9-01234", "firmware": "024.001"}
     start = store.open_journal(summary.session_id).start
-    assert (start.unit, start.robot_identity["serial"], start.tracker_identity["firmware"]) == (
+    assert (start.metadata["unit"], start.robot_identity["serial"], start.tracker["identity"]["firmware"]) == (
         "20185500001",
         "20185500001",
         "024.001",
@@ -142,7 +142,7 @@ def test_old_start_documents_have_no_unit_and_pool_with_anything(store, targets_
     doc = header.start_document("S").to_json()
     assert "unit" not in doc["metadata"] and "identity" not in doc["robot_driver"]  # the JSON of before
     old = StartDoc.from_json(doc)
-    assert (old.unit, old.robot_identity, old.tracker_identity) == (None, {}, {})
+    assert ("unit" not in old.metadata, old.robot_identity, old.tracker) == (True, {}, {})
     new = SessionHeader.of(
         "ur10", "h" * 64, 6, targets=TARGETS, frame="base", unit="U1", robot_identity={"serial": "U1"}
     )

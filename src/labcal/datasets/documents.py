@@ -95,10 +95,6 @@ class SessionHeader:
         describe the same model)."""
         return cls(robot=robot_document(robot_name, robot_hash, n_joints, record), **fields)
 
-    @property
-    def robot_name(self) -> str:
-        return str(self.robot["name"])
-
     def start_document(self, session_id: str, *, time: float | None = None) -> StartDoc:
         """The start document of a session with this header (checked: frame, joint count, targets, unit keys)."""
         if self.frame not in FRAMES:
@@ -224,20 +220,9 @@ class StartDoc(_Document):
         return len(self.targets)
 
     @property
-    def unit(self) -> str | None:
-        """The robot unit's id (``metadata["unit"]``), None for sessions recorded without one."""
-        unit = self.metadata.get("unit")
-        return None if unit is None else str(unit)
-
-    @property
     def robot_identity(self) -> dict:
         """What the robot controller reported about itself (serial, model, software …); {} if nothing."""
         return dict(self.robot_driver.get("identity") or {})
-
-    @property
-    def tracker_identity(self) -> dict:
-        """What the tracker reported about itself (serial, model, firmware …); {} if nothing."""
-        return dict(self.tracker.get("identity") or {})
 
     def targets_array(self) -> np.ndarray:
         """(m, 3) m."""

@@ -529,7 +529,7 @@ class SessionStore:
         """
         from .journal import Journal
 
-        session_id = validate_id(header.session_id) if header.session_id else new_session_id(header.robot_name)
+        session_id = validate_id(header.session_id) if header.session_id else new_session_id(str(header.robot["name"]))
         make_dirs_durable(self.root)
         d = self.root / session_id
         try:
@@ -715,9 +715,7 @@ class SessionStore:
         problems: list[str] = []
         checked: list[str] = []
         notes: list[str] = []
-        if not fits_dir.is_dir():
-            return VerifyReport(str(r), problems, checked)
-        for p in sorted(fits_dir.iterdir()):
+        for p in sorted(fits_dir.glob("*")):  # none without a fits/ folder
             if p.name.startswith("."):  # the temporary folder of an interrupted save_fit, never published
                 continue
             where = f"{FITS}/{p.name}"
@@ -1040,12 +1038,9 @@ class SessionStore:
     def list_fits(self, ref: str | Ref) -> list[FitRecord]:
         """Fits stored under a version, oldest first (fit.json checked, fit files not read)."""
         r, vdir = self._located(ref)
-        fits_dir = vdir / FITS
-        if not fits_dir.is_dir():
-            return []
         return [
             self.load_fit(r, p.name, check_files=False)
-            for p in sorted(fits_dir.iterdir())
+            for p in sorted((vdir / FITS).glob("*"))  # none without a fits/ folder
             if not p.name.startswith(".") and not is_os_or_editor_file(p.name)
         ]
 
