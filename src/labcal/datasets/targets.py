@@ -57,14 +57,15 @@ def validate_targets(
     if (why := _points_problem(rows)) is not None:
         raise TargetsError(f"{source}: {why}")
     out = np.asarray(rows, dtype=np.float64)
-    for i in range(len(out)):
-        for j in range(i):
-            gap = float(np.linalg.norm(out[i] - out[j]))
-            if gap < min_height:
-                raise TargetsError(
-                    f"{source}: targets t{j + 1} and t{i + 1} coincide ({gap * 1e3:.3g} mm apart, minimum "
-                    f"{min_height * 1e3:g} mm): list each target once"
-                )
+    pairs = target_pairs(len(out))
+    gaps = pair_distances(out, pairs).tolist()
+    close = [(b, a, gap) for (a, b), gap in zip(pairs, gaps, strict=True) if gap < min_height]
+    if close:
+        i, j, gap = min(close)  # named as a scan of each target against the ones before it meets them first
+        raise TargetsError(
+            f"{source}: targets t{j + 1} and t{i + 1} coincide ({gap * 1e3:.3g} mm apart, minimum "
+            f"{min_height * 1e3:g} mm): list each target once"
+        )
     return out
 
 
@@ -172,7 +173,7 @@ def _unit_hint(points: list, unit: str) -> str | None:
     raw = np.asarray(points, dtype=float).reshape(-1, 3)
     if unit == "m" or len(raw) < 2:
         return None
-    span = float(max(np.linalg.norm(a - b) for a in raw for b in raw))
+    span = float(pair_distances(raw).max())
     if 0.0 < span < 1.0 and span >= MIN_TARGET_HEIGHT:
         return (
             f'the points span {span:g} {unit} as written, which is a tool of {span:g} m: write unit = "m" at the top '
