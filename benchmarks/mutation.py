@@ -121,7 +121,7 @@ MUTATIONS: list[Mutation] = [
       "pose index one past the plan accepted", T_JOURNAL),
     M("datasets/journal", J, "            self._broken = True\n", "",
       "appends continue after a failed write", T_DUR2, T_JOURNAL),
-    M("datasets/journal", J, "        self._next_seq += 1\n", "", "every measurement gets the same seq", T_JOURNAL),
+    M("datasets/journal", J, "        self.next_seq += 1\n", "", "every measurement gets the same seq", T_JOURNAL),
     # ------------------------------------------------------------------------------------------ datasets: store
     M("datasets/store", S, "(p.name == FITS and p.is_dir())", "p.is_dir()",
       "verify does not report an extra folder inside a version", T_DUR, T_STORE),

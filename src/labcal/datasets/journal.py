@@ -178,11 +178,9 @@ def read_journal(path: str | Path) -> JournalContents:
     repaired = {ln for _, d in parsed if d["type"] == "repair" for ln in d.get("torn_lines", [])}
     warnings: list[str] = []
     torn: list[int] = []
-    corrupt: list[int] = []
-    reasons: dict[int, str] = {}
+    reasons: dict[int, str] = {}  # the corrupt lines, each with why
 
     def reject(ln: int, why: str, warning: str) -> None:
-        corrupt.append(ln)
         reasons[ln] = why
         warnings.append(f"{path}: line {ln} ignored: {warning}")
 
@@ -216,7 +214,7 @@ def read_journal(path: str | Path) -> JournalContents:
         documents=docs,
         warnings=warnings,
         torn_lines=torn,
-        corrupt_lines=sorted(corrupt),
+        corrupt_lines=sorted(reasons),
         needs_newline=needs_newline,
         size=len(data),
         document_lines=doc_lines,
@@ -264,7 +262,7 @@ class Journal:
         self.n_targets: int = start.n_targets
         self.plan_length: int = len(start.plan)
         self._state = contents.state
-        self._next_seq = max((m.seq for m in contents.measurements), default=0) + 1  # read_journal keeps seqs rising
+        self.next_seq = max((m.seq for m in contents.measurements), default=0) + 1  # read_journal keeps seqs rising
         self._valid = contents.valid_pose_indices()
         self.warnings: list[str] = list(contents.warnings)
 
@@ -350,10 +348,6 @@ class Journal:
         """ "running", "paused" or "stopped"."""
         return self._state
 
-    @property
-    def next_seq(self) -> int:
-        return self._next_seq
-
     def valid_pose_indices(self) -> set[int]:
         """Plan positions that already have a valid measurement (a resumed run skips them)."""
         return set(self._valid)
@@ -415,7 +409,7 @@ class Journal:
         q_act = _vector(q_actual, n, "q_actual", allow_none=not valid)
         stored = measured_points(points, self.n_targets, allow_none=not valid)
         doc = MeasurementDoc(
-            seq=self._next_seq,
+            seq=self.next_seq,
             pose_index=pose_index,
             q_commanded=q_cmd,
             q_actual=q_act,
@@ -429,7 +423,7 @@ class Journal:
             time=float(_time.time() if time is None else time),
         )
         self._append(doc.to_json())
-        self._next_seq += 1
+        self.next_seq += 1
         if valid:
             self._valid.add(pose_index)
         return doc
@@ -454,7 +448,7 @@ class Journal:
             raise JournalError(f"exit_status must be one of {EXIT_STATUSES}, got {exit_status!r}")
         if self._state == "stopped":
             raise JournalError("the run is already stopped")
-        doc = StopDoc(exit_status, str(reason), self._next_seq - 1, time=_time.time())
+        doc = StopDoc(exit_status, str(reason), self.next_seq - 1, time=_time.time())
         self._append(doc.to_json())
         self._state = "stopped"
         return doc
