@@ -258,10 +258,11 @@ class Journal:
         if start is None:
             raise JournalError(f"{path}: journal has no start document")
         self.start: StartDoc = start
+        self.session_id: str = start.session_id
         self.n_joints: int = start.n_joints
         self.n_targets: int = start.n_targets
         self.plan_length: int = len(start.plan)
-        self._state = contents.state
+        self.state: str = contents.state  # "running", "paused" or "stopped"
         self.next_seq = max((m.seq for m in contents.measurements), default=0) + 1  # read_journal keeps seqs rising
         self._valid = contents.valid_pose_indices()
         self.warnings: list[str] = list(contents.warnings)
@@ -339,15 +340,6 @@ class Journal:
             self.close()
 
     # ---------------------------------------------------------------------------------------------- queries
-    @property
-    def session_id(self) -> str:
-        return self.start.session_id
-
-    @property
-    def state(self) -> str:
-        """ "running", "paused" or "stopped"."""
-        return self._state
-
     def valid_pose_indices(self) -> set[int]:
         """Plan positions that already have a valid measurement (a resumed run skips them)."""
         return set(self._valid)
@@ -380,8 +372,8 @@ class Journal:
         """
         import numpy as np
 
-        if self._state != "running":
-            raise JournalError(f"cannot record a measurement while the run is {self._state}; call resume() first")
+        if self.state != "running":
+            raise JournalError(f"cannot record a measurement while the run is {self.state}; call resume() first")
         if isinstance(pose_index, bool) or not isinstance(pose_index, int | np.integer) or pose_index < 0:
             raise JournalError(f"pose_index must be an integer >= 0, got {pose_index!r}")
         pose_index = int(pose_index)
@@ -430,27 +422,27 @@ class Journal:
 
     def pause(self, reason: str) -> dict:
         """Record a pause (protective stop, Ctrl-C …); measurements need :meth:`resume` afterwards."""
-        if self._state != "running":
-            raise JournalError(f"cannot pause: the run is {self._state}")
+        if self.state != "running":
+            raise JournalError(f"cannot pause: the run is {self.state}")
         doc = self._append(_document("pause", reason=str(reason)))
-        self._state = "paused"
+        self.state = "paused"
         return doc
 
     def resume(self, reason: str = "") -> dict:
         """Record that measuring continues (after a pause, a stop with exit_status "paused", or a crash)."""
         doc = self._append(_document("resume", reason=str(reason)))
-        self._state = "running"
+        self.state = "running"
         return doc
 
     def stop(self, exit_status: str, reason: str = "") -> StopDoc:
         """Record the end of a run: exit_status "success" | "aborted" | "paused" | "failed"."""
         if exit_status not in EXIT_STATUSES:
             raise JournalError(f"exit_status must be one of {EXIT_STATUSES}, got {exit_status!r}")
-        if self._state == "stopped":
+        if self.state == "stopped":
             raise JournalError("the run is already stopped")
         doc = StopDoc(exit_status, str(reason), self.next_seq - 1, time=_time.time())
         self._append(doc.to_json())
-        self._state = "stopped"
+        self.state = "stopped"
         return doc
 
     def _append(self, doc: dict) -> dict:
