@@ -57,15 +57,14 @@ def validate_targets(
     if (why := _points_problem(rows)) is not None:
         raise TargetsError(f"{source}: {why}")
     out = np.asarray(rows, dtype=np.float64)
-    pairs = target_pairs(len(out))
-    gaps = pair_distances(out, pairs).tolist()
-    close = [(b, a, gap) for (a, b), gap in zip(pairs, gaps, strict=True) if gap < min_height]
-    if close:
-        i, j, gap = min(close)  # named as a scan of each target against the ones before it meets them first
-        raise TargetsError(
-            f"{source}: targets t{j + 1} and t{i + 1} coincide ({gap * 1e3:.3g} mm apart, minimum "
-            f"{min_height * 1e3:g} mm): list each target once"
-        )
+    for i in range(len(out)):
+        for j in range(i):
+            gap = float(np.linalg.norm(out[i] - out[j]))
+            if gap < min_height:
+                raise TargetsError(
+                    f"{source}: targets t{j + 1} and t{i + 1} coincide ({gap * 1e3:.3g} mm apart, minimum "
+                    f"{min_height * 1e3:g} mm): list each target once"
+                )
     return out
 
 
