@@ -160,6 +160,19 @@ def _dump_sealed(obj: dict, key: str) -> bytes:
     return canonical_json({**obj, key: _content_sha256(obj, key)}, indent=2).encode("utf-8")
 
 
+def _write_sealed(folder: Path, files: Mapping[str, bytes], doc: dict, name: str, key: str) -> dict:
+    """Write ``files`` (name → bytes) into ``folder``, then ``doc`` as the file ``name`` with what every labcal
+    record carries (schema version, creation time, software, sha256 and size of each file), self-hashed under
+    ``key``: a version's manifest, a fit's fit.json. Every file fsynced and read-only; returns the record written."""
+    for file, data in sorted(files.items()):
+        write_file_durable(folder / file, data)
+    listed = {file: {"sha256": sha256_bytes(data), "bytes": len(data)} for file, data in files.items()}
+    common = {"schema_version": SCHEMA_VERSION, "created": iso(utc_now()), "software": software_versions()}
+    sealed = _dump_sealed({**doc, **common, "files": listed}, key)
+    write_file_durable(folder / name, sealed)
+    return json.loads(sealed)
+
+
 def _load_sealed(data: bytes, key: str, name: str) -> tuple[dict | None, list[str]]:
     try:
         obj = json.loads(data.decode("utf-8"))
@@ -795,34 +808,27 @@ class SessionStore:
         table = normalize_table(table, int(meta["robot"]["n_joints"]), len(meta["targets"]))
         parent = None if parent_ds is None else parse_ref(parent_ds.ref).version
         name = version_name((parent or 0) + 1)
+        manifest = {
+            "kind": "labcal.dataset.version",
+            "session_id": session_id,
+            "version": name,
+            "ref": f"{session_id}@{name}",
+            "parent": version_name(parent) if parent else None,
+            "source": source,
+            "session": meta,
+            "row_count": len(table),
+            "columns": list(table.columns),
+            "units": column_units(
+                list(table.columns), {f"x_{k}": u for k, u in (meta.get("extra_units") or {}).items()}
+            ),
+            "journal_seq_through": journal_seq_through,
+            "provenance": jsonable(provenance),
+        }
         with _publishing(where, name, where / name) as tmp:
-            data = _parquet_bytes(table)
-            write_file_durable(tmp / MEASUREMENTS, data)
-            manifest = {
-                "kind": "labcal.dataset.version",
-                "schema_version": SCHEMA_VERSION,
-                "session_id": session_id,
-                "version": name,
-                "ref": f"{session_id}@{name}",
-                "created": iso(utc_now()),
-                "parent": version_name(parent) if parent else None,
-                "source": source,
-                "session": meta,
-                "software": software_versions(),
-                "row_count": len(table),
-                "columns": list(table.columns),
-                "units": column_units(
-                    list(table.columns), {f"x_{k}": u for k, u in (meta.get("extra_units") or {}).items()}
-                ),
-                "journal_seq_through": journal_seq_through,
-                "provenance": jsonable(provenance),
-                "files": {MEASUREMENTS: {"sha256": sha256_bytes(data), "bytes": len(data)}},
-            }
-            sealed = _dump_sealed(manifest, "manifest_sha256")
-            write_file_durable(tmp / MANIFEST, sealed)
+            written = _write_sealed(tmp, {MEASUREMENTS: _parquet_bytes(table)}, manifest, MANIFEST, "manifest_sha256")
         # After the rename: a crash in between leaves a complete version the log does not list yet, which
         # check_session notes; the other order would list a version that was never published.
-        _log_version(where, name, json.loads(sealed)["manifest_sha256"], manifest["parent"])
+        _log_version(where, name, written["manifest_sha256"], manifest["parent"])
         return f"{session_id}@{name}"
 
     def _check_compatible(self, session_id: str, meta: dict, new: dict) -> None:
@@ -987,25 +993,17 @@ class SessionStore:
         make_dirs_durable(fits_dir)
         if (fits_dir / fit_id).exists():
             raise DatasetError(f"fit {fit_id!r} already exists under {under}")
+        data = {name: c.encode("utf-8") if isinstance(c, str) else bytes(c) for name, c in files.items()}
+        meta = {
+            "kind": "labcal.fit",
+            "fit_id": fit_id,
+            "stored_under": str(under),
+            "inputs": inputs,
+            "metadata": jsonable(dict(metadata)),
+        }
         with _publishing(fits_dir, fit_id, fits_dir / fit_id) as tmp:
-            recorded = {}
-            for name, content in sorted(files.items()):
-                data = content.encode("utf-8") if isinstance(content, str) else bytes(content)
-                write_file_durable(tmp / name, data)
-                recorded[name] = {"sha256": sha256_bytes(data), "bytes": len(data)}
-            meta = {
-                "kind": "labcal.fit",
-                "schema_version": SCHEMA_VERSION,
-                "fit_id": fit_id,
-                "created": iso(utc_now()),
-                "stored_under": str(under),
-                "inputs": inputs,
-                "metadata": jsonable(dict(metadata)),
-                "files": recorded,
-                "software": software_versions(),
-            }
-            write_file_durable(tmp / FIT_JSON, _dump_sealed(meta, "fit_sha256"))
-        return FitRecord(fit_id, str(under), fits_dir / fit_id, json.loads((fits_dir / fit_id / FIT_JSON).read_text()))
+            written = _write_sealed(tmp, data, meta, FIT_JSON, "fit_sha256")
+        return FitRecord(fit_id, str(under), fits_dir / fit_id, written)
 
     @_writes("store the evaluation")
     def save_evaluation(self, ref: str | Ref, fit_id: str, doc: Mapping[str, Any]) -> tuple[str, Path]:
