@@ -299,12 +299,8 @@ class SimController:
         return SAFETY_MODE_PROTECTIVE_STOP if self.protective else SAFETY_MODE_NORMAL
 
     def safety_bits(self) -> int:
-        bits = 0
-        if self.protective:
-            bits |= SAFETY_BIT_PROTECTIVE_STOPPED
-        if self.emergency:
-            bits |= SAFETY_BIT_EMERGENCY_STOPPED
-        return bits or SAFETY_BIT_NORMAL
+        protective = SAFETY_BIT_PROTECTIVE_STOPPED if self.protective else 0
+        return protective | (SAFETY_BIT_EMERGENCY_STOPPED if self.emergency else 0) or SAFETY_BIT_NORMAL
 
     def value(self, name: str, kind: str, timestamp: float | None = None) -> Any:
         """Current value of an output variable (caller holds the lock).
@@ -763,14 +759,9 @@ def _accept_loop(listener: socket.socket, handler: Any) -> None:
 
 def candidate_hosts(start: int, count: int = 400) -> list[str]:
     """Loopback addresses 127.0.x.y (x, y in 1..254, skipping 127.0.0.1) beginning at index ``start``."""
-    hosts = []
-    for i in range(count):
-        k = (start + i) % (254 * 254)
-        x, y = divmod(k, 254)
-        host = f"127.0.{x}.{y + 1}"
-        if host != "127.0.0.1":
-            hosts.append(host)
-    return hosts
+    indices = ((start + i) % (254 * 254) for i in range(count))
+    hosts = (f"127.0.{k // 254}.{k % 254 + 1}" for k in indices)
+    return [host for host in hosts if host != "127.0.0.1"]
 
 
 def _child_main(options: dict[str, Any], commands: Any, replies: Any) -> None:
