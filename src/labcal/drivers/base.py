@@ -171,14 +171,14 @@ class SafetyLimits:
         >>> SafetyLimits(np.array([[-1.0, 1.0], [0.0, 2.0]])).within(np.array([[0.5, 2.0], [0.5, 2.1]])).tolist()
         [True, False]
         """
-        q = np.asarray(q, dtype=float)
-        limits = np.asarray(self.joint_limits, dtype=float)
-        checked = self.joint_map.to_model(q) if self._mapped else q
-        return np.all((checked >= limits[:, 0]) & (checked <= limits[:, 1]), axis=-1)
+        return self._inside(np.asarray(q, dtype=float))[1].all(axis=-1)
 
-    @property
-    def _mapped(self) -> bool:
-        return self.joint_map is not None and not self.joint_map.is_identity
+    def _inside(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The joints checked (model joints through the joint map, else q) and (..., n) bool: each inside its limits."""
+        limits = np.asarray(self.joint_limits, dtype=float)
+        mapped = self.joint_map is not None and not self.joint_map.is_identity
+        checked = self.joint_map.to_model(q) if mapped else q
+        return checked, (checked >= limits[:, 0]) & (checked <= limits[:, 1])
 
     def check_motion(self, q: np.ndarray, speed: float, acceleration: float) -> np.ndarray:
         """Return q as a float array if the motion is allowed, else raise MotionRejected naming the cause."""
@@ -188,11 +188,11 @@ class SafetyLimits:
             raise MotionRejected(f"target has {q.shape} joint values, the robot has {limits.shape[0]} joints")
         if not np.all(np.isfinite(q)):
             raise MotionRejected(f"target contains non-finite joint values: {q.tolist()}")
-        mapped = self._mapped
-        checked = self.joint_map.to_model(q) if mapped else q
+        checked, inside = self._inside(q)
+        mapped = checked is not q  # converted through the joint map
         what = "model joint" if mapped else "joint"
-        if not self.within(q[None])[0]:
-            j = int(np.flatnonzero((checked < limits[:, 0]) | (checked > limits[:, 1]))[0])
+        if not inside.all():
+            j = int(np.flatnonzero(~inside)[0])
             value, (lo, hi) = checked[j], limits[j]
             raise MotionRejected(
                 f"{what} {j + 1} target {value:.6f} is outside its limits [{lo:.6f}, {hi:.6f}]"
