@@ -512,12 +512,7 @@ class URRobot(ClosedOnExit):
             try:
                 control = _construct(control_factory, host, profile.frequency, "RTDE control interface")
             except BaseException:
-                with contextlib.suppress(Exception):
-                    # a RemoteInterface's process outlives disconnect() (it waits for calls): close() ends it too
-                    if isinstance(receive, RemoteInterface):
-                        receive.close()
-                    else:
-                        receive.disconnect()
+                cls(profile, receive).close()  # never raises; ends a RemoteInterface's process too, not only its link
                 raise
         return cls(profile, receive, control, identity=identity)
 
