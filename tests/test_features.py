@@ -23,7 +23,8 @@ def test_harmonics_match_the_direct_formula_column_by_column():
             np.testing.assert_allclose(x[:, c], np.sin(h * q[:, j]), rtol=0, atol=1e-12)
             np.testing.assert_allclose(x[:, c + 1], np.cos(h * q[:, j]), rtol=0, atol=1e-12)
     np.testing.assert_array_equal(features.get("harmonics:5").compute(q), x)
-    assert features.harmonic_orders(H, 3)[c] == H and features.column_joints(H, 3)[c] == 2
+    column = features.get("harmonics:5").columns(("revolute",) * 3)[c]
+    assert (column.op, column.order, column.joint) == ("sin", H, 2)
 
 
 def test_prismatic_joints_map_their_stroke_onto_half_a_period():

@@ -318,13 +318,3 @@ def _prismatic(joint_types: tuple[str, ...]) -> np.ndarray:
     out = np.array([t == "prismatic" for t in joint_types], dtype=bool)
     out.setflags(write=False)
     return out
-
-
-def harmonic_orders(order: int, n: int) -> np.ndarray:
-    """(2·n·order,) the harmonic order h of every column of ``harmonics(…, order)`` (for penalties, spectra)."""
-    return np.tile(np.repeat(np.arange(1, order + 1), 2), n)
-
-
-def column_joints(order: int, n: int) -> np.ndarray:
-    """(2·n·order,) the joint index (0-based) every column of ``harmonics(…, order)`` belongs to."""
-    return np.repeat(np.arange(n), 2 * order)
