@@ -621,8 +621,11 @@ class ControlEmulator:
             time.sleep(self.TICK)
 
     def _process(self, cmd: int) -> bool:
+        """Run one command of the register protocol; False when it ends the program."""
         with self.sim.lock:
             self.sim.log.append(("command", cmd))
+            if cmd not in (self.MOVEJ, self.STOPJ, self.STOP_SCRIPT):
+                self.sim.log.append(("unsupported", cmd))
             if cmd == self.MOVEJ:
                 goal = [float(self._reg(f"input_double_register_{i}", 0.0)) for i in range(6)]
                 speed = float(self._reg("input_double_register_6", 0.0))
@@ -638,11 +641,7 @@ class ControlEmulator:
         if cmd == self.STOPJ:
             self._abort.set()
             return True
-        if cmd == self.STOP_SCRIPT:
-            return False
-        with self.sim.lock:
-            self.sim.log.append(("unsupported", cmd))
-        return True
+        return cmd != self.STOP_SCRIPT  # an unsupported command is logged and ignored
 
     def _move(self, goal: list[float], speed: float) -> None:
         with self.sim.lock:
@@ -656,10 +655,7 @@ class ControlEmulator:
             fraction = 1.0 if duration <= 0 else min((time.monotonic() - t0) / duration, 1.0)
             with self.sim.lock:
                 if fault is not None and fraction >= fault[1]:
-                    if fault[0] == "emergency":
-                        self.sim.emergency = True
-                    else:
-                        self.sim.protective = True
+                    setattr(self.sim, fault[0], True)  # the flag named by the fault: "protective" or "emergency"
                 if self.sim.protective or self.sim.emergency:
                     self.sim.program_running = False  # a safety stop halts the program where it is
                     self.sim.log.append(("program", "halted by safety stop"))
