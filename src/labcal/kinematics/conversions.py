@@ -156,10 +156,10 @@ def _urdf_chain(root, tip_link: str | None) -> list:
     chain = []
     if tip_link is not None:  # up from the tip: a tree has one path to its root
         link: str | None = tip_link
-        while link in carrier:
+        while link in carrier and len(chain) < len(joints):  # the bound: a cycle of links must not hang
             chain.append(carrier[link])
             link = carrier[link].find("parent").get("link")
-        if not chain:
+        if not chain or link != roots[0]:
             raise ValueError(f"tip link {tip_link!r} not found in the URDF chain")
         return chain[::-1]
     link = roots[0]
