@@ -456,8 +456,6 @@ class URRobot(ClosedOnExit):
         receive: Any,
         control: Any | None = None,
         *,
-        sleep: Callable[[float], None] = time.sleep,
-        clock: Callable[[], float] = time.monotonic,
         identity: dict[str, Any] | None = None,
     ):
         self.profile = profile
@@ -465,8 +463,6 @@ class URRobot(ClosedOnExit):
         self.limits = profile.limits
         self._receive = receive
         self._control = control
-        self._sleep = sleep
-        self._clock = clock
         self._last_timestamp: float | None = None
         self._closed = False
 
@@ -479,12 +475,11 @@ class URRobot(ClosedOnExit):
         probe: bool = True,
         receive_factory: Callable[[str, float], Any] | None = None,
         control_factory: Callable[[str, float], Any] | None = None,
-        identify: bool | None = None,
     ) -> URRobot:
         """Probe the controller's ports, then build the interfaces (control only unless ``read_only``).
 
-        ``identify`` (default: as ``probe``): ask the dashboard server for the arm's serial number, model and
-        software version (:meth:`device_identity`); a controller that does not tell leaves a note, never an error.
+        The probe also asks the dashboard server for the arm's serial number, model and software version
+        (:meth:`device_identity`); a controller that does not tell leaves a note, never an error.
 
         Raises ConnectionFailed (ProbeTimeout for a silent peer) or ProtocolError; never hangs on a peer that
         fails the probe. ``receive_factory`` / ``control_factory`` (``(host, frequency) -> interface``; tests pass
@@ -492,14 +487,13 @@ class URRobot(ClosedOnExit):
         and then goes silent costs at most CONSTRUCT_TIMEOUT s, never a hang.
         """
         host, timeout = profile.host, profile.connect_timeout
+        identity = None
         if probe:
             version = probe_rtde(host, RTDE_PORT, timeout)
             log.info("UR controller at %s answers RTDE, version %s", host, ".".join(map(str, version)))
             if not read_only:
                 probe_dashboard(host, DASHBOARD_PORT, timeout)
                 probe_script_port(host, SCRIPT_PORT, timeout)
-        identity = None
-        if probe if identify is None else identify:
             identity = read_dashboard_identity(host, DASHBOARD_PORT, timeout)
             log.info("UR controller at %s: %s", host, identity)
         # by default each ur-rtde interface in its own process (see labcal.drivers.ur_process)
@@ -573,7 +567,7 @@ class URRobot(ClosedOnExit):
     def _fresh_timestamp(self) -> float:
         """Wait (at most stale_timeout) for a controller timestamp newer than the last one seen."""
         rx = self._rx()
-        deadline = self._clock() + self.profile.stale_timeout
+        deadline = time.monotonic() + self.profile.stale_timeout
         current = self._call_rx("getTimestamp")
         previous = self._last_timestamp if self._last_timestamp is not None else current
         while True:
@@ -581,12 +575,12 @@ class URRobot(ClosedOnExit):
                 raise ConnectionFailed(f"the RTDE connection to {self.profile.host} is down")
             if current > previous:
                 break
-            if self._clock() >= deadline:
+            if time.monotonic() >= deadline:
                 raise StaleData(
                     f"controller timestamp stuck at {current:.6f} s for {self.profile.stale_timeout} s "
                     f"({self.profile.host})"
                 )
-            self._sleep(0.001)
+            time.sleep(0.001)
             current = self._call_rx("getTimestamp")
         self._last_timestamp = current
         return current
@@ -633,9 +627,9 @@ class URRobot(ClosedOnExit):
     def _sample(self, done: Callable[[RobotState], bool]) -> RobotState:
         """Fresh states until ``done(state)`` or STREAM_SKEW_WINDOW has passed: ur-rtde's control and receive
         interfaces read separate streams, so the sample in hand may predate an event the control side saw."""
-        deadline = self._clock() + STREAM_SKEW_WINDOW
+        deadline = time.monotonic() + STREAM_SKEW_WINDOW
         state = self.state()
-        while not done(state) and self._clock() < deadline:
+        while not done(state) and time.monotonic() < deadline:
             state = self.state()
         return state
 
@@ -673,7 +667,7 @@ class URRobot(ClosedOnExit):
         if not ok:
             self._raise_stop_or(MotionFailed(f"controller reported moveJ to {target.tolist()} failed"), None)
         if self.profile.settle_time > 0:
-            self._sleep(self.profile.settle_time)
+            time.sleep(self.profile.settle_time)
         tolerance = self.profile.position_tolerance
         after = self._sample(lambda s: _stopped(s) or float(np.max(np.abs(s.q - target))) <= tolerance)
         self._raise_if_stopped(after, "after the move")
@@ -692,11 +686,11 @@ class URRobot(ClosedOnExit):
         distance = float(np.max(np.abs(target - before.q)))
         planned = distance / speed + speed / acceleration
         budget = 2.0 * planned + 10.0
-        deadline = self._clock() + budget
-        last = {"timestamp": before.timestamp, "at": self._clock()}
+        deadline = time.monotonic() + budget
+        last = {"timestamp": before.timestamp, "at": time.monotonic()}
 
         def watch() -> None:
-            now = self._clock()
+            now = time.monotonic()
             if now > deadline:
                 raise ConnectionFailed(
                     f"moveJ on {self.profile.host} did not end within {budget:.1f} s (planned {planned:.1f} s)"
@@ -763,13 +757,13 @@ class URRobot(ClosedOnExit):
         if not restarted:
             raise ConnectionFailed(f"the control script on {self.profile.host} could not be uploaded")
         # reuploadScript() returns once the script is sent, before the controller runs it
-        deadline = self._clock() + SCRIPT_START_TIMEOUT
+        deadline = time.monotonic() + SCRIPT_START_TIMEOUT
         while not self._program_running():
-            if self._clock() >= deadline:
+            if time.monotonic() >= deadline:
                 raise ConnectionFailed(
                     f"the control script on {self.profile.host} did not start within {SCRIPT_START_TIMEOUT} s"
                 )
-            self._sleep(0.01)
+            time.sleep(0.01)
 
     def _program_running(self) -> bool:
         try:
