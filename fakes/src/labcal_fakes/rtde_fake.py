@@ -857,8 +857,7 @@ class FakeRTDEServer:
 
     q0: (6,) initial joint positions, rad. control: also serve dashboard/script ports and emulate ur-rtde's
     control registers. controller_version: answered to ``v`` (major, minor, bugfix, build).
-    unknown_variables: output names to answer NOT_FOUND (an older controller). first_host: index into
-    :func:`candidate_hosts` to start the address search at (default: derived from the pid). serial / robot_model:
+    unknown_variables: output names to answer NOT_FOUND (an older controller). serial / robot_model:
     the dashboard's answers to ``get serial number`` / ``get robot model`` (serial None: the controller does not
     understand the command, as PolyScope before 3.10/5.4).
     A plain subprocess (not multiprocessing) so scripts using the fake need no ``if __name__ == "__main__"``.
@@ -870,9 +869,6 @@ class FakeRTDEServer:
         *,
         control: bool = False,
         controller_version: Sequence[int] = (5, 11, 0, 0),
-        start_timeout: float = 20.0,
-        reply_timeout: float = 5.0,
-        first_host: int | None = None,
         unknown_variables: Sequence[str] = (),
         serial: str | None = "20185500001",
         robot_model: str = "UR10",
@@ -887,10 +883,8 @@ class FakeRTDEServer:
             "serial": serial,
             "robot_model": robot_model,
             # Spread start addresses by pid so parallel test runs rarely try the same address first.
-            "hosts": candidate_hosts(first_host if first_host is not None else (os.getpid() * 37) % 60000),
+            "hosts": candidate_hosts((os.getpid() * 37) % 60000),
         }
-        self._start_timeout = start_timeout
-        self._reply_timeout = reply_timeout
         self._child: ChildProcess | None = None
         self.host = ""
 
@@ -903,8 +897,8 @@ class FakeRTDEServer:
 
     def start(self) -> None:
         argv = [sys.executable, "-m", "labcal_fakes.rtde_fake", json.dumps(self._options)]
-        start, call = self._start_timeout, self._reply_timeout
-        self._child = ChildProcess(argv, "fake RTDE server", start_timeout=start, call_timeout=call, log_stderr=False)
+        # 20 s to start (binding may try many addresses on a loaded machine), 5 s per command
+        self._child = ChildProcess(argv, "fake RTDE server", start_timeout=20.0, call_timeout=5.0, log_stderr=False)
         self.host = self._child.started
 
     def _call(self, command: str, *args: Any) -> Any:
