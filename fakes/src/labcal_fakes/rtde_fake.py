@@ -770,18 +770,16 @@ def _child_main(options: dict[str, Any], commands: Any, replies: Any) -> None:
     sessions: list[_RTDESession] = []
 
     def start() -> tuple[Callable[..., Any], str]:
-        host = None
-        for candidate in options["hosts"]:
+        for host in options["hosts"]:
             try:
                 for port in ports:
-                    listeners[port] = _listen(candidate, port)
-                host = candidate
+                    listeners[port] = _listen(host, port)
                 break
             except OSError:
                 for sock in listeners.values():
                     sock.close()
                 listeners.clear()
-        if host is None:
+        else:
             raise RuntimeError(
                 f"fake RTDE server failed to start: no free loopback address among {len(options['hosts'])} candidates"
             )
