@@ -153,7 +153,7 @@ def _urdf_chain(root, tip_link: str | None) -> list:
     roots = [lk for lk in children if lk not in carrier]
     if len(roots) != 1:
         raise ValueError(f"URDF must have exactly one root link, found {roots}")
-    chain = []
+    chain: list = []
     if tip_link is not None:  # up from the tip: a tree has one path to its root
         link: str | None = tip_link
         while link in carrier and len(chain) < len(joints):  # the bound: a cycle of links must not hang
