@@ -36,8 +36,9 @@ def _slope_definition(robot, q: np.ndarray) -> np.ndarray:
             cols = np.arange(width)
             partner = cols + 1 - 2 * (cols % 2)  # sin ↔ cos of the same order and joint
             sign = 1 - 2 * (cols % 2)  # + for a sin column, − for a cos column
-            h = features.harmonic_orders(feature.order, n)
-            dx[:, start + cols, features.column_joints(feature.order, n)] = sign * h * x[:, partner]
+            recipes = feature.columns(("revolute",) * n)  # the order and joint of every column
+            h = np.array([c.order for c in recipes])
+            dx[:, start + cols, [c.joint for c in recipes]] = sign * h * x[:, partner]
         elif feature.kind == "q":
             dx[:, start + np.arange(n), np.arange(n)] = 1.0
         start += width

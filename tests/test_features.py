@@ -23,7 +23,8 @@ def test_harmonics_match_the_direct_formula_column_by_column():
             np.testing.assert_allclose(x[:, c], np.sin(h * q[:, j]), rtol=0, atol=1e-12)
             np.testing.assert_allclose(x[:, c + 1], np.cos(h * q[:, j]), rtol=0, atol=1e-12)
     np.testing.assert_array_equal(features.get("harmonics:5").compute(q), x)
-    assert features.harmonic_orders(H, 3)[c] == H and features.column_joints(H, 3)[c] == 2
+    column = features.get("harmonics:5").columns(("revolute",) * 3)[c]
+    assert (column.op, column.order, column.joint) == ("sin", H, 2)
 
 
 def test_prismatic_joints_map_their_stroke_onto_half_a_period():
@@ -36,12 +37,12 @@ def test_prismatic_joints_map_their_stroke_onto_half_a_period():
 
 
 def test_parse_size_and_clear_errors():
-    assert features.parse("harmonics:24") == ("harmonics", 24)
-    assert features.parse("sincos") is None
+    assert (features.get("harmonics:24").kind, features.get("harmonics:24").order) == ("harmonics", 24)
+    assert features.get("sincos").kind == "sincos"
     assert features.is_feature("harmonics:3") and not features.is_feature("harmonics:0")
     assert features.get("harmonics:4").size(6) == 48
     with pytest.raises(ValueError, match="must be an integer, got 'x'"):
-        features.parse("harmonics:x")
+        features.get("harmonics:x")
     with pytest.raises(ValueError, match="1 … 512, got 0"):
         features.get("harmonics:0").compute(np.zeros((1, 2)))
     with pytest.raises(ValueError, match="unknown feature 'gravitation'; known: q, sincos"):

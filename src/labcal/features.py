@@ -56,23 +56,6 @@ SIMPLE = ("q", "sincos", "sincos2", "gravity")  # the names without a parameter
 NAMES = (*SIMPLE, HARMONICS + ":H")  # for messages: every name the registry accepts
 
 
-def parse(name: str) -> tuple[str, int] | None:
-    """``"harmonics:H"`` → ("harmonics", H); None for any other name (use :func:`get` for the whole registry).
-
-    Raises ValueError for a malformed harmonics name (e.g. ``"harmonics:x"``).
-    """
-    if not isinstance(name, str) or not name.startswith(HARMONICS + ":"):
-        return None
-    text = name[len(HARMONICS) + 1 :]
-    try:
-        order = int(text)
-    except ValueError:
-        raise ValueError(f"feature {name!r}: the number of harmonics must be an integer, got {text!r}") from None
-    if not 1 <= order <= MAX_HARMONICS:
-        raise ValueError(f"feature {name!r}: the number of harmonics must be in 1 … {MAX_HARMONICS}, got {order}")
-    return HARMONICS, order
-
-
 @dataclass(frozen=True)
 class Column:
     """How to compute one feature column, for code generators (e.g. URScript). Ops:
@@ -177,13 +160,20 @@ def _unknown_kind(kind: str, where: str) -> str:
 
 @functools.lru_cache(maxsize=256)
 def get(name: str) -> Feature:
-    """The registered feature called ``name``; ValueError naming the known names otherwise."""
+    """The registered feature called ``name``; ValueError naming the known names, or for a malformed harmonics name
+    (``"harmonics:x"``, ``"harmonics:0"``) what is wrong with it."""
     if name in SIMPLE:
         return Feature(name, name)
-    kind = parse(name)
-    if kind is None:
+    if not isinstance(name, str) or not name.startswith(HARMONICS + ":"):
         raise ValueError(f"unknown feature {name!r}; known: {', '.join(NAMES)}")
-    return Feature(name, HARMONICS, kind[1])
+    text = name[len(HARMONICS) + 1 :]
+    try:
+        order = int(text)
+    except ValueError:
+        raise ValueError(f"feature {name!r}: the number of harmonics must be an integer, got {text!r}") from None
+    if not 1 <= order <= MAX_HARMONICS:
+        raise ValueError(f"feature {name!r}: the number of harmonics must be in 1 … {MAX_HARMONICS}, got {order}")
+    return Feature(name, HARMONICS, order)
 
 
 def is_feature(name: str) -> bool:
@@ -318,13 +308,3 @@ def _prismatic(joint_types: tuple[str, ...]) -> np.ndarray:
     out = np.array([t == "prismatic" for t in joint_types], dtype=bool)
     out.setflags(write=False)
     return out
-
-
-def harmonic_orders(order: int, n: int) -> np.ndarray:
-    """(2·n·order,) the harmonic order h of every column of ``harmonics(…, order)`` (for penalties, spectra)."""
-    return np.tile(np.repeat(np.arange(1, order + 1), 2), n)
-
-
-def column_joints(order: int, n: int) -> np.ndarray:
-    """(2·n·order,) the joint index (0-based) every column of ``harmonics(…, order)`` belongs to."""
-    return np.repeat(np.arange(n), 2 * order)

@@ -107,7 +107,7 @@ def test_network_is_block_diagonal_without_hidden_layer(ur10_fit):
     assert net.hidden == ()
     (W,) = net.weights
     assert W.shape == (6, 2 * 6 * H)
-    owner = features.column_joints(H, 6)
+    owner = np.array([c.joint for c in features.get(f"harmonics:{H}").columns(("revolute",) * 6)])
     for j in range(6):
         assert np.all(W[j, owner != j] == 0.0)
         assert np.any(W[j, owner == j] != 0.0)

@@ -315,7 +315,7 @@ def test_a_session_sees_its_client_gone_before_its_reader_thread_does():
     """The IN_USE check peeks at the owner's socket, so a client restarted right away gets its fields back."""
     server_end, client_end = socket.socketpair()
     with contextlib.closing(server_end):
-        session = _RTDESession(server_end, SimController([0.0] * 6, (5, 11, 0, 0)), lambda names: None)
+        session = _RTDESession(server_end, SimController([0.0] * 6, (5, 11, 0, 0)))
         assert not session.gone()
         client_end.sendall(b"\x00\x03V")  # unread data: still there
         assert not session.gone()

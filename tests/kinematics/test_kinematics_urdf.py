@@ -176,3 +176,9 @@ def test_to_urdf_escapes_names_and_comments():
     assert root.get("name") == 'arm "A" & <B>'
     back = from_urdf(text)
     np.testing.assert_array_equal(back.frames, from_urdf(to_urdf(model)).frames)
+
+
+def test_a_tip_on_a_cycle_of_links_is_not_found_instead_of_hanging():
+    cycle = (_joint("j1", "revolute", "a", "b"), _joint("j2", "revolute", "c", "d"), _joint("j3", "revolute", "d", "c"))
+    with pytest.raises(ValueError, match=r"tip link 'c' not found"):
+        from_urdf(_robot(*cycle), tip_link="c")

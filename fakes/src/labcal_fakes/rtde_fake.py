@@ -30,8 +30,10 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
+import operator
 import os
 import re
 import signal
@@ -159,28 +161,24 @@ def pack_package(kind: str, payload: bytes = b"") -> bytes:
     return HEADER.pack(HEADER.size + len(payload), ord(kind)) + payload
 
 
+def _vector_size(kind: str) -> int:
+    """Number of values of an RTDE type: 3 or 6 for vectors, 0 for a scalar."""
+    fmt = TYPE_FORMATS[kind]
+    return int(fmt[0]) if fmt[0].isdigit() else 0
+
+
 def pack_values(types: Sequence[str], values: Sequence[Any]) -> bytes:
-    """Pack values big-endian in recipe order; vector values are sequences."""
-    out = bytearray()
+    """Pack values big-endian in recipe order (no padding between them); vector values are sequences."""
+    flat: list[Any] = []
     for kind, value in zip(types, values, strict=True):
-        fmt = TYPE_FORMATS[kind]
-        if fmt[0].isdigit():
-            out += struct.pack(">" + fmt, *value)
-        else:
-            out += struct.pack(">" + fmt, value)
-    return bytes(out)
+        flat += value if _vector_size(kind) else [value]
+    return struct.pack(">" + "".join(TYPE_FORMATS[k] for k in types), *flat)
 
 
 def unpack_values(types: Sequence[str], data: bytes) -> list[Any]:
     """Inverse of :func:`pack_values`; raises struct.error if data has the wrong length."""
-    fmt = ">" + "".join(TYPE_FORMATS[k] for k in types)
-    flat = list(struct.unpack(fmt, data))
-    values: list[Any] = []
-    for kind in types:
-        width = int(TYPE_FORMATS[kind][0]) if TYPE_FORMATS[kind][0].isdigit() else 1
-        chunk, flat = flat[:width], flat[width:]
-        values.append(chunk if width > 1 else chunk[0])
-    return values
+    flat = iter(struct.unpack(">" + "".join(TYPE_FORMATS[k] for k in types), data))
+    return [[next(flat) for _ in range(_vector_size(k))] if _vector_size(k) else next(flat) for k in types]
 
 
 def recv_exact(sock: socket.socket, n: int) -> bytes:
@@ -234,41 +232,24 @@ _UR_DH = {
 _UR_ALPHA = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
 
 
-def _ur_frames(q: Sequence[float], model: str) -> list[list[list[float]]]:
-    """The base-frame transforms (4 x 4 nested lists) after each of the 6 joints of a UR arm at q (rad)."""
+def _ur_frames(q: Sequence[float], model: str) -> list[Any]:
+    """The base-frame transforms (4, 4) after each of the 6 joints of a UR arm at q (rad)."""
+    from labcal.kinematics.conversions import dh_transform  # lazy: only the pose outputs need numpy
+
     d1, a2, a3, d4, d5, d6 = _UR_DH.get(model, _UR_DH["UR10"])
-    T = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
-    frames = []
-    for theta, a, d, alpha in zip(q, (0.0, a2, a3, 0.0, 0.0, 0.0), (d1, 0.0, 0.0, d4, d5, d6), _UR_ALPHA, strict=True):
-        ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
-        step = [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0.0, sa, ca, d], [0, 0, 0, 1.0]]
-        T = [[sum(T[i][k] * step[k][j] for k in range(4)) for j in range(4)] for i in range(4)]
-        frames.append(T)
-    return frames
-
-
-def _rotation_vector(R: list[list[float]]) -> list[float]:
-    """Axis * angle (rad) of a rotation matrix, angle in [0, pi]: how UR reports the TCP orientation."""
-    angle = math.acos(max(-1.0, min(1.0, (R[0][0] + R[1][1] + R[2][2] - 1.0) / 2.0)))
-    if angle < 1e-12:
-        return [0.0, 0.0, 0.0]
-    if angle > math.pi - 1e-6:  # sin(angle) ~ 0: the axis from the diagonal, signs from the largest component
-        i = max(range(3), key=lambda k: R[k][k])
-        axis = [0.0, 0.0, 0.0]
-        axis[i] = math.sqrt(max(0.0, (R[i][i] + 1.0) / 2.0))
-        for j in range(3):
-            if j != i:
-                axis[j] = (R[i][j] + R[j][i]) / (4.0 * axis[i])
-        return [angle * v for v in axis]
-    scale = angle / (2.0 * math.sin(angle))
-    return [scale * (R[2][1] - R[1][2]), scale * (R[0][2] - R[2][0]), scale * (R[1][0] - R[0][1])]
+    rows = zip(q, (0.0, a2, a3, 0.0, 0.0, 0.0), (d1, 0.0, 0.0, d4, d5, d6), _UR_ALPHA, strict=True)
+    return list(
+        itertools.accumulate((dh_transform(a, alpha, d, theta) for theta, a, d, alpha in rows), operator.matmul)
+    )
 
 
 def tcp_pose(q: Sequence[float], model: str = "UR10") -> list[float]:
     """The flange pose [x, y, z (m), rx, ry, rz (rotation vector, rad)] in the base frame at q (6,) rad (no TCP
     offset), as ``actual_TCP_pose`` reports it."""
+    from labcal.kinematics.se3 import log_so3  # axis * angle, angle in [0, pi]: how UR reports the orientation
+
     T = _ur_frames(q, model)[-1]
-    return [T[0][3], T[1][3], T[2][3], *_rotation_vector([row[:3] for row in T[:3]])]
+    return [*T[:3, 3].tolist(), *log_so3(T[:3, :3]).tolist()]
 
 
 def elbow_position(q: Sequence[float], model: str = "UR10") -> list[float]:
@@ -277,8 +258,7 @@ def elbow_position(q: Sequence[float], model: str = "UR10") -> list[float]:
     >>> [round(v, 4) + 0.0 for v in elbow_position([0, 0, 0, 0, 0, 0])]
     [-0.612, 0.0, 0.1273]
     """
-    T = _ur_frames(q, model)[1]
-    return [T[0][3], T[1][3], T[2][3]]
+    return _ur_frames(q, model)[1][:3, 3].tolist()
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -319,12 +299,8 @@ class SimController:
         return SAFETY_MODE_PROTECTIVE_STOP if self.protective else SAFETY_MODE_NORMAL
 
     def safety_bits(self) -> int:
-        bits = 0
-        if self.protective:
-            bits |= SAFETY_BIT_PROTECTIVE_STOPPED
-        if self.emergency:
-            bits |= SAFETY_BIT_EMERGENCY_STOPPED
-        return bits or SAFETY_BIT_NORMAL
+        protective = SAFETY_BIT_PROTECTIVE_STOPPED if self.protective else 0
+        return protective | (SAFETY_BIT_EMERGENCY_STOPPED if self.emergency else 0) or SAFETY_BIT_NORMAL
 
     def value(self, name: str, kind: str, timestamp: float | None = None) -> Any:
         """Current value of an output variable (caller holds the lock).
@@ -360,9 +336,8 @@ class SimController:
             return self.registers[name]
         if name in _IDLE_OUTPUTS:
             return _IDLE_OUTPUTS[name]
-        fmt = TYPE_FORMATS[kind]
-        zero: Any = False if kind == "BOOL" else 0.0 if "d" in fmt else 0
-        return [zero] * int(fmt[0]) if fmt[0].isdigit() else zero
+        zero: Any = False if kind == "BOOL" else 0.0 if "d" in TYPE_FORMATS[kind] else 0
+        return [zero] * _vector_size(kind) if _vector_size(kind) else zero
 
     def _elbow_velocity(self) -> list[float]:
         """Finite difference of the elbow position over 1 ms at the current joint speeds, m/s."""
@@ -426,11 +401,10 @@ class _RTDESession:
     client may name a field in several of its own input recipes (ur-rtde's control interface does).
     """
 
-    def __init__(self, sock: socket.socket, sim: SimController, on_input: Any, unknown: Sequence[str] = ()):
+    def __init__(self, sock: socket.socket, sim: SimController, unknown: Sequence[str] = ()):
         self.sock = sock
         self.unknown = set(unknown)  # names answered NOT_FOUND, like an older PolyScope
         self.sim = sim
-        self.on_input = on_input  # called with the names of input registers a data package just wrote
         self.send_lock = threading.Lock()
         self.protocol = 1
         self.tick = control_period(sim.controller_version)
@@ -498,12 +472,11 @@ class _RTDESession:
                 self.sock.sendall(pack_package("P", struct.pack(">?", True)))
         elif kind == "U":
             recipe = payload[0]
-            if recipe in self.inputs:
+            if recipe in self.inputs:  # the emulated program polls the registers every control tick
                 names, types = self.inputs[recipe]
                 values = unpack_values(types, payload[1:])
                 with self.sim.lock:
                     self.sim.registers.update(zip(names, values, strict=True))
-                self.on_input(names)
         else:
             text = f"fake controller: unsupported package type {kind!r}".encode("ascii")
             # 'M' text message, level 1 = error. Version 2: uint8 length, text, uint8 source length, source, level;
@@ -613,9 +586,6 @@ class ControlEmulator:
         self.fault: tuple[str, float] | None = None
         self._abort = threading.Event()
 
-    def on_input(self, names: list[str]) -> None:
-        pass  # the program thread polls the registers every tick
-
     def _reg(self, name: str, default: Any = 0) -> Any:
         return self.sim.registers.get(name, default)
 
@@ -651,8 +621,11 @@ class ControlEmulator:
             time.sleep(self.TICK)
 
     def _process(self, cmd: int) -> bool:
+        """Run one command of the register protocol; False when it ends the program."""
         with self.sim.lock:
             self.sim.log.append(("command", cmd))
+            if cmd not in (self.MOVEJ, self.STOPJ, self.STOP_SCRIPT):
+                self.sim.log.append(("unsupported", cmd))
             if cmd == self.MOVEJ:
                 goal = [float(self._reg(f"input_double_register_{i}", 0.0)) for i in range(6)]
                 speed = float(self._reg("input_double_register_6", 0.0))
@@ -668,11 +641,7 @@ class ControlEmulator:
         if cmd == self.STOPJ:
             self._abort.set()
             return True
-        if cmd == self.STOP_SCRIPT:
-            return False
-        with self.sim.lock:
-            self.sim.log.append(("unsupported", cmd))
-        return True
+        return cmd != self.STOP_SCRIPT  # an unsupported command is logged and ignored
 
     def _move(self, goal: list[float], speed: float) -> None:
         with self.sim.lock:
@@ -686,10 +655,7 @@ class ControlEmulator:
             fraction = 1.0 if duration <= 0 else min((time.monotonic() - t0) / duration, 1.0)
             with self.sim.lock:
                 if fault is not None and fraction >= fault[1]:
-                    if fault[0] == "emergency":
-                        self.sim.emergency = True
-                    else:
-                        self.sim.protective = True
+                    setattr(self.sim, fault[0], True)  # the flag named by the fault: "protective" or "emergency"
                 if self.sim.protective or self.sim.emergency:
                     self.sim.program_running = False  # a safety stop halts the program where it is
                     self.sim.log.append(("program", "halted by safety stop"))
@@ -789,14 +755,9 @@ def _accept_loop(listener: socket.socket, handler: Any) -> None:
 
 def candidate_hosts(start: int, count: int = 400) -> list[str]:
     """Loopback addresses 127.0.x.y (x, y in 1..254, skipping 127.0.0.1) beginning at index ``start``."""
-    hosts = []
-    for i in range(count):
-        k = (start + i) % (254 * 254)
-        x, y = divmod(k, 254)
-        host = f"127.0.{x}.{y + 1}"
-        if host != "127.0.0.1":
-            hosts.append(host)
-    return hosts
+    indices = ((start + i) % (254 * 254) for i in range(count))
+    hosts = (f"127.0.{k // 254}.{k % 254 + 1}" for k in indices)
+    return [host for host in hosts if host != "127.0.0.1"]
 
 
 def _child_main(options: dict[str, Any], commands: Any, replies: Any) -> None:
@@ -809,26 +770,23 @@ def _child_main(options: dict[str, Any], commands: Any, replies: Any) -> None:
     sessions: list[_RTDESession] = []
 
     def start() -> tuple[Callable[..., Any], str]:
-        host = None
-        for candidate in options["hosts"]:
+        for host in options["hosts"]:
             try:
                 for port in ports:
-                    listeners[port] = _listen(candidate, port)
-                host = candidate
+                    listeners[port] = _listen(host, port)
                 break
             except OSError:
                 for sock in listeners.values():
                     sock.close()
                 listeners.clear()
-        if host is None:
+        else:
             raise RuntimeError(
                 f"fake RTDE server failed to start: no free loopback address among {len(options['hosts'])} candidates"
             )
         control = ControlEmulator(sim) if options["control"] else None
 
         def serve_rtde(sock: socket.socket) -> None:
-            on_input = control.on_input if control else (lambda names: None)
-            session = _RTDESession(sock, sim, on_input, options["unknown_variables"])
+            session = _RTDESession(sock, sim, options["unknown_variables"])
             sessions.append(session)
             session.run()
 
@@ -897,8 +855,7 @@ class FakeRTDEServer:
 
     q0: (6,) initial joint positions, rad. control: also serve dashboard/script ports and emulate ur-rtde's
     control registers. controller_version: answered to ``v`` (major, minor, bugfix, build).
-    unknown_variables: output names to answer NOT_FOUND (an older controller). first_host: index into
-    :func:`candidate_hosts` to start the address search at (default: derived from the pid). serial / robot_model:
+    unknown_variables: output names to answer NOT_FOUND (an older controller). serial / robot_model:
     the dashboard's answers to ``get serial number`` / ``get robot model`` (serial None: the controller does not
     understand the command, as PolyScope before 3.10/5.4).
     A plain subprocess (not multiprocessing) so scripts using the fake need no ``if __name__ == "__main__"``.
@@ -910,9 +867,6 @@ class FakeRTDEServer:
         *,
         control: bool = False,
         controller_version: Sequence[int] = (5, 11, 0, 0),
-        start_timeout: float = 20.0,
-        reply_timeout: float = 5.0,
-        first_host: int | None = None,
         unknown_variables: Sequence[str] = (),
         serial: str | None = "20185500001",
         robot_model: str = "UR10",
@@ -927,10 +881,8 @@ class FakeRTDEServer:
             "serial": serial,
             "robot_model": robot_model,
             # Spread start addresses by pid so parallel test runs rarely try the same address first.
-            "hosts": candidate_hosts(first_host if first_host is not None else (os.getpid() * 37) % 60000),
+            "hosts": candidate_hosts((os.getpid() * 37) % 60000),
         }
-        self._start_timeout = start_timeout
-        self._reply_timeout = reply_timeout
         self._child: ChildProcess | None = None
         self.host = ""
 
@@ -943,8 +895,8 @@ class FakeRTDEServer:
 
     def start(self) -> None:
         argv = [sys.executable, "-m", "labcal_fakes.rtde_fake", json.dumps(self._options)]
-        start, call = self._start_timeout, self._reply_timeout
-        self._child = ChildProcess(argv, "fake RTDE server", start_timeout=start, call_timeout=call, log_stderr=False)
+        # 20 s to start (binding may try many addresses on a loaded machine), 5 s per command
+        self._child = ChildProcess(argv, "fake RTDE server", start_timeout=20.0, call_timeout=5.0, log_stderr=False)
         self.host = self._child.started
 
     def _call(self, command: str, *args: Any) -> Any:

@@ -171,14 +171,13 @@ class SafetyLimits:
         >>> SafetyLimits(np.array([[-1.0, 1.0], [0.0, 2.0]])).within(np.array([[0.5, 2.0], [0.5, 2.1]])).tolist()
         [True, False]
         """
-        q = np.asarray(q, dtype=float)
-        limits = np.asarray(self.joint_limits, dtype=float)
-        checked = self.joint_map.to_model(q) if self._mapped else q
-        return np.all((checked >= limits[:, 0]) & (checked <= limits[:, 1]), axis=-1)
+        return np.all(self._inside(np.asarray(q, dtype=float))[1], axis=-1)
 
-    @property
-    def _mapped(self) -> bool:
-        return self.joint_map is not None and not self.joint_map.is_identity
+    def _inside(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The joints checked (model joints through the joint map, else q) and (..., n) bool: each inside its limits."""
+        limits = np.asarray(self.joint_limits, dtype=float)
+        checked = q if self.joint_map is None or self.joint_map.is_identity else self.joint_map.to_model(q)
+        return checked, (checked >= limits[:, 0]) & (checked <= limits[:, 1])
 
     def check_motion(self, q: np.ndarray, speed: float, acceleration: float) -> np.ndarray:
         """Return q as a float array if the motion is allowed, else raise MotionRejected naming the cause."""
@@ -188,11 +187,11 @@ class SafetyLimits:
             raise MotionRejected(f"target has {q.shape} joint values, the robot has {limits.shape[0]} joints")
         if not np.all(np.isfinite(q)):
             raise MotionRejected(f"target contains non-finite joint values: {q.tolist()}")
-        mapped = self._mapped
-        checked = self.joint_map.to_model(q) if mapped else q
+        checked, inside = self._inside(q)
+        mapped = checked is not q  # converted through the joint map
         what = "model joint" if mapped else "joint"
-        if not self.within(q[None])[0]:
-            j = int(np.flatnonzero((checked < limits[:, 0]) | (checked > limits[:, 1]))[0])
+        if not inside.all():
+            j = int(np.flatnonzero(~inside)[0])
             value, (lo, hi) = checked[j], limits[j]
             raise MotionRejected(
                 f"{what} {j + 1} target {value:.6f} is outside its limits [{lo:.6f}, {hi:.6f}]"
@@ -238,8 +237,18 @@ class ClosedOnExit:
 # Ports.
 
 
+class _Device(Protocol):
+    """What every port is: a context manager whose ``close()`` is safe to call twice."""
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> Self: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+
 @runtime_checkable
-class Robot(Protocol):
+class Robot(_Device, Protocol):
     """A joint-space positioned robot. ``move_joints`` blocks until the motion ends."""
 
     n_joints: int
@@ -261,26 +270,14 @@ class Robot(Protocol):
         """Stop any motion. Always safe to call, also after close or after an error."""
         ...
 
-    def close(self) -> None: ...
-
-    def __enter__(self) -> Robot: ...
-
-    def __exit__(self, *exc: object) -> None: ...
-
 
 @runtime_checkable
-class Tracker(Protocol):
+class Tracker(_Device, Protocol):
     """A 3D tracker that measures the session's m targets on the end effector (any of them may be unseen)."""
 
     def measure(self, samples: int = 1) -> Measurement:
         """Average ``samples`` frames. Raises MeasurementRejected, DriverTimeout, ProtocolError."""
         ...
-
-    def close(self) -> None: ...
-
-    def __enter__(self) -> Tracker: ...
-
-    def __exit__(self, *exc: object) -> None: ...
 
 
 def average_frames(frames: list[np.ndarray], timestamp: float, quality: tuple[str, ...] = ()) -> Measurement:

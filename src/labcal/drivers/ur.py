@@ -456,8 +456,6 @@ class URRobot(ClosedOnExit):
         receive: Any,
         control: Any | None = None,
         *,
-        sleep: Callable[[float], None] = time.sleep,
-        clock: Callable[[], float] = time.monotonic,
         identity: dict[str, Any] | None = None,
     ):
         self.profile = profile
@@ -465,8 +463,6 @@ class URRobot(ClosedOnExit):
         self.limits = profile.limits
         self._receive = receive
         self._control = control
-        self._sleep = sleep
-        self._clock = clock
         self._last_timestamp: float | None = None
         self._closed = False
 
@@ -479,12 +475,11 @@ class URRobot(ClosedOnExit):
         probe: bool = True,
         receive_factory: Callable[[str, float], Any] | None = None,
         control_factory: Callable[[str, float], Any] | None = None,
-        identify: bool | None = None,
     ) -> URRobot:
         """Probe the controller's ports, then build the interfaces (control only unless ``read_only``).
 
-        ``identify`` (default: as ``probe``): ask the dashboard server for the arm's serial number, model and
-        software version (:meth:`device_identity`); a controller that does not tell leaves a note, never an error.
+        The probe also asks the dashboard server for the arm's serial number, model and software version
+        (:meth:`device_identity`); a controller that does not tell leaves a note, never an error.
 
         Raises ConnectionFailed (ProbeTimeout for a silent peer) or ProtocolError; never hangs on a peer that
         fails the probe. ``receive_factory`` / ``control_factory`` (``(host, frequency) -> interface``; tests pass
@@ -492,14 +487,13 @@ class URRobot(ClosedOnExit):
         and then goes silent costs at most CONSTRUCT_TIMEOUT s, never a hang.
         """
         host, timeout = profile.host, profile.connect_timeout
+        identity = None
         if probe:
             version = probe_rtde(host, RTDE_PORT, timeout)
             log.info("UR controller at %s answers RTDE, version %s", host, ".".join(map(str, version)))
             if not read_only:
                 probe_dashboard(host, DASHBOARD_PORT, timeout)
                 probe_script_port(host, SCRIPT_PORT, timeout)
-        identity = None
-        if probe if identify is None else identify:
             identity = read_dashboard_identity(host, DASHBOARD_PORT, timeout)
             log.info("UR controller at %s: %s", host, identity)
         # by default each ur-rtde interface in its own process (see labcal.drivers.ur_process)
@@ -512,12 +506,7 @@ class URRobot(ClosedOnExit):
             try:
                 control = _construct(control_factory, host, profile.frequency, "RTDE control interface")
             except BaseException:
-                with contextlib.suppress(Exception):
-                    # a RemoteInterface's process outlives disconnect() (it waits for calls): close() ends it too
-                    if isinstance(receive, RemoteInterface):
-                        receive.close()
-                    else:
-                        receive.disconnect()
+                cls(profile, receive).close()  # never raises; ends a RemoteInterface's process too, not only its link
                 raise
         return cls(profile, receive, control, identity=identity)
 
@@ -578,7 +567,7 @@ class URRobot(ClosedOnExit):
     def _fresh_timestamp(self) -> float:
         """Wait (at most stale_timeout) for a controller timestamp newer than the last one seen."""
         rx = self._rx()
-        deadline = self._clock() + self.profile.stale_timeout
+        deadline = time.monotonic() + self.profile.stale_timeout
         current = self._call_rx("getTimestamp")
         previous = self._last_timestamp if self._last_timestamp is not None else current
         while True:
@@ -586,12 +575,12 @@ class URRobot(ClosedOnExit):
                 raise ConnectionFailed(f"the RTDE connection to {self.profile.host} is down")
             if current > previous:
                 break
-            if self._clock() >= deadline:
+            if time.monotonic() >= deadline:
                 raise StaleData(
                     f"controller timestamp stuck at {current:.6f} s for {self.profile.stale_timeout} s "
                     f"({self.profile.host})"
                 )
-            self._sleep(0.001)
+            time.sleep(0.001)
             current = self._call_rx("getTimestamp")
         self._last_timestamp = current
         return current
@@ -623,6 +612,27 @@ class URRobot(ClosedOnExit):
 
     # -- moving ----------------------------------------------------------------------------------------------
 
+    @property
+    def _control_lost(self) -> bool:
+        """The control interface's process is gone (a stand-in interface in this process never is)."""
+        return isinstance(self._control, RemoteInterface) and not self._control.alive
+
+    def _call_control(self, name: str, *args: Any, **bounds: Any) -> Any:
+        """ur-rtde control ``name(*args)``: in its process within ``bounds`` (``timeout``, ``watch``: see
+        :meth:`~labcal.drivers.ur_process.ChildProcess.call`); a stand-in in this process is called directly."""
+        if isinstance(self._control, RemoteInterface):
+            return self._control.call(name, *args, **bounds)
+        return getattr(self._control, name)(*args)
+
+    def _sample(self, done: Callable[[RobotState], bool]) -> RobotState:
+        """Fresh states until ``done(state)`` or STREAM_SKEW_WINDOW has passed: ur-rtde's control and receive
+        interfaces read separate streams, so the sample in hand may predate an event the control side saw."""
+        deadline = time.monotonic() + STREAM_SKEW_WINDOW
+        state = self.state()
+        while not done(state) and time.monotonic() < deadline:
+            state = self.state()
+        return state
+
     def _raise_if_stopped(self, state: RobotState, when: str) -> None:
         where = np.array2string(state.q, precision=4)
         if state.emergency_stop:
@@ -639,7 +649,7 @@ class URRobot(ClosedOnExit):
         if self._control is None:
             raise MotionRejected("this UR robot was opened read-only (no control interface)")
         target = self.limits.check_motion(q, speed, acceleration)
-        if isinstance(self._control, RemoteInterface) and not self._control.alive:
+        if self._control_lost:
             raise ConnectionFailed(f"the control interface to {self.profile.host} was lost; resume the session")
         before = self.state()
         self._raise_if_stopped(before, "before the move")
@@ -651,25 +661,21 @@ class URRobot(ClosedOnExit):
         except ValueError as exc:
             raise MotionRejected(f"ur-rtde refused the move: {exc}") from exc
         except RuntimeError as exc:
-            if isinstance(self._control, RemoteInterface) and not self._control.alive:
+            if self._control_lost:
                 raise ConnectionFailed(f"lost the control interface to {self.profile.host}: {exc}") from exc
             self._raise_stop_or(MotionFailed(f"moveJ raised: {exc}"), exc)
         if not ok:
             self._raise_stop_or(MotionFailed(f"controller reported moveJ to {target.tolist()} failed"), None)
         if self.profile.settle_time > 0:
-            self._sleep(self.profile.settle_time)
-        deadline = self._clock() + STREAM_SKEW_WINDOW  # the first sample may predate the end of the move
-        while True:
-            after = self.state()
-            self._raise_if_stopped(after, "after the move")
-            error = float(np.max(np.abs(after.q - target)))
-            if error <= self.profile.position_tolerance:
-                return
-            if self._clock() >= deadline:
-                raise MotionFailed(
-                    f"robot ended {error:.6f} rad from the target (tolerance {self.profile.position_tolerance} "
-                    f"rad): q = {after.q.tolist()}"
-                )
+            time.sleep(self.profile.settle_time)
+        tolerance = self.profile.position_tolerance
+        after = self._sample(lambda s: _stopped(s) or float(np.max(np.abs(s.q - target))) <= tolerance)
+        self._raise_if_stopped(after, "after the move")
+        error = float(np.max(np.abs(after.q - target)))
+        if error > tolerance:
+            raise MotionFailed(
+                f"robot ended {error:.6f} rad from the target (tolerance {tolerance} rad): q = {after.q.tolist()}"
+            )
 
     def _move_watched(self, target: np.ndarray, speed: float, acceleration: float, before: RobotState) -> bool:
         """moveJ, blocking; in a process of its own it is watched: the controller timestamp must advance at least
@@ -677,16 +683,14 @@ class URRobot(ClosedOnExit):
         control interface is killed and StaleData (timestamp stuck) or ConnectionFailed (link down, move too long)
         raised; the caller's stop() then halts the program through the dashboard."""
         args = (target.tolist(), speed, acceleration, False)
-        if not isinstance(self._control, RemoteInterface):
-            return self._control.moveJ(*args)
         distance = float(np.max(np.abs(target - before.q)))
         planned = distance / speed + speed / acceleration
         budget = 2.0 * planned + 10.0
-        deadline = self._clock() + budget
-        last = {"timestamp": before.timestamp, "at": self._clock()}
+        deadline = time.monotonic() + budget
+        last = {"timestamp": before.timestamp, "at": time.monotonic()}
 
         def watch() -> None:
-            now = self._clock()
+            now = time.monotonic()
             if now > deadline:
                 raise ConnectionFailed(
                     f"moveJ on {self.profile.host} did not end within {budget:.1f} s (planned {planned:.1f} s)"
@@ -703,7 +707,7 @@ class URRobot(ClosedOnExit):
                     f"{self.profile.watchdog_timeout} s)"
                 )
 
-        return bool(self._control.call("moveJ", *args, timeout=None, watch=watch))
+        return bool(self._call_control("moveJ", *args, timeout=None, watch=watch))
 
     def _halt_from_dashboard(self) -> None:
         """Stop the program through the dashboard server (independent of RTDE): the best left when the control
@@ -721,17 +725,14 @@ class URRobot(ClosedOnExit):
 
         The sample in hand may predate the stop that ended the move (see STREAM_SKEW_WINDOW).
         """
-        deadline = self._clock() + STREAM_SKEW_WINDOW
-        while True:
-            try:
-                state = self.state()
-            except StaleData as exc:
-                raise MotionFailed(f"{error}; and the controller data went stale: {exc}") from cause
-            except ConnectionFailed as exc:
-                raise ConnectionFailed(f"{error}; and the connection is lost: {exc}") from cause
-            self._raise_if_stopped(state, "after a failed move")
-            if self._clock() >= deadline:
-                raise error from cause
+        try:
+            state = self._sample(_stopped)
+        except StaleData as exc:
+            raise MotionFailed(f"{error}; and the controller data went stale: {exc}") from cause
+        except ConnectionFailed as exc:
+            raise ConnectionFailed(f"{error}; and the connection is lost: {exc}") from cause
+        self._raise_if_stopped(state, "after a failed move")
+        raise error from cause
 
     def resume(self) -> None:
         """Continue after a protective stop an operator has cleared (labcal never unlocks a stop itself).
@@ -742,39 +743,31 @@ class URRobot(ClosedOnExit):
         """
         if self._control is None:
             raise MotionRejected("this UR robot was opened read-only (no control interface)")
-        state = self.state()
-        # The sample in hand may predate the operator's clearing of the stop (see STREAM_SKEW_WINDOW).
-        deadline = self._clock() + STREAM_SKEW_WINDOW
-        while (state.protective_stop or state.emergency_stop) and self._clock() < deadline:
-            state = self.state()
+        state = self._sample(lambda s: not _stopped(s))  # the sample may predate the operator's clearing of the stop
         self._raise_if_stopped(state, "— clear it on the teach pendant first")
         mode = self.robot_mode()
         if mode != ROBOT_MODE_RUNNING:
             raise MotionRejected(f"robot mode is {mode}, not RUNNING ({ROBOT_MODE_RUNNING}); cannot resume")
         if self._program_running():
             return
-        try:
-            if isinstance(self._control, RemoteInterface):  # uploading waits for the controller: a longer deadline
-                timeout = SCRIPT_START_TIMEOUT + self.profile.call_timeout
-                restarted = self._control.call("reuploadScript", timeout=timeout)
-            else:
-                restarted = self._control.reuploadScript()
+        try:  # uploading waits for the controller: a longer deadline than other calls
+            restarted = self._call_control("reuploadScript", timeout=SCRIPT_START_TIMEOUT + self.profile.call_timeout)
         except RuntimeError as exc:
             raise ConnectionFailed(f"could not restart the control script on {self.profile.host}: {exc}") from exc
         if not restarted:
             raise ConnectionFailed(f"the control script on {self.profile.host} could not be uploaded")
         # reuploadScript() returns once the script is sent, before the controller runs it
-        deadline = self._clock() + SCRIPT_START_TIMEOUT
+        deadline = time.monotonic() + SCRIPT_START_TIMEOUT
         while not self._program_running():
-            if self._clock() >= deadline:
+            if time.monotonic() >= deadline:
                 raise ConnectionFailed(
                     f"the control script on {self.profile.host} did not start within {SCRIPT_START_TIMEOUT} s"
                 )
-            self._sleep(0.01)
+            time.sleep(0.01)
 
     def _program_running(self) -> bool:
         try:
-            return bool(self._control.isProgramRunning())
+            return bool(self._call_control("isProgramRunning"))
         except RuntimeError as exc:
             raise ConnectionFailed(f"lost the control connection to {self.profile.host}: {exc}") from exc
 
@@ -782,13 +775,17 @@ class URRobot(ClosedOnExit):
         """Decelerate any joint motion (stopJ). Always safe: never raises, also after close or an error."""
         if self._control is None or self._closed:
             return
-        if isinstance(self._control, RemoteInterface) and not self._control.alive:
+        if self._control_lost:
             self._halt_from_dashboard()  # the control interface is gone: the dashboard is what is left
             return
         try:
             self._control.stopJ(self.profile.stop_acceleration, False)
         except Exception as exc:  # stop() is called on error paths; it must not mask the original error
             log.warning("stopJ on %s failed: %s", self.profile.host, exc)
+
+
+def _stopped(state: RobotState) -> bool:
+    return state.protective_stop or state.emergency_stop
 
 
 def _construct(factory: Callable[[str, float], Any], host: str, frequency: float, what: str) -> Any:

@@ -143,34 +143,31 @@ def _urdf_chain(root, tip_link: str | None) -> list:
     """The <joint> elements from the root link down to ``tip_link`` (or the end of an unbranched chain)."""
     joints = {}
     for el in root.findall("joint"):
-        jname = el.get("name")
-        parent, child = el.find("parent"), el.find("child")
-        if jname is None or parent is None or child is None:
+        if el.get("name") is None or el.find("parent") is None or el.find("child") is None:
             raise ValueError("every URDF <joint> needs a name, a <parent link> and a <child link>")
-        joints[jname] = el
-    children: dict[str | None, list] = {}  # parent link -> its <joint> elements (checked above to have both)
+        joints[el.get("name")] = el
+    children: dict[str | None, list] = {}  # parent link -> its <joint> elements
     for el in joints.values():
         children.setdefault(el.find("parent").get("link"), []).append(el)
-    child_links = {el.find("child").get("link") for el in joints.values()}
-    roots = [lk for lk in children if lk not in child_links]
+    carrier = {el.find("child").get("link"): el for el in joints.values()}  # child link -> the joint that moves it
+    roots = [lk for lk in children if lk not in carrier]
     if len(roots) != 1:
         raise ValueError(f"URDF must have exactly one root link, found {roots}")
-    chain, link = [], roots[0]
+    chain: list = []
+    if tip_link is not None:  # up from the tip: a tree has one path to its root
+        link: str | None = tip_link
+        while link in carrier and len(chain) < len(joints):  # the bound: a cycle of links must not hang
+            chain.append(carrier[link])
+            link = carrier[link].find("parent").get("link")
+        if not chain or link != roots[0]:
+            raise ValueError(f"tip link {tip_link!r} not found in the URDF chain")
+        return chain[::-1]
+    link = roots[0]
     while link in children:
-        options = children[link]
-        if len(options) > 1:
-            if tip_link is None:
-                raise ValueError(f"URDF branches at link {link!r}: pass tip_link to choose the chain")
-            options = [el for el in options if _reaches(el, tip_link, children)]
-            if not options:
-                raise ValueError(f"tip link {tip_link!r} is not below link {link!r}")
-        el = options[0]
-        chain.append(el)
-        link = el.find("child").get("link")
-        if link == tip_link:
-            break
-    if tip_link is not None and link != tip_link:
-        raise ValueError(f"tip link {tip_link!r} not found in the URDF chain")
+        if len(children[link]) > 1:
+            raise ValueError(f"URDF branches at link {link!r}: pass tip_link to choose the chain")
+        chain.append(children[link][0])
+        link = children[link][0].find("child").get("link")
     return chain
 
 
@@ -192,10 +189,3 @@ def _urdf_joint(el, jname: str, jtype: str) -> tuple[str, np.ndarray, list[float
         lo, hi = float(limit.get("lower")), float(limit.get("upper"))
     twist = np.concatenate([np.zeros(3), axis]) if kind == REVOLUTE else np.concatenate([axis, np.zeros(3)])
     return kind, twist, [lo, hi]
-
-
-def _reaches(joint_el, tip: str, children) -> bool:
-    link = joint_el.find("child").get("link")
-    if link == tip:
-        return True
-    return any(_reaches(el, tip, children) for el in children.get(link, []))
