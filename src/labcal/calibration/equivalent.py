@@ -68,7 +68,7 @@ from __future__ import annotations
 import dataclasses
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any
+from typing import NotRequired, TypedDict
 
 import numpy as np
 
@@ -80,6 +80,27 @@ from labcal.kinematics import metric, se3
 MAX_CONDITION = 1e3
 SOFT_CONDITION = 1e2
 _PROBE_STEP = 0.1  # rad (revolute) or fraction of the reach (prismatic): the move that shows which joint causes it
+
+
+class DroppedCause(TypedDict):
+    """One group of :meth:`JointErrorObservations.causes`."""
+
+    rows: int
+    joint: int
+    lost: list[int]
+    value: float
+    cause: str
+
+
+class FilterSummary(TypedDict):
+    """:meth:`JointErrorObservations.summary`."""
+
+    count: int
+    dropped: int
+    dropped_reasons: dict[str, int]
+    downweighted: int
+    condition: dict[str, float]
+    rank_below_6: NotRequired[int]
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,7 +140,7 @@ class JointErrorObservations:
         """Some row cannot see all six joint-error directions (rank < 6)."""
         return self.rank is not None and bool(np.any(self.rank < 6))
 
-    def causes(self, base: CalibratedRobot) -> list[dict]:
+    def causes(self, base: CalibratedRobot) -> list[DroppedCause]:
         """Name the cause of every row the condition filter dropped, grouped into one entry per cause.
 
         For each dropped row: the joints whose motion errors the row cannot see (the largest components of the
@@ -156,7 +177,7 @@ class JointErrorObservations:
             better = gain > np.maximum(best_gain, 2.0)
             best_gain[better], culprit[better] = gain[better], j + 1
         lost_sets = [np.flatnonzero(null[i] > 0.3 * null[i].max()) + 1 for i in range(dropped.size)]
-        out: list[dict[str, Any]] = []
+        out: list[DroppedCause] = []
         for joint in sorted(set(culprit.tolist())):
             rows = np.flatnonzero(culprit == joint)
             counts = np.bincount(np.concatenate([lost_sets[i] for i in rows]), minlength=equivalent_joints(n) + 1)
@@ -174,13 +195,13 @@ class JointErrorObservations:
         out.sort(key=lambda c: (-c["rows"], c["joint"], c["lost"]))
         return out
 
-    def summary(self) -> dict:
+    def summary(self) -> FilterSummary:
         """Counts of dropped rows by reason and condition statistics of all rows (JSON-friendly); with fewer than
         three targets in some row also ``rank_below_6``, the rows whose δρ is a minimum-norm solution."""
         reasons = dict(Counter(str(r) for r in self.reason[~self.kept]))
         finite = self.condition[np.isfinite(self.condition)]
         stats = statistics(finite, ("min", "median", "p95", "max")) if finite.size else {}
-        out = {
+        out: FilterSummary = {
             "count": len(self.q),
             "dropped": int(np.sum(~self.kept)),
             "dropped_reasons": reasons,
