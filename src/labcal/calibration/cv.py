@@ -149,16 +149,13 @@ class CVResult:
         """The ``FitResult.cv`` record plus pooled means, fold spread and pruning."""
         names = [n for n in ORDER if n in self.rows]
         errors = {n: self.fold_errors(n) for n in names}
-        spread = {}
-        for n in names:
-            vals = [v for v in errors[n] if v is not None]
-            spread[n] = float(np.std(vals)) if vals else math.nan
+        ran = {n: [v for v in errors[n] if v is not None] for n in names}  # the folds each candidate ran
         return {
             "folds": len(self.folds),
             "scheme": self.scheme,
             "errors": errors,
             "mean": {n: self.mean(n) for n in names},
-            "std": spread,
+            "std": {n: float(np.std(ran[n])) if ran[n] else math.nan for n in names},
             "chosen": chosen,
             "metric": "mean target-point distance on the held-out fold",
             "pruned_after": dict(self.pruned_after),

@@ -113,7 +113,7 @@ class JointErrorObservations:
     solution where ``rank`` < N, so always for n > 6; NaN where PJ is numerically singular); condition: (k,)
     cond(P J_ρ S) (see module docstring);
     weight: (k,) 0 for dropped rows, (soft/cond)² in the down-weighted band, else 1;
-    reason: (k,) "" for kept rows, else why the row was dropped; split: (k,) the observations' split labels;
+    reason: (k,) "" for kept rows, else why the row was dropped;
     targets: (m, 3) the targets in the tool frame (to name the cause of dropped rows, :meth:`causes`);
     seen: (k, m) the targets each row saw (None: all); rank: (k,) the joint-error directions the row's points
     can see (6, 5 with two points or a line of them, 3 with one; None: 6 everywhere, n ≤ 6 only).
@@ -126,7 +126,6 @@ class JointErrorObservations:
     condition: np.ndarray
     weight: np.ndarray
     reason: np.ndarray
-    split: np.ndarray
     targets: np.ndarray
     seen: np.ndarray | None = None
     rank: np.ndarray | None = None
@@ -330,7 +329,7 @@ def joint_error_observations(
     elif np.any(ok) and rank is not None:
         delta_rho[ok] = _min_norm(PJ[ok], delta_p[ok], rank[ok], scale)
     return JointErrorObservations(
-        q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split, obs.targets, None if dense else seen, rank
+        q, delta_p, PJ, delta_rho, condition, weight, reason, obs.targets, None if dense else seen, rank
     )
 
 

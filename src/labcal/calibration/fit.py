@@ -116,7 +116,7 @@ from labcal.calibration.candidates import (
 )
 from labcal.calibration.cv import CVRecord, CVResult, choose, cross_validate, fold_plan, row_errors
 from labcal.calibration.hybrid import HybridInfo, finish_hybrid, prefit_series, series_fixed
-from labcal.calibration.local_poe import LocalPOEInfo, fit_local_poe, register
+from labcal.calibration.local_poe import LocalPOEInfo, RegisterInfo, fit_local_poe, register
 from labcal.calibration.metrics import (
     FitWarning,
     Observability,
@@ -305,7 +305,7 @@ def _candidate_names(method: str, stage2: tuple[str, ...]) -> tuple[str, ...]:
     return ("nominal", "local-poe", *learned, *(("ann",) if method == "auto" else ()))
 
 
-def _candidates(ctx: FitContext, before: Stage) -> Candidates:
+def _candidates(ctx: FitContext, before: Stage[RegisterInfo]) -> Candidates:
     """Local POE and the joint series on all fitting rows, then every candidate cross-validated."""
     fit_obs, method = ctx.fit_obs, ctx.method
     stage1 = None

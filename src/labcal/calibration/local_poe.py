@@ -326,19 +326,16 @@ def _at_solution(
     Js: np.ndarray, r: np.ndarray, cost: float, scale: np.ndarray, rank_rtol: float, truncate: float
 ) -> dict[str, Any]:
     """The final linearisation (scaled Jacobian Js, residual r): numerical rank, null and weak spaces (SI units),
-    singular values and the parameter standard deviations at the solution (:func:`_gauss_newton`)."""
+    singular values and the residual σ at the solution (:func:`_gauss_newton`; the parameters' standard deviations
+    are those of the split chain, :func:`_split_std`)."""
     lam_k, V, keep = _eig(Js, rank_rtol, truncate)
     numeric = np.sqrt(lam_k) > rank_rtol * np.sqrt(lam_k[-1])  # the rank-revealing threshold alone
     weak = numeric & ~keep
     dof = max(r.size - int(keep.sum()), 1)
-    sigma2 = cost / dof
-    Vk = V[:, keep] / np.sqrt(lam_k[keep])
-    cov_scaled = sigma2 * (Vk @ Vk.T)
     return dict(
         rank=int(numeric.sum()),
         singular_values=np.sqrt(np.clip(lam_k, 0, None))[::-1],
-        std=np.sqrt(np.clip(np.diag(cov_scaled), 0, None)) * scale,
-        sigma=math.sqrt(sigma2),
+        sigma=math.sqrt(cost / dof),
         null_space=V[:, ~numeric] * scale[:, None],
         weak=int(weak.sum()),
         weak_space=V[:, weak] * scale[:, None],
