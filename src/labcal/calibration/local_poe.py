@@ -574,16 +574,14 @@ def register(
     nominal: LocalPOEModel,
     *,
     estimate_tool: bool = False,
-    include_val: bool = False,
-    max_iter: int = 50,
-    tol: float = 1e-12,
 ) -> tuple[CalibratedRobot, RegisterInfo]:
     """The "registered nominal": nominal geometry, with only T_tracker_base (tracker-frame data) and optionally
     the tool frame A_{n+1} estimated. The reference ("before") every method is compared against.
 
-    Base-frame data without tool estimation return the nominal robot unchanged.
+    Base-frame data without tool estimation return the nominal robot unchanged. Fits the "train" and unassigned
+    rows (:func:`fitting_rows`) as :func:`fit_local_poe` does by default.
     """
-    rows = fitting_rows(obs, include_val)
+    rows = fitting_rows(obs)
     estimate_base = obs.frame == "tracker"
     frames = [nominal.n] if estimate_tool else []
     structural = target_null(obs, rows, 0, 6 * len(frames) + 6 * estimate_base) if estimate_tool else None
@@ -596,7 +594,7 @@ def register(
     fit_args: _FitArgs = (obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base)
     seen, fixed = _seen_rows(obs, rows), None if structural is None else structural["basis"]
     out = _gauss_newton(
-        nominal, T0, *fit_args, length_scale=nominal.reach(), max_iter=max_iter, tol=tol, seen=seen, fixed=fixed
+        nominal, T0, *fit_args, length_scale=nominal.reach(), max_iter=50, tol=1e-12, seen=seen, fixed=fixed
     )
     # Robot and tool apart (labcal.calibration.tool): the robot ends at tool0, the fixture is the measurement tool
     # (the registration estimates no joint frame: nothing commutes into the tool).
