@@ -520,7 +520,7 @@ def _few_poses(distinct: int, n: int) -> FitWarning | None:
 def _identification_checks(lp: LocalPOEInfo, distinct: int, warnings: list[FitWarning], notes: list[str]) -> None:
     """rank-deficient (a warning) and weak (a note) from local POE's info."""
     if lp["rank"] < lp["expected_rank"]:
-        lines = lp.get("null_directions", [])
+        lines = lp["null_directions"]
         shown = "; ".join(lines[:8]) + (f"; … ({len(lines) - 8} more)" if len(lines) > 8 else "")
         warnings.append(_warn(
             "rank-deficient",
@@ -530,8 +530,8 @@ def _identification_checks(lp: LocalPOEInfo, distinct: int, warnings: list[FitWa
             f"were left at the nominal. Unidentifiable parameter combinations (largest components): {shown}. "
             "Measure more, better spread configurations (every joint moved, not only single-joint sweeps)",
         ))  # fmt: skip
-    if lp.get("weak"):
-        lines = lp.get("weak_directions", [])
+    if lp["weak"]:
+        lines = lp["weak_directions"]
         notes.append(
             f"weak: {lp['weak']} of {lp['rank']} identifiable direction(s) are held at the nominal — the data "
             f"determine them worse than ±{lp['error_bound'] * 1e3:g} mm at {lp['noise'] * 1e3:g} mm tracker "
@@ -728,7 +728,7 @@ def _correction_cause(robot, at_data: float, lp: LocalPOEInfo | None) -> str:
     measured configurations themselves, from well-determined parameters); else configurations outside the data."""
     delta = se3.log_se3(se3.inv(robot.nominal.frames[-1]) @ robot.model.frames[-1])
     offset, angle = float(np.linalg.norm(delta[:3])), float(np.linalg.norm(delta[3:]))
-    std = None if lp is None or lp.get("std") is None else np.asarray(lp["std"], float)[-1]
+    std = None if lp is None else lp["std"][-1]
     determined = (
         std is None
         or not np.isfinite(std).all()
@@ -743,10 +743,10 @@ def _correction_cause(robot, at_data: float, lp: LocalPOEInfo | None) -> str:
             f"({p0[0]:.1f}, {p0[1]:.1f}, {p0[2]:.1f}) mm, and the compensator moves the joints to bring the "
             "measurement fixture onto the nominal tool: give the fixture's tool in the robot file"
         )
-    if lp is not None and lp.get("singular_values") is not None and lp.get("weak_threshold") is not None:
-        s = np.asarray(lp["singular_values"], float)
-        kept = s[s > max(float(lp["weak_threshold"]), 1e-6 * float(s.max()))]
-        noise = float(lp.get("noise", 0.05e-3))
+    if lp is not None:  # local POE's info (typed: every key below is always there)
+        s = lp["singular_values"]
+        kept = s[s > max(lp["weak_threshold"], 1e-6 * float(s.max()))]
+        noise = lp["noise"]
         if kept.size and noise / float(kept.min()) > WEAK_NOTE:
             tool = (
                 f" (the identified tool is {offset * 1e3:.3g} mm from the robot file's, ±"
