@@ -376,7 +376,7 @@ MUTATIONS: list[Mutation] = [
       "few-poses at one pose per joint", T_GATES,
       f"{T_CV}::test_fewer_than_two_poses_per_joint_block_the_export_even_when_the_fit_looks_good", batch=2),
     M("calibration/fit gates", F,
-      '        ("point-residuals", point_residual_warning(metrics.get("all") or {})),\n', "",
+      '        ("point-residuals", point_residual_warning(metrics.get("all"))),\n', "",
       "the point-residuals warning is dropped", T_GATES, T_GATES_CLI, batch=2),
 ]
 # fmt: on

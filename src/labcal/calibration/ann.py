@@ -57,6 +57,7 @@ import math
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import TypedDict, final
 
 import numpy as np
 
@@ -64,6 +65,8 @@ from labcal import features as feature_lib
 from labcal.calibration.equivalent import (
     MAX_CONDITION,
     SOFT_CONDITION,
+    DroppedCause,
+    FilterSummary,
     JointErrorObservations,
     equivalent_joints,
     joint_error_observations,
@@ -85,6 +88,43 @@ MIN_STOP_ROWS = 3
 _OUTPUT_INIT = 1e-2  # relative scale of the initial output-layer weights
 
 ProgressFn = Callable[[int, int, float, float], None]
+
+
+@final  # final: `"no_network" in info` tells NoNetworkInfo from it for the type checker
+class ANNInfo(TypedDict):
+    """:func:`fit_ann`'s info (saved with a fit)."""
+
+    method: str
+    observations: FilterSummary
+    dropped_causes: list[DroppedCause]
+    early_stopping: str
+    subsampled_from: int
+    max_condition: float | None
+    soft_condition: float | None
+    train_rows: int
+    val_rows: int
+    features: list[str]
+    inputs: int
+    hidden: list[int]
+    weights: int
+    trainer: str
+    loss: str
+    loss_note: str | None
+    weight_decay: float
+    max_iter: int
+    patience: int
+    lr: float | None
+    seed: int
+    restarts: int
+    restart_val_losses: list[float]
+    chosen_restart: int
+    curve: dict[str, list[float]]
+    stopped_at: int
+    iterations: int
+    train_loss: float
+    val_loss: float
+    export_max_abs_diff: float
+    warnings: list[str]
 
 
 def default_hidden(n_inputs: int, n_outputs: int = 6) -> int:
@@ -338,7 +378,7 @@ class NetworkDataError(ObservationError):
     """Too few usable rows for the network after the condition filter; ``causes`` as
     :meth:`~labcal.calibration.equivalent.JointErrorObservations.causes` returns them."""
 
-    def __init__(self, message: str, causes: list[dict]) -> None:
+    def __init__(self, message: str, causes: list[DroppedCause]) -> None:
         super().__init__(message)
         self.causes = causes
 
@@ -354,7 +394,7 @@ def _inner_split(kept: np.ndarray, units: np.ndarray, fraction: float, seed: int
     return {"train": kept[~val], "val": kept[val]}
 
 
-def _check_rows(rows: dict, jeo, fit_rows: np.ndarray, causes: list[dict]) -> None:
+def _check_rows(rows: dict, jeo, fit_rows: np.ndarray, causes: list[DroppedCause]) -> None:
     n_tr, n_va = rows["train"].size, rows["val"].size
     if n_tr >= MIN_TRAIN_ROWS and n_va >= MIN_STOP_ROWS:
         return
@@ -404,7 +444,7 @@ def fit_ann(
     progress: ProgressFn | None = None,
     stop_fraction: float = STOP_FRACTION,
     max_rows: int | None = MAX_ROWS,
-) -> tuple[CalibratedRobot, dict]:
+) -> tuple[CalibratedRobot, ANNInfo]:
     """Fit the joint motion errors of ``base``'s equivalent robot with a neural network (paper eq. 16-22).
 
     obs: the network is trained on the "train" and unassigned rows; "test" rows are ignored. Early stopping
@@ -476,7 +516,7 @@ class _Settings:
     max_rows: int | None
 
 
-def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> tuple[CalibratedRobot, dict]:
+def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> tuple[CalibratedRobot, ANNInfo]:
     """fit_ann after its options are checked: observations, rows, training, the exported network, its info."""
     used = obs.subset(np.isin(obs.split, ["train", "", "val"]))
     if used.k == 0:
@@ -500,7 +540,7 @@ def _fit_network(obs: Observations, base: CalibratedRobot, opts: _Settings) -> t
     theta, curve_t, curve_v, stopped_at, iterations = runs[best]
     network = _network(theta, shapes, opts.features, data)
     export_diff = _export_difference(network, jeo.q[rows["train"]], base)
-    info = {
+    info: ANNInfo = {
         "method": "ann",
         "observations": jeo.summary(),
         "dropped_causes": causes,
@@ -552,7 +592,7 @@ def _loss_for(jeo: JointErrorObservations, k: int, loss: str) -> tuple[str, str 
 def _training_rows(
     used: Observations,
     jeo: JointErrorObservations,
-    causes: list[dict],
+    causes: list[DroppedCause],
     seed: int,
     stop_fraction: float,
     max_rows: int | None,

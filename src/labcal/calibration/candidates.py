@@ -35,16 +35,21 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, NotRequired, TypeAlias, TypedDict, TypeVar, final
 
+from labcal.calibration.local_poe import LocalPOEInfo, RegisterInfo
 from labcal.calibration.observations import Observations
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics.poe import LocalPOEModel
 
-if TYPE_CHECKING:  # cv.py imports this module for the table; the record only names its result type
+if TYPE_CHECKING:  # these modules import this one for the table; the records only name their types
+    from labcal.calibration.ann import ANNInfo
     from labcal.calibration.cv import CVResult
+    from labcal.calibration.hybrid import HybridInfo, HybridKept
+    from labcal.calibration.joint_series import SeriesInfo
 
 T = TypeVar("T")
+I = TypeVar("I", covariant=True)  # a record's info type
 
 
 @dataclass(frozen=True)
@@ -90,11 +95,41 @@ STAGE2: dict[str, str] = {m.learned: m.name for m in TABLE if m.hybrid and m.lea
 
 
 @dataclass(frozen=True)
-class Stage:
+class Stage(Generic[I]):
     """A model fitted on every fitting row and the info its fitting function returned."""
 
     robot: CalibratedRobot
-    info: dict[str, Any]
+    info: I
+
+
+class NominalInfo(TypedDict):
+    """The info of method "nominal"."""
+
+    register: RegisterInfo
+
+
+@final  # final: `"loss_note" in info` tells it from ANNInfo for the type checker
+class NoNetworkInfo(TypedDict):
+    """The info of "ann" when too few rows could train the network; auto pops the reason once it has noted it."""
+
+    method: str
+    no_network: NotRequired[str]
+
+
+# auto's info: each candidate's cross-validated error (m), local POE's info, the refitted choice's (a call: the
+# saved key "local-poe" is no identifier).
+AutoInfo = TypedDict(
+    "AutoInfo",
+    {
+        "candidates": dict[str, float],
+        "cv_errors": dict[str, float],
+        "local-poe": LocalPOEInfo,
+        "ann": NotRequired["ANNInfo | NoNetworkInfo"],
+        "hybrid": NotRequired["HybridInfo | HybridKept"],
+    },
+)
+if TYPE_CHECKING:  # FitResult.info: what the method's fitting function reports (saved with the fit)
+    MethodInfo: TypeAlias = NominalInfo | LocalPOEInfo | ANNInfo | NoNetworkInfo | HybridInfo | AutoInfo
 
 
 @dataclass(frozen=True)
@@ -134,9 +169,9 @@ class Candidates:
     is not a candidate or could not be fitted) — and the cross-validation (None with too few distinct poses)."""
 
     names: tuple[str, ...]
-    before: Stage
-    stage1: Stage | None
-    series: Stage | None
+    before: Stage[RegisterInfo]
+    stage1: Stage[LocalPOEInfo] | None
+    series: Stage[SeriesInfo] | None
     cv: CVResult | None
 
     def cv_error(self, name: str) -> float:
@@ -145,13 +180,13 @@ class Candidates:
 
 
 @dataclass(frozen=True)
-class Outcome:
+class Outcome(Generic[I]):
     """What a method returns: the robot, its info (saved with the fit), the method the fit reports as ``chosen``
     ("local-poe", "hybrid", "ann", "nominal"), the candidate the robot is (its name in the table) and the info of
     the network it carries, if any."""
 
     robot: CalibratedRobot
-    info: dict[str, Any]
+    info: I
     chosen: str
     candidate: str
-    network: dict[str, Any] | None = None
+    network: ANNInfo | NoNetworkInfo | None = None

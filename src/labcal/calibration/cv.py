@@ -46,6 +46,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TypedDict
 
 import numpy as np
 
@@ -56,7 +57,7 @@ from labcal.calibration.observations import ObservationError, Observations
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics.poe import LocalPOEModel
 
-__all__ = ["NETWORKS", "ORDER", "CVResult", "choose", "cross_validate", "fold_plan", "row_errors"]
+__all__ = ["NETWORKS", "ORDER", "CVRecord", "CVResult", "choose", "cross_validate", "fold_plan", "row_errors"]
 NEAR_TIE = 0.01  # relative: a gain below 1 % of the error is never worth a more complex model
 PRUNE_MARGIN = 0.10  # a network > 10 % worse than the best other candidate after two folds is not pursued
 CV_RESTARTS = 1  # network restarts inside a fold (the final refit uses the caller's, default 3)
@@ -104,6 +105,20 @@ def row_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
     return np.sum(np.where(obs.seen, d, 0.0), axis=1) / obs.seen.sum(axis=1)
 
 
+class CVRecord(TypedDict):
+    """:meth:`CVResult.summary`: ``FitResult.cv``, saved with a fit (errors: per fold, None where skipped)."""
+
+    folds: int
+    scheme: str
+    errors: dict[str, list[float | None]]
+    mean: dict[str, float]
+    std: dict[str, float]
+    chosen: str
+    metric: str
+    pruned_after: dict[str, int]
+    failures: dict[str, str]
+
+
 @dataclass
 class CVResult:
     """Per-row held-out errors of every candidate (NaN where not evaluated) and how the folds went."""
@@ -130,20 +145,17 @@ class CVResult:
     def available(self, name: str) -> bool:
         return name in self.rows and bool(np.any(np.isfinite(self.rows[name])))
 
-    def summary(self, chosen: str) -> dict:
+    def summary(self, chosen: str) -> CVRecord:
         """The ``FitResult.cv`` record plus pooled means, fold spread and pruning."""
         names = [n for n in ORDER if n in self.rows]
         errors = {n: self.fold_errors(n) for n in names}
-        spread = {}
-        for n in names:
-            vals = [v for v in errors[n] if v is not None]
-            spread[n] = float(np.std(vals)) if vals else math.nan
+        ran = {n: [v for v in errors[n] if v is not None] for n in names}  # the folds each candidate ran
         return {
             "folds": len(self.folds),
             "scheme": self.scheme,
             "errors": errors,
             "mean": {n: self.mean(n) for n in names},
-            "std": spread,
+            "std": {n: float(np.std(ran[n])) if ran[n] else math.nan for n in names},
             "chosen": chosen,
             "metric": "mean target-point distance on the held-out fold",
             "pruned_after": dict(self.pruned_after),

@@ -68,7 +68,7 @@ from __future__ import annotations
 import dataclasses
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any
+from typing import NotRequired, TypedDict
 
 import numpy as np
 
@@ -82,6 +82,27 @@ SOFT_CONDITION = 1e2
 _PROBE_STEP = 0.1  # rad (revolute) or fraction of the reach (prismatic): the move that shows which joint causes it
 
 
+class DroppedCause(TypedDict):
+    """One group of :meth:`JointErrorObservations.causes`."""
+
+    rows: int
+    joint: int
+    lost: list[int]
+    value: float
+    cause: str
+
+
+class FilterSummary(TypedDict):
+    """:meth:`JointErrorObservations.summary`."""
+
+    count: int
+    dropped: int
+    dropped_reasons: dict[str, int]
+    downweighted: int
+    condition: dict[str, float]
+    rank_below_6: NotRequired[int]
+
+
 @dataclass(frozen=True, eq=False)
 class JointErrorObservations:
     """Eq. 21 for every configuration of an :class:`Observations`, plus the condition filter's verdict.
@@ -92,7 +113,7 @@ class JointErrorObservations:
     solution where ``rank`` < N, so always for n > 6; NaN where PJ is numerically singular); condition: (k,)
     cond(P J_ρ S) (see module docstring);
     weight: (k,) 0 for dropped rows, (soft/cond)² in the down-weighted band, else 1;
-    reason: (k,) "" for kept rows, else why the row was dropped; split: (k,) the observations' split labels;
+    reason: (k,) "" for kept rows, else why the row was dropped;
     targets: (m, 3) the targets in the tool frame (to name the cause of dropped rows, :meth:`causes`);
     seen: (k, m) the targets each row saw (None: all); rank: (k,) the joint-error directions the row's points
     can see (6, 5 with two points or a line of them, 3 with one; None: 6 everywhere, n ≤ 6 only).
@@ -105,7 +126,6 @@ class JointErrorObservations:
     condition: np.ndarray
     weight: np.ndarray
     reason: np.ndarray
-    split: np.ndarray
     targets: np.ndarray
     seen: np.ndarray | None = None
     rank: np.ndarray | None = None
@@ -119,7 +139,7 @@ class JointErrorObservations:
         """Some row cannot see all six joint-error directions (rank < 6)."""
         return self.rank is not None and bool(np.any(self.rank < 6))
 
-    def causes(self, base: CalibratedRobot) -> list[dict]:
+    def causes(self, base: CalibratedRobot) -> list[DroppedCause]:
         """Name the cause of every row the condition filter dropped, grouped into one entry per cause.
 
         For each dropped row: the joints whose motion errors the row cannot see (the largest components of the
@@ -156,7 +176,7 @@ class JointErrorObservations:
             better = gain > np.maximum(best_gain, 2.0)
             best_gain[better], culprit[better] = gain[better], j + 1
         lost_sets = [np.flatnonzero(null[i] > 0.3 * null[i].max()) + 1 for i in range(dropped.size)]
-        out: list[dict[str, Any]] = []
+        out: list[DroppedCause] = []
         for joint in sorted(set(culprit.tolist())):
             rows = np.flatnonzero(culprit == joint)
             counts = np.bincount(np.concatenate([lost_sets[i] for i in rows]), minlength=equivalent_joints(n) + 1)
@@ -174,13 +194,13 @@ class JointErrorObservations:
         out.sort(key=lambda c: (-c["rows"], c["joint"], c["lost"]))
         return out
 
-    def summary(self) -> dict:
+    def summary(self) -> FilterSummary:
         """Counts of dropped rows by reason and condition statistics of all rows (JSON-friendly); with fewer than
         three targets in some row also ``rank_below_6``, the rows whose δρ is a minimum-norm solution."""
         reasons = dict(Counter(str(r) for r in self.reason[~self.kept]))
         finite = self.condition[np.isfinite(self.condition)]
         stats = statistics(finite, ("min", "median", "p95", "max")) if finite.size else {}
-        out = {
+        out: FilterSummary = {
             "count": len(self.q),
             "dropped": int(np.sum(~self.kept)),
             "dropped_reasons": reasons,
@@ -309,7 +329,7 @@ def joint_error_observations(
     elif np.any(ok) and rank is not None:
         delta_rho[ok] = _min_norm(PJ[ok], delta_p[ok], rank[ok], scale)
     return JointErrorObservations(
-        q, delta_p, PJ, delta_rho, condition, weight, reason, obs.split, obs.targets, None if dense else seen, rank
+        q, delta_p, PJ, delta_rho, condition, weight, reason, obs.targets, None if dense else seen, rank
     )
 
 

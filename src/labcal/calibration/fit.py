@@ -95,23 +95,47 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from labcal.calibration.candidates import BY_NAME, NETWORKS, STAGE2, TABLE, Candidates, FitContext, Outcome, Stage
-from labcal.calibration.cv import CVResult, choose, cross_validate, fold_plan, row_errors
-from labcal.calibration.hybrid import finish_hybrid, prefit_series, series_fixed
-from labcal.calibration.local_poe import fit_local_poe, register
-from labcal.calibration.metrics import observability, point_residual_warning, point_residuals, split_table
+from labcal.calibration.candidates import (
+    BY_NAME,
+    NETWORKS,
+    STAGE2,
+    TABLE,
+    AutoInfo,
+    Candidates,
+    FitContext,
+    NominalInfo,
+    NoNetworkInfo,
+    Outcome,
+    Stage,
+)
+from labcal.calibration.cv import CVRecord, CVResult, choose, cross_validate, fold_plan, row_errors
+from labcal.calibration.hybrid import HybridInfo, finish_hybrid, prefit_series, series_fixed
+from labcal.calibration.local_poe import LocalPOEInfo, RegisterInfo, fit_local_poe, register
+from labcal.calibration.metrics import (
+    FitWarning,
+    Observability,
+    SplitEntry,
+    observability,
+    point_residual_warning,
+    point_residuals,
+    split_table,
+)
 from labcal.calibration.observations import ObservationError, Observations
 from labcal.calibration.tool import tool_lines
 from labcal.compensator import CalibratedRobot
 from labcal.compensator.validity import ValidityRegion
 from labcal.kinematics import se3
 from labcal.kinematics.poe import LocalPOEModel
+
+if TYPE_CHECKING:
+    from labcal.calibration.ann import ANNInfo
+    from labcal.calibration.candidates import MethodInfo
 
 METHODS = ("nominal", "local-poe", "ann", "hybrid", "auto")
 OVERFIT_RATIO = 10.0  # CV error / in-sample error above which the model interpolates its rows: blocking
@@ -149,18 +173,18 @@ class FitResult:
     chosen: str
     robot: CalibratedRobot
     before: CalibratedRobot
-    metrics: dict
-    info: dict
+    metrics: dict[str, SplitEntry]
+    info: MethodInfo
     seed: int
     n_train: int
     n_val: int
     n_test: int
-    fit_seconds: dict = field(default_factory=dict)
-    obs: Observations | None = None
-    warnings: list = field(default_factory=list)
-    notes: list = field(default_factory=list)
-    cv: dict | None = None
-    observability: dict = field(default_factory=dict)
+    fit_seconds: dict[str, float]
+    obs: Observations
+    warnings: list[FitWarning]
+    notes: list[str]
+    cv: CVRecord | None
+    observability: Observability
 
 
 def fit(
@@ -226,7 +250,7 @@ def fit_hybrid(
     series_options: dict | None = None,
     progress: Callable[[str], None] | None = None,
     **ann_options: Any,
-) -> tuple[CalibratedRobot, dict]:
+) -> tuple[CalibratedRobot, HybridInfo]:
     """Local POE on every fitting row, then the learned term that cross-validation supports, refitted on all rows.
 
     ``fit(obs, nominal, "hybrid", …)`` without its metrics and checks: (robot, info). Fitting rows: "train" and
@@ -245,7 +269,7 @@ def fit_hybrid(
         obs, nominal, "hybrid", seed=seed, progress=progress, local_poe_options=local_poe_options, stage2=stage2,
         series_options=series_options, **ann_options,
     )  # fmt: skip
-    return result.robot, {**result.info, "notes": list(result.notes)}
+    return result.robot, {**cast(HybridInfo, result.info), "notes": list(result.notes)}
 
 
 def _fit(ctx: FitContext) -> FitResult:
@@ -253,8 +277,8 @@ def _fit(ctx: FitContext) -> FitResult:
     ctx.say("registering the nominal model")
     before = Stage(*ctx.timed("nominal", lambda: register(ctx.obs, ctx.nominal, estimate_tool=ctx.register_tool)))
     if ctx.method == "nominal":
-        outcome = Outcome(before.robot, {"register": before.info}, "nominal", "nominal")
-        return _result(ctx, outcome, before.robot, None, [], None)
+        nominal: NominalInfo = {"register": before.info}
+        return _result(ctx, Outcome(before.robot, nominal, "nominal", "nominal"), before.robot, None, [], None)
     table = _candidates(ctx, before)
     outcome = _run_method(ctx, table)
     # Every fit carries its validity region: the neighbourhood of the fitted configurations (scaled joint space).
@@ -262,8 +286,9 @@ def _fit(ctx: FitContext) -> FitResult:
     info_cv = None if table.cv is None else table.cv.summary(outcome.candidate)
     metrics = split_table(before.robot, robot, ctx.obs)
     warnings = _checks(ctx, table, outcome, robot, metrics)
-    if "no_network" in outcome.info:
-        warnings.insert(0, {"code": "no-network", "message": outcome.info["no_network"] + ": use local-poe or hybrid"})
+    net = outcome.network  # "ann"'s record of no network is its info: a NoNetworkInfo with the reason
+    if net is not None and "no_network" in net:
+        warnings.insert(0, _warn("no-network", net["no_network"] + ": use local-poe or hybrid"))
     for w in warnings:
         ctx.say(f"warning [{w['code']}]: {w['message']}")
     return _result(ctx, dataclasses.replace(outcome, robot=robot), before.robot, table.stage1, warnings, info_cv,
@@ -280,7 +305,7 @@ def _candidate_names(method: str, stage2: tuple[str, ...]) -> tuple[str, ...]:
     return ("nominal", "local-poe", *learned, *(("ann",) if method == "auto" else ()))
 
 
-def _candidates(ctx: FitContext, before: Stage) -> Candidates:
+def _candidates(ctx: FitContext, before: Stage[RegisterInfo]) -> Candidates:
     """Local POE and the joint series on all fitting rows, then every candidate cross-validated."""
     fit_obs, method = ctx.fit_obs, ctx.method
     stage1 = None
@@ -314,7 +339,7 @@ def _candidates(ctx: FitContext, before: Stage) -> Candidates:
     return Candidates(names=names, before=before, stage1=stage1, series=series, cv=cv)
 
 
-def _run_method(ctx: FitContext, table: Candidates) -> Outcome:
+def _run_method(ctx: FitContext, table: Candidates) -> Outcome[MethodInfo]:
     """The asked method's model on all fitting rows (auto and hybrid: the candidate cross-validation chose)."""
     if ctx.method == "local-poe":
         assert table.stage1 is not None
@@ -331,12 +356,12 @@ def _run_method(ctx: FitContext, table: Candidates) -> Outcome:
 
 def _result(
     ctx: FitContext,
-    outcome: Outcome,
+    outcome: Outcome[MethodInfo],
     before: CalibratedRobot,
-    stage1: Stage | None,
-    warnings: list[dict],
-    cv: dict | None,
-    metrics: dict | None = None,
+    stage1: Stage[LocalPOEInfo] | None,
+    warnings: list[FitWarning],
+    cv: CVRecord | None,
+    metrics: dict[str, SplitEntry] | None = None,
 ) -> FitResult:
     """The FitResult, with the notes on what the targets cannot show and on the measurement tool."""
     obs, robot, notes = ctx.obs, outcome.robot, ctx.notes
@@ -370,7 +395,7 @@ def _result(
     )
 
 
-def _fit_ann_or_nominal(ctx: FitContext, before: CalibratedRobot) -> tuple[CalibratedRobot, dict]:
+def _fit_ann_or_nominal(ctx: FitContext, before: CalibratedRobot) -> tuple[CalibratedRobot, ANNInfo | NoNetworkInfo]:
     """The paper's network on the registered nominal; where too few rows can train it (a singular wrist in most
     poses …), the registered nominal itself, with the reason in ``info["no_network"]`` (a blocking warning): the
     method runs on any data, and what it could not learn is said, not exported by accident."""
@@ -400,7 +425,7 @@ def _auto_choice(ctx: FitContext, table: Candidates, pick: list[str]) -> str:
     return choice
 
 
-def _auto(ctx: FitContext, table: Candidates) -> Outcome:
+def _auto(ctx: FitContext, table: Candidates) -> Outcome[AutoInfo]:
     """auto: choose among every candidate by cross-validation and refit the chosen one on all rows."""
     assert table.stage1 is not None
     stage1 = table.stage1
@@ -414,7 +439,7 @@ def _auto(ctx: FitContext, table: Candidates) -> Outcome:
     }  # fmt: skip
     if "ann" in pick:
         candidates_info["ann"] = errors["ann"]
-    info: dict[str, Any] = {"candidates": candidates_info, "cv_errors": errors, "local-poe": stage1.info}
+    info: AutoInfo = {"candidates": candidates_info, "cv_errors": errors, "local-poe": stage1.info}
     outcome = Outcome(stage1.robot, info, "local-poe", "local-poe")
     if choice == "ann":
         robot, ann_info = ctx.timed("ann", lambda: _fit_ann_or_nominal(ctx, table.before.robot))
@@ -435,14 +460,20 @@ def _auto(ctx: FitContext, table: Candidates) -> Outcome:
     return outcome
 
 
-def _warn(code: str, message: str) -> dict:
+def _warn(code: str, message: str) -> FitWarning:
     return {"code": code, "message": message}
 
 
-def _checks(ctx: FitContext, table: Candidates, outcome: Outcome, robot: CalibratedRobot, metrics: dict) -> list[dict]:
+def _checks(
+    ctx: FitContext,
+    table: Candidates,
+    outcome: Outcome[MethodInfo],
+    robot: CalibratedRobot,
+    metrics: dict[str, SplitEntry],
+) -> list[FitWarning]:
     """The blocking findings of a fit (module docstring); appends non-blocking ones to ``ctx.notes``."""
     fit_obs, notes, key = ctx.fit_obs, ctx.notes, outcome.candidate
-    warnings: list[dict] = []
+    warnings: list[FitWarning] = []
     distinct = len(np.unique(fit_obs.q, axis=0))
     few = _few_poses(distinct, fit_obs.n)
     if few:
@@ -455,13 +486,13 @@ def _checks(ctx: FitContext, table: Candidates, outcome: Outcome, robot: Calibra
         _cv_checks(table.cv, key, in_sample, warnings, notes)
     _holdout_checks(metrics, warnings)
     net = outcome.network
-    if net and net.get("loss_note"):
-        notes.append(f"network: {net['loss_note']}")
-    if net:
-        warnings.extend(_warn("overfit", text) for text in net.get("warnings", []) if "over-fitting" in text)
+    if net is not None and "loss_note" in net:  # a trained network, not "ann"'s record of none
+        if net["loss_note"]:
+            notes.append(f"network: {net['loss_note']}")
+        warnings.extend(_warn("overfit", text) for text in net["warnings"] if "over-fitting" in text)
     for code, message in (
         ("poor-fit", _poor_fit(in_sample)),
-        ("point-residuals", point_residual_warning(metrics.get("all") or {})),
+        ("point-residuals", point_residual_warning(metrics.get("all"))),
         ("large-correction", _large_correction(robot, fit_obs.q, ctx.seed, lp)),
         ("narrow-joint", _narrow_joints(robot, fit_obs.q)),
         ("frame-jump", _frame_jump(robot, ctx.obs)),
@@ -474,7 +505,7 @@ def _checks(ctx: FitContext, table: Candidates, outcome: Outcome, robot: Calibra
     return warnings
 
 
-def _few_poses(distinct: int, n: int) -> dict | None:
+def _few_poses(distinct: int, n: int) -> FitWarning | None:
     """few-poses: fewer than MIN_POSES_PER_JOINT distinct poses per joint."""
     if distinct < MIN_POSES_PER_JOINT * n:
         return _warn(
@@ -486,10 +517,10 @@ def _few_poses(distinct: int, n: int) -> dict | None:
     return None
 
 
-def _identification_checks(lp: dict, distinct: int, warnings: list[dict], notes: list[str]) -> None:
+def _identification_checks(lp: LocalPOEInfo, distinct: int, warnings: list[FitWarning], notes: list[str]) -> None:
     """rank-deficient (a warning) and weak (a note) from local POE's info."""
     if lp["rank"] < lp["expected_rank"]:
-        lines = lp.get("null_directions", [])
+        lines = lp["null_directions"]
         shown = "; ".join(lines[:8]) + (f"; … ({len(lines) - 8} more)" if len(lines) > 8 else "")
         warnings.append(_warn(
             "rank-deficient",
@@ -499,8 +530,8 @@ def _identification_checks(lp: dict, distinct: int, warnings: list[dict], notes:
             f"were left at the nominal. Unidentifiable parameter combinations (largest components): {shown}. "
             "Measure more, better spread configurations (every joint moved, not only single-joint sweeps)",
         ))  # fmt: skip
-    if lp.get("weak"):
-        lines = lp.get("weak_directions", [])
+    if lp["weak"]:
+        lines = lp["weak_directions"]
         notes.append(
             f"weak: {lp['weak']} of {lp['rank']} identifiable direction(s) are held at the nominal — the data "
             f"determine them worse than ±{lp['error_bound'] * 1e3:g} mm at {lp['noise'] * 1e3:g} mm tracker "
@@ -510,7 +541,7 @@ def _identification_checks(lp: dict, distinct: int, warnings: list[dict], notes:
         )
 
 
-def _cv_checks(cv: CVResult, key: str, in_sample: float, warnings: list[dict], notes: list[str]) -> None:
+def _cv_checks(cv: CVResult, key: str, in_sample: float, warnings: list[FitWarning], notes: list[str]) -> None:
     """worse-than-nominal (cross-validated), overfit (a warning) and overfit-risk (a note)."""
     if not cv.available(key):
         notes.append(f"no cross-validated error for {key}: {cv.failures.get(key, 'no fold could fit it')}")
@@ -536,7 +567,7 @@ def _cv_checks(cv: CVResult, key: str, in_sample: float, warnings: list[dict], n
             notes.append(f"overfit-risk: {text}; trust the cross-validated error, not the fit error")
 
 
-def _holdout_checks(metrics: dict, warnings: list[dict]) -> None:
+def _holdout_checks(metrics: dict[str, SplitEntry], warnings: list[FitWarning]) -> None:
     """worse-than-nominal on the held-out "val" / "test" rows (once: not after the cross-validated one)."""
     for part in ("val", "test"):
         if part in metrics and not any(w["code"] == "worse-than-nominal" for w in warnings):
@@ -636,7 +667,7 @@ def _frame_jump(robot, obs) -> str | None:
     )
 
 
-def _large_correction(robot, q_data: np.ndarray, seed: int, lp: dict | None = None) -> str | None:
+def _large_correction(robot, q_data: np.ndarray, seed: int, lp: LocalPOEInfo | None = None) -> str | None:
     """A message when robot.correct makes large corrections (module docstring: MAX_CORRECTION), else None.
 
     A correction is large when it moves a joint beyond MAX_CORRECTION *and* moves the nominal tool beyond
@@ -688,7 +719,7 @@ TOOL_MISMATCH = 5e-3  # m: an identified tool frame this far from the robot file
 WEAK_NOTE = 1e-3  # m: the noise's share of the least-determined identified direction that makes it the suspect
 
 
-def _correction_cause(robot, at_data: float, lp: dict | None) -> str:
+def _correction_cause(robot, at_data: float, lp: LocalPOEInfo | None) -> str:
     """The cause of large corrections the evidence shows, in words, in this order: a tool mismatch (the identified
     tool frame is far from the robot file's, and the data determine that offset: over 3 standard deviations); a
     weakly determined direction (the least-determined identified direction moves by more than WEAK_NOTE on the
@@ -697,7 +728,7 @@ def _correction_cause(robot, at_data: float, lp: dict | None) -> str:
     measured configurations themselves, from well-determined parameters); else configurations outside the data."""
     delta = se3.log_se3(se3.inv(robot.nominal.frames[-1]) @ robot.model.frames[-1])
     offset, angle = float(np.linalg.norm(delta[:3])), float(np.linalg.norm(delta[3:]))
-    std = None if lp is None or lp.get("std") is None else np.asarray(lp["std"], float)[-1]
+    std = None if lp is None else lp["std"][-1]
     determined = (
         std is None
         or not np.isfinite(std).all()
@@ -712,10 +743,10 @@ def _correction_cause(robot, at_data: float, lp: dict | None) -> str:
             f"({p0[0]:.1f}, {p0[1]:.1f}, {p0[2]:.1f}) mm, and the compensator moves the joints to bring the "
             "measurement fixture onto the nominal tool: give the fixture's tool in the robot file"
         )
-    if lp is not None and lp.get("singular_values") is not None and lp.get("weak_threshold") is not None:
-        s = np.asarray(lp["singular_values"], float)
-        kept = s[s > max(float(lp["weak_threshold"]), 1e-6 * float(s.max()))]
-        noise = float(lp.get("noise", 0.05e-3))
+    if lp is not None:  # local POE's info (typed: every key below is always there)
+        s = lp["singular_values"]
+        kept = s[s > max(lp["weak_threshold"], 1e-6 * float(s.max()))]
+        noise = lp["noise"]
         if kept.size and noise / float(kept.min()) > WEAK_NOTE:
             tool = (
                 f" (the identified tool is {offset * 1e3:.3g} mm from the robot file's, ±"
@@ -741,7 +772,11 @@ def _correction_cause(robot, at_data: float, lp: dict | None) -> str:
 
 
 def _dropped(
-    table: Candidates, fit_obs: Observations, net: dict | None, warnings: list[dict], notes: list[str]
+    table: Candidates,
+    fit_obs: Observations,
+    net: ANNInfo | NoNetworkInfo | None,
+    warnings: list[FitWarning],
+    notes: list[str],
 ) -> None:
     """rows-dropped: a warning when a kept network misses > DROPPED_SHARE of the rows, else a note."""
     cv = table.cv

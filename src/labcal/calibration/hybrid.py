@@ -30,16 +30,48 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 from labcal.calibration.candidates import BY_NAME, TABLE, Candidates, FitContext, Outcome, Stage
-from labcal.calibration.cv import CVResult, choose
+from labcal.calibration.cv import CVRecord, CVResult, choose
+from labcal.calibration.local_poe import LocalPOEInfo
 from labcal.calibration.metrics import validation_error
 from labcal.calibration.observations import ObservationError
 from labcal.compensator import CalibratedRobot
 
+if TYPE_CHECKING:
+    from labcal.calibration.ann import ANNInfo
+    from labcal.calibration.joint_series import SeriesInfo
 
-def prefit_series(ctx: FitContext, robot1: CalibratedRobot) -> Stage | None:
+
+class Learned(TypedDict, total=False):
+    """The kept learned stage's info, under its ``learned`` name (none when local POE is kept)."""
+
+    ann: ANNInfo
+    series: SeriesInfo
+
+
+class HybridKept(TypedDict):
+    """What auto records of the hybrid when it refitted none: the label of the kept candidate."""
+
+    kept: str
+
+
+class HybridInfo(HybridKept, Learned):
+    """The hybrid's info (:func:`labcal.calibration.fit.fit_hybrid` says what each key holds; saved with a fit)."""
+
+    selection: str
+    val_error_local_poe: float
+    val_error_hybrid: float
+    val_errors: dict[str, float]
+    val_error: float
+    cv: CVRecord | None
+    skipped: dict[str, str]
+    notes: list[str]
+    local_poe: LocalPOEInfo
+
+
+def prefit_series(ctx: FitContext, robot1: CalibratedRobot) -> Stage[SeriesInfo] | None:
     """The joint series on all fitting rows (its order is then fixed in the folds), or None with a note."""
     from labcal.calibration.joint_series import fit_joint_series
 
@@ -51,14 +83,14 @@ def prefit_series(ctx: FitContext, robot1: CalibratedRobot) -> Stage | None:
         return None
 
 
-def series_fixed(series: Stage | None) -> dict | None:
+def series_fixed(series: Stage[SeriesInfo] | None) -> dict | None:
     """The order and gravity switch the folds reuse (see labcal.calibration.cv.cross_validate)."""
     if series is None or not {"harmonics", "gravity"} <= set(series.info):
         return None
     return {"harmonics": int(series.info["harmonics"]), "gravity": bool(series.info["gravity"])}
 
 
-def finish_hybrid(ctx: FitContext, table: Candidates, choice: str | None = None) -> Outcome:
+def finish_hybrid(ctx: FitContext, table: Candidates, choice: str | None = None) -> Outcome[HybridInfo]:
     """Choose (unless ``choice`` is given) among the hybrid's candidates; the kept one fitted on all rows.
 
     The outcome's info is the hybrid's (:func:`labcal.calibration.fit.fit_hybrid`), its candidate the kept one.
@@ -75,20 +107,17 @@ def finish_hybrid(ctx: FitContext, table: Candidates, choice: str | None = None)
         kept = "local-poe"
     else:
         skipped, kept = _cv_choice(table.cv, candidates, choice, notes)
-    kept, stage = _refit_kept(ctx, table, kept, notes)
+    kept, robot, learned = _refit_kept(ctx, table, kept, notes)
     # A learned stage's joint ranges are already every fitting row's, not only those it kept (issue 13.3).
-    robot = dataclasses.replace(stage.robot, method="hybrid")
+    robot = dataclasses.replace(robot, method="hybrid")
     info = _hybrid_info(ctx, table, kept, robot, skipped, notes)
-    learned = BY_NAME[kept].learned
-    if learned is not None:
-        info[learned] = stage.info
+    info.update(learned)
     summary = ", ".join(f"{name} {e * 1e3:.4f} mm" for name, e in info["val_errors"].items())
     ctx.say(
         f"hybrid: cross-validated mean point error local-poe {info['val_error_local_poe'] * 1e3:.4f} mm, {summary}; "
         f"kept {info['kept']}"
     )
-    network = stage.info if BY_NAME[kept].network else None
-    return Outcome(robot, info, "hybrid", kept, network=network)
+    return Outcome(robot, info, "hybrid", kept, network=learned.get("ann"))
 
 
 def _cv_choice(
@@ -107,27 +136,30 @@ def _cv_choice(
     return skipped, "local-poe"
 
 
-def _refit_kept(ctx: FitContext, table: Candidates, kept: str, notes: list[str]) -> tuple[str, Stage]:
-    """The kept candidate on all fitting rows (the series is already fitted there); local POE when the network
-    cannot be trained on all rows (the folds could)."""
+def _refit_kept(
+    ctx: FitContext, table: Candidates, kept: str, notes: list[str]
+) -> tuple[str, CalibratedRobot, Learned]:
+    """The kept candidate on all fitting rows (the series is already fitted there) and its learned stage's info;
+    local POE when the network cannot be trained on all rows (the folds could)."""
     assert table.stage1 is not None
     if kept == "hybrid+series" and table.series is not None:
-        return kept, table.series
+        return kept, table.series.robot, {"series": table.series.info}
     if kept == "hybrid+ann":
         from labcal.calibration.ann import fit_ann  # torch only when a network is fitted
 
         try:
             options = {"loss": "task", **(ctx.options or {})}
-            return kept, Stage(*fit_ann(ctx.fit_obs, table.stage1.robot, seed=ctx.seed, **options))
+            robot, info = fit_ann(ctx.fit_obs, table.stage1.robot, seed=ctx.seed, **options)
+            return kept, robot, {"ann": info}
         except ObservationError as err:  # too few usable rows on all rows (the folds could): keep local POE
             notes.append(f"stage-skipped: hybrid+ann on all rows: {err}")
-            return "local-poe", Stage(table.stage1.robot, {})
-    return kept, Stage(table.stage1.robot, {})
+            return "local-poe", table.stage1.robot, {}
+    return kept, table.stage1.robot, {}
 
 
 def _hybrid_info(
-    ctx: FitContext, table: Candidates, kept: str, robot: CalibratedRobot, skipped: dict, notes: list[str]
-) -> dict[str, Any]:
+    ctx: FitContext, table: Candidates, kept: str, robot: CalibratedRobot, skipped: dict[str, str], notes: list[str]
+) -> HybridInfo:
     """The hybrid's info (saved with a fit: its keys do not change), without the kept stage's own info."""
     assert table.stage1 is not None
     errors = {m.learned: table.cv_error(m.name) for m in TABLE if m.hybrid and m.learned and m.name in table.names}

@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 
@@ -63,6 +64,33 @@ from labcal.compensator import CalibratedRobot, Network, input_features
 
 DEFAULT_HARMONICS = (8, 16, 24, 32, 48)
 DEFAULT_LAMBDAS = tuple(10.0 ** np.arange(-7.0, 1.01, 0.5))
+
+
+# fit_joint_series's info (saved with a fit); a call, as "lambda" is a keyword.
+SeriesInfo = TypedDict(
+    "SeriesInfo",
+    {
+        "method": str,
+        "harmonics": int,
+        "gravity": bool,
+        "lambda": float,
+        "penalty_power": float,
+        "candidates": list[int],
+        "lambdas": list[float],
+        "folds": int,
+        "seed": int,
+        "cv": dict[str, list[float]],
+        "cv_error": float,
+        "train_rows": int,
+        "val_rows": int,
+        "train_error": float,
+        "val_error": float,
+        "error_metric": str,
+        "amplitudes": np.ndarray,
+        "constants": np.ndarray,
+        "virtual_joints": str,
+    },
+)
 
 
 def _check_options(harmonics, penalty_power, lambdas, folds) -> tuple[tuple[int, ...], tuple[float, ...]]:
@@ -152,7 +180,7 @@ def fit_joint_series(
     folds: int = 5,
     seed: int = 0,
     gravity: bool | None = None,
-) -> tuple[CalibratedRobot, dict]:
+) -> tuple[CalibratedRobot, SeriesInfo]:
     """Fit per-joint Fourier series of the joint motion errors of ``base``'s equivalent robot (module docstring).
 
     obs: observations; rows labelled "train" or unassigned are fitted (and cross-validated), "val" rows are only
@@ -187,7 +215,7 @@ def fit_joint_series(
     robot = learned_robot(base, _series_network(coef, H, use_gravity), train.q, "series")
     amplitudes = np.hypot(coef[:, 1 + g_cols :: 2], coef[:, 2 + g_cols :: 2])
     train_error, kind = primary_error(robot, train)
-    info = {
+    info: SeriesInfo = {
         "method": "series",
         "harmonics": int(H),
         "gravity": bool(use_gravity),

@@ -66,7 +66,7 @@ hold-out a caller chose (:func:`labcal.calibration.fit.fit` makes none by defaul
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NotRequired, TypedDict
 
 import numpy as np
 
@@ -90,6 +90,70 @@ ERROR_BOUND = 5e-3
 
 class IdentificationError(ValueError):
     """The data cannot identify the requested parameters (too few configurations, wrong robot …)."""
+
+
+class TargetNull(TypedDict):
+    """:func:`target_null`: the tool rotations the targets cannot show."""
+
+    geometry: str
+    count: int
+    words: list[str]
+    basis: np.ndarray
+    tilt: int
+
+
+class RegisterInfo(TypedDict):
+    """:func:`register`'s info (only the first three keys when nothing is estimated)."""
+
+    estimated: list[str]
+    iterations: int
+    T_tracker_base: np.ndarray
+    converged: NotRequired[bool]
+    residual_rms: NotRequired[float]
+    unobservable: NotRequired[list[str]]
+
+
+class Identification(TypedDict):
+    """What local POE identified (:func:`_identification_info`); :class:`LocalPOEInfo` adds the fit's numbers."""
+
+    rank: int
+    weak: int
+    identified: int
+    weak_directions: list[str]
+    weak_space: np.ndarray
+    weak_threshold: float
+    noise: float
+    error_bound: float
+    expected_rank: int
+    n_params: int
+    unidentifiable: int
+    null_directions: list[str]
+    null_space: np.ndarray
+    param_labels: list[str]
+    rank_deficient: bool
+    target_geometry: str
+    unobservable: list[str]
+    singular_values: np.ndarray
+
+
+class LocalPOEInfo(Identification):
+    """:func:`fit_local_poe`'s info (its docstring says what each key holds)."""
+
+    delta_zeta: np.ndarray
+    std: np.ndarray
+    T_tracker_base: np.ndarray
+    T_tracker_base_std: np.ndarray
+    sigma: float
+    iterations: int
+    converged: bool
+    cost_history: list[float]
+    rows: int
+    residual_rms: float
+    length_scale: float
+    warnings: list[str]
+    measurement_tool: np.ndarray | None
+    measurement_tool_std: np.ndarray | None
+    warning: NotRequired[str]
 
 
 def expected_rank(model: LocalPOEModel) -> int:
@@ -262,19 +326,16 @@ def _at_solution(
     Js: np.ndarray, r: np.ndarray, cost: float, scale: np.ndarray, rank_rtol: float, truncate: float
 ) -> dict[str, Any]:
     """The final linearisation (scaled Jacobian Js, residual r): numerical rank, null and weak spaces (SI units),
-    singular values and the parameter standard deviations at the solution (:func:`_gauss_newton`)."""
+    singular values and the residual σ at the solution (:func:`_gauss_newton`; the parameters' standard deviations
+    are those of the split chain, :func:`_split_std`)."""
     lam_k, V, keep = _eig(Js, rank_rtol, truncate)
     numeric = np.sqrt(lam_k) > rank_rtol * np.sqrt(lam_k[-1])  # the rank-revealing threshold alone
     weak = numeric & ~keep
     dof = max(r.size - int(keep.sum()), 1)
-    sigma2 = cost / dof
-    Vk = V[:, keep] / np.sqrt(lam_k[keep])
-    cov_scaled = sigma2 * (Vk @ Vk.T)
     return dict(
         rank=int(numeric.sum()),
         singular_values=np.sqrt(np.clip(lam_k, 0, None))[::-1],
-        std=np.sqrt(np.clip(np.diag(cov_scaled), 0, None)) * scale,
-        sigma=math.sqrt(sigma2),
+        sigma=math.sqrt(cost / dof),
         null_space=V[:, ~numeric] * scale[:, None],
         weak=int(weak.sum()),
         weak_space=V[:, weak] * scale[:, None],
@@ -293,7 +354,7 @@ def _without_image(Js: np.ndarray, F: np.ndarray | None) -> np.ndarray:
 
 
 def _tilts_measured(
-    out: dict, fit_args: _FitArgs, seen, structural: dict, length_scale: float, rank_rtol: float, s_min: float
+    out: dict, fit_args: _FitArgs, seen, structural: TargetNull, length_scale: float, rank_rtol: float, s_min: float
 ) -> bool:
     """Whether the data measure the two held tilts of the last joint's axis (:data:`MEASURED_TILT_MIN_JOINTS`).
 
@@ -311,7 +372,7 @@ def _tilts_measured(
     return int(freed - held) == tilt
 
 
-def _free_tilts(structural: dict) -> dict:
+def _free_tilts(structural: TargetNull) -> TargetNull:
     """The structural directions without the last joint's axis tilts (the last columns and words of
     :func:`target_null`)."""
     tilt = structural["tilt"]
@@ -425,7 +486,7 @@ def _seen_rows(obs: Observations, rows: np.ndarray) -> np.ndarray | None:
 
 def target_null(
     obs: Observations, rows: np.ndarray, n_frames_before_tool: int, n_params: int, model: LocalPOEModel | None = None
-) -> dict:
+) -> TargetNull:
     """The tool rotations the targets seen in the fitting rows cannot show (module docstring).
 
     Returns {"geometry": "point"|"line"|"plane", "count": directions, "words": [text], "basis": (n_params, count)
@@ -513,16 +574,14 @@ def register(
     nominal: LocalPOEModel,
     *,
     estimate_tool: bool = False,
-    include_val: bool = False,
-    max_iter: int = 50,
-    tol: float = 1e-12,
-) -> tuple[CalibratedRobot, dict]:
+) -> tuple[CalibratedRobot, RegisterInfo]:
     """The "registered nominal": nominal geometry, with only T_tracker_base (tracker-frame data) and optionally
     the tool frame A_{n+1} estimated. The reference ("before") every method is compared against.
 
-    Base-frame data without tool estimation return the nominal robot unchanged.
+    Base-frame data without tool estimation return the nominal robot unchanged. Fits the "train" and unassigned
+    rows (:func:`fitting_rows`) as :func:`fit_local_poe` does by default.
     """
-    rows = fitting_rows(obs, include_val)
+    rows = fitting_rows(obs)
     estimate_base = obs.frame == "tracker"
     frames = [nominal.n] if estimate_tool else []
     structural = target_null(obs, rows, 0, 6 * len(frames) + 6 * estimate_base) if estimate_tool else None
@@ -535,7 +594,7 @@ def register(
     fit_args: _FitArgs = (obs.q[rows], obs.targets, obs.points[rows], frames, estimate_base)
     seen, fixed = _seen_rows(obs, rows), None if structural is None else structural["basis"]
     out = _gauss_newton(
-        nominal, T0, *fit_args, length_scale=nominal.reach(), max_iter=max_iter, tol=tol, seen=seen, fixed=fixed
+        nominal, T0, *fit_args, length_scale=nominal.reach(), max_iter=50, tol=1e-12, seen=seen, fixed=fixed
     )
     # Robot and tool apart (labcal.calibration.tool): the robot ends at tool0, the fixture is the measurement tool
     # (the registration estimates no joint frame: nothing commutes into the tool).
@@ -543,7 +602,7 @@ def register(
     robot = CalibratedRobot(
         nominal=nominal, model=model, T_tracker_base=out["T_tb"], method="nominal", measurement_tool=X
     )
-    info = {
+    info: RegisterInfo = {
         "estimated": (["tool"] if estimate_tool else []) + (["T_tracker_base"] if estimate_base else []),
         "iterations": out["iterations"],
         "converged": out["converged"],
@@ -570,7 +629,7 @@ def fit_local_poe(
     noise: float = TRACKER_NOISE,
     error_bound: float = ERROR_BOUND,
     weak_rule: str = "truncate",
-) -> tuple[CalibratedRobot, dict]:
+) -> tuple[CalibratedRobot, LocalPOEInfo]:
     """Identify the local-POE frame errors δζ_j, j = 1 … n+1 (eq. 11) from three-point measurements.
 
     obs: observations of a robot with ``nominal.n`` joints (base or tracker frame). estimate_base: also estimate
@@ -634,13 +693,13 @@ def _identified(
     nominal: LocalPOEModel,
     q: np.ndarray,
     out: dict,
-    structural: dict,
+    structural: TargetNull,
     labels: list[str],
     fit_args: _FitArgs,
     options: dict[str, Any],
     noise: float,
     error_bound: float,
-) -> tuple[CalibratedRobot, dict]:
+) -> tuple[CalibratedRobot, LocalPOEInfo]:
     """fit_local_poe's robot and info from the fit ``out``: the chain split into robot and measurement tool, the
     standard deviations of the split chain, the identification in words."""
     _, _, _, frames, estimate_base = fit_args
@@ -653,8 +712,8 @@ def _identified(
     scale = metric.parameter_weights(len(labels) // 6, L)
     X_std = tool_std(J_split, scale, len(frames), out["sigma"], X, structural["basis"], options["rank_rtol"])
     std, split_std = _split_std(J_split, scale, out, frames, n)
-    info = _identification_info(out, structural, labels, scale, noise, error_bound, needed)
-    info.update({
+    info: LocalPOEInfo = {
+        **_identification_info(out, structural, labels, scale, noise, error_bound, needed),
         # the last row: the measurement tool in tool0
         "delta_zeta": se3.log_se3(se3.inv(nominal.frames) @ model.frames),
         "std": std,
@@ -668,14 +727,15 @@ def _identified(
         "residual_rms": float(np.sqrt(np.mean(out["residual"] ** 2))),
         "length_scale": L,
         "warnings": [],
-    })  # fmt: skip
+        "measurement_tool": X,
+        "measurement_tool_std": X_std,
+    }
     if out["rank"] < needed:
         info["warning"] = (
             f"numerical rank {out['rank']} < {needed} identifiable parameters: the configurations do not excite "
             "every identifiable direction; measure more, better spread configurations"
         )
         info["warnings"] = [info["warning"]]  # the key the CLI's stored diagnostics keep
-    info["measurement_tool"], info["measurement_tool_std"] = X, X_std
     robot = CalibratedRobot(nominal=nominal, model=robot_model, T_tracker_base=T_tb, method="local-poe",
                             measurement_tool=X, measurement_tool_std=X_std)  # fmt: skip
     return robot, info
@@ -687,8 +747,8 @@ def _iterate(
     T0: np.ndarray,
     fit_args: _FitArgs,
     options: dict[str, Any],
-    structural: dict,
-) -> tuple[dict, dict]:
+    structural: TargetNull,
+) -> tuple[dict, TargetNull]:
     """Gauss-Newton from (model0, T0) holding the directions the targets cannot show; a 7+ joint arm whose data
     do measure the tool's tilts (from the start, or once the fit moved the target off the axis) frees them.
     Returns the fit (:func:`_gauss_newton`) and the structural record it ended with."""
@@ -742,8 +802,14 @@ def _split_std(
 
 
 def _identification_info(
-    out: dict, structural: dict, labels: list[str], scale: np.ndarray, noise: float, error_bound: float, needed: int
-) -> dict[str, Any]:
+    out: dict,
+    structural: TargetNull,
+    labels: list[str],
+    scale: np.ndarray,
+    noise: float,
+    error_bound: float,
+    needed: int,
+) -> Identification:
     """fit_local_poe's info on what was identified: rank, weak and null directions in words, observability."""
     null_lines = _describe_null(_without(out["null_space"], structural["basis"], scale), labels)
     weak_words = _describe_null(out["weak_space"], labels, 3, rotate=False)

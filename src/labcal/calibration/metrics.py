@@ -25,7 +25,7 @@ Example::
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -34,6 +34,54 @@ from labcal.compensator import CalibratedRobot
 from labcal.kinematics import se3
 
 STATS = ("mean", "rms", "p95", "max", "std")
+
+
+class FitWarning(TypedDict):
+    """A blocking finding of a fit (``FitResult.warnings``; :mod:`labcal.calibration.fit` lists the codes)."""
+
+    code: str
+    message: str
+
+
+class PointStats(TypedDict):
+    """Count (finite distances), mean, p95 and max (m) of target-point distances."""
+
+    count: float
+    mean: float
+    p95: float
+    max: float
+
+
+class PointSummary(PointStats):
+    """:func:`summarize_points`: over every target point, then per target."""
+
+    per_target: list[PointStats]
+
+
+class BeforeAfter(TypedDict):
+    before: PointSummary
+    after: PointSummary
+
+
+class SplitEntry(TypedDict):
+    """One split of :func:`split_table`; "before"/"after" are :func:`summarize` (count, pos_mean … ori_std)."""
+
+    before: dict[str, float]
+    after: dict[str, float]
+    points: BeforeAfter
+    primary: str
+
+
+class Observability(TypedDict):
+    """:func:`observability`'s record (saved with a fit)."""
+
+    targets: int
+    geometry: str
+    rows: int
+    rows_with_pose: int
+    orientation: str
+    unobservable: list[str]
+    claim: str
 
 
 def summarize(pos: np.ndarray, ori: np.ndarray) -> dict[str, float]:
@@ -103,7 +151,7 @@ def point_errors(robot: CalibratedRobot, obs: Observations) -> np.ndarray:
     return np.linalg.norm(point_residuals(robot, obs), axis=-1)
 
 
-def summarize_points(d: np.ndarray) -> dict:
+def summarize_points(d: np.ndarray) -> PointSummary:
     """Mean / p95 / max (m) of (k, m) point distances: over every target point, and per target (``per_target``).
 
     NaN entries (missing targets) are skipped; ``count`` is the number of finite distances.
@@ -111,13 +159,12 @@ def summarize_points(d: np.ndarray) -> dict:
     d = np.asarray(d, dtype=float)
     d = d.reshape(d.shape[0], -1) if d.ndim == 2 else d.reshape(0, 3)
 
-    def stats(e: np.ndarray) -> dict[str, float]:
+    def stats(e: np.ndarray) -> PointStats:
         e = e[np.isfinite(e)]
-        return {"count": float(e.size), **statistics(e, ("mean", "p95", "max"))}
+        mean, p95, top = statistics(e, ("mean", "p95", "max")).values()
+        return {"count": float(e.size), "mean": mean, "p95": p95, "max": top}
 
-    out: dict[str, Any] = dict(stats(d.ravel()))
-    out["per_target"] = [stats(d[:, i]) for i in range(d.shape[1])]
-    return out
+    return {**stats(d.ravel()), "per_target": [stats(d[:, i]) for i in range(d.shape[1])]}
 
 
 def primary_error(robot: CalibratedRobot, obs: Observations) -> tuple[float, str]:
@@ -138,7 +185,7 @@ def validation_error(robot: CalibratedRobot, obs: Observations) -> float:
     return primary_error(robot, obs.subset(mask))[0]
 
 
-def split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observations) -> dict[str, dict]:
+def split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observations) -> dict[str, SplitEntry]:
     """{split: {"before": summary, "after": summary, "points": {"before": …, "after": …}, "primary": "pose" |
     "points"}} per split present (and "all").
 
@@ -147,7 +194,7 @@ def split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observatio
     (:func:`point_errors`); "primary": which of the two is the figure to quote (module docstring). Absent splits
     are skipped before selecting rows.
     """
-    table: dict[str, dict] = {}
+    table: dict[str, SplitEntry] = {}
     for split in ("train", "val", "test", "all"):
         mask = np.ones(obs.k, bool) if split == "all" else np.asarray(obs.split == split, dtype=bool)
         if not mask.any():
@@ -165,7 +212,7 @@ def split_table(before: CalibratedRobot, after: CalibratedRobot, obs: Observatio
     return table
 
 
-def observability(obs: Observations, unobservable: list[str] | None = None) -> dict:
+def observability(obs: Observations, unobservable: list[str] | None = None) -> Observability:
     """What the targets of ``obs`` let a fit claim about orientation (JSON-ready).
 
     ``{"targets": m, "geometry": "point" | "line" | "plane" (the targets seen in at least one row), "rows",
@@ -229,7 +276,7 @@ POINT_RATIO = 10.0
 POINT_FLOOR = 2e-3
 
 
-def point_residual_warning(entry: dict) -> dict | None:
+def point_residual_warning(entry: SplitEntry | None) -> FitWarning | None:
     """{"code": "point-residuals", "message"} when a split-table entry's points are far off while its pose fits.
 
     entry: one split of :func:`split_table` ({"after": …, "points": {"after": …}}); None when the points agree.
