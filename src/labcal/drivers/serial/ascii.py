@@ -174,6 +174,10 @@ class AsciiProtocol:
                 )
         return points, flags
 
+    def read_frames(self, samples: int) -> list[tuple[np.ndarray, tuple[str, ...]]]:
+        """``samples`` frames (see :meth:`read_frame`)."""
+        return [self.read_frame() for _ in range(samples)]
+
     def stop(self) -> None:
         for command in self.profile.close_commands:
             self.link.send_line(command)

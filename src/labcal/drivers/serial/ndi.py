@@ -44,7 +44,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from labcal.drivers.base import ConnectionFailed, DriverTimeout, MeasurementRejected, ProtocolError
+from labcal.drivers.base import ConnectionFailed, DriverTimeout, MeasurementRejected, ProtocolError, average_frames
 from labcal.drivers.serial.crc import crc16_arc
 from labcal.drivers.serial.link import SerialLink, retried
 from labcal.drivers.serial.matching import match_targets
@@ -443,6 +443,26 @@ class NDIProtocol:
         quality = (f"system_status:0x{frame.system_status:04X}",) if frame.system_status else ()
         quality += tuple(f"missing:t{k + 1}" for k, i in enumerate(match.indices) if i < 0)
         return match.points, quality
+
+    def read_frames(self, samples: int) -> list[tuple[np.ndarray, tuple[str, ...]]]:
+        """``samples`` frames, each labelled (see :meth:`label`); frames too sparse to label alone are labelled from
+        where the others saw the targets (the robot stands still during one measurement)."""
+        raw = [self.read_strays() for _ in range(samples)]
+        labelled: list = []
+        first: MeasurementRejected | None = None
+        for frame in raw:
+            try:
+                labelled.append(self.label(frame))
+            except MeasurementRejected as exc:
+                labelled.append(None)
+                first = first or exc
+        if first is None:
+            return labelled
+        done = [item[0] for item in labelled if item is not None]
+        if not done:
+            raise first
+        reference = average_frames(done, timestamp=0.0).points  # each target over the frames that saw it
+        return [item or self.label(frame, reference) for item, frame in zip(labelled, raw, strict=True)]
 
     def identify(self) -> dict[str, object]:
         """Ask the device who it is (``VER:4``, ``APIREV:``): serial, model, firmware, api_revision, and ``notes``

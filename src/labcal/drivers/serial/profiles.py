@@ -16,7 +16,7 @@ import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from labcal.tomlschema import Key, SchemaError, Table, fail, read_toml, validate
 
@@ -116,6 +116,8 @@ class NDIProfile:
     source: str = "<profile>"
     protocol: str = "ndi"
     reply: str = "tx"  # last, so positional construction keeps its meaning
+    write_terminator: ClassVar[bytes] = b"\r"  # the Combined API ends every command and reply with CR
+    read_terminator: ClassVar[bytes] = b"\r"
 
     def __post_init__(self) -> None:
         # Profiles built in code (not loaded from TOML) must not fall back to TX on a typo.
