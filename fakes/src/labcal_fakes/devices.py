@@ -24,6 +24,7 @@ Fault injection (one-shot, in order, applied to the next measurement request, ``
 from __future__ import annotations
 
 import collections
+import contextlib
 import math
 import os
 import select
@@ -78,29 +79,23 @@ class PtyDevice:
         os.set_blocking(self._master, False)
         self.port = os.ttyname(self._slave)
         self._thread = threading.Thread(target=self._run, name=f"{type(self).__name__}:{self.port}", daemon=True)
-        self._started = False
-        self._closed = False
 
     # -- lifecycle -----------------------------------------------------------------------------------------
 
     def start(self) -> PtyDevice:
-        if not self._started:
-            self._started = True
+        if self._thread.ident is None:  # not started yet
             self._thread.start()
         return self
 
     def close(self) -> None:
-        if self._closed:
+        if self._stop.is_set():
             return
-        self._closed = True
         self._stop.set()
-        if self._started:
+        if self._thread.ident is not None:
             self._thread.join(timeout=2.0)
         for fd in (self._master, self._slave):
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
 
     def __enter__(self) -> Any:
         return self.start()

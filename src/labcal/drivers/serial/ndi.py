@@ -79,7 +79,6 @@ ERROR_CODES = {
 
 RESET_REPLY = b"RESETBE6F"
 STRAY_CHARS = 21  # three coordinates of sign + 6 digits
-MEASURE_COMMANDS = {"tx": "TX:1000", "bx": "BX:1000"}  # by profile ``reply``
 
 BX_START = b"\xc4\xa5"  # 0xA5C4, little-endian like every binary field
 BX_HEADER_SIZE = 6  # start sequence, body length, header CRC
@@ -370,9 +369,9 @@ class NDIProtocol:
             # A device left at another baud rate, or tracking, or mid-command, does not take INIT: reset it.
             if not self.profile.reset_on_failure:
                 raise
-            self._break_reset()
-            self._expect_okay("INIT:", timeout=self.profile.init_timeout)
-        self._switch_baud_and_track()
+            self.recover(hard=True)
+        else:
+            self._switch_baud_and_track()
 
     def _switch_baud_and_track(self) -> None:
         if self.profile.baudrate != 9600:
@@ -424,10 +423,9 @@ class NDIProtocol:
 
     def read_strays(self) -> StrayFrame:
         """One TX:1000 or BX:1000 exchange (with recovery): the unlabelled markers of one frame."""
-        command = MEASURE_COMMANDS[self.profile.reply]
         if self.profile.reply == "bx":
-            return parse_bx_body(self._with_recovery(lambda: self._exchange(command, self._binary_reply, None, None)))
-        return parse_tx_strays(self._with_recovery(lambda: self.command(command)))
+            return parse_bx_body(self._with_recovery(lambda: self._exchange("BX:1000", self._binary_reply, None, None)))
+        return parse_tx_strays(self._with_recovery(lambda: self.command("TX:1000")))
 
     def label(self, frame: StrayFrame, reference: np.ndarray | None = None) -> tuple[np.ndarray, tuple[str, ...]]:
         """Label a frame's markers as the targets: ((m, 3) m, NaN rows for targets not seen; quality flags).

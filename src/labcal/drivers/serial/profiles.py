@@ -280,7 +280,6 @@ def _ascii(t: dict, port: PortSettings, name: str, source: str) -> AsciiProfile:
     tol_mm = t.get("triangle_tolerance_mm")
     if tol_mm is not None and targets < 2:
         raise _fail(source, "ascii.triangle_tolerance_mm", "needs at least two targets in the reply to compare")
-    optional = {key: re.compile(t[key]) if key in t else None for key in ("error_reply", "missing")}
     ident = t["identity"]
     if ("command" in ident) != ("reply" in ident):
         given, other = ("command", "reply") if "command" in ident else ("reply", "command")
@@ -289,18 +288,13 @@ def _ascii(t: dict, port: PortSettings, name: str, source: str) -> AsciiProfile:
         name=name,
         port=port,
         reply=reply,
-        mode=t["mode"],
-        measure_command=t.get("measure_command"),
+        **{key: t.get(key) for key in ("mode", "measure_command", "length_unit", "checksum", "retries")},
+        **{key: re.compile(t[key]) if key in t else None for key in ("error_reply", "missing")},
         write_terminator=t["write_terminator"].encode("ascii"),
         read_terminator=t["read_terminator"].encode("ascii"),
-        error_reply=optional["error_reply"],
-        missing=optional["missing"],
-        length_unit=t["length_unit"],
         axes=tuple(t["axes"]),
-        checksum=t["checksum"],
         init=tuple(InitStep(s["command"], re.compile(s["expect"]) if "expect" in s else None) for s in t["init"]),
         close_commands=tuple(t["close_commands"]),
-        retries=t["retries"],
         triangle_tolerance=None if tol_mm is None else tol_mm * 1e-3,
         source=source,
         identity_command=ident.get("command"),
