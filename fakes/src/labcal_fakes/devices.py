@@ -125,17 +125,14 @@ class PtyDevice:
         deadline = time.monotonic() + timeout
         while view:
             try:
-                n = os.write(self._master, view)
-                view = view[n:]
-                continue
-            except BlockingIOError:
-                pass
+                view = view[os.write(self._master, view) :]
+            except BlockingIOError:  # the client has not read what came before: wait (up to the deadline)
+                left = deadline - time.monotonic()
+                if left <= 0 or self._stop.is_set():
+                    return False
+                select.select([], [self._master], [], min(left, 0.05))
             except OSError:
                 return False  # EIO: no client; a real device talking to an unplugged cable loses the bytes
-            left = deadline - time.monotonic()
-            if left <= 0 or self._stop.is_set():
-                return False
-            select.select([], [self._master], [], min(left, 0.05))
         return True
 
     def _run(self) -> None:

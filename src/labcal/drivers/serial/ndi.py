@@ -114,7 +114,10 @@ def encode_command(command: str) -> bytes:
 
 
 def decode_reply(line: bytes, command: str = "") -> str:
-    """Check the CRC of one reply line (without CR) and return its body. ERRORxx raises NDIError."""
+    """Check the CRC of one reply line (without CR) and return its body. ERRORxx raises NDIError, RESETBE6F
+    DeviceReset."""
+    if line == RESET_REPLY:
+        raise DeviceReset(f"device reset (RESETBE6F) while waiting for the reply to {command!r}")
     if len(line) < 5:
         raise ProtocolError(f"reply to {command!r} too short for a body and CRC: {line!r}")
     body, crc_text = line[:-4], line[-4:]
@@ -260,8 +263,6 @@ def parse_bx_body(body: bytes) -> StrayFrame:
     return StrayFrame(strays=mm * 1e-3, out_of_volume=oov, system_status=int(status))
 
 
-# What labcal asks an NDI device about itself: its combined firmware description and its API revision.
-IDENTITY_COMMANDS = ("VER:4", "APIREV:")
 _VERSION_NUMBER = re.compile(r"(\d+(?:\.\d+)+)\s*$")
 
 
@@ -313,13 +314,7 @@ class NDIProtocol:
         return self._exchange(command, self._ascii_reply, timeout, retries)
 
     def _ascii_reply(self, command: str, timeout: float | None) -> str:
-        return self._decode_line(self.link.read_line(timeout), command)
-
-    @staticmethod
-    def _decode_line(line: bytes, command: str) -> str:
-        if line == RESET_REPLY:
-            raise DeviceReset(f"device reset (RESETBE6F) while waiting for the reply to {command!r}")
-        return decode_reply(line, command)
+        return decode_reply(self.link.read_line(timeout), command)
 
     def _binary_reply(self, command: str, timeout: float | None) -> bytes:
         wait = self.link.timeout if timeout is None else timeout
@@ -328,7 +323,7 @@ class NDIProtocol:
         if head[:5] in (b"ERROR", b"RESET"):
             # Errors and the reset announcement stay ASCII lines; both are longer than a binary header.
             line = head + self.link.read_line(max(deadline - self.link.clock(), 0.0))
-            text = self._decode_line(line, command)  # raises for ERRORxx, RESETBE6F and a bad CRC
+            text = decode_reply(line, command)  # raises for ERRORxx, RESETBE6F and a bad CRC
             raise ProtocolError(f"expected a binary reply to {command!r}, got {text!r}")
         try:
             n = bx_body_length(head, command)
@@ -438,7 +433,7 @@ class NDIProtocol:
         out = [f"t{k + 1}" for k, i in enumerate(match.indices) if i >= 0 and frame.out_of_volume[i]]
         if out:
             raise MeasurementRejected(f"target(s) {', '.join(out)} out of the characterised volume")
-        quality = (f"system_status:0x{frame.system_status:04X}",) if frame.system_status else ()
+        quality: tuple[str, ...] = (f"system_status:0x{frame.system_status:04X}",) if frame.system_status else ()
         quality += tuple(f"missing:t{k + 1}" for k, i in enumerate(match.indices) if i < 0)
         return match.points, quality
 
@@ -467,19 +462,16 @@ class NDIProtocol:
         for what it would not tell. Never raises a protocol error: a session can be recorded without them."""
         identity: dict[str, object] = {}
         notes = []
-        for command in IDENTITY_COMMANDS:
+        # Its combined firmware description and its API revision, each with what labcal keeps of the reply.
+        for command, parse in (("VER:4", parse_ver), ("APIREV:", lambda body: {"api_revision": body.strip()})):
             try:
                 body = self.command(command, retries=0)
             except (DriverTimeout, ProtocolError) as exc:  # NDIError (ERRORxx) included
                 notes.append(f"{command} not answered: {exc}")
                 continue
-            if command.startswith("VER"):
-                found = parse_ver(body)
-                identity.update(found)
-                if "serial" not in found:
-                    notes.append(f"no serial number in the VER:4 reply {body[:120]!r}")
-            else:
-                identity["api_revision"] = body.strip()
+            identity.update(parse(body))
+            if command == "VER:4" and "serial" not in identity:
+                notes.append(f"no serial number in the VER:4 reply {body[:120]!r}")
         if notes:
             identity["notes"] = notes
         return identity

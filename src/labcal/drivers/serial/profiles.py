@@ -280,6 +280,10 @@ def _ascii(t: dict, port: PortSettings, name: str, source: str) -> AsciiProfile:
     tol_mm = t.get("triangle_tolerance_mm")
     if tol_mm is not None and targets < 2:
         raise _fail(source, "ascii.triangle_tolerance_mm", "needs at least two targets in the reply to compare")
+    plain: dict[str, Any] = {
+        key: t.get(key) for key in ("mode", "measure_command", "length_unit", "checksum", "retries")
+    }
+    optional: dict[str, Any] = {key: re.compile(t[key]) if key in t else None for key in ("error_reply", "missing")}
     ident = t["identity"]
     if ("command" in ident) != ("reply" in ident):
         given, other = ("command", "reply") if "command" in ident else ("reply", "command")
@@ -288,8 +292,8 @@ def _ascii(t: dict, port: PortSettings, name: str, source: str) -> AsciiProfile:
         name=name,
         port=port,
         reply=reply,
-        **{key: t.get(key) for key in ("mode", "measure_command", "length_unit", "checksum", "retries")},
-        **{key: re.compile(t[key]) if key in t else None for key in ("error_reply", "missing")},
+        **plain,
+        **optional,
         write_terminator=t["write_terminator"].encode("ascii"),
         read_terminator=t["read_terminator"].encode("ascii"),
         axes=tuple(t["axes"]),
