@@ -312,6 +312,8 @@ class FakeNDIDevice(PtyDevice):
                 return _ndi_frame(f"ERROR{refused[self.state]:02X}")
             self.state = after
             return _ndi_frame("OKAY")
+        if name in ("TX", "BX"):
+            return self._measure(params.strip(), binary=name == "BX")
         handler = getattr(self, f"_cmd_{name.lower()}", None) if name.isalnum() else None
         if handler is None:
             return _ndi_frame("ERROR01")
@@ -333,12 +335,6 @@ class FakeNDIDevice(PtyDevice):
 
     def _cmd_apirev(self, params: str) -> bytes:
         return _ndi_frame(self.api_revision)
-
-    def _cmd_tx(self, params: str) -> bytes | None:
-        return self._measure(params, binary=False)
-
-    def _cmd_bx(self, params: str) -> bytes | None:
-        return self._measure(params, binary=True)
 
     def _measure(self, params: str, binary: bool) -> bytes | None:
         """TX or BX: a frame of the markers the camera sees, as the next queued fault (if any) spoils it."""

@@ -378,27 +378,21 @@ class NDIProtocol:
         self._expect_okay("TSTART:")
         self.tracking = True
 
-    def _break_reset(self) -> None:
-        """Serial break -> RESETBE6F at 9600 (raises ConnectionFailed if the device does not reset)."""
-        self.tracking = False
-        self.resets += 1
-        self.link.set_baudrate(9600)
-        self.link.flush_input()
-        self.link.send_break()
-        try:
-            line = self.link.read_line(self.profile.init_timeout)
-        except DriverTimeout as exc:
-            raise ConnectionFailed(f"no RESET reply after a serial break: {exc}") from exc
-        if line != RESET_REPLY:
-            raise ConnectionFailed(f"expected RESETBE6F after a serial break, got {line!r}")
-
     def recover(self, *, hard: bool) -> None:
-        """Bring the device back to tracking: with a break first (hard) or, after a RESET it sent, without."""
+        """Bring the device back to tracking: with a serial break first (hard: the device must answer RESETBE6F at
+        9600, else ConnectionFailed) or, after a RESET it sent, without."""
         self.tracking = False
+        self.link.set_baudrate(9600)
         if hard:
-            self._break_reset()
-        else:
-            self.link.set_baudrate(9600)
+            self.resets += 1
+            self.link.flush_input()
+            self.link.send_break()
+            try:
+                line = self.link.read_line(self.profile.init_timeout)
+            except DriverTimeout as exc:
+                raise ConnectionFailed(f"no RESET reply after a serial break: {exc}") from exc
+            if line != RESET_REPLY:
+                raise ConnectionFailed(f"expected RESETBE6F after a serial break, got {line!r}")
         self._expect_okay("INIT:", timeout=self.profile.init_timeout)
         self._switch_baud_and_track()
 
