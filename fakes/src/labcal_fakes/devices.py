@@ -52,11 +52,6 @@ _TERMIOS_SPEEDS = {
 DEFAULT_TRACKER_POINTS = np.array([[0.10, -0.05, -1.50], [0.20, -0.05, -1.50], [0.10, 0.02, -1.50]])
 
 
-def _fixed(points: np.ndarray) -> PointsProvider:
-    frozen = np.array(points, dtype=float)
-    return lambda: frozen.copy()
-
-
 class PtyDevice:
     """A line-oriented fake device on a pty master, served by a daemon thread.
 
@@ -68,7 +63,7 @@ class PtyDevice:
     FAULTS: tuple[str, ...] = ()
 
     def __init__(self, points_provider: PointsProvider | None, seed: int):
-        self.points_provider = points_provider or _fixed(DEFAULT_TRACKER_POINTS)
+        self.points_provider = points_provider or DEFAULT_TRACKER_POINTS.copy
         self.rng = np.random.default_rng(seed)
         self.received: list[str] = []  # every command line, as received (CRC included)
         self.faults: collections.deque[str] = collections.deque()

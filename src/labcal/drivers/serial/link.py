@@ -64,10 +64,7 @@ def open_serial(url: str, *, baudrate: int, bytesize: int, parity: str, stopbits
             stopbits=stopbits,
             timeout=min(timeout, 0.05),
             write_timeout=max(timeout, 1.0),
-            xonxoff=False,
-            rtscts=False,
-            dsrdtr=False,
-        )
+        )  # and pyserial's defaults: no software or hardware flow control
     except (serial.SerialException, OSError, ValueError) as exc:
         raise ConnectionFailed(f"cannot open serial port {url!r}: {exc}") from exc
 

@@ -146,11 +146,12 @@ class StrayFrame:
     system_status: int
 
 
-def _hex(body: str, start: int, width: int, what: str) -> int:
+def _hex(body: str, start: int, width: int, what: str) -> tuple[int, int]:
+    """The hex field of ``width`` chars at ``start`` and where the next field starts."""
     field = body[start : start + width]
     if len(field) != width or any(c not in "0123456789ABCDEFabcdef" for c in field):
         raise ProtocolError(f"TX reply: {what} at char {start} is not {width} hex digits: {field!r}")
-    return int(field, 16)
+    return int(field, 16), start + width
 
 
 def _coordinate(body: str, start: int) -> float:
@@ -162,25 +163,22 @@ def _coordinate(body: str, start: int) -> float:
 
 def parse_tx_strays(body: str) -> StrayFrame:
     """Parse a ``TX:1000`` reply body (CRC already removed). Raises ProtocolError on any malformation."""
-    handles = _hex(body, 0, 2, "handle count")
-    pos = 2
+    handles, pos = _hex(body, 0, 2, "handle count")
     for k in range(handles):  # tool blocks are not used by labcal; each ends with a line feed
         end = body.find("\n", pos)
         if end < 0:
             raise ProtocolError(f"TX reply: handle block {k + 1} of {handles} has no line feed")
         pos = end + 1
-    n = _hex(body, pos, 2, "stray count")
-    pos += 2
+    n, pos = _hex(body, pos, 2, "stray count")
     n_flags = math.ceil(n / 4)
-    flags = _hex(body, pos, n_flags, "out-of-volume flags") if n_flags else 0
-    pos += n_flags
+    flags, pos = _hex(body, pos, n_flags, "out-of-volume flags") if n_flags else (0, pos)
     expected = pos + n * STRAY_CHARS + 4
     if len(body) != expected:
         raise ProtocolError(f"TX reply with {n} strays should be {expected} chars, got {len(body)}: {body!r}")
     strays = np.array(
         [[_coordinate(body, pos + i * STRAY_CHARS + 7 * a) for a in range(3)] for i in range(n)], dtype=float
     ).reshape(n, 3)
-    status = _hex(body, expected - 4, 4, "system status")
+    status, _ = _hex(body, expected - 4, 4, "system status")
     oov = np.array([bool(flags >> i & 1) for i in range(n)], dtype=bool)
     return StrayFrame(strays=strays, out_of_volume=oov, system_status=status)
 
@@ -224,12 +222,13 @@ def split_bx_reply(reply: bytes, command: str = "BX:1000") -> bytes:
     return body
 
 
-def _take(body: bytes, pos: int, size: int, what: str) -> bytes:
+def _take(body: bytes, pos: int, size: int, what: str) -> tuple[bytes, int]:
+    """The ``size`` bytes at ``pos`` and where the next field starts."""
     if pos + size > len(body):
         raise ProtocolError(
             f"BX reply body truncated: {what} needs bytes {pos} to {pos + size - 1}, the body has {len(body)}"
         )
-    return body[pos : pos + size]
+    return body[pos : pos + size], pos + size
 
 
 def parse_bx_body(body: bytes) -> StrayFrame:
@@ -237,19 +236,13 @@ def parse_bx_body(body: bytes) -> StrayFrame:
 
     Raises ProtocolError when the content does not fill the body exactly or a coordinate is NaN or infinite.
     """
-    handles = _take(body, 0, 1, "handle count")[0]
+    (handles,), pos = _take(body, 0, 1, "handle count")
     # Only option 0x1000 is requested, so every handle (disabled, missing or seen) is just id + status.
-    _take(body, 1, 2 * handles, f"{handles} handle id/status pair(s)")
-    pos = 1 + 2 * handles
-    m = _take(body, pos, 1, "stray count")[0]
-    pos += 1
-    n_flags = math.ceil(m / 8)
-    flags = _take(body, pos, n_flags, "out-of-volume bits")
-    pos += n_flags
-    coords = _take(body, pos, m * BX_STRAY_SIZE, f"{m} stray position(s)")
-    pos += m * BX_STRAY_SIZE
-    (status,) = struct.unpack("<H", _take(body, pos, 2, "system status"))
-    pos += 2
+    _, pos = _take(body, pos, 2 * handles, f"{handles} handle id/status pair(s)")
+    (m,), pos = _take(body, pos, 1, "stray count")
+    flags, pos = _take(body, pos, math.ceil(m / 8), "out-of-volume bits")
+    coords, pos = _take(body, pos, m * BX_STRAY_SIZE, f"{m} stray position(s)")
+    status, pos = _take(body, pos, 2, "system status")
     if pos != len(body):
         raise ProtocolError(
             f"BX reply: length mismatch: body is {len(body)} bytes but its content ({m} strays) ends at byte {pos}"
@@ -260,7 +253,7 @@ def parse_bx_body(body: bytes) -> StrayFrame:
         i = int(np.argmin(finite))
         raise ProtocolError(f"BX reply: stray {i} has a non-finite coordinate: {tuple(mm[i].tolist())} mm")
     oov = np.array([bool(flags[j // 8] >> (j % 8) & 1) for j in range(m)], dtype=bool)
-    return StrayFrame(strays=mm * 1e-3, out_of_volume=oov, system_status=int(status))
+    return StrayFrame(strays=mm * 1e-3, out_of_volume=oov, system_status=int.from_bytes(status, "little"))
 
 
 _VERSION_NUMBER = re.compile(r"(\d+(?:\.\d+)+)\s*$")

@@ -22,9 +22,6 @@ from labcal.tomlschema import Key, SchemaError, Table, fail, read_toml, validate
 
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6}
 AXES = ("x", "y", "z")
-_COORD_GROUP = re.compile(r"t([1-9][0-9]*)_[xyz]")
-CHECKSUMS = ("none", "nmea", "crc16-arc")
-PARITIES = ("N", "E", "O", "M", "S")
 
 
 class ProfileError(SchemaError):
@@ -167,7 +164,7 @@ PORT_SCHEMA = Table(
         "url": Key("str", doc="serial port or pyserial URL (socket://, loop://, a pty path)"),
         "baudrate": Key("int", default=9600, check=_positive),
         "bytesize": Key("int", default=8, choices=(5, 6, 7, 8)),
-        "parity": Key("str", default="N", choices=PARITIES),
+        "parity": Key("str", default="N", choices=("N", "E", "O", "M", "S")),
         "stopbits": Key("number", default=1.0, choices=(1.0, 1.5, 2.0)),
         "timeout": Key("number", default=1.0, unit="s", check=_positive, doc="wait for one reply line"),
     }
@@ -195,7 +192,7 @@ ASCII_SCHEMA = Table(
         "axes": Key(
             "strings", shape=(3,), default=list(AXES), expect="three strings like ['x', '-z', 'y']", check=_axes
         ),
-        "checksum": Key("str", default="none", choices=CHECKSUMS),
+        "checksum": Key("str", default="none", choices=("none", "nmea", "crc16-arc")),
         "init": Key("tables", table=INIT_SCHEMA, default=[]),
         "close_commands": Key("strings", default=[]),
         "retries": Key("int", default=2, check=_non_negative),
@@ -260,7 +257,7 @@ def _fail(source: str, path: str, message: str) -> ProfileError:
 
 def reply_targets(reply: re.Pattern[str], source: str = "<profile>") -> int:
     """The number of targets k a reply regex names (groups t1_x … tk_z, all of them); ProfileError otherwise."""
-    found = [int(m.group(1)) for g in reply.groupindex if (m := _COORD_GROUP.fullmatch(g))]
+    found = [int(m.group(1)) for g in reply.groupindex if (m := re.fullmatch(r"t([1-9][0-9]*)_[xyz]", g))]
     k = max(found, default=1)
     missing = [f"t{i}_{a}" for i in range(1, k + 1) for a in AXES if f"t{i}_{a}" not in reply.groupindex]
     if missing:
