@@ -292,15 +292,11 @@ class FakeNDIDevice(PtyDevice):
             if len(rest) < 4:
                 return _ndi_frame("ERROR03")
             params, crc_text = rest[:-4], rest[-4:]
-            try:
-                ok = int(crc_text, 16) == crc16_arc(line[:-4].encode("ascii", errors="replace"))
-            except ValueError:
-                ok = False
-            if not ok:
+            if crc_text.upper() != f"{crc16_arc(line[:-4].encode('ascii', errors='replace')):04X}":
                 return _ndi_frame("ERROR04")
         else:
             name, _, params = line.partition(" ")
-        name = name.strip().upper()
+        name, params = name.strip().upper(), params.strip()
         if name in _NDI_TRANSITIONS:
             refused, after = _NDI_TRANSITIONS[name]
             if self.state in refused:
@@ -308,13 +304,14 @@ class FakeNDIDevice(PtyDevice):
             self.state = after
             return _ndi_frame("OKAY")
         if name in ("TX", "BX"):
-            return self._measure(params.strip(), binary=name == "BX")
-        handler = getattr(self, f"_cmd_{name.lower()}", None) if name.isalnum() else None
-        if handler is None:
-            return _ndi_frame("ERROR01")
-        return handler(params.strip())
+            return self._measure(params, binary=name == "BX")
+        if name == "COMM":
+            return self._comm(params)
+        if name == "VER":  # any of the firmware descriptions a Polaris gives: the same text here
+            return _ndi_frame(self.version_text if params in ("0", "3", "4", "5") else "ERROR07")
+        return _ndi_frame(self.api_revision if name == "APIREV" else "ERROR01")
 
-    def _cmd_comm(self, params: str) -> bytes:
+    def _comm(self, params: str) -> bytes:
         if len(params) != 5 or not params.isdigit() or int(params[0]) not in _NDI_BAUDS:
             return _ndi_frame("ERROR06")
         if params[1:4] != "000":
@@ -322,14 +319,6 @@ class FakeNDIDevice(PtyDevice):
         # OKAY goes out at the old rate; the device then switches (no-op on a pty, recorded for tests).
         self.baudrate = _NDI_BAUDS[int(params[0])]
         return _ndi_frame("OKAY")
-
-    def _cmd_ver(self, params: str) -> bytes:
-        if params not in ("0", "3", "4", "5"):
-            return _ndi_frame("ERROR07")
-        return _ndi_frame(self.version_text)
-
-    def _cmd_apirev(self, params: str) -> bytes:
-        return _ndi_frame(self.api_revision)
 
     def _measure(self, params: str, binary: bool) -> bytes | None:
         """TX or BX: a frame of the markers the camera sees, as the next queued fault (if any) spoils it."""
