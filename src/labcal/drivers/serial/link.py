@@ -86,6 +86,8 @@ def _library_errors() -> tuple[type[BaseException], ...]:
 class SerialLink:
     """A transport plus line framing, with labcal exceptions only.
 
+    read_terminator: non-empty (the profile loader checks an ASCII profile's; NDI's is CR).
+
     clock: monotonic time source in s (injected so scripted tests can simulate timeouts instantly).
     sleep: delay function in s (injected for the same reason).
     """
@@ -102,8 +104,6 @@ class SerialLink:
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
     ):
-        if not read_terminator:
-            raise ValueError("read_terminator must not be empty")
         self.transport = transport
         self.write_terminator = write_terminator
         self.read_terminator = read_terminator
