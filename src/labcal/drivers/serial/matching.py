@@ -111,17 +111,13 @@ def _by_distances(p: np.ndarray, targets: np.ndarray, tolerance: float) -> tuple
             for target in range(m):
                 if target in assignment:
                     continue
-                labelled = list(assignment)
-                markers = [assignment[t] for t in labelled]
-                errors = [
-                    (float(np.max(np.abs(dist[s, markers] - nominal_all[target, labelled]))), s)
-                    for s in range(n)
-                    if s not in markers
-                ]
-                fits = [(e, s) for e, s in errors if e <= tolerance]
+                labelled, markers = list(assignment), list(assignment.values())
+                errors = np.max(np.abs(dist[:, markers] - nominal_all[target, labelled]), axis=1)  # (n,) m
+                errors[markers] = np.inf  # a marker labels one target
+                fits = np.flatnonzero(errors <= tolerance)
                 if len(fits) == 1:
-                    assignment[target] = fits[0][1]
-                    worst = max(worst, fits[0][0])
+                    assignment[target] = int(fits[0])
+                    worst = max(worst, float(errors[fits[0]]))
             key = tuple(sorted(assignment.items()))
             if key not in found or worst < found[key][0]:
                 found[key] = (worst, assignment)
