@@ -175,9 +175,7 @@ def parse_tx_strays(body: str) -> StrayFrame:
     expected = pos + n * STRAY_CHARS + 4
     if len(body) != expected:
         raise ProtocolError(f"TX reply with {n} strays should be {expected} chars, got {len(body)}: {body!r}")
-    strays = np.array(
-        [[_coordinate(body, pos + i * STRAY_CHARS + 7 * a) for a in range(3)] for i in range(n)], dtype=float
-    ).reshape(n, 3)
+    strays = np.array([_coordinate(body, pos + 7 * j) for j in range(3 * n)], dtype=float).reshape(n, 3)
     status, _ = _hex(body, expected - 4, 4, "system status")
     oov = np.array([bool(flags >> i & 1) for i in range(n)], dtype=bool)
     return StrayFrame(strays=strays, out_of_volume=oov, system_status=status)

@@ -70,9 +70,7 @@ class SerialTracker(ClosedOnExit):
             target_url = url or profile.port.url
             if not target_url:
                 raise ValueError(f"{profile.source}: no serial port: set [port].url or pass url=")
-            settings = dataclasses.asdict(profile.port)
-            del settings["url"]
-            transport = open_serial(target_url, **settings)
+            transport = open_serial(**{**dataclasses.asdict(profile.port), "url": target_url})
         self.link = SerialLink(
             transport,
             write_terminator=profile.write_terminator,
