@@ -274,11 +274,10 @@ def parse_ver(text: str) -> dict[str, str]:
     for line in lines:
         key, sep, value = line.partition(":")
         key, value = key.strip().lower(), value.strip()
-        if not sep:
-            if "model" not in identity and line == lines[0]:
-                model = re.sub(r"\s+(control\s+)?firmware$", "", line, flags=re.IGNORECASE).strip()
-                if model:
-                    identity["model"] = model
+        if not sep and line == lines[0]:  # the first line names the device
+            model = re.sub(r"\s+(control\s+)?firmware$", "", line, flags=re.IGNORECASE).strip()
+            if model:
+                identity["model"] = model
         elif value and ("s/n" in key or "serial" in key):
             identity.setdefault("serial", value)
         elif value and ("freeze tag" in key or "firmware revision" in key):
