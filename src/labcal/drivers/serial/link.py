@@ -132,9 +132,8 @@ class SerialLink:
         if written is not None and written != len(data):
             raise DriverTimeout(f"wrote only {written} of {len(data)} bytes")
 
-    def send_line(self, text: str | bytes) -> None:
-        data = text.encode("ascii") if isinstance(text, str) else text
-        self.write(data + self.write_terminator)
+    def send_line(self, text: str) -> None:
+        self.write(text.encode("ascii") + self.write_terminator)
 
     def send_break(self, duration: float = 0.25) -> None:
         self._call("break", self.transport.send_break, duration)
