@@ -24,6 +24,7 @@ Fault injection (one-shot, in order, applied to the next measurement request, ``
 from __future__ import annotations
 
 import collections
+import contextlib
 import math
 import os
 import select
@@ -51,11 +52,6 @@ _TERMIOS_SPEEDS = {
 DEFAULT_TRACKER_POINTS = np.array([[0.10, -0.05, -1.50], [0.20, -0.05, -1.50], [0.10, 0.02, -1.50]])
 
 
-def _fixed(points: np.ndarray) -> PointsProvider:
-    frozen = np.array(points, dtype=float)
-    return lambda: frozen.copy()
-
-
 class PtyDevice:
     """A line-oriented fake device on a pty master, served by a daemon thread.
 
@@ -67,7 +63,7 @@ class PtyDevice:
     FAULTS: tuple[str, ...] = ()
 
     def __init__(self, points_provider: PointsProvider | None, seed: int):
-        self.points_provider = points_provider or _fixed(DEFAULT_TRACKER_POINTS)
+        self.points_provider = points_provider or DEFAULT_TRACKER_POINTS.copy
         self.rng = np.random.default_rng(seed)
         self.received: list[str] = []  # every command line, as received (CRC included)
         self.faults: collections.deque[str] = collections.deque()
@@ -78,29 +74,23 @@ class PtyDevice:
         os.set_blocking(self._master, False)
         self.port = os.ttyname(self._slave)
         self._thread = threading.Thread(target=self._run, name=f"{type(self).__name__}:{self.port}", daemon=True)
-        self._started = False
-        self._closed = False
 
     # -- lifecycle -----------------------------------------------------------------------------------------
 
     def start(self) -> PtyDevice:
-        if not self._started:
-            self._started = True
+        if self._thread.ident is None:  # not started yet
             self._thread.start()
         return self
 
     def close(self) -> None:
-        if self._closed:
+        if self._stop.is_set():
             return
-        self._closed = True
         self._stop.set()
-        if self._started:
+        if self._thread.ident is not None:
             self._thread.join(timeout=2.0)
         for fd in (self._master, self._slave):
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
 
     def __enter__(self) -> Any:
         return self.start()
@@ -130,17 +120,14 @@ class PtyDevice:
         deadline = time.monotonic() + timeout
         while view:
             try:
-                n = os.write(self._master, view)
-                view = view[n:]
-                continue
-            except BlockingIOError:
-                pass
+                view = view[os.write(self._master, view) :]
+            except BlockingIOError:  # the client has not read what came before: wait (up to the deadline)
+                left = deadline - time.monotonic()
+                if left <= 0 or self._stop.is_set():
+                    return False
+                select.select([], [self._master], [], min(left, 0.05))
             except OSError:
                 return False  # EIO: no client; a real device talking to an unplugged cable loses the bytes
-            left = deadline - time.monotonic()
-            if left <= 0 or self._stop.is_set():
-                return False
-            select.select([], [self._master], [], min(left, 0.05))
         return True
 
     def _run(self) -> None:
@@ -203,6 +190,19 @@ def _ndi_frame(body: str) -> bytes:
     return data + f"{crc16_arc(data):04X}\r".encode("ascii")
 
 
+# How the reply-spoiling faults change a whole reply: TX (body, 4 hex CRC digits, CR) and BX (binary, body CRC last).
+_SPOIL_TX = {
+    "bad_crc": lambda r: r[:-5] + f"{(int(r[-5:-1], 16) + 1) & 0xFFFF:04X}\r".encode("ascii"),
+    "garbled": lambda r: r[: len(r) // 2] + b"\x00#~" + r[len(r) // 2 + 3 :],
+    "truncated": lambda r: r[:-5],
+}
+_SPOIL_BX = {
+    "bad_crc": lambda r: r[:-2] + bytes([r[-2] ^ 0x01, r[-1]]),
+    "garbled": lambda r: b"\x00#~" + r[3:],
+    "truncated": lambda r: r[:-5],
+}
+
+
 def encode_bx_reply(
     strays: Any,
     out_of_volume: Sequence[bool] | None = None,
@@ -245,17 +245,7 @@ class FakeNDIDevice(PtyDevice):
     last bytes (a TX reply loses its CR and CRC); the others act as on TX.
     """
 
-    FAULTS = (
-        "no_reply",
-        "bad_crc",
-        "garbled",
-        "truncated",
-        "drop_target",
-        "extra_stray",
-        "out_of_volume",
-        "reset",
-        "error",
-    )
+    FAULTS = ("no_reply", *_SPOIL_TX, "drop_target", "extra_stray", "out_of_volume", "reset", "error")
 
     def __init__(
         self,
@@ -302,27 +292,26 @@ class FakeNDIDevice(PtyDevice):
             if len(rest) < 4:
                 return _ndi_frame("ERROR03")
             params, crc_text = rest[:-4], rest[-4:]
-            try:
-                ok = int(crc_text, 16) == crc16_arc(line[:-4].encode("ascii", errors="replace"))
-            except ValueError:
-                ok = False
-            if not ok:
+            if crc_text.upper() != f"{crc16_arc(line[:-4].encode('ascii', errors='replace')):04X}":
                 return _ndi_frame("ERROR04")
         else:
             name, _, params = line.partition(" ")
-        name = name.strip().upper()
+        name, params = name.strip().upper(), params.strip()
         if name in _NDI_TRANSITIONS:
             refused, after = _NDI_TRANSITIONS[name]
             if self.state in refused:
                 return _ndi_frame(f"ERROR{refused[self.state]:02X}")
             self.state = after
             return _ndi_frame("OKAY")
-        handler = getattr(self, f"_cmd_{name.lower()}", None) if name.isalnum() else None
-        if handler is None:
-            return _ndi_frame("ERROR01")
-        return handler(params.strip())
+        if name in ("TX", "BX"):
+            return self._measure(params, binary=name == "BX")
+        if name == "COMM":
+            return self._comm(params)
+        if name == "VER":  # any of the firmware descriptions a Polaris gives: the same text here
+            return _ndi_frame(self.version_text if params in ("0", "3", "4", "5") else "ERROR07")
+        return _ndi_frame(self.api_revision if name == "APIREV" else "ERROR01")
 
-    def _cmd_comm(self, params: str) -> bytes:
+    def _comm(self, params: str) -> bytes:
         if len(params) != 5 or not params.isdigit() or int(params[0]) not in _NDI_BAUDS:
             return _ndi_frame("ERROR06")
         if params[1:4] != "000":
@@ -331,69 +320,31 @@ class FakeNDIDevice(PtyDevice):
         self.baudrate = _NDI_BAUDS[int(params[0])]
         return _ndi_frame("OKAY")
 
-    def _cmd_beep(self, params: str) -> bytes:
-        return _ndi_frame("1")
-
-    def _cmd_ver(self, params: str) -> bytes:
-        if params not in ("0", "3", "4", "5"):
-            return _ndi_frame("ERROR07")
-        return _ndi_frame(self.version_text)
-
-    def _cmd_apirev(self, params: str) -> bytes:
-        return _ndi_frame(self.api_revision)
-
-    def _frame_request(self, params: str) -> tuple[int | None, str | None, bytes | None]:
-        """Checks shared by TX and BX: (reply option, fault to apply, or an ASCII reply that ends the request)."""
-        if self.state == "reset":
-            return None, None, _ndi_frame("ERROR10")
+    def _measure(self, params: str, binary: bool) -> bytes | None:
+        """TX or BX: a frame of the markers the camera sees, as the next queued fault (if any) spoils it."""
         if self.state != "tracking":
-            return None, None, _ndi_frame("ERROR0C")
+            return _ndi_frame("ERROR10" if self.state == "reset" else "ERROR0C")
         try:
             option = int(params or "0001", 16)
         except ValueError:
-            return None, None, _ndi_frame("ERROR07")
+            return _ndi_frame("ERROR07")
         fault = self._next_fault()
-        if fault == "reset":
+        kind, _, code = (fault or "").partition(":")
+        if kind == "no_reply":
+            return None
+        if kind == "reset":
             self.reset(announce=False)
-            return None, fault, _ndi_frame("RESET")
-        if fault is not None and fault.startswith("error"):
-            code = fault.partition(":")[2] or "0C"
-            return None, fault, _ndi_frame(f"ERROR{int(code, 16):02X}")
-        return option, fault, None
-
-    def _cmd_tx(self, params: str) -> bytes | None:
-        option, fault, early = self._frame_request(params)
-        if option is None or fault == "no_reply":
-            return early
-        body = "00"  # no tool handles
-        if option & 0x1000:
-            body += self._strays(fault)
-        body += f"{self.system_status:04X}"
-        reply = _ndi_frame(body)
-        if fault == "bad_crc":
-            bad = (crc16_arc(body.encode("ascii")) + 1) & 0xFFFF
-            reply = body.encode("ascii") + f"{bad:04X}\r".encode("ascii")
-        elif fault == "garbled":
-            reply = reply[: len(reply) // 2] + b"\x00#~" + reply[len(reply) // 2 + 3 :]
-        elif fault == "truncated":
-            reply = reply[:-5]
-        return reply
-
-    def _cmd_bx(self, params: str) -> bytes | None:
-        option, fault, early = self._frame_request(params)
-        if option is None or fault == "no_reply":
-            return early
-        if option != 0x1000:
+            return _ndi_frame("RESET")
+        if kind == "error":
+            return _ndi_frame(f"ERROR{int(code or '0C', 16):02X}")
+        if binary and option != 0x1000:
             return _ndi_frame("ERROR07")  # only passive strays are emulated in binary
-        points, oov = self._stray_scene(fault)
-        reply = encode_bx_reply(points, oov, self.system_status)
-        if fault == "bad_crc":
-            reply = reply[:-2] + bytes([reply[-2] ^ 0x01, reply[-1]])
-        elif fault == "garbled":
-            reply = b"\x00#~" + reply[3:]
-        elif fault == "truncated":
-            reply = reply[:-5]
-        return reply
+        if binary:
+            reply = encode_bx_reply(*self._stray_scene(fault), system_status=self.system_status)
+        else:  # no tool handles; the strays only when option 0x1000 asks for them
+            reply = _ndi_frame(f"00{self._strays(fault) if option & 0x1000 else ''}{self.system_status:04X}")
+        spoil = (_SPOIL_BX if binary else _SPOIL_TX).get(kind)
+        return spoil(reply) if spoil else reply
 
     def _stray_scene(self, fault: str | None) -> tuple[np.ndarray, list[bool]]:
         """The markers the camera sees: (N, 3) m in report order and their out-of-volume flags."""
@@ -417,12 +368,8 @@ class FakeNDIDevice(PtyDevice):
     def _strays(self, fault: str | None) -> str:
         points, oov = self._stray_scene(fault)
         units = np.rint(points * 1e5).astype(np.int64)  # 0.01 mm
-        for i, row in enumerate(units):
-            if np.any(np.abs(row) > 999_999):
-                oov[i] = True
-        units = np.clip(units, -999_999, 999_999)
+        out = np.array(oov, dtype=bool) | (np.abs(units) > 999_999).any(axis=1)  # beyond 6 digits: out of volume
         n = len(points)
-        flags = sum(1 << i for i, flag in enumerate(oov) if flag)
+        flags = sum(1 << int(i) for i in np.flatnonzero(out))
         text = f"{n:02X}" + (f"{flags:0{math.ceil(n / 4)}X}" if n else "")
-        text += "".join(f"{int(v):+07d}" for v in units.ravel())
-        return text
+        return text + "".join(f"{v:+07d}" for v in np.clip(units, -999_999, 999_999).ravel())

@@ -42,7 +42,7 @@ class Rehearsal:
 
     targets: (m, 3) m, tool frame (or a targets TOML path); robot: the simulated robot's model (built-in name or
     robot file); seed / errors: its simulated errors ("default", "paper", "none"); q0: (6,) rad, start joints.
-    ``host`` (controller address) and ``port`` (tracker pty) are set once started.
+    ``host`` (controller address) is set once started; ``port`` (tracker pty) once made.
     """
 
     def __init__(self, targets: Any, *, robot: str = "ur10", seed: int = 0, errors: str = "default", q0=HOME) -> None:
@@ -61,9 +61,10 @@ class Rehearsal:
         self.q0 = [float(v) for v in q0]
         self._rng = np.random.default_rng([seed, 7])
         self._lock = threading.Lock()
-        self.controller: FakeRTDEServer | None = None
-        self.tracker: FakeNDIDevice | None = None
         self.garbage = False  # the tracker reports markers at random places (frames that match no target triangle)
+        # Made here, started by start(); start_controller() / start_tracker() replace them with new ones.
+        self.controller = FakeRTDEServer(q0=self.q0, control=True)
+        self.tracker = FakeNDIDevice(self.points, seed=0)
 
     # -- lifecycle -------------------------------------------------------------------------------------------
 
@@ -76,47 +77,42 @@ class Rehearsal:
 
     def start(self) -> None:
         try:
-            self.start_controller()
-            self.start_tracker()
+            self.controller.start()
+            self.tracker.start()
         except BaseException:
             self.stop()
             raise
 
     def start_controller(self) -> str:
-        """(Re)start the fake controller (a new process, perhaps on another address); returns its host."""
-        if self.controller is not None:
-            self.controller.kill()
+        """Restart the fake controller (a new process, perhaps on another address); returns its host."""
+        self.controller.kill()
         self.controller = FakeRTDEServer(q0=self.q0, control=True)
         self.controller.start()
         return self.controller.host
 
     def start_tracker(self) -> str:
-        """(Re)start the fake tracker on a new pty; returns its port."""
-        if self.tracker is not None:
-            self.tracker.close()
+        """Restart the fake tracker on a new pty; returns its port."""
+        self.tracker.close()
         self.tracker = FakeNDIDevice(self.points, seed=0)
         self.tracker.start()
         return self.tracker.port
 
     def stop(self) -> None:
-        if self.tracker is not None:
-            self.tracker.close()
-        if self.controller is not None:
-            self.controller.stop()
+        self.tracker.close()
+        self.controller.stop()
 
     @property
     def host(self) -> str:
-        return self.controller.host if self.controller is not None else ""
+        return self.controller.host
 
     @property
     def port(self) -> str:
-        return self.tracker.port if self.tracker is not None else ""
+        return self.tracker.port
 
     # -- what the tracker sees -------------------------------------------------------------------------------
 
     def points(self) -> np.ndarray:
         """(m, 3) m in the tracker frame: the simulated robot's targets at the fake controller's joints."""
-        assert self.controller is not None
         if self.garbage:  # markers anywhere: no frame matches the target triangle
             return self._rng.uniform(-1.0, 1.0, size=self.targets.shape) + np.array([0.0, 0.0, -2.0])
         q = np.asarray(self.controller.snapshot()["q"], dtype=float)
@@ -128,25 +124,20 @@ class Rehearsal:
 
     def kill_controller(self) -> None:
         """SIGKILL the fake controller: the kernel closes its sockets (a controller that died)."""
-        assert self.controller is not None
         self.controller.kill()
 
     def drop_rtde(self) -> None:
         """Shut down every client connection of the controller, which keeps listening (a network drop)."""
-        assert self.controller is not None
         self.controller.drop_clients()
 
     def freeze_controller(self) -> None:
         """The controller keeps streaming, its timestamp no longer advances (a hung controller)."""
-        assert self.controller is not None
         self.controller.freeze_timestamp(True)
 
     def protective_stop_next_move(self, fraction: float = 0.5) -> None:
-        assert self.controller is not None
         self.controller.inject_stop_during_next_move("protective", fraction)
 
     def clear_protective_stop(self) -> None:
-        assert self.controller is not None
         self.controller.set_safety(protective=False)
 
     def send_garbage(self) -> None:
@@ -159,12 +150,10 @@ class Rehearsal:
 
     def kill_tracker(self) -> None:
         """Close the tracker's pty (a tracker unplugged or switched off)."""
-        assert self.tracker is not None
         self.tracker.close()
 
     def silence_tracker(self) -> None:
         """The tracker stays plugged in but answers nothing (no reply to any command, no RESET after a break)."""
-        assert self.tracker is not None
         self.tracker.handle = lambda line: None  # type: ignore[method-assign]
 
     # -- the command line ------------------------------------------------------------------------------------

@@ -36,11 +36,9 @@ def strip_checksum(line: str, kind: str) -> str:
             raise ProtocolError(f"line is not framed as $body*HH: {line!r}")
         body, text = line[1:-3], line[-2:]
         value = xor8(body.encode("ascii"))
-    elif kind == "crc16-arc":
+    else:  # "crc16-arc", the only other kind the profile loader accepts
         body, text = line[:-4], line[-4:]
         value = crc16_arc(body.encode("ascii"))
-    else:  # pragma: no cover - the profile loader rejects other kinds
-        raise ValueError(f"unknown checksum {kind!r}")
     try:
         got = int(text, 16)
     except ValueError as exc:
@@ -100,8 +98,8 @@ class AsciiProtocol:
         m = p.identity_reply.fullmatch(text)
         if m is None:
             identity["notes"] = [f"identity reply {text[:120]!r} does not match {p.identity_reply.pattern!r}"]
-            return identity
-        identity.update({k: v.strip() for k, v in m.groupdict().items() if v and v.strip()})
+        else:
+            identity.update({k: v.strip() for k, v in m.groupdict().items() if v and v.strip()})
         return identity
 
     def identify(self) -> dict[str, object]:
@@ -120,11 +118,9 @@ class AsciiProtocol:
 
     def _parse(self, text: str) -> tuple[np.ndarray, tuple[str, ...]]:
         p = self.profile
-        if p.error_reply is not None:
-            err = p.error_reply.fullmatch(text)
-            if err is not None:
-                code = err.groupdict().get("code") or ""
-                raise DeviceError(f"device error reply {text!r}", code=code)
+        err = p.error_reply.fullmatch(text) if p.error_reply is not None else None
+        if err is not None:
+            raise DeviceError(f"device error reply {text!r}", code=err.groupdict().get("code") or "")
         body = strip_checksum(text, p.checksum)
         m = p.reply.fullmatch(body)
         if m is None:
@@ -173,6 +169,10 @@ class AsciiProtocol:
                     f"{tol * 1e3:.3f} mm"
                 )
         return points, flags
+
+    def read_frames(self, samples: int) -> list[tuple[np.ndarray, tuple[str, ...]]]:
+        """``samples`` frames (see :meth:`read_frame`)."""
+        return [self.read_frame() for _ in range(samples)]
 
     def stop(self) -> None:
         for command in self.profile.close_commands:

@@ -10,17 +10,13 @@ import functools
 import operator
 
 
-def _make_table() -> tuple[int, ...]:
-    table = []
-    for byte in range(256):
-        crc = byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-        table.append(crc)
-    return tuple(table)
+def _arc_of_byte(crc: int) -> int:
+    for _ in range(8):
+        crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc
 
 
-_ARC_TABLE = _make_table()
+_ARC_TABLE = tuple(_arc_of_byte(byte) for byte in range(256))
 
 
 def crc16_arc(data: bytes) -> int:

@@ -64,10 +64,7 @@ def open_serial(url: str, *, baudrate: int, bytesize: int, parity: str, stopbits
             stopbits=stopbits,
             timeout=min(timeout, 0.05),
             write_timeout=max(timeout, 1.0),
-            xonxoff=False,
-            rtscts=False,
-            dsrdtr=False,
-        )
+        )  # and pyserial's defaults: no software or hardware flow control
     except (serial.SerialException, OSError, ValueError) as exc:
         raise ConnectionFailed(f"cannot open serial port {url!r}: {exc}") from exc
 
@@ -89,6 +86,8 @@ def _library_errors() -> tuple[type[BaseException], ...]:
 class SerialLink:
     """A transport plus line framing, with labcal exceptions only.
 
+    read_terminator: non-empty (the profile loader checks an ASCII profile's; NDI's is CR).
+
     clock: monotonic time source in s (injected so scripted tests can simulate timeouts instantly).
     sleep: delay function in s (injected for the same reason).
     """
@@ -105,8 +104,6 @@ class SerialLink:
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
     ):
-        if not read_terminator:
-            raise ValueError("read_terminator must not be empty")
         self.transport = transport
         self.write_terminator = write_terminator
         self.read_terminator = read_terminator
@@ -135,9 +132,8 @@ class SerialLink:
         if written is not None and written != len(data):
             raise DriverTimeout(f"wrote only {written} of {len(data)} bytes")
 
-    def send_line(self, text: str | bytes) -> None:
-        data = text.encode("ascii") if isinstance(text, str) else text
-        self.write(data + self.write_terminator)
+    def send_line(self, text: str) -> None:
+        self.write(text.encode("ascii") + self.write_terminator)
 
     def send_break(self, duration: float = 0.25) -> None:
         self._call("break", self.transport.send_break, duration)

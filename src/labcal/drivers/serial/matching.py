@@ -85,9 +85,7 @@ class Match:
 
 def _match(p: np.ndarray, assignment: dict[int, int], m: int, mismatch: float) -> Match:
     indices = tuple(assignment.get(t, -1) for t in range(m))
-    points = np.full((m, 3), np.nan)
-    for t, s in assignment.items():
-        points[t] = p[s]
+    points = np.where(np.array(indices)[:, None] >= 0, p[list(indices)], np.nan)  # (m, 3), NaN rows: not labelled
     return Match(indices=indices, mismatch=float(mismatch), points=points)
 
 
@@ -113,33 +111,26 @@ def _by_distances(p: np.ndarray, targets: np.ndarray, tolerance: float) -> tuple
             for target in range(m):
                 if target in assignment:
                     continue
-                labelled = list(assignment)
-                markers = [assignment[t] for t in labelled]
-                errors = [
-                    (float(np.max(np.abs(dist[s, markers] - nominal_all[target, labelled]))), s)
-                    for s in range(n)
-                    if s not in markers
-                ]
-                fits = [(e, s) for e, s in errors if e <= tolerance]
+                labelled, markers = list(assignment), list(assignment.values())
+                errors = np.max(np.abs(dist[:, markers] - nominal_all[target, labelled]), axis=1)  # (n,) m
+                errors[markers] = np.inf  # a marker labels one target
+                fits = np.flatnonzero(errors <= tolerance)
                 if len(fits) == 1:
-                    assignment[target] = fits[0][1]
-                    worst = max(worst, fits[0][0])
+                    assignment[target] = int(fits[0])
+                    worst = max(worst, float(errors[fits[0]]))
             key = tuple(sorted(assignment.items()))
             if key not in found or worst < found[key][0]:
                 found[key] = (worst, assignment)
     return sorted(found.values(), key=lambda c: (-len(c[1]), c[0])), best
 
 
-def _by_reference(p: np.ndarray, targets: np.ndarray, reference: np.ndarray, tolerance: float) -> dict[int, int]:
+def _by_reference(p: np.ndarray, reference: np.ndarray, tolerance: float) -> dict[int, int]:
     """Markers lying on a reference position (within ``tolerance``, one candidate each way): {target: marker}."""
     gap = np.linalg.norm(p[:, None, :] - reference[None, :, :], axis=2)  # (n, m), NaN for unseen references
     near = np.nan_to_num(gap, nan=np.inf) <= tolerance
-    assignment = {}
-    for t in range(len(targets)):
-        candidates = np.flatnonzero(near[:, t])
-        if len(candidates) == 1 and near[candidates[0]].sum() == 1:
-            assignment[t] = int(candidates[0])
-    return assignment
+    # A marker near exactly one reference that no other marker is near.
+    unique = near & (near.sum(axis=0) == 1)[None, :] & (near.sum(axis=1) == 1)[:, None]
+    return {int(t): int(s) for t, s in zip(*np.nonzero(unique.T), strict=True)}
 
 
 def match_targets(
@@ -171,7 +162,7 @@ def match_targets(
             return _match(p, assignment, m, worst)
     if reference is not None:
         ref = np.asarray(reference, dtype=float).reshape(m, 3)
-        assignment = _by_reference(p, t, ref, tolerance)
+        assignment = _by_reference(p, ref, tolerance)
         if assignment:
             labelled = sorted(assignment)
             got = pair_distances(p[[assignment[k] for k in labelled]])

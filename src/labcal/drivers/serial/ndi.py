@@ -44,7 +44,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from labcal.drivers.base import ConnectionFailed, DriverTimeout, MeasurementRejected, ProtocolError
+from labcal.drivers.base import ConnectionFailed, DriverTimeout, MeasurementRejected, ProtocolError, average_frames
 from labcal.drivers.serial.crc import crc16_arc
 from labcal.drivers.serial.link import SerialLink, retried
 from labcal.drivers.serial.matching import match_targets
@@ -79,7 +79,6 @@ ERROR_CODES = {
 
 RESET_REPLY = b"RESETBE6F"
 STRAY_CHARS = 21  # three coordinates of sign + 6 digits
-MEASURE_COMMANDS = {"tx": "TX:1000", "bx": "BX:1000"}  # by profile ``reply``
 
 BX_START = b"\xc4\xa5"  # 0xA5C4, little-endian like every binary field
 BX_HEADER_SIZE = 6  # start sequence, body length, header CRC
@@ -115,7 +114,10 @@ def encode_command(command: str) -> bytes:
 
 
 def decode_reply(line: bytes, command: str = "") -> str:
-    """Check the CRC of one reply line (without CR) and return its body. ERRORxx raises NDIError."""
+    """Check the CRC of one reply line (without CR) and return its body. ERRORxx raises NDIError, RESETBE6F
+    DeviceReset."""
+    if line == RESET_REPLY:
+        raise DeviceReset(f"device reset (RESETBE6F) while waiting for the reply to {command!r}")
     if len(line) < 5:
         raise ProtocolError(f"reply to {command!r} too short for a body and CRC: {line!r}")
     body, crc_text = line[:-4], line[-4:]
@@ -144,11 +146,12 @@ class StrayFrame:
     system_status: int
 
 
-def _hex(body: str, start: int, width: int, what: str) -> int:
+def _hex(body: str, start: int, width: int, what: str) -> tuple[int, int]:
+    """The hex field of ``width`` chars at ``start`` and where the next field starts."""
     field = body[start : start + width]
     if len(field) != width or any(c not in "0123456789ABCDEFabcdef" for c in field):
         raise ProtocolError(f"TX reply: {what} at char {start} is not {width} hex digits: {field!r}")
-    return int(field, 16)
+    return int(field, 16), start + width
 
 
 def _coordinate(body: str, start: int) -> float:
@@ -160,25 +163,20 @@ def _coordinate(body: str, start: int) -> float:
 
 def parse_tx_strays(body: str) -> StrayFrame:
     """Parse a ``TX:1000`` reply body (CRC already removed). Raises ProtocolError on any malformation."""
-    handles = _hex(body, 0, 2, "handle count")
-    pos = 2
+    handles, pos = _hex(body, 0, 2, "handle count")
     for k in range(handles):  # tool blocks are not used by labcal; each ends with a line feed
         end = body.find("\n", pos)
         if end < 0:
             raise ProtocolError(f"TX reply: handle block {k + 1} of {handles} has no line feed")
         pos = end + 1
-    n = _hex(body, pos, 2, "stray count")
-    pos += 2
+    n, pos = _hex(body, pos, 2, "stray count")
     n_flags = math.ceil(n / 4)
-    flags = _hex(body, pos, n_flags, "out-of-volume flags") if n_flags else 0
-    pos += n_flags
+    flags, pos = _hex(body, pos, n_flags, "out-of-volume flags") if n_flags else (0, pos)
     expected = pos + n * STRAY_CHARS + 4
     if len(body) != expected:
         raise ProtocolError(f"TX reply with {n} strays should be {expected} chars, got {len(body)}: {body!r}")
-    strays = np.array(
-        [[_coordinate(body, pos + i * STRAY_CHARS + 7 * a) for a in range(3)] for i in range(n)], dtype=float
-    ).reshape(n, 3)
-    status = _hex(body, expected - 4, 4, "system status")
+    strays = np.array([_coordinate(body, pos + 7 * j) for j in range(3 * n)], dtype=float).reshape(n, 3)
+    status, _ = _hex(body, expected - 4, 4, "system status")
     oov = np.array([bool(flags >> i & 1) for i in range(n)], dtype=bool)
     return StrayFrame(strays=strays, out_of_volume=oov, system_status=status)
 
@@ -222,12 +220,13 @@ def split_bx_reply(reply: bytes, command: str = "BX:1000") -> bytes:
     return body
 
 
-def _take(body: bytes, pos: int, size: int, what: str) -> bytes:
+def _take(body: bytes, pos: int, size: int, what: str) -> tuple[bytes, int]:
+    """The ``size`` bytes at ``pos`` and where the next field starts."""
     if pos + size > len(body):
         raise ProtocolError(
             f"BX reply body truncated: {what} needs bytes {pos} to {pos + size - 1}, the body has {len(body)}"
         )
-    return body[pos : pos + size]
+    return body[pos : pos + size], pos + size
 
 
 def parse_bx_body(body: bytes) -> StrayFrame:
@@ -235,19 +234,13 @@ def parse_bx_body(body: bytes) -> StrayFrame:
 
     Raises ProtocolError when the content does not fill the body exactly or a coordinate is NaN or infinite.
     """
-    handles = _take(body, 0, 1, "handle count")[0]
+    (handles,), pos = _take(body, 0, 1, "handle count")
     # Only option 0x1000 is requested, so every handle (disabled, missing or seen) is just id + status.
-    _take(body, 1, 2 * handles, f"{handles} handle id/status pair(s)")
-    pos = 1 + 2 * handles
-    m = _take(body, pos, 1, "stray count")[0]
-    pos += 1
-    n_flags = math.ceil(m / 8)
-    flags = _take(body, pos, n_flags, "out-of-volume bits")
-    pos += n_flags
-    coords = _take(body, pos, m * BX_STRAY_SIZE, f"{m} stray position(s)")
-    pos += m * BX_STRAY_SIZE
-    (status,) = struct.unpack("<H", _take(body, pos, 2, "system status"))
-    pos += 2
+    _, pos = _take(body, pos, 2 * handles, f"{handles} handle id/status pair(s)")
+    (m,), pos = _take(body, pos, 1, "stray count")
+    flags, pos = _take(body, pos, math.ceil(m / 8), "out-of-volume bits")
+    coords, pos = _take(body, pos, m * BX_STRAY_SIZE, f"{m} stray position(s)")
+    status, pos = _take(body, pos, 2, "system status")
     if pos != len(body):
         raise ProtocolError(
             f"BX reply: length mismatch: body is {len(body)} bytes but its content ({m} strays) ends at byte {pos}"
@@ -258,11 +251,9 @@ def parse_bx_body(body: bytes) -> StrayFrame:
         i = int(np.argmin(finite))
         raise ProtocolError(f"BX reply: stray {i} has a non-finite coordinate: {tuple(mm[i].tolist())} mm")
     oov = np.array([bool(flags[j // 8] >> (j % 8) & 1) for j in range(m)], dtype=bool)
-    return StrayFrame(strays=mm * 1e-3, out_of_volume=oov, system_status=int(status))
+    return StrayFrame(strays=mm * 1e-3, out_of_volume=oov, system_status=int.from_bytes(status, "little"))
 
 
-# What labcal asks an NDI device about itself: its combined firmware description and its API revision.
-IDENTITY_COMMANDS = ("VER:4", "APIREV:")
 _VERSION_NUMBER = re.compile(r"(\d+(?:\.\d+)+)\s*$")
 
 
@@ -283,11 +274,10 @@ def parse_ver(text: str) -> dict[str, str]:
     for line in lines:
         key, sep, value = line.partition(":")
         key, value = key.strip().lower(), value.strip()
-        if not sep:
-            if "model" not in identity and line == lines[0]:
-                model = re.sub(r"\s+(control\s+)?firmware$", "", line, flags=re.IGNORECASE).strip()
-                if model:
-                    identity["model"] = model
+        if not sep and line == lines[0]:  # the first line names the device
+            model = re.sub(r"\s+(control\s+)?firmware$", "", line, flags=re.IGNORECASE).strip()
+            if model:
+                identity["model"] = model
         elif value and ("s/n" in key or "serial" in key):
             identity.setdefault("serial", value)
         elif value and ("freeze tag" in key or "firmware revision" in key):
@@ -314,13 +304,7 @@ class NDIProtocol:
         return self._exchange(command, self._ascii_reply, timeout, retries)
 
     def _ascii_reply(self, command: str, timeout: float | None) -> str:
-        return self._decode_line(self.link.read_line(timeout), command)
-
-    @staticmethod
-    def _decode_line(line: bytes, command: str) -> str:
-        if line == RESET_REPLY:
-            raise DeviceReset(f"device reset (RESETBE6F) while waiting for the reply to {command!r}")
-        return decode_reply(line, command)
+        return decode_reply(self.link.read_line(timeout), command)
 
     def _binary_reply(self, command: str, timeout: float | None) -> bytes:
         wait = self.link.timeout if timeout is None else timeout
@@ -329,7 +313,7 @@ class NDIProtocol:
         if head[:5] in (b"ERROR", b"RESET"):
             # Errors and the reset announcement stay ASCII lines; both are longer than a binary header.
             line = head + self.link.read_line(max(deadline - self.link.clock(), 0.0))
-            text = self._decode_line(line, command)  # raises for ERRORxx, RESETBE6F and a bad CRC
+            text = decode_reply(line, command)  # raises for ERRORxx, RESETBE6F and a bad CRC
             raise ProtocolError(f"expected a binary reply to {command!r}, got {text!r}")
         try:
             n = bx_body_length(head, command)
@@ -370,9 +354,9 @@ class NDIProtocol:
             # A device left at another baud rate, or tracking, or mid-command, does not take INIT: reset it.
             if not self.profile.reset_on_failure:
                 raise
-            self._break_reset()
-            self._expect_okay("INIT:", timeout=self.profile.init_timeout)
-        self._switch_baud_and_track()
+            self.recover(hard=True)
+        else:
+            self._switch_baud_and_track()
 
     def _switch_baud_and_track(self) -> None:
         if self.profile.baudrate != 9600:
@@ -384,27 +368,21 @@ class NDIProtocol:
         self._expect_okay("TSTART:")
         self.tracking = True
 
-    def _break_reset(self) -> None:
-        """Serial break -> RESETBE6F at 9600 (raises ConnectionFailed if the device does not reset)."""
-        self.tracking = False
-        self.resets += 1
-        self.link.set_baudrate(9600)
-        self.link.flush_input()
-        self.link.send_break()
-        try:
-            line = self.link.read_line(self.profile.init_timeout)
-        except DriverTimeout as exc:
-            raise ConnectionFailed(f"no RESET reply after a serial break: {exc}") from exc
-        if line != RESET_REPLY:
-            raise ConnectionFailed(f"expected RESETBE6F after a serial break, got {line!r}")
-
     def recover(self, *, hard: bool) -> None:
-        """Bring the device back to tracking: with a break first (hard) or, after a RESET it sent, without."""
+        """Bring the device back to tracking: with a serial break first (hard: the device must answer RESETBE6F at
+        9600, else ConnectionFailed) or, after a RESET it sent, without."""
         self.tracking = False
+        self.link.set_baudrate(9600)
         if hard:
-            self._break_reset()
-        else:
-            self.link.set_baudrate(9600)
+            self.resets += 1
+            self.link.flush_input()
+            self.link.send_break()
+            try:
+                line = self.link.read_line(self.profile.init_timeout)
+            except DriverTimeout as exc:
+                raise ConnectionFailed(f"no RESET reply after a serial break: {exc}") from exc
+            if line != RESET_REPLY:
+                raise ConnectionFailed(f"expected RESETBE6F after a serial break, got {line!r}")
         self._expect_okay("INIT:", timeout=self.profile.init_timeout)
         self._switch_baud_and_track()
 
@@ -424,10 +402,9 @@ class NDIProtocol:
 
     def read_strays(self) -> StrayFrame:
         """One TX:1000 or BX:1000 exchange (with recovery): the unlabelled markers of one frame."""
-        command = MEASURE_COMMANDS[self.profile.reply]
         if self.profile.reply == "bx":
-            return parse_bx_body(self._with_recovery(lambda: self._exchange(command, self._binary_reply, None, None)))
-        return parse_tx_strays(self._with_recovery(lambda: self.command(command)))
+            return parse_bx_body(self._with_recovery(lambda: self._exchange("BX:1000", self._binary_reply, None, None)))
+        return parse_tx_strays(self._with_recovery(lambda: self.command("TX:1000")))
 
     def label(self, frame: StrayFrame, reference: np.ndarray | None = None) -> tuple[np.ndarray, tuple[str, ...]]:
         """Label a frame's markers as the targets: ((m, 3) m, NaN rows for targets not seen; quality flags).
@@ -440,28 +417,45 @@ class NDIProtocol:
         out = [f"t{k + 1}" for k, i in enumerate(match.indices) if i >= 0 and frame.out_of_volume[i]]
         if out:
             raise MeasurementRejected(f"target(s) {', '.join(out)} out of the characterised volume")
-        quality = (f"system_status:0x{frame.system_status:04X}",) if frame.system_status else ()
+        quality: tuple[str, ...] = (f"system_status:0x{frame.system_status:04X}",) if frame.system_status else ()
         quality += tuple(f"missing:t{k + 1}" for k, i in enumerate(match.indices) if i < 0)
         return match.points, quality
+
+    def read_frames(self, samples: int) -> list[tuple[np.ndarray, tuple[str, ...]]]:
+        """``samples`` frames, each labelled (see :meth:`label`); frames too sparse to label alone are labelled from
+        where the others saw the targets (the robot stands still during one measurement)."""
+        raw = [self.read_strays() for _ in range(samples)]
+        labelled: list = []
+        first: MeasurementRejected | None = None
+        for frame in raw:
+            try:
+                labelled.append(self.label(frame))
+            except MeasurementRejected as exc:
+                labelled.append(None)
+                first = first or exc
+        if first is None:
+            return labelled
+        done = [item[0] for item in labelled if item is not None]
+        if not done:
+            raise first
+        reference = average_frames(done, timestamp=0.0).points  # each target over the frames that saw it
+        return [item or self.label(frame, reference) for item, frame in zip(labelled, raw, strict=True)]
 
     def identify(self) -> dict[str, object]:
         """Ask the device who it is (``VER:4``, ``APIREV:``): serial, model, firmware, api_revision, and ``notes``
         for what it would not tell. Never raises a protocol error: a session can be recorded without them."""
         identity: dict[str, object] = {}
         notes = []
-        for command in IDENTITY_COMMANDS:
+        # Its combined firmware description and its API revision, each with what labcal keeps of the reply.
+        for command, parse in (("VER:4", parse_ver), ("APIREV:", lambda body: {"api_revision": body.strip()})):
             try:
                 body = self.command(command, retries=0)
             except (DriverTimeout, ProtocolError) as exc:  # NDIError (ERRORxx) included
                 notes.append(f"{command} not answered: {exc}")
                 continue
-            if command.startswith("VER"):
-                found = parse_ver(body)
-                identity.update(found)
-                if "serial" not in found:
-                    notes.append(f"no serial number in the VER:4 reply {body[:120]!r}")
-            else:
-                identity["api_revision"] = body.strip()
+            identity.update(parse(body))
+            if command == "VER:4" and "serial" not in identity:
+                notes.append(f"no serial number in the VER:4 reply {body[:120]!r}")
         if notes:
             identity["notes"] = notes
         return identity

@@ -16,15 +16,12 @@ import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from labcal.tomlschema import Key, SchemaError, Table, fail, read_toml, validate
 
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6}
 AXES = ("x", "y", "z")
-_COORD_GROUP = re.compile(r"t([1-9][0-9]*)_[xyz]")
-CHECKSUMS = ("none", "nmea", "crc16-arc")
-PARITIES = ("N", "E", "O", "M", "S")
 
 
 class ProfileError(SchemaError):
@@ -116,6 +113,8 @@ class NDIProfile:
     source: str = "<profile>"
     protocol: str = "ndi"
     reply: str = "tx"  # last, so positional construction keeps its meaning
+    write_terminator: ClassVar[bytes] = b"\r"  # the Combined API ends every command and reply with CR
+    read_terminator: ClassVar[bytes] = b"\r"
 
     def __post_init__(self) -> None:
         # Profiles built in code (not loaded from TOML) must not fall back to TX on a typo.
@@ -165,7 +164,7 @@ PORT_SCHEMA = Table(
         "url": Key("str", doc="serial port or pyserial URL (socket://, loop://, a pty path)"),
         "baudrate": Key("int", default=9600, check=_positive),
         "bytesize": Key("int", default=8, choices=(5, 6, 7, 8)),
-        "parity": Key("str", default="N", choices=PARITIES),
+        "parity": Key("str", default="N", choices=("N", "E", "O", "M", "S")),
         "stopbits": Key("number", default=1.0, choices=(1.0, 1.5, 2.0)),
         "timeout": Key("number", default=1.0, unit="s", check=_positive, doc="wait for one reply line"),
     }
@@ -193,7 +192,7 @@ ASCII_SCHEMA = Table(
         "axes": Key(
             "strings", shape=(3,), default=list(AXES), expect="three strings like ['x', '-z', 'y']", check=_axes
         ),
-        "checksum": Key("str", default="none", choices=CHECKSUMS),
+        "checksum": Key("str", default="none", choices=("none", "nmea", "crc16-arc")),
         "init": Key("tables", table=INIT_SCHEMA, default=[]),
         "close_commands": Key("strings", default=[]),
         "retries": Key("int", default=2, check=_non_negative),
@@ -258,7 +257,7 @@ def _fail(source: str, path: str, message: str) -> ProfileError:
 
 def reply_targets(reply: re.Pattern[str], source: str = "<profile>") -> int:
     """The number of targets k a reply regex names (groups t1_x … tk_z, all of them); ProfileError otherwise."""
-    found = [int(m.group(1)) for g in reply.groupindex if (m := _COORD_GROUP.fullmatch(g))]
+    found = [int(m.group(1)) for g in reply.groupindex if (m := re.fullmatch(r"t([1-9][0-9]*)_[xyz]", g))]
     k = max(found, default=1)
     missing = [f"t{i}_{a}" for i in range(1, k + 1) for a in AXES if f"t{i}_{a}" not in reply.groupindex]
     if missing:
@@ -278,7 +277,10 @@ def _ascii(t: dict, port: PortSettings, name: str, source: str) -> AsciiProfile:
     tol_mm = t.get("triangle_tolerance_mm")
     if tol_mm is not None and targets < 2:
         raise _fail(source, "ascii.triangle_tolerance_mm", "needs at least two targets in the reply to compare")
-    optional = {key: re.compile(t[key]) if key in t else None for key in ("error_reply", "missing")}
+    plain: dict[str, Any] = {
+        key: t.get(key) for key in ("mode", "measure_command", "length_unit", "checksum", "retries")
+    }
+    optional: dict[str, Any] = {key: re.compile(t[key]) if key in t else None for key in ("error_reply", "missing")}
     ident = t["identity"]
     if ("command" in ident) != ("reply" in ident):
         given, other = ("command", "reply") if "command" in ident else ("reply", "command")
@@ -287,18 +289,13 @@ def _ascii(t: dict, port: PortSettings, name: str, source: str) -> AsciiProfile:
         name=name,
         port=port,
         reply=reply,
-        mode=t["mode"],
-        measure_command=t.get("measure_command"),
+        **plain,
+        **optional,
         write_terminator=t["write_terminator"].encode("ascii"),
         read_terminator=t["read_terminator"].encode("ascii"),
-        error_reply=optional["error_reply"],
-        missing=optional["missing"],
-        length_unit=t["length_unit"],
         axes=tuple(t["axes"]),
-        checksum=t["checksum"],
         init=tuple(InitStep(s["command"], re.compile(s["expect"]) if "expect" in s else None) for s in t["init"]),
         close_commands=tuple(t["close_commands"]),
-        retries=t["retries"],
         triangle_tolerance=None if tol_mm is None else tol_mm * 1e-3,
         source=source,
         identity_command=ident.get("command"),

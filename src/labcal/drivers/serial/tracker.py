@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from labcal.drivers.base import ClosedOnExit, DriverError, Measurement, MeasurementRejected, average_frames
+from labcal.drivers.base import ClosedOnExit, DriverError, Measurement, average_frames
 from labcal.drivers.serial.ascii import AsciiProtocol
 from labcal.drivers.serial.link import SerialLink, Transport, open_serial
 from labcal.drivers.serial.matching import check_targets
@@ -70,26 +70,20 @@ class SerialTracker(ClosedOnExit):
             target_url = url or profile.port.url
             if not target_url:
                 raise ValueError(f"{profile.source}: no serial port: set [port].url or pass url=")
-            settings = dataclasses.asdict(profile.port)
-            del settings["url"]
-            transport = open_serial(target_url, **settings)
-        if isinstance(profile, AsciiProfile):
-            write, read = profile.write_terminator, profile.read_terminator
-        else:
-            write = read = b"\r"  # the NDI Combined API ends every command and reply with CR
+            transport = open_serial(**{**dataclasses.asdict(profile.port), "url": target_url})
         self.link = SerialLink(
             transport,
-            write_terminator=write,
-            read_terminator=read,
+            write_terminator=profile.write_terminator,
+            read_terminator=profile.read_terminator,
             timeout=profile.port.timeout,
             clock=clock,
             sleep=sleep,
         )
-        self.protocol: NDIProtocol | AsciiProtocol
-        if isinstance(profile, AsciiProfile):
-            self.protocol = AsciiProtocol(profile, targets, self.link)
-        else:
-            self.protocol = NDIProtocol(profile, targets, self.link)
+        self.protocol: NDIProtocol | AsciiProtocol = (
+            AsciiProtocol(profile, targets, self.link)
+            if isinstance(profile, AsciiProfile)
+            else NDIProtocol(profile, targets, self.link)
+        )
         try:
             self.protocol.start()
         except BaseException:
@@ -119,39 +113,11 @@ class SerialTracker(ClosedOnExit):
             raise DriverError("measure() on a closed tracker")
         if isinstance(samples, bool) or not isinstance(samples, int | np.integer) or samples < 1:
             raise ValueError(f"samples must be a positive int, got {samples!r}")
-        if isinstance(self.protocol, NDIProtocol):
-            labelled = self._label_ndi([self.protocol.read_strays() for _ in range(int(samples))])
-        else:
-            labelled = [self.protocol.read_frame() for _ in range(int(samples))]
+        labelled = self.protocol.read_frames(int(samples))
         frames = [points for points, _ in labelled]
         # "missing" flags are the averaged measurement's to give: a target seen in some frame was not missing.
         quality = [f for _, flags in labelled for f in flags if not f.startswith("missing:")]
         return average_frames(frames, timestamp=self._clock(), quality=tuple(dict.fromkeys(quality)))
-
-    def _label_ndi(self, raw: list) -> list[tuple[np.ndarray, tuple[str, ...]]]:
-        """Label each frame's markers; frames too sparse to label alone are labelled from where the others saw
-        the targets (the robot stands still during one measurement)."""
-        assert isinstance(self.protocol, NDIProtocol)
-        labelled: list = []
-        pending: list[int] = []
-        first: MeasurementRejected | None = None
-        for i, frame in enumerate(raw):
-            try:
-                labelled.append(self.protocol.label(frame))
-            except MeasurementRejected as exc:
-                labelled.append(None)
-                pending.append(i)
-                first = first or exc
-        if not pending:
-            return labelled
-        done = [points for item in labelled if item is not None for points in item[:1]]
-        if not done:
-            assert first is not None
-            raise first
-        reference = average_frames(done, timestamp=0.0).points  # each target over the frames that saw it
-        for i in pending:
-            labelled[i] = self.protocol.label(raw[i], reference)
-        return labelled
 
     def close(self) -> None:
         """Stop the device (best effort) and close the port. Safe to call twice."""
