@@ -38,7 +38,6 @@ import csv
 import dataclasses
 import io
 import math
-import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -163,7 +162,7 @@ class _Csv:
     """A CSV read as text. ``rows`` are data rows (blank lines dropped); ``lines[i]`` is row i's file line."""
 
     def __init__(self, path: Path, separator: str) -> None:
-        self.path = path
+        self.path, self.separator = path, separator
         why = input_file_problem(path)
         if why is not None:
             raise ImportFormatError(f"{path} {why}")
@@ -173,39 +172,27 @@ class _Csv:
             raise ImportFormatError(f"cannot be read ({e.strerror or e})", path=str(path)) from None
         text = decode_text(data, path, ImportFormatError, "CSV file")  # the line and the fix of a non-UTF-8 byte
         _refuse_comments(text, path, separator)
-        header = next(csv.reader(io.StringIO(text, newline=""), delimiter=separator), None)
-        if not header or not any(h.strip() for h in header):
+        # strict: a quote left open (or text after a closing quote) is refused with its line instead of swallowing
+        # the rest of the file into one field.
+        rows: list[list[str]] = []
+        try:
+            rows.extend(csv.reader(io.StringIO(text, newline=""), delimiter=separator, strict=True))
+        except csv.Error as e:  # the rows before the bad one are read: it starts on the next line
+            raise ImportFormatError(f"malformed CSV: {e}", path=str(path), line=len(rows) + 1) from None
+        if not rows or not any(h.strip() for h in rows[0]):
             raise ImportFormatError("empty file (no header line)", path=str(path))
-        names = [h.strip() for h in header]
+        names = [h.strip() for h in rows[0]]
         dupes = sorted({n for n in names if names.count(n) > 1})
         if dupes:
             raise ImportFormatError(f"duplicate column name(s) {dupes} in the header", path=str(path), line=1)
-        try:
-            with warnings.catch_warnings():
-                # Every row one field longer than the header would silently become the index (or lose its last
-                # field): refuse it like any other ragged row.
-                warnings.simplefilter("error", pd.errors.ParserWarning)
-                df = pd.read_csv(
-                    path,
-                    sep=separator,
-                    dtype=str,
-                    keep_default_na=False,
-                    na_filter=False,
-                    skip_blank_lines=False,
-                    encoding="utf-8-sig",
-                    engine="c",
-                    index_col=False,
-                )
-        except pd.errors.ParserWarning:
+        long = next((i for i, row in enumerate(rows, start=1) if len(row) > len(names)), None)
+        if long is not None:  # a longer row would be cut to the header or shift every field after it
             raise ImportFormatError(
                 f"a row has more fields than the {len(names)} columns of the header{_separator_hint(names, separator)}",
-                path=str(path), line=_first_long_line(text, separator, len(names)),
-            ) from None  # fmt: skip
-        except pd.errors.ParserError as e:
-            raise ImportFormatError(f"malformed CSV: {e}", path=str(path)) from None
-        except pd.errors.EmptyDataError:
-            raise ImportFormatError("empty file", path=str(path)) from None
-        df.columns = names
+                path=str(path), line=long,
+            )  # fmt: skip
+        # A short row is padded with empty cells (named as missing values where a value is needed).
+        df = pd.DataFrame([row + [""] * (len(names) - len(row)) for row in rows[1:]], columns=names, dtype=str)
         blank = (df.apply(lambda s: s.str.strip()) == "").all(axis=1).to_numpy()
         self.lines = np.flatnonzero(~blank) + 2  # header is line 1
         self.frame = df.loc[~blank].reset_index(drop=True)
@@ -219,13 +206,7 @@ class _Csv:
     def require(self, columns: Sequence[str], what: str) -> None:
         missing = [c for c in columns if c not in self.columns]
         if missing:
-            hint = ""
-            joined = next((sep for sep in (";", "\t", "|") if len(self.columns) == 1 and sep in self.columns[0]), None)
-            if joined is not None:  # one column whose name holds the others: the file is not comma-separated
-                hint = (
-                    f" (the header looks {joined!r}-separated: describe the file with a --mapping TOML whose "
-                    f"separator is {joined!r}, and its decimal mark if it is a comma)"
-                )
+            hint = _separator_hint(self.columns, self.separator)
             raise ImportFormatError(
                 f"missing {what} column(s) {missing}; the file has columns {self.columns}{hint}", path=str(self.path)
             )
@@ -295,7 +276,7 @@ def _separator_hint(names: Sequence[str], separator: str) -> str:
         return ""
     shown = "\\t" if joined == "\t" else joined
     return (
-        f": the file is {joined!r}-separated, not {separator!r}-separated; describe it with a --mapping TOML that says "
+        f"; the header looks {joined!r}-separated: describe the file with a --mapping TOML that says "
         f'separator = "{shown}" (and decimal = "," if its numbers have decimal commas; see labcal\'s mappings/'
         "ipa-ur10.toml)"
     )
@@ -312,12 +293,6 @@ def _refuse_comments(text: str, path: Path, separator: str) -> None:
                 path=str(path),
                 line=i,
             )
-
-
-def _first_long_line(text: str, separator: str, n: int) -> int | None:
-    """1-based line of the first row of the file's ``text`` with more than n fields (for the error message)."""
-    rows = csv.reader(io.StringIO(text, newline=""), delimiter=separator)
-    return next((i for i, row in enumerate(rows, start=1) if len(row) > n), None)
 
 
 def _rotations(angles: np.ndarray, spec: ImportSpec) -> np.ndarray:
