@@ -120,11 +120,10 @@ class ImportSpec:
             raise MappingError(
                 f"separator {self.separator!r} and decimal mark {self.decimal!r} must be single, different characters"
             )
-        if self.form == "probe":
-            if self.convention not in ("rotvec", "euler"):
-                raise MappingError(f'rotation convention must be "rotvec" or "euler", got {self.convention!r}')
-            if self.convention == "euler":
-                _check_sequence(self.euler_sequence)
+        if self.convention not in ("rotvec", "euler"):  # the targets form keeps the default
+            raise MappingError(f'rotation convention must be "rotvec" or "euler", got {self.convention!r}')
+        if self.form == "probe" and self.convention == "euler":
+            _check_sequence(self.euler_sequence)
         if self.form == "targets" and len(self.target_columns) < 1:
             raise MappingError("the targets form needs a target column triple [x, y, z] per target")
         names = [e.name for e in self.extras]
@@ -227,18 +226,15 @@ class _Csv:
                 raise self.error(f"value {text[at]!r} has '.' but the decimal mark is {decimal!r}", at, column)
             text = text.str.replace(decimal, ".", regex=False)
         values = pd.to_numeric(text, errors="coerce").to_numpy(dtype=np.float64, copy=True)
-        for i in np.flatnonzero(~np.isfinite(values)):
-            raw = text[int(i)]
-            if raw == "":
-                if allow_missing or empty_ok:
-                    continue
-                raise self.error("missing value", int(i), column)
-            low = raw.lower().lstrip("+-")
-            if low in ("nan", "inf", "infinity") and not allow_missing:
+        for i in map(int, np.flatnonzero(~np.isfinite(values))):
+            raw, word = text[i], text[i].lower().lstrip("+-") in ("nan", "inf", "infinity")
+            if raw == "" and not (allow_missing or empty_ok):
+                raise self.error("missing value", i, column)
+            if word and not allow_missing:
                 empty = "; leave the cell empty for a target not seen" if empty_ok else ""
-                raise self.error(f"non-finite value {raw!r} (NaN/inf are not measurements{empty})", int(i), column)
-            if low not in ("nan", "inf", "infinity"):
-                raise self.error(f"non-numeric value {self.frame[column][int(i)]!r}", int(i), column)
+                raise self.error(f"non-finite value {raw!r} (NaN/inf are not measurements{empty})", i, column)
+            if raw and not word:
+                raise self.error(f"non-numeric value {self.frame[column][i]!r}", i, column)
         if allow_missing or empty_ok:
             values[~np.isfinite(values)] = np.nan
         return values
@@ -566,9 +562,10 @@ def _plain_spec(form: str, opts: ImportOptions, n_joints: int, **fields: Any) ->
     )
 
 
-def _read_options(opts: ImportOptions) -> dict[str, Any]:
-    """The reading options of a plain CSV import, as recorded in the version's provenance."""
-    return {k: getattr(opts, k) for k in ("length_unit", "angle_unit", "frame", "separator", "decimal")}
+def _read_options(opts: ImportOptions, *more: str) -> dict[str, Any]:
+    """The reading options of a plain CSV import (and the ``more`` of its form), as recorded in the version's
+    provenance."""
+    return {k: getattr(opts, k) for k in ("length_unit", "angle_unit", "frame", "separator", "decimal", *more)}
 
 
 def import_targets_csv(
@@ -635,14 +632,8 @@ def import_probe_csv(
         convention=opts.rotation,
         euler_sequence=opts.euler_sequence,
     )
-    recorded = {
-        **_read_options(opts),
-        "rotation_unit": spec.rotation_unit,
-        "rotation": opts.rotation,
-        "euler_sequence": opts.euler_sequence,
-        "offsets_m": v.tolist(),
-        "columns": columns,
-    }
+    recorded = {**_read_options(opts, "rotation", "euler_sequence"), "rotation_unit": spec.rotation_unit}
+    recorded |= {"offsets_m": v.tolist(), "columns": columns}
     labels = _Labels(robot_name, robot_hash, n_joints, v)
     return _run_import(store, path, spec, labels, opts, recorded)
 
