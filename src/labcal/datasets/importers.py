@@ -48,7 +48,7 @@ import pandas as pd
 
 from labcal.tomlschema import Key, Table, decode_text, fail, input_file_problem, read_toml, validate
 
-from ._util import sha256_bytes, sha256_file
+from ._util import sha256_file
 from .documents import metadata_with_unit
 from .errors import DatasetError, ImportFormatError, MappingError, TargetsError
 from .ids import validate_id
@@ -106,22 +106,20 @@ class ImportSpec:
     description: str = ""
 
     def check(self) -> None:
-        if self.form not in ("targets", "probe"):
-            raise MappingError(f'form must be "targets" or "probe", got {self.form!r}')
-        if self.frame not in FRAMES:
-            raise MappingError(f"frame must be one of {FRAMES}, got {self.frame!r}")
-        if self.joint_unit not in ANGLE_UNITS:
-            raise MappingError(f'joint angle unit must be "rad" or "deg", got {self.joint_unit!r}')
-        if self.length_unit not in LENGTH_UNITS:
-            raise MappingError(f'length unit must be "m", "mm" or "in", got {self.length_unit!r}')
-        if self.rotation_unit not in ANGLE_UNITS:
-            raise MappingError(f'rotation angle unit must be "rad" or "deg", got {self.rotation_unit!r}')
+        for value, allowed, rule in (
+            (self.form, ("targets", "probe"), 'form must be "targets" or "probe"'),
+            (self.frame, FRAMES, f"frame must be one of {FRAMES}"),
+            (self.joint_unit, ANGLE_UNITS, 'joint angle unit must be "rad" or "deg"'),
+            (self.length_unit, LENGTH_UNITS, 'length unit must be "m", "mm" or "in"'),
+            (self.rotation_unit, ANGLE_UNITS, 'rotation angle unit must be "rad" or "deg"'),
+            (self.convention, ("rotvec", "euler"), 'rotation convention must be "rotvec" or "euler"'),
+        ):
+            if value not in allowed:
+                raise MappingError(f"{rule}, got {value!r}")
         if len(self.separator) != 1 or len(self.decimal) != 1 or self.separator == self.decimal:
             raise MappingError(
                 f"separator {self.separator!r} and decimal mark {self.decimal!r} must be single, different characters"
             )
-        if self.convention not in ("rotvec", "euler"):  # the targets form keeps the default
-            raise MappingError(f'rotation convention must be "rotvec" or "euler", got {self.convention!r}')
         if self.form == "probe" and self.convention == "euler":
             _check_sequence(self.euler_sequence)
         if self.form == "targets" and len(self.target_columns) < 1:
@@ -346,17 +344,15 @@ def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, targets: np.ndarray
                     "target(s) to the targets file (tool frame), in the order of the CSV",
                     path=str(csvf.path),
                 )
-        values = np.stack([csvf.numbers(c, d, empty_ok=True) for c in cols], axis=1)
-        csvf.check_seen(cols, values.reshape(len(csvf), m, 3))
-        for j, name in enumerate(target_columns(m)):
-            rows[name] = values[:, j] * scale
+        pts = np.stack([csvf.numbers(c, d, empty_ok=True) for c in cols], axis=1).reshape(len(csvf), m, 3)
+        csvf.check_seen(cols, pts)
+        pts = pts * scale
     else:
         csvf.require([*spec.position, *spec.rotation], "probe pose")
         t = np.stack([csvf.numbers(c, d) for c in spec.position], axis=1) * scale
         ang = np.stack([csvf.numbers(c, d) for c in spec.rotation], axis=1)
         pts = probe_points(t, _rotations(ang, spec), targets)
-        for i, name in enumerate(target_columns(pts.shape[1])):
-            rows[name] = pts[:, i // 3, i % 3]
+    rows |= dict(zip(target_columns(pts.shape[1]), pts.reshape(len(csvf), -1).T, strict=True))
     if spec.split_column and spec.split_column in csvf.columns:
         values = csvf.frame[spec.split_column].str.strip().tolist()
         for i, v in enumerate(values):
@@ -820,7 +816,6 @@ def import_mapped(
             angle=f'joint_unit = "{{unit}}" {where}',
             frame=f'frame = "{{frame}}" {where}',
         )
-    text = mpath.read_bytes()
-    recorded = {"mapping": mpath.stem, "mapping_sha256": sha256_bytes(text), "mapping_content": doc}
+    recorded = {"mapping": mpath.stem, "mapping_sha256": sha256_file(mpath), "mapping_content": doc}
     labels = _Labels(robot_name, robot_hash, n_joints, t)
     return _run_import(store, path, spec, labels, opts.with_changes(hints=hints), recorded)
