@@ -768,13 +768,13 @@ def _check_duplicates(q, existing_q, final, hints, report) -> None:
         )
     if len(dup_rows) > 0.5 * len(all_q):
         report.add("duplicates", f"{len(dup_rows)} of {len(all_q)} rows repeat a pose (only {n_distinct} "
-             f"distinct): a fit would learn the repeats, not the robot; measure distinct poses",
-             [int(i) - offset for i in dup_rows[:20] if i >= offset])  # fmt: skip
+                   f"distinct): a fit would learn the repeats, not the robot; measure distinct poses",
+                   [int(i) - offset for i in dup_rows[:20] if i >= offset])  # fmt: skip
     need = 2 * all_q.shape[1]
     if final and n_distinct < need:
         report.add("few-poses", f"only {n_distinct} distinct pose(s) in {len(all_q)} rows; calibrating "
-             f"{all_q.shape[1]} joints needs at least {need} (2 per joint) spread over the workspace: "
-             f"measure more poses")  # fmt: skip
+                   f"{all_q.shape[1]} joints needs at least {need} (2 per joint) spread over the workspace: "
+                   f"measure more poses")  # fmt: skip
 
 
 def _row_or_earlier(i: int, offset: int, hints: Hints) -> str:
