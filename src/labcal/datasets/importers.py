@@ -38,6 +38,7 @@ import csv
 import dataclasses
 import io
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -64,6 +65,8 @@ ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 #: Default virtual target offsets of the probe form, in the probe frame (m).
 DEFAULT_PROBE_OFFSETS = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
 MAPPINGS_DIR = Path(__file__).parent / "mappings"
+#: A scipy Euler sequence: three axes of one case (upper: intrinsic, lower: extrinsic), none twice in a row.
+_EULER_SEQUENCE = re.compile(r"(?!.*(.)\1)(?:[XYZ]{3}|[xyz]{3})")
 #: Units an extra (passthrough) column may be converted from, to SI.
 _TO_SI = {"mm": ("m", 1e-3), "deg": ("rad", math.pi / 180.0)}
 
@@ -136,19 +139,12 @@ class ImportSpec:
 
 
 def _check_sequence(seq: object) -> str:
-    ok = (
-        isinstance(seq, str)
-        and len(seq) == 3
-        and (set(seq) <= set("xyz") or set(seq) <= set("XYZ"))
-        and seq[0].lower() != seq[1].lower()
-        and seq[1].lower() != seq[2].lower()
-    )
-    if not ok:
+    if not (isinstance(seq, str) and _EULER_SEQUENCE.fullmatch(seq)):
         raise MappingError(
             f"Euler sequence must be 3 axes, all upper case (intrinsic, e.g. 'XYZ') or all lower case "
             f"(extrinsic, e.g. 'xyz'), no axis twice in a row; got {seq!r}"
         )
-    return seq  # type: ignore[return-value]
+    return seq
 
 
 # --------------------------------------------------------------------------------------------------------------
