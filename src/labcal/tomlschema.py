@@ -198,9 +198,8 @@ def _expected(key: Key, dims: Mapping[str, int]) -> str:
     if key.kind == "vectors":
         inner = _plural(cols, "number") if cols is not None else "numbers"
         return (f"{rows} rows of {inner}" if rows is not None else f"a list of rows of {inner}") + unit
-    if key.kind == "strings":
-        return f"a list of {_plural(rows, 'string')}" if rows is not None else "a list of strings"
-    return "a table" if key.kind == "table" else "an array of tables"
+    # strings (a table, an array of tables or any value is never of the wrong kind here: validate checks them)
+    return f"a list of {_plural(rows, 'string')}" if rows is not None else "a list of strings"
 
 
 def _numbers(value: Any, n: int | None) -> bool:
@@ -262,16 +261,12 @@ def validate(
     out: dict = {}
     for name, key in table.keys.items():
         where = f"{path}.{name}" if path else name
-        if name not in data:
-            if key.required:
-                raise fail(source, where, "is missing (required)", error)
-            if key.default is not MISSING and key.kind == "table":
-                assert key.table is not None  # an absent table is its default run through its schema (defaults)
-                out[name] = validate(key.default, key.table, source=source, path=where, error=error, dims=dims)
-            elif key.default is not MISSING:
-                out[name] = key.default
+        if name not in data and key.required:
+            raise fail(source, where, "is missing (required)", error)
+        if name not in data and key.default is MISSING:
             continue
-        value = data[name]
+        # An absent key takes its default through the same checks (an absent table gets its own keys' defaults).
+        value = data.get(name, key.default)
         if key.kind == "table":
             assert key.table is not None
             out[name] = validate(value, key.table, source=source, path=where, error=error, dims=dims)

@@ -38,7 +38,7 @@ import csv
 import dataclasses
 import io
 import math
-import warnings
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,7 +49,7 @@ import pandas as pd
 
 from labcal.tomlschema import Key, Table, decode_text, fail, input_file_problem, read_toml, validate
 
-from ._util import sha256_bytes, sha256_file
+from ._util import sha256_file
 from .documents import metadata_with_unit
 from .errors import DatasetError, ImportFormatError, MappingError, TargetsError
 from .ids import validate_id
@@ -65,6 +65,8 @@ ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
 #: Default virtual target offsets of the probe form, in the probe frame (m).
 DEFAULT_PROBE_OFFSETS = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
 MAPPINGS_DIR = Path(__file__).parent / "mappings"
+#: A scipy Euler sequence: three axes of one case (upper: intrinsic, lower: extrinsic), none twice in a row.
+_EULER_SEQUENCE = re.compile(r"(?!.*(.)\1)(?:[XYZ]{3}|[xyz]{3})")
 #: Units an extra (passthrough) column may be converted from, to SI.
 _TO_SI = {"mm": ("m", 1e-3), "deg": ("rad", math.pi / 180.0)}
 
@@ -107,25 +109,22 @@ class ImportSpec:
     description: str = ""
 
     def check(self) -> None:
-        if self.form not in ("targets", "probe"):
-            raise MappingError(f'form must be "targets" or "probe", got {self.form!r}')
-        if self.frame not in FRAMES:
-            raise MappingError(f"frame must be one of {FRAMES}, got {self.frame!r}")
-        if self.joint_unit not in ANGLE_UNITS:
-            raise MappingError(f'joint angle unit must be "rad" or "deg", got {self.joint_unit!r}')
-        if self.length_unit not in LENGTH_UNITS:
-            raise MappingError(f'length unit must be "m", "mm" or "in", got {self.length_unit!r}')
-        if self.rotation_unit not in ANGLE_UNITS:
-            raise MappingError(f'rotation angle unit must be "rad" or "deg", got {self.rotation_unit!r}')
+        for value, allowed, rule in (
+            (self.form, ("targets", "probe"), 'form must be "targets" or "probe"'),
+            (self.frame, FRAMES, f"frame must be one of {FRAMES}"),
+            (self.joint_unit, ANGLE_UNITS, 'joint angle unit must be "rad" or "deg"'),
+            (self.length_unit, LENGTH_UNITS, 'length unit must be "m", "mm" or "in"'),
+            (self.rotation_unit, ANGLE_UNITS, 'rotation angle unit must be "rad" or "deg"'),
+            (self.convention, ("rotvec", "euler"), 'rotation convention must be "rotvec" or "euler"'),
+        ):
+            if value not in allowed:
+                raise MappingError(f"{rule}, got {value!r}")
         if len(self.separator) != 1 or len(self.decimal) != 1 or self.separator == self.decimal:
             raise MappingError(
                 f"separator {self.separator!r} and decimal mark {self.decimal!r} must be single, different characters"
             )
-        if self.form == "probe":
-            if self.convention not in ("rotvec", "euler"):
-                raise MappingError(f'rotation convention must be "rotvec" or "euler", got {self.convention!r}')
-            if self.convention == "euler":
-                _check_sequence(self.euler_sequence)
+        if self.form == "probe" and self.convention == "euler":
+            _check_sequence(self.euler_sequence)
         if self.form == "targets" and len(self.target_columns) < 1:
             raise MappingError("the targets form needs a target column triple [x, y, z] per target")
         names = [e.name for e in self.extras]
@@ -140,19 +139,12 @@ class ImportSpec:
 
 
 def _check_sequence(seq: object) -> str:
-    ok = (
-        isinstance(seq, str)
-        and len(seq) == 3
-        and (set(seq) <= set("xyz") or set(seq) <= set("XYZ"))
-        and seq[0].lower() != seq[1].lower()
-        and seq[1].lower() != seq[2].lower()
-    )
-    if not ok:
+    if not (isinstance(seq, str) and _EULER_SEQUENCE.fullmatch(seq)):
         raise MappingError(
             f"Euler sequence must be 3 axes, all upper case (intrinsic, e.g. 'XYZ') or all lower case "
             f"(extrinsic, e.g. 'xyz'), no axis twice in a row; got {seq!r}"
         )
-    return seq  # type: ignore[return-value]
+    return seq
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -163,7 +155,7 @@ class _Csv:
     """A CSV read as text. ``rows`` are data rows (blank lines dropped); ``lines[i]`` is row i's file line."""
 
     def __init__(self, path: Path, separator: str) -> None:
-        self.path = path
+        self.path, self.separator = path, separator
         why = input_file_problem(path)
         if why is not None:
             raise ImportFormatError(f"{path} {why}")
@@ -173,39 +165,27 @@ class _Csv:
             raise ImportFormatError(f"cannot be read ({e.strerror or e})", path=str(path)) from None
         text = decode_text(data, path, ImportFormatError, "CSV file")  # the line and the fix of a non-UTF-8 byte
         _refuse_comments(text, path, separator)
-        header = next(csv.reader(io.StringIO(text, newline=""), delimiter=separator), None)
-        if not header or not any(h.strip() for h in header):
+        # strict: a quote left open (or text after a closing quote) is refused with its line instead of swallowing
+        # the rest of the file into one field.
+        rows: list[list[str]] = []
+        try:
+            rows.extend(csv.reader(io.StringIO(text, newline=""), delimiter=separator, strict=True))
+        except csv.Error as e:  # the rows before the bad one are read: it starts on the next line
+            raise ImportFormatError(f"malformed CSV: {e}", path=str(path), line=len(rows) + 1) from None
+        if not rows or not any(h.strip() for h in rows[0]):
             raise ImportFormatError("empty file (no header line)", path=str(path))
-        names = [h.strip() for h in header]
+        names = [h.strip() for h in rows[0]]
         dupes = sorted({n for n in names if names.count(n) > 1})
         if dupes:
             raise ImportFormatError(f"duplicate column name(s) {dupes} in the header", path=str(path), line=1)
-        try:
-            with warnings.catch_warnings():
-                # Every row one field longer than the header would silently become the index (or lose its last
-                # field): refuse it like any other ragged row.
-                warnings.simplefilter("error", pd.errors.ParserWarning)
-                df = pd.read_csv(
-                    path,
-                    sep=separator,
-                    dtype=str,
-                    keep_default_na=False,
-                    na_filter=False,
-                    skip_blank_lines=False,
-                    encoding="utf-8-sig",
-                    engine="c",
-                    index_col=False,
-                )
-        except pd.errors.ParserWarning:
+        long = next((i for i, row in enumerate(rows, start=1) if len(row) > len(names)), None)
+        if long is not None:  # a longer row would be cut to the header or shift every field after it
             raise ImportFormatError(
                 f"a row has more fields than the {len(names)} columns of the header{_separator_hint(names, separator)}",
-                path=str(path), line=_first_long_line(text, separator, len(names)),
-            ) from None  # fmt: skip
-        except pd.errors.ParserError as e:
-            raise ImportFormatError(f"malformed CSV: {e}", path=str(path)) from None
-        except pd.errors.EmptyDataError:
-            raise ImportFormatError("empty file", path=str(path)) from None
-        df.columns = names
+                path=str(path), line=long,
+            )  # fmt: skip
+        # A short row is padded with empty cells (named as missing values where a value is needed).
+        df = pd.DataFrame([row + [""] * (len(names) - len(row)) for row in rows[1:]], columns=names, dtype=str)
         blank = (df.apply(lambda s: s.str.strip()) == "").all(axis=1).to_numpy()
         self.lines = np.flatnonzero(~blank) + 2  # header is line 1
         self.frame = df.loc[~blank].reset_index(drop=True)
@@ -219,13 +199,7 @@ class _Csv:
     def require(self, columns: Sequence[str], what: str) -> None:
         missing = [c for c in columns if c not in self.columns]
         if missing:
-            hint = ""
-            joined = next((sep for sep in (";", "\t", "|") if len(self.columns) == 1 and sep in self.columns[0]), None)
-            if joined is not None:  # one column whose name holds the others: the file is not comma-separated
-                hint = (
-                    f" (the header looks {joined!r}-separated: describe the file with a --mapping TOML whose "
-                    f"separator is {joined!r}, and its decimal mark if it is a comma)"
-                )
+            hint = _separator_hint(self.columns, self.separator)
             raise ImportFormatError(
                 f"missing {what} column(s) {missing}; the file has columns {self.columns}{hint}", path=str(self.path)
             )
@@ -246,18 +220,15 @@ class _Csv:
                 raise self.error(f"value {text[at]!r} has '.' but the decimal mark is {decimal!r}", at, column)
             text = text.str.replace(decimal, ".", regex=False)
         values = pd.to_numeric(text, errors="coerce").to_numpy(dtype=np.float64, copy=True)
-        for i in np.flatnonzero(~np.isfinite(values)):
-            raw = text[int(i)]
-            if raw == "":
-                if allow_missing or empty_ok:
-                    continue
-                raise self.error("missing value", int(i), column)
-            low = raw.lower().lstrip("+-")
-            if low in ("nan", "inf", "infinity") and not allow_missing:
+        for i in map(int, np.flatnonzero(~np.isfinite(values))):
+            raw, word = text[i], text[i].lower().lstrip("+-") in ("nan", "inf", "infinity")
+            if raw == "" and not (allow_missing or empty_ok):
+                raise self.error("missing value", i, column)
+            if word and not allow_missing:
                 empty = "; leave the cell empty for a target not seen" if empty_ok else ""
-                raise self.error(f"non-finite value {raw!r} (NaN/inf are not measurements{empty})", int(i), column)
-            if low not in ("nan", "inf", "infinity"):
-                raise self.error(f"non-numeric value {self.frame[column][int(i)]!r}", int(i), column)
+                raise self.error(f"non-finite value {raw!r} (NaN/inf are not measurements{empty})", i, column)
+            if raw and not word:
+                raise self.error(f"non-numeric value {self.frame[column][i]!r}", i, column)
         if allow_missing or empty_ok:
             values[~np.isfinite(values)] = np.nan
         return values
@@ -295,7 +266,7 @@ def _separator_hint(names: Sequence[str], separator: str) -> str:
         return ""
     shown = "\\t" if joined == "\t" else joined
     return (
-        f": the file is {joined!r}-separated, not {separator!r}-separated; describe it with a --mapping TOML that says "
+        f"; the header looks {joined!r}-separated: describe the file with a --mapping TOML that says "
         f'separator = "{shown}" (and decimal = "," if its numbers have decimal commas; see labcal\'s mappings/'
         "ipa-ur10.toml)"
     )
@@ -312,12 +283,6 @@ def _refuse_comments(text: str, path: Path, separator: str) -> None:
                 path=str(path),
                 line=i,
             )
-
-
-def _first_long_line(text: str, separator: str, n: int) -> int | None:
-    """1-based line of the first row of the file's ``text`` with more than n fields (for the error message)."""
-    rows = csv.reader(io.StringIO(text, newline=""), delimiter=separator)
-    return next((i for i, row in enumerate(rows, start=1) if len(row) > n), None)
 
 
 def _rotations(angles: np.ndarray, spec: ImportSpec) -> np.ndarray:
@@ -375,17 +340,15 @@ def _build_rows(csvf: _Csv, spec: ImportSpec, n_joints: int, targets: np.ndarray
                     "target(s) to the targets file (tool frame), in the order of the CSV",
                     path=str(csvf.path),
                 )
-        values = np.stack([csvf.numbers(c, d, empty_ok=True) for c in cols], axis=1)
-        csvf.check_seen(cols, values.reshape(len(csvf), m, 3))
-        for j, name in enumerate(target_columns(m)):
-            rows[name] = values[:, j] * scale
+        pts = np.stack([csvf.numbers(c, d, empty_ok=True) for c in cols], axis=1).reshape(len(csvf), m, 3)
+        csvf.check_seen(cols, pts)
+        pts = pts * scale
     else:
         csvf.require([*spec.position, *spec.rotation], "probe pose")
         t = np.stack([csvf.numbers(c, d) for c in spec.position], axis=1) * scale
         ang = np.stack([csvf.numbers(c, d) for c in spec.rotation], axis=1)
         pts = probe_points(t, _rotations(ang, spec), targets)
-        for i, name in enumerate(target_columns(pts.shape[1])):
-            rows[name] = pts[:, i // 3, i % 3]
+    rows |= dict(zip(target_columns(pts.shape[1]), pts.reshape(len(csvf), -1).T, strict=True))
     if spec.split_column and spec.split_column in csvf.columns:
         values = csvf.frame[spec.split_column].str.strip().tolist()
         for i, v in enumerate(values):
@@ -591,9 +554,10 @@ def _plain_spec(form: str, opts: ImportOptions, n_joints: int, **fields: Any) ->
     )
 
 
-def _read_options(opts: ImportOptions) -> dict[str, Any]:
-    """The reading options of a plain CSV import, as recorded in the version's provenance."""
-    return {k: getattr(opts, k) for k in ("length_unit", "angle_unit", "frame", "separator", "decimal")}
+def _read_options(opts: ImportOptions, *more: str) -> dict[str, Any]:
+    """The reading options of a plain CSV import (and the ``more`` of its form), as recorded in the version's
+    provenance."""
+    return {k: getattr(opts, k) for k in ("length_unit", "angle_unit", "frame", "separator", "decimal", *more)}
 
 
 def import_targets_csv(
@@ -660,14 +624,8 @@ def import_probe_csv(
         convention=opts.rotation,
         euler_sequence=opts.euler_sequence,
     )
-    recorded = {
-        **_read_options(opts),
-        "rotation_unit": spec.rotation_unit,
-        "rotation": opts.rotation,
-        "euler_sequence": opts.euler_sequence,
-        "offsets_m": v.tolist(),
-        "columns": columns,
-    }
+    recorded = {**_read_options(opts, "rotation", "euler_sequence"), "rotation_unit": spec.rotation_unit}
+    recorded |= {"offsets_m": v.tolist(), "columns": columns}
     labels = _Labels(robot_name, robot_hash, n_joints, v)
     return _run_import(store, path, spec, labels, opts, recorded)
 
@@ -854,7 +812,6 @@ def import_mapped(
             angle=f'joint_unit = "{{unit}}" {where}',
             frame=f'frame = "{{frame}}" {where}',
         )
-    text = mpath.read_bytes()
-    recorded = {"mapping": mpath.stem, "mapping_sha256": sha256_bytes(text), "mapping_content": doc}
+    recorded = {"mapping": mpath.stem, "mapping_sha256": sha256_file(mpath), "mapping_content": doc}
     labels = _Labels(robot_name, robot_hash, n_joints, t)
     return _run_import(store, path, spec, labels, opts.with_changes(hints=hints), recorded)

@@ -84,6 +84,8 @@ DUPLICATE_TOL = 1e-6
 HYPOTHESIS_ROWS = 400
 
 _PAIRS = target_pairs(3)
+#: Every order of three targets but the targets file's (a swap or a rotation of the labels).
+_REORDERS = list(itertools.permutations(range(3)))[1:]
 
 
 class SanityError(DatasetError, ValueError):
@@ -137,6 +139,7 @@ class SanityReport:
     notes: list[str] = field(default_factory=list)
     stats: dict[str, Any] = field(default_factory=dict)
     hints: Hints = field(default_factory=Hints)
+    allow: frozenset[str] = frozenset()  # the checks whose failure is only recorded (``allowed``)
 
     @property
     def ok(self) -> bool:
@@ -161,6 +164,10 @@ class SanityReport:
     def raise_if_failed(self) -> None:
         if self.failures:
             raise SanityError(self, self.message())
+
+    def add(self, check: str, message: str, rows: Iterable[int] = ()) -> None:
+        """File a finding of ``check`` (rows: 0-based rows at fault, the first few) as a failure, or as allowed."""
+        (self.allowed if check in self.allow else self.failures).append(Finding(check, message, [int(i) for i in rows]))
 
 
 def check_names(allow: Iterable[str] | None) -> frozenset[str]:
@@ -343,7 +350,7 @@ def _seen_pair_distances(points, targets):
     return pairs, d_file[together], d[rows][:, together], rows
 
 
-def _check_target_distances(points, targets, length_unit, hints, report, allow) -> None:
+def _check_target_distances(points, targets, length_unit, hints, report) -> None:
     """Distances between targets seen together in a row against the targets file (pairs never seen together, and
     sessions with one target, have nothing to compare)."""
     pairs, d_file, d, rows = _seen_pair_distances(points, targets)
@@ -361,10 +368,10 @@ def _check_target_distances(points, targets, length_unit, hints, report, allow) 
     tol = np.maximum(TARGET_ABS_TOL, TARGET_REL_TOL * d_file)
     message = _target_distance_message(pairs, med, d_file, ratio, tol, len(points), targets, length_unit, hints)
     if message is not None:
-        _add(report, allow, "target-distances", message)
-        if "target-distances" not in allow:
+        report.add("target-distances", message)
+        if "target-distances" not in report.allow:
             return  # per-row outliers mean nothing against the wrong triangle
-    _check_target_outlier_rows(pairs, d, med, d_file, hints, report, allow)
+    _check_target_outlier_rows(pairs, d, med, d_file, hints, report)
 
 
 def _target_distance_message(pairs, med, d_file, ratio, tol, n_rows, targets, length_unit, hints) -> str | None:
@@ -382,19 +389,13 @@ def _target_distance_message(pairs, med, d_file, ratio, tol, n_rows, targets, le
         np.abs(med / d_file / ratio - 1) < UNIT_RATIO_TOL - 1
     ):
         return f"{slip} (median over {n_rows} rows: {listing})"
-    best, best_err = None, np.inf
-    for perm in itertools.permutations(range(3)) if pairs == _PAIRS else ():
-        if perm == (0, 1, 2):
-            continue
-        fp = pair_distances(targets[list(perm)])
-        err = float(np.max(np.abs(med - fp) - tol))
-        if err < best_err:
-            best, best_err = perm, err
-    if best is not None and best_err <= 0:
+    orders = _REORDERS if pairs == _PAIRS else []
+    errors = [float(np.max(np.abs(med - pair_distances(targets[list(o)])) - tol)) for o in orders]
+    if errors and min(errors) <= 0:
         return (
-            f"targets look swapped: {_perm_text(best)} — the measured distances match the targets file with "
-            f"the targets in that order ({listing}); reorder the points in the targets file or the CSV's "
-            f"target columns"
+            f"targets look swapped: {_perm_text(orders[errors.index(min(errors))])} — the measured distances match "
+            f"the targets file with the targets in that order ({listing}); reorder the points in the targets file or "
+            "the CSV's target columns"
         )
     return (
         f"the targets file's {'triangle does' if pairs == _PAIRS else 'distances do'} not match the data "
@@ -404,7 +405,7 @@ def _target_distance_message(pairs, med, d_file, ratio, tol, n_rows, targets, le
     )
 
 
-def _check_target_outlier_rows(pairs, d, med, d_file, hints, report, allow) -> None:
+def _check_target_outlier_rows(pairs, d, med, d_file, hints, report) -> None:
     """Rows against the data's own median distances: equal to the file's when the distance check passed, and still
     meaningful when a scale mismatch was allowed."""
     gap = np.abs(d - med)
@@ -417,9 +418,7 @@ def _check_target_outlier_rows(pairs, d, med, d_file, hints, report, allow) -> N
         worst = int(bad[np.argmax(dev[bad])])
         pair = int(np.nanargmax(gap[worst]))
         a, b = pairs[pair]
-        _add(
-            report,
-            allow,
+        report.add(
             "target-outliers",
             f"{len(bad)} row(s) have target distances off the other rows' by more than {_mm(limit)}: "
             f"{hints.rows_text(bad)}; worst {hints.row_text(worst)}: t{a + 1}–t{b + 1} "
@@ -438,7 +437,7 @@ def _joint_name(robot: RobotSpec, j: int) -> str:
     return f"joint {j + 1}" + (f" ({name})" if name and name != f"joint{j + 1}" else "")
 
 
-def _check_joint_limits(q, robot, angle_unit, hints, report, allow) -> None:
+def _check_joint_limits(q, robot, angle_unit, hints, report) -> None:
     jm = robot.joints
     qm = jm.to_model(q)
     lim = robot.model.limits
@@ -465,7 +464,7 @@ def _check_joint_limits(q, robot, angle_unit, hints, report, allow) -> None:
     if angle_unit == "rad" and rev.any():
         fix = _limits_fix(q, qm, robot, rev, bad_joints, hints) or fix
     message = f"joint values outside the robot's limits{mapped}: " + "; ".join(parts) + f": {fix}"
-    _add(report, allow, "joint-limits", message, np.flatnonzero(bad.any(axis=1))[:20])
+    report.add("joint-limits", message, np.flatnonzero(bad.any(axis=1))[:20])
 
 
 def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
@@ -507,7 +506,7 @@ def _limits_fix(q, qm, robot, rev, bad_joints, hints) -> str | None:
     return None
 
 
-def _check_joint_span(q, robot, angle_unit, hints, report, allow) -> None:
+def _check_joint_span(q, robot, angle_unit, hints, report) -> None:
     rev = _revolute(robot)
     if angle_unit != "deg" or not rev.any() or len(q) < 3:
         return
@@ -518,9 +517,7 @@ def _check_joint_span(q, robot, angle_unit, hints, report, allow) -> None:
     as_read = np.degrees(np.abs(q[:, rev])).max()
     if np.all(span < SPAN_TINY) and np.all(width > SPAN_WIDE_LIMITS) and as_read <= 2 * math.pi * 1.001:
         j = int(np.flatnonzero(rev)[np.argmax(span)])
-        _add(
-            report,
-            allow,
+        report.add(
             "joint-span",
             f"every joint moves less than {math.degrees(SPAN_TINY):.0f}° over the {len(q)} rows (largest span "
             f"{math.degrees(span.max()):.2f}° on {_joint_name(robot, j)}) though the limits allow "
@@ -554,10 +551,8 @@ def _hypotheses(
     scaled = np.where(rev, np.radians(q_ctrl) if angle_unit == "rad" else np.degrees(q_ctrl), q_ctrl)
     angle_alts = [("", q_ctrl), (hints.angle.format(unit="deg" if angle_unit == "rad" else "rad"), scaled)]
     length_alts = [("", points)]
-    for unit, f in LENGTH_FACTORS.items():
-        if unit == length_unit:
-            continue
-        s = f / LENGTH_FACTORS[length_unit]
+    for unit in (u for u in LENGTH_FACTORS if u != length_unit):
+        s = LENGTH_FACTORS[unit] / LENGTH_FACTORS[length_unit]
         if probe_poses is not None:  # a probe's offsets are not in the CSV: only its position scales
             R, t = probe_poses
             alt = np.einsum("kab,mb->kma", R, targets) + s * t[:, None, :]
@@ -608,10 +603,9 @@ def _hypotheses(
     if form == "targets" and complete:  # re-registering the targets' mount needs three seen targets per row
         add("if the targets file's points were given in another frame than the robot file's tool frame (check its "
             "[tool] and the targets file)", jm.to_model(q_ctrl), free_tool=True)  # fmt: skip
-        for perm in itertools.permutations(range(3)):
-            if perm != (0, 1, 2):
-                add(f"with the targets reordered ({_perm_text(perm)}) in the targets file", jm.to_model(q_ctrl),
-                    tgt=targets[list(perm)])  # fmt: skip
+        for perm in _REORDERS:
+            add(f"with the targets reordered ({_perm_text(perm)}) in the targets file", jm.to_model(q_ctrl),
+                tgt=targets[list(perm)])  # fmt: skip
     return out
 
 
@@ -621,7 +615,7 @@ def _map_row(M: np.ndarray, r: int) -> str:
     return f"q{r + 1} = " + (text[2:] if text.startswith("+ ") else "−" + text[2:])
 
 
-def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length_unit, hints, report, allow) -> None:
+def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length_unit, hints, report) -> None:
     tool_known = form == "targets"
     qm = robot.joints.to_model(q)
     per_row = registered_residuals(robot, qm, points, targets, frame=frame, tool_known=tool_known)
@@ -633,9 +627,7 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
     report.stats["rows_beyond_reach"] = len(reach_bad)
     if len(far) and mean <= NOMINAL_MEAN_LIMIT:
         # The data as a whole describe this robot; a few rows do not (a typo, a target swapped in one row).
-        _add(
-            report,
-            allow,
+        report.add(
             "nominal",
             f"{len(far)} of {len(q)} rows are far from where the nominal {robot.name} model puts the targets "
             f"while the others are within {_mm(mean)} (mean): "
@@ -661,9 +653,7 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
             if explained
             else f"the points look like tracker coordinates — pass {hints.frame.format(frame='tracker')}"
         )
-        _add(
-            report,
-            allow,
+        report.add(
             "reach",
             f"{len(reach_bad)} of {len(q)} rows have points farther from the base origin than the robot can "
             f"reach ({_mm(_reach(robot, targets))}), e.g. {hints.row_text(i)} at {_mm(dist)}: {fix}",
@@ -671,7 +661,7 @@ def _check_nominal(q, points, targets, robot, *, frame, form, angle_unit, length
         )
     if mean > NOMINAL_MEAN_LIMIT:
         drop = f"the mean drops to {_mm(best_mean)} {best_text}" if explained else None
-        _add(report, allow, "nominal", _nominal_mismatch(q, per_row, mean, robot, frame, tool_known, hints, drop))
+        report.add("nominal", _nominal_mismatch(q, per_row, mean, robot, frame, tool_known, hints, drop))
 
 
 def _nominal_mismatch(q, per_row, mean, robot, frame, tool_known, hints, fix: str | None) -> str:
@@ -757,7 +747,7 @@ def _far_rows(points: np.ndarray, robot: RobotSpec, targets: np.ndarray) -> np.n
     return np.flatnonzero((np.nanmax(dist, axis=1) if np.isnan(dist).any() else dist.max(axis=1)) > limit)
 
 
-def _check_duplicates(q, existing_q, final, hints, report, allow) -> None:
+def _check_duplicates(q, existing_q, final, hints, report) -> None:
     all_q = q if existing_q is None or not len(existing_q) else np.concatenate([existing_q, q])
     offset = 0 if existing_q is None else len(existing_q)
     keys = np.round(all_q / DUPLICATE_TOL).astype(np.int64)
@@ -777,23 +767,18 @@ def _check_duplicates(q, existing_q, final, hints, report, allow) -> None:
             f"pose together when it splits the data"
         )
     if len(dup_rows) > 0.5 * len(all_q):
-        _add(report, allow, "duplicates", f"{len(dup_rows)} of {len(all_q)} rows repeat a pose (only {n_distinct} "
-             f"distinct): a fit would learn the repeats, not the robot; measure distinct poses",
-             [int(i) - offset for i in dup_rows[:20] if i >= offset])  # fmt: skip
+        report.add("duplicates", f"{len(dup_rows)} of {len(all_q)} rows repeat a pose (only {n_distinct} "
+                   f"distinct): a fit would learn the repeats, not the robot; measure distinct poses",
+                   [int(i) - offset for i in dup_rows[:20] if i >= offset])  # fmt: skip
     need = 2 * all_q.shape[1]
     if final and n_distinct < need:
-        _add(report, allow, "few-poses", f"only {n_distinct} distinct pose(s) in {len(all_q)} rows; calibrating "
-             f"{all_q.shape[1]} joints needs at least {need} (2 per joint) spread over the workspace: "
-             f"measure more poses")  # fmt: skip
+        report.add("few-poses", f"only {n_distinct} distinct pose(s) in {len(all_q)} rows; calibrating "
+                   f"{all_q.shape[1]} joints needs at least {need} (2 per joint) spread over the workspace: "
+                   f"measure more poses")  # fmt: skip
 
 
 def _row_or_earlier(i: int, offset: int, hints: Hints) -> str:
     return f"earlier pose {i}" if i < offset else hints.row_text(i - offset)
-
-
-def _add(report: SanityReport, allow: frozenset[str], check: str, message: str, rows: Iterable[int] = ()) -> None:
-    """File a finding of ``check`` (rows: 0-based rows at fault, the first few) as a failure, or as allowed."""
-    (report.allowed if check in allow else report.failures).append(Finding(check, message, [int(i) for i in rows]))
 
 
 def check_measurements(
@@ -821,9 +806,8 @@ def check_measurements(
     still run and reported in ``report.allowed``). ``existing_q``: joints already in the session (appending), for
     the duplicate count. ``final = False`` (a session still recording): skip the too-few-poses rule.
     """
-    allow = check_names(allow)
     hints = hints or Hints()
-    report = SanityReport(hints=hints)
+    report = SanityReport(hints=hints, allow=check_names(allow))
     q = np.asarray(q, dtype=float)
     points = np.asarray(points, dtype=float)
     targets = np.asarray(targets, dtype=float)
@@ -857,12 +841,12 @@ def check_measurements(
     if robot is not None and q.shape[1] != robot.model.n:
         raise DatasetError(f"{q.shape[1]} joint values per row but robot {robot.name} has {robot.model.n} joints")
     if form == "targets":
-        _check_target_distances(points, targets, length_unit, hints, report, allow)
+        _check_target_distances(points, targets, length_unit, hints, report)
     if robot is not None:
-        _check_joint_limits(q, robot, angle_unit, hints, report, allow)
-        _check_joint_span(q, robot, angle_unit, hints, report, allow)
+        _check_joint_limits(q, robot, angle_unit, hints, report)
+        _check_joint_span(q, robot, angle_unit, hints, report)
         if len(q) >= 3:
             _check_nominal(q, points, targets, robot, frame=frame, form=form, angle_unit=angle_unit,
-                           length_unit=length_unit, hints=hints, report=report, allow=allow)  # fmt: skip
-    _check_duplicates(q, existing_q, final, hints, report, allow)
+                           length_unit=length_unit, hints=hints, report=report)  # fmt: skip
+    _check_duplicates(q, existing_q, final, hints, report)
     return report
