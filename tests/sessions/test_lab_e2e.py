@@ -310,7 +310,8 @@ def test_ctrl_c_stops_the_rehearsal_quietly():
     try:
         assert process.stdout is not None
         deadline = time.monotonic() + HANG
-        while "Ctrl-C stops the fakes" not in process.stdout.readline():
+        # The first line, not the last: Ctrl-C while the instructions are still being printed must stop it as quietly.
+        while "fake UR controller on" not in process.stdout.readline():
             assert time.monotonic() < deadline and process.poll() is None, "the rehearsal did not start"
         os.killpg(process.pid, signal.SIGINT)
         _, err = process.communicate(timeout=HANG)

@@ -21,7 +21,6 @@ From Python (the end-to-end tests and ``benchmarks/lab_faults.py`` use this to i
 from __future__ import annotations
 
 import argparse
-import contextlib
 import shlex
 import signal
 import sys
@@ -176,6 +175,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--poses", type=int, default=12, help="--poses of the printed command")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated robot's errors")
     args = parser.parse_args(argv)
+    # Ctrl-C may arrive at any moment (mid-start, mid-print): it only asks for the stop, which happens in one place.
+    stopped = threading.Event()
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, lambda *_: stopped.set())
     try:
         rig = Rehearsal(args.targets, robot=args.robot, seed=args.seed)
         rig.start()
@@ -192,10 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     print("record a session on them (in another terminal):")
     print("  " + shlex.join(command), flush=True)
     print("Ctrl-C stops the fakes.", flush=True)
-    stopped = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stopped.set())
-    with contextlib.suppress(KeyboardInterrupt):
-        stopped.wait()
+    stopped.wait()
     rig.stop()
     return 0
 
