@@ -585,7 +585,8 @@ def _nearest_neighbour(D: np.ndarray, first: int) -> np.ndarray:
 
 
 def _two_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
-    """Reverse segments of an open path while that shortens it (D symmetric); its first pose is free too."""
+    """Reverse segments of an open path while that shortens it (D symmetric, padded: index -1 is a free end, every
+    edge to it costs 0); its first pose is free too."""
     order = order.copy()
     k = len(order)
     for _ in range(max_passes):
@@ -594,16 +595,9 @@ def _two_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
             # Reverse order[i..j] for every j > i: the edges (i-1, i) and (j, j+1) become (i-1, j) and (i, j+1).
             j = np.arange(i + 1, k)
             p, q = order[i], order[j]
-            if i > 0:
-                before_old = D[order[i - 1], p]
-                before_new = D[order[i - 1], q]
-            else:
-                before_old, before_new = 0.0, np.zeros(len(j))
-            nxt = np.minimum(j + 1, k - 1)
-            has_next = j + 1 < k
-            after_old = np.where(has_next, D[q, order[nxt]], 0.0)
-            after_new = np.where(has_next, D[p, order[nxt]], 0.0)
-            gain = before_old + after_old - before_new - after_new
+            before = order[i - 1] if i > 0 else -1
+            after = np.append(order[i + 2 :], -1)  # order[j + 1], the free end after the last pose
+            gain = D[before, p] + D[q, after] - D[before, q] - D[p, after]
             best = int(np.argmax(gain))
             if gain[best] > 1e-9:
                 order[i : j[best] + 1] = order[i : j[best] + 1][::-1].copy()
@@ -615,32 +609,24 @@ def _two_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
 
 def _or_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
     """Move segments of 1 to 3 poses (as they are or reversed) to the place in the path where they cost least,
-    while that shortens it. Position -1 stands for the path's (free) beginning."""
+    while that shortens it. D padded as for :func:`_two_opt`: index -1 stands for either free end of the path."""
     order = order.copy()
     k = len(order)
-
-    def edge(a, b):  # time of the edge a → b; a = -1 is the beginning, b = -1 the open end: both free
-        return 0.0 if a == -1 or b == -1 else float(D[a, b])
-
     for _ in range(max_passes):
         improved = False
         for length in (1, 2, 3):
-            i = 0
-            while i + length <= k:
+            for i in range(k - length + 1):
                 seg = order[i : i + length]
                 prev = order[i - 1] if i > 0 else -1
                 nxt = order[i + length] if i + length < k else -1
-                removed = edge(prev, seg[0]) + edge(seg[-1], nxt) - edge(prev, nxt)
+                removed = D[prev, seg[0]] + D[seg[-1], nxt] - D[prev, nxt]
                 rest = np.concatenate([order[:i], order[i + length :]])
-                # insert between rest[g-1] and rest[g] (g = 0 … len(rest)); before 0 is the free beginning
-                # old_link[g]: the edge rest[g-1] → rest[g] that an insertion at g replaces (none at the ends)
-                old_link = np.concatenate([[0.0], D[rest[:-1], rest[1:]], [0]])
+                # insert between ends[g] and ends[g + 1] (g = 0 … len(rest)): the rest of the path and its free ends
+                ends = np.concatenate([[-1], rest, [-1]])
+                old_link = D[ends[:-1], ends[1:]]
                 best_gain, best = 1e-9, None
                 for piece in (seg, seg[::-1]):
-                    head, tail = piece[0], piece[-1]
-                    into = np.concatenate([[0.0], D[rest, head]])
-                    into[:-1] += D[tail, rest]
-                    gain = removed - (into - old_link)
+                    gain = removed - (D[ends[:-1], piece[0]] + D[piece[-1], ends[1:]] - old_link)
                     g = int(np.argmax(gain))
                     if gain[g] > best_gain:
                         best_gain, best = float(gain[g]), (g, piece.copy())
@@ -648,7 +634,6 @@ def _or_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
                     g, piece = best
                     order = np.concatenate([rest[:g], piece, rest[g:]])
                     improved = True
-                i += 1
         if not improved:
             break
     return order
@@ -671,6 +656,7 @@ def order_for_motion(q, speed, acceleration, *, max_passes: int = 200, starts: i
     if len(q) < 3:
         return np.arange(len(q))
     D = move_time_matrix(q, q, speed, acceleration)
+    padded = np.pad(D, (0, 1))  # a last row and column of zeros: index -1, the path's free ends
     candidates = [_nearest_neighbour(D, first) for first in range(len(q))]
     times = np.array([_path_time(D, c) for c in candidates])
     best: np.ndarray | None = None
@@ -678,7 +664,7 @@ def order_for_motion(q, speed, acceleration, *, max_passes: int = 200, starts: i
         order = candidates[int(c)]
         for _ in range(max_passes):  # alternate until neither improves
             before = _path_time(D, order)
-            order = _or_opt(D, _two_opt(D, order, max_passes), max_passes)
+            order = _or_opt(padded, _two_opt(padded, order, max_passes), max_passes)
             if _path_time(D, order) >= before - 1e-9:
                 break
         if best is None or _path_time(D, order) < _path_time(D, best) - 1e-9:
