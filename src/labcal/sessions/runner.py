@@ -79,7 +79,7 @@ from labcal.drivers.base import (
 )
 from labcal.robots import RobotSpec, loads
 from labcal.robots.joint_map import JointMap
-from labcal.sessions.plans import Plan, PoseStep
+from labcal.sessions.plans import Plan, PoseStep, checked_number
 
 # triangle_error: the largest distance error between targets seen together (None with fewer than two seen); the name
 # is older than 1..k targets and stays, as it is a column (x_triangle_error) of every recorded version.
@@ -109,13 +109,10 @@ class Validation:
     min_targets: int = 1
 
     def __post_init__(self) -> None:
+        # checked, not converted: the start document records the values as given
         for name in ("absolute_tolerance", "spread_factor", "joint_tolerance"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
-                raise ValueError(f"Validation.{name} must be a finite number >= 0, got {v!r}")
-        n = self.min_targets
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"Validation.min_targets must be an integer >= 1, got {n!r}")
+            checked_number(getattr(self, name), f"Validation.{name}", error=ValueError)
+        checked_number(self.min_targets, "Validation.min_targets", least=1, integer=True, error=ValueError)
 
 
 @dataclass(frozen=True)
@@ -135,9 +132,7 @@ class RetryPolicy:
 
     def __post_init__(self) -> None:
         for name, least in (("max_attempts", 1), ("max_silent_poses", 0), ("max_failed_poses", 0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise ValueError(f"RetryPolicy.{name} must be an integer >= {least}, got {value!r}")
+            checked_number(getattr(self, name), f"RetryPolicy.{name}", least=least, integer=True, error=ValueError)
 
 
 @dataclass(frozen=True)
