@@ -52,7 +52,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -190,9 +189,9 @@ def random_configurations(
     max_tries = max(10_000, 200 * int(count)) if max_tries is None else int(max_tries)
     if max_tries < count:
         raise PlanningError(f"max_tries ({max_tries}) is smaller than count ({count})")
-    screen = _Screen(
-        model, ranges, joint_map if through_map else None, safety, joint_map, workspace, facing, max_condition, pts
-    )
+    example: list[str] = []  # what the first pose the workspace refused ran into, for the error message
+    checks = _checks(model, ranges, through_map, safety, joint_map, workspace, facing, max_condition, pts, example)
+    rejected = dict.fromkeys(("joint limits", "workspace", "facing away", "condition"), 0)
 
     rng = np.random.default_rng(seed)
     chosen: list[np.ndarray] = []
@@ -202,11 +201,19 @@ def random_configurations(
         size = min(batch, max_tries - drawn)
         q = rng.uniform(draw_lo, draw_hi, size=(size, model.n))
         drawn += size
-        chosen.append(screen.passing(q))
+        q = joint_map.to_model(q) if through_map else q
+        ok = np.ones(size, dtype=bool)
+        for name, every, passes in checks:
+            idx = np.arange(size) if every else np.flatnonzero(ok)
+            if len(idx):
+                good = passes(q[idx])
+                rejected[name] += int(np.sum(~good))
+                ok[idx[~good]] = False
+        chosen.append(q[ok])
         have += len(chosen[-1])
     if have < count:
-        why = ", ".join(f"{k}: {v}" for k, v in screen.rejected.items() if v) or "none"
-        hint = f" (e.g. {', '.join(screen.example)})" if screen.example else ""
+        why = ", ".join(f"{k}: {v}" for k, v in rejected.items() if v) or "none"
+        hint = f" (e.g. {', '.join(example)})" if example else ""
         raise PlanningError(
             f"only {have} of {count} configurations passed after {drawn} draws (max_tries); rejected by {why}{hint}. "
             "Loosen max_condition or the workspace, or raise max_tries."
@@ -279,61 +286,31 @@ def _check_workspace(model: LocalPOEModel, workspace: Workspace | None) -> Works
     return workspace
 
 
-@dataclass
-class _Screen:
-    """The checks of :func:`random_configurations`, in order (cheap ones first), with what each rejected so far.
+def _checks(model, ranges, through_map, safety, joint_map, workspace, facing, max_condition, pts, example) -> list:
+    """The checks of :func:`random_configurations`, cheap ones first: (what a refusal counts as, whether the check
+    runs on every draw or only on those still in, test of model-joint poses (k, n) → (k,) bool). through_map: the
+    draws are controller joints, mapped to model joints and then checked against the model's ranges. The workspace
+    check keeps the reasons of its first refusal in ``example``."""
+    checks: list[tuple[str, bool, Callable[[np.ndarray], np.ndarray]]] = []
+    if through_map:
+        checks.append(("joint limits", True, lambda q: np.all((q >= ranges[:, 0]) & (q <= ranges[:, 1]), axis=1)))
+    if safety is not None:
+        checks.append(("joint limits", True, lambda q: runner_accepts(q, safety, joint_map)))
+    if workspace is not None:
 
-    through_map: the joint map the draws (controller joints) go through, or None when they are model joints.
-    """
+        def admitted(q: np.ndarray) -> np.ndarray:
+            points = checked_points(model, q, pts)
+            inside = workspace.admits(points)
+            if not example and not inside.all():
+                example.extend(workspace.offenders(points[np.flatnonzero(~inside)[0]]))
+            return inside
 
-    model: LocalPOEModel
-    ranges: np.ndarray
-    through_map: JointMap | None
-    safety: SafetyLimits | None
-    joint_map: JointMap | None
-    workspace: Workspace | None
-    facing: TargetFacing | None
-    max_condition: float | None
-    pts: np.ndarray
-
-    def __post_init__(self) -> None:
-        self.rejected = dict.fromkeys(("joint limits", "workspace", "facing away", "condition"), 0)
-        self.example: list[str] = []  # what the first pose the workspace refused ran into, for the error message
-
-    def passing(self, q: np.ndarray) -> np.ndarray:
-        """The drawn configurations (model joints) that pass every check, counting the rejections."""
-        model, rejected = self.model, self.rejected
-        ok = np.ones(len(q), dtype=bool)
-        if self.through_map is not None:
-            q = self.through_map.to_model(q)
-            inside = np.all((q >= self.ranges[:, 0]) & (q <= self.ranges[:, 1]), axis=1)
-            rejected["joint limits"] += int(np.sum(~inside))
-            ok &= inside
-        if self.safety is not None:
-            accepted = runner_accepts(q, self.safety, self.joint_map)
-            rejected["joint limits"] += int(np.sum(~accepted))
-            ok &= accepted
-        # (name, its setting, test of poses given the setting), each on the draws still in
-        checks: tuple[tuple[str, Any, Callable[[np.ndarray, Any], np.ndarray]], ...] = (
-            ("workspace", self.workspace, self._admitted),
-            ("facing away", self.facing, lambda q, facing: facing.visible(model, q, self.pts).all(axis=1)),
-            ("condition", self.max_condition, lambda q, bound: length_scaled_condition(model, q) <= bound),
-        )
-        for name, setting, passes in checks:
-            if setting is not None and ok.any():
-                idx = np.flatnonzero(ok)
-                good = passes(q[idx], setting)
-                rejected[name] += int(np.sum(~good))
-                ok[idx[~good]] = False
-        return q[ok]
-
-    def _admitted(self, q: np.ndarray, workspace: Workspace) -> np.ndarray:
-        """(k,) bool: every checked point of the poses q inside the workspace; keeps the first refusal's reasons."""
-        points = checked_points(self.model, q, self.pts)
-        inside = workspace.admits(points)
-        if not self.example and not inside.all():
-            self.example = workspace.offenders(points[np.flatnonzero(~inside)[0]])
-        return inside
+        checks.append(("workspace", False, admitted))
+    if facing is not None:
+        checks.append(("facing away", False, lambda q: facing.visible(model, q, pts).all(axis=1)))
+    if max_condition is not None:
+        checks.append(("condition", False, lambda q: length_scaled_condition(model, q) <= max_condition))
+    return checks
 
 
 # --------------------------------------------------------------------------------------------------------------
