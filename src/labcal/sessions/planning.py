@@ -385,15 +385,14 @@ def greedy_d_optimal(jacobians: np.ndarray, count: int, *, exchange_passes: int 
     best unchosen one while that increases log det). Deterministic; ties go to the lower index.
     """
     G = np.asarray(jacobians, dtype=float)
-    k, m, r = G.shape
+    k, _, r = G.shape
     if not 1 <= count <= k:
         raise PlanningError(f"cannot choose {count} of {k} candidates")
     Finv = np.eye(r) / _ridge(G)
     chosen: list[int] = []
     free = np.ones(k, dtype=bool)
-    eye = np.eye(m)
     for _ in range(count):
-        gain = _logdet_gains(G, Finv, eye)
+        gain = _logdet_gains(G, Finv)
         gain[~free] = -np.inf
         best = int(np.argmax(gain))
         Finv = _woodbury(Finv, G[best], +1.0)
@@ -401,7 +400,7 @@ def greedy_d_optimal(jacobians: np.ndarray, count: int, *, exchange_passes: int 
         free[best] = False
 
     def gains(Fminus: np.ndarray, out: int) -> tuple[np.ndarray, float]:
-        return _logdet_gains(G, Fminus, eye), _logdet_gains(G[out : out + 1], Fminus, eye)[0] + 1e-9
+        return _logdet_gains(G, Fminus), _logdet_gains(G[out : out + 1], Fminus)[0] + 1e-9
 
     return _exchange(G, Finv, chosen, free, exchange_passes, gains)
 
@@ -422,11 +421,10 @@ def exchange_i_optimal(jacobians: np.ndarray, weight: np.ndarray, start, *, pass
     Finv = np.linalg.inv(np.einsum("kmr,kms->rs", G[chosen], G[chosen]) + _ridge(G) * np.eye(r))
     free = np.ones(k, dtype=bool)
     free[chosen] = False
-    eye = np.eye(m)
 
     def gains(Fminus: np.ndarray, out: int) -> tuple[np.ndarray, float]:
         # Adding block g lowers trace(F⁻¹W) by trace(S⁻¹ g F⁻¹WF⁻¹ gᵀ), S = I + g F⁻¹ gᵀ.
-        S = eye + (G @ Fminus) @ G.transpose(0, 2, 1)
+        S = np.eye(m) + (G @ Fminus) @ G.transpose(0, 2, 1)
         N = (G @ (Fminus @ W @ Fminus)) @ G.transpose(0, 2, 1)
         gain = np.trace(np.linalg.solve(S, N), axis1=1, axis2=2)
         return gain, gain[out] * (1 + 1e-9)
@@ -462,9 +460,9 @@ def _exchange(G: np.ndarray, Finv: np.ndarray, chosen: list[int], free: np.ndarr
     return np.array(chosen)
 
 
-def _logdet_gains(G: np.ndarray, Finv: np.ndarray, eye: np.ndarray) -> np.ndarray:
+def _logdet_gains(G: np.ndarray, Finv: np.ndarray) -> np.ndarray:
     """log det(F + GᵢᵀGᵢ) − log det F = log det(I + Gᵢ F⁻¹ Gᵢᵀ) for every block i."""
-    S = eye + (G @ Finv) @ G.transpose(0, 2, 1)
+    S = np.eye(G.shape[1]) + (G @ Finv) @ G.transpose(0, 2, 1)
     sign, logdet = np.linalg.slogdet(S)
     return np.where(sign > 0, logdet, -np.inf)
 

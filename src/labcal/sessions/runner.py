@@ -338,7 +338,6 @@ class _Run:
             length="a tracker reporting in {unit} (check the tracker profile's unit)",
             angle="joint values in {unit} (check the robot driver and the robot file's [joint_map])",
             frame='frame "{frame}" (check which frame the tracker reports in)',
-            allow="--allow {check}",
             row=lambda i: f"pose {poses[i]}",
         )
         report = check_measurements(
@@ -639,7 +638,7 @@ def run(
         tracker_identity=tracker_identity,
     )
     journal = store.create_session(header)
-    state = _Run(journal, plan, robot, tracker, opts.with_changes(allow=tuple(sorted(allowed))), spec)
+    state = _Run(journal, plan, robot, tracker, opts, spec)
     try:
         status, reason = state.execute()
     except BaseException:
@@ -734,14 +733,11 @@ def _check_motion_caps(plan: Plan, done: set[int], robot: Robot) -> None:
     """
     limits = robot.limits
     for step in plan.poses():
-        if step.index in done:
-            continue
-        move = step.move
         for what, value, cap, unit in (
-            ("moves at", move.speed, limits.max_speed, "rad/s"),
-            ("accelerates at", move.acceleration, limits.max_acceleration, "rad/s²"),
+            ("moves at", step.move.speed, limits.max_speed, "rad/s"),
+            ("accelerates at", step.move.acceleration, limits.max_acceleration, "rad/s²"),
         ):
-            if not value <= cap:
+            if step.index not in done and not value <= cap:
                 raise SessionError(
                     f"pose {step.index} {what} {value:g} {unit}, above the robot's cap of {cap:g} {unit} (lowered "
                     "since the session started?); nothing was moved: resume with the cap the session was planned "
