@@ -440,15 +440,13 @@ class _Run:
     def stop_reason(self, outcome: _Outcome, pose: int) -> str:
         """Why the run must stop after this journaled pose ("" to go on): the record-time sanity check, a silent
         tracker, too many rejected poses in a row."""
-        if outcome.status == "valid":
-            # Checked after the measurement is journaled (nothing recorded is lost) and before the next
-            # motion: a wrong robot model, targets file, unit or frame stops the run early.
-            why = self.sanity()
-            if why:
-                return why
         self.silent = self.silent + 1 if outcome.silent else 0
         if not outcome.refused:
             self.failed = self.failed + 1 if outcome.status == "rejected" else 0
+        if outcome.status == "valid":  # (both counts are 0 again)
+            # Checked after the measurement is journaled (nothing recorded is lost) and before the next
+            # motion: a wrong robot model, targets file, unit or frame stops the run early.
+            return self.sanity()
         # a silent tracker is named as such first: its poses are rejected poses too
         if self.retry.max_silent_poses and self.silent >= self.retry.max_silent_poses:
             return (
