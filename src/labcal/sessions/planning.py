@@ -201,7 +201,7 @@ def random_configurations(
         size = min(batch, max_tries - drawn)
         q = rng.uniform(draw_lo, draw_hi, size=(size, model.n))
         drawn += size
-        q = joint_map.to_model(q) if through_map else q
+        q = joint_map.to_model(q) if through_map and joint_map is not None else q  # (through_map needs a map)
         ok = np.ones(size, dtype=bool)
         for name, every, passes in checks:
             idx = np.arange(size) if every else np.flatnonzero(ok)
