@@ -75,7 +75,6 @@ from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 from labcal.names import duplicate, label_problem, name_problem, printable
 from labcal.robots.joint_map import JointMap
 from labcal.tomlschema import Key, SchemaError, Table, validate
-from labcal.tomlschema import is_number as _is_number
 
 BUILTINS = ("ur5e", "ur10", "ur10e", "fanuc-m1000ia", "scara4", "franka-panda", "kuka-iiwa14-r820")
 # Example robot files shipped beside the built-ins and loadable by name, but not robots of their own: models to copy
@@ -324,10 +323,8 @@ def parse(data: dict, source: str = "<dict>") -> RobotSpec:
             f"joints[{j + 1}].name {names[j]!r} repeats joints[{i + 1}].name: joint names must be unique (a URDF or a "
             "controller addresses joints by name)"
         )
-    if kind == "dh":
-        model = from_dh(joints, T_tool, name=name, joint_names=names)
-    elif kind == "mdh":
-        model = from_mdh(joints, T_tool, name=name, joint_names=names)
+    if kind in ("dh", "mdh"):
+        model = (from_dh if kind == "dh" else from_mdh)(joints, T_tool, name=name, joint_names=names)
     else:
         frames = [se3.pose(np.asarray(r["xyz"]), np.asarray(r["rpy"])) for r in joints] + [T_tool]
         twists = []
@@ -377,43 +374,29 @@ def _unit_message(field: str, value: float, angle: bool) -> str:
     )
 
 
-def _check_units(kind: str, joints: list, tool: dict, fail) -> None:
-    """Refuse numbers that look like degrees or millimetres (the type checks come later, in parse)."""
-
-    def numbers(row: dict, key: str) -> list[tuple[str, float]]:
-        """(index suffix, value) of the numbers in a scalar or list field."""
-        value = row.get(key)
-        items = [(f"[{i + 1}]", x) for i, x in enumerate(value)] if isinstance(value, list) else [("", value)]
-        return [(suffix, x) for suffix, x in items if _is_number(x)]
-
-    def check(where: str, row: dict, angles: tuple, lengths: tuple, revolute: bool) -> None:
+def _check_units(kind: str, joints: list[dict], tool: dict, fail) -> None:
+    """Refuse numbers that look like degrees or millimetres (in ``joints`` and ``tool`` as the schema validated them:
+    numbers are floats, vectors lists of floats, ``type`` filled in)."""
+    dh = kind in ("dh", "mdh")
+    angles, lengths = (("alpha", "theta", "rpy"), ("a", "d", "xyz", "com")) if dh else (("rpy",), ("xyz", "com"))
+    rows = [(f"joints[{j}]", row, angles, lengths, row["type"] == REVOLUTE) for j, row in enumerate(joints, start=1)]
+    for where, row, angle_keys, length_keys, revolute in [*rows, ("tool", tool, ("rpy",), ("xyz", "com"), True)]:
         # (key, is an angle, largest plausible |value|): the angles, the lengths, then the limits
-        bounds = [(key, True, MAX_ANGLE) for key in angles] + [(key, False, MAX_LENGTH) for key in lengths]
+        bounds = [(key, True, MAX_ANGLE) for key in angle_keys] + [(key, False, MAX_LENGTH) for key in length_keys]
         bounds.append(("limits", revolute, MAX_REVOLUTE_LIMIT if revolute else MAX_LENGTH))
         for key, angle, bound in bounds:
-            for suffix, x in numbers(row, key):
-                if abs(x) > bound:
+            value = row.get(key)
+            items = [(f"[{i + 1}]", x) for i, x in enumerate(value)] if isinstance(value, list) else [("", value)]
+            for suffix, x in items:
+                if x is not None and abs(x) > bound:
                     raise fail(_unit_message(f"{where}.{key}{suffix}", x, angle))
-
-    dh = kind in ("dh", "mdh")
-    for j, row in enumerate(joints, start=1):
-        if isinstance(row, dict):  # parse names a row that is not a table
-            angles = ("alpha", "theta", "rpy") if dh else ("rpy",)
-            lengths = ("a", "d", "xyz", "com") if dh else ("xyz", "com")
-            check(f"joints[{j}]", row, angles, lengths, row.get("type", REVOLUTE) == REVOLUTE)
-    check("tool", tool if isinstance(tool, dict) else {}, ("rpy",), ("xyz", "com"), revolute=True)
 
 
 def _spec(name, model, tool, joints, source) -> RobotSpec:
     """The spec with its mass model; ``tool`` and ``joints`` are validated tables (URDF: empty)."""
-    n = model.n
-    frames0 = model.link_frames(np.zeros(n))[0]  # (n+1, 4, 4) at q = 0
-    origins = frames0[:, :3, 3]
-    masses = np.zeros(n + 1)
-    coms = np.empty((n + 1, 3))
-    for j in range(n + 1):
-        row = joints[j] if j < n and j < len(joints) else (tool if j == n else {})
-        masses[j] = row.get("mass", 0.0)
-        default = origins[j] if j == n else 0.5 * (origins[j] + origins[j + 1])
-        coms[j] = row.get("com", default)
+    origins = model.link_frames(np.zeros(model.n))[0][:, :3, 3]  # (n+1, 3) at q = 0
+    rows = [*(joints or [{}] * model.n), tool]  # links 1..n, then the payload
+    defaults = [*(0.5 * (origins[:-1] + origins[1:])), origins[-1]]  # link midpoints, the tool origin
+    masses = np.array([row.get("mass", 0.0) for row in rows], dtype=float)
+    coms = np.array([row.get("com", default) for row, default in zip(rows, defaults, strict=True)], dtype=float)
     return RobotSpec(name=name, model=model, masses=masses, coms=coms, source=source, hash=model_hash(model))

@@ -52,7 +52,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -190,9 +189,9 @@ def random_configurations(
     max_tries = max(10_000, 200 * int(count)) if max_tries is None else int(max_tries)
     if max_tries < count:
         raise PlanningError(f"max_tries ({max_tries}) is smaller than count ({count})")
-    screen = _Screen(
-        model, ranges, joint_map if through_map else None, safety, joint_map, workspace, facing, max_condition, pts
-    )
+    example: list[str] = []  # what the first pose the workspace refused ran into, for the error message
+    checks = _checks(model, ranges, through_map, safety, joint_map, workspace, facing, max_condition, pts, example)
+    rejected = dict.fromkeys(("joint limits", "workspace", "facing away", "condition"), 0)
 
     rng = np.random.default_rng(seed)
     chosen: list[np.ndarray] = []
@@ -202,11 +201,19 @@ def random_configurations(
         size = min(batch, max_tries - drawn)
         q = rng.uniform(draw_lo, draw_hi, size=(size, model.n))
         drawn += size
-        chosen.append(screen.passing(q))
+        q = joint_map.to_model(q) if through_map and joint_map is not None else q  # (through_map needs a map)
+        ok = np.ones(size, dtype=bool)
+        for name, every, passes in checks:
+            idx = np.arange(size) if every else np.flatnonzero(ok)
+            if len(idx):
+                good = passes(q[idx])
+                rejected[name] += int(np.sum(~good))
+                ok[idx[~good]] = False
+        chosen.append(q[ok])
         have += len(chosen[-1])
     if have < count:
-        why = ", ".join(f"{k}: {v}" for k, v in screen.rejected.items() if v) or "none"
-        hint = f" (e.g. {', '.join(screen.example)})" if screen.example else ""
+        why = ", ".join(f"{k}: {v}" for k, v in rejected.items() if v) or "none"
+        hint = f" (e.g. {', '.join(example)})" if example else ""
         raise PlanningError(
             f"only {have} of {count} configurations passed after {drawn} draws (max_tries); rejected by {why}{hint}. "
             "Loosen max_condition or the workspace, or raise max_tries."
@@ -279,61 +286,31 @@ def _check_workspace(model: LocalPOEModel, workspace: Workspace | None) -> Works
     return workspace
 
 
-@dataclass
-class _Screen:
-    """The checks of :func:`random_configurations`, in order (cheap ones first), with what each rejected so far.
+def _checks(model, ranges, through_map, safety, joint_map, workspace, facing, max_condition, pts, example) -> list:
+    """The checks of :func:`random_configurations`, cheap ones first: (what a refusal counts as, whether the check
+    runs on every draw or only on those still in, test of model-joint poses (k, n) → (k,) bool). through_map: the
+    draws are controller joints, mapped to model joints and then checked against the model's ranges. The workspace
+    check keeps the reasons of its first refusal in ``example``."""
+    checks: list[tuple[str, bool, Callable[[np.ndarray], np.ndarray]]] = []
+    if through_map:
+        checks.append(("joint limits", True, lambda q: np.all((q >= ranges[:, 0]) & (q <= ranges[:, 1]), axis=1)))
+    if safety is not None:
+        checks.append(("joint limits", True, lambda q: runner_accepts(q, safety, joint_map)))
+    if workspace is not None:
 
-    through_map: the joint map the draws (controller joints) go through, or None when they are model joints.
-    """
+        def admitted(q: np.ndarray) -> np.ndarray:
+            points = checked_points(model, q, pts)
+            inside = workspace.admits(points)
+            if not example and not inside.all():
+                example.extend(workspace.offenders(points[np.flatnonzero(~inside)[0]]))
+            return inside
 
-    model: LocalPOEModel
-    ranges: np.ndarray
-    through_map: JointMap | None
-    safety: SafetyLimits | None
-    joint_map: JointMap | None
-    workspace: Workspace | None
-    facing: TargetFacing | None
-    max_condition: float | None
-    pts: np.ndarray
-
-    def __post_init__(self) -> None:
-        self.rejected = dict.fromkeys(("joint limits", "workspace", "facing away", "condition"), 0)
-        self.example: list[str] = []  # what the first pose the workspace refused ran into, for the error message
-
-    def passing(self, q: np.ndarray) -> np.ndarray:
-        """The drawn configurations (model joints) that pass every check, counting the rejections."""
-        model, rejected = self.model, self.rejected
-        ok = np.ones(len(q), dtype=bool)
-        if self.through_map is not None:
-            q = self.through_map.to_model(q)
-            inside = np.all((q >= self.ranges[:, 0]) & (q <= self.ranges[:, 1]), axis=1)
-            rejected["joint limits"] += int(np.sum(~inside))
-            ok &= inside
-        if self.safety is not None:
-            accepted = runner_accepts(q, self.safety, self.joint_map)
-            rejected["joint limits"] += int(np.sum(~accepted))
-            ok &= accepted
-        # (name, its setting, test of poses given the setting), each on the draws still in
-        checks: tuple[tuple[str, Any, Callable[[np.ndarray, Any], np.ndarray]], ...] = (
-            ("workspace", self.workspace, self._admitted),
-            ("facing away", self.facing, lambda q, facing: facing.visible(model, q, self.pts).all(axis=1)),
-            ("condition", self.max_condition, lambda q, bound: length_scaled_condition(model, q) <= bound),
-        )
-        for name, setting, passes in checks:
-            if setting is not None and ok.any():
-                idx = np.flatnonzero(ok)
-                good = passes(q[idx], setting)
-                rejected[name] += int(np.sum(~good))
-                ok[idx[~good]] = False
-        return q[ok]
-
-    def _admitted(self, q: np.ndarray, workspace: Workspace) -> np.ndarray:
-        """(k,) bool: every checked point of the poses q inside the workspace; keeps the first refusal's reasons."""
-        points = checked_points(self.model, q, self.pts)
-        inside = workspace.admits(points)
-        if not self.example and not inside.all():
-            self.example = workspace.offenders(points[np.flatnonzero(~inside)[0]])
-        return inside
+        checks.append(("workspace", False, admitted))
+    if facing is not None:
+        checks.append(("facing away", False, lambda q: facing.visible(model, q, pts).all(axis=1)))
+    if max_condition is not None:
+        checks.append(("condition", False, lambda q: length_scaled_condition(model, q) <= max_condition))
+    return checks
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -408,15 +385,14 @@ def greedy_d_optimal(jacobians: np.ndarray, count: int, *, exchange_passes: int 
     best unchosen one while that increases log det). Deterministic; ties go to the lower index.
     """
     G = np.asarray(jacobians, dtype=float)
-    k, m, r = G.shape
+    k, _, r = G.shape
     if not 1 <= count <= k:
         raise PlanningError(f"cannot choose {count} of {k} candidates")
     Finv = np.eye(r) / _ridge(G)
     chosen: list[int] = []
     free = np.ones(k, dtype=bool)
-    eye = np.eye(m)
     for _ in range(count):
-        gain = _logdet_gains(G, Finv, eye)
+        gain = _logdet_gains(G, Finv)
         gain[~free] = -np.inf
         best = int(np.argmax(gain))
         Finv = _woodbury(Finv, G[best], +1.0)
@@ -424,7 +400,7 @@ def greedy_d_optimal(jacobians: np.ndarray, count: int, *, exchange_passes: int 
         free[best] = False
 
     def gains(Fminus: np.ndarray, out: int) -> tuple[np.ndarray, float]:
-        return _logdet_gains(G, Fminus, eye), _logdet_gains(G[out : out + 1], Fminus, eye)[0] + 1e-9
+        return _logdet_gains(G, Fminus), _logdet_gains(G[out : out + 1], Fminus)[0] + 1e-9
 
     return _exchange(G, Finv, chosen, free, exchange_passes, gains)
 
@@ -445,11 +421,10 @@ def exchange_i_optimal(jacobians: np.ndarray, weight: np.ndarray, start, *, pass
     Finv = np.linalg.inv(np.einsum("kmr,kms->rs", G[chosen], G[chosen]) + _ridge(G) * np.eye(r))
     free = np.ones(k, dtype=bool)
     free[chosen] = False
-    eye = np.eye(m)
 
     def gains(Fminus: np.ndarray, out: int) -> tuple[np.ndarray, float]:
         # Adding block g lowers trace(F⁻¹W) by trace(S⁻¹ g F⁻¹WF⁻¹ gᵀ), S = I + g F⁻¹ gᵀ.
-        S = eye + (G @ Fminus) @ G.transpose(0, 2, 1)
+        S = np.eye(m) + (G @ Fminus) @ G.transpose(0, 2, 1)
         N = (G @ (Fminus @ W @ Fminus)) @ G.transpose(0, 2, 1)
         gain = np.trace(np.linalg.solve(S, N), axis1=1, axis2=2)
         return gain, gain[out] * (1 + 1e-9)
@@ -485,9 +460,9 @@ def _exchange(G: np.ndarray, Finv: np.ndarray, chosen: list[int], free: np.ndarr
     return np.array(chosen)
 
 
-def _logdet_gains(G: np.ndarray, Finv: np.ndarray, eye: np.ndarray) -> np.ndarray:
+def _logdet_gains(G: np.ndarray, Finv: np.ndarray) -> np.ndarray:
     """log det(F + GᵢᵀGᵢ) − log det F = log det(I + Gᵢ F⁻¹ Gᵢᵀ) for every block i."""
-    S = eye + (G @ Finv) @ G.transpose(0, 2, 1)
+    S = np.eye(G.shape[1]) + (G @ Finv) @ G.transpose(0, 2, 1)
     sign, logdet = np.linalg.slogdet(S)
     return np.where(sign > 0, logdet, -np.inf)
 
@@ -585,7 +560,8 @@ def _nearest_neighbour(D: np.ndarray, first: int) -> np.ndarray:
 
 
 def _two_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
-    """Reverse segments of an open path while that shortens it (D symmetric); its first pose is free too."""
+    """Reverse segments of an open path while that shortens it (D symmetric, padded: index -1 is a free end, every
+    edge to it costs 0); its first pose is free too."""
     order = order.copy()
     k = len(order)
     for _ in range(max_passes):
@@ -594,16 +570,9 @@ def _two_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
             # Reverse order[i..j] for every j > i: the edges (i-1, i) and (j, j+1) become (i-1, j) and (i, j+1).
             j = np.arange(i + 1, k)
             p, q = order[i], order[j]
-            if i > 0:
-                before_old = D[order[i - 1], p]
-                before_new = D[order[i - 1], q]
-            else:
-                before_old, before_new = 0.0, np.zeros(len(j))
-            nxt = np.minimum(j + 1, k - 1)
-            has_next = j + 1 < k
-            after_old = np.where(has_next, D[q, order[nxt]], 0.0)
-            after_new = np.where(has_next, D[p, order[nxt]], 0.0)
-            gain = before_old + after_old - before_new - after_new
+            before = order[i - 1] if i > 0 else -1
+            after = np.append(order[i + 2 :], -1)  # order[j + 1], the free end after the last pose
+            gain = D[before, p] + D[q, after] - D[before, q] - D[p, after]
             best = int(np.argmax(gain))
             if gain[best] > 1e-9:
                 order[i : j[best] + 1] = order[i : j[best] + 1][::-1].copy()
@@ -615,32 +584,24 @@ def _two_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
 
 def _or_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
     """Move segments of 1 to 3 poses (as they are or reversed) to the place in the path where they cost least,
-    while that shortens it. Position -1 stands for the path's (free) beginning."""
+    while that shortens it. D padded as for :func:`_two_opt`: index -1 stands for either free end of the path."""
     order = order.copy()
     k = len(order)
-
-    def edge(a, b):  # time of the edge a → b; a = -1 is the beginning, b = -1 the open end: both free
-        return 0.0 if a == -1 or b == -1 else float(D[a, b])
-
     for _ in range(max_passes):
         improved = False
         for length in (1, 2, 3):
-            i = 0
-            while i + length <= k:
+            for i in range(k - length + 1):
                 seg = order[i : i + length]
                 prev = order[i - 1] if i > 0 else -1
                 nxt = order[i + length] if i + length < k else -1
-                removed = edge(prev, seg[0]) + edge(seg[-1], nxt) - edge(prev, nxt)
+                removed = D[prev, seg[0]] + D[seg[-1], nxt] - D[prev, nxt]
                 rest = np.concatenate([order[:i], order[i + length :]])
-                # insert between rest[g-1] and rest[g] (g = 0 … len(rest)); before 0 is the free beginning
-                # old_link[g]: the edge rest[g-1] → rest[g] that an insertion at g replaces (none at the ends)
-                old_link = np.concatenate([[0.0], D[rest[:-1], rest[1:]], [0]])
+                # insert between ends[g] and ends[g + 1] (g = 0 … len(rest)): the rest of the path and its free ends
+                ends = np.concatenate([[-1], rest, [-1]])
+                old_link = D[ends[:-1], ends[1:]]
                 best_gain, best = 1e-9, None
                 for piece in (seg, seg[::-1]):
-                    head, tail = piece[0], piece[-1]
-                    into = np.concatenate([[0.0], D[rest, head]])
-                    into[:-1] += D[tail, rest]
-                    gain = removed - (into - old_link)
+                    gain = removed - (D[ends[:-1], piece[0]] + D[piece[-1], ends[1:]] - old_link)
                     g = int(np.argmax(gain))
                     if gain[g] > best_gain:
                         best_gain, best = float(gain[g]), (g, piece.copy())
@@ -648,7 +609,6 @@ def _or_opt(D: np.ndarray, order: np.ndarray, max_passes: int) -> np.ndarray:
                     g, piece = best
                     order = np.concatenate([rest[:g], piece, rest[g:]])
                     improved = True
-                i += 1
         if not improved:
             break
     return order
@@ -671,6 +631,7 @@ def order_for_motion(q, speed, acceleration, *, max_passes: int = 200, starts: i
     if len(q) < 3:
         return np.arange(len(q))
     D = move_time_matrix(q, q, speed, acceleration)
+    padded = np.pad(D, (0, 1))  # a last row and column of zeros: index -1, the path's free ends
     candidates = [_nearest_neighbour(D, first) for first in range(len(q))]
     times = np.array([_path_time(D, c) for c in candidates])
     best: np.ndarray | None = None
@@ -678,7 +639,7 @@ def order_for_motion(q, speed, acceleration, *, max_passes: int = 200, starts: i
         order = candidates[int(c)]
         for _ in range(max_passes):  # alternate until neither improves
             before = _path_time(D, order)
-            order = _or_opt(D, _two_opt(D, order, max_passes), max_passes)
+            order = _or_opt(padded, _two_opt(padded, order, max_passes), max_passes)
             if _path_time(D, order) >= before - 1e-9:
                 break
         if best is None or _path_time(D, order) < _path_time(D, best) - 1e-9:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Union
 
@@ -35,12 +35,17 @@ class PlanError(ValueError):
     """A plan or one of its commands is malformed; the message names the command index and field."""
 
 
-def _positive(value: Any, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | np.number) or not math.isfinite(value):
-        raise PlanError(f"{name} must be a finite number, got {value!r}")
-    if value <= 0:
-        raise PlanError(f"{name} must be > 0, got {value!r}")
-    return float(value)
+def checked_number(
+    value: Any, name: str, *, least: float = 0, above: bool = False, integer: bool = False, error: type = PlanError
+) -> Any:
+    """``value`` as a float (an int with ``integer``) once it is a finite number (an integer; never a bool) >= ``least``
+    (> with ``above``); else ``error`` naming ``name``, e.g. "Measure.samples must be an integer >= 1, got 0"."""
+    kinds = int | np.integer if integer else int | float | np.number
+    ok = not isinstance(value, bool) and isinstance(value, kinds) and math.isfinite(value)
+    if not (ok and (value > least if above else value >= least)):
+        what = "an integer" if integer else "a finite number"
+        raise error(f"{name} must be {what} {'>' if above else '>='} {least}, got {value!r}")
+    return int(value) if integer else float(value)
 
 
 @dataclass(frozen=True)
@@ -56,8 +61,10 @@ class Move:
         if q.ndim != 1 or q.size == 0 or not np.all(np.isfinite(q)):
             raise PlanError(f"Move.q must be a non-empty finite 1-D joint vector, got {self.q!r}")
         object.__setattr__(self, "q", tuple(float(x) for x in q))
-        object.__setattr__(self, "speed", _positive(self.speed, "Move.speed (rad/s)"))
-        object.__setattr__(self, "acceleration", _positive(self.acceleration, "Move.acceleration (rad/s²)"))
+        object.__setattr__(self, "speed", checked_number(self.speed, "Move.speed (rad/s)", above=True))
+        object.__setattr__(
+            self, "acceleration", checked_number(self.acceleration, "Move.acceleration (rad/s²)", above=True)
+        )
 
 
 @dataclass(frozen=True)
@@ -67,10 +74,7 @@ class Settle:
     seconds: float
 
     def __post_init__(self) -> None:
-        s = self.seconds
-        if isinstance(s, bool) or not isinstance(s, int | float | np.number) or not math.isfinite(s) or s < 0:
-            raise PlanError(f"Settle.seconds must be a finite number >= 0, got {s!r}")
-        object.__setattr__(self, "seconds", float(s))
+        object.__setattr__(self, "seconds", checked_number(self.seconds, "Settle.seconds"))
 
 
 @dataclass(frozen=True)
@@ -80,10 +84,7 @@ class Measure:
     samples: int
 
     def __post_init__(self) -> None:
-        s = self.samples
-        if isinstance(s, bool) or not isinstance(s, int | np.integer) or s < 1:
-            raise PlanError(f"Measure.samples must be an integer >= 1, got {s!r}")
-        object.__setattr__(self, "samples", int(s))
+        object.__setattr__(self, "samples", checked_number(self.samples, "Measure.samples", least=1, integer=True))
 
 
 Command = Union[Move, Settle, Measure]  # noqa: UP007 - a runtime alias, also used in isinstance checks
@@ -144,9 +145,6 @@ class Plan(Sequence):
         object.__setattr__(self, "commands", commands)
         if not commands:
             raise PlanError("a plan needs at least one Move followed by a Measure")
-        for i, c in enumerate(commands):
-            if not isinstance(c, Move | Settle | Measure):
-                raise PlanError(f"command {i}: not a Move, Settle or Measure: {c!r}")
         if not isinstance(commands[0], Move):
             raise PlanError(f"command 0: a plan must start with a Move, got {type(commands[0]).__name__}")
         n = len(commands[0].q)
@@ -160,38 +158,42 @@ class Plan(Sequence):
                 measures = 0
             elif isinstance(c, Measure):
                 measures += 1
+            elif not isinstance(c, Settle):
+                raise PlanError(f"command {i}: not a Move, Settle or Measure: {c!r}")
         if measures != 1:
             raise PlanError(f"the last pose has {measures} Measure commands, needs exactly 1")
 
-    # Sequence protocol: a plan *is* its list of commands.
+    # Sequence protocol (iteration, ``in``, ``index`` … follow from these two): a plan *is* its list of commands.
     def __len__(self) -> int:
         return len(self.commands)
 
     def __getitem__(self, i):  # type: ignore[override]
         return self.commands[i]
 
-    def __iter__(self) -> Iterator[Command]:
-        return iter(self.commands)
-
     @property
     def n_joints(self) -> int:
         return len(self.commands[0].q)  # type: ignore[union-attr]
 
+    def _pose_commands(self) -> list[list[Command]]:
+        """The commands of each pose: a Move and the commands up to the next one."""
+        groups: list[list[Command]] = []
+        for c in self.commands:
+            if isinstance(c, Move):
+                groups.append([])
+            groups[-1].append(c)
+        return groups
+
     def poses(self) -> list[PoseStep]:
         """The plan grouped into poses (one per Move), in order."""
-        out: list[PoseStep] = []
-        move: Move | None = None
-        settle, samples = 0.0, 0
-        for c in (*self.commands, None):
-            if c is None or isinstance(c, Move):
-                if move is not None:
-                    out.append(PoseStep(len(out), move, settle, samples))
-                move, settle, samples = c, 0.0, 0
-            elif isinstance(c, Settle):
-                settle += c.seconds
-            else:
-                samples = c.samples
-        return out
+        return [
+            PoseStep(
+                i,
+                group[0],  # type: ignore[arg-type]
+                sum((c.seconds for c in group if isinstance(c, Settle)), 0.0),
+                next(c.samples for c in group if isinstance(c, Measure)),
+            )
+            for i, group in enumerate(self._pose_commands())
+        ]
 
     @functools.cached_property
     def n_poses(self) -> int:
@@ -206,12 +208,7 @@ class Plan(Sequence):
     def pose_documents(self) -> list[dict]:
         """One JSON-able entry per pose ``{"pose": i, "commands": [...]}``: the plan as stored in a journal's
         start document, so the journal's plan length is the number of poses."""
-        docs: list[dict] = []
-        for c in self.commands:
-            if isinstance(c, Move):
-                docs.append({"pose": len(docs), "commands": []})
-            docs[-1]["commands"].append(command_to_dict(c))
-        return docs
+        return [{"pose": i, "commands": [command_to_dict(c) for c in g]} for i, g in enumerate(self._pose_commands())]
 
     @classmethod
     def from_pose_documents(cls, docs: Sequence[Any]) -> Plan:

@@ -79,7 +79,7 @@ from labcal.drivers.base import (
 )
 from labcal.robots import RobotSpec, loads
 from labcal.robots.joint_map import JointMap
-from labcal.sessions.plans import Plan, PoseStep
+from labcal.sessions.plans import Plan, PoseStep, checked_number
 
 # triangle_error: the largest distance error between targets seen together (None with fewer than two seen); the name
 # is older than 1..k targets and stays, as it is a column (x_triangle_error) of every recorded version.
@@ -109,13 +109,10 @@ class Validation:
     min_targets: int = 1
 
     def __post_init__(self) -> None:
+        # checked, not converted: the start document records the values as given
         for name in ("absolute_tolerance", "spread_factor", "joint_tolerance"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and np.isfinite(v) and v >= 0):
-                raise ValueError(f"Validation.{name} must be a finite number >= 0, got {v!r}")
-        n = self.min_targets
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"Validation.min_targets must be an integer >= 1, got {n!r}")
+            checked_number(getattr(self, name), f"Validation.{name}", error=ValueError)
+        checked_number(self.min_targets, "Validation.min_targets", least=1, integer=True, error=ValueError)
 
 
 @dataclass(frozen=True)
@@ -135,9 +132,7 @@ class RetryPolicy:
 
     def __post_init__(self) -> None:
         for name, least in (("max_attempts", 1), ("max_silent_poses", 0), ("max_failed_poses", 0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise ValueError(f"RetryPolicy.{name} must be an integer >= {least}, got {value!r}")
+            checked_number(getattr(self, name), f"RetryPolicy.{name}", least=least, integer=True, error=ValueError)
 
 
 @dataclass(frozen=True)
@@ -343,7 +338,6 @@ class _Run:
             length="a tracker reporting in {unit} (check the tracker profile's unit)",
             angle="joint values in {unit} (check the robot driver and the robot file's [joint_map])",
             frame='frame "{frame}" (check which frame the tracker reports in)',
-            allow="--allow {check}",
             row=lambda i: f"pose {poses[i]}",
         )
         report = check_measurements(
@@ -446,15 +440,13 @@ class _Run:
     def stop_reason(self, outcome: _Outcome, pose: int) -> str:
         """Why the run must stop after this journaled pose ("" to go on): the record-time sanity check, a silent
         tracker, too many rejected poses in a row."""
-        if outcome.status == "valid":
-            # Checked after the measurement is journaled (nothing recorded is lost) and before the next
-            # motion: a wrong robot model, targets file, unit or frame stops the run early.
-            why = self.sanity()
-            if why:
-                return why
         self.silent = self.silent + 1 if outcome.silent else 0
         if not outcome.refused:
             self.failed = self.failed + 1 if outcome.status == "rejected" else 0
+        if outcome.status == "valid":  # (both counts are 0 again)
+            # Checked after the measurement is journaled (nothing recorded is lost) and before the next
+            # motion: a wrong robot model, targets file, unit or frame stops the run early.
+            return self.sanity()
         # a silent tracker is named as such first: its poses are rejected poses too
         if self.retry.max_silent_poses and self.silent >= self.retry.max_silent_poses:
             return (
@@ -644,7 +636,7 @@ def run(
         tracker_identity=tracker_identity,
     )
     journal = store.create_session(header)
-    state = _Run(journal, plan, robot, tracker, opts.with_changes(allow=tuple(sorted(allowed))), spec)
+    state = _Run(journal, plan, robot, tracker, opts, spec)
     try:
         status, reason = state.execute()
     except BaseException:
@@ -739,14 +731,11 @@ def _check_motion_caps(plan: Plan, done: set[int], robot: Robot) -> None:
     """
     limits = robot.limits
     for step in plan.poses():
-        if step.index in done:
-            continue
-        move = step.move
         for what, value, cap, unit in (
-            ("moves at", move.speed, limits.max_speed, "rad/s"),
-            ("accelerates at", move.acceleration, limits.max_acceleration, "rad/s²"),
+            ("moves at", step.move.speed, limits.max_speed, "rad/s"),
+            ("accelerates at", step.move.acceleration, limits.max_acceleration, "rad/s²"),
         ):
-            if not value <= cap:
+            if step.index not in done and not value <= cap:
                 raise SessionError(
                     f"pose {step.index} {what} {value:g} {unit}, above the robot's cap of {cap:g} {unit} (lowered "
                     "since the session started?); nothing was moved: resume with the cap the session was planned "

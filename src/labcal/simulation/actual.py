@@ -178,8 +178,7 @@ def seen_mask(k: int, m: int, dropout, rng: np.random.Generator, *, exact: bool 
             )
         free = np.where(keep, -np.inf, score).ravel()
         seen = np.ones(k * m, bool)
-        if lost:
-            seen[np.argsort(-free, kind="stable")[:lost]] = False
+        seen[np.argsort(-free, kind="stable")[:lost]] = False
         return seen.reshape(k, m)
     seen = score >= p
     empty = ~seen.any(axis=1)
