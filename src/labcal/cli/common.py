@@ -66,33 +66,26 @@ class _FirstUseConsole:
     """A rich Console made when it first prints (or is asked anything): the commands that print JSON only, and the
     help, never import rich.console through it."""
 
-    def __init__(self, make) -> None:
-        self._make = make
+    def __init__(self, stderr: bool) -> None:
+        self._stderr = stderr
         self._console: Console | None = None
 
     def __getattr__(self, name: str):
         if self._console is None:
-            self._console = self._make()
+            from rich.console import Console
+
+            # Piped output (files, CI logs, tests) gets room for the full metrics table instead of 80 columns, unless
+            # COLUMNS says how wide the reader is (rich reads it when width is None). stderr keeps rich's width.
+            wide = self._stderr or sys.stdout.isatty() or os.environ.get("COLUMNS", "").strip().isdigit()
+            # No markup: labcal prints text as it is (a "[/x]" in a path or a message is not a closing tag).
+            self._console = Console(
+                stderr=self._stderr, soft_wrap=True, markup=False, highlight=False, width=None if wide else 200
+            )
         return getattr(self._console, name)
 
 
-def _stdout_console() -> Console:
-    from rich.console import Console
-
-    # Piped output (files, CI logs, tests) gets room for the full metrics table instead of 80 columns, unless
-    # COLUMNS says how wide the reader is (rich reads it when width is None).
-    wide = sys.stdout.isatty() or os.environ.get("COLUMNS", "").strip().isdigit()
-    return Console(soft_wrap=True, highlight=False, width=None if wide else 200)
-
-
-def _stderr_console() -> Console:
-    from rich.console import Console
-
-    return Console(stderr=True, soft_wrap=True, highlight=False)
-
-
-out = _FirstUseConsole(_stdout_console)
-err = _FirstUseConsole(_stderr_console)
+out = _FirstUseConsole(stderr=False)
+err = _FirstUseConsole(stderr=True)
 
 
 def user_errors(fn):
@@ -110,7 +103,7 @@ def user_errors(fn):
             # The shell convention for SIGINT (128 + 2): scripts must not mistake an interrupted run for a
             # successful one. Whatever was recorded is already on disk (the journal is fsynced per measurement).
             message, code = interruption(e)
-            err.print(message, markup=False)
+            err.print(message)
             raise typer.Exit(code) from None
         except (ValueError, DatasetError, OSError, KeyError, RuntimeError) as e:
             # OSError covers more than missing / forbidden files: a full disk or a read-only file system met
@@ -118,7 +111,7 @@ def user_errors(fn):
             msg = f"missing field {e}" if isinstance(e, KeyError) else str(e)
             if isinstance(e, OSError) and e.strerror and msg.startswith("[Errno"):  # not a message of labcal's own
                 msg = f"{e.strerror}: {e.filename}" if e.filename else e.strerror
-            err.print(f"error: {msg}", markup=False)
+            err.print(f"error: {msg}")
             raise typer.Exit(USAGE_ERROR) from None
 
     return wrapper
@@ -261,6 +254,19 @@ def deg(x) -> str:
     return "—" if x is None else f"{x * 180 / 3.141592653589793:.4f}"
 
 
+def table(columns, rows, title: str | None = None, *, right: tuple[int, ...] = ()) -> Table:
+    """A rich table with its title on the left: one column per name (left-aligned, the indices in ``right`` right-
+    aligned) and the rows as given (text cells)."""
+    from rich.table import Table
+
+    t = Table(title=title, title_justify="left")
+    for i, name in enumerate(columns):
+        t.add_column(name, justify="right" if i in right else "left")
+    for row in rows:
+        t.add_row(*row)
+    return t
+
+
 def _number_table(title: str | None, head: list[str], numbers: list[str], rows: list[list[str]]) -> Table:
     """A table whose number columns never shrink below their widest cell: at 80 columns a narrow terminal wraps the
     headers, never the numbers (rich's default cut them to ``2.…``)."""
@@ -342,12 +348,11 @@ def print_gates(gates: dict | None, *, what: str = "this fit", footer: bool = Tr
     gates = gates or {}
     warnings = gates.get("warnings") or []
     for w in warnings:
-        err.print(f"WARNING [{w.get('code')}] {w.get('message')}", markup=False, style="bold yellow")
+        err.print(f"WARNING [{w.get('code')}] {w.get('message')}", style="bold yellow")
     for n in gates.get("notes") or []:
-        err.print(f"note: {n}", markup=False)
+        err.print(f"note: {n}")
     if warnings and footer:
         err.print(
             f"{what} has {len(warnings)} warning(s): `labcal export` refuses it unless --force is given",
-            markup=False,
             style="bold yellow",
         )

@@ -20,6 +20,7 @@ from labcal.cli.common import (
     out,
     print_json,
     session_unit,
+    table,
     user_errors,
 )
 from labcal.cli.session_import import import_
@@ -41,19 +42,17 @@ def _end_run(summary, line: str, resume_flags: list[str] | None = None) -> None:
 
     A run that did not finish (paused, failed, aborted) with poses left names its session and the command that
     continues it (``resume_flags``: --store and the like, passed on as given)."""
-    out.print(line, markup=False)
+    out.print(line)
     code = _EXIT.get(summary.exit_status, 1)
     if summary.exit_status == "aborted" and TERMINATED_BY:  # SIGTERM / SIGHUP, not Ctrl-C: 128 + its number
         code = 128 + TERMINATED_BY[0]
     if code and summary.exit_status != "aborted":
-        err.print(f"error: the run ended {summary.exit_status}: {summary.reason}", markup=False)
+        err.print(f"error: the run ended {summary.exit_status}: {summary.reason}")
     if code and summary.remaining:
         import shlex
 
         command = shlex.join(["labcal", "session", "resume", summary.session_id, *(resume_flags or [])])
-        err.print(
-            f"session {summary.session_id}: {summary.remaining} pose(s) left; continue with: {command}", markup=False
-        )
+        err.print(f"session {summary.session_id}: {summary.remaining} pose(s) left; continue with: {command}")
     if summary.ref is not None:
         print(summary.ref)
     if code or summary.ref is None:
@@ -253,21 +252,16 @@ def list_(
         print_json("labcal.session-list/1", {"store": str(st.root), "sessions": [_session_doc(i, m) for i, m in rows],
                                              "foreign": [{"name": n, "why": w} for n, w in foreign]})  # fmt: skip
         return
-    from rich.table import Table
+    from labcal.names import printable  # a stored name may predate the name checks: no raw escapes
 
-    t = Table(title=f"sessions in {st.root}", title_justify="left")
-    for col in ("session", "robot", "frame", "status", "versions", "rows"):
-        t.add_column(col)
-    for info, _ in rows:
-        from labcal.names import printable  # a stored name may predate the name checks: no raw escapes
-
-        t.add_row(
-            info.session_id, printable(info.robot.get("name")), info.frame, info.status,
-            ", ".join(v.name for v in info.versions) or "—", str(info.rows),
-        )  # fmt: skip
-    out.print(t)
+    cells = [
+        (info.session_id, printable(info.robot.get("name")), info.frame, info.status,
+         ", ".join(v.name for v in info.versions) or "—", str(info.rows))
+        for info, _ in rows
+    ]  # fmt: skip
+    out.print(table(("session", "robot", "frame", "status", "versions", "rows"), cells, f"sessions in {st.root}"))
     for name, why in foreign:
-        out.print(f"foreign: {name!r} skipped ({why})", markup=False)
+        out.print(f"foreign: {name!r} skipped ({why})")
 
 
 def _meta(st, session_id: str) -> dict:
@@ -336,17 +330,11 @@ def show(
 
     name = printable(info.robot.get("name"))
     out.print(f"session {info.session_id}: robot {name} ({info.robot.get('hash', '')[:12]}…, "
-              f"{stored}){unit}, frame {info.frame}{targets}, status {info.status}", markup=False)  # fmt: skip
-    from rich.table import Table
-
-    t = Table()
-    for col in ("version", "rows", "created", "source", "parent", "fits"):
-        t.add_column(col)
-    for v in info.versions:
-        t.add_row(v.name, str(v.rows), v.created, v.source, v.parent or "—", str(v.fits))
-    out.print(t)
+              f"{stored}){unit}, frame {info.frame}{targets}, status {info.status}")  # fmt: skip
+    cells = [(v.name, str(v.rows), v.created, v.source, v.parent or "—", str(v.fits)) for v in info.versions]
+    out.print(table(("version", "rows", "created", "source", "parent", "fits"), cells))
     for w in info.warnings:
-        out.print(f"warning: {w}", markup=False)
+        out.print(f"warning: {w}")
 
 
 @app.command("resume")
@@ -426,13 +414,13 @@ def seal(
     validate_id(session)
     st = open_store(store, create=False, write=True)
     result = st.seal(session, valid_prefix=valid_prefix)
-    out.print(result.message, markup=False)
+    out.print(result.message)
     if result.created:
         m = st.manifest(result.ref)
         skipped = ((m.get("provenance") or {}).get("journal") or {}).get("valid_prefix", {}).get("skipped", [])
         for s in skipped:
             where = f"line {s['line']}" + (f" (seq {s['seq']}, pose {s['pose_index']})" if "seq" in s else "")
-            out.print(f"  left out {where}: {s['reason']}", markup=False)
+            out.print(f"  left out {where}: {s['reason']}")
     if result.ref is None:
         raise typer.Exit(1)
     print(result.ref)
@@ -494,11 +482,11 @@ def verify(
 def _print_findings(ref, checked: str, problems: list[str], notes: list[str]) -> None:
     """`REF: ok (what was checked)` when nothing is wrong, else one line per problem; then the notes."""
     if not problems:
-        out.print(f"{ref}: ok ({checked})", markup=False)
+        out.print(f"{ref}: ok ({checked})")
     for p in problems:
-        out.print(f"{ref}: {p}", markup=False)
+        out.print(f"{ref}: {p}")
     for n in notes:
-        out.print(f"{ref}: note: {n}", markup=False)
+        out.print(f"{ref}: note: {n}")
 
 
 app.command("import")(import_)
