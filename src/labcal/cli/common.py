@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Literal
 import typer
 
 if TYPE_CHECKING:
-    from rich.console import Console, RenderableType
+    from rich.console import Console
     from rich.table import Table
 
 STORE_HELP = "Session store folder (default: $LABCAL_STORE, else ./sessions)."
@@ -283,64 +283,40 @@ def _number_table(title: str | None, head: list[str], numbers: list[str], rows: 
     return t
 
 
-def metrics_table(metrics: dict, title: str) -> RenderableType:
-    """Rich tables, split × (before, after): mean / RMS / p95 / max of the tool position error (mm), of the
-    orientation error (deg), and mean / p95 / max of the per-target point error (mm).
-
-    Three narrow tables rather than one of 14 columns, so that each fits an 80-column terminal whole."""
-    from rich.console import Group
-
-    splits = [s for s in ("train", "val", "test", "all") if s in metrics]
-    cells: dict[str, list[list[str]]] = {"pos": [], "ori": [], "point": []}
-    for split in splits:
-        for when in ("before", "after"):
-            s = metrics[split][when]
-            p = (metrics[split].get("points") or {}).get(when) or {}
-            lead = [split if when == "before" else "", when]
-            n = str(int(s.get("count") or 0)) if when == "before" else ""
-            cells["pos"].append([lead[0], n, when, *[mm(s.get(f"pos_{k}")) for k in ("mean", "rms", "p95", "max")]])
-            cells["ori"].append([*lead, *[deg(s.get(f"ori_{k}")) for k in ("mean", "rms", "p95", "max")]])
-            cells["point"].append([*lead, *[mm(p.get(k)) for k in ("mean", "p95", "max")]])
-    four, three = ("mean", "rms", "p95", "max"), ("mean", "p95", "max")
-    return Group(
-        _number_table(title, ["split", "n", ""], [f"pos {k} mm" for k in four], cells["pos"]),
-        _number_table(None, ["split", ""], [f"ori {k} °" for k in four], cells["ori"]),
-        _number_table(None, ["split", ""], [f"point {k} mm" for k in three], cells["point"]),
-    )
-
-
-def targets_table(metrics: dict, title: str = "per-target point error (mm): mean / p95 / max") -> RenderableType | None:
-    """Rich tables, one per target: split × (before, after) of the point error (mm), or None if the metrics have
-    none. One table per target keeps each within 80 columns however many targets there are."""
-    splits = [s for s in ("train", "val", "test", "all") if s in metrics and "points" in metrics[s]]
-    if not splits:
-        return None
-    m = len(metrics[splits[0]]["points"]["after"].get("per_target") or [])
-    from rich.console import Group
-
-    tables = []
-    for i in range(m):
-        rows = []
-        for split in splits:
-            for when in ("before", "after"):
-                per = metrics[split]["points"][when].get("per_target") or []
-                p = per[i] if i < len(per) else {}
-                rows.append([split if when == "before" else "", when, *[mm(p.get(k)) for k in ("mean", "p95", "max")]])
-        head = [f"t{i + 1} {k}" for k in ("mean", "p95", "max")]
-        tables.append(_number_table(title if i == 0 else None, ["split", ""], head, rows))
-    return Group(*tables)
-
-
 def print_metrics(metrics: dict, title: str, *, points_lead: str | None = None) -> None:
-    """The pose-error tables (:func:`metrics_table`), then the per-target point errors if any (:func:`targets_table`).
-    ``points_lead``: when there are point errors, print this line and the point errors first."""
-    tables = [metrics_table(metrics, title), targets_table(metrics)]
-    if points_lead is not None and tables[1] is not None:
-        out.print(points_lead)
-        tables.reverse()
+    """Rich tables of a split table, split × (before, after): mean / RMS / p95 / max of the tool position error (mm)
+    and of the orientation error (deg), mean / p95 / max of the point error (mm), then that point error per target if
+    there is one. Narrow tables (three for the pose errors, one per target) so that each fits an 80-column terminal
+    whole. ``points_lead``: when there are point errors per target, print this line and those first."""
+    from rich.console import Group
+
+    from labcal.reports import POINT_STATS, POSE_STATS, split_rows, target_rows
+
+    pos, ori, points = [], [], []
+    for lead, n, when, *cells in split_rows(metrics, mm, deg):
+        pos.append([lead, n, when, *cells[0]])
+        ori.append([lead, when, *cells[1]])
+        points.append([lead, when, *cells[2]])
+    tables = [
+        Group(
+            _number_table(title, ["split", "n", ""], [f"pos {k} mm" for k in POSE_STATS], pos),
+            _number_table(None, ["split", ""], [f"ori {k} °" for k in POSE_STATS], ori),
+            _number_table(None, ["split", ""], [f"point {k} mm" for k in POINT_STATS], points),
+        )
+    ]
+    rows, none = target_rows(metrics, mm), [mm(None)] * len(POINT_STATS)
+    if rows:
+        tables.append(Group(*[
+            _number_table("per-target point error (mm): mean / p95 / max" if i == 0 else None, ["split", ""],
+                          [f"t{i + 1} {k}" for k in POINT_STATS],
+                          [[lead, when, *(per[i] if i < len(per) else none)] for lead, when, per in rows])
+            for i in range(len(rows[1][2]))  # the targets of the first split's "after" row
+        ]))  # fmt: skip
+        if points_lead is not None:
+            out.print(points_lead)
+            tables.reverse()
     for table in tables:
-        if table is not None:
-            out.print(table)
+        out.print(table)
 
 
 def print_gates(gates: dict | None, *, what: str = "this fit", footer: bool = True) -> None:
