@@ -229,21 +229,15 @@ def metrics_doc(metrics: dict | None) -> dict | None:
                 out[f"{k}_{'rad' if k.startswith('ori_') else 'm'}"] = v
         return out
 
-    doc: dict = {}
-    for split, block in metrics.items():
-        if not isinstance(block, dict):
-            doc[split] = block
-            continue
-        entry: dict = {}
-        for key, value in block.items():
-            if key in ("before", "after"):
-                entry[key] = stats(value)
-            elif key == "points":
-                entry[key] = {w: stats(v) for w, v in (value or {}).items()}
-            else:
-                entry[key] = value
-        doc[split] = entry
-    return doc
+    def entry(key: str, value):
+        if key in ("before", "after"):
+            return stats(value)
+        return {w: stats(v) for w, v in (value or {}).items()} if key == "points" else value
+
+    return {
+        split: {key: entry(key, value) for key, value in block.items()} if isinstance(block, dict) else block
+        for split, block in metrics.items()
+    }
 
 
 def mm(x) -> str:

@@ -278,9 +278,7 @@ def _session_doc(info, meta: dict) -> dict:
     return {
         "session": info.session_id,
         "robot": {
-            "name": info.robot.get("name"),
-            "hash": info.robot.get("hash"),
-            "n_joints": info.robot.get("n_joints"),
+            **{k: info.robot.get(k) for k in ("name", "hash", "n_joints")},
             "file_stored": bool(info.robot.get("text")),
         },
         "unit": session_unit(meta),
@@ -299,8 +297,7 @@ def _session_doc(info, meta: dict) -> dict:
 
 
 def _version_doc(v) -> dict:
-    return {"version": v.name, "rows": v.rows, "created": v.created, "source": v.source, "parent": v.parent,
-            "fits": v.fits}  # fmt: skip
+    return {"version": v.name, **{k: getattr(v, k) for k in ("rows", "created", "source", "parent", "fits")}}
 
 
 @app.command("show")
