@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
 
 import typer
@@ -82,44 +83,44 @@ app = typer.Typer(
 )
 
 
-class _RunProgress:
+@contextmanager
+def _run_progress():
     """A rich progress bar on stderr (pose k/N, ETA, last status and triangle residual); stdout stays for ids.
+    Yields the runner's progress callback.
 
     Rejections and retries are also printed as lines, so they stay visible after the bar moves on.
     """
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    def __init__(self) -> None:
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    bar = Progress(
+        TextColumn("recording"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("poses  ETA"),
+        TimeRemainingColumn(),
+        TextColumn("{task.fields[status]}"),
+        console=Console(stderr=True, markup=False),  # messages print as they are
+        transient=False,
+    )
+    task = None
 
-        self._bar = Progress(
-            TextColumn("recording"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("poses  ETA"),
-            TimeRemainingColumn(),
-            TextColumn("{task.fields[status]}"),
-            console=Console(stderr=True),
-            transient=False,
-        )
-        self._task = None
-
-    def __enter__(self) -> _RunProgress:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self._task is not None:
-            self._bar.stop()
-
-    def __call__(self, p) -> None:
-        if self._task is None:  # started on the first event: argument errors before it print nothing extra
-            self._bar.start()
-            self._task = self._bar.add_task("poses", total=p.total, completed=p.done, status="")
+    def show(p) -> None:
+        nonlocal task
+        if task is None:  # started on the first event: argument errors before it print nothing extra
+            bar.start()
+            task = bar.add_task("poses", total=p.total, completed=p.done, status="")
         residual = "" if p.residual is None else f", target distance residual {p.residual * 1e3:.3f} mm"
         where = "" if p.pose is None else f"pose {p.pose}: "
-        self._bar.update(self._task, completed=p.done, total=p.total, status=f"{where}{p.status}{residual}")
+        bar.update(task, completed=p.done, total=p.total, status=f"{where}{p.status}{residual}")
         if p.status in ("retry", "rejected", "paused", "aborted", "failed"):
-            self._bar.console.print(f"  {where}{p.status} {p.message}", markup=False)
+            bar.console.print(f"  {where}{p.status} {p.message}")
+
+    try:
+        yield show
+    finally:
+        if task is not None:
+            bar.stop()
 
 
 _TARGETS = typer.Option(
@@ -196,9 +197,6 @@ def new(
         --tracker-port /dev/pts/3   # rehearsal: the fakes of `python -m labcal_fakes.rehearse`
     """
     from labcal.cli.ops.sessions import SessionRequest, new_session
-    from labcal.datasets import load_targets
-    from labcal.datasets.targets import load_target_normals
-    from labcal.robots import load
 
     request = SessionRequest(
         robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver, tracker_driver=tracker_driver,
@@ -207,11 +205,9 @@ def new(
         robot_host=robot_host, tracker_port=tracker_port, max_failed_poses=max_failed_poses,
     )  # fmt: skip
     request.check()
-    load(robot)  # a typo in the robot or targets fails here, before the store is created
-    load_targets(targets)
-    load_target_normals(targets)  # normals for the planner's line of sight, checked before the store is made
+    request.inputs()  # a typo in the robot or targets file fails here, before the store is created
     st = open_store(store, create=True)
-    with _RunProgress() as progress:
+    with _run_progress() as progress:
         summary = new_session(st, request, progress=progress)
     _end_run(
         summary,
@@ -373,7 +369,7 @@ def resume(
     from labcal.cli.ops.sessions import resume_session
 
     st = open_store(store, create=False, write=True)
-    with _RunProgress() as progress:
+    with _run_progress() as progress:
         summary = resume_session(
             st,
             session,
