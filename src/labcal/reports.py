@@ -37,6 +37,8 @@ from labcal.compensator import from_payload
 from labcal.datasets.errors import DatasetError
 from labcal.kinematics.metric import parameter_weights
 
+# A stored fit's files (labcal.cli.ops.fitting.run_fit writes them): the fitted robot and the registered nominal
+# (the "before" of every metric), as compensator payloads.
 ROBOT_FILE, BEFORE_FILE = "robot.json", "before.json"
 
 
@@ -330,17 +332,6 @@ def _chosen_info(info: dict, chosen: str | None) -> dict:
     if isinstance(info, dict) and isinstance(info.get("candidates"), dict) and chosen in info:
         return info[chosen] or {}
     return info
-
-
-def _local_poe_info(info: dict) -> dict | None:
-    """The local-POE stage's diagnostics (the fit itself, or a hybrid's first stage), if any."""
-    if not isinstance(info, dict):
-        return None
-    if "delta_zeta" in info:
-        return info
-    if isinstance(info.get("local_poe"), dict):
-        return _local_poe_info(info["local_poe"])
-    return None
 
 
 IDENTIFIABLE_LEVERAGE = 1e-6  # share of a parameter's unit vector inside the null space below which it is identified
@@ -760,7 +751,7 @@ def _fit_section(store, r, data: dict, metrics: dict, plt, out: Path) -> list[st
     lines += _fit_plots(plt, data, out)
     info = meta.get("info") or {}
     lines += _choice_lines(info)
-    lp = _local_poe_info(_chosen_info(info, meta.get("chosen")))
+    lp = _owner(_chosen_info(info, meta.get("chosen")), "delta_zeta")  # the local-POE stage, if any
     lines += [*_parameter_lines(lp, data), "", *_measurement_tool_lines(lp)]
     return [*lines, *_evaluation_lines(store, str(r), fid), ""]
 

@@ -13,9 +13,7 @@ from labcal.cli.common import UserError, plain
 from labcal.cli.ops.common import check_choice, check_seed, load_observations
 from labcal.compensator import CalibratedRobot, from_payload, to_payload
 from labcal.datasets import SessionStore
-
-ROBOT_FILE = "robot.json"  # the fitted robot, as a compensator payload
-BEFORE_FILE = "before.json"  # the registered nominal (the "before" of every metric)
+from labcal.reports import BEFORE_FILE, ROBOT_FILE
 
 
 @dataclass
