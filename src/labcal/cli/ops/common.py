@@ -76,16 +76,11 @@ def check_seed(seed: int | None, flag: str = "--seed") -> None:
 
 
 def check_unit_option(unit: str | None) -> str | None:
-    """--unit: None, or an id as the session stores it (printable, at most 64 characters)."""
+    """--unit: None, or an id as the session stores it (printable, at most 64 characters; else a JournalError naming
+    --unit, a one-line error like UserError's)."""
     from labcal.datasets.documents import check_unit
-    from labcal.datasets.errors import JournalError
 
-    if unit is None:
-        return None
-    try:
-        return check_unit(unit, "--unit")
-    except JournalError as e:
-        raise UserError(str(e)) from None
+    return None if unit is None else check_unit(unit, "--unit")
 
 
 def check_units(datasets: list[Dataset], pool_units: bool = False) -> list[str]:
@@ -175,9 +170,7 @@ def load_observations(
 
 
 def split_ref(text: str) -> str:
-    """Validate SESSION[@vN] syntax early (a clear message before touching the store)."""
-    try:
-        parse_ref(text)
-    except ValueError as err:
-        raise UserError(str(err)) from err
+    """Validate SESSION[@vN] syntax early (a clear message before touching the store: the ValueError of
+    :func:`labcal.datasets.parse_ref`)."""
+    parse_ref(text)
     return text

@@ -47,10 +47,6 @@ class EvaluationOutcome:
     imported: bool
 
 
-def _now() -> str:
-    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
-
-
 def register_base(robot, obs) -> tuple[np.ndarray, float]:
     """Least-squares T_tracker_base of robot on obs (tracker frame): the rigid transform that best maps the robot's
     predicted base-frame target points onto the measured ones, all points pooled (Kabsch). Returns (T, rms m)."""
@@ -161,7 +157,7 @@ def evaluate_fit(
     evaluation = {
         "kind": "labcal.evaluation",
         "evaluation_id": None,
-        "created": _now(),
+        "created": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ"),
         "fit_id": fit_id,
         "fit_ref": stored.ref,
         "fit_inputs": stored.inputs,

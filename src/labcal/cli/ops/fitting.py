@@ -77,9 +77,7 @@ def run_fit(
     check_fit_options(method, seed, hidden, val_fraction)
     _check_one_version_per_session(store, refs)
     obs, datasets, spec = load_observations(store, refs, robot, with_spec=True, pool_units=pool_units)
-    options = {}
-    if hidden is not None:
-        options["hidden"] = hidden
+    options = {} if hidden is None else {"hidden": hidden}
     tool_note = probe_mount_note(obs, datasets, spec.model)
     probe = tool_note is not None  # the registered nominal then carries the probe as its measurement tool
     result = fit(

@@ -295,13 +295,11 @@ def plan_tasks(
     # The checks run_fit makes, made once here: a bad option is a usage error, not a failure of every task.
     check_fit_options(method, seed, hidden, val_fraction)
     root = str(Path(store.root).resolve())
-    tasks = []
-    for ref in refs:
-        r = str(store.resolve(ref))
-        tasks.append(
-            RefitTask(root, r, method, new_fit_id(), seed, hidden, val_fraction, robot_file, latest_fit(store, r), hook)
-        )
-    return tasks
+    resolved = [str(store.resolve(ref)) for ref in refs]
+    return [
+        RefitTask(root, r, method, new_fit_id(), seed, hidden, val_fraction, robot_file, latest_fit(store, r), hook)
+        for r in resolved
+    ]
 
 
 def run_refit(
