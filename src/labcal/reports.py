@@ -423,20 +423,19 @@ def _parameter_lines(lp: dict | None, data: dict) -> list[str]:
         "value depends on an arbitrary choice inside the null space; only the combinations listed below are "
         "determined by the data):",
         "",
-        "| frame | " + " | ".join(names) + " |",
-        "|---|" + "---:|" * 6,
     ]
-    for j, (row, srow) in enumerate(zip(dz, std, strict=True)):
-        cells = []
-        for i, (v, sd) in enumerate(zip(row, srow, strict=True)):
-            if not np.isfinite(sd) and j not in frames:
-                cells.append("in T_tracker_base" if estimate_base else "not estimated")
-            elif identified[j, i] and np.isfinite(sd):
-                cells.append(f"{v * 1e3:.4f} ± {sd * 1e3:.4f}")
-            else:
-                cells.append("—")
-        label = f"A{j + 1}" if j < n1 - 1 else f"A{j + 1} (tool)"
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+
+    def cell(v: float, sd: float, j: int, i: int) -> str:
+        if not np.isfinite(sd) and j not in frames:
+            return "in T_tracker_base" if estimate_base else "not estimated"
+        return f"{v * 1e3:.4f} ± {sd * 1e3:.4f}" if identified[j, i] and np.isfinite(sd) else "—"
+
+    rows = [
+        [f"A{j + 1}" if j < n1 - 1 else f"A{j + 1} (tool)"]
+        + [cell(v, sd, j, i) for i, (v, sd) in enumerate(zip(row, srow, strict=True))]
+        for j, (row, srow) in enumerate(zip(dz, std, strict=True))
+    ]
+    lines += _md_table(["frame", *names], "l" + "r" * len(names), rows)
     if leverage is not None:
         lines += ["", *_combination_lines(lp, data, dz, frames, labels, leverage, scale, Vn)]
     dirs = lp.get("null_directions") or []
