@@ -164,9 +164,7 @@ def load_observations(
         split=np.concatenate([d.split for d in datasets]).astype(object),
         group=group,
     )
-    if with_spec:
-        return obs, datasets, spec
-    return obs, datasets
+    return (obs, datasets, spec) if with_spec else (obs, datasets)
 
 
 def split_ref(text: str) -> str:
