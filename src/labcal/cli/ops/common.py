@@ -76,11 +76,16 @@ def check_seed(seed: int | None, flag: str = "--seed") -> None:
 
 
 def check_unit_option(unit: str | None) -> str | None:
-    """--unit: None, or an id as the session stores it (printable, at most 64 characters; else a JournalError naming
-    --unit, a one-line error like UserError's)."""
+    """--unit: None, or an id as the session stores it (printable, at most 64 characters)."""
     from labcal.datasets.documents import check_unit
+    from labcal.datasets.errors import JournalError
 
-    return None if unit is None else check_unit(unit, "--unit")
+    if unit is None:
+        return None
+    try:
+        return check_unit(unit, "--unit")
+    except JournalError as e:
+        raise UserError(str(e)) from None
 
 
 def check_units(datasets: list[Dataset], pool_units: bool = False) -> list[str]:
