@@ -37,6 +37,8 @@ from labcal.compensator import from_payload
 from labcal.datasets.errors import DatasetError
 from labcal.kinematics.metric import parameter_weights
 
+# A stored fit's files (labcal.cli.ops.fitting.run_fit writes them): the fitted robot and the registered nominal
+# (the "before" of every metric), as compensator payloads.
 ROBOT_FILE, BEFORE_FILE = "robot.json", "before.json"
 
 
@@ -91,22 +93,55 @@ def _find(info, key):
     return (_owner(info, key) or {}).get(key)
 
 
-def _md_metrics(metrics: dict) -> list[str]:
-    stats = ("mean", "rms", "p95", "max")
-    cols = [f"pos {s} (mm)" for s in stats] + [f"ori {s} (°)" for s in stats]
-    cols += [f"point {s} (mm)" for s in ("mean", "p95", "max")]
-    lines = ["| split | n | | " + " | ".join(cols) + " |", "|---|---:|---|" + "---:|" * len(cols)]
-    for split in ("train", "val", "test", "all"):
-        if split not in metrics:
-            continue
+SPLITS = ("train", "val", "test", "all")
+POSE_STATS, POINT_STATS = ("mean", "rms", "p95", "max"), ("mean", "p95", "max")
+
+
+def split_rows(metrics: dict, length, angle) -> list[tuple]:
+    """The rows of a split table's error tables, split × (before, after), as the report and `labcal fit` /
+    `labcal evaluate` print them: (the split, on its before row only; the pose count, on the before row only;
+    before / after; the position stats, the orientation stats and the point stats as text). ``length`` and ``angle``
+    format a value in m and in rad."""
+    rows = []
+    for split in (s for s in SPLITS if s in metrics):
         for when in ("before", "after"):
             s = metrics[split][when]  # NaN: no pose in these rows (fewer than three targets seen)
-            vals = [_mm(s.get(f"pos_{k}")) for k in stats] + [_mm(s.get(f"ori_{k}"), 180 / np.pi) for k in stats]
-            pts = (metrics[split].get("points") or {}).get(when) or {}
-            vals += [_mm(pts.get(k)) for k in ("mean", "p95", "max")]
-            n = str(int(s.get("count") or 0)) if when == "before" else ""
-            lines.append(f"| {split if when == 'before' else ''} | {n} | {when} | " + " | ".join(vals) + " |")
-    return lines
+            p = (metrics[split].get("points") or {}).get(when) or {}
+            lead, n = (split, str(int(s.get("count") or 0))) if when == "before" else ("", "")
+            pos, ori = [length(s.get(f"pos_{k}")) for k in POSE_STATS], [angle(s.get(f"ori_{k}")) for k in POSE_STATS]
+            rows.append((lead, n, when, pos, ori, [length(p.get(k)) for k in POINT_STATS]))
+    return rows
+
+
+def target_rows(metrics: dict, length) -> list[tuple[str, str, list[list[str]]]]:
+    """The per-target point error rows, split × (before, after): (the split, on its before row only; before /
+    after; mean, p95, max of every target as text, through ``length``); none when the metrics have no point errors."""
+    splits = [s for s in SPLITS if s in metrics and "points" in metrics[s]]
+    return [
+        (split if when == "before" else "", when,
+         [[length(t.get(k)) for k in POINT_STATS] for t in metrics[split]["points"][when].get("per_target") or []])
+        for split in splits
+        for when in ("before", "after")
+    ]  # fmt: skip
+
+
+def _md_row(cells) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def _md_table(head: list[str], align: str, rows) -> list[str]:
+    """A Markdown table: the header (an empty name as ``| |``), the alignment line (``align``: "l" or "r" per column)
+    and the rows."""
+    header = "".join(f"| {name} " if name else "| " for name in head) + "|"
+    return [header, "|" + "".join("---:|" if a == "r" else "---|" for a in align), *map(_md_row, rows)]
+
+
+def _md_metrics(metrics: dict) -> list[str]:
+    cols = [f"pos {s} (mm)" for s in POSE_STATS] + [f"ori {s} (°)" for s in POSE_STATS]
+    cols += [f"point {s} (mm)" for s in POINT_STATS]
+    rows = split_rows(metrics, _mm, lambda v: _mm(v, 180 / np.pi))
+    cells = [[lead, n, when, *pos, *ori, *pts] for lead, n, when, pos, ori, pts in rows]
+    return _md_table(["split", "n", "", *cols], "lrl" + "r" * len(cols), cells)
 
 
 def _save(plt, fig, path: Path) -> None:
@@ -224,24 +259,20 @@ def _mm(v, scale: float = 1e3) -> str:
 
 def _md_targets(metrics: dict) -> list[str]:
     """Per-target point error table (mm): split × before/after × target mean / p95 / max."""
-    splits = [s for s in ("train", "val", "test", "all") if s in metrics and "points" in metrics[s]]
-    if not splits:
+    rows = target_rows(metrics, _mm)
+    if not rows:
         return []
-    m = len(metrics[splits[0]]["points"]["after"].get("per_target") or [])
-    head = [f"t{i + 1} {k} (mm)" for i in range(m) for k in ("mean", "p95", "max")]
-    lines = [
+    head = [f"t{i + 1} {k} (mm)" for i in range(len(rows[1][2])) for k in POINT_STATS]
+    return [
         "Per-target point error: distance between each measured target and its predicted position (a targets file "
         "that does not match the data shows here, not in the pose error):",
         "",
-        "| split | | " + " | ".join(head) + " |",
-        "|---|---|" + "---:|" * len(head),
+        *_md_table(
+            ["split", "", *head],
+            "ll" + "r" * len(head),
+            [[lead, when, *(c for t in per for c in t)] for lead, when, per in rows],
+        ),
     ]
-    for split in splits:
-        for when in ("before", "after"):
-            per = metrics[split]["points"][when].get("per_target") or []
-            cells = [_mm(t.get(k)) for t in per for k in ("mean", "p95", "max")]
-            lines.append(f"| {split if when == 'before' else ''} | {when} | " + " | ".join(cells) + " |")
-    return lines
 
 
 def _plot_targets(plt, data: dict, path: Path) -> None:
@@ -301,17 +332,6 @@ def _chosen_info(info: dict, chosen: str | None) -> dict:
     if isinstance(info, dict) and isinstance(info.get("candidates"), dict) and chosen in info:
         return info[chosen] or {}
     return info
-
-
-def _local_poe_info(info: dict) -> dict | None:
-    """The local-POE stage's diagnostics (the fit itself, or a hybrid's first stage), if any."""
-    if not isinstance(info, dict):
-        return None
-    if "delta_zeta" in info:
-        return info
-    if isinstance(info.get("local_poe"), dict):
-        return _local_poe_info(info["local_poe"])
-    return None
 
 
 IDENTIFIABLE_LEVERAGE = 1e-6  # share of a parameter's unit vector inside the null space below which it is identified
@@ -403,20 +423,19 @@ def _parameter_lines(lp: dict | None, data: dict) -> list[str]:
         "value depends on an arbitrary choice inside the null space; only the combinations listed below are "
         "determined by the data):",
         "",
-        "| frame | " + " | ".join(names) + " |",
-        "|---|" + "---:|" * 6,
     ]
-    for j, (row, srow) in enumerate(zip(dz, std, strict=True)):
-        cells = []
-        for i, (v, sd) in enumerate(zip(row, srow, strict=True)):
-            if not np.isfinite(sd) and j not in frames:
-                cells.append("in T_tracker_base" if estimate_base else "not estimated")
-            elif identified[j, i] and np.isfinite(sd):
-                cells.append(f"{v * 1e3:.4f} ± {sd * 1e3:.4f}")
-            else:
-                cells.append("—")
-        label = f"A{j + 1}" if j < n1 - 1 else f"A{j + 1} (tool)"
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+
+    def cell(v: float, sd: float, j: int, i: int) -> str:
+        if not np.isfinite(sd) and j not in frames:
+            return "in T_tracker_base" if estimate_base else "not estimated"
+        return f"{v * 1e3:.4f} ± {sd * 1e3:.4f}" if identified[j, i] and np.isfinite(sd) else "—"
+
+    rows = [
+        [f"A{j + 1}" if j < n1 - 1 else f"A{j + 1} (tool)"]
+        + [cell(v, sd, j, i) for i, (v, sd) in enumerate(zip(row, srow, strict=True))]
+        for j, (row, srow) in enumerate(zip(dz, std, strict=True))
+    ]
+    lines += _md_table(["frame", *names], "l" + "r" * len(names), rows)
     if leverage is not None:
         lines += ["", *_combination_lines(lp, data, dz, frames, labels, leverage, scale, Vn)]
     dirs = lp.get("null_directions") or []
@@ -489,24 +508,20 @@ def _evaluation_lines(store, ref: str, fit_id: str) -> list[str]:
     docs = store.list_evaluations(ref, fit_id)
     if not docs:
         return []
-    lines = [
-        "Evaluations on other data (`labcal evaluate`; only T_tracker_base is fitted on tracker-frame data):",
-        "",
-        "| evaluation | data | rows | pos mean before (mm) | pos mean after (mm) | point mean after (mm) | "
-        "point p95 after (mm) | point max after (mm) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
-    ]
+    head = ["evaluation", "data", "rows", "pos mean before (mm)", "pos mean after (mm)", "point mean after (mm)",
+            "point p95 after (mm)", "point max after (mm)"]  # fmt: skip
+    rows = []
     for d in docs:
         m = (d.get("metrics") or {}).get("all") or {}
         pts = (m.get("points") or {}).get("after") or {}
         data = d.get("data") or {}
-        lines.append(
-            f"| {d.get('evaluation_id')}{' (corrupt)' if d.get('corrupt') else ''} | {data.get('ref', '?')} | "
-            f"{data.get('rows', '?')} | {_mm((m.get('before') or {}).get('pos_mean'))} | "
-            f"{_mm((m.get('after') or {}).get('pos_mean'))} | {_mm(pts.get('mean'))} | {_mm(pts.get('p95'))} | "
-            f"{_mm(pts.get('max'))} |"
-        )
-    return lines
+        rows.append([
+            f"{d.get('evaluation_id')}{' (corrupt)' if d.get('corrupt') else ''}", str(data.get("ref", "?")),
+            str(data.get("rows", "?")), _mm((m.get("before") or {}).get("pos_mean")),
+            _mm((m.get("after") or {}).get("pos_mean")), *[_mm(pts.get(k)) for k in POINT_STATS],
+        ])  # fmt: skip
+    text = "Evaluations on other data (`labcal evaluate`; only T_tracker_base is fitted on tracker-frame data):"
+    return [text, "", *_md_table(head, "llrrrrrr", rows)]
 
 
 def _cv_lines(cv) -> list[str]:
@@ -735,7 +750,7 @@ def _fit_section(store, r, data: dict, metrics: dict, plt, out: Path) -> list[st
     lines += _fit_plots(plt, data, out)
     info = meta.get("info") or {}
     lines += _choice_lines(info)
-    lp = _local_poe_info(_chosen_info(info, meta.get("chosen")))
+    lp = _owner(_chosen_info(info, meta.get("chosen")), "delta_zeta")  # the local-POE stage, if any
     lines += [*_parameter_lines(lp, data), "", *_measurement_tool_lines(lp)]
     return [*lines, *_evaluation_lines(store, str(r), fid), ""]
 

@@ -293,3 +293,15 @@ def test_a_mistyped_session_or_fit_id_gets_a_suggestion(world):
     assert_user_error(invoke("evaluate", typo, "--data", ref, store=store), f"did you mean {fit_id!r}?")
     assert_user_error(invoke("export", ref, "--fit", typo, "--format", "json", "--out", "x.json", store=store),
                       f"did you mean {fit_id!r}?")  # fmt: skip
+
+
+def test_text_that_looks_like_markup_prints_as_it_is(tmp_path):
+    """A store path (or any message) with '[/x]' in it is text: the consoles parse no markup (a table title with it
+    was a rich MarkupError traceback)."""
+    store = tmp_path / "[" / "x]"
+    store.mkdir(parents=True)
+    r = invoke("session", "list", store=store)
+    assert r.exit_code == 0, r.stdout + r.stderr
+    assert f"sessions in {store}" in " ".join(r.stdout.split())
+    r = invoke("session", "show", "20261122-031500-ur10-3f9a", store=store)
+    assert r.exit_code == 2 and "[/x]" in r.stderr and "Traceback" not in r.stderr

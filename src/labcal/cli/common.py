@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Literal
 import typer
 
 if TYPE_CHECKING:
-    from rich.console import Console, RenderableType
+    from rich.console import Console
     from rich.table import Table
 
 STORE_HELP = "Session store folder (default: $LABCAL_STORE, else ./sessions)."
@@ -66,33 +66,26 @@ class _FirstUseConsole:
     """A rich Console made when it first prints (or is asked anything): the commands that print JSON only, and the
     help, never import rich.console through it."""
 
-    def __init__(self, make) -> None:
-        self._make = make
+    def __init__(self, stderr: bool) -> None:
+        self._stderr = stderr
         self._console: Console | None = None
 
     def __getattr__(self, name: str):
         if self._console is None:
-            self._console = self._make()
+            from rich.console import Console
+
+            # Piped output (files, CI logs, tests) gets room for the full metrics table instead of 80 columns, unless
+            # COLUMNS says how wide the reader is (rich reads it when width is None). stderr keeps rich's width.
+            wide = self._stderr or sys.stdout.isatty() or os.environ.get("COLUMNS", "").strip().isdigit()
+            # No markup: labcal prints text as it is (a "[/x]" in a path or a message is not a closing tag).
+            self._console = Console(
+                stderr=self._stderr, soft_wrap=True, markup=False, highlight=False, width=None if wide else 200
+            )
         return getattr(self._console, name)
 
 
-def _stdout_console() -> Console:
-    from rich.console import Console
-
-    # Piped output (files, CI logs, tests) gets room for the full metrics table instead of 80 columns, unless
-    # COLUMNS says how wide the reader is (rich reads it when width is None).
-    wide = sys.stdout.isatty() or os.environ.get("COLUMNS", "").strip().isdigit()
-    return Console(soft_wrap=True, highlight=False, width=None if wide else 200)
-
-
-def _stderr_console() -> Console:
-    from rich.console import Console
-
-    return Console(stderr=True, soft_wrap=True, highlight=False)
-
-
-out = _FirstUseConsole(_stdout_console)
-err = _FirstUseConsole(_stderr_console)
+out = _FirstUseConsole(stderr=False)
+err = _FirstUseConsole(stderr=True)
 
 
 def user_errors(fn):
@@ -110,7 +103,7 @@ def user_errors(fn):
             # The shell convention for SIGINT (128 + 2): scripts must not mistake an interrupted run for a
             # successful one. Whatever was recorded is already on disk (the journal is fsynced per measurement).
             message, code = interruption(e)
-            err.print(message, markup=False)
+            err.print(message)
             raise typer.Exit(code) from None
         except (ValueError, DatasetError, OSError, KeyError, RuntimeError) as e:
             # OSError covers more than missing / forbidden files: a full disk or a read-only file system met
@@ -118,7 +111,7 @@ def user_errors(fn):
             msg = f"missing field {e}" if isinstance(e, KeyError) else str(e)
             if isinstance(e, OSError) and e.strerror and msg.startswith("[Errno"):  # not a message of labcal's own
                 msg = f"{e.strerror}: {e.filename}" if e.filename else e.strerror
-            err.print(f"error: {msg}", markup=False)
+            err.print(f"error: {msg}")
             raise typer.Exit(USAGE_ERROR) from None
 
     return wrapper
@@ -236,21 +229,15 @@ def metrics_doc(metrics: dict | None) -> dict | None:
                 out[f"{k}_{'rad' if k.startswith('ori_') else 'm'}"] = v
         return out
 
-    doc: dict = {}
-    for split, block in metrics.items():
-        if not isinstance(block, dict):
-            doc[split] = block
-            continue
-        entry: dict = {}
-        for key, value in block.items():
-            if key in ("before", "after"):
-                entry[key] = stats(value)
-            elif key == "points":
-                entry[key] = {w: stats(v) for w, v in (value or {}).items()}
-            else:
-                entry[key] = value
-        doc[split] = entry
-    return doc
+    def entry(key: str, value):
+        if key in ("before", "after"):
+            return stats(value)
+        return {w: stats(v) for w, v in (value or {}).items()} if key == "points" else value
+
+    return {
+        split: {key: entry(key, value) for key, value in block.items()} if isinstance(block, dict) else block
+        for split, block in metrics.items()
+    }
 
 
 def mm(x) -> str:
@@ -259,6 +246,19 @@ def mm(x) -> str:
 
 def deg(x) -> str:
     return "—" if x is None else f"{x * 180 / 3.141592653589793:.4f}"
+
+
+def table(columns, rows, title: str | None = None, *, right: tuple[int, ...] = ()) -> Table:
+    """A rich table with its title on the left: one column per name (left-aligned, the indices in ``right`` right-
+    aligned) and the rows as given (text cells)."""
+    from rich.table import Table
+
+    t = Table(title=title, title_justify="left")
+    for i, name in enumerate(columns):
+        t.add_column(name, justify="right" if i in right else "left")
+    for row in rows:
+        t.add_row(*row)
+    return t
 
 
 def _number_table(title: str | None, head: list[str], numbers: list[str], rows: list[list[str]]) -> Table:
@@ -277,64 +277,40 @@ def _number_table(title: str | None, head: list[str], numbers: list[str], rows: 
     return t
 
 
-def metrics_table(metrics: dict, title: str) -> RenderableType:
-    """Rich tables, split × (before, after): mean / RMS / p95 / max of the tool position error (mm), of the
-    orientation error (deg), and mean / p95 / max of the per-target point error (mm).
-
-    Three narrow tables rather than one of 14 columns, so that each fits an 80-column terminal whole."""
-    from rich.console import Group
-
-    splits = [s for s in ("train", "val", "test", "all") if s in metrics]
-    cells: dict[str, list[list[str]]] = {"pos": [], "ori": [], "point": []}
-    for split in splits:
-        for when in ("before", "after"):
-            s = metrics[split][when]
-            p = (metrics[split].get("points") or {}).get(when) or {}
-            lead = [split if when == "before" else "", when]
-            n = str(int(s.get("count") or 0)) if when == "before" else ""
-            cells["pos"].append([lead[0], n, when, *[mm(s.get(f"pos_{k}")) for k in ("mean", "rms", "p95", "max")]])
-            cells["ori"].append([*lead, *[deg(s.get(f"ori_{k}")) for k in ("mean", "rms", "p95", "max")]])
-            cells["point"].append([*lead, *[mm(p.get(k)) for k in ("mean", "p95", "max")]])
-    four, three = ("mean", "rms", "p95", "max"), ("mean", "p95", "max")
-    return Group(
-        _number_table(title, ["split", "n", ""], [f"pos {k} mm" for k in four], cells["pos"]),
-        _number_table(None, ["split", ""], [f"ori {k} °" for k in four], cells["ori"]),
-        _number_table(None, ["split", ""], [f"point {k} mm" for k in three], cells["point"]),
-    )
-
-
-def targets_table(metrics: dict, title: str = "per-target point error (mm): mean / p95 / max") -> RenderableType | None:
-    """Rich tables, one per target: split × (before, after) of the point error (mm), or None if the metrics have
-    none. One table per target keeps each within 80 columns however many targets there are."""
-    splits = [s for s in ("train", "val", "test", "all") if s in metrics and "points" in metrics[s]]
-    if not splits:
-        return None
-    m = len(metrics[splits[0]]["points"]["after"].get("per_target") or [])
-    from rich.console import Group
-
-    tables = []
-    for i in range(m):
-        rows = []
-        for split in splits:
-            for when in ("before", "after"):
-                per = metrics[split]["points"][when].get("per_target") or []
-                p = per[i] if i < len(per) else {}
-                rows.append([split if when == "before" else "", when, *[mm(p.get(k)) for k in ("mean", "p95", "max")]])
-        head = [f"t{i + 1} {k}" for k in ("mean", "p95", "max")]
-        tables.append(_number_table(title if i == 0 else None, ["split", ""], head, rows))
-    return Group(*tables)
-
-
 def print_metrics(metrics: dict, title: str, *, points_lead: str | None = None) -> None:
-    """The pose-error tables (:func:`metrics_table`), then the per-target point errors if any (:func:`targets_table`).
-    ``points_lead``: when there are point errors, print this line and the point errors first."""
-    tables = [metrics_table(metrics, title), targets_table(metrics)]
-    if points_lead is not None and tables[1] is not None:
-        out.print(points_lead)
-        tables.reverse()
+    """Rich tables of a split table, split × (before, after): mean / RMS / p95 / max of the tool position error (mm)
+    and of the orientation error (deg), mean / p95 / max of the point error (mm), then that point error per target if
+    there is one. Narrow tables (three for the pose errors, one per target) so that each fits an 80-column terminal
+    whole. ``points_lead``: when there are point errors per target, print this line and those first."""
+    from rich.console import Group
+
+    from labcal.reports import POINT_STATS, POSE_STATS, split_rows, target_rows
+
+    pos, ori, points = [], [], []
+    for lead, n, when, *cells in split_rows(metrics, mm, deg):
+        pos.append([lead, n, when, *cells[0]])
+        ori.append([lead, when, *cells[1]])
+        points.append([lead, when, *cells[2]])
+    tables = [
+        Group(
+            _number_table(title, ["split", "n", ""], [f"pos {k} mm" for k in POSE_STATS], pos),
+            _number_table(None, ["split", ""], [f"ori {k} °" for k in POSE_STATS], ori),
+            _number_table(None, ["split", ""], [f"point {k} mm" for k in POINT_STATS], points),
+        )
+    ]
+    rows, none = target_rows(metrics, mm), [mm(None)] * len(POINT_STATS)
+    if rows:
+        tables.append(Group(*[
+            _number_table("per-target point error (mm): mean / p95 / max" if i == 0 else None, ["split", ""],
+                          [f"t{i + 1} {k}" for k in POINT_STATS],
+                          [[lead, when, *(per[i] if i < len(per) else none)] for lead, when, per in rows])
+            for i in range(len(rows[1][2]))  # the targets of the first split's "after" row
+        ]))  # fmt: skip
+        if points_lead is not None:
+            out.print(points_lead)
+            tables.reverse()
     for table in tables:
-        if table is not None:
-            out.print(table)
+        out.print(table)
 
 
 def print_gates(gates: dict | None, *, what: str = "this fit", footer: bool = True) -> None:
@@ -342,12 +318,11 @@ def print_gates(gates: dict | None, *, what: str = "this fit", footer: bool = Tr
     gates = gates or {}
     warnings = gates.get("warnings") or []
     for w in warnings:
-        err.print(f"WARNING [{w.get('code')}] {w.get('message')}", markup=False, style="bold yellow")
+        err.print(f"WARNING [{w.get('code')}] {w.get('message')}", style="bold yellow")
     for n in gates.get("notes") or []:
-        err.print(f"note: {n}", markup=False)
+        err.print(f"note: {n}")
     if warnings and footer:
         err.print(
             f"{what} has {len(warnings)} warning(s): `labcal export` refuses it unless --force is given",
-            markup=False,
             style="bold yellow",
         )

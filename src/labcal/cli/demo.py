@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from labcal.cli.common import UserError, deg, mm, open_store, out, user_errors
+from labcal.cli.common import UserError, deg, mm, open_store, out, table, user_errors
 
 DEMO_TARGETS = 'unit = "mm"\npoints = [[120.0, 0.0, 60.0], [-60.0, 100.0, 60.0], [-60.0, -100.0, 90.0]]\n'
 METHODS = ("local-poe", "ann", "hybrid")
@@ -27,8 +27,6 @@ def demo(
 
     Example: labcal demo --out /tmp/labcal-demo
     """
-    from rich.table import Table
-
     from labcal.cli.ops.evaluating import evaluate_fit
     from labcal.cli.ops.exporting import export_fit
     from labcal.cli.ops.fitting import run_fit
@@ -52,26 +50,20 @@ def demo(
             raise RuntimeError(f"the simulated {what} session did not produce a version: {summary.reason}")
         sessions[what] = summary.ref
     ref, held = sessions["calibration"], sessions["held-out"]
-    table = Table(
-        title=f"demo: fitted on {ref} (every row), scored on the held-out {held} (before → after)",
-        title_justify="left",
-    )
-    for col in ("method", "fit", "point mean mm", "point max mm", "pos mean mm", "ori mean °"):
-        table.add_column(col)
-    fits = {}
+    fits, rows = {}, []
     for method in METHODS:
-        out.print(f"2/4 fitting {method}, scoring it on the held-out poses", markup=False)
+        out.print(f"2/4 fitting {method}, scoring it on the held-out poses")
         outcome = run_fit(store, [ref], method, seed=seed)
         fits[method] = outcome.fit_id
         scored = evaluate_fit(store, outcome.fit_id, held).evaluation["metrics"]["all"]
         b, a = scored["before"], scored["after"]
         pb, pa = scored["points"]["before"], scored["points"]["after"]
-        table.add_row(
+        rows.append((
             method, outcome.fit_id,
             f"{mm(pb['mean'])} → {mm(pa['mean'])}", f"{mm(pb['max'])} → {mm(pa['max'])}",
             f"{mm(b['pos_mean'])} → {mm(a['pos_mean'])}", f"{deg(b['ori_mean'])} → {deg(a['ori_mean'])}",
-        )  # fmt: skip
-    out.print("3/4 exporting (compensator json + URScript of the hybrid, URDF of local POE)", markup=False)
+        ))  # fmt: skip
+    out.print("3/4 exporting (compensator json + URScript of the hybrid, URDF of local POE)")
     exports = root / "exports"
     exports.mkdir(exist_ok=True)
     paths = [
@@ -79,13 +71,14 @@ def demo(
         export_fit(store, ref, "urscript", exports / "ur10-hybrid.script", fits["hybrid"]),
         export_fit(store, ref, "urdf", exports / "ur10-local-poe.urdf", fits["local-poe"]),
     ]
-    out.print("4/4 writing the report", markup=False)
+    out.print("4/4 writing the report")
     report = write_session_report(store, ref, root / "report")
-    out.print(table)
-    out.print(f"store:   {store.root}", markup=False)
+    head = ("method", "fit", "point mean mm", "point max mm", "pos mean mm", "ori mean °")
+    out.print(table(head, rows, f"demo: fitted on {ref} (every row), scored on the held-out {held} (before → after)"))
+    out.print(f"store:   {store.root}")
     for p in paths:
-        out.print(f"export:  {p}", markup=False)
-    out.print(f"report:  {report}", markup=False)
+        out.print(f"export:  {p}")
+    out.print(f"report:  {report}")
     print(root)
 
 

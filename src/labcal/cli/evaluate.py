@@ -56,7 +56,7 @@ def evaluate(
         return
     d = ev["data"]
     if outcome.imported:
-        out.print(f"imported {data} as {outcome.data_ref}", markup=False)
+        out.print(f"imported {data} as {outcome.data_ref}")
     title = (
         f"fit {ev['fit_id']} ({ev['method']}, fitted on {', '.join(ev['fit_inputs'])}) on {d['ref']}: "
         f"{d['rows']} rows, {d['frame']} frame"
@@ -66,7 +66,7 @@ def evaluate(
     print_metrics(ev["metrics"], title, points_lead=lead if ev.get("primary") == "points" else None)
     _print_notes(ev)
     print_gates({"warnings": ev.get("warnings")}, footer=False)
-    out.print(f"stored at {outcome.path}", markup=False)
+    out.print(f"stored at {outcome.path}")
     print(ev["evaluation_id"])
 
 
@@ -76,23 +76,21 @@ def _print_notes(ev: dict) -> None:
     d = ev["data"]
     claim = (ev.get("observability") or {}).get("claim")
     if claim:
-        out.print(f"orientation: {claim}", markup=False)
+        out.print(f"orientation: {claim}")
         for words in (ev.get("observability") or {}).get("unobservable") or []:
-            out.print(f"  not determined by these data: {words}", markup=False)
-    out.print(f"fitted on the evaluation data: {ev['registration']['fitted']}", markup=False)
+            out.print(f"  not determined by these data: {words}")
+    out.print(f"fitted on the evaluation data: {ev['registration']['fitted']}")
     if ev["overlap_with_fit"] and d["ref"] in ev["fit_inputs"]:
-        out.print(f"note: {d['ref']} is one of the fit's own inputs: this is not a held-out score", markup=False)
+        out.print(f"note: {d['ref']} is one of the fit's own inputs: this is not a held-out score")
     elif ev["overlap_with_fit"]:
         out.print(
             f"note: {ev['overlap_rows']} of {d['rows']} rows are configurations the fit was fitted on (a later version "
-            "or a re-import of its data?): this is not a held-out score",
-            markup=False,
+            "or a re-import of its data?): this is not a held-out score"
         )
     if ev["outside_calibrated_ranges"]:
         out.print(
             f"note: {ev['outside_calibrated_ranges']} of {d['rows']} rows are outside the fit's calibrated joint "
-            "ranges (the model extrapolates there; the compensator refuses them without extrapolate)",
-            markup=False,
+            "ranges (the model extrapolates there; the compensator refuses them without extrapolate)"
         )
 
 

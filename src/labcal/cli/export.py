@@ -84,16 +84,13 @@ def export(
         unknown_dynamics=unknown_dynamics,
         statements_per_sync=statements_per_sync,
     )
-    path = export_fit(
-        st, ref, fmt, out, fit_id, force=force, options=options, on_warning=lambda text: err.print(text, markup=False)
-    )
+    path = export_fit(st, ref, fmt, out, fit_id, force=force, options=options, on_warning=err.print)
     if force:
         stored = load_stored_fit(st, ref, fit_id)
         warnings = stored_warnings(stored.meta)
         if warnings:
             print_gates({"warnings": warnings}, footer=False)
             err.print(
-                f"fit {stored.fit_id} exported anyway (--force): the export records forced: true and these warnings",
-                markup=False,
+                f"fit {stored.fit_id} exported anyway (--force): the export records forced: true and these warnings"
             )
     print(path)

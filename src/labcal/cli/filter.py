@@ -118,11 +118,9 @@ def filter_program(
     atomicio.write_text(out, prog.joints_csv(result, angle_unit=out_angle, length_unit=out_length, joint_types=types))
     if script is not None:
         atomicio.write_text(script, prog.movej_program(result.q_command, a=acceleration, v=speed))
-    err.print(f"{program}: {len(result.q_command)} rows read ({table.describe()})", markup=False)
-    err.print(result.summary(), markup=False)
-    err.print(
-        f"wrote q1..q{robot.n} in {out_angle}" + (" (the script in rad)" if script is not None else ""), markup=False
-    )
+    err.print(f"{program}: {len(result.q_command)} rows read ({table.describe()})")
+    err.print(result.summary())
+    err.print(f"wrote q1..q{robot.n} in {out_angle}" + (" (the script in rad)" if script is not None else ""))
     if script is not None:
         print(script)
     print(out)

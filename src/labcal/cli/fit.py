@@ -79,7 +79,7 @@ def fit(
     outcome = run_fit(
         open_store(store, create=False, write=True), refs, method, seed=seed, hidden=hidden,
         val_fraction=val_fraction, robot=robot, pool_units=pool_units,
-        progress=lambda msg: say.print(f"  {msg}", markup=False),
+        progress=lambda msg: say.print(f"  {msg}"),
     )  # fmt: skip
     r = outcome.result
     if as_json:
@@ -92,9 +92,9 @@ def fit(
     print_metrics(outcome.metrics or r.metrics, title)
     cv = cv_line((outcome.gates or {}).get("cv"))
     if cv is not None:
-        out.print(cv, markup=False)
+        out.print(cv)
     print_gates(outcome.gates, what=f"fit {outcome.fit_id}")
-    out.print(f"stored under {outcome.ref}", markup=False)
+    out.print(f"stored under {outcome.ref}")
     print(outcome.fit_id)
 
 

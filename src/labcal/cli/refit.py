@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 
 import typer
 
-from labcal.cli.common import StoreOption, err, mm, open_store, out, user_errors
+from labcal.cli.common import StoreOption, err, mm, open_store, out, table, user_errors
 
 if TYPE_CHECKING:
     from rich.table import Table
@@ -69,14 +69,14 @@ def refit(
     st = open_store(store, create=False, write=True)
     chosen, skipped = select_versions(st, selection)
     for what, why in skipped:
-        err.print(f"left out {what}: {why}", markup=False)
+        err.print(f"left out {what}: {why}")
     if not chosen:
-        err.print("no session matches the selection", markup=False)
+        err.print("no session matches the selection")
         raise typer.Exit(0)
 
     def progress(row, done, total):
         tail = f"  {row.message}" if row.status != FITTED or row.message else ""
-        out.print(f"  [{done}/{total}] {row.ref} {row.status}{tail}", markup=False)
+        out.print(f"  [{done}/{total}] {row.ref} {row.status}{tail}")
 
     report = run_refit(
         st, chosen, method, seed=seed, hidden=hidden, val_fraction=val_fraction, robot_file=robot_file, jobs=jobs,
@@ -86,32 +86,25 @@ def refit(
     fitted = sum(r.status == FITTED for r in report.rows)
     line = f"{fitted} of {len(report.rows)} fitted"
     if report.interrupted:
-        err.print(f"interrupted (Ctrl-C): {line}; every stored fit is complete", markup=False)
+        err.print(f"interrupted (Ctrl-C): {line}; every stored fit is complete")
     elif report.failed:
-        err.print(f"{line}; {len(report.failed)} failed (see the table)", markup=False)
+        err.print(f"{line}; {len(report.failed)} failed (see the table)")
     else:
-        out.print(line, markup=False)
+        out.print(line)
     raise typer.Exit(report.exit_code)
 
 
 def summary_table(report, title: str) -> Table:
     """One row per task: the version, before (fit, method, error) and after, the warning codes or the failure."""
-    from rich.table import Table
-
-    t = Table(title=title, title_justify="left")
-    for name, justify in (
-        ("version", "left"), ("before fit", "left"), ("method", "left"), ("error mm", "right"),
-        ("after fit", "left"), ("method", "left"), ("error mm", "right"), ("status", "left"), ("notes", "left"),
-    ):  # fmt: skip
-        t.add_column(name, justify=justify)
 
     def err_cell(s):
         return "—" if s.error is None else f"{mm(s.error)} ({s.source})"
 
-    for r in report.rows:
-        notes = r.message or ("warnings: " + ", ".join(r.after.warnings) if r.after.warnings else "")
-        t.add_row(
-            r.ref, r.before.fit_id or "—", r.before.method or "—", err_cell(r.before),
-            r.after.fit_id or "—", r.after.method or "—", err_cell(r.after), r.status, notes,
-        )  # fmt: skip
-    return t
+    rows = [
+        (r.ref, r.before.fit_id or "—", r.before.method or "—", err_cell(r.before), r.after.fit_id or "—",
+         r.after.method or "—", err_cell(r.after), r.status,
+         r.message or ("warnings: " + ", ".join(r.after.warnings) if r.after.warnings else ""))
+        for r in report.rows
+    ]  # fmt: skip
+    head = ("version", "before fit", "method", "error mm", "after fit", "method", "error mm", "status", "notes")
+    return table(head, rows, title, right=(3, 6))

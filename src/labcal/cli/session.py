@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
 
 import typer
@@ -20,6 +21,7 @@ from labcal.cli.common import (
     out,
     print_json,
     session_unit,
+    table,
     user_errors,
 )
 from labcal.cli.session_import import import_
@@ -41,19 +43,17 @@ def _end_run(summary, line: str, resume_flags: list[str] | None = None) -> None:
 
     A run that did not finish (paused, failed, aborted) with poses left names its session and the command that
     continues it (``resume_flags``: --store and the like, passed on as given)."""
-    out.print(line, markup=False)
+    out.print(line)
     code = _EXIT.get(summary.exit_status, 1)
     if summary.exit_status == "aborted" and TERMINATED_BY:  # SIGTERM / SIGHUP, not Ctrl-C: 128 + its number
         code = 128 + TERMINATED_BY[0]
     if code and summary.exit_status != "aborted":
-        err.print(f"error: the run ended {summary.exit_status}: {summary.reason}", markup=False)
+        err.print(f"error: the run ended {summary.exit_status}: {summary.reason}")
     if code and summary.remaining:
         import shlex
 
         command = shlex.join(["labcal", "session", "resume", summary.session_id, *(resume_flags or [])])
-        err.print(
-            f"session {summary.session_id}: {summary.remaining} pose(s) left; continue with: {command}", markup=False
-        )
+        err.print(f"session {summary.session_id}: {summary.remaining} pose(s) left; continue with: {command}")
     if summary.ref is not None:
         print(summary.ref)
     if code or summary.ref is None:
@@ -83,44 +83,44 @@ app = typer.Typer(
 )
 
 
-class _RunProgress:
+@contextmanager
+def _run_progress():
     """A rich progress bar on stderr (pose k/N, ETA, last status and triangle residual); stdout stays for ids.
+    Yields the runner's progress callback.
 
     Rejections and retries are also printed as lines, so they stay visible after the bar moves on.
     """
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    def __init__(self) -> None:
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    bar = Progress(
+        TextColumn("recording"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("poses  ETA"),
+        TimeRemainingColumn(),
+        TextColumn("{task.fields[status]}"),
+        console=Console(stderr=True, markup=False),  # messages print as they are
+        transient=False,
+    )
+    task = None
 
-        self._bar = Progress(
-            TextColumn("recording"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("poses  ETA"),
-            TimeRemainingColumn(),
-            TextColumn("{task.fields[status]}"),
-            console=Console(stderr=True),
-            transient=False,
-        )
-        self._task = None
-
-    def __enter__(self) -> _RunProgress:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self._task is not None:
-            self._bar.stop()
-
-    def __call__(self, p) -> None:
-        if self._task is None:  # started on the first event: argument errors before it print nothing extra
-            self._bar.start()
-            self._task = self._bar.add_task("poses", total=p.total, completed=p.done, status="")
+    def show(p) -> None:
+        nonlocal task
+        if task is None:  # started on the first event: argument errors before it print nothing extra
+            bar.start()
+            task = bar.add_task("poses", total=p.total, completed=p.done, status="")
         residual = "" if p.residual is None else f", target distance residual {p.residual * 1e3:.3f} mm"
         where = "" if p.pose is None else f"pose {p.pose}: "
-        self._bar.update(self._task, completed=p.done, total=p.total, status=f"{where}{p.status}{residual}")
+        bar.update(task, completed=p.done, total=p.total, status=f"{where}{p.status}{residual}")
         if p.status in ("retry", "rejected", "paused", "aborted", "failed"):
-            self._bar.console.print(f"  {where}{p.status} {p.message}", markup=False)
+            bar.console.print(f"  {where}{p.status} {p.message}")
+
+    try:
+        yield show
+    finally:
+        if task is not None:
+            bar.stop()
 
 
 _TARGETS = typer.Option(
@@ -197,9 +197,6 @@ def new(
         --tracker-port /dev/pts/3   # rehearsal: the fakes of `python -m labcal_fakes.rehearse`
     """
     from labcal.cli.ops.sessions import SessionRequest, new_session
-    from labcal.datasets import load_targets
-    from labcal.datasets.targets import load_target_normals
-    from labcal.robots import load
 
     request = SessionRequest(
         robot=robot, targets_file=targets, poses=poses, robot_driver=robot_driver, tracker_driver=tracker_driver,
@@ -208,11 +205,9 @@ def new(
         robot_host=robot_host, tracker_port=tracker_port, max_failed_poses=max_failed_poses,
     )  # fmt: skip
     request.check()
-    load(robot)  # a typo in the robot or targets fails here, before the store is created
-    load_targets(targets)
-    load_target_normals(targets)  # normals for the planner's line of sight, checked before the store is made
+    request.inputs()  # a typo in the robot or targets file fails here, before the store is created
     st = open_store(store, create=True)
-    with _RunProgress() as progress:
+    with _run_progress() as progress:
         summary = new_session(st, request, progress=progress)
     _end_run(
         summary,
@@ -253,21 +248,16 @@ def list_(
         print_json("labcal.session-list/1", {"store": str(st.root), "sessions": [_session_doc(i, m) for i, m in rows],
                                              "foreign": [{"name": n, "why": w} for n, w in foreign]})  # fmt: skip
         return
-    from rich.table import Table
+    from labcal.names import printable  # a stored name may predate the name checks: no raw escapes
 
-    t = Table(title=f"sessions in {st.root}", title_justify="left")
-    for col in ("session", "robot", "frame", "status", "versions", "rows"):
-        t.add_column(col)
-    for info, _ in rows:
-        from labcal.names import printable  # a stored name may predate the name checks: no raw escapes
-
-        t.add_row(
-            info.session_id, printable(info.robot.get("name")), info.frame, info.status,
-            ", ".join(v.name for v in info.versions) or "—", str(info.rows),
-        )  # fmt: skip
-    out.print(t)
+    cells = [
+        (info.session_id, printable(info.robot.get("name")), info.frame, info.status,
+         ", ".join(v.name for v in info.versions) or "—", str(info.rows))
+        for info, _ in rows
+    ]  # fmt: skip
+    out.print(table(("session", "robot", "frame", "status", "versions", "rows"), cells, f"sessions in {st.root}"))
     for name, why in foreign:
-        out.print(f"foreign: {name!r} skipped ({why})", markup=False)
+        out.print(f"foreign: {name!r} skipped ({why})")
 
 
 def _meta(st, session_id: str) -> dict:
@@ -284,9 +274,7 @@ def _session_doc(info, meta: dict) -> dict:
     return {
         "session": info.session_id,
         "robot": {
-            "name": info.robot.get("name"),
-            "hash": info.robot.get("hash"),
-            "n_joints": info.robot.get("n_joints"),
+            **{k: info.robot.get(k) for k in ("name", "hash", "n_joints")},
             "file_stored": bool(info.robot.get("text")),
         },
         "unit": session_unit(meta),
@@ -305,8 +293,7 @@ def _session_doc(info, meta: dict) -> dict:
 
 
 def _version_doc(v) -> dict:
-    return {"version": v.name, "rows": v.rows, "created": v.created, "source": v.source, "parent": v.parent,
-            "fits": v.fits}  # fmt: skip
+    return {"version": v.name, **{k: getattr(v, k) for k in ("rows", "created", "source", "parent", "fits")}}
 
 
 @app.command("show")
@@ -336,17 +323,11 @@ def show(
 
     name = printable(info.robot.get("name"))
     out.print(f"session {info.session_id}: robot {name} ({info.robot.get('hash', '')[:12]}…, "
-              f"{stored}){unit}, frame {info.frame}{targets}, status {info.status}", markup=False)  # fmt: skip
-    from rich.table import Table
-
-    t = Table()
-    for col in ("version", "rows", "created", "source", "parent", "fits"):
-        t.add_column(col)
-    for v in info.versions:
-        t.add_row(v.name, str(v.rows), v.created, v.source, v.parent or "—", str(v.fits))
-    out.print(t)
+              f"{stored}){unit}, frame {info.frame}{targets}, status {info.status}")  # fmt: skip
+    cells = [(v.name, str(v.rows), v.created, v.source, v.parent or "—", str(v.fits)) for v in info.versions]
+    out.print(table(("version", "rows", "created", "source", "parent", "fits"), cells))
     for w in info.warnings:
-        out.print(f"warning: {w}", markup=False)
+        out.print(f"warning: {w}")
 
 
 @app.command("resume")
@@ -388,7 +369,7 @@ def resume(
     from labcal.cli.ops.sessions import resume_session
 
     st = open_store(store, create=False, write=True)
-    with _RunProgress() as progress:
+    with _run_progress() as progress:
         summary = resume_session(
             st,
             session,
@@ -426,13 +407,13 @@ def seal(
     validate_id(session)
     st = open_store(store, create=False, write=True)
     result = st.seal(session, valid_prefix=valid_prefix)
-    out.print(result.message, markup=False)
+    out.print(result.message)
     if result.created:
         m = st.manifest(result.ref)
         skipped = ((m.get("provenance") or {}).get("journal") or {}).get("valid_prefix", {}).get("skipped", [])
         for s in skipped:
             where = f"line {s['line']}" + (f" (seq {s['seq']}, pose {s['pose_index']})" if "seq" in s else "")
-            out.print(f"  left out {where}: {s['reason']}", markup=False)
+            out.print(f"  left out {where}: {s['reason']}")
     if result.ref is None:
         raise typer.Exit(1)
     print(result.ref)
@@ -494,11 +475,11 @@ def verify(
 def _print_findings(ref, checked: str, problems: list[str], notes: list[str]) -> None:
     """`REF: ok (what was checked)` when nothing is wrong, else one line per problem; then the notes."""
     if not problems:
-        out.print(f"{ref}: ok ({checked})", markup=False)
+        out.print(f"{ref}: ok ({checked})")
     for p in problems:
-        out.print(f"{ref}: {p}", markup=False)
+        out.print(f"{ref}: {p}")
     for n in notes:
-        out.print(f"{ref}: note: {n}", markup=False)
+        out.print(f"{ref}: note: {n}")
 
 
 app.command("import")(import_)

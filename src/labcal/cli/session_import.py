@@ -77,10 +77,9 @@ def import_(
     )  # fmt: skip
     checks = load_version(st, ref).manifest.get("provenance", {}).get("import", {}).get("checks", {})
     for note in checks.get("notes", []):
-        err.print(f"note: {note}", markup=False)
+        err.print(f"note: {note}")
     for f in checks.get("allowed", []):
-        err.print(f"warning: check {f['check']} failed and was allowed (--allow {f['check']}): {f['message']}",
-                  markup=False)  # fmt: skip
+        err.print(f"warning: check {f['check']} failed and was allowed (--allow {f['check']}): {f['message']}")
     print(ref)
 
 

@@ -169,15 +169,11 @@ def load_observations(
         split=np.concatenate([d.split for d in datasets]).astype(object),
         group=group,
     )
-    if with_spec:
-        return obs, datasets, spec
-    return obs, datasets
+    return (obs, datasets, spec) if with_spec else (obs, datasets)
 
 
 def split_ref(text: str) -> str:
-    """Validate SESSION[@vN] syntax early (a clear message before touching the store)."""
-    try:
-        parse_ref(text)
-    except ValueError as err:
-        raise UserError(str(err)) from err
+    """Validate SESSION[@vN] syntax early (a clear message before touching the store: the ValueError of
+    :func:`labcal.datasets.parse_ref`)."""
+    parse_ref(text)
     return text

@@ -47,10 +47,6 @@ class EvaluationOutcome:
     imported: bool
 
 
-def _now() -> str:
-    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
-
-
 def register_base(robot, obs) -> tuple[np.ndarray, float]:
     """Least-squares T_tracker_base of robot on obs (tracker frame): the rigid transform that best maps the robot's
     predicted base-frame target points onto the measured ones, all points pooled (Kabsch). Returns (T, rms m)."""
@@ -137,11 +133,8 @@ def evaluate_fit(
     record = store.find_fit(fit_id)
     stored = load_stored_fit(store, record.ref, fit_id)
     imported = _is_file_argument(data)
-    if imported:
-        path = Path(data)
-        if not path.is_file():
-            raise UserError(f"{path} is a folder, not a CSV file" if path.is_dir() else f"no such file: {path}")
-        ref = import_for_evaluation(store, stored, path, robot, dict(import_options or {}))
+    if imported:  # import_session names a missing file, a folder, a device or a FIFO
+        ref = import_for_evaluation(store, stored, Path(data), robot, dict(import_options or {}))
     else:
         ref = str(store.resolve(split_ref(data)))
     obs, datasets = load_observations(store, [ref], robot, with_spec=True)[:2]
@@ -161,7 +154,7 @@ def evaluate_fit(
     evaluation = {
         "kind": "labcal.evaluation",
         "evaluation_id": None,
-        "created": _now(),
+        "created": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ"),
         "fit_id": fit_id,
         "fit_ref": stored.ref,
         "fit_inputs": stored.inputs,
@@ -209,11 +202,10 @@ def _registered(stored, obs):
 
     Tracker-frame data: T_tracker_base fitted to them, for each robot separately (nothing else is refitted)."""
     registration: dict = {"frame": obs.frame}
+    T_after, T_before = np.eye(4), np.eye(4)  # base-frame data are in the robot's frame: scored as they are
     if obs.frame == "tracker":
         T_after, rms_after = register_base(stored.robot, obs)
         T_before, rms_before = register_base(stored.before, obs)
-        after = dataclasses.replace(stored.robot, T_tracker_base=T_after)
-        before = dataclasses.replace(stored.before, T_tracker_base=T_before)
         registration.update(
             fitted="T_tracker_base only (6 parameters: rigid least-squares fit of the predicted to the measured "
             "points, separately for before and after); nothing of the calibration is refitted",
@@ -225,8 +217,7 @@ def _registered(stored, obs):
             rms_before=rms_before,
         )
     else:
-        # Base-frame data are already in the robot's frame: score the stored models as they are.
-        after = dataclasses.replace(stored.robot, T_tracker_base=np.eye(4))
-        before = dataclasses.replace(stored.before, T_tracker_base=np.eye(4))
         registration.update(fitted="nothing (base-frame data are scored as they are)", parameters=0)
+    after = dataclasses.replace(stored.robot, T_tracker_base=T_after)
+    before = dataclasses.replace(stored.before, T_tracker_base=T_before)
     return before, after, registration

@@ -107,19 +107,17 @@ def device_serials(store: SessionStore, refs: list[str]) -> dict[str, str]:
 
     Example: ``{"arm_serial": "20185500001", "tracker_serial": "P7-04711"}``
     """
-    arms: list[str] = []
-    trackers: list[str] = []
+    arms, trackers = [], []
     for ref in refs:
         session = store.load(ref).manifest.get("session") or {}  # verified: a record names what it calibrated
-        robot_id = (session.get("robot_driver") or {}).get("identity") or {}
-        tracker_id = (session.get("tracker") or {}).get("identity") or {}
-        arm = robot_id.get("serial") or session_unit(session)
-        for value, seen in ((arm, arms), (tracker_id.get("serial"), trackers)):
-            if value is not None and str(value).strip():
-                text = printable(value, MAX_SERIAL)
-                if text not in seen:
-                    seen.append(text)
-    return {"arm_serial": ", ".join(arms) or "unknown", "tracker_serial": ", ".join(trackers) or "unknown"}
+        arms.append(((session.get("robot_driver") or {}).get("identity") or {}).get("serial") or session_unit(session))
+        trackers.append(((session.get("tracker") or {}).get("identity") or {}).get("serial"))
+
+    def listed(values: list) -> str:  # the distinct serials in order, as printable text
+        given = (printable(v, MAX_SERIAL) for v in values if v is not None and str(v).strip())
+        return ", ".join(dict.fromkeys(given)) or "unknown"
+
+    return {"arm_serial": listed(arms), "tracker_serial": listed(trackers)}
 
 
 def format_options(

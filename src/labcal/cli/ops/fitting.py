@@ -13,9 +13,7 @@ from labcal.cli.common import UserError, plain
 from labcal.cli.ops.common import check_choice, check_seed, load_observations
 from labcal.compensator import CalibratedRobot, from_payload, to_payload
 from labcal.datasets import SessionStore
-
-ROBOT_FILE = "robot.json"  # the fitted robot, as a compensator payload
-BEFORE_FILE = "before.json"  # the registered nominal (the "before" of every metric)
+from labcal.reports import BEFORE_FILE, ROBOT_FILE
 
 
 @dataclass
@@ -79,9 +77,7 @@ def run_fit(
     check_fit_options(method, seed, hidden, val_fraction)
     _check_one_version_per_session(store, refs)
     obs, datasets, spec = load_observations(store, refs, robot, with_spec=True, pool_units=pool_units)
-    options = {}
-    if hidden is not None:
-        options["hidden"] = hidden
+    options = {} if hidden is None else {"hidden": hidden}
     tool_note = probe_mount_note(obs, datasets, spec.model)
     probe = tool_note is not None  # the registered nominal then carries the probe as its measurement tool
     result = fit(

@@ -130,10 +130,8 @@ def select_versions(store: SessionStore, selection: Selection) -> tuple[list[str
             continue
         if sid in explicit:
             chosen = list(dict.fromkeys(explicit[sid]))
-        elif selection.every_version:
-            chosen = [f"{sid}@v{v:03d}" for v in versions]
-        else:
-            chosen = [f"{sid}@v{versions[-1]:03d}"]
+        else:  # every version, or the latest
+            chosen = [f"{sid}@v{v:03d}" for v in (versions if selection.every_version else versions[-1:])]
         # Ids sort by the second a session was started; the start time itself orders sessions of the same second.
         order = created.timestamp() if created is not None else float("inf")
         found += [((order, sid, i), r) for i, r in enumerate(chosen)]
@@ -295,13 +293,11 @@ def plan_tasks(
     # The checks run_fit makes, made once here: a bad option is a usage error, not a failure of every task.
     check_fit_options(method, seed, hidden, val_fraction)
     root = str(Path(store.root).resolve())
-    tasks = []
-    for ref in refs:
-        r = str(store.resolve(ref))
-        tasks.append(
-            RefitTask(root, r, method, new_fit_id(), seed, hidden, val_fraction, robot_file, latest_fit(store, r), hook)
-        )
-    return tasks
+    resolved = [str(store.resolve(ref)) for ref in refs]
+    return [
+        RefitTask(root, r, method, new_fit_id(), seed, hidden, val_fraction, robot_file, latest_fit(store, r), hook)
+        for r in resolved
+    ]
 
 
 def run_refit(

@@ -164,6 +164,14 @@ class SessionRequest:
         if isinstance(failed, bool) or not isinstance(failed, int) or failed < 0:
             raise UserError(f"--max-failed-poses must be an integer >= 0 (0: never stop early), got {failed!r}")
 
+    def inputs(self):
+        """(robot spec, targets, target normals: None or what the planner's line-of-sight check needs) read from the
+        robot and the targets file."""
+        from labcal.datasets import load_targets
+        from labcal.datasets.targets import load_target_normals
+
+        return load(self.robot), load_targets(self.targets_file), load_target_normals(self.targets_file)
+
 
 def _drivers(request: SessionRequest, spec: RobotSpec, targets):
     """(robot, tracker, frame, metadata) for the chosen drivers."""
@@ -275,15 +283,11 @@ def new_session(store: SessionStore, request: SessionRequest | None = None, *, p
     ``request``: a :class:`SessionRequest`, or its fields as keywords (``new_session(store, robot="ur10",
     targets_file="t.toml", poses=40)``). ``progress``: the runner's progress callback. Every argument is checked
     before anything is connected or moved; the plan is drawn once the robot is open, inside its own limits."""
-    from labcal.datasets import load_targets
-    from labcal.datasets.targets import load_target_normals
     from labcal.sessions import RetryPolicy, RunOptions, make_plan, run
 
     request = SessionRequest(**fields) if request is None else dataclasses.replace(request, **fields)
     request.check()  # before anything is loaded, planned or allocated
-    spec = load(request.robot)
-    targets = load_targets(request.targets_file)
-    normals = load_target_normals(request.targets_file)
+    spec, targets, normals = request.inputs()
     sim = request.robot_driver == "sim"
     rob, trk, frame, meta = _drivers(request, spec, targets)
     # The unit: --unit, else the serial the robot driver reports (the sim rig's is sim-<seed of its errors>).
