@@ -33,7 +33,7 @@ import numpy as np
 
 from labcal import features as feature_lib
 from labcal.atomicio import write_bytes, write_text
-from labcal.compensator.model import CalibratedRobot, Network, register_writer
+from labcal.compensator.model import CalibratedRobot, Network
 from labcal.compensator.validity import ValidityRegion
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
@@ -555,8 +555,6 @@ def save(robot: CalibratedRobot, path, provenance: dict | None = None) -> Path:
         write_bytes(path, buffer.getvalue())
     return path
 
-
-register_writer(save)  # CalibratedRobot.save writes through this module, which model.py does not import
 
 _ARRAY_KEYS = {"frames", "twists", "limits", "in_mean", "in_scale", "out_mean", "out_scale", "joint_ranges"}
 _ARRAY_KEYS |= {"T_tracker_base", "q", "q_cmd", "pose", "matrix", "offsets", "measurement_tool"}
