@@ -109,8 +109,7 @@ def golden_configurations(robot: CalibratedRobot, count: int = GOLDEN_COUNT, see
     cand = lo + (hi - lo) * rng.uniform(0.1, 0.9, size=(32 * count, robot.n))
     J = robot.model.equivalent_jacobian(cand, length_scale=robot.length_scale)
     cond = metric.scaled_condition(J, robot.length_scale)
-    keep = cand[np.argsort(cond, kind="stable")[:count]]
-    return keep
+    return cand[np.argsort(cond, kind="stable")[:count]]
 
 
 # Every field that changes what a loaded compensator does (or what it says about itself) has a checksum in the file.
@@ -469,7 +468,7 @@ def _check_schema(data: dict, source: str, stored: bool) -> bool:
 def _robot_from(data: dict, source: str, legacy: bool) -> CalibratedRobot:
     """The CalibratedRobot a payload describes (models, joint map checked against the stored hash, network)."""
     nominal = _model_from(data["robot"], f"{source}: robot")
-    model = _model_from(data["model"], f"{source}: model")
+    model, n = _model_from(data["model"], f"{source}: model"), nominal.n
     jd = None if legacy else data["joint_map"]
     try:
         # check_payload saw an (n, n) matrix and (n,) offsets for the robot's n joints
@@ -481,35 +480,28 @@ def _robot_from(data: dict, source: str, legacy: bool) -> CalibratedRobot:
     nd = data.get("network")
     net = None
     if nd is not None:
-        arrays = {key: np.asarray(nd[key], dtype=float) for key in _NETWORK_SCALES}
         net = Network(
             features=tuple(nd["features"]),
             weights=tuple(np.asarray(W, dtype=float) for W in nd["weights"]),
             biases=tuple(np.asarray(b, dtype=float) for b in nd["biases"]),
-            **arrays,
+            **{key: np.asarray(nd[key], dtype=float) for key in _NETWORK_SCALES},
         )
+    try:  # a file written without a validity region has the joint ranges alone
+        validity = None if data.get("validity") is None else ValidityRegion.from_dict(data["validity"], n)
+    except (KeyError, TypeError, ValueError) as err:
+        raise CompensatorFileError(f"{source}: validity is not a validity region of {n} joints: {err}") from None
     return CalibratedRobot(
         nominal=nominal,
         model=model,
         network=net,
         T_tracker_base=np.asarray(data["T_tracker_base"], dtype=float).reshape(4, 4),
-        joint_ranges=np.asarray(data["joint_ranges"], dtype=float).reshape(nominal.n, 2),
+        joint_ranges=np.asarray(data["joint_ranges"], dtype=float).reshape(n, 2),
         length_scale=float(data["length_scale"]),
         method=str(data.get("method", "")),
         joint_map=joint_map,
         measurement_tool=None if data.get("measurement_tool") is None else np.asarray(data["measurement_tool"], float),
-        validity=_validity_from(data.get("validity"), nominal.n, source),
+        validity=validity,
     )
-
-
-def _validity_from(value, n: int, source: str) -> ValidityRegion | None:
-    """The stored validity region, None for a file written without one (the joint ranges alone then)."""
-    if value is None:
-        return None
-    try:
-        return ValidityRegion.from_dict(value, n)
-    except (KeyError, TypeError, ValueError) as err:
-        raise CompensatorFileError(f"{source}: validity is not a validity region of {n} joints: {err}") from None
 
 
 def _check_golden(robot: CalibratedRobot, q, q_cmd, pose, method: str, source: str) -> None:
@@ -640,12 +632,10 @@ def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple, np.d
     """(shape, dtype) of an NPZ member from its header alone (a few hundred bytes read)."""
     with zf.open(info) as fh:
         version = np.lib.format.read_magic(fh)
-        if version == (1, 0):
-            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
-        elif version == (2, 0):
-            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
-        else:
+        readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+        if version not in readers:
             raise ValueError(f"npy format version {version} is not one labcal writes")
+        shape, _, dtype = readers[version](fh)
     return tuple(shape), dtype
 
 
