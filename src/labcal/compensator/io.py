@@ -804,13 +804,8 @@ class Compensator:
     def predict_pose(self, q, *, extrapolate: bool = False, tcp=None) -> np.ndarray:
         """Pose (4, 4) or (k, 4, 4) in the base frame of the TCP (``tcp`` in tool0; default tool0) that the real robot
         reaches when commanded the controller joints q (an empty (0, n) q gives (0, 4, 4))."""
-        if self._map is None:
-            self.robot.check_range(q, extrapolate)
-            return self.robot.predict_pose(q, tcp=tcp)
-        q_model = self.to_model(q)
-        if not extrapolate:
-            self._check_model_range(q_model)
-        return self.robot.predict_pose(q_model, tcp=tcp)
+        self.check_range(q, extrapolate)
+        return self.robot.predict_pose(q if self._map is None else self.to_model(q), tcp=tcp)
 
 
 def load(path) -> Compensator:
