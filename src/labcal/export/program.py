@@ -50,7 +50,7 @@ import numpy as np
 
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import se3
-from labcal.kinematics.metric import scaled_condition
+from labcal.kinematics.metric import joint_weights, scaled_condition, twist_weights
 
 STEPS = 8  # pose interpolation steps from the seed to each target (path following)
 MAX_CONDITION = 1e4  # length-scaled cond(J) above this: a singularity, the branch (and a correction) is not defined
@@ -172,7 +172,7 @@ def check_joints(robot: CalibratedRobot, q: np.ndarray, angle_unit: str = "rad",
                 f"{_degree_hint(robot, q, ranges, angle_unit)}",
                 None if seed else i + 1,
             )
-    validity = getattr(robot, "validity", None)
+    validity = robot.validity
     if not seed and validity is not None:  # correct() refuses these too; here the row is named
         distance = validity.distance(q)
         far = ~(distance <= validity.radius)
@@ -261,8 +261,6 @@ def _escape_joint(robot: CalibratedRobot, model, q: np.ndarray, h: float = 1e-4)
     """0-based joint whose motion takes q (n,) away from its singularity fastest: the largest change of the smallest
     singular value of the length-scaled Jacobian under a step h of one joint (a UR arm stretched at the elbow: q3;
     at the wrist singularity: q5, though the motion the wrist loses is q4 against q6)."""
-    from labcal.kinematics.metric import joint_weights, twist_weights
-
     w_rows, w_cols = twist_weights(robot.length_scale)[:, None], joint_weights(model.joint_types, robot.length_scale)
     steps = np.concatenate([np.zeros((1, model.n)), h * np.eye(model.n), -h * np.eye(model.n)])
     s = np.linalg.svd(w_rows * _jacobian(robot, model, q + steps) * w_cols, compute_uv=False)[:, -1]
