@@ -532,8 +532,8 @@ def _gauss_newton(q0, out, iterations, tol, consts, r, J, r0, J0, ctx):
 
 @_jit
 def correct_one(
-    q0, out, nominal, model, mode, cols, weights, layers, w, ranges, centres, scale, radius, has_region,
-    tcp, has_tcp, extrapolate, iterations, tol, budget, consts,
+    q0, out, nominal, model, mode, cols, weights, layers, H, width, w, ranges, centres, scale, radius,
+    has_region, tcp, has_tcp, extrapolate, iterations, tol, budget, consts,
 ):  # fmt: skip
     """CalibratedRobot.correct(q0, method="newton") of one configuration into out (n,); returns DONE, or OUTSIDE
     when q0 is not finite, outside the ranges or outside the validity region without ``extrapolate``, or within
@@ -567,14 +567,9 @@ def correct_one(
     if has_tcp:  # the TCP's nominal position: (T_target · tcp)[:3, 3]
         for a in range(3):
             point[a] = target[a, 0] * tcp[0, 3] + target[a, 1] * tcp[1, 3] + target[a, 2] * tcp[2, 3] + target[a, 3]
-    f, width, H = cols.shape[0], 1, 0
-    for li in range(layers.shape[0]):
-        width = max(width, layers[li, 1])
-    for c in range(f):
-        if cols[c, 0] == OP_SIN or cols[c, 0] == OP_COS:
-            H = max(H, cols[c, 2])
+    # workspace: sin h q_j, cos h q_j (h ≤ H), two network layers, J's twists, the series' slope, vectors
     work = (np.empty((n, H + 1, 2)), np.empty((2, width)), np.empty((6, n)), np.empty((6, n)), np.empty((4, max(n, 6))))
-    ctx = (target, point, has_tcp, model, mode, cols, weights, layers, T, np.empty(f), work)
+    ctx = (target, point, has_tcp, model, mode, cols, weights, layers, T, np.empty(cols.shape[0]), work)
     r, J, r0, J0 = np.empty(6), np.empty((6, n)), np.empty(6), np.empty((6, n))
     failed = _gauss_newton(q0, out, iterations, tol, consts, r, J, r0, J0, ctx)
     # a Gauss-Newton answer beyond the box: damped from it clipped into the box when that is better
