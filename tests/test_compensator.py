@@ -20,6 +20,7 @@ from labcal.compensator import (
     input_features,
     solve,
 )
+from labcal.compensator import save as save_compensator
 from labcal.kinematics import se3
 from labcal.kinematics.poe import REVOLUTE, LocalPOEModel, poe_joint_twists, poe_link_frames
 from labcal.robots import load
@@ -176,7 +177,7 @@ def test_a_redundant_arms_network_moves_each_of_its_joints_by_its_output():
 
 def test_redundant_arm_golden_vectors_accept_any_solution_and_refuse_a_wrong_one(tmp_path):
     robot = redundant_robot()
-    path = robot.save(tmp_path / "r7.json")
+    path = save_compensator(robot, tmp_path / "r7.json")
     q = np.asarray(json.loads(path.read_text())["golden"]["q"])
     comp = Compensator.load(path)
     np.testing.assert_array_equal(comp.correct(q), robot.correct(q))
@@ -540,7 +541,7 @@ def test_save_load_round_trip(tmp_path, suffix):
         joint_ranges=np.tile([-3.0, 3.0], (6, 1)),
         method="hybrid",
     )
-    path = robot.save(tmp_path / f"c{suffix}", provenance={"session": "S@v001", "fit_id": "f1"})
+    path = save_compensator(robot, tmp_path / f"c{suffix}", provenance={"session": "S@v001", "fit_id": "f1"})
     comp = Compensator.load(path)
     q = sample(robot, 30, seed=6)
     np.testing.assert_array_equal(comp.correct(q), robot.correct(q))
@@ -558,7 +559,7 @@ def test_local_poe_only_export_round_trip(tmp_path):
     nominal = load("fanuc-m1000ia").model
     model = nominal.perturbed(np.random.default_rng(0).normal(size=(7, 6)) * 1e-3)
     robot = CalibratedRobot(nominal, model, method="local-poe")
-    comp = Compensator.load(robot.save(tmp_path / "x.json"))
+    comp = Compensator.load(save_compensator(robot, tmp_path / "x.json"))
     assert comp.robot.network is None
     q = sample(robot, 10, seed=7)
     np.testing.assert_array_equal(comp.correct(q), robot.correct(q))
@@ -575,7 +576,7 @@ def _tamper_json(path, edit, reseal=False):
 
 
 def test_tampered_weight_is_refused(tmp_path):
-    path = hybrid("ur10").save(tmp_path / "c.json")
+    path = save_compensator(hybrid("ur10"), tmp_path / "c.json")
 
     def edit(d):
         d["network"]["weights"][0][3][2] *= 1.0 + 1e-6
@@ -591,7 +592,7 @@ def test_tampered_weight_is_refused(tmp_path):
 
 
 def test_tampered_npz_array_is_refused(tmp_path):
-    path = hybrid("ur10").save(tmp_path / "c.npz")
+    path = save_compensator(hybrid("ur10"), tmp_path / "c.npz")
     with np.load(path) as z:
         arrays = {k: z[k] for k in z.files}
     arrays["model.frames"] = arrays["model.frames"].copy()
@@ -602,7 +603,7 @@ def test_tampered_npz_array_is_refused(tmp_path):
 
 
 def test_edited_robot_model_fails_its_hash(tmp_path):
-    path = hybrid("ur10").save(tmp_path / "c.json")
+    path = save_compensator(hybrid("ur10"), tmp_path / "c.json")
     _tamper_json(path, lambda d: d["robot"]["frames"][1][0].__setitem__(3, 0.5), reseal=True)
     with pytest.raises(CompensatorFileError, match="hash"):
         Compensator.load(path)
@@ -620,7 +621,7 @@ def test_edited_robot_model_fails_its_hash(tmp_path):
     ],
 )
 def test_bad_files_are_refused_with_a_clear_error(tmp_path, edit, match):
-    path = hybrid("ur10").save(tmp_path / "c.json")
+    path = save_compensator(hybrid("ur10"), tmp_path / "c.json")
     _tamper_json(path, edit, reseal=match != "no checksums field")
     with pytest.raises(CompensatorFileError, match=match):
         Compensator.load(path)
@@ -636,7 +637,7 @@ def test_missing_and_unknown_files(tmp_path):
     with pytest.raises(CompensatorFileError, match="cannot read"):
         Compensator.load(tmp_path / "bad.json")
     with pytest.raises(ValueError, match=r"\.json or \.npz"):
-        hybrid("ur10").save(tmp_path / "c.bin")
+        save_compensator(hybrid("ur10"), tmp_path / "c.bin")
 
 
 def test_importing_the_runtime_loads_no_torch_scipy_typer_or_drivers():
@@ -672,7 +673,7 @@ def _widen(d):
     ],
 )
 def test_editing_any_behaviour_changing_field_is_refused_naming_it(tmp_path, field, edit):
-    path = hybrid("ur10").save(tmp_path / "c.json", provenance={"session": "S@v001", "forced": True})
+    path = save_compensator(hybrid("ur10"), tmp_path / "c.json", provenance={"session": "S@v001", "forced": True})
     Compensator.load(path)
     _tamper_json(path, edit)
     with pytest.raises(CompensatorFileError, match=rf"{field} does not match its checksum"):
@@ -680,7 +681,7 @@ def test_editing_any_behaviour_changing_field_is_refused_naming_it(tmp_path, fie
 
 
 def test_widened_ranges_in_an_npz_file_are_refused(tmp_path):
-    path = hybrid("ur10").save(tmp_path / "c.npz")
+    path = save_compensator(hybrid("ur10"), tmp_path / "c.npz")
     with np.load(path) as z:
         arrays = {k: z[k] for k in z.files}
     arrays["joint_ranges"] = np.tile([-10.0, 10.0], (6, 1))
@@ -691,14 +692,14 @@ def test_widened_ranges_in_an_npz_file_are_refused(tmp_path):
 
 def test_checksums_agree_between_json_and_npz(tmp_path):
     robot = hybrid("ur10")
-    a = json.loads(robot.save(tmp_path / "c.json", provenance={"n": 3}).read_text())["checksums"]
-    with np.load(robot.save(tmp_path / "c.npz", provenance={"n": 3})) as z:
+    a = json.loads(save_compensator(robot, tmp_path / "c.json", provenance={"n": 3}).read_text())["checksums"]
+    with np.load(save_compensator(robot, tmp_path / "c.npz", provenance={"n": 3})) as z:
         b = json.loads(str(z["__meta__"]))["checksums"]
     assert a == b and set(a) >= {"joint_ranges", "T_tracker_base", "length_scale", "joint_map"}
 
 
 def test_a_version_1_file_is_refused_with_the_fix(tmp_path):
-    path = hybrid("ur10").save(tmp_path / "c.json")
+    path = save_compensator(hybrid("ur10"), tmp_path / "c.json")
     _tamper_json(path, lambda d: d.__setitem__("schema_version", 1))
     with pytest.raises(CompensatorFileError, match=r"schema_version 1 is not supported.*export the fit again"):
         Compensator.load(path)
@@ -709,9 +710,9 @@ def test_a_version_1_file_is_refused_with_the_fix(tmp_path):
 
 def test_empty_input_gives_an_empty_answer(tmp_path):
     robot = hybrid("ur10")
-    comp = Compensator.load(robot.save(tmp_path / "c.json"))
+    comp = Compensator.load(save_compensator(robot, tmp_path / "c.json"))
     mapped = Compensator.load(
-        dataclasses.replace(robot, joint_map=load("coupled-elbow-6r").joint_map).save(tmp_path / "m.json")
+        save_compensator(dataclasses.replace(robot, joint_map=load("coupled-elbow-6r").joint_map), tmp_path / "m.json")
     )
     for target in (robot, comp, mapped):
         out = target.correct(np.zeros((0, 6)))
@@ -742,7 +743,7 @@ def test_empty_input_gives_an_empty_answer(tmp_path):
 )
 def test_bad_input_is_a_clear_error(tmp_path, q, match):
     robot = hybrid("ur10")
-    comp = Compensator.load(robot.save(tmp_path / "c.json"))
+    comp = Compensator.load(save_compensator(robot, tmp_path / "c.json"))
     for call in (robot.correct, robot.predict_pose, comp.correct, comp.predict_pose):
         with pytest.raises(ValueError, match=match):
             call(q)
@@ -755,7 +756,7 @@ def test_paper_and_fixed_point_are_refused_where_they_would_be_a_no_op_or_partia
     nominal = load("ur10").model
     model = nominal.perturbed(np.random.default_rng(0).normal(size=(7, 6)) * 1e-3)
     local = CalibratedRobot(nominal, model, method="local-poe")
-    comp = Compensator.load(local.save(tmp_path / "c.json"))
+    comp = Compensator.load(save_compensator(local, tmp_path / "c.json"))
     q = sample(local, 3, seed=1)
     for method in ("paper", "fixed-point"):
         for target in (local, comp):
@@ -775,7 +776,7 @@ def test_a_mapped_compensator_converts_controller_joints_both_ways(tmp_path):
     spec = load("coupled-elbow-6r")
     base = hybrid("fanuc-m1000ia")
     robot = dataclasses.replace(base, joint_map=spec.joint_map)
-    comp = Compensator.load(robot.save(tmp_path / "c.npz"))
+    comp = Compensator.load(save_compensator(robot, tmp_path / "c.npz"))
     assert comp.robot_hash == spec.hash != load("fanuc-m1000ia").hash
     np.testing.assert_array_equal(comp.joint_map.matrix, spec.joints.matrix)
     q_model = sample(base, 12, seed=3)
@@ -807,7 +808,7 @@ def test_an_identity_map_is_stored_as_no_map(tmp_path):
     base = hybrid("ur10")
     robot = dataclasses.replace(base, joint_map=load("ur10").joints)
     assert robot.joint_map is None
-    data = json.loads(robot.save(tmp_path / "c.json").read_text())
+    data = json.loads(save_compensator(robot, tmp_path / "c.json").read_text())
     assert data["joint_map"] is None and data["robot"]["hash"] == load("ur10").hash
 
 
@@ -839,7 +840,7 @@ def test_the_runtime_passes_the_solver_settings_through(tmp_path, mapped):
     spec = load("coupled-elbow-6r")
     base = hybrid("fanuc-m1000ia")
     robot = dataclasses.replace(base, joint_map=spec.joint_map) if mapped else base
-    comp = Compensator.load(robot.save(tmp_path / "c.json"))
+    comp = Compensator.load(save_compensator(robot, tmp_path / "c.json"))
     q_model = sample(base, 40, seed=5)
     q_model[:20, 4] = 0.0  # wrist singular: these take the damped fallback, whose budget is then visible
     q = spec.joints.to_controller(q_model) if mapped else q_model
@@ -900,7 +901,7 @@ def test_fixed_point_takes_at_least_one_step_like_newton():
 
 
 def test_to_model_never_returns_the_callers_array(tmp_path):
-    comp = Compensator.load(hybrid("ur10").save(tmp_path / "c.json"))
+    comp = Compensator.load(save_compensator(hybrid("ur10"), tmp_path / "c.json"))
     q = sample(comp.robot, 3, seed=1)
     for given in (q, q[0]):
         out = comp.to_model(given)

@@ -18,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).parent / "export"))
 from export_fixtures import hybrid
 
 from labcal.compensator import CalibratedRobot, Compensator, CompensatorFileError, field_checksums
+from labcal.compensator import save as save_compensator
 from labcal.robots import load
 
 
@@ -193,10 +194,10 @@ def test_npz_members_are_checked_for_dtype_and_reference(tmp_path, saved):
 
 
 def test_a_network_layer_larger_than_a_compensator_holds_is_refused(tmp_path):
-    path = hybrid("ur10").save(tmp_path / "h.npz")
+    path = save_compensator(hybrid("ur10"), tmp_path / "h.npz")
     _npz_with(path, "network.weights.0", (5000, 40000))
     _refusal(path, "network.weights.0 has shape (5000, 40000)")
-    path = hybrid("ur10").save(tmp_path / "h.json")
+    path = save_compensator(hybrid("ur10"), tmp_path / "h.json")
     _resealed(path, lambda d: d["network"]["weights"].__setitem__(0, [[0.0]]))
     _refusal(path, "network.weights.0 must be numbers of shape")
 

@@ -15,6 +15,7 @@ from labcal.calibration import Observations
 from labcal.calibration.fit import _large_correction
 from labcal.calibration.local_poe import fit_local_poe
 from labcal.compensator import CalibratedRobot
+from labcal.compensator import save as save_compensator
 from labcal.compensator.io import from_payload, to_payload
 from labcal.compensator.validity import ValidityRegion
 from labcal.robots import load
@@ -85,7 +86,7 @@ def test_the_validity_region_is_stored_bounded_checked_and_old_files_still_load(
     from labcal.compensator.io import load as load_compensator
 
     for name in ("c.json", "c.npz"):
-        stored = load_compensator(robot.save(tmp_path / name)).robot.validity
+        stored = load_compensator(save_compensator(robot, tmp_path / name)).robot.validity
         assert np.array_equal(stored.centres, region.centres) and np.array_equal(stored.weights, region.weights)
 
 

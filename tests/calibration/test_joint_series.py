@@ -10,6 +10,7 @@ from labcal.calibration import ObservationError, Observations
 from labcal.calibration.joint_series import fit_joint_series
 from labcal.calibration.observations import rigid_fit
 from labcal.compensator import CalibratedRobot, input_features
+from labcal.compensator import save as save_compensator
 from labcal.kinematics import se3
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
@@ -207,7 +208,7 @@ def test_compensator_runtime_evaluates_the_series_like_this_module_and_exports_r
     q = np.random.default_rng(8).uniform(-2, 2, size=(5, 6))
     np.testing.assert_allclose(robot.joint_motion_errors(q), joint_motion_errors(robot, q), rtol=0, atol=1e-15)
     np.testing.assert_allclose(robot.predict_pose(q), predict_pose(robot, q), rtol=0, atol=1e-12)
-    loaded = Compensator.load(robot.save(tmp_path / "series.json"))
+    loaded = Compensator.load(save_compensator(robot, tmp_path / "series.json"))
     assert loaded.robot.network.features == robot.network.features
     np.testing.assert_allclose(loaded.predict_pose(q, extrapolate=True), robot.predict_pose(q), rtol=0, atol=1e-15)
     # Correcting the commands cancels the injected joint errors: the real robot lands on the nominal pose.

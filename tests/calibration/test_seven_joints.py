@@ -17,6 +17,7 @@ import pytest
 from labcal.calibration import Observations, fit
 from labcal.calibration.equivalent import equivalent_joints, joint_error_observations
 from labcal.compensator import CalibratedRobot, Compensator, CompensatorFileError, field_checksums
+from labcal.compensator import save as save_compensator
 from labcal.kinematics import se3
 from labcal.robots import load
 from labcal.simulation import ErrorSpec, simulate
@@ -185,7 +186,7 @@ def test_a_seven_joint_learned_term_survives_its_export_and_corrects_to_the_nomi
     q = q[np.linalg.cond(robot.model.joint_twists(q)) < 100][:20]
     assert len(q) == 20
     for suffix in ("json", "npz"):
-        comp = Compensator.load(robot.save(tmp_path / f"panda.{suffix}"))
+        comp = Compensator.load(save_compensator(robot, tmp_path / f"panda.{suffix}"))
         np.testing.assert_array_equal(comp.predict_pose(q, extrapolate=True), robot.predict_pose(q))
         q_cmd = comp.correct(q, extrapolate=True)
         miss = se3.log_se3(se3.inv(robot.predict_pose(q_cmd)) @ robot.nominal.fk(q))
@@ -197,7 +198,7 @@ def test_a_seven_joint_learned_term_survives_its_export_and_corrects_to_the_nomi
 
 
 def test_a_seven_joint_file_whose_network_has_six_outputs_is_refused_by_name(panda, default_errors, tmp_path):
-    path = default_errors[2].robot.save(tmp_path / "panda.json")
+    path = save_compensator(default_errors[2].robot, tmp_path / "panda.json")
     data = json.loads(path.read_text())
     net = data["network"]
     net["weights"][-1], net["biases"][-1] = net["weights"][-1][:6], net["biases"][-1][:6]

@@ -11,6 +11,7 @@ import pytest
 
 from labcal.calibration import Observations, fit_local_poe
 from labcal.compensator import Compensator
+from labcal.compensator import save as save_compensator
 from labcal.drivers.base import MotionRejected
 from labcal.drivers.sim import SimRig
 from labcal.robots import load
@@ -107,7 +108,7 @@ def test_the_compensator_of_that_fit_takes_and_returns_controller_joints(spec, r
     q_model = spec.joints.to_model(q_ctrl)
     robot, _ = fit_local_poe(Observations(q_model, points, TARGETS), spec.model)
     robot = dataclasses.replace(robot, joint_map=spec.joint_map)
-    comp = Compensator.load(robot.save(tmp_path / "c.json"))
+    comp = Compensator.load(save_compensator(robot, tmp_path / "c.json"))
     assert comp.robot_hash == spec.hash and not comp.joint_map.is_identity
     q_cmd = comp.correct(q_ctrl[:10])
     np.testing.assert_allclose(q_cmd, spec.joints.to_controller(robot.correct(q_model[:10])), atol=1e-12)

@@ -121,9 +121,9 @@ def _log_pose(Tt, T, e):
 
 
 @_jit
-def _features(q, T, cols, trig, x, dx):
-    """Network inputs x (f,) at q from the link frames T, and dx (f,): each column's derivative by its own joint
-    (gravity columns 0: the definition's series slope leaves them out). trig (n, H + 1, 2): workspace for
+def _features(q, T, cols, trig, x):
+    """Network inputs x (f,) at q from the link frames T (a layered network's J is the joint twists alone: no
+    derivative of its inputs is needed). trig (n, H + 1, 2): workspace for
     sin h q_j, cos h q_j by the angle-addition recurrence (features.harmonics_of_joints' running product)."""
     n, H = q.shape[0], trig.shape[1] - 1
     for j in range(n):
@@ -135,15 +135,15 @@ def _features(q, T, cols, trig, x, dx):
     for f in range(cols.shape[0]):
         op, j, order = cols[f, 0], cols[f, 1], cols[f, 2]
         if op == OP_Q:
-            x[f], dx[f] = q[j], 1.0
+            x[f] = q[j]
         elif op == OP_SIN:
-            x[f], dx[f] = trig[j, order, 0], order * trig[j, order, 1]
+            x[f] = trig[j, order, 0]
         elif op == OP_COS:
-            x[f], dx[f] = trig[j, order, 1], -order * trig[j, order, 0]
+            x[f] = trig[j, order, 1]
         elif op == OP_GRAVITY:  # −R_link[2, axis]
-            x[f], dx[f] = -T[j, 2, order], 0.0
+            x[f] = -T[j, 2, order]
         else:
-            x[f], dx[f] = 0.0, 0.0
+            x[f] = 0.0
 
 
 @_jit
@@ -218,27 +218,19 @@ def _series(q, T, runs, weights, rho, S, slope):
                 S[3, j] += s3
                 S[4, j] += s4
                 S[5, j] += s5
-        elif kind == RUN_GRAVITY:
-            for a in range(3):
-                x = -T[j, 2, a]
+        else:  # RUN_GRAVITY: x = −R_link[2, a] for a < 3; RUN_Q: x = q_j, whose slope is its weights
+            for a in range(runs[k, 3]):
+                x = -T[j, 2, a] if kind == RUN_GRAVITY else q[j]
                 r0 += x * weights[o]
                 r1 += x * weights[o + 1]
                 r2 += x * weights[o + 2]
                 r3 += x * weights[o + 3]
                 r4 += x * weights[o + 4]
                 r5 += x * weights[o + 5]
+                if slope and kind == RUN_Q:
+                    for b in range(6):
+                        S[b, j] += weights[o + b]
                 o += 6
-        else:  # RUN_Q
-            x = q[j]
-            r0 += x * weights[o]
-            r1 += x * weights[o + 1]
-            r2 += x * weights[o + 2]
-            r3 += x * weights[o + 3]
-            r4 += x * weights[o + 4]
-            r5 += x * weights[o + 5]
-            if slope:
-                for a in range(6):
-                    S[a, j] += weights[o + a]
     rho[0], rho[1], rho[2], rho[3], rho[4], rho[5] = r0, r1, r2, r3, r4, r5
 
 
@@ -251,7 +243,7 @@ def _residual(qc, jacobian, r, J, ctx):
     and J the Newton Jacobian J + J S + bracket (model._bracket). has_point: twists about ``point``
     (model._about_point).
     """
-    target, point, has_point, model, mode, cols, weights, layers, T, x, dx, work = ctx
+    target, point, has_point, model, mode, cols, weights, layers, T, x, work = ctx
     trig, buf, Jt, S, vec = work  # workspace: vec rows e, ρ, z, tail
     n = qc.shape[0]
     _walk(model, qc, T, Jt)
@@ -261,7 +253,7 @@ def _residual(qc, jacobian, r, J, ctx):
     if mode == NET_SERIES:
         _series(qc, T, cols, weights, rho, S, jacobian)  # cols: the series' runs
     elif mode == NET_LAYERS:
-        _features(qc, T, cols, trig, x, dx)
+        _features(qc, T, cols, trig, x)
         _network(x, weights, layers, buf, rho)
     for a in range(6):
         acc = 0.0
@@ -540,8 +532,8 @@ def _gauss_newton(q0, out, iterations, tol, consts, r, J, r0, J0, ctx):
 
 @_jit
 def correct_one(
-    q0, out, nominal, model, mode, cols, weights, layers, w, ranges, centres, scale, radius, has_region,
-    tcp, has_tcp, extrapolate, iterations, tol, budget, consts,
+    q0, out, nominal, model, mode, cols, weights, layers, H, width, w, ranges, centres, scale, radius,
+    has_region, tcp, has_tcp, extrapolate, iterations, tol, budget, consts,
 ):  # fmt: skip
     """CalibratedRobot.correct(q0, method="newton") of one configuration into out (n,); returns DONE, or OUTSIDE
     when q0 is not finite, outside the ranges or outside the validity region without ``extrapolate``, or within
@@ -575,30 +567,19 @@ def correct_one(
     if has_tcp:  # the TCP's nominal position: (T_target · tcp)[:3, 3]
         for a in range(3):
             point[a] = target[a, 0] * tcp[0, 3] + target[a, 1] * tcp[1, 3] + target[a, 2] * tcp[2, 3] + target[a, 3]
-    f, width, H = cols.shape[0], 1, 0
-    for li in range(layers.shape[0]):
-        width = max(width, layers[li, 1])
-    for c in range(f):
-        if cols[c, 0] == OP_SIN or cols[c, 0] == OP_COS:
-            H = max(H, cols[c, 2])
+    # workspace: sin h q_j, cos h q_j (h ≤ H), two network layers, J's twists, the series' slope, vectors
     work = (np.empty((n, H + 1, 2)), np.empty((2, width)), np.empty((6, n)), np.empty((6, n)), np.empty((4, max(n, 6))))
-    ctx = (target, point, has_tcp, model, mode, cols, weights, layers, T, np.empty(f), np.empty(f), work)
+    ctx = (target, point, has_tcp, model, mode, cols, weights, layers, T, np.empty(cols.shape[0]), work)
     r, J, r0, J0 = np.empty(6), np.empty((6, n)), np.empty(6), np.empty((6, n))
     failed = _gauss_newton(q0, out, iterations, tol, consts, r, J, r0, J0, ctx)
-    if bounded and not failed:
-        far = False
-        for j in range(n):
-            if not abs(out[j] - q0[j]) <= bound:
-                far = True
-        if far:  # a Gauss-Newton answer beyond the box: damped from it clipped into the box when that is better
-            clipped = np.empty(n)
-            for j in range(n):
-                clipped[j] = min(max(out[j], q0[j] - bound), q0[j] + bound)
-            _residual(clipped, True, r, J, ctx)
-            if _cost(r, w) < _cost(r0, w):
-                out[:] = _damped(q0, clipped, r, J, bound, True, w, budget, tol, consts, ctx)
-            else:
-                failed = True
+    # a Gauss-Newton answer beyond the box: damped from it clipped into the box when that is better
+    if bounded and not failed and not np.all(np.abs(out - q0) <= bound):
+        clipped = np.minimum(np.maximum(out, q0 - bound), q0 + bound)
+        _residual(clipped, True, r, J, ctx)
+        if _cost(r, w) < _cost(r0, w):
+            out[:] = _damped(q0, clipped, r, J, bound, True, w, budget, tol, consts, ctx)
+        else:
+            failed = True
     if failed:
         out[:] = _damped(q0, q0, r0, J0, bound, bounded, w, budget, tol, consts, ctx)
     return DONE

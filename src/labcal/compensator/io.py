@@ -33,7 +33,7 @@ import numpy as np
 
 from labcal import features as feature_lib
 from labcal.atomicio import write_bytes, write_text
-from labcal.compensator.model import CalibratedRobot, Network, register_writer
+from labcal.compensator.model import CalibratedRobot, Network
 from labcal.compensator.validity import ValidityRegion
 from labcal.kinematics import metric, se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
@@ -109,8 +109,7 @@ def golden_configurations(robot: CalibratedRobot, count: int = GOLDEN_COUNT, see
     cand = lo + (hi - lo) * rng.uniform(0.1, 0.9, size=(32 * count, robot.n))
     J = robot.model.equivalent_jacobian(cand, length_scale=robot.length_scale)
     cond = metric.scaled_condition(J, robot.length_scale)
-    keep = cand[np.argsort(cond, kind="stable")[:count]]
-    return keep
+    return cand[np.argsort(cond, kind="stable")[:count]]
 
 
 # Every field that changes what a loaded compensator does (or what it says about itself) has a checksum in the file.
@@ -469,7 +468,7 @@ def _check_schema(data: dict, source: str, stored: bool) -> bool:
 def _robot_from(data: dict, source: str, legacy: bool) -> CalibratedRobot:
     """The CalibratedRobot a payload describes (models, joint map checked against the stored hash, network)."""
     nominal = _model_from(data["robot"], f"{source}: robot")
-    model = _model_from(data["model"], f"{source}: model")
+    model, n = _model_from(data["model"], f"{source}: model"), nominal.n
     jd = None if legacy else data["joint_map"]
     try:
         # check_payload saw an (n, n) matrix and (n,) offsets for the robot's n joints
@@ -481,35 +480,28 @@ def _robot_from(data: dict, source: str, legacy: bool) -> CalibratedRobot:
     nd = data.get("network")
     net = None
     if nd is not None:
-        arrays = {key: np.asarray(nd[key], dtype=float) for key in _NETWORK_SCALES}
         net = Network(
             features=tuple(nd["features"]),
             weights=tuple(np.asarray(W, dtype=float) for W in nd["weights"]),
             biases=tuple(np.asarray(b, dtype=float) for b in nd["biases"]),
-            **arrays,
+            **{key: np.asarray(nd[key], dtype=float) for key in _NETWORK_SCALES},
         )
+    try:  # a file written without a validity region has the joint ranges alone
+        validity = None if data.get("validity") is None else ValidityRegion.from_dict(data["validity"], n)
+    except (KeyError, TypeError, ValueError) as err:
+        raise CompensatorFileError(f"{source}: validity is not a validity region of {n} joints: {err}") from None
     return CalibratedRobot(
         nominal=nominal,
         model=model,
         network=net,
         T_tracker_base=np.asarray(data["T_tracker_base"], dtype=float).reshape(4, 4),
-        joint_ranges=np.asarray(data["joint_ranges"], dtype=float).reshape(nominal.n, 2),
+        joint_ranges=np.asarray(data["joint_ranges"], dtype=float).reshape(n, 2),
         length_scale=float(data["length_scale"]),
         method=str(data.get("method", "")),
         joint_map=joint_map,
         measurement_tool=None if data.get("measurement_tool") is None else np.asarray(data["measurement_tool"], float),
-        validity=_validity_from(data.get("validity"), nominal.n, source),
+        validity=validity,
     )
-
-
-def _validity_from(value, n: int, source: str) -> ValidityRegion | None:
-    """The stored validity region, None for a file written without one (the joint ranges alone then)."""
-    if value is None:
-        return None
-    try:
-        return ValidityRegion.from_dict(value, n)
-    except (KeyError, TypeError, ValueError) as err:
-        raise CompensatorFileError(f"{source}: validity is not a validity region of {n} joints: {err}") from None
 
 
 def _check_golden(robot: CalibratedRobot, q, q_cmd, pose, method: str, source: str) -> None:
@@ -555,8 +547,6 @@ def save(robot: CalibratedRobot, path, provenance: dict | None = None) -> Path:
         write_bytes(path, buffer.getvalue())
     return path
 
-
-register_writer(save)  # CalibratedRobot.save writes through this module, which model.py does not import
 
 _ARRAY_KEYS = {"frames", "twists", "limits", "in_mean", "in_scale", "out_mean", "out_scale", "joint_ranges"}
 _ARRAY_KEYS |= {"T_tracker_base", "q", "q_cmd", "pose", "matrix", "offsets", "measurement_tool"}
@@ -642,12 +632,10 @@ def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> tuple[tuple, np.d
     """(shape, dtype) of an NPZ member from its header alone (a few hundred bytes read)."""
     with zf.open(info) as fh:
         version = np.lib.format.read_magic(fh)
-        if version == (1, 0):
-            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
-        elif version == (2, 0):
-            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
-        else:
+        readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+        if version not in readers:
             raise ValueError(f"npy format version {version} is not one labcal writes")
+        shape, _, dtype = readers[version](fh)
     return tuple(shape), dtype
 
 
@@ -816,13 +804,8 @@ class Compensator:
     def predict_pose(self, q, *, extrapolate: bool = False, tcp=None) -> np.ndarray:
         """Pose (4, 4) or (k, 4, 4) in the base frame of the TCP (``tcp`` in tool0; default tool0) that the real robot
         reaches when commanded the controller joints q (an empty (0, n) q gives (0, 4, 4))."""
-        if self._map is None:
-            self.robot.check_range(q, extrapolate)
-            return self.robot.predict_pose(q, tcp=tcp)
-        q_model = self.to_model(q)
-        if not extrapolate:
-            self._check_model_range(q_model)
-        return self.robot.predict_pose(q_model, tcp=tcp)
+        self.check_range(q, extrapolate)
+        return self.robot.predict_pose(q if self._map is None else self.to_model(q), tcp=tcp)
 
 
 def load(path) -> Compensator:

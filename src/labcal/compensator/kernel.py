@@ -144,7 +144,10 @@ def build(robot: CalibratedRobot) -> Kernel | None:
     w = np.ascontiguousarray(robot._twist_weights, dtype=float)
     no_tcp = np.eye(4)
     no_tcp.setflags(write=False)  # typed as a checked tcp is (read-only): one compiled signature for both
-    static = (nominal, model, mode, cols, weights, layers, w, ranges, centres, scale, radius, has_region)
+    # the workspace of one call: the highest harmonic order of the features, the widest layer
+    trig = np.isin(cols[:, 0], (_OPS["sin"], _OPS["cos"])) if mode == 2 else np.zeros(len(cols), dtype=bool)
+    sizes = int(cols[trig, 2].max(initial=0)), int(layers[:, 1].max(initial=1))
+    static = (nominal, model, mode, cols, weights, layers, *sizes, w, ranges, centres, scale, radius, has_region)
     run = jit.correct_one
     # Compile (or load) now, and call the compiled entry point directly from then on: numba's dispatcher would type
     # every argument of every call to choose among signatures, about a microsecond of a single correction. The

@@ -40,9 +40,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -724,21 +722,3 @@ class CalibratedRobot:
         frames = np.array(self.model.frames)
         frames[-1] = frames[-1] @ self.measurement_tool
         return self.model.replace(frames=frames)
-
-    def save(self, path, provenance: dict | None = None) -> Path:
-        """Write this robot as a compensator export (``.json`` or ``.npz`` by extension); returns the path."""
-        if _writer is None:  # pragma: no cover - labcal.compensator imports io, which registers it
-            raise RuntimeError("no compensator writer: import labcal.compensator")
-        return _writer(self, path, provenance)
-
-
-# The export writer, labcal.compensator.io.save, registered by io on import (labcal.compensator imports io, so any
-# import of this module has it): the file format lives in io, which builds on this module's classes; an import of
-# io here would make the two modules a circle.
-_writer: Callable[[CalibratedRobot, Path | str, dict | None], Path] | None = None
-
-
-def register_writer(writer: Callable[[CalibratedRobot, Path | str, dict | None], Path]) -> None:
-    """Make ``writer`` what :meth:`CalibratedRobot.save` calls (labcal.compensator.io registers its ``save``)."""
-    global _writer
-    _writer = writer

@@ -21,7 +21,8 @@ from labcal.compensator import CalibratedRobot
 from labcal.compensator import save as save_compensator
 
 # format → (suffix, module and function giving the file's text from (robot, provenance=…, **options)); json and npz
-# are the compensator's own files (no text writer). Writers are imported when used: `import labcal.export` stays light.
+# are the compensator's own files (no text writer). export() dispatches on this table alone, so no format is listed
+# without its writer. Writers are imported when used: `import labcal.export` stays light.
 _WRITERS: dict[str, tuple[str, tuple[str, str] | None]] = {
     "json": (".json", None),
     "npz": (".npz", None),
@@ -45,16 +46,13 @@ def export(robot: CalibratedRobot, fmt: str, path, provenance: dict | None = Non
     never over a device or a symbolic link.
     """
     path = Path(path)
-    if fmt not in FORMATS:
+    if fmt not in _WRITERS:
         raise ValueError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
-    if fmt in ("json", "npz"):
-        if path.suffix.lower() != SUFFIXES[fmt]:
-            raise ValueError(f"a {fmt} export must be written to a path ending in {SUFFIXES[fmt]}, got {path.name!r}")
+    suffix, writer = _WRITERS[fmt]
+    if writer is None:  # json / npz: the compensator's own files
+        if path.suffix.lower() != suffix:
+            raise ValueError(f"a {fmt} export must be written to a path ending in {suffix}, got {path.name!r}")
         return save_compensator(robot, path, provenance)
-    writer = _WRITERS.get(fmt, ("", None))[1]
-    if writer is None:
-        # a name added to FORMATS without its writer here must not fall through to another format's writer
-        raise NotImplementedError(f"export format {fmt!r} is listed in FORMATS but has no writer in export.export()")
     module, function = writer
     text = getattr(importlib.import_module(module), function)(robot, provenance=provenance, **options)
     write_text(path, text)

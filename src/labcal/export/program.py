@@ -50,7 +50,7 @@ import numpy as np
 
 from labcal.compensator import CalibratedRobot
 from labcal.kinematics import se3
-from labcal.kinematics.metric import scaled_condition
+from labcal.kinematics.metric import joint_weights, scaled_condition, twist_weights
 
 STEPS = 8  # pose interpolation steps from the seed to each target (path following)
 MAX_CONDITION = 1e4  # length-scaled cond(J) above this: a singularity, the branch (and a correction) is not defined
@@ -172,7 +172,7 @@ def check_joints(robot: CalibratedRobot, q: np.ndarray, angle_unit: str = "rad",
                 f"{_degree_hint(robot, q, ranges, angle_unit)}",
                 None if seed else i + 1,
             )
-    validity = getattr(robot, "validity", None)
+    validity = robot.validity
     if not seed and validity is not None:  # correct() refuses these too; here the row is named
         distance = validity.distance(q)
         far = ~(distance <= validity.radius)
@@ -261,8 +261,6 @@ def _escape_joint(robot: CalibratedRobot, model, q: np.ndarray, h: float = 1e-4)
     """0-based joint whose motion takes q (n,) away from its singularity fastest: the largest change of the smallest
     singular value of the length-scaled Jacobian under a step h of one joint (a UR arm stretched at the elbow: q3;
     at the wrist singularity: q5, though the motion the wrist loses is q4 against q6)."""
-    from labcal.kinematics.metric import joint_weights, twist_weights
-
     w_rows, w_cols = twist_weights(robot.length_scale)[:, None], joint_weights(model.joint_types, robot.length_scale)
     steps = np.concatenate([np.zeros((1, model.n)), h * np.eye(model.n), -h * np.eye(model.n)])
     s = np.linalg.svd(w_rows * _jacobian(robot, model, q + steps) * w_cols, compute_uv=False)[:, -1]
@@ -270,11 +268,16 @@ def _escape_joint(robot: CalibratedRobot, model, q: np.ndarray, h: float = 1e-4)
     return int(np.argmax(change))
 
 
-def _singular_message(row: int, q: np.ndarray, cond: float, j: int, where: str, limit: float) -> str:
-    return (
+def _singular(
+    robot: CalibratedRobot, model, row: int, q: np.ndarray, cond: float, where: str, limit: float
+) -> ProgramError:
+    """The ProgramError of a row ``where`` near a singular configuration, naming the joint that leaves it fastest."""
+    j = _escape_joint(robot, model, q)
+    return ProgramError(
         f"row {row}: singular: {where} near a singular configuration (length-scaled Jacobian condition {cond:.3g} > "
         f"{limit:g}; q{j + 1} = {q[j]:.6g} is the joint that leaves it fastest): the correction and the "
-        "configuration branch are not defined there; move the row away from it or split the move"
+        "configuration branch are not defined there; move the row away from it or split the move",
+        row,
     )
 
 
@@ -303,9 +306,8 @@ def _follow(robot: CalibratedRobot, q0: np.ndarray, T_target: np.ndarray, row: i
             J = _jacobian(robot, model, q[None])[0]
             cond = scaled_condition(J[None], robot.length_scale, model.joint_types)[0]
             if not cond <= max_condition:
-                j = _escape_joint(robot, model, q)
                 where = "the path from the previous point passes" if s < STEPS else "the row's solution is"
-                raise ProgramError(_singular_message(row, q, cond, j, where, max_condition), row)
+                raise _singular(robot, model, row, q, cond, where, max_condition)
             r = _pose_error(T_s, model.fk(q))
             dq = np.linalg.lstsq(J, r, rcond=None)[0]
             q = q + dq
@@ -377,10 +379,7 @@ def filter_joints(
     singular = ~(cond_nominal <= max_condition)
     if singular.any():  # before correct(): its answer there is whatever the damped fallback stopped at
         i = int(np.argmax(singular))
-        j = _escape_joint(robot, robot.nominal, q_nominal[i])
-        raise ProgramError(
-            _singular_message(i + 1, q_nominal[i], cond_nominal[i], j, "the row is", max_condition), i + 1
-        )
+        raise _singular(robot, robot.nominal, i + 1, q_nominal[i], cond_nominal[i], "the row is", max_condition)
     q_cmd = robot.correct(q_nominal, tcp=tcp)
     T_nominal = robot.nominal.fk(q_nominal) if tcp is None else robot.nominal.fk(q_nominal) @ tcp
     dq = np.max(np.abs(q_cmd - q_nominal), axis=1)
@@ -392,10 +391,8 @@ def filter_joints(
     if bad.any():
         i = int(np.argmax(bad))
         if not (cond_cmd[i] <= max_condition):
-            j = _escape_joint(robot, robot.model, q_cmd[i])
-            raise ProgramError(
-                _singular_message(i + 1, q_cmd[i], cond_cmd[i], j, "the calibrated solution is", max_condition), i + 1
-            )
+            where = "the calibrated solution is"
+            raise _singular(robot, robot.model, i + 1, q_cmd[i], cond_cmd[i], where, max_condition)
         if not same[i] and dq[i] <= max_correction:
             # det J is continuous: a sign change under a correction of a few mrad crosses det J = 0 between the two
             # solutions, so the row is as close to a singularity as the calibration moves it, whatever its condition.

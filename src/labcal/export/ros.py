@@ -72,7 +72,7 @@ import numpy as np
 
 from labcal.compensator import CalibratedRobot
 from labcal.export.learned import refuse_or_note
-from labcal.export.zform import ZAxisForm
+from labcal.export.zform import without_pitch
 from labcal.kinematics import se3
 from labcal.kinematics.poe import REVOLUTE
 from labcal.names import printable
@@ -106,10 +106,7 @@ def check_ur(robot: CalibratedRobot, fmt: str) -> None:
 
 def ur_frames(robot: CalibratedRobot) -> tuple[np.ndarray, np.ndarray]:
     """(6, 4, 4) joint origins (parent → joint frame, z = the joint axis) and the (4, 4) tool0 → identified tool."""
-    kin = ZAxisForm(robot.model)
-    if kin.has_pitch and np.max(np.abs(kin.pitch)) > 1e-12:
-        j = int(np.argmax(np.abs(kin.pitch)))
-        raise ValueError(f"joint {j + 1} is a screw (pitch {kin.pitch[j]:.3g} m/rad): a URDF joint cannot hold it")
+    kin = without_pitch(robot.model)
     frames = np.concatenate([kin.A0[None], kin.A_rest])  # (7, 4, 4): six joint origins, then the tool
     # A shift along joint j's axis commutes with its rotation, so it may sit before or after it: move each next
     # frame's shift along z into joint j's origin, which gives ur_description's own layout (shoulder z = d1 …).
@@ -127,8 +124,9 @@ def ur_frames(robot: CalibratedRobot) -> tuple[np.ndarray, np.ndarray]:
     return frames[:6], frames[6]
 
 
-def _fmt(x: float) -> str:
-    return repr(float(x) + 0.0)  # + 0.0: no "-0.0" in the file
+def fmt(values) -> str:
+    """Numbers (a scalar or an array) as their shortest round-trip reprs, space-separated (+ 0.0: no "-0.0")."""
+    return " ".join(repr(float(x) + 0.0) for x in np.atleast_1d(values))
 
 
 def ur_kinematics_text(robot: CalibratedRobot, provenance: dict | None = None, geometry_only: bool = False) -> str:
@@ -144,7 +142,7 @@ def ur_kinematics_text(robot: CalibratedRobot, provenance: dict | None = None, g
         "about z); tool0 = wrist_3_link",
         "# tcp_in_tool0 (m, rotation vector): the part of the identified tool frame ur_description cannot hold; set it "
         "as the TCP",
-        "# tcp_in_tool0: " + " ".join(_fmt(v) for v in _pose6(rest)),
+        "# tcp_in_tool0: " + fmt(_pose6(rest)),
     ]
     if robot.measurement_tool is not None:
         # Robot and tool apart: the fixture the calibration measured through is not the robot (ur_description ignores
@@ -152,7 +150,7 @@ def ur_kinematics_text(robot: CalibratedRobot, provenance: dict | None = None, g
         lines += [
             "# measurement_tool_in_tool0 (m, rotation vector): the identified measurement fixture (probe, SMR nest) "
             "the calibration saw the robot through; not part of the robot: set it as the TCP only to work with it",
-            "# measurement_tool_in_tool0: " + " ".join(_fmt(v) for v in _pose6(rest @ robot.measurement_tool)),
+            "# measurement_tool_in_tool0: " + fmt(_pose6(rest @ robot.measurement_tool)),
         ]
     if note:
         lines.append(f"# {printable(note)}")
@@ -165,8 +163,8 @@ def ur_kinematics_text(robot: CalibratedRobot, provenance: dict | None = None, g
     for name, T in zip(UR_SEGMENTS, origins, strict=True):
         xyz, rpy = T[:3, 3], se3.matrix_to_rpy(T[:3, :3])
         body.append(f"  {name}:")
-        body += [f"    {key}: {_fmt(v)}" for key, v in zip(("x", "y", "z"), xyz, strict=True)]
-        body += [f"    {key}: {_fmt(v)}" for key, v in zip(("roll", "pitch", "yaw"), rpy, strict=True)]
+        body += [f"    {key}: {fmt(v)}" for key, v in zip(("x", "y", "z"), xyz, strict=True)]
+        body += [f"    {key}: {fmt(v)}" for key, v in zip(("roll", "pitch", "yaw"), rpy, strict=True)]
     # ur_calibration writes a hash of the controller's calibration; ours identifies the numbers above (module doc).
     digest = hashlib.sha256(chr(10).join(body).encode()).hexdigest()[:16]
     body.append(f"  hash: {json.dumps(f'labcal_{digest}')}")

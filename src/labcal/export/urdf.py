@@ -44,8 +44,8 @@ import numpy as np
 
 from labcal.compensator import CalibratedRobot
 from labcal.export.learned import refuse_or_note
-from labcal.export.ros import UR_JOINT_NAMES, check_ur, ur_frames
-from labcal.export.zform import ZAxisForm
+from labcal.export.ros import UR_JOINT_NAMES, check_ur, fmt, ur_frames
+from labcal.export.zform import without_pitch
 from labcal.kinematics import se3
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel, default_twist
 from labcal.names import duplicate, printable
@@ -64,10 +64,7 @@ def urdf_model(model: LocalPOEModel) -> LocalPOEModel:
     offset (v = r × ω); the frames are moved onto the axis line, which changes no forward kinematics. A revolute
     twist with a pitch (ω·v ≠ 0, a screw joint) has no URDF form and is refused.
     """
-    kin = ZAxisForm(model)
-    if kin.has_pitch and np.max(np.abs(kin.pitch)) > 1e-12:
-        j = int(np.argmax(np.abs(kin.pitch)))
-        raise ValueError(f"joint {j + 1} is a screw (pitch {kin.pitch[j]:.3g} m/rad): a URDF cannot represent it")
+    kin = without_pitch(model)
     if kin.identity_C:
         return model
     frames = np.concatenate([kin.A0[None], kin.A_rest])
@@ -75,12 +72,8 @@ def urdf_model(model: LocalPOEModel) -> LocalPOEModel:
     return model.replace(frames=frames, twists=twists)
 
 
-def _fmt(values) -> str:
-    return " ".join(repr(float(x) + 0.0) for x in np.atleast_1d(values))
-
-
 def _origin(parent: ET.Element, T: np.ndarray) -> None:
-    ET.SubElement(parent, "origin", xyz=_fmt(T[:3, 3]), rpy=_fmt(se3.matrix_to_rpy(T[:3, :3])))
+    ET.SubElement(parent, "origin", xyz=fmt(T[:3, 3]), rpy=fmt(se3.matrix_to_rpy(T[:3, :3])))
 
 
 def _dynamics(values, n: int, what: str, unknown: str) -> tuple[list[float], bool]:
@@ -209,8 +202,8 @@ def _inertials(model: LocalPOEModel, elements: dict, links: list[str], masses, c
         T_link = frames0[j] if j < n else model.fk(np.zeros(n))
         com = se3.inv(T_link) @ np.append(np.asarray(coms[j], dtype=float), 1.0)
         inertial = ET.SubElement(link, "inertial")
-        ET.SubElement(inertial, "origin", xyz=_fmt(com[:3]), rpy="0.0 0.0 0.0")
-        ET.SubElement(inertial, "mass", value=_fmt(m))
+        ET.SubElement(inertial, "origin", xyz=fmt(com[:3]), rpy="0.0 0.0 0.0")
+        ET.SubElement(inertial, "mass", value=fmt(m))
         ET.SubElement(inertial, "inertia", ixx="0.0", ixy="0.0", ixz="0.0", iyy="0.0", iyz="0.0", izz="0.0")
 
 
@@ -230,9 +223,9 @@ def _joints(root: ET.Element, robot: CalibratedRobot, model: LocalPOEModel, link
         ET.SubElement(joint, "child", link=links[j + 1])
         _origin(joint, model.frames[j])
         axis = model.twists[j, :3] if kind == "prismatic" else model.twists[j, 3:]
-        ET.SubElement(joint, "axis", xyz=_fmt(axis))
+        ET.SubElement(joint, "axis", xyz=fmt(axis))
         lo, hi = robot.nominal.limits[j]
-        ET.SubElement(joint, "limit", lower=_fmt(lo), upper=_fmt(hi), effort=_fmt(eff[j]), velocity=_fmt(vel[j]))
+        ET.SubElement(joint, "limit", lower=fmt(lo), upper=fmt(hi), effort=fmt(eff[j]), velocity=fmt(vel[j]))
     assert all(t in (REVOLUTE, PRISMATIC) for t in model.joint_types)
 
 

@@ -64,5 +64,14 @@ class ZAxisForm:
         self.A_rest = A[1:]
         self.lin = lin
         self.pitch = np.where(rev, lin, 0.0)
-        self.has_pitch = bool(np.any(self.pitch))
         self.RC_T = np.ascontiguousarray(C[1 : n + 1, :3, :3].transpose(0, 2, 1))
+
+
+def without_pitch(model: LocalPOEModel) -> ZAxisForm:
+    """The z-axis form of a model whose revolute joints have no screw pitch (a URDF joint, and ur_description's,
+    has none); ValueError naming the first screw joint."""
+    kin = ZAxisForm(model)
+    if np.max(np.abs(kin.pitch)) > 1e-12:
+        j = int(np.argmax(np.abs(kin.pitch)))
+        raise ValueError(f"joint {j + 1} is a screw (pitch {kin.pitch[j]:.3g} m/rad): a URDF cannot represent it")
+    return kin
