@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from labcal.calibration.observations import Observations
+from labcal.calibration.observations import Observations, pooled
 from labcal.cli.common import UserError, session_unit
 from labcal.datasets import Dataset, SessionStore, parse_ref
 from labcal.robots import BUILTINS, RobotSpec, load, loads
@@ -161,14 +161,7 @@ def load_observations(
         )
     # Pooled sessions: cross-validation keeps each session's rows in one fold.
     group = np.concatenate([np.full(len(d), d.ref, dtype=object) for d in datasets]) if len(datasets) > 1 else None
-    obs = Observations(
-        q=spec.joints.to_model(q_controller) if spec is not None else q_controller,
-        points=np.concatenate([d.points for d in datasets]),
-        targets=first.targets,
-        frame=first.frame,
-        split=np.concatenate([d.split for d in datasets]).astype(object),
-        group=group,
-    )
+    obs = pooled(datasets, spec.joints.to_model(q_controller) if spec is not None else q_controller, group)
     return (obs, datasets, spec) if with_spec else (obs, datasets)
 
 
