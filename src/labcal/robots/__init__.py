@@ -170,6 +170,13 @@ def load(name_or_path: str | Path) -> RobotSpec:
     return loads(text, "urdf" if path.suffix.lower() == ".urdf" else "toml", source=str(path))
 
 
+def from_record(record: dict, source: str) -> RobotSpec | None:
+    """The robot a :meth:`RobotSpec.record` stored, read back with :func:`loads` (None: recorded without its file text,
+    before labcal stored it). A record without a format is TOML."""
+    text = record.get("text")
+    return loads(text, record.get("format") or "toml", source=source) if text else None
+
+
 def loads(text: str, format: str = "toml", source: str = "<text>") -> RobotSpec:
     """A robot from the text of a robot file (``format`` "toml" or "urdf"), e.g. the copy a session stored."""
     source = printable(source)  # it names the file in every message: a stored name may hold anything
