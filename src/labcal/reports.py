@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from labcal.calibration.metrics import observability, point_errors, prediction_errors, split_table
-from labcal.calibration.observations import Observations
+from labcal.calibration.observations import pooled
 from labcal.calibration.tool import tool_lines
 from labcal.compensator import from_payload
 from labcal.datasets.errors import DatasetError
@@ -59,20 +59,10 @@ def _fit_data(store, ref: str, fit_id: str, load_obs=None) -> dict:
     robot, _ = from_payload(json.loads(record.read(ROBOT_FILE)), f"fit {fit_id}")
     before, _ = from_payload(json.loads(record.read(BEFORE_FILE)), f"fit {fit_id}")
     refs = [i["ref"] for i in record.inputs]
-    if load_obs is not None:
-        pooled = load_obs(refs)
-    else:
-        datasets = [store.load(r) for r in refs]
-        pooled = Observations(
-            q=np.concatenate([d.q for d in datasets]),
-            points=np.concatenate([d.points for d in datasets]),
-            targets=datasets[0].targets,
-            frame=datasets[0].frame,
-            split=np.concatenate([d.split for d in datasets]).astype(object),
-        )
+    stored = load_obs(refs) if load_obs is not None else pooled([store.load(r) for r in refs])
     split = meta.get("split")
-    split = np.array(split, dtype=object) if split and len(split) == pooled.k else pooled.split
-    obs = dataclasses.replace(pooled, split=split, group=None)
+    split = np.array(split, dtype=object) if split and len(split) == stored.k else stored.split
+    obs = dataclasses.replace(stored, split=split, group=None)
     return {"fit_id": fit_id, "meta": meta, "robot": robot, "before": before, "obs": obs}
 
 

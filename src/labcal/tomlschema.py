@@ -167,6 +167,16 @@ def is_number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
+def positive(value: float) -> str | None:
+    """A :attr:`Key.check`: the number must be > 0 (a rate, a timeout, a tolerance)."""
+    return None if value > 0 else f"must be > 0, got {value}"
+
+
+def non_negative(value: float) -> str | None:
+    """A :attr:`Key.check`: the number must be >= 0 (a mass, a retry count, a delay)."""
+    return None if value >= 0 else f"must be >= 0, got {value}"
+
+
 def _plural(n: int, word: str) -> str:
     return f"{n} {word}{'' if n == 1 else 's'}"
 
@@ -305,6 +315,8 @@ __all__ = [
     "fail",
     "input_file_problem",
     "is_number",
+    "non_negative",
+    "positive",
     "read_toml",
     "validate",
 ]

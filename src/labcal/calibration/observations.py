@@ -23,8 +23,9 @@ Example::
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -219,6 +220,23 @@ class Observations:
             if target_geometry(self.targets[pattern])[0] == "plane":
                 out[rows] = rigid_fit(self.targets[pattern], self.points[rows][:, pattern])
         return out
+
+
+def pooled(datasets: Sequence[Any], q: np.ndarray | None = None, group: np.ndarray | None = None) -> Observations:
+    """The rows of recorded data sets (anything with ``q``, ``points``, ``split``, ``targets`` and ``frame``, such as
+    :class:`labcal.datasets.Dataset`), in order, as one Observations with the first one's targets and frame.
+
+    ``q`` replaces their stacked joints (the CLI passes them converted to model joints); ``group`` labels the rows.
+    """
+    first = datasets[0]
+    return Observations(
+        q=np.concatenate([d.q for d in datasets]) if q is None else q,
+        points=np.concatenate([d.points for d in datasets]),
+        targets=first.targets,
+        frame=first.frame,
+        split=np.concatenate([d.split for d in datasets]).astype(object),
+        group=group,
+    )
 
 
 def check_targets(targets: np.ndarray) -> None:

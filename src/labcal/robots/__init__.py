@@ -74,7 +74,7 @@ from labcal.kinematics.conversions import from_dh, from_mdh, from_urdf
 from labcal.kinematics.poe import PRISMATIC, REVOLUTE, LocalPOEModel
 from labcal.names import duplicate, label_problem, name_problem, printable
 from labcal.robots.joint_map import JointMap
-from labcal.tomlschema import Key, SchemaError, Table, validate
+from labcal.tomlschema import Key, SchemaError, Table, non_negative, positive, validate
 
 BUILTINS = ("ur5e", "ur10", "ur10e", "fanuc-m1000ia", "scara4", "franka-panda", "kuka-iiwa14-r820")
 # Example robot files shipped beside the built-ins and loadable by name, but not robots of their own: models to copy
@@ -170,6 +170,13 @@ def load(name_or_path: str | Path) -> RobotSpec:
     return loads(text, "urdf" if path.suffix.lower() == ".urdf" else "toml", source=str(path))
 
 
+def from_record(record: dict, source: str) -> RobotSpec | None:
+    """The robot a :meth:`RobotSpec.record` stored, read back with :func:`loads` (None: recorded without its file text,
+    before labcal stored it). A record without a format is TOML."""
+    text = record.get("text")
+    return loads(text, record.get("format") or "toml", source=source) if text else None
+
+
 def loads(text: str, format: str = "toml", source: str = "<text>") -> RobotSpec:
     """A robot from the text of a robot file (``format`` "toml" or "urdf"), e.g. the copy a session stored."""
     source = printable(source)  # it names the file in every message: a stored name may hold anything
@@ -220,14 +227,6 @@ def _lo_below_hi(lim: list[float]) -> str | None:
     return f"has lo {lim[0]} greater than hi {lim[1]}" if lim[0] > lim[1] else None
 
 
-def _non_negative(value: float) -> str | None:
-    return f"must be >= 0, got {value}" if value < 0 else None
-
-
-def _positive(value: float) -> str | None:
-    return f"must be > 0, got {value}" if value <= 0 else None
-
-
 def _non_zero(axis: list[float]) -> str | None:
     return "must not be zero" if np.linalg.norm(axis) < 1e-12 else None
 
@@ -242,11 +241,11 @@ _JOINT = {
     "name": Key("str", check=name_problem, doc="joint name (default joint1, joint2, …): letters, digits, _ - . + /"),
     "type": Key("str", default=REVOLUTE, choices=(REVOLUTE, PRISMATIC)),
     "limits": Key("vector", shape=(2,), unit="rad, m for prismatic", expect="[lo, hi] numbers", check=_lo_below_hi),
-    "mass": Key("number", unit="kg", check=_non_negative, doc="mass of the link this joint moves"),
+    "mass": Key("number", unit="kg", check=non_negative, doc="mass of the link this joint moves"),
     "com": Key("vector", shape=(3,), unit="m", doc="centre of mass, base frame, all joints at 0"),
     # Not part of the kinematic model (nor of its hash): for exports that describe the joints (URDF).
-    "velocity": Key("number", unit="rad/s, m/s for prismatic", check=_positive, doc="joint speed limit"),
-    "effort": Key("number", unit="N·m, N for prismatic", check=_positive, doc="joint torque/force limit"),
+    "velocity": Key("number", unit="rad/s, m/s for prismatic", check=positive, doc="joint speed limit"),
+    "effort": Key("number", unit="N·m, N for prismatic", check=positive, doc="joint torque/force limit"),
 }
 _DH_JOINT = Table({**_JOINT, **{k: Key("number", required=True, unit=u) for k, u in _DH_KEYS.items()}})
 _POE_JOINT = Table(
@@ -261,7 +260,7 @@ _TOOL = Table(
     {
         "xyz": Key("vector", shape=(3,), unit="m", default=[0.0, 0.0, 0.0]),
         "rpy": Key("vector", shape=(3,), unit="rad", default=[0.0, 0.0, 0.0]),
-        "mass": Key("number", unit="kg", check=_non_negative, doc="payload"),
+        "mass": Key("number", unit="kg", check=non_negative, doc="payload"),
         "com": Key("vector", shape=(3,), unit="m"),
     }
 )

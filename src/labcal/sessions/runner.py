@@ -77,7 +77,7 @@ from labcal.drivers.base import (
     Robot,
     Tracker,
 )
-from labcal.robots import RobotSpec, loads
+from labcal.robots import RobotSpec, from_record
 from labcal.robots.joint_map import JointMap
 from labcal.sessions.plans import Plan, PoseStep, checked_number
 
@@ -548,11 +548,8 @@ def _join(reasons: list[str]) -> str:
 
 def _spec_of_start(start: StartDoc) -> RobotSpec | None:
     """The robot model stored in a start document (None when the session predates stored robot files)."""
-    record = start.robot
-    if not record.get("text"):
-        return None
     try:
-        return loads(record["text"], record.get("format") or "toml", source=f"<robot file of {start.session_id}>")
+        return from_record(start.robot, f"<robot file of {start.session_id}>")
     except ValueError as e:
         raise SessionError(f"the robot file stored with session {start.session_id} cannot be read: {e}") from None
 

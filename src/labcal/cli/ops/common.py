@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from labcal.calibration.observations import Observations
+from labcal.calibration.observations import Observations, pooled
 from labcal.cli.common import UserError, session_unit
 from labcal.datasets import Dataset, SessionStore, parse_ref
-from labcal.robots import BUILTINS, RobotSpec, load, loads
+from labcal.robots import BUILTINS, RobotSpec, from_record, load
 
 
 def robot_for(dataset_robot: dict, robot: str | None = None) -> RobotSpec:
@@ -17,7 +17,7 @@ def robot_for(dataset_robot: dict, robot: str | None = None) -> RobotSpec:
 
     1. ``robot`` (built-in name or file) if given: an override, which must have the recorded hash;
     2. else the robot file text stored with the data (self-contained versions), read back with
-       :func:`labcal.robots.loads` and checked against the recorded hash;
+       :func:`labcal.robots.from_record` and checked against the recorded hash;
     3. else (sessions written before the text was stored) the built-in of the recorded name.
 
     Raises UserError naming the model and both hashes when they differ (a different robot, an edited file, or a
@@ -33,20 +33,18 @@ def robot_for(dataset_robot: dict, robot: str | None = None) -> RobotSpec:
                 f"({name!r}, hash {short})"
             )
         return spec
-    text = dataset_robot.get("text")
-    if text:
-        fmt = dataset_robot.get("format") or "toml"
-        try:
-            spec = loads(text, fmt, source=f"<robot file stored with the session: {name}>")
-        except ValueError as e:
-            raise UserError(f"the robot file stored with the session ({name!r}) cannot be read: {e}") from None
-        if recorded and spec.hash != recorded:
+    try:
+        stored = from_record(dataset_robot, f"<robot file stored with the session: {name}>")
+    except ValueError as e:
+        raise UserError(f"the robot file stored with the session ({name!r}) cannot be read: {e}") from None
+    if stored is not None:
+        if recorded and stored.hash != recorded:
             raise UserError(
-                f"the robot file stored with the session ({name!r}) has hash {spec.hash[:12]}… but the session "
+                f"the robot file stored with the session ({name!r}) has hash {stored.hash[:12]}… but the session "
                 f"records {short}: this labcal reads the file differently from the one that recorded it; pass the "
                 "original model with --robot PATH"
             )
-        return spec
+        return stored
     if name not in BUILTINS:
         raise UserError(
             f"the data were taken with robot model {name!r}, which is not a built-in and was not stored with the "
@@ -161,14 +159,7 @@ def load_observations(
         )
     # Pooled sessions: cross-validation keeps each session's rows in one fold.
     group = np.concatenate([np.full(len(d), d.ref, dtype=object) for d in datasets]) if len(datasets) > 1 else None
-    obs = Observations(
-        q=spec.joints.to_model(q_controller) if spec is not None else q_controller,
-        points=np.concatenate([d.points for d in datasets]),
-        targets=first.targets,
-        frame=first.frame,
-        split=np.concatenate([d.split for d in datasets]).astype(object),
-        group=group,
-    )
+    obs = pooled(datasets, spec.joints.to_model(q_controller) if spec is not None else q_controller, group)
     return (obs, datasets, spec) if with_spec else (obs, datasets)
 
 

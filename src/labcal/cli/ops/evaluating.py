@@ -25,7 +25,6 @@ from __future__ import annotations
 import dataclasses
 import tempfile
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +34,7 @@ from labcal.cli.common import UserError, plain
 from labcal.cli.ops.common import load_observations, split_ref
 from labcal.cli.ops.fitting import load_stored_fit, metric_warnings
 from labcal.datasets import SessionStore
+from labcal.datasets._util import iso, utc_now
 
 
 @dataclass
@@ -154,7 +154,7 @@ def evaluate_fit(
     evaluation = {
         "kind": "labcal.evaluation",
         "evaluation_id": None,
-        "created": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ"),
+        "created": iso(utc_now()),  # the store's timestamp format
         "fit_id": fit_id,
         "fit_ref": stored.ref,
         "fit_inputs": stored.inputs,

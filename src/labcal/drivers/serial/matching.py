@@ -33,8 +33,6 @@ import numpy as np
 from labcal.datasets.targets import pair_distances, target_pairs
 from labcal.drivers.base import MeasurementRejected
 
-_PAIRS = target_pairs(3)
-
 
 def check_targets(targets: np.ndarray, tolerance: float) -> np.ndarray:
     """Validate m nominal targets (m, 3) m for labelling stray markers; return them as floats.
@@ -95,11 +93,11 @@ def _by_distances(p: np.ndarray, targets: np.ndarray, tolerance: float) -> tuple
     dist = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
     nominal_all = np.linalg.norm(targets[:, None, :] - targets[None, :, :], axis=2)
     perms = np.array(list(itertools.permutations(range(n), 3)))
-    measured = np.stack([dist[perms[:, i], perms[:, j]] for i, j in _PAIRS], axis=1)
+    measured = pair_distances(p[perms])  # (P, 3): |ab|, |ac|, |bc| of every ordered triple of markers
     found: dict[tuple, tuple[float, dict[int, int]]] = {}
     best = np.inf
     for triple in itertools.combinations(range(m), 3):
-        nominal = np.array([nominal_all[triple[i], triple[j]] for i, j in _PAIRS])
+        nominal = pair_distances(targets[list(triple)])
         score = np.max(np.abs(measured - nominal), axis=1)
         best = min(best, float(score.min()))
         for k in np.flatnonzero(score <= tolerance):

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from labcal.tomlschema import Key, SchemaError, Table, fail, read_toml, validate
+from labcal.tomlschema import Key, SchemaError, Table, fail, non_negative, positive, read_toml, validate
 
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6}
 AXES = ("x", "y", "z")
@@ -130,14 +130,6 @@ NDI_REPLIES = ("tx", "bx")
 NDI_BAUD_CODES = {9600: 0, 14400: 1, 19200: 2, 38400: 3, 57600: 4, 115200: 5, 921600: 6, 1228739: 7, 230400: 8}
 
 
-def _positive(value: float) -> str | None:
-    return None if value > 0 else f"must be > 0, got {value}"
-
-
-def _non_negative(value: float) -> str | None:
-    return None if value >= 0 else f"must be >= 0, got {value}"
-
-
 def _regex(text: str) -> str | None:
     try:
         re.compile(text)
@@ -162,11 +154,11 @@ def _axes(axes: list[str]) -> str | None:
 PORT_SCHEMA = Table(
     {
         "url": Key("str", doc="serial port or pyserial URL (socket://, loop://, a pty path)"),
-        "baudrate": Key("int", default=9600, check=_positive),
+        "baudrate": Key("int", default=9600, check=positive),
         "bytesize": Key("int", default=8, choices=(5, 6, 7, 8)),
         "parity": Key("str", default="N", choices=("N", "E", "O", "M", "S")),
         "stopbits": Key("number", default=1.0, choices=(1.0, 1.5, 2.0)),
-        "timeout": Key("number", default=1.0, unit="s", check=_positive, doc="wait for one reply line"),
+        "timeout": Key("number", default=1.0, unit="s", check=positive, doc="wait for one reply line"),
     }
 )
 INIT_SCHEMA = Table({"command": Key("str", required=True), "expect": Key("str", check=_regex)})
@@ -195,8 +187,8 @@ ASCII_SCHEMA = Table(
         "checksum": Key("str", default="none", choices=("none", "nmea", "crc16-arc")),
         "init": Key("tables", table=INIT_SCHEMA, default=[]),
         "close_commands": Key("strings", default=[]),
-        "retries": Key("int", default=2, check=_non_negative),
-        "triangle_tolerance_mm": Key("number", unit="mm", check=_positive, doc="pairwise-distance check"),
+        "retries": Key("int", default=2, check=non_negative),
+        "triangle_tolerance_mm": Key("number", unit="mm", check=positive, doc="pairwise-distance check"),
         "identity": Key("table", table=IDENTITY_SCHEMA, default={}, doc="who the tracker is (serial, model …)"),
     }
 )
@@ -205,10 +197,10 @@ NDI_SCHEMA = Table(
         "reply": Key("str", default="tx", choices=NDI_REPLIES),
         "baudrate": Key("int", default=115200, choices=tuple(NDI_BAUD_CODES)),
         "handshake": Key("bool", default=False),
-        "switch_delay": Key("number", default=0.15, unit="s", check=_non_negative),
-        "init_timeout": Key("number", default=5.0, unit="s", check=_positive),
-        "match_tolerance_mm": Key("number", default=0.5, unit="mm", check=_positive),
-        "retries": Key("int", default=2, check=_non_negative),
+        "switch_delay": Key("number", default=0.15, unit="s", check=non_negative),
+        "init_timeout": Key("number", default=5.0, unit="s", check=positive),
+        "match_tolerance_mm": Key("number", default=0.5, unit="mm", check=positive),
+        "retries": Key("int", default=2, check=non_negative),
         "reset_on_failure": Key("bool", default=True),
     }
 )
