@@ -178,7 +178,8 @@ def pack_values(types: Sequence[str], values: Sequence[Any]) -> bytes:
 def unpack_values(types: Sequence[str], data: bytes) -> list[Any]:
     """Inverse of :func:`pack_values`; raises struct.error if data has the wrong length."""
     flat = iter(struct.unpack(">" + "".join(TYPE_FORMATS[k] for k in types), data))
-    return [[next(flat) for _ in range(_vector_size(k))] if _vector_size(k) else next(flat) for k in types]
+    sizes = [_vector_size(k) for k in types]
+    return [[next(flat) for _ in range(size)] if size else next(flat) for size in sizes]
 
 
 def recv_exact(sock: socket.socket, n: int) -> bytes:
